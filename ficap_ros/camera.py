@@ -1,0 +1,208 @@
+"""Camera intrinsics and lens models.
+
+Pixel convention: OpenCV's, pixel centres at integer coordinates, (0, 0) the centre of the top-left
+pixel. (AprilTag's C library puts (0, 0) at the outer corner of that pixel: subtract 0.5 px from its
+coordinates to compare.) Camera optical frame: x right, y down, z forward (REP-103 ``_optical``).
+
+Lens models, named as in ``sensor_msgs/CameraInfo``:
+    ``plumb_bob`` (k1 k2 p1 p2 k3), ``rational_polynomial`` (k1 k2 p1 p2 k3 k4 k5 k6),
+    ``equidistant`` (fisheye k1 k2 k3 k4, OpenCV's ``cv2.fisheye``), and ``none`` (rectified or ideal
+    pinhole; what a rectified image with projection matrix P uses).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Sequence
+
+import cv2
+import numpy as np
+import yaml
+
+from ficap_ros.errors import IntrinsicsError
+
+__all__ = ["CameraModel", "DISTORTION_MODELS", "load_camera_yaml"]
+
+#: Number of distortion coefficients each lens model takes (at least; extra zeros are allowed).
+DISTORTION_MODELS: dict[str, int] = {
+    "none": 0,
+    "plumb_bob": 5,
+    "rational_polynomial": 8,
+    "equidistant": 4,
+}
+
+
+@dataclass(frozen=True)
+class CameraModel:
+    """Intrinsics of one camera.
+
+    Attributes:
+        width_px, height_px: image size.
+        K: 3x3 camera matrix (fx, fy, cx, cy in px).
+        D: distortion coefficients of ``distortion_model`` (empty for ``none``).
+        distortion_model: one of ``DISTORTION_MODELS``.
+    """
+
+    width_px: int
+    height_px: int
+    K: np.ndarray
+    D: np.ndarray
+    distortion_model: str = "none"
+
+    def __post_init__(self) -> None:
+        if self.distortion_model not in DISTORTION_MODELS:
+            raise IntrinsicsError(
+                f"unknown distortion model {self.distortion_model!r}; "
+                f"expected one of {', '.join(DISTORTION_MODELS)}"
+            )
+        k = np.asarray(self.K, dtype=np.float64)
+        if k.size != 9:
+            raise IntrinsicsError(f"camera matrix K must have 9 values, got {k.size}")
+        k = k.reshape(3, 3).copy()
+        d = np.asarray(self.D, dtype=np.float64).reshape(-1).copy()
+        if not (np.all(np.isfinite(k)) and np.all(np.isfinite(d))):
+            raise IntrinsicsError("camera intrinsics contain NaN or infinity")
+        fx, fy, cx, cy = k[0, 0], k[1, 1], k[0, 2], k[1, 2]
+        if fx <= 0.0 or fy <= 0.0:
+            raise IntrinsicsError(f"camera focal lengths must be positive, got fx={fx} fy={fy}")
+        if int(self.width_px) <= 0 or int(self.height_px) <= 0:
+            raise IntrinsicsError(
+                f"camera image size must be positive, got {self.width_px}x{self.height_px}"
+            )
+        if not (0.0 < cx < self.width_px and 0.0 < cy < self.height_px):
+            raise IntrinsicsError(
+                f"principal point ({cx:.1f}, {cy:.1f}) lies outside the "
+                f"{self.width_px}x{self.height_px} image"
+            )
+        need = DISTORTION_MODELS[self.distortion_model]
+        if d.size < need:
+            d = np.concatenate([d, np.zeros(need - d.size)])
+        if self.distortion_model == "equidistant":
+            d = d[:4]
+        k.setflags(write=False)
+        d.setflags(write=False)
+        object.__setattr__(self, "K", k)
+        object.__setattr__(self, "D", d)
+        object.__setattr__(self, "width_px", int(self.width_px))
+        object.__setattr__(self, "height_px", int(self.height_px))
+
+    # -- constructors ----------------------------------------------------------------------------
+    @classmethod
+    def pinhole(
+        cls, width_px: int, height_px: int, hfov_deg: float | None = None, f_px: float | None = None
+    ) -> CameraModel:
+        """An ideal pinhole with the principal point at the image centre."""
+        if f_px is None:
+            if hfov_deg is None:
+                raise IntrinsicsError("pinhole camera needs hfov_deg or f_px")
+            f_px = (width_px / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
+        k = np.array([[f_px, 0.0, (width_px - 1) / 2.0], [0.0, f_px, (height_px - 1) / 2.0],
+                      [0.0, 0.0, 1.0]])
+        return cls(width_px, height_px, k, np.zeros(0), "none")
+
+    @classmethod
+    def from_camera_info(
+        cls,
+        width: int,
+        height: int,
+        k: Sequence[float],
+        d: Sequence[float],
+        distortion_model: str,
+        p: Sequence[float] | None = None,
+        rectified: bool = False,
+    ) -> CameraModel:
+        """From the fields of ``sensor_msgs/CameraInfo``.
+
+        Args:
+            rectified: the image is already rectified: use P's left 3x3 and no distortion.
+        """
+        if rectified:
+            if p is None or len(p) != 12:
+                raise IntrinsicsError("a rectified image needs the 12 values of P")
+            pm = np.asarray(p, dtype=np.float64).reshape(3, 4)
+            return cls(width, height, pm[:, :3], np.zeros(0), "none")
+        model = distortion_model or ("plumb_bob" if len(d) else "none")
+        if not any(d) and model not in DISTORTION_MODELS:
+            model = "none"
+        return cls(width, height, np.asarray(k, dtype=np.float64), np.asarray(d), model)
+
+    # -- geometry --------------------------------------------------------------------------------
+    def project(self, points_cam: np.ndarray) -> np.ndarray:
+        """Project points (N, 3) in the camera optical frame (any length unit) to pixels (N, 2)."""
+        pts = np.ascontiguousarray(np.asarray(points_cam, dtype=np.float64).reshape(-1, 1, 3))
+        zero = np.zeros(3)
+        if self.distortion_model == "equidistant":
+            px, _ = cv2.fisheye.projectPoints(pts, zero, zero, self.K, self.D)
+        else:
+            px, _ = cv2.projectPoints(pts, zero, zero, self.K, self.D)
+        return px.reshape(-1, 2)
+
+    def undistort_px(self, points_px: np.ndarray) -> np.ndarray:
+        """Map distorted pixels (N, 2) to the pixels an ideal pinhole with the same K would see."""
+        pts = np.asarray(points_px, dtype=np.float64).reshape(-1, 1, 2)
+        if self.distortion_model == "none" or not np.any(self.D):
+            return pts.reshape(-1, 2).copy()
+        if self.distortion_model == "equidistant":
+            out = cv2.fisheye.undistortPoints(pts, self.K, self.D, P=self.K)
+        else:
+            out = cv2.undistortPointsIter(
+                pts, self.K, self.D, None, self.K,
+                (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-10),
+            )
+        return out.reshape(-1, 2)
+
+    @property
+    def is_distorted(self) -> bool:
+        return self.distortion_model != "none" and bool(np.any(self.D))
+
+    @property
+    def pinhole_K(self) -> np.ndarray:
+        return self.K
+
+    def scaled(self, factor: float) -> CameraModel:
+        """The same camera seen in an image resized by ``factor`` (pixel-centre convention)."""
+        k = self.K.copy()
+        k[0, 0] *= factor
+        k[1, 1] *= factor
+        k[0, 2] = (k[0, 2] + 0.5) * factor - 0.5
+        k[1, 2] = (k[1, 2] + 0.5) * factor - 0.5
+        return CameraModel(
+            round(self.width_px * factor), round(self.height_px * factor), k, self.D,
+            self.distortion_model,
+        )
+
+    def to_camera_yaml(self, name: str = "camera") -> dict[str, Any]:
+        """The camera_calibration (ROS ``camera_info_manager``) YAML form."""
+        d = self.D.tolist()
+        p = np.hstack([self.K, np.zeros((3, 1))])
+        return {
+            "image_width": self.width_px,
+            "image_height": self.height_px,
+            "camera_name": name,
+            "camera_matrix": {"rows": 3, "cols": 3, "data": self.K.reshape(-1).tolist()},
+            "distortion_model": "plumb_bob" if self.distortion_model == "none" else self.distortion_model,
+            "distortion_coefficients": {"rows": 1, "cols": len(d) or 5, "data": d or [0.0] * 5},
+            "rectification_matrix": {"rows": 3, "cols": 3, "data": np.eye(3).reshape(-1).tolist()},
+            "projection_matrix": {"rows": 3, "cols": 4, "data": p.reshape(-1).tolist()},
+        }
+
+
+def load_camera_yaml(path: str | Path) -> CameraModel:
+    """Read intrinsics in the camera_calibration YAML format; raises ``IntrinsicsError``."""
+    try:
+        data = yaml.safe_load(Path(path).read_text())
+    except OSError as err:
+        raise IntrinsicsError(f"cannot read intrinsics {path}: {err.strerror or err}") from err
+    except yaml.YAMLError as err:
+        raise IntrinsicsError(f"intrinsics {path} is not valid YAML") from err
+    try:
+        k = data["camera_matrix"]["data"]
+        d = data.get("distortion_coefficients", {}).get("data", []) or []
+        model = data.get("distortion_model", "plumb_bob") or "plumb_bob"
+        return CameraModel.from_camera_info(
+            int(data["image_width"]), int(data["image_height"]), k, d, model
+        )
+    except (KeyError, TypeError, ValueError) as err:
+        raise IntrinsicsError(f"intrinsics {path}: missing or malformed field {err}") from err

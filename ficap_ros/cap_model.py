@@ -1,0 +1,265 @@
+"""The Fi-Cap geometry: 23 tag36h11 tags on the faces of a partial sphere.
+
+The nominal cap is built from the parameters of ``shared/design/cap-spec.md``; an as-built model
+(measured, with every tag a fraction of a millimetre off) replaces it through the same YAML file.
+
+Frames and units:
+    cap frame C: origin at the centre of the sphere the faces are tangent to, x forward (toward the
+    wearer's nose), y to the wearer's left, z up. Every length in this module is in millimetres.
+
+Corner order (per tag, as seen from outside the cap): top-left, top-right, bottom-right,
+bottom-left of the printed tag, i.e. OpenCV ArUco's order c0..c3.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+
+from ficap_ros.errors import ModelError
+
+__all__ = [
+    "TAG_SIDE_MM",
+    "FACE_SIDE_MM",
+    "ROW_ANGLE_DEG",
+    "SPHERE_RADIUS_MM",
+    "ROWS",
+    "CapModel",
+    "nominal_model",
+    "load_model",
+    "write_atomic",
+]
+
+#: Side of the tag's black square (8 cells of 4 mm), mm.
+TAG_SIDE_MM = 32.0
+#: Side of the square face the tag is printed on (tag plus its 1-cell white quiet zone), mm.
+FACE_SIDE_MM = 40.0
+#: Angle between the normals of adjacent faces, deg.
+ROW_ANGLE_DEG = 24.5
+#: Radius of the sphere the faces are tangent to: adjacent 40 mm faces 24.5 deg apart meet edge to
+#: edge, so half a face (20 mm) subtends half the angle at the centre.
+SPHERE_RADIUS_MM = (FACE_SIDE_MM / 2.0) / math.tan(math.radians(ROW_ANGLE_DEG / 2.0))
+
+
+def _in_row_step_deg(elevation_deg: float, angle_deg: float) -> float:
+    """Azimuth step that puts normals at ``elevation_deg`` exactly ``angle_deg`` apart."""
+    el = math.radians(elevation_deg)
+    cos_step = (math.cos(math.radians(angle_deg)) - math.sin(el) ** 2) / math.cos(el) ** 2
+    return math.degrees(math.acos(cos_step))
+
+
+#: Rows as (elevation of the face normal deg, number of faces, in-row azimuth step deg), top first.
+#: cap-spec gives 26.968 deg for the +-24.5 deg rows, the rounded value of the step that makes
+#: in-row normals exactly 24.5 deg apart; we use the exact value so the 24.5 deg self-check holds
+#: to 1e-6. The outer rows use 42 deg so no tag is covered by a neighbouring face.
+ROWS: tuple[tuple[float, int, float], ...] = (
+    (49.0, 3, 42.0),
+    (24.5, 5, _in_row_step_deg(24.5, ROW_ANGLE_DEG)),
+    (0.0, 7, ROW_ANGLE_DEG),
+    (-24.5, 5, _in_row_step_deg(-24.5, ROW_ANGLE_DEG)),
+    (-49.0, 3, 42.0),
+)
+
+
+@dataclass(frozen=True)
+class CapModel:
+    """A cap: tag ids with the four 3-D corners of each, in the cap frame, mm.
+
+    Attributes:
+        ids: tag ids, in model order (unique).
+        corners_mm: array (N, 4, 3): corners of tag ``ids[i]`` in cap-spec order (top-left,
+            top-right, bottom-right, bottom-left seen from outside), cap frame C, mm.
+    """
+
+    ids: tuple[int, ...]
+    corners_mm: np.ndarray
+    _index: dict[int, int] = field(init=False, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        corners = np.asarray(self.corners_mm, dtype=np.float64)
+        if corners.ndim != 3 or corners.shape[1:] != (4, 3):
+            raise ModelError(f"cap model corners must have shape (N, 4, 3), got {corners.shape}")
+        if len(self.ids) != corners.shape[0]:
+            raise ModelError(f"cap model has {len(self.ids)} ids but {corners.shape[0]} corner sets")
+        if corners.shape[0] == 0:
+            raise ModelError("cap model has no tags")
+        if not np.all(np.isfinite(corners)):
+            raise ModelError("cap model corners contain NaN or infinity")
+        seen: dict[int, int] = {}
+        for i, tag_id in enumerate(self.ids):
+            if not isinstance(tag_id, (int, np.integer)) or tag_id < 0:
+                raise ModelError(f"cap model tag id {tag_id!r} is not a non-negative integer")
+            if int(tag_id) in seen:
+                raise ModelError(f"cap model has duplicate tag id {int(tag_id)}")
+            seen[int(tag_id)] = i
+        corners.setflags(write=False)
+        object.__setattr__(self, "ids", tuple(int(i) for i in self.ids))
+        object.__setattr__(self, "corners_mm", corners)
+        object.__setattr__(self, "_index", seen)
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, CapModel):
+            return NotImplemented
+        return self.ids == other.ids and np.array_equal(self.corners_mm, other.corners_mm)
+
+    def __hash__(self) -> int:
+        return hash((self.ids, self.corners_mm.tobytes()))
+
+    # -- lookups -------------------------------------------------------------------------------
+    def __contains__(self, tag_id: object) -> bool:
+        return tag_id in self._index
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+    def index_of(self, tag_id: int) -> int:
+        """Row of ``tag_id`` in ``corners_mm``; raises ``KeyError`` for an id not in the model."""
+        return self._index[tag_id]
+
+    def corners_of(self, tag_id: int) -> np.ndarray:
+        """Corners (4, 3) of one tag, cap frame, mm."""
+        return self.corners_mm[self._index[tag_id]]
+
+    @property
+    def centres_mm(self) -> np.ndarray:
+        """Tag centres (N, 3), cap frame, mm."""
+        return self.corners_mm.mean(axis=1)
+
+    @property
+    def normals(self) -> np.ndarray:
+        """Outward unit normals (N, 3) of the tag planes, cap frame.
+
+        From the corner order (TL, TR, BR, BL seen from outside): right x down = inward, so the
+        outward normal is down x right.
+        """
+        c = self.corners_mm
+        right = (c[:, 1] - c[:, 0]) + (c[:, 2] - c[:, 3])
+        down = (c[:, 3] - c[:, 0]) + (c[:, 2] - c[:, 1])
+        n = np.cross(down, right)
+        return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+    def face_corners_mm(self, face_side_mm: float = FACE_SIDE_MM) -> np.ndarray:
+        """Corners (N, 4, 3) of the square face each tag is printed on, same order, mm.
+
+        The face is the tag square scaled about its centre by ``face_side_mm / TAG_SIDE_MM``: the
+        white quiet zone around the black border.
+        """
+        centres = self.centres_mm[:, None, :]
+        return centres + (self.corners_mm - centres) * (face_side_mm / TAG_SIDE_MM)
+
+    # -- serialisation -------------------------------------------------------------------------
+    def to_dict(self) -> dict[str, Any]:
+        """The ``{"frame": "cap", "units": "mm", "tags": [...]}`` form of YAML and JSON."""
+        return {
+            "frame": "cap",
+            "units": "mm",
+            "tags": [
+                {"id": tag_id, "corners_mm": [[float(v) for v in p] for p in self.corners_mm[i]]}
+                for i, tag_id in enumerate(self.ids)
+            ],
+        }
+
+    @classmethod
+    def from_dict(cls, data: Any, source: str = "cap model") -> CapModel:
+        """Build a model from the ``to_dict`` form; raises ``ModelError`` naming ``source``."""
+        if not isinstance(data, dict) or not isinstance(data.get("tags"), list):
+            raise ModelError(f"{source}: expected a mapping with a 'tags' list")
+        if data.get("units", "mm") != "mm":
+            raise ModelError(f"{source}: units must be 'mm', got {data.get('units')!r}")
+        if data.get("frame", "cap") != "cap":
+            raise ModelError(f"{source}: frame must be 'cap', got {data.get('frame')!r}")
+        ids: list[int] = []
+        corners: list[Any] = []
+        for k, tag in enumerate(data["tags"]):
+            if not isinstance(tag, dict) or "id" not in tag or "corners_mm" not in tag:
+                raise ModelError(f"{source}: tag entry {k} needs 'id' and 'corners_mm'")
+            ids.append(tag["id"])
+            corners.append(tag["corners_mm"])
+        try:
+            array = np.asarray(corners, dtype=np.float64)
+        except (TypeError, ValueError) as err:
+            raise ModelError(f"{source}: corners are not numbers: {err}") from err
+        try:
+            return cls(tuple(ids), array)
+        except ModelError as err:
+            raise ModelError(f"{source}: {err}") from err
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2)
+
+    def to_yaml(self) -> str:
+        header = (
+            "# Fi-Cap model: tag ids and the four corners of each (top-left, top-right,\n"
+            "# bottom-right, bottom-left seen from outside), cap frame C (x forward, y left, z up), mm.\n"
+        )
+        return header + yaml.safe_dump(self.to_dict(), sort_keys=False, default_flow_style=None)
+
+    def save(self, path: str | os.PathLike[str]) -> None:
+        """Write the model as YAML, atomically."""
+        write_atomic(Path(path), self.to_yaml())
+
+
+def write_atomic(path: Path, text: str | bytes) -> None:
+    """Write ``text`` to ``path`` through a temporary file in the same folder, then rename.
+
+    A crash or Ctrl-C never leaves a half-written file at ``path``.
+    """
+    path = Path(path)
+    data = text.encode() if isinstance(text, str) else text
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
+    try:
+        with os.fdopen(fd, "wb") as handle:
+            handle.write(data)
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+
+
+def load_model(path: str | os.PathLike[str]) -> CapModel:
+    """Load a cap model from YAML (or JSON, a subset of YAML); raises ``ModelError``."""
+    try:
+        text = Path(path).read_text()
+    except OSError as err:
+        raise ModelError(f"cannot read cap model {path}: {err.strerror or err}") from err
+    try:
+        data = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        raise ModelError(f"cap model {path} is not valid YAML: {str(err).splitlines()[0]}") from err
+    return CapModel.from_dict(data, source=str(path))
+
+
+def nominal_model() -> CapModel:
+    """The nominal cap of cap-spec.md, built from its parameters."""
+    half = TAG_SIDE_MM / 2.0
+    z_up = np.array([0.0, 0.0, 1.0])
+    ids: list[int] = []
+    corners: list[np.ndarray] = []
+    for elevation_deg, count, step_deg in ROWS:
+        el = math.radians(elevation_deg)
+        for k in range(count):
+            az = math.radians(((count - 1) / 2.0 - k) * step_deg)
+            n = np.array([-math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)])
+            c = SPHERE_RADIUS_MM * n
+            u = np.cross(z_up, n)
+            u /= np.linalg.norm(u)
+            v = np.cross(u, n)
+            corners.append(
+                np.array(
+                    [c - half * u - half * v, c + half * u - half * v,
+                     c + half * u + half * v, c - half * u + half * v]
+                )
+            )
+            ids.append(len(ids))
+    return CapModel(tuple(ids), np.array(corners))

@@ -1,0 +1,70 @@
+"""``ficap <verb>``: the command-line face of the core.
+
+Each verb lives in ``ficap_ros/commands/<verb>.py`` and provides ``HELP``, ``add_arguments(parser)``
+and ``run(args) -> int``; heavy imports happen inside ``run`` so ``ficap --help`` stays quick.
+Errors a user can cause print one line (``ficap: error: ...``) and exit 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from typing import Sequence
+
+from ficap_ros.errors import FicapError
+
+#: Verb -> module under ficap_ros.commands, in the order ``--help`` lists them.
+VERBS: dict[str, str] = {
+    "demo": "demo",
+    "model": "model",
+    "detect": "detect",
+    "replay": "replay",
+    "stats": "stats",
+    "calibrate": "calibrate",
+    "evaluate": "evaluate",
+    "synth": "synth",
+    "kit": "kit",
+}
+
+
+def _available_verbs() -> dict[str, object]:
+    modules = {}
+    for verb, module_name in VERBS.items():
+        try:
+            modules[verb] = importlib.import_module(f"ficap_ros.commands.{module_name}")
+        except ModuleNotFoundError as err:
+            if err.name != f"ficap_ros.commands.{module_name}":
+                raise
+    return modules
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="ficap", description="Fi-Cap head-pose ground truth: tools around the core."
+    )
+    sub = parser.add_subparsers(dest="verb", metavar="VERB", required=True)
+    for verb, module in _available_verbs().items():
+        p = sub.add_parser(verb, help=module.HELP, description=module.HELP)  # type: ignore[attr-defined]
+        module.add_arguments(p)  # type: ignore[attr-defined]
+        p.set_defaults(_run=module.run)  # type: ignore[attr-defined]
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args._run(args) or 0)
+    except FicapError as err:
+        print(f"ficap: error: {err}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print("ficap: interrupted", file=sys.stderr)
+        return 130
+    except BrokenPipeError:
+        return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,1 @@
+"""One module per ``ficap`` verb (see ``ficap_ros.cli``)."""

@@ -1,0 +1,28 @@
+"""``ficap model``: print or write the cap model."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = "print the cap model (nominal, or --model FILE) as JSON or YAML, or write it with --out"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--model", help="as-built model YAML (default: the nominal cap-spec model)")
+    fmt = parser.add_mutually_exclusive_group()
+    fmt.add_argument("--json", action="store_true", help="print JSON (default)")
+    fmt.add_argument("--yaml", action="store_true", help="print YAML")
+    parser.add_argument("--out", help="write the model as YAML to this file instead of printing")
+
+
+def run(args: argparse.Namespace) -> int:
+    from ficap_ros.cap_model import load_model, nominal_model
+
+    model = load_model(args.model) if args.model else nominal_model()
+    if args.out:
+        model.save(args.out)
+    elif args.yaml:
+        print(model.to_yaml(), end="")
+    else:
+        print(model.to_json())
+    return 0

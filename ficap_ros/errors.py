@@ -1,0 +1,46 @@
+"""One exception hierarchy for ficap_ros.
+
+Every error a user can cause (bad image, bad intrinsics, bad model file, bad bag) is a
+``FicapError`` subclass whose message is one readable line; the CLI prints it and exits non-zero,
+the node logs it (throttled) and reports it in its status.
+"""
+
+from __future__ import annotations
+
+__all__ = [
+    "FicapError",
+    "ModelError",
+    "ImageError",
+    "IntrinsicsError",
+    "ConfigError",
+    "CalibrationError",
+    "BagError",
+]
+
+
+class FicapError(Exception):
+    """Root of every error ficap_ros raises on purpose."""
+
+
+class ModelError(FicapError):
+    """A cap model is malformed: wrong shape, duplicate ids, unreadable file."""
+
+
+class ImageError(FicapError):
+    """An image is empty, of the wrong type or shape, or cannot be decoded."""
+
+
+class IntrinsicsError(FicapError):
+    """Camera intrinsics are missing, zero, NaN or of an unknown lens model."""
+
+
+class ConfigError(FicapError):
+    """A configuration value is out of range or of an unknown name."""
+
+
+class CalibrationError(FicapError):
+    """A calibration cannot be computed (too few frames, spread too large)."""
+
+
+class BagError(FicapError):
+    """A bag or video cannot be read or written (corrupt, truncated, missing topic)."""

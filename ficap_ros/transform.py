@@ -1,0 +1,92 @@
+"""Rigid transforms with the frames in their names.
+
+``T_a_b`` is the pose of frame b in frame a: it maps a point from b coordinates into a coordinates,
+``p_a = R_a_b p_b + t_a_b``. Rotations are ``scipy.spatial.transform.Rotation``; quaternions that
+cross an interface are named for their order: ``q_wxyz`` (ROS messages store x, y, z, w fields;
+our CSV columns are w, x, y, z) or ``q_xyzw`` (scipy's order).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+__all__ = ["Transform", "CAM_FROM_FORWARD"]
+
+
+@dataclass(frozen=True)
+class Transform:
+    """A rigid transform ``T_a_b``: rotation and translation in metres."""
+
+    rotation: Rotation
+    translation_m: np.ndarray
+
+    def __post_init__(self) -> None:
+        t = np.asarray(self.translation_m, dtype=np.float64).reshape(3).copy()
+        t.setflags(write=False)
+        object.__setattr__(self, "translation_m", t)
+
+    @classmethod
+    def identity(cls) -> Transform:
+        return cls(Rotation.identity(), np.zeros(3))
+
+    @classmethod
+    def from_rvec_tvec(cls, rvec: np.ndarray, tvec_m: np.ndarray) -> Transform:
+        """From OpenCV's rotation vector (rad) and translation (m)."""
+        return cls(Rotation.from_rotvec(np.asarray(rvec, dtype=np.float64).reshape(3)), tvec_m)
+
+    @classmethod
+    def from_matrix(cls, matrix: np.ndarray) -> Transform:
+        """From a 4x4 homogeneous matrix (translation in metres)."""
+        m = np.asarray(matrix, dtype=np.float64)
+        return cls(Rotation.from_matrix(m[:3, :3]), m[:3, 3])
+
+    @property
+    def matrix(self) -> np.ndarray:
+        """4x4 homogeneous matrix, translation in metres."""
+        m = np.eye(4)
+        m[:3, :3] = self.rotation.as_matrix()
+        m[:3, 3] = self.translation_m
+        return m
+
+    @property
+    def rvec(self) -> np.ndarray:
+        """OpenCV rotation vector, rad."""
+        return self.rotation.as_rotvec()
+
+    @property
+    def q_wxyz(self) -> np.ndarray:
+        """Unit quaternion (w, x, y, z), w >= 0."""
+        x, y, z, w = self.rotation.as_quat(canonical=True)
+        return np.array([w, x, y, z])
+
+    @property
+    def q_xyzw(self) -> np.ndarray:
+        """Unit quaternion (x, y, z, w), w >= 0 (scipy's and ROS message field order)."""
+        return self.rotation.as_quat(canonical=True)
+
+    def __mul__(self, other: Transform) -> Transform:
+        """Compose: ``T_a_b * T_b_c = T_a_c``."""
+        return Transform(
+            self.rotation * other.rotation,
+            self.rotation.apply(other.translation_m) + self.translation_m,
+        )
+
+    def inv(self) -> Transform:
+        r_inv = self.rotation.inv()
+        return Transform(r_inv, -r_inv.apply(self.translation_m))
+
+    def apply(self, points: np.ndarray) -> np.ndarray:
+        """Map points (..., 3) from frame b into frame a (same length unit as the translation)."""
+        return self.rotation.apply(np.asarray(points, dtype=np.float64).reshape(-1, 3)).reshape(
+            np.shape(points)
+        ) + self.translation_m
+
+
+#: Rotation of a REP-103 body frame (x forward, y left, z up) whose x axis looks along the camera's
+#: optical axis, expressed in the camera optical frame (x right, y down, z forward): R_cam_forward.
+CAM_FROM_FORWARD = Rotation.from_matrix(
+    np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
+)

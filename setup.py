@@ -1,0 +1,31 @@
+"""ament_python package: builds with colcon in a Jazzy workspace and installs with pip."""
+
+from glob import glob
+
+from setuptools import find_packages, setup
+
+package_name = "ficap_ros"
+
+setup(
+    name=package_name,
+    version="0.1.0",
+    packages=find_packages(exclude=["test", "test.*", "benchmarks"]),
+    package_data={package_name: ["py.typed", "data/*"]},
+    data_files=[
+        ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
+        ("share/" + package_name, ["package.xml"]),
+        ("share/" + package_name + "/config", glob("config/*")),
+    ],
+    install_requires=["setuptools"],
+    zip_safe=True,
+    maintainer="ficap_ros maintainers",
+    maintainer_email="maintainers@users.noreply.h-seed-c0fda0a4.example",
+    description="Fi-Cap head-pose ground truth for ROS 2 Jazzy.",
+    license="BSD-3-Clause",
+    python_requires=">=3.10",
+    entry_points={
+        "console_scripts": [
+            "ficap = ficap_ros.cli:main",
+        ],
+    },
+)

@@ -1,0 +1,26 @@
+"""Shared fixtures. Every test process keeps DDS on loopback and gets its own ROS domain."""
+
+from __future__ import annotations
+
+import os
+
+# Set before any test imports rclpy: loopback only, and a ROS_DOMAIN_ID per xdist worker so tests
+# that run at once never see each other's topics.
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
+_worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
+os.environ["ROS_DOMAIN_ID"] = str(60 + int(_worker.lstrip("gw") or 0))
+
+from pathlib import Path  # noqa: E402
+
+import pytest  # noqa: E402
+
+SHARED = Path(__file__).resolve().parents[1].parent / "shared"
+REAL_APRILTAG = SHARED / "data" / "real_apriltag"
+
+
+@pytest.fixture(scope="session")
+def real_apriltag_dir() -> Path:
+    if not REAL_APRILTAG.is_dir():
+        pytest.fail(f"shared data not found at {REAL_APRILTAG}")
+    return REAL_APRILTAG
