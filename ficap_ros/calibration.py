@@ -1,0 +1,311 @@
+"""Cap-to-head calibration (the paper's section 3.3): how the cap sits on the head.
+
+Frames (all right-handed):
+    C  cap frame (x forward/nose, y left, z up, origin at the cap sphere centre).
+    H  head frame (x forward, y left, z up); its origin is taken at the cap origin.
+    F  frontal frame: the head's zero pose, usually the vehicle's axes (x forward, y left, z up).
+    cam  camera optical frame (x right, y down, z forward).
+    ref  the frame a reference head-pose source (face tracker, laser rig) reports in.
+
+Two ways to find ``R_cap_head``:
+    * frontal: the wearer looks straight ahead for a few seconds. Then ``R_cam_head = R_cam_frontal``
+      in every frame, so ``R_cap_head_i = R_cam_cap_i^-1 R_cam_frontal``, robustly averaged.
+    * reference: a reference source gives ``R_ref_head_i`` for frames paired by stamp. The unknown
+      ``R_cap_head`` (Y) and ``R_cam_reference`` (X) satisfy ``X R_ref_head_i = R_cam_cap_i Y`` (the
+      robot-world/hand-eye form ``A X = Z B``), solved by OpenCV's ``calibrateRobotWorldHandEye``
+      and refined by robust nonlinear least squares. The reference's head frame must use the same
+      axes as H (x forward, y left, z up).
+
+Pure core: no ROS imports; the live node and ``ficap calibrate`` share it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import yaml
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from ficap_ros.cap_model import write_atomic
+from ficap_ros.errors import CalibrationError
+from ficap_ros.metrics import angle_deg, robust_mean_rotation, rotation_from_ypr_deg
+from ficap_ros.pipeline import HeadCalibration
+from ficap_ros.transform import CAM_FROM_FORWARD
+
+__all__ = [
+    "CalibrationResult",
+    "calibrate_frontal",
+    "calibrate_reference",
+    "frontal_frame_rotation",
+    "save_calibration",
+    "load_calibration",
+    "CALIBRATION_FORMAT",
+]
+
+#: Name and version written into calibration files.
+CALIBRATION_FORMAT = "ficap_calibration/1"
+
+#: Least rotation excursion of the reference (second singular value of the rotation vectors about
+#: their mean, RMS degrees) that makes the reference problem well posed: with the head held still
+#: any rotation about the motion axis can move between X and Y.
+MIN_REFERENCE_EXCITATION_DEG = 2.0
+
+
+@dataclass(frozen=True)
+class CalibrationResult:
+    """A computed cap-to-head calibration.
+
+    Attributes:
+        R_cap_head: orientation of the head frame H in the cap frame C.
+        frames_used: frames (frontal) or pairs (reference) kept as inliers.
+        spread_deg: RMS geodesic residual of the kept frames, degrees. Frontal: angle between each
+            frame's R_cap_head_i and the mean (how still and how frontal the wearer was).
+            Reference: angle of ``(X R_ref_head_i)^-1 R_cam_cap_i Y`` (reference noise + cap noise).
+        mode: ``frontal`` or ``reference``.
+        R_cam_reference: orientation of the reference frame in the camera optical frame
+            (reference mode only, else None).
+    """
+
+    R_cap_head: Rotation
+    frames_used: int
+    spread_deg: float
+    mode: str
+    R_cam_reference: Rotation | None = None
+
+
+def frontal_frame_rotation(
+    mount_pitch_deg: float = 0.0, mount_yaw_deg: float = 0.0, mount_roll_deg: float = 0.0
+) -> Rotation:
+    """R_cam_frontal: the frontal frame F (x forward, y left, z up) in the camera optical frame.
+
+    The mount angles are the camera's forward body frame (x along the optical axis, y left, z up)
+    in F, with the head-angle convention of ``ficap_ros.metrics``: yaw positive turned to the left,
+    pitch positive tilted up, roll positive toward the right. A camera pitched down by 10 deg is
+    ``mount_pitch_deg=-10``. All zero gives ``CAM_FROM_FORWARD`` (the camera looks straight ahead).
+
+    Args:
+        mount_pitch_deg, mount_yaw_deg, mount_roll_deg: camera mount angles, degrees.
+    Returns:
+        R_cam_frontal.
+    """
+    R_frontal_camfwd = rotation_from_ypr_deg(mount_yaw_deg, mount_pitch_deg, mount_roll_deg)
+    return CAM_FROM_FORWARD * R_frontal_camfwd.inv()
+
+
+def _count(rotations: Rotation) -> int:
+    return 1 if rotations.single else len(rotations)
+
+
+def _as_stack(rotations: Rotation) -> Rotation:
+    return Rotation.concatenate([rotations]) if rotations.single else rotations
+
+
+def calibrate_frontal(
+    R_cam_cap: Rotation,
+    R_cam_frontal: Rotation,
+    min_frames: int = 30,
+    max_spread_deg: float = 3.0,
+) -> CalibrationResult:
+    """R_cap_head from frames in which the wearer looked straight ahead.
+
+    Args:
+        R_cam_cap: stacked cap orientations in the camera optical frame.
+        R_cam_frontal: the frontal frame in the camera frame (``frontal_frame_rotation``).
+        min_frames: least number of inlier frames.
+        max_spread_deg: largest accepted RMS geodesic residual of the inliers, degrees.
+    Returns:
+        The calibration (``spread_deg`` = RMS angle of the inliers to the robust mean).
+    Raises:
+        CalibrationError: too few frames or inliers, or the spread is too large.
+    """
+    n = _count(R_cam_cap)
+    if n < min_frames:
+        raise CalibrationError(f"frontal calibration needs {min_frames} frames, got {n}")
+    per_frame = _as_stack(R_cam_cap).inv() * R_cam_frontal
+    mean, inliers = robust_mean_rotation(per_frame)
+    used = int(np.count_nonzero(inliers))
+    if used < min_frames:
+        raise CalibrationError(
+            f"frontal calibration kept {used} of {n} frames as inliers, needs {min_frames}"
+        )
+    resid = np.atleast_1d(angle_deg(mean, per_frame[inliers]))
+    spread = float(np.sqrt(np.mean(resid**2)))
+    if spread > max_spread_deg:
+        raise CalibrationError(
+            f"frontal calibration spread {spread:.2f} deg exceeds {max_spread_deg:.2f} deg "
+            "(the head moved or was not frontal)"
+        )
+    return CalibrationResult(mean, used, spread, "frontal", None)
+
+
+def _hand_eye_initial(A: Rotation, B: Rotation) -> tuple[Rotation, Rotation]:
+    """Closed-form start of ``Z B_i = A_i X`` (OpenCV's robot-world/hand-eye, Shah's method).
+
+    Returns (X, Z) = (R_cap_head, R_cam_reference).
+    """
+    import cv2  # local: keep import of the module light
+
+    zeros = [np.zeros((3, 1)) for _ in range(len(A))]
+    R_base2world, _, R_gripper2cam, _ = cv2.calibrateRobotWorldHandEye(
+        list(A.as_matrix()), zeros, list(B.as_matrix()), zeros,
+        method=cv2.CALIB_ROBOT_WORLD_HAND_EYE_SHAH,
+    )
+    return Rotation.from_matrix(R_base2world), Rotation.from_matrix(R_gripper2cam)
+
+
+def calibrate_reference(
+    R_cam_cap: Rotation,
+    R_ref_head: Rotation,
+    min_pairs: int = 10,
+    loss_scale_deg: float = 2.0,
+) -> CalibrationResult:
+    """R_cap_head and R_cam_reference together from a reference head-pose source.
+
+    Solves ``R_cam_reference R_ref_head_i = R_cam_cap_i R_cap_head`` for pairs matched by stamp:
+    OpenCV's ``calibrateRobotWorldHandEye`` (Shah) as the start, then ``least_squares`` over both
+    rotation vectors with a soft-L1 loss (scale ``loss_scale_deg``) so gross reference failures do
+    not pull the answer.
+
+    Args:
+        R_cam_cap: stacked cap orientations in the camera optical frame.
+        R_ref_head: stacked reference head orientations, paired element-wise with ``R_cam_cap``.
+        min_pairs: least number of pairs.
+        loss_scale_deg: residual size beyond which the loss grows linearly, degrees.
+    Returns:
+        The calibration; ``frames_used`` = pairs whose residual is within 3x the RMS of the median,
+        ``spread_deg`` = RMS residual over those pairs.
+    Raises:
+        CalibrationError: too few pairs, different lengths, or too little head motion to separate
+            the two rotations.
+    """
+    n = _count(R_cam_cap)
+    if _count(R_ref_head) != n:
+        raise CalibrationError(
+            f"reference calibration needs paired rotations, got {n} cap and "
+            f"{_count(R_ref_head)} reference"
+        )
+    if n < min_pairs:
+        raise CalibrationError(f"reference calibration needs {min_pairs} pairs, got {n}")
+    A = _as_stack(R_cam_cap)
+    B = _as_stack(R_ref_head)
+    # Head motion must span two axes, else a rotation about the one axis is unobservable.
+    rv = (B.mean().inv() * B).as_rotvec(degrees=True)
+    sv = np.linalg.svd(rv - rv.mean(axis=0), compute_uv=False) / math.sqrt(n)
+    if sv[1] < MIN_REFERENCE_EXCITATION_DEG:
+        raise CalibrationError(
+            f"reference calibration needs head rotation about two axes: motion spread "
+            f"{sv[0]:.1f}/{sv[1]:.1f} deg, needs {MIN_REFERENCE_EXCITATION_DEG:.1f} deg on the second"
+        )
+    try:
+        Y0, X0 = _hand_eye_initial(A, B)
+    except Exception:  # noqa: BLE001 - OpenCV's solver can fail on odd data; start elsewhere
+        Y0 = A.mean().inv() * B.mean()
+        X0 = Rotation.identity()
+    if not (np.all(np.isfinite(Y0.as_quat())) and np.all(np.isfinite(X0.as_quat()))):
+        Y0, X0 = A.mean().inv() * B.mean(), Rotation.identity()
+
+    def residuals(params: np.ndarray) -> np.ndarray:
+        Y = Rotation.from_rotvec(params[:3])
+        X = Rotation.from_rotvec(params[3:])
+        return np.degrees(((X * B).inv() * (A * Y)).as_rotvec()).reshape(-1)
+
+    sol = least_squares(
+        residuals, np.concatenate([Y0.as_rotvec(), X0.as_rotvec()]),
+        loss="soft_l1", f_scale=loss_scale_deg, x_scale=1.0,
+    )
+    Y = Rotation.from_rotvec(sol.x[:3])
+    X = Rotation.from_rotvec(sol.x[3:])
+    resid = np.linalg.norm(residuals(sol.x).reshape(-1, 3), axis=1)
+    rms_med = max(float(np.median(resid)), 1e-9)
+    keep = resid <= 3.0 * rms_med + 1e-9
+    spread = float(np.sqrt(np.mean(resid[keep] ** 2)))
+    return CalibrationResult(Y, int(np.count_nonzero(keep)), spread, "reference", X)
+
+
+# -- files ---------------------------------------------------------------------------------------
+def _q_wxyz(rotation: Rotation) -> list[float]:
+    x, y, z, w = rotation.as_quat(canonical=True)
+    return [float(w), float(x), float(y), float(z)]
+
+
+def _from_q_wxyz(values: Any, name: str) -> Rotation:
+    try:
+        q = np.asarray(values, dtype=np.float64).reshape(4)
+    except (TypeError, ValueError) as err:
+        raise CalibrationError(f"calibration field {name} must be 4 numbers (w, x, y, z)") from err
+    if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-6:
+        raise CalibrationError(f"calibration field {name} is not a valid quaternion")
+    return Rotation.from_quat([q[1], q[2], q[3], q[0]])
+
+
+def save_calibration(
+    path: str | Path,
+    calibration: HeadCalibration | CalibrationResult,
+    result: CalibrationResult | None = None,
+    R_cam_frontal: Rotation | None = None,
+) -> None:
+    """Write a calibration as YAML, atomically. Quaternions are ``q_wxyz`` (w, x, y, z).
+
+    Args:
+        path: output file.
+        calibration: the runtime calibration, or a result (then ``R_cam_frontal`` gives the frontal
+            frame, default ``CAM_FROM_FORWARD``).
+        result: how it was computed (mode, frames used, spread, R_cam_reference), when known.
+        R_cam_frontal: frontal frame for a ``CalibrationResult`` argument.
+    """
+    if isinstance(calibration, CalibrationResult):
+        result = calibration
+        calibration = HeadCalibration(
+            R_cap_head=calibration.R_cap_head,
+            R_cam_frontal=R_cam_frontal if R_cam_frontal is not None else CAM_FROM_FORWARD,
+            calibrated=True,
+        )
+    data: dict[str, Any] = {
+        "format": CALIBRATION_FORMAT,
+        "quaternion_order": "wxyz",
+        "calibrated": bool(calibration.calibrated),
+        "R_cap_head_q_wxyz": _q_wxyz(calibration.R_cap_head),
+        "R_cam_frontal_q_wxyz": _q_wxyz(calibration.R_cam_frontal),
+    }
+    if result is not None:
+        data["mode"] = result.mode
+        data["frames_used"] = int(result.frames_used)
+        data["spread_deg"] = float(result.spread_deg)
+        if result.R_cam_reference is not None:
+            data["R_cam_reference_q_wxyz"] = _q_wxyz(result.R_cam_reference)
+    path = Path(path)
+    if path.parent and not path.parent.exists():
+        path.parent.mkdir(parents=True, exist_ok=True)
+    write_atomic(path, yaml.safe_dump(data, sort_keys=False))
+
+
+def load_calibration(path: str | Path) -> HeadCalibration:
+    """Read a calibration file written by ``save_calibration``.
+
+    Raises:
+        CalibrationError: missing, unreadable or malformed file.
+    """
+    try:
+        data = yaml.safe_load(Path(path).read_text())
+    except OSError as err:
+        raise CalibrationError(f"cannot read calibration {path}: {err.strerror or err}") from err
+    except yaml.YAMLError as err:
+        raise CalibrationError(f"calibration {path} is not valid YAML") from err
+    if not isinstance(data, dict) or "R_cap_head_q_wxyz" not in data:
+        raise CalibrationError(f"calibration {path} has no R_cap_head_q_wxyz")
+    if str(data.get("quaternion_order", "wxyz")) != "wxyz":
+        raise CalibrationError(f"calibration {path}: quaternion_order must be wxyz")
+    R_cam_frontal = (
+        _from_q_wxyz(data["R_cam_frontal_q_wxyz"], "R_cam_frontal_q_wxyz")
+        if "R_cam_frontal_q_wxyz" in data else CAM_FROM_FORWARD
+    )
+    return HeadCalibration(
+        R_cap_head=_from_q_wxyz(data["R_cap_head_q_wxyz"], "R_cap_head_q_wxyz"),
+        R_cam_frontal=R_cam_frontal,
+        calibrated=bool(data.get("calibrated", True)),
+    )

@@ -1,0 +1,131 @@
+"""Cap-to-head calibration on synthetic rotations with known truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from ficap_ros.calibration import (
+    CalibrationResult,
+    calibrate_frontal,
+    calibrate_reference,
+    frontal_frame_rotation,
+    load_calibration,
+    save_calibration,
+)
+from ficap_ros.errors import CalibrationError
+from ficap_ros.metrics import angle_deg, rotation_from_ypr_deg
+from ficap_ros.pipeline import HeadCalibration
+from ficap_ros.transform import CAM_FROM_FORWARD
+
+
+def _noise(rng: np.random.Generator, n: int, sigma_deg: float) -> Rotation:
+    """Per-axis Gaussian rotation noise, sigma in degrees."""
+    return Rotation.from_rotvec(rng.normal(0.0, np.radians(sigma_deg), size=(n, 3)))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_frontal_recovers_cap_to_head(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    R_cap_head = Rotation.random(random_state=seed)
+    R_cam_frontal = frontal_frame_rotation(mount_pitch_deg=-10.0)
+    n = 90
+    # The wearer looks "straight ahead" with ~1 deg of natural wobble per axis, and the cap
+    # estimate adds 0.5 deg more; 10 % of the frames are gross glances elsewhere.
+    R_frontal_head = _noise(rng, n, 1.0)
+    glances = rng.random(n) < 0.1
+    R_frontal_head = Rotation.from_rotvec(
+        np.where(glances[:, None], rng.normal(0, np.radians(25), (n, 3)), R_frontal_head.as_rotvec())
+    )
+    R_cam_cap = R_cam_frontal * R_frontal_head * R_cap_head.inv() * _noise(rng, n, 0.5)
+    res = calibrate_frontal(R_cam_cap, R_cam_frontal)
+    assert res.mode == "frontal" and res.R_cam_reference is None
+    assert angle_deg(res.R_cap_head, R_cap_head) < 0.5
+    assert res.frames_used >= int(0.8 * n)
+    assert 0.5 < res.spread_deg < 3.0
+
+
+def test_frontal_refuses_too_few_frames() -> None:
+    r = Rotation.random(5, random_state=3)
+    with pytest.raises(CalibrationError, match="needs 30 frames"):
+        calibrate_frontal(r, CAM_FROM_FORWARD)
+
+
+def test_frontal_refuses_large_spread() -> None:
+    rng = np.random.default_rng(4)
+    R_cam_cap = CAM_FROM_FORWARD * _noise(rng, 60, 8.0)  # the head roams: not a frontal segment
+    with pytest.raises(CalibrationError, match="spread"):
+        calibrate_frontal(R_cam_cap, CAM_FROM_FORWARD, max_spread_deg=3.0)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_reference_recovers_both_rotations(seed: int) -> None:
+    rng = np.random.default_rng(10 + seed)
+    R_cap_head = Rotation.random(random_state=20 + seed)
+    R_cam_ref = Rotation.random(random_state=30 + seed)
+    n = 300
+    # Naturalistic head motion: yaw +-40, pitch +-15, roll +-8 deg.
+    ypr = rng.uniform([-40, -15, -8], [40, 15, 8], size=(n, 3))
+    R_ref_head_true = Rotation.concatenate([rotation_from_ypr_deg(*a) for a in ypr])
+    R_cam_cap = R_cam_ref * R_ref_head_true * R_cap_head.inv() * _noise(rng, n, 0.3)
+    R_ref_head = R_ref_head_true * _noise(rng, n, 2.0)  # 2 deg per axis reference noise
+    res = calibrate_reference(R_cam_cap, R_ref_head)
+    assert res.mode == "reference"
+    assert angle_deg(res.R_cap_head, R_cap_head) < 1.0
+    assert angle_deg(res.R_cam_reference, R_cam_ref) < 1.0
+    # 2 deg per axis gives a ~3.5 deg RMS geodesic residual.
+    assert 2.0 < res.spread_deg < 5.0
+
+
+def test_reference_refuses_too_few_pairs_and_no_motion() -> None:
+    r = Rotation.random(5, random_state=1)
+    with pytest.raises(CalibrationError, match="needs 10 pairs"):
+        calibrate_reference(r, r)
+    with pytest.raises(CalibrationError, match="paired"):
+        calibrate_reference(Rotation.random(20, random_state=1), Rotation.random(12, random_state=2))
+    rng = np.random.default_rng(5)
+    still = _noise(rng, 50, 0.2)
+    with pytest.raises(CalibrationError, match="two axes"):
+        calibrate_reference(still, still)
+
+
+def test_frontal_frame_rotation_axes() -> None:
+    assert angle_deg(frontal_frame_rotation(), CAM_FROM_FORWARD) < 1e-9
+    # Camera pitched down 10 deg: the horizontal forward direction appears above the optical axis
+    # (negative optical y), 10 deg off it.
+    fwd_cam = frontal_frame_rotation(mount_pitch_deg=-10.0).apply([1.0, 0.0, 0.0])
+    assert fwd_cam[1] < 0
+    assert np.degrees(np.arccos(fwd_cam[2])) == pytest.approx(10.0, abs=1e-9)
+    # Camera yawed to the left: vehicle forward appears to the right of the image centre (+x).
+    fwd_cam = frontal_frame_rotation(mount_yaw_deg=15.0).apply([1.0, 0.0, 0.0])
+    assert fwd_cam[0] > 0 and np.degrees(np.arctan2(fwd_cam[0], fwd_cam[2])) == pytest.approx(15.0)
+
+
+def test_save_load_round_trip(tmp_path) -> None:
+    R_cap_head = Rotation.random(random_state=7)
+    R_cam_frontal = frontal_frame_rotation(mount_pitch_deg=-5.0)
+    res = CalibrationResult(R_cap_head, 42, 1.25, "reference", Rotation.random(random_state=8))
+    path = tmp_path / "sub" / "calib.yaml"
+    save_calibration(path, res, R_cam_frontal=R_cam_frontal)
+    text = path.read_text()
+    assert "quaternion_order: wxyz" in text and "R_cam_reference_q_wxyz" in text
+    loaded = load_calibration(path)
+    assert loaded.calibrated
+    assert angle_deg(loaded.R_cap_head, R_cap_head) < 1e-6
+    assert angle_deg(loaded.R_cam_frontal, R_cam_frontal) < 1e-6
+    save_calibration(path, HeadCalibration())
+    assert not load_calibration(path).calibrated
+    assert list(path.parent.iterdir()) == [path]  # no temporary files left behind
+
+
+def test_load_refuses_bad_files(tmp_path) -> None:
+    with pytest.raises(CalibrationError, match="cannot read"):
+        load_calibration(tmp_path / "missing.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("R_cap_head_q_wxyz: [0, 0, 0, 0]\n")
+    with pytest.raises(CalibrationError, match="not a valid quaternion"):
+        load_calibration(bad)
+    bad.write_text("just: text\n")
+    with pytest.raises(CalibrationError, match="R_cap_head_q_wxyz"):
+        load_calibration(bad)
