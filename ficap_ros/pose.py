@@ -1,29 +1,97 @@
 """Rigid cap pose from the detected tag corners.
 
-(API contract; implementation in progress.)
+Three estimators, chosen by name (``PoseConfig.method``):
+
+``joint`` (default)
+    One PnP over every visible corner. Start: the best-supported of SQPnP over all corners and the
+    per-tag IPPE poses (a consensus over tags, so one wrong tag cannot spoil the start); then
+    Gauss-Newton/Levenberg-Marquardt (``scipy.optimize.least_squares``) of the reprojection error,
+    with tag-level outlier rejection: a tag whose RMS reprojection error stands far above the
+    others' is dropped and the pose re-solved.
+``paper``
+    Jha & Busso's method (Fi-Cap, section 3.2): a pose per tag from its four corners (IPPE), the 3-D
+    corners rebuilt in the camera frame, Kabsch to the model (``Rotation.align_vectors``), and the
+    corners that do not fit the model dropped one by one until the 3-D residual is under a threshold.
+``naive``
+    The floor we measure against: one SQPnP over all corners, then OpenCV's LM refinement; no
+    outlier handling. Not for production use.
+
+Every estimator undistorts the corners first (``CameraModel.undistort_px``), so all lens models
+share one pinhole solver, and works in metres (model corners are mm / 1000).
+
+Duplicated ids (a tag seen twice: a reflection, a second cap, a spurious decode) are resolved after
+a first pose from the unique tags: the copy that agrees with the pose is kept, or both are dropped.
+
+Reliability (``CapPose.reliability``, in [0, 1]) is the product of three factors, each 1 when ideal:
+    ``min(1, tags_used / 4)``                    (fewer than four tags: weaker geometry; one tag is
+                                                 ambiguous up to a flip),
+    ``exp(-0.5 (rms_px / 1.0 px)^2)``            (corners that do not fit the model),
+    ``exp(-0.5 (sigma_rot_deg / 1.0 deg)^2)``    (sigma_rot: square root of the largest eigenvalue
+                                                 of the rotation block of the covariance).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from typing import Sequence
+from dataclasses import dataclass, field
+from typing import Callable, Sequence
 
+import cv2
 import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
 
 from ficap_ros.camera import CameraModel
-from ficap_ros.cap_model import CapModel
+from ficap_ros.cap_model import TAG_SIDE_MM, CapModel
 from ficap_ros.detection import TagDetection
+from ficap_ros.errors import ConfigError
 from ficap_ros.transform import Transform
 
-__all__ = ["PoseConfig", "CapPose", "PoseResult", "estimate_cap_pose", "POSE_METHODS"]
-
-POSE_METHODS = ("joint", "paper")
+__all__ = [
+    "POSE_METHODS",
+    "PoseConfig",
+    "CapPose",
+    "PoseResult",
+    "estimate_cap_pose",
+    "reliability_score",
+    "reprojection_errors_px",
+]
 
 
 @dataclass(frozen=True)
 class PoseConfig:
+    """Settings of the pose estimators.
+
+    Attributes:
+        method: ``joint``, ``paper`` or ``naive`` (the baseline).
+        min_tags: fewest tags for a pose.
+        outlier_ratio: ``joint``: a tag is an outlier when its RMS reprojection error exceeds
+            ``outlier_ratio`` times the median tag RMS and ``outlier_floor_px``.
+        outlier_floor_px: see ``outlier_ratio``.
+        inlier_px: a tag agrees with a candidate pose (consensus start, duplicate resolution) when
+            its RMS reprojection error is below ``max(inlier_px, inlier_fraction * side_px)``.
+        inlier_fraction: see ``inlier_px``.
+        paper_threshold_mm: ``paper``: trimming stops when the RMS 3-D corner residual is below this.
+        paper_min_corners: ``paper``: never trim below this many corners.
+    """
+
     method: str = "joint"
     min_tags: int = 1
+    outlier_ratio: float = 4.0
+    outlier_floor_px: float = 1.0
+    inlier_px: float = 3.0
+    inlier_fraction: float = 0.1
+    paper_threshold_mm: float = 1.0
+    paper_min_corners: int = 4
+
+    def __post_init__(self) -> None:
+        if self.method not in POSE_METHODS:
+            raise ConfigError(
+                f"unknown pose method {self.method!r}; expected one of {', '.join(POSE_METHODS)}"
+            )
+        if self.min_tags < 1:
+            raise ConfigError(f"min_tags must be >= 1, got {self.min_tags}")
+        if self.outlier_ratio <= 1.0:
+            raise ConfigError(f"outlier_ratio must be > 1, got {self.outlier_ratio}")
 
 
 @dataclass(frozen=True)
@@ -32,13 +100,14 @@ class CapPose:
 
     Attributes:
         T_cam_cap: pose of the cap frame C in the camera optical frame (translation in metres).
-        tags_detected: model tags detected in the frame (after duplicate resolution).
+        tags_detected: model tags detected in the frame (unique ids).
         tags_used: tags kept by the estimator.
         used_ids: their ids, sorted.
-        rms_px: RMS reprojection error of the used corners, px.
+        rms_px: RMS reprojection error of the used corners, px (undistorted image).
         covariance: 6x6, ROS order (x, y, z in m; rotation about the camera's x, y, z in rad), of a
-            small perturbation T = (exp(d_theta) R, t + d_t) of ``T_cam_cap``.
-        reliability: score in [0, 1] (mapping in ``reliability_score``).
+            small perturbation ``T = (exp(d_theta) R, t + d_t)`` of ``T_cam_cap``; from the final
+            refinement's Jacobian, scaled by the residual variance.
+        reliability: score in [0, 1] (module docstring).
         method: the estimator's name.
     """
 
@@ -50,6 +119,11 @@ class CapPose:
     covariance: np.ndarray
     reliability: float
     method: str
+
+    @property
+    def rotation_sigma_deg(self) -> float:
+        """Square root of the largest eigenvalue of the rotation covariance, deg."""
+        return _rotation_sigma_deg(self.covariance)
 
 
 @dataclass(frozen=True)
@@ -65,10 +139,409 @@ class PoseResult:
         return self.pose is not None
 
 
+# -- geometry helpers -----------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Observations:
+    """Per-tag observations in undistorted pixels with their model corners in metres."""
+
+    ids: tuple[int, ...]
+    image_px: np.ndarray  # (T, 4, 2)
+    model_m: np.ndarray  # (T, 4, 3)
+    K: np.ndarray = field(repr=False)
+
+    def subset(self, keep: np.ndarray) -> _Observations:
+        keep = np.asarray(keep, dtype=bool)
+        return _Observations(
+            tuple(i for i, k in zip(self.ids, keep) if k), self.image_px[keep], self.model_m[keep], self.K
+        )
+
+    def __len__(self) -> int:
+        return len(self.ids)
+
+
+def _project(K: np.ndarray, rotation: Rotation, t_m: np.ndarray, points_m: np.ndarray) -> np.ndarray:
+    """Pinhole projection (no distortion) of points (..., 3) in the cap frame."""
+    p = rotation.apply(points_m.reshape(-1, 3)) + t_m
+    z = p[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = K[0, 0] * p[:, 0] / z + K[0, 1] * p[:, 1] / z + K[0, 2]
+        v = K[1, 1] * p[:, 1] / z + K[1, 2]
+    return np.stack([u, v], axis=-1).reshape(points_m.shape[:-1] + (2,))
+
+
+def reprojection_errors_px(obs_px: np.ndarray, K: np.ndarray, T: Transform, model_m: np.ndarray) -> np.ndarray:
+    """Per-tag RMS reprojection error (T,) in px of corners (T, 4, 2) under pose ``T``."""
+    proj = _project(K, T.rotation, T.translation_m, model_m)
+    return np.sqrt(np.mean(np.sum((proj - obs_px) ** 2, axis=-1), axis=-1))
+
+
+def _residuals_and_jacobian(
+    x: np.ndarray, R0: Rotation, K: np.ndarray, model_m: np.ndarray, image_px: np.ndarray
+) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals (2N,) and Jacobian (2N, 6) for x = (d_theta (3, rad, camera axes), t (3, m)).
+
+    The pose is ``R = exp(d_theta) R0``, translation ``t``; perturbing on the left keeps the
+    covariance in the camera (parent) frame, as ROS's PoseWithCovariance expects.
+    """
+    R = Rotation.from_rotvec(x[:3]) * R0
+    X = R.apply(model_m.reshape(-1, 3))
+    p = X + x[3:]
+    fx, fy, s, cx, cy = K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2]
+    z = p[:, 2]
+    iz = 1.0 / z
+    xn, yn = p[:, 0] * iz, p[:, 1] * iz
+    u = fx * xn + s * yn + cx
+    v = fy * yn + cy
+    obs = image_px.reshape(-1, 2)
+    res = np.empty(2 * len(p))
+    res[0::2] = u - obs[:, 0]
+    res[1::2] = v - obs[:, 1]
+    # d(u, v)/dp
+    du_dp = np.stack([fx * iz, s * iz, -(fx * xn + s * yn) * iz], axis=-1)
+    dv_dp = np.stack([np.zeros_like(z), fy * iz, -fy * yn * iz], axis=-1)
+    # dp/d_theta (small left rotation) = -[X]x
+    zeros = np.zeros_like(z)
+    skew = np.stack(
+        [
+            np.stack([zeros, X[:, 2], -X[:, 1]], axis=-1),
+            np.stack([-X[:, 2], zeros, X[:, 0]], axis=-1),
+            np.stack([X[:, 1], -X[:, 0], zeros], axis=-1),
+        ],
+        axis=1,
+    )  # (N, 3, 3) = -[X]x
+    jac = np.empty((2 * len(p), 6))
+    jac[0::2, :3] = np.einsum("nj,njk->nk", du_dp, skew)
+    jac[1::2, :3] = np.einsum("nj,njk->nk", dv_dp, skew)
+    jac[0::2, 3:] = du_dp
+    jac[1::2, 3:] = dv_dp
+    return res, jac
+
+
+def _refine(obs: _Observations, T0: Transform) -> tuple[Transform, np.ndarray, float]:
+    """Least-squares reprojection refinement; returns (pose, covariance ROS order, rms_px)."""
+    R0 = T0.rotation
+    x0 = np.concatenate([np.zeros(3), T0.translation_m])
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        return _residuals_and_jacobian(x, R0, obs.K, obs.model_m, obs.image_px)[0]
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        return _residuals_and_jacobian(x, R0, obs.K, obs.model_m, obs.image_px)[1]
+
+    sol = least_squares(fun, x0, jac=jac, method="lm", xtol=1e-12, ftol=1e-12, max_nfev=50)
+    R = Rotation.from_rotvec(sol.x[:3]) * R0
+    T = Transform(R, sol.x[3:])
+    res, J = _residuals_and_jacobian(np.concatenate([np.zeros(3), sol.x[3:]]), R, obs.K, obs.model_m, obs.image_px)
+    return T, _covariance(res, J), float(np.sqrt(np.mean(res**2) * 2.0))
+
+
+def _covariance(res: np.ndarray, J: np.ndarray) -> np.ndarray:
+    """Covariance (ROS order: translation then rotation) from residuals and Jacobian (rot, trans)."""
+    dof = max(len(res) - 6, 1)
+    sigma2 = float(res @ res) / dof
+    try:
+        cov = np.linalg.inv(J.T @ J) * sigma2
+    except np.linalg.LinAlgError:
+        cov = np.full((6, 6), np.inf)
+    order = [3, 4, 5, 0, 1, 2]
+    return cov[np.ix_(order, order)]
+
+
+def _rotation_sigma_deg(cov: np.ndarray) -> float:
+    block = cov[3:, 3:]
+    if not np.all(np.isfinite(block)):
+        return float("inf")
+    return float(np.degrees(np.sqrt(max(np.max(np.linalg.eigvalsh(block)), 0.0))))
+
+
+def reliability_score(tags_used: int, rms_px: float, covariance: np.ndarray) -> float:
+    """Reliability in [0, 1]; the mapping is in the module docstring."""
+    sigma = _rotation_sigma_deg(covariance)
+    if not (np.isfinite(rms_px) and np.isfinite(sigma)):
+        return 0.0
+    score = min(1.0, tags_used / 4.0) * np.exp(-0.5 * (rms_px / 1.0) ** 2) * np.exp(-0.5 * sigma**2)
+    return float(np.clip(score, 0.0, 1.0))
+
+
+def _tag_pose_candidates(K: np.ndarray, model_m: np.ndarray, image_px: np.ndarray) -> list[Transform]:
+    """Both IPPE solutions of one tag, as cap poses (T_cam_cap)."""
+    half = TAG_SIDE_MM / 2000.0
+    square = np.array([[-half, half, 0], [half, half, 0], [half, -half, 0], [-half, -half, 0]])
+    try:
+        n, rvecs, tvecs, _ = cv2.solvePnPGeneric(
+            square, image_px.reshape(4, 1, 2), K, None, flags=cv2.SOLVEPNP_IPPE_SQUARE
+        )
+    except cv2.error:
+        return []
+    # T_tag_cap from the model: tag frame has x along TL->TR, y along BL->TL (IPPE_SQUARE's layout).
+    T_cap_tag = _tag_frame(model_m)
+    T_tag_cap = T_cap_tag.inv()
+    out = []
+    for k in range(n):
+        T_cam_tag = Transform.from_rvec_tvec(rvecs[k], tvecs[k])
+        out.append(T_cam_tag * T_tag_cap)
+    return out
+
+
+def _tag_frame(corners_m: np.ndarray) -> Transform:
+    """T_cap_tag for a tag with corners (4, 3) (TL, TR, BR, BL) in the cap frame, m.
+
+    Tag frame: origin at the centre, x toward the right edge, y toward the top edge, z out of the
+    printed face toward the viewer (IPPE_SQUARE's object layout).
+    """
+    c = corners_m.mean(axis=0)
+    x = (corners_m[1] - corners_m[0]) + (corners_m[2] - corners_m[3])
+    y = (corners_m[0] - corners_m[3]) + (corners_m[1] - corners_m[2])
+    x /= np.linalg.norm(x)
+    y -= x * (x @ y)
+    y /= np.linalg.norm(y)
+    z = np.cross(x, y)
+    return Transform(Rotation.from_matrix(np.stack([x, y, z], axis=1)), c)
+
+
+def _side_px(image_px: np.ndarray) -> np.ndarray:
+    """Mean side length of each tag (T,) in px."""
+    return np.mean(np.linalg.norm(image_px - np.roll(image_px, 1, axis=1), axis=-1), axis=-1)
+
+
+def _inlier_threshold(obs: _Observations, config: PoseConfig) -> np.ndarray:
+    return np.maximum(config.inlier_px, config.inlier_fraction * _side_px(obs.image_px))
+
+
+def _in_front(obs: _Observations, T: Transform) -> bool:
+    z = T.apply(obs.model_m.reshape(-1, 3))[:, 2]
+    return bool(np.all(z > 1e-3))
+
+
+def _consensus_start(obs: _Observations, config: PoseConfig) -> tuple[Transform, np.ndarray] | None:
+    """The candidate pose most tags agree with, and the tags that agree (boolean mask)."""
+    threshold = _inlier_threshold(obs, config)
+    candidates: list[Transform] = []
+    if len(obs) >= 2:
+        ok, rvec, tvec = cv2.solvePnP(
+            obs.model_m.reshape(-1, 1, 3), obs.image_px.reshape(-1, 1, 2), obs.K, None,
+            flags=cv2.SOLVEPNP_SQPNP,
+        )
+        if ok:
+            T = Transform.from_rvec_tvec(rvec, tvec)
+            inliers = reprojection_errors_px(obs.image_px, obs.K, T, obs.model_m) < threshold
+            # The common case: every tag agrees with the all-corner solution; no search needed.
+            if np.all(inliers) and _in_front(obs, T):
+                return T, inliers
+            candidates.append(T)
+    for i in range(len(obs)):
+        candidates.extend(_tag_pose_candidates(obs.K, obs.model_m[i], obs.image_px[i]))
+    best: tuple[int, float, Transform, np.ndarray] | None = None
+    for T in candidates:
+        if not _in_front(obs, T):
+            continue
+        err = reprojection_errors_px(obs.image_px, obs.K, T, obs.model_m)
+        inliers = err < threshold
+        count = int(np.sum(inliers))
+        cost = float(np.sum(np.minimum(err, threshold) ** 2))
+        if best is None or count > best[0] or (count == best[0] and cost < best[1]):
+            best = (count, cost, T, inliers)
+    if best is None or best[0] == 0:
+        return None
+    return best[2], best[3]
+
+
+# -- estimators -----------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class _Solution:
+    T: Transform
+    used: _Observations
+    covariance: np.ndarray
+    rms_px: float
+
+
+def _solve_joint(obs: _Observations, config: PoseConfig) -> _Solution | str:
+    start = _consensus_start(obs, config)
+    if start is None:
+        return "no pose agrees with the detected tags"
+    T, inliers = start
+    used = obs.subset(inliers)
+    # Tags that disagreed with the start may agree with the refined pose: re-admit, then trim.
+    for _ in range(5):
+        if len(used) < config.min_tags:
+            return f"{len(used)} tag(s) left after outlier rejection, need {config.min_tags}"
+        T, cov, rms = _refine(used, T)
+        err_all = reprojection_errors_px(obs.image_px, obs.K, T, obs.model_m)
+        median = float(np.median(err_all[np.isin(obs.ids, used.ids)]))
+        limit = max(config.outlier_ratio * median, config.outlier_floor_px)
+        keep = err_all <= limit
+        if not np.any(keep):
+            return "every tag is an outlier"
+        if tuple(np.array(obs.ids)[keep]) == used.ids:
+            break
+        # Drop only the worst offender per round, so one bad tag cannot drag good ones out.
+        current = np.isin(obs.ids, used.ids)
+        bad = current & ~keep
+        if np.any(bad):
+            worst = int(np.argmax(np.where(bad, err_all, -np.inf)))
+            current[worst] = False
+            readmit = ~current & keep
+            readmit[worst] = False
+            current |= readmit
+        else:
+            current |= keep
+        used = obs.subset(current)
+    T, cov, rms = _refine(used, T)
+    return _Solution(T, used, cov, rms)
+
+
+def _kabsch(model_m: np.ndarray, camera_m: np.ndarray) -> Transform:
+    """Rigid T_cam_cap minimising ||T model - camera|| (``Rotation.align_vectors`` is Kabsch)."""
+    mc = model_m.mean(axis=0)
+    cc = camera_m.mean(axis=0)
+    rotation, _ = Rotation.align_vectors(camera_m - cc, model_m - mc)
+    return Transform(rotation, cc - rotation.apply(mc))
+
+
+def _solve_paper(obs: _Observations, config: PoseConfig) -> _Solution | str:
+    # Per-tag pose: of IPPE's two solutions keep the one with the lower reprojection error, as
+    # AprilTag does; rebuild the tag's 3-D corners in the camera frame from it.
+    rebuilt = []
+    for i in range(len(obs)):
+        best = None
+        for T_cam_cap in _tag_pose_candidates(obs.K, obs.model_m[i], obs.image_px[i]):
+            err = reprojection_errors_px(obs.image_px[i : i + 1], obs.K, T_cam_cap, obs.model_m[i : i + 1])[0]
+            if best is None or err < best[0]:
+                best = (err, T_cam_cap)
+        if best is None:
+            return f"no pose for tag {obs.ids[i]}"
+        rebuilt.append(best[1].apply(obs.model_m[i]))
+    cam_pts = np.concatenate(rebuilt)
+    model_pts = obs.model_m.reshape(-1, 3)
+    keep = np.ones(len(model_pts), dtype=bool)
+    threshold_m = config.paper_threshold_mm / 1000.0
+    while True:
+        T = _kabsch(model_pts[keep], cam_pts[keep])
+        resid = np.linalg.norm(T.apply(model_pts) - cam_pts, axis=1)
+        rms = float(np.sqrt(np.mean(resid[keep] ** 2)))
+        if rms <= threshold_m or keep.sum() <= max(config.paper_min_corners, 4):
+            break
+        keep[int(np.argmax(np.where(keep, resid, -np.inf)))] = False
+    # A tag is used when any of its corners survived; report reprojection statistics on those.
+    tag_keep = keep.reshape(-1, 4).any(axis=1)
+    used = obs.subset(tag_keep)
+    res, J = _residuals_and_jacobian(np.concatenate([np.zeros(3), T.translation_m]), T.rotation,
+                                     used.K, used.model_m, used.image_px)
+    return _Solution(T, used, _covariance(res, J), float(np.sqrt(np.mean(res**2) * 2.0)))
+
+
+def _solve_naive(obs: _Observations, config: PoseConfig) -> _Solution | str:
+    obj = obs.model_m.reshape(-1, 1, 3)
+    img = obs.image_px.reshape(-1, 1, 2)
+    if len(obs) >= 2:
+        ok, rvec, tvec = cv2.solvePnP(obj, img, obs.K, None, flags=cv2.SOLVEPNP_SQPNP)
+    else:
+        ok, rvec, tvec = cv2.solvePnP(obj, img, obs.K, None, flags=cv2.SOLVEPNP_IPPE)
+    if not ok:
+        return "solvePnP failed"
+    rvec, tvec = cv2.solvePnPRefineLM(obj, img, obs.K, None, rvec, tvec)
+    T = Transform.from_rvec_tvec(rvec, tvec)
+    res, J = _residuals_and_jacobian(np.concatenate([np.zeros(3), T.translation_m]), T.rotation,
+                                     obs.K, obs.model_m, obs.image_px)
+    return _Solution(T, obs, _covariance(res, J), float(np.sqrt(np.mean(res**2) * 2.0)))
+
+
+_SOLVERS: dict[str, Callable[[_Observations, PoseConfig], _Solution | str]] = {
+    "joint": _solve_joint,
+    "paper": _solve_paper,
+    "naive": _solve_naive,
+}
+POSE_METHODS = tuple(_SOLVERS)
+
+
+def _resolve_duplicates(
+    groups: dict[int, list[np.ndarray]], model: CapModel, K: np.ndarray, config: PoseConfig
+) -> dict[int, np.ndarray]:
+    """One corner set per id: unique ids as they are; for a duplicated id, the copy that agrees
+    with the pose of the unique tags (the best one under the inlier threshold), else neither."""
+    unique = {i: c[0] for i, c in groups.items() if len(c) == 1}
+    dupes = {i: c for i, c in groups.items() if len(c) > 1}
+    if not dupes:
+        return unique
+    if unique:
+        obs = _make_obs(unique, model, K)
+        start = _consensus_start(obs, config)
+        if start is not None:
+            T, _ = start
+            for tag_id, copies in dupes.items():
+                model_m = model.corners_of(tag_id)[None] / 1000.0
+                stack = np.stack(copies)
+                err = np.array([reprojection_errors_px(c[None], K, T, model_m)[0] for c in stack])
+                threshold = max(config.inlier_px, config.inlier_fraction * float(_side_px(stack).mean()))
+                best = int(np.argmin(err))
+                if err[best] < threshold:
+                    unique[tag_id] = stack[best]
+    return unique
+
+
+def _make_obs(corners: dict[int, np.ndarray], model: CapModel, K: np.ndarray) -> _Observations:
+    ids = tuple(sorted(corners))
+    return _Observations(
+        ids,
+        np.stack([corners[i] for i in ids]),
+        np.stack([model.corners_of(i) for i in ids]) / 1000.0,
+        K,
+    )
+
+
 def estimate_cap_pose(
     detections: Sequence[TagDetection],
     model: CapModel,
     camera: CameraModel,
     config: PoseConfig | None = None,
 ) -> PoseResult:
-    raise NotImplementedError
+    """Estimate T_cam_cap from detections of the model's tags.
+
+    Args:
+        detections: tags in the (distorted) image; ids outside the model are ignored.
+        model: the cap model (corners in mm).
+        camera: intrinsics of the image the detections come from.
+        config: estimator settings.
+    Returns:
+        A ``PoseResult``: a ``CapPose``, or ``pose=None`` with the reason.
+    """
+    config = config or PoseConfig()
+    K = camera.K
+    groups: dict[int, list[np.ndarray]] = {}
+    for det in detections:
+        if det.tag_id in model:
+            corners = camera.undistort_px(det.corners_px)
+            if np.all(np.isfinite(corners)):
+                groups.setdefault(det.tag_id, []).append(corners)
+    tags_detected = len(groups)
+    if tags_detected == 0:
+        return PoseResult(None, 0, "no tag of the model detected")
+    resolved = _resolve_duplicates(groups, model, K, config)
+    if len(resolved) < config.min_tags:
+        return PoseResult(
+            None, tags_detected,
+            f"{len(resolved)} usable tag(s) (after resolving duplicated ids), need {config.min_tags}",
+        )
+    obs = _make_obs(resolved, model, K)
+    solution = _SOLVERS[config.method](obs, config)
+    if isinstance(solution, str):
+        return PoseResult(None, tags_detected, solution)
+    if not _in_front(solution.used, solution.T):
+        return PoseResult(None, tags_detected, "pose puts the cap behind the camera")
+    rms = solution.rms_px
+    used_n = len(solution.used)
+    pose = CapPose(
+        T_cam_cap=solution.T,
+        tags_detected=tags_detected,
+        tags_used=used_n,
+        used_ids=solution.used.ids,
+        rms_px=rms,
+        covariance=solution.covariance,
+        reliability=reliability_score(used_n, rms, solution.covariance),
+        method=config.method,
+    )
+    return PoseResult(pose, tags_detected, "")

@@ -71,16 +71,16 @@ class Transform:
         """Compose: ``T_a_b * T_b_c = T_a_c``."""
         return Transform(
             self.rotation * other.rotation,
-            self.rotation.apply(other.translation_m) + self.translation_m,
+            self.rotation.apply(np.array(other.translation_m)) + self.translation_m,
         )
 
     def inv(self) -> Transform:
         r_inv = self.rotation.inv()
-        return Transform(r_inv, -r_inv.apply(self.translation_m))
+        return Transform(r_inv, -r_inv.apply(np.array(self.translation_m)))
 
     def apply(self, points: np.ndarray) -> np.ndarray:
         """Map points (..., 3) from frame b into frame a (same length unit as the translation)."""
-        return self.rotation.apply(np.asarray(points, dtype=np.float64).reshape(-1, 3)).reshape(
+        return self.rotation.apply(np.array(points, dtype=np.float64).reshape(-1, 3)).reshape(
             np.shape(points)
         ) + self.translation_m
 
