@@ -1,0 +1,356 @@
+"""Head-pose labels: one record per image, written as CSV and as a rosbag2 MCAP; read back.
+
+Frames and quaternions (CSV columns are w, x, y, z; ROS messages store x, y, z, w):
+    cap_q*, cap_*_m: T_cam_cap, the cap frame C in the camera optical frame (m).
+    head_q*, head_*_deg: R_frontal_head, the head frame H in the frontal frame F (the head's zero
+        pose); yaw/pitch/roll as in ``ficap_ros.metrics``. Identity-mounted (R_cap_head = I) until
+        a calibration is given (column ``calibrated``).
+
+labels.mcap topics (namespace ``/ficap`` by default), each message stamped with the image stamp
+(header and bag receive time):
+    ``<ns>/cap_pose`` PoseStamped, frame = the image's frame_id: T_cam_cap.
+    ``<ns>/head_pose`` PoseStamped, frame ``ficap_frontal``: T_frontal_head (position = the cap
+        origin in F, whose origin is the camera's).
+    ``<ns>/head_pose/with_covariance`` PoseWithCovarianceStamped: the same with the cap pose's
+        covariance rotated into F.
+    ``<ns>/status`` DiagnosticArray, one status ``ficap: pose`` per image: OK with a pose, WARN
+        without one, ERROR for an undecodable image; values tags_detected, tags_used, rms_px,
+        reliability, reason.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ficap_ros.errors import BagError
+from ficap_ros.metrics import yaw_pitch_roll_deg
+from ficap_ros.pipeline import FrameResult, HeadCalibration
+from ficap_ros.pose import CapPose
+from ficap_ros.transform import Transform
+
+__all__ = [
+    "LABEL_COLUMNS",
+    "FRONTAL_FRAME",
+    "DEFAULT_NAMESPACE",
+    "LabelRecord",
+    "Labels",
+    "record_from_pose",
+    "record_from_result",
+    "labels_csv_text",
+    "read_labels",
+    "write_labels_bag",
+    "label_topics",
+]
+
+#: CSV columns, in order.
+LABEL_COLUMNS: tuple[str, ...] = (
+    "frame", "stamp_ns", "tags_detected", "tags_used", "rms_px", "reliability",
+    "cap_qw", "cap_qx", "cap_qy", "cap_qz", "cap_x_m", "cap_y_m", "cap_z_m",
+    "head_qw", "head_qx", "head_qy", "head_qz", "head_yaw_deg", "head_pitch_deg", "head_roll_deg",
+    "calibrated", "method", "detected_ids", "used_ids", "reason",
+)
+FRONTAL_FRAME = "ficap_frontal"
+DEFAULT_NAMESPACE = "/ficap"
+DEFAULT_CAMERA_FRAME = "camera_optical_frame"
+
+
+@dataclass(frozen=True)
+class LabelRecord:
+    """The label of one image.
+
+    Attributes:
+        frame: image index in the recording.
+        stamp_ns: image stamp, ns.
+        frame_id: the image's optical frame.
+        tags_detected, tags_used: model tags seen / used by the estimator.
+        detected_ids, used_ids: their ids, sorted.
+        rms_px, reliability: estimator quality (NaN without a pose).
+        T_cam_cap: cap pose in the camera optical frame, or None.
+        T_frontal_head: head pose in the frontal frame, or None.
+        covariance_cam: the cap pose's 6x6 covariance (ROS order, camera axes), or None.
+        R_frontal_cam: orientation of the camera in F (to rotate the covariance).
+        calibrated: whether a head calibration was applied.
+        method: pose method name.
+        reason: why there is no pose ("" with a pose); ``undecodable: ...`` for a skipped image.
+    """
+
+    frame: int
+    stamp_ns: int
+    frame_id: str
+    tags_detected: int
+    tags_used: int
+    detected_ids: tuple[int, ...]
+    used_ids: tuple[int, ...]
+    rms_px: float
+    reliability: float
+    T_cam_cap: Transform | None
+    T_frontal_head: Transform | None
+    covariance_cam: np.ndarray | None
+    R_frontal_cam: Rotation
+    calibrated: bool
+    method: str
+    reason: str
+
+    @property
+    def skipped(self) -> bool:
+        return self.reason.startswith("undecodable")
+
+
+def record_from_pose(
+    frame: int, stamp_ns: int, frame_id: str, pose: CapPose | None,
+    detected_ids: Sequence[int], reason: str, calibration: HeadCalibration, method: str = "",
+) -> LabelRecord:
+    """The label of one processed frame.
+
+    The head pose comes from the cap pose through ``calibration`` (the ``HeadCalibration`` methods
+    the pipeline uses), so a calibration found after processing applies to every frame.
+
+    Args:
+        frame: image index.
+        stamp_ns: image stamp.
+        frame_id: the image's optical frame ("" -> ``camera_optical_frame``).
+        pose: the cap pose, or None.
+        detected_ids: ids of the model tags detected.
+        reason: why there is no pose; ``undecodable: ...`` marks a skipped image.
+        calibration: head calibration to apply.
+        method: pose method name (used when there is no pose).
+    """
+    R_frontal_cam = calibration.R_cam_frontal.inv()
+    frame_id = frame_id or DEFAULT_CAMERA_FRAME
+    detected = tuple(sorted(set(int(i) for i in detected_ids)))
+    if pose is None:
+        return LabelRecord(frame, int(stamp_ns), frame_id, len(detected), 0, detected, (),
+                           math.nan, math.nan, None, None, None, R_frontal_cam,
+                           calibration.calibrated, method, reason or "no pose")
+    T_cam_head = calibration.head_in_camera(pose.T_cam_cap)
+    T_frontal_head = Transform(R_frontal_cam, np.zeros(3)) * T_cam_head
+    return LabelRecord(
+        frame, int(stamp_ns), frame_id, pose.tags_detected, pose.tags_used, detected,
+        tuple(sorted(pose.used_ids)), float(pose.rms_px), float(pose.reliability), pose.T_cam_cap,
+        T_frontal_head, np.asarray(pose.covariance, dtype=np.float64).reshape(6, 6),
+        R_frontal_cam, calibration.calibrated, pose.method or method, "",
+    )
+
+
+def record_from_result(result: FrameResult, calibration: HeadCalibration, frame: int = 0,
+                       frame_id: str = "") -> LabelRecord:
+    """The label of a ``FrameResult`` (see ``record_from_pose``)."""
+    return record_from_pose(frame, result.stamp_ns, frame_id, result.pose,
+                            [d.tag_id for d in result.detections], result.reason, calibration,
+                            result.pose.method if result.pose is not None else "")
+
+
+def _f(value: float, digits: int) -> str:
+    return "" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
+
+
+def _csv_row(rec: LabelRecord) -> list[str]:
+    cap = [""] * 7
+    head = [""] * 7
+    if rec.T_cam_cap is not None and rec.T_frontal_head is not None:
+        cap = [_f(v, 9) for v in rec.T_cam_cap.q_wxyz] + [_f(v, 6) for v in rec.T_cam_cap.translation_m]
+        ypr = yaw_pitch_roll_deg(rec.T_frontal_head.rotation)
+        head = [_f(v, 9) for v in rec.T_frontal_head.q_wxyz] + [_f(v, 4) for v in ypr]
+    return [
+        str(rec.frame), str(rec.stamp_ns), str(rec.tags_detected), str(rec.tags_used),
+        _f(rec.rms_px, 4), _f(rec.reliability, 4), *cap, *head, "1" if rec.calibrated else "0",
+        rec.method, " ".join(map(str, rec.detected_ids)), " ".join(map(str, rec.used_ids)),
+        rec.reason,
+    ]
+
+
+def labels_csv_text(records: Iterable[LabelRecord]) -> str:
+    """labels.csv content: a header row and one row per image (pose fields empty without a pose)."""
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(LABEL_COLUMNS)
+    for rec in records:
+        writer.writerow(_csv_row(rec))
+    return buf.getvalue()
+
+
+@dataclass(frozen=True)
+class Labels:
+    """labels.csv read back as columns (NaN where a field is empty).
+
+    Attributes:
+        stamp_ns: (N,) int64.
+        tags_detected, tags_used: (N,) int.
+        rms_px, reliability: (N,) float.
+        has_pose: (N,) bool.
+        q_cam_cap_wxyz: (N, 4); t_cam_cap_m: (N, 3).
+        q_frontal_head_wxyz: (N, 4); head_ypr_deg: (N, 3).
+        calibrated: (N,) bool.
+        detected_ids: per row, the detected tag ids.
+        reasons: per row, why there is no pose ("" with one).
+    """
+
+    stamp_ns: np.ndarray
+    tags_detected: np.ndarray
+    tags_used: np.ndarray
+    rms_px: np.ndarray
+    reliability: np.ndarray
+    has_pose: np.ndarray
+    q_cam_cap_wxyz: np.ndarray
+    t_cam_cap_m: np.ndarray
+    q_frontal_head_wxyz: np.ndarray
+    head_ypr_deg: np.ndarray
+    calibrated: np.ndarray
+    detected_ids: tuple[tuple[int, ...], ...]
+    reasons: tuple[str, ...]
+
+    def __len__(self) -> int:
+        return int(self.stamp_ns.size)
+
+    @property
+    def skipped(self) -> np.ndarray:
+        return np.array([r.startswith("undecodable") for r in self.reasons], dtype=bool)
+
+    def cap_rotations(self) -> Rotation:
+        """R_cam_cap of the rows with a pose."""
+        return _rot_wxyz(self.q_cam_cap_wxyz[self.has_pose])
+
+    def head_rotations(self) -> Rotation:
+        """R_frontal_head of the rows with a pose."""
+        return _rot_wxyz(self.q_frontal_head_wxyz[self.has_pose])
+
+
+def _rot_wxyz(q_wxyz: np.ndarray) -> Rotation:
+    q = np.asarray(q_wxyz, dtype=np.float64).reshape(-1, 4)
+    return Rotation.from_quat(q[:, [1, 2, 3, 0]])
+
+
+def _num(text: str) -> float:
+    return float(text) if text.strip() else math.nan
+
+
+def read_labels(path: str | Path) -> Labels:
+    """Read labels.csv (or a replay output folder holding one).
+
+    Raises:
+        BagError: missing file, or not a labels CSV.
+    """
+    path = Path(path)
+    if path.is_dir():
+        path = path / "labels.csv"
+    try:
+        text = path.read_text()
+    except OSError as err:
+        raise BagError(f"cannot read labels {path}: {err.strerror or err}") from err
+    rows = list(csv.DictReader(io.StringIO(text)))
+    need = {"stamp_ns", "tags_detected", "cap_qw", "head_qw"}
+    header = set(rows[0].keys()) if rows else set(next(csv.reader(io.StringIO(text)), []))
+    if not need <= header:
+        raise BagError(f"{path} is not a labels CSV (missing {', '.join(sorted(need - header))})")
+    try:
+        def col(name: str) -> np.ndarray:
+            return np.array([_num(r.get(name) or "") for r in rows], dtype=np.float64)
+
+        stamps = np.array([int(r["stamp_ns"]) for r in rows], dtype=np.int64)
+        q_cap = np.stack([col(f"cap_q{a}") for a in "wxyz"], axis=-1).reshape(-1, 4)
+        t_cap = np.stack([col(f"cap_{a}_m") for a in "xyz"], axis=-1).reshape(-1, 3)
+        q_head = np.stack([col(f"head_q{a}") for a in "wxyz"], axis=-1).reshape(-1, 4)
+        ypr = np.stack([col(f"head_{a}_deg") for a in ("yaw", "pitch", "roll")],
+                       axis=-1).reshape(-1, 3)
+        ids = tuple(tuple(int(v) for v in (r.get("detected_ids") or "").split()) for r in rows)
+        return Labels(
+            stamp_ns=stamps,
+            tags_detected=col("tags_detected").astype(int),
+            tags_used=np.nan_to_num(col("tags_used")).astype(int),
+            rms_px=col("rms_px"),
+            reliability=col("reliability"),
+            has_pose=np.all(np.isfinite(q_cap), axis=1) & np.all(np.isfinite(q_head), axis=1),
+            q_cam_cap_wxyz=q_cap,
+            t_cam_cap_m=t_cap,
+            q_frontal_head_wxyz=q_head,
+            head_ypr_deg=ypr,
+            calibrated=np.array([(r.get("calibrated") or "0").strip() in ("1", "true", "True")
+                                 for r in rows], dtype=bool),
+            detected_ids=ids,
+            reasons=tuple((r.get("reason") or "") for r in rows),
+        )
+    except (ValueError, KeyError, TypeError) as err:
+        raise BagError(f"{path}: malformed labels row: {err}") from err
+
+
+def label_topics(namespace: str = DEFAULT_NAMESPACE) -> dict[str, str]:
+    """Topic name per label stream: cap_pose, head_pose, head_pose_cov, status."""
+    ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
+    return {
+        "cap_pose": f"{ns}/cap_pose",
+        "head_pose": f"{ns}/head_pose",
+        "head_pose_cov": f"{ns}/head_pose/with_covariance",
+        "status": f"{ns}/status",
+    }
+
+
+def _rotate_covariance(cov: np.ndarray, R: Rotation) -> np.ndarray:
+    """Covariance of a pose perturbed about fixed axes, expressed in axes rotated by ``R``."""
+    block = np.zeros((6, 6))
+    m = R.as_matrix()
+    block[:3, :3] = m
+    block[3:, 3:] = m
+    return block @ cov @ block.T
+
+
+def _status_msg(rec: LabelRecord) -> object:
+    from ficap_ros.bag_io import header, jazzy_typestore
+
+    t = jazzy_typestore().types
+    level = 0 if rec.T_cam_cap is not None else (2 if rec.skipped else 1)
+    values = [
+        ("tags_detected", str(rec.tags_detected)),
+        ("tags_used", str(rec.tags_used)),
+        ("rms_px", _f(rec.rms_px, 4)),
+        ("reliability", _f(rec.reliability, 4)),
+        ("calibrated", "true" if rec.calibrated else "false"),
+    ]
+    status = t["diagnostic_msgs/msg/DiagnosticStatus"](
+        level=level, name="ficap: pose", message=rec.reason or "ok", hardware_id=rec.frame_id,
+        values=[t["diagnostic_msgs/msg/KeyValue"](key=k, value=v) for k, v in values],
+    )
+    return t["diagnostic_msgs/msg/DiagnosticArray"](header=header(rec.stamp_ns, rec.frame_id),
+                                                    status=[status])
+
+
+def write_labels_bag(path: str | Path, records: Sequence[LabelRecord],
+                     namespace: str = DEFAULT_NAMESPACE) -> None:
+    """Write labels.mcap: a single-file rosbag2 MCAP, plus ``metadata.yaml`` beside it.
+
+    The folder holding ``path`` is thus also a rosbag2 bag. Written atomically.
+
+    Raises:
+        BagError: the folder is not writable.
+    """
+    from ficap_ros.bag_io import (
+        BagWriter,
+        pose_stamped_msg,
+        pose_with_covariance_stamped_msg,
+    )
+
+    topics = label_topics(namespace)
+    with BagWriter(path, storage="mcap", layout="file") as bag:
+        bag.add_topic(topics["cap_pose"], "geometry_msgs/msg/PoseStamped")
+        bag.add_topic(topics["head_pose"], "geometry_msgs/msg/PoseStamped")
+        bag.add_topic(topics["head_pose_cov"], "geometry_msgs/msg/PoseWithCovarianceStamped")
+        bag.add_topic(topics["status"], "diagnostic_msgs/msg/DiagnosticArray")
+        for rec in records:
+            if rec.T_cam_cap is not None and rec.T_frontal_head is not None:
+                bag.write(topics["cap_pose"], rec.stamp_ns,
+                          pose_stamped_msg(rec.stamp_ns, rec.frame_id, rec.T_cam_cap))
+                bag.write(topics["head_pose"], rec.stamp_ns,
+                          pose_stamped_msg(rec.stamp_ns, FRONTAL_FRAME, rec.T_frontal_head))
+                cov = (np.zeros((6, 6)) if rec.covariance_cam is None
+                       else _rotate_covariance(rec.covariance_cam, rec.R_frontal_cam))
+                bag.write(topics["head_pose_cov"], rec.stamp_ns,
+                          pose_with_covariance_stamped_msg(rec.stamp_ns, FRONTAL_FRAME,
+                                                           rec.T_frontal_head, cov))
+            bag.write(topics["status"], rec.stamp_ns, _status_msg(rec))

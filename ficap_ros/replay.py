@@ -1,0 +1,364 @@
+"""Replay a recording through the pipeline: labels.mcap, labels.csv and summary.json.
+
+Every frame goes through ``FrameProcessor.process`` (the node's code path). With ``jobs > 1`` the
+main process reads the bag and worker processes decode and process frames; results come back in
+recording order and the per-frame computation does not depend on the worker, so the outputs are
+identical to ``jobs = 1`` (summary.json's timing fields aside).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from itertools import islice
+from typing import IO, Any, Iterable, Iterator
+
+import numpy as np
+
+from ficap_ros.bag_io import FrameSource, RawFrame, decode_raw, write_file_atomic
+from ficap_ros.cap_model import CapModel
+from ficap_ros.errors import BagError, ImageError
+from ficap_ros.labels import LabelRecord, labels_csv_text, record_from_pose, write_labels_bag
+from ficap_ros.pipeline import FrameProcessor, HeadCalibration
+from ficap_ros.pose import CapPose, PoseConfig
+
+__all__ = ["Progress", "ProcessedFrame", "process_frames", "frontal_calibration",
+           "ReplayOutput", "replay", "check_output_dir"]
+
+
+class Progress:
+    """A progress bar on a terminal, plain lines (every ~10 % or 10 s) otherwise."""
+
+    def __init__(self, total: int, label: str = "frames", stream: IO[str] | None = None,
+                 enabled: bool = True) -> None:
+        self.total = max(int(total), 0)
+        self.label = label
+        self.stream = stream if stream is not None else sys.stderr
+        self.enabled = enabled
+        self.tty = enabled and bool(getattr(self.stream, "isatty", lambda: False)())
+        self.count = 0
+        self.t0 = time.monotonic()
+        self._last_print = self.t0
+        self._last_pct = -1
+
+    def update(self, n: int = 1) -> None:
+        self.count += n
+        if not self.enabled:
+            return
+        now = time.monotonic()
+        rate = self.count / max(now - self.t0, 1e-9)
+        if self.tty:
+            if now - self._last_print < 0.1 and self.count != self.total:
+                return
+            self._last_print = now
+            if self.total:
+                frac = min(self.count / self.total, 1.0)
+                bar = "#" * int(frac * 30)
+                eta = (self.total - self.count) / rate if rate > 0 else 0.0
+                text = (f"\r[{bar:<30}] {self.count}/{self.total} {self.label} "
+                        f"{rate:5.1f}/s eta {eta:4.0f}s")
+            else:
+                text = f"\r{self.count} {self.label} {rate:5.1f}/s"
+            self.stream.write(text)
+            self.stream.flush()
+            return
+        pct = int(100 * self.count / self.total) // 10 * 10 if self.total else -1
+        if (pct > self._last_pct and pct >= 0) or now - self._last_print >= 10.0:
+            self._last_pct = max(pct, self._last_pct)
+            self._last_print = now
+            of = f"/{self.total}" if self.total else ""
+            self.stream.write(f"ficap: {self.count}{of} {self.label} ({rate:.1f}/s)\n")
+            self.stream.flush()
+
+    def close(self) -> None:
+        if self.enabled and self.tty:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+@dataclass(frozen=True)
+class ProcessedFrame:
+    """What is kept of a frame after the pipeline (compact: no image, no corner lists).
+
+    Attributes:
+        index, stamp_ns, frame_id: as in the recording.
+        pose: the cap pose, or None.
+        detected_ids: ids of the model tags detected.
+        reason: why there is no pose; ``undecodable: ...`` for a skipped image.
+        detect_ms, pose_ms: pipeline timings (NaN for a skipped image).
+    """
+
+    index: int
+    stamp_ns: int
+    frame_id: str
+    pose: CapPose | None
+    detected_ids: tuple[int, ...]
+    reason: str
+    detect_ms: float = math.nan
+    pose_ms: float = math.nan
+
+    @property
+    def skipped(self) -> bool:
+        return self.reason.startswith("undecodable")
+
+
+# -- worker side ---------------------------------------------------------------------------------
+_PROCESSOR: FrameProcessor | None = None
+
+
+def _init_worker(model: CapModel, pose: PoseConfig, single_thread: bool) -> None:
+    global _PROCESSOR
+    if single_thread:
+        import cv2
+
+        cv2.setNumThreads(1)  # N processes already use the cores; avoid oversubscription
+    _PROCESSOR = FrameProcessor(model=model, pose=pose)
+
+
+def _process_one(raw: RawFrame) -> ProcessedFrame:
+    assert _PROCESSOR is not None
+    try:
+        image = decode_raw(raw)
+        if raw.camera is None:
+            raise ImageError("no camera intrinsics for this image")
+        result = _PROCESSOR.process(image, raw.camera, raw.stamp_ns)
+    except ImageError as err:
+        return ProcessedFrame(raw.index, raw.stamp_ns, raw.frame_id, None, (),
+                              f"undecodable: {err}")
+    return ProcessedFrame(
+        raw.index, raw.stamp_ns, raw.frame_id, result.pose,
+        tuple(sorted({d.tag_id for d in result.detections})), result.reason,
+        result.detect_ms, result.pose_ms,
+    )
+
+
+def _process_batch(raws: list[RawFrame]) -> list[ProcessedFrame]:
+    return [_process_one(raw) for raw in raws]
+
+
+def process_frames(
+    raws: Iterable[RawFrame], model: CapModel, pose: PoseConfig, jobs: int = 1,
+) -> Iterator[ProcessedFrame]:
+    """Run the pipeline over raw frames, in order, in ``jobs`` processes.
+
+    Undecodable frames come back with ``pose`` None and ``reason`` ``undecodable: ...``.
+    """
+    if jobs <= 1:
+        _init_worker(model, pose, single_thread=False)
+        for raw in raws:
+            yield _process_one(raw)
+        return
+    import multiprocessing
+
+    pool = multiprocessing.get_context("spawn").Pool(
+        jobs, initializer=_init_worker, initargs=(model, pose, True))
+    try:
+        # Bounded look-ahead: Pool.imap would read the whole bag into memory ahead of the
+        # workers, so feed it a few small batches per worker at a time, keeping the order.
+        it = iter(raws)
+        batch_size = 4
+        pending: list[Any] = []
+        while True:
+            while len(pending) < 2 * jobs:
+                batch = list(islice(it, batch_size))
+                if not batch:
+                    break
+                pending.append(pool.apply_async(_process_batch, (batch,)))
+            if not pending:
+                break
+            yield from pending.pop(0).get()
+        pool.close()
+    finally:
+        pool.terminate()
+        pool.join()
+
+
+# -- calibration ---------------------------------------------------------------------------------
+def parse_window(text: str) -> tuple[float, float]:
+    """``START:END`` in seconds -> (start_s, end_s). Raises ``ValueError``."""
+    start, sep, end = text.partition(":")
+    if not sep:
+        raise ValueError(f"expected START:END in seconds, got {text!r}")
+    s, e = float(start or 0.0), float(end) if end else math.inf
+    if not (s >= 0 and e > s):
+        raise ValueError(f"window {text!r} must have 0 <= START < END")
+    return s, e
+
+
+def frontal_calibration(
+    frames: list[ProcessedFrame], start_ns: int, window_s: tuple[float, float],
+    base: HeadCalibration,
+) -> tuple[HeadCalibration, dict[str, Any]]:
+    """R_cap_head from the frames of a frontal window (``ficap_ros.calibration``'s solver).
+
+    Raises:
+        CalibrationError: too few frames with a pose in the window, or too much spread.
+    """
+    from scipy.spatial.transform import Rotation
+
+    from ficap_ros.calibration import calibrate_frontal
+    from ficap_ros.errors import CalibrationError
+
+    lo = start_ns + int(window_s[0] * 1e9)
+    hi = start_ns + int(window_s[1] * 1e9) if math.isfinite(window_s[1]) else 2**63 - 1
+    rots = [f.pose.T_cam_cap.rotation for f in frames
+            if f.pose is not None and lo <= f.stamp_ns <= hi]
+    if not rots:
+        raise CalibrationError(
+            f"no frame with a cap pose between {window_s[0]:g} s and {window_s[1]:g} s")
+    result = calibrate_frontal(Rotation.concatenate(rots), base.R_cam_frontal,
+                               min_frames=min(30, len(rots)))
+    cal = HeadCalibration(R_cap_head=result.R_cap_head, R_cam_frontal=base.R_cam_frontal,
+                          calibrated=True)
+    info = {"mode": "frontal", "window_s": [window_s[0], window_s[1]],
+            "frames_used": result.frames_used, "spread_deg": result.spread_deg}
+    return cal, info
+
+
+# -- outputs -------------------------------------------------------------------------------------
+def check_output_dir(out: Path) -> None:
+    """Create ``out`` and check it is writable (fail before hours of processing).
+
+    Raises:
+        BagError: not creatable or not writable.
+    """
+    import tempfile
+
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".ficap-probe.", dir=out)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as err:
+        raise BagError(f"cannot write to output folder {out}: {err.strerror or err}") from err
+
+
+@dataclass
+class ReplayOutput:
+    """What ``replay`` produced."""
+
+    records: list[LabelRecord]
+    summary: dict[str, Any]
+    files: list[Path] = field(default_factory=list)
+
+
+def _summary(records: list[LabelRecord], frames: list[ProcessedFrame], elapsed_s: float) -> dict:
+    n = len(records)
+    skipped = [r for r in records if r.skipped]
+    decoded = n - len(skipped)
+    with_pose = sum(r.T_cam_cap is not None for r in records)
+    ge1 = sum(r.tags_detected >= 1 for r in records if not r.skipped)
+    ge4 = sum(r.tags_detected >= 4 for r in records if not r.skipped)
+    reasons = Counter(r.reason[len("undecodable: "):] for r in skipped)
+    no_pose = Counter(r.reason for r in records if r.T_cam_cap is None and not r.skipped)
+    detect_ms = [f.detect_ms for f in frames if not f.skipped]
+    pose_ms = [f.pose_ms for f in frames if not f.skipped]
+
+    def pct(k: int) -> float:
+        return round(100.0 * k / decoded, 3) if decoded else 0.0
+
+    return {
+        "frames": n,
+        "frames_decoded": decoded,
+        "frames_with_pose": with_pose,
+        "pct_with_pose": pct(with_pose),
+        "frames_no_tag": decoded - ge1,
+        "frames_ge1_tag": ge1,
+        "frames_ge4_tags": ge4,
+        "pct_ge1_tag": pct(ge1),
+        "pct_ge4_tags": pct(ge4),
+        "frames_skipped": len(skipped),
+        "skipped_reasons": dict(sorted(reasons.items())),
+        "no_pose_reasons": dict(sorted(no_pose.items())),
+        "elapsed_s": round(elapsed_s, 3),
+        "throughput_fps": round(n / elapsed_s, 2) if elapsed_s > 0 else None,
+        "mean_detect_ms": round(float(np.mean(detect_ms)), 3) if detect_ms else None,
+        "mean_pose_ms": round(float(np.mean(pose_ms)), 3) if pose_ms else None,
+    }
+
+
+def replay(
+    source: FrameSource,
+    out_dir: str | Path,
+    model: CapModel,
+    pose: PoseConfig,
+    calibration: HeadCalibration | None = None,
+    calibrate_window_s: tuple[float, float] | None = None,
+    jobs: int = 1,
+    namespace: str = "/ficap",
+    progress: bool = True,
+    progress_stream: IO[str] | None = None,
+) -> ReplayOutput:
+    """Process every frame of ``source`` and write labels.mcap, labels.csv and summary.json.
+
+    Args:
+        source: the opened recording.
+        out_dir: output folder (created).
+        model: cap model.
+        pose: pose estimator settings.
+        calibration: head calibration (default: uncalibrated, camera looking forward).
+        calibrate_window_s: (start, end) seconds from the first frame in which the wearer looks
+            straight ahead: R_cap_head is computed from them and applied to every frame.
+        jobs: worker processes.
+        namespace: topic namespace of labels.mcap.
+        progress: show progress on ``progress_stream`` (stderr).
+
+    Raises:
+        BagError: unreadable input or unwritable output. CalibrationError: bad frontal window.
+    """
+    out = Path(out_dir)
+    check_output_dir(out)
+    base = calibration or HeadCalibration()
+    bar = Progress(source.count, "frames", progress_stream, enabled=progress)
+    t0 = time.perf_counter()
+    frames: list[ProcessedFrame] = []
+    try:
+        for item in process_frames(source.raw_frames(), model, pose, jobs):
+            frames.append(item)
+            bar.update()
+    finally:
+        bar.close()
+    elapsed = time.perf_counter() - t0
+    cal_info: dict[str, Any] = {"mode": "file" if base.calibrated else "none"}
+    cal = base
+    if calibrate_window_s is not None:
+        cal, cal_info = frontal_calibration(frames, source.start_ns, calibrate_window_s, base)
+    records = [
+        record_from_pose(f.index, f.stamp_ns, f.frame_id, f.pose, f.detected_ids, f.reason, cal,
+                         pose.method)
+        for f in frames
+    ]
+    summary = {
+        "input": str(source.path),
+        "image_topic": source.image_topic,
+        "camera_info_topic": source.camera_info_topic,
+        "method": pose.method,
+        "jobs": jobs,
+        **_summary(records, frames, elapsed),
+        "calibration": {
+            **cal_info,
+            "calibrated": cal.calibrated,
+            "R_cap_head_q_wxyz": _q_wxyz(cal.R_cap_head),
+            "R_cam_frontal_q_wxyz": _q_wxyz(cal.R_cam_frontal),
+        },
+    }
+    files = [out / "labels.mcap", out / "metadata.yaml", out / "labels.csv", out / "summary.json"]
+    write_labels_bag(out / "labels.mcap", records, namespace)
+    _write(out / "labels.csv", labels_csv_text(records))
+    _write(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    return ReplayOutput(records, summary, files)
+
+
+def _write(path: Path, text: str) -> None:
+    write_file_atomic(path, text)
+
+
+def _q_wxyz(rotation: Any) -> list[float]:
+    x, y, z, w = rotation.as_quat(canonical=True)
+    return [round(float(v), 9) for v in (w, x, y, z)]
