@@ -26,6 +26,7 @@ setup(
     entry_points={
         "console_scripts": [
             "ficap = ficap_ros.cli:main",
+            "ficap_node = ficap_ros.node:main",
         ],
     },
 )

@@ -1,0 +1,703 @@
+"""``ficap_node``: live Fi-Cap head pose from a camera stream (a thin ROS 2 skin over the core).
+
+Subscribes (relative names, remappable):
+    ``image`` (sensor_msgs/Image) or ``image/compressed`` (sensor_msgs/CompressedImage), chosen by
+    ``image_transport``; ``camera_info`` (sensor_msgs/CameraInfo); the reference head pose
+    ``calibration.reference_topic`` (geometry_msgs/PoseStamped) when set.
+Publishes (header = the image's; frame_id replaced by ``output_frame`` when set):
+    ``head_pose`` (PoseStamped: T_cam_head = T_cam_cap * R_cap_head), ``head_pose/with_covariance``
+    (PoseWithCovarianceStamped, the estimator's covariance in ROS order), ``cap_pose`` (PoseStamped,
+    uncalibrated), ``status`` (DiagnosticArray, one per frame), ``/diagnostics`` (1 Hz), ``markers``
+    (MarkerArray) and ``debug_image`` (Image) only while someone subscribes.
+Services:
+    ``~/calibrate`` (std_srvs/Trigger), ``~/clear_calibration`` (std_srvs/Trigger).
+
+Frames arrive in a one-slot mailbox and are processed by a worker thread: the newest frame wins,
+replaced frames are counted as dropped, and callbacks (services, CameraInfo) never wait for a frame
+to be processed. All detection and pose estimation is ``ficap_ros.pipeline.FrameProcessor``.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from collections import deque
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    SetParametersResult,
+)
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.exceptions import InvalidParameterTypeException, ParameterException
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from scipy.spatial.transform import Rotation
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+from std_msgs.msg import Header
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import MarkerArray
+
+from ficap_ros import ros_msgs
+from ficap_ros.calibration import (
+    CalibrationResult,
+    calibrate_frontal,
+    calibrate_reference,
+    frontal_frame_rotation,
+    load_calibration,
+    save_calibration,
+)
+from ficap_ros.camera import CameraModel, load_camera_yaml
+from ficap_ros.cap_model import load_model, nominal_model
+from ficap_ros.detection import DetectorConfig
+from ficap_ros.errors import CalibrationError, ConfigError, FicapError, IntrinsicsError
+from ficap_ros.metrics import angle_deg, yaw_pitch_roll_deg
+from ficap_ros.pipeline import FrameProcessor, FrameResult, HeadCalibration
+from ficap_ros.pose import POSE_METHODS, PoseConfig
+
+__all__ = ["FicapNode", "ParamSpec", "PARAMETERS", "NodeConfig", "main"]
+
+NODE_NAME = "ficap_node"
+STATUS_NAME = "ficap"
+
+
+@dataclass(frozen=True)
+class ParamSpec:
+    """One parameter: declared once from this table, validated on every set.
+
+    Attributes:
+        name: dotted parameter name.
+        default: default value (its Python type is the parameter type).
+        description: one line for ``ros2 param describe``.
+        range: inclusive (low, high) for numbers.
+        choices: allowed strings.
+        read_only: structural (topics, files, detector): fixed after start.
+    """
+
+    name: str
+    default: Any
+    description: str
+    range: tuple[float, float] | None = None
+    choices: tuple[str, ...] | None = None
+    read_only: bool = False
+
+
+PARAMETERS: tuple[ParamSpec, ...] = (
+    ParamSpec("image_transport", "raw", "Input transport: 'raw' subscribes to image, 'compressed' "
+              "to image/compressed.", choices=("raw", "compressed"), read_only=True),
+    ParamSpec("qos.reliability", "best_effort", "Reliability of the image/camera_info "
+              "subscriptions (best_effort = sensor-data QoS, matches any publisher).",
+              choices=("best_effort", "reliable"), read_only=True),
+    ParamSpec("qos.depth", 5, "History depth of the image/camera_info subscriptions.",
+              range=(1, 100), read_only=True),
+    ParamSpec("camera_info_file", "", "camera_calibration YAML with static intrinsics, used while "
+              "no CameraInfo has been received ('' = none).", read_only=True),
+    ParamSpec("camera_info_max_stamp_diff_ms", 1.0, "A CameraInfo whose stamp is this close to the "
+              "image's is used; otherwise the latest one.", range=(0.0, 1000.0)),
+    ParamSpec("image_is_rectified", False, "The image is rectified: use CameraInfo P, no "
+              "distortion."),
+    ParamSpec("output_frame", "", "frame_id of the outputs ('' = the image's frame_id)."),
+    ParamSpec("model_file", "", "Cap model YAML/JSON ('' = the nominal 23-tag cap).",
+              read_only=True),
+    ParamSpec("detector.backend", "opencv", "Tag detector backend.",
+              choices=("opencv", "apriltag"), read_only=True),
+    ParamSpec("detector.corner_refine", "edge", "Corner refinement.",
+              choices=("edge", "subpix", "apriltag", "none"), read_only=True),
+    ParamSpec("pose.method", "joint", "Pose estimator: 'joint' (PnP over all corners) or "
+              "'paper' (per-tag + Kabsch + outlier trimming).", choices=tuple(POSE_METHODS)),
+    ParamSpec("pose.min_tags", 1, "Fewest tags for a pose.", range=(1, 23)),
+    ParamSpec("publish_min_reliability", 0.0, "Poses less reliable than this are not published "
+              "(status still is).", range=(0.0, 1.0)),
+    ParamSpec("warn_reliability", 0.5, "Status level is WARN below this reliability.",
+              range=(0.0, 1.0)),
+    ParamSpec("warn_throttle_s", 5.0, "Least interval between repeated input warnings, s.",
+              range=(0.0, 3600.0)),
+    ParamSpec("frontal.mount_pitch_deg", 0.0, "Camera mount pitch in the frontal (vehicle) frame, "
+              "deg, positive up (a camera pitched down 10 deg is -10).", range=(-90.0, 90.0)),
+    ParamSpec("frontal.mount_yaw_deg", 0.0, "Camera mount yaw in the frontal frame, deg, positive "
+              "to the left.", range=(-180.0, 180.0)),
+    ParamSpec("frontal.mount_roll_deg", 0.0, "Camera mount roll in the frontal frame, deg, "
+              "positive toward the right.", range=(-180.0, 180.0)),
+    ParamSpec("calibration.mode", "auto", "~/calibrate mode: 'frontal', 'reference', or 'auto' "
+              "(reference when calibration.reference_topic is set).",
+              choices=("auto", "frontal", "reference")),
+    ParamSpec("calibration.window_s", 3.0, "Frontal mode uses the reliable frames of the last "
+              "window_s seconds (image stamps).", range=(0.2, 120.0)),
+    ParamSpec("calibration.min_frames", 30, "Frontal mode: fewest frames.", range=(3, 100000)),
+    ParamSpec("calibration.max_spread_deg", 3.0, "Frontal mode: largest RMS residual spread, "
+              "deg.", range=(0.1, 45.0)),
+    ParamSpec("calibration.min_reliability", 0.5, "Frames less reliable than this are not "
+              "buffered for calibration.", range=(0.0, 1.0)),
+    ParamSpec("calibration.reference_topic", "", "PoseStamped head-pose reference for reference "
+              "mode ('' = none).", read_only=True),
+    ParamSpec("calibration.min_pairs", 10, "Reference mode: fewest stamp-matched pairs.",
+              range=(3, 100000)),
+    ParamSpec("calibration.max_pairs", 0, "Reference mode: use the first max_pairs pairs "
+              "(0 = all buffered).", range=(0, 100000)),
+    ParamSpec("calibration.pair_tolerance_ms", 5.0, "Reference mode: largest stamp difference of "
+              "a pair, ms.", range=(0.0, 1000.0)),
+    ParamSpec("calibration.file", "", "Calibration YAML: loaded at start, written by "
+              "~/calibrate ('' = not persisted).", read_only=True),
+)
+_SPECS = {p.name: p for p in PARAMETERS}
+
+
+@dataclass(frozen=True)
+class NodeConfig:
+    """The parameters, read once per change into one frozen object (names as in ``PARAMETERS``)."""
+
+    values: dict[str, Any]
+
+    def __getitem__(self, name: str) -> Any:
+        return self.values[name]
+
+
+def _descriptor(spec: ParamSpec) -> ParameterDescriptor:
+    d = ParameterDescriptor(name=spec.name, description=spec.description, read_only=spec.read_only)
+    if spec.range is not None and isinstance(spec.default, float):
+        d.floating_point_range = [FloatingPointRange(
+            from_value=float(spec.range[0]), to_value=float(spec.range[1]), step=0.0)]
+    elif spec.range is not None and isinstance(spec.default, int) and not isinstance(
+            spec.default, bool):
+        d.integer_range = [IntegerRange(
+            from_value=int(spec.range[0]), to_value=int(spec.range[1]), step=1)]
+    if spec.choices is not None:
+        d.additional_constraints = "one of: " + ", ".join(spec.choices)
+    return d
+
+
+def validate_parameter(name: str, value: Any) -> str:
+    """The reason ``value`` is not acceptable for parameter ``name``, or '' when it is."""
+    spec = _SPECS.get(name)
+    if spec is None:
+        return ""  # use_sim_time and other rclpy parameters
+    want = type(spec.default)
+    if want is float and isinstance(value, int) and not isinstance(value, bool):
+        value = float(value)
+    if not isinstance(value, want) or (want is int and isinstance(value, bool)):
+        return f"{name} must be a {want.__name__}, got {type(value).__name__}"
+    if spec.choices is not None and value not in spec.choices:
+        return f"{name} must be one of {', '.join(spec.choices)}, got {value!r}"
+    if spec.range is not None:
+        if isinstance(value, float) and not math.isfinite(value):
+            return f"{name} must be finite"
+        lo, hi = spec.range
+        if not lo <= value <= hi:
+            return f"{name} must be within [{lo}, {hi}], got {value}"
+    return ""
+
+
+def _quat(rotation: Rotation) -> np.ndarray:
+    return rotation.as_quat()
+
+
+class FicapNode(Node):
+    """Fi-Cap head pose node (see the module docstring for its interface)."""
+
+    def __init__(self, **kwargs: Any) -> None:
+        super().__init__(NODE_NAME, **kwargs)
+        for spec in PARAMETERS:
+            try:
+                self.declare_parameter(spec.name, spec.default, _descriptor(spec))
+            except (ParameterException, InvalidParameterTypeException) as err:
+                # An override from a params file or the command line out of range or mistyped.
+                raise ConfigError(f"parameter {spec.name}: {err}") from err
+        for spec in PARAMETERS:
+            reason = validate_parameter(spec.name, self.get_parameter(spec.name).value)
+            if reason:
+                raise ConfigError(reason)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.add_post_set_parameters_callback(self._after_set_parameters)
+        self._config = self._read_config()
+        cfg = self._config
+
+        # Core objects.
+        model = load_model(cfg["model_file"]) if cfg["model_file"] else nominal_model()
+        self._processor = FrameProcessor(
+            model=model,
+            detector=DetectorConfig(backend=cfg["detector.backend"],
+                                    corner_refine=cfg["detector.corner_refine"]),
+            pose=PoseConfig(method=cfg["pose.method"], min_tags=cfg["pose.min_tags"]),
+            calibration=HeadCalibration(R_cam_frontal=self._R_cam_frontal(cfg)),
+        )
+        self._static_camera: CameraModel | None = None
+        self._static_camera_error = ""
+        if cfg["camera_info_file"]:
+            try:
+                self._static_camera = load_camera_yaml(cfg["camera_info_file"])
+            except IntrinsicsError as err:
+                self._static_camera_error = str(err)
+                self.get_logger().error(str(err))
+        self._load_calibration_file()
+
+        # State shared between callbacks and the worker.
+        self._lock = threading.Lock()
+        self._mailbox_cv = threading.Condition()
+        self._mailbox: tuple[Any, int] | None = None
+        self._running = True
+        self._camera_infos: deque[tuple[int, CameraInfo]] = deque(maxlen=50)
+        self._camera_cache: tuple[tuple, CameraModel] | None = None
+        self._frontal_buf: deque[tuple[int, np.ndarray]] = deque(maxlen=3000)
+        self._cap_buf: deque[tuple[int, np.ndarray]] = deque(maxlen=20000)
+        self._ref_buf: deque[tuple[int, np.ndarray]] = deque(maxlen=20000)
+        self._last_calibration: CalibrationResult | None = None
+        self._received = 0
+        self._dropped = 0
+        self._processed = 0
+        self._errors = 0
+        self._last_error = ""
+        self._period = {"received": 0, "dropped": 0, "processed": 0, "tags": 0, "latency_ms": 0.0,
+                        "errors": 0}
+
+        # Callback groups: frames, side inputs, services and timers never wait on each other.
+        self._input_group = MutuallyExclusiveCallbackGroup()
+        self._side_group = ReentrantCallbackGroup()
+        self._service_group = MutuallyExclusiveCallbackGroup()
+        self._timer_group = MutuallyExclusiveCallbackGroup()
+
+        sensor_qos = QoSProfile(
+            history=HistoryPolicy.KEEP_LAST, depth=cfg["qos.depth"],
+            reliability=(ReliabilityPolicy.BEST_EFFORT if cfg["qos.reliability"] == "best_effort"
+                         else ReliabilityPolicy.RELIABLE),
+            durability=qos_profile_sensor_data.durability,
+        )
+        if cfg["image_transport"] == "compressed":
+            # image_transport's naming: <base topic>/compressed, so remapping `image` moves both.
+            topic = self.resolve_topic_name("image") + "/compressed"
+            self._image_sub = self.create_subscription(
+                CompressedImage, topic, self._on_image, sensor_qos,
+                callback_group=self._input_group)
+        else:
+            self._image_sub = self.create_subscription(
+                Image, "image", self._on_image, sensor_qos, callback_group=self._input_group)
+        self._info_sub = self.create_subscription(
+            CameraInfo, "camera_info", self._on_camera_info, sensor_qos,
+            callback_group=self._side_group)
+        self._ref_sub = None
+        if cfg["calibration.reference_topic"]:
+            ref_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
+                                 reliability=ReliabilityPolicy.BEST_EFFORT)
+            self._ref_sub = self.create_subscription(
+                PoseStamped, cfg["calibration.reference_topic"], self._on_reference, ref_qos,
+                callback_group=self._side_group)
+
+        out_qos = 10
+        self._pub_head = self.create_publisher(PoseStamped, "head_pose", out_qos)
+        self._pub_head_cov = self.create_publisher(
+            PoseWithCovarianceStamped, "head_pose/with_covariance", out_qos)
+        self._pub_cap = self.create_publisher(PoseStamped, "cap_pose", out_qos)
+        self._pub_status = self.create_publisher(DiagnosticArray, "status", out_qos)
+        self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", out_qos)
+        self._pub_markers = self.create_publisher(MarkerArray, "markers", out_qos)
+        self._pub_debug = self.create_publisher(Image, "debug_image", qos_profile_sensor_data)
+
+        self._srv_calibrate = self.create_service(
+            Trigger, "~/calibrate", self._on_calibrate, callback_group=self._service_group)
+        self._srv_clear = self.create_service(
+            Trigger, "~/clear_calibration", self._on_clear_calibration,
+            callback_group=self._service_group)
+        self._diag_timer = self.create_timer(1.0, self._on_diagnostics_timer,
+                                             callback_group=self._timer_group)
+        self._last_diag = time.monotonic()
+
+        self._worker = threading.Thread(target=self._work, name="ficap_worker", daemon=True)
+        self._worker.start()
+        self.get_logger().info(
+            f"ficap_node ready: {cfg['image_transport']} images on "
+            f"{self._image_sub.topic_name}, pose method {cfg['pose.method']}, "
+            f"{'calibrated' if self._processor.calibration.calibrated else 'not calibrated'}")
+
+    # -- parameters ------------------------------------------------------------------------------
+    def _read_config(self) -> NodeConfig:
+        values = {}
+        for spec in PARAMETERS:
+            v = self.get_parameter(spec.name).value
+            values[spec.name] = float(v) if isinstance(spec.default, float) else v
+        return NodeConfig(values)
+
+    @staticmethod
+    def _R_cam_frontal(cfg: NodeConfig) -> Rotation:
+        return frontal_frame_rotation(
+            mount_pitch_deg=cfg["frontal.mount_pitch_deg"],
+            mount_yaw_deg=cfg["frontal.mount_yaw_deg"],
+            mount_roll_deg=cfg["frontal.mount_roll_deg"],
+        )
+
+    def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
+        for p in params:
+            reason = validate_parameter(p.name, p.value)
+            if reason:
+                return SetParametersResult(successful=False, reason=reason)
+        return SetParametersResult(successful=True)
+
+    def _after_set_parameters(self, params: list[Parameter]) -> None:
+        self._config = cfg = self._read_config()
+        self._processor.pose_config = PoseConfig(method=cfg["pose.method"],
+                                                 min_tags=cfg["pose.min_tags"])
+        R_cam_frontal = self._R_cam_frontal(cfg)
+        old = self._processor.calibration
+        if angle_deg(old.R_cam_frontal, R_cam_frontal) > 1e-9:
+            self._processor.calibration = HeadCalibration(old.R_cap_head, R_cam_frontal,
+                                                          old.calibrated)
+
+    # -- calibration state -----------------------------------------------------------------------
+    def _load_calibration_file(self) -> None:
+        path = self._config["calibration.file"]
+        if not path or not Path(path).exists():
+            return
+        try:
+            loaded = load_calibration(path)
+        except CalibrationError as err:
+            self.get_logger().error(f"{err}; starting uncalibrated")
+            return
+        R_cam_frontal = self._processor.calibration.R_cam_frontal
+        if loaded.calibrated and angle_deg(loaded.R_cam_frontal, R_cam_frontal) > 0.01:
+            self.get_logger().warning(
+                f"calibration {path} was made with a frontal frame "
+                f"{angle_deg(loaded.R_cam_frontal, R_cam_frontal):.2f} deg from the current "
+                "frontal.mount_* parameters; head angles keep the current frontal frame")
+        self._processor.calibration = HeadCalibration(loaded.R_cap_head, R_cam_frontal,
+                                                      loaded.calibrated)
+        self.get_logger().info(f"loaded calibration {path} (calibrated: {loaded.calibrated})")
+
+    @property
+    def calibration(self) -> HeadCalibration:
+        """The calibration in use."""
+        return self._processor.calibration
+
+    def _calibration_mode(self) -> str:
+        mode = self._config["calibration.mode"]
+        if mode == "auto":
+            return "reference" if self._config["calibration.reference_topic"] else "frontal"
+        return mode
+
+    def _run_calibration(self) -> CalibrationResult:
+        cfg = self._config
+        mode = self._calibration_mode()
+        R_cam_frontal = self._processor.calibration.R_cam_frontal
+        if mode == "frontal":
+            with self._lock:
+                buf = list(self._frontal_buf)
+            if not buf:
+                raise CalibrationError("no reliable frames buffered for frontal calibration")
+            newest = buf[-1][0]
+            start = newest - int(cfg["calibration.window_s"] * 1e9)
+            quats = np.array([q for stamp, q in buf if stamp >= start])
+            if len(quats) == 0:
+                raise CalibrationError("no reliable frames in the calibration window")
+            return calibrate_frontal(Rotation.from_quat(quats), R_cam_frontal,
+                                     min_frames=cfg["calibration.min_frames"],
+                                     max_spread_deg=cfg["calibration.max_spread_deg"])
+        if not cfg["calibration.reference_topic"]:
+            raise CalibrationError("reference mode needs calibration.reference_topic")
+        with self._lock:
+            caps = list(self._cap_buf)
+            refs = list(self._ref_buf)
+        if not caps or not refs:
+            raise CalibrationError(
+                f"reference mode has {len(caps)} cap poses and {len(refs)} reference poses")
+        caps.sort(key=lambda e: e[0])
+        refs.sort(key=lambda e: e[0])
+        cap_stamps = np.array([s for s, _ in caps], dtype=np.int64)
+        tol_ns = int(cfg["calibration.pair_tolerance_ms"] * 1e6)
+        pairs_cap, pairs_ref = [], []
+        for stamp, q_ref in refs:
+            i = int(np.searchsorted(cap_stamps, stamp))
+            best = min((j for j in (i - 1, i) if 0 <= j < len(caps)),
+                       key=lambda j: abs(int(cap_stamps[j]) - stamp))
+            if abs(int(cap_stamps[best]) - stamp) <= tol_ns:
+                pairs_cap.append(caps[best][1])
+                pairs_ref.append(q_ref)
+        if cfg["calibration.max_pairs"] > 0:
+            pairs_cap = pairs_cap[: cfg["calibration.max_pairs"]]
+            pairs_ref = pairs_ref[: cfg["calibration.max_pairs"]]
+        if len(pairs_cap) < cfg["calibration.min_pairs"]:
+            raise CalibrationError(
+                f"reference mode matched {len(pairs_cap)} pairs by stamp, needs "
+                f"{cfg['calibration.min_pairs']}")
+        return calibrate_reference(Rotation.from_quat(np.array(pairs_cap)),
+                                   Rotation.from_quat(np.array(pairs_ref)),
+                                   min_pairs=cfg["calibration.min_pairs"])
+
+    def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        try:
+            result = self._run_calibration()
+        except CalibrationError as err:
+            response.success = False
+            response.message = f"calibration refused: {err}"
+            self.get_logger().warning(response.message)
+            return response
+        R_cam_frontal = self._processor.calibration.R_cam_frontal
+        calib = HeadCalibration(result.R_cap_head, R_cam_frontal, True)
+        self._processor.calibration = calib
+        self._last_calibration = result
+        response.success = True
+        response.message = (f"calibrated ({result.mode}) from {result.frames_used} frames, "
+                            f"spread {result.spread_deg:.2f} deg")
+        path = self._config["calibration.file"]
+        if path:
+            try:
+                save_calibration(path, calib, result)
+                response.message += f", saved to {path}"
+            except (OSError, FicapError) as err:
+                response.message += f", NOT saved: {err}"
+        self.get_logger().info(response.message)
+        return response
+
+    def _on_clear_calibration(
+        self, request: Trigger.Request, response: Trigger.Response
+    ) -> Trigger.Response:
+        self._processor.calibration = HeadCalibration(
+            R_cam_frontal=self._processor.calibration.R_cam_frontal)
+        self._last_calibration = None
+        response.success = True
+        response.message = "calibration cleared"
+        path = self._config["calibration.file"]
+        if path:
+            try:
+                save_calibration(path, self._processor.calibration)
+            except (OSError, FicapError) as err:
+                response.message += f" (file not updated: {err})"
+        self.get_logger().info(response.message)
+        return response
+
+    # -- inputs ----------------------------------------------------------------------------------
+    def _on_image(self, msg: Image | CompressedImage) -> None:
+        now = time.monotonic_ns()
+        with self._mailbox_cv:
+            self._received += 1
+            self._period["received"] += 1
+            if self._mailbox is not None:  # an unprocessed older frame: newest wins
+                self._dropped += 1
+                self._period["dropped"] += 1
+            self._mailbox = (msg, now)
+            self._mailbox_cv.notify()
+
+    def _on_camera_info(self, msg: CameraInfo) -> None:
+        with self._lock:
+            self._camera_infos.append((ros_msgs.stamp_to_ns(msg.header.stamp), msg))
+
+    def _on_reference(self, msg: PoseStamped) -> None:
+        o = msg.pose.orientation
+        q = np.array([o.x, o.y, o.z, o.w], dtype=np.float64)
+        if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-6:
+            self.get_logger().warning("reference pose with an invalid quaternion ignored",
+                                      throttle_duration_sec=self._config["warn_throttle_s"])
+            return
+        with self._lock:
+            self._ref_buf.append((ros_msgs.stamp_to_ns(msg.header.stamp), q / np.linalg.norm(q)))
+
+    def _camera_for(self, stamp_ns: int) -> CameraModel:
+        """Intrinsics for a frame: the CameraInfo with its stamp, else the latest, else the file."""
+        with self._lock:
+            infos = list(self._camera_infos)
+        if not infos:
+            if self._static_camera is not None:
+                return self._static_camera
+            raise IntrinsicsError(self._static_camera_error or "no CameraInfo received yet and no "
+                                  "camera_info_file")
+        tol_ns = int(self._config["camera_info_max_stamp_diff_ms"] * 1e6)
+        info = min(infos, key=lambda e: abs(e[0] - stamp_ns))
+        msg = info[1] if abs(info[0] - stamp_ns) <= tol_ns else infos[-1][1]
+        rectified = bool(self._config["image_is_rectified"])
+        key = (msg.width, msg.height, tuple(msg.k), tuple(msg.d), msg.distortion_model,
+               tuple(msg.p), rectified)
+        cache = self._camera_cache
+        if cache is not None and cache[0] == key:
+            return cache[1]
+        camera = ros_msgs.camera_info_to_model(msg, rectified=rectified)
+        self._camera_cache = (key, camera)
+        return camera
+
+    # -- processing ------------------------------------------------------------------------------
+    def _work(self) -> None:
+        while True:
+            with self._mailbox_cv:
+                self._mailbox_cv.wait_for(lambda: self._mailbox is not None or not self._running,
+                                          timeout=0.5)
+                if not self._running:
+                    return
+                item, self._mailbox = self._mailbox, None
+            if item is None:
+                continue
+            try:
+                self._process(*item)
+            except Exception as err:  # noqa: BLE001 - keep the node alive; report and go on
+                self._report_error(item[0].header, f"internal error: {type(err).__name__}: {err}")
+                self.get_logger().error(f"processing failed: {err!r}",
+                                        throttle_duration_sec=self._config["warn_throttle_s"])
+
+    def _out_header(self, header: Header) -> Header:
+        frame = self._config["output_frame"] or header.frame_id
+        return Header(stamp=header.stamp, frame_id=frame)
+
+    def _report_error(self, header: Header, reason: str) -> None:
+        with self._lock:
+            self._errors += 1
+            self._period["errors"] += 1
+            self._last_error = reason
+        self.get_logger().warning(reason, throttle_duration_sec=self._config["warn_throttle_s"])
+        status = ros_msgs.diagnostic_status(
+            STATUS_NAME, ros_msgs.LEVEL_ERROR, reason, self._status_values(None, float("nan")),
+            hardware_id=header.frame_id)
+        self._pub_status.publish(ros_msgs.diagnostic_array(self._out_header(header), status))
+
+    def _status_values(self, result: FrameResult | None, latency_ms: float) -> dict[str, object]:
+        pose = result.pose if result is not None else None
+        values: dict[str, object] = {
+            "tags_detected": result.tags_detected if result is not None else 0,
+            "tags_used": result.tags_used if result is not None else 0,
+            "rms_px": pose.rms_px if pose is not None else float("nan"),
+            "reliability": pose.reliability if pose is not None else 0.0,
+            "calibrated": self._processor.calibration.calibrated,
+            "latency_ms": latency_ms,
+            "dropped_frames": self._dropped,
+        }
+        if result is not None and result.R_frontal_head is not None:
+            yaw, pitch, roll = yaw_pitch_roll_deg(result.R_frontal_head)
+            values.update(yaw_deg=float(yaw), pitch_deg=float(pitch), roll_deg=float(roll))
+        return values
+
+    def _process(self, msg: Image | CompressedImage, received_ns: int) -> None:
+        cfg = self._config
+        header = msg.header
+        stamp_ns = ros_msgs.stamp_to_ns(header.stamp)
+        try:
+            if isinstance(msg, CompressedImage):
+                image = ros_msgs.compressed_to_array(msg)
+            else:
+                image = ros_msgs.image_to_array(msg)
+            camera = self._camera_for(stamp_ns)
+            h, w = image.shape[:2]
+            if (w, h) != (camera.width_px, camera.height_px):
+                raise IntrinsicsError(f"image {w}x{h} does not match the intrinsics "
+                                      f"{camera.width_px}x{camera.height_px}")
+            result = self._processor.process(image, camera, stamp_ns)
+        except FicapError as err:
+            self._report_error(header, str(err))
+            return
+
+        out = self._out_header(header)
+        pose = result.pose
+        published = (pose is not None and result.T_cam_head is not None
+                     and pose.reliability >= cfg["publish_min_reliability"])
+        if published:
+            self._pub_head.publish(ros_msgs.pose_stamped(out, result.T_cam_head))
+            self._pub_head_cov.publish(
+                ros_msgs.pose_with_covariance_stamped(out, result.T_cam_head, pose.covariance))
+            self._pub_cap.publish(ros_msgs.pose_stamped(out, pose.T_cam_cap))
+        latency_ms = (time.monotonic_ns() - received_ns) / 1e6
+
+        if pose is None:
+            level, message = ros_msgs.LEVEL_WARN, f"no pose: {result.reason or 'no tags'}"
+        elif pose.reliability < cfg["warn_reliability"]:
+            level, message = ros_msgs.LEVEL_WARN, f"low reliability {pose.reliability:.2f}"
+        else:
+            level, message = ros_msgs.LEVEL_OK, "pose"
+        status = ros_msgs.diagnostic_status(STATUS_NAME, level, message,
+                                            self._status_values(result, latency_ms),
+                                            hardware_id=header.frame_id)
+        self._pub_status.publish(ros_msgs.diagnostic_array(out, status))
+
+        if self._pub_markers.get_subscription_count() > 0:
+            self._pub_markers.publish(ros_msgs.markers_msg(out, self._processor.model, result))
+        if self._pub_debug.get_subscription_count() > 0:
+            gray = image if image.ndim == 2 else image[:, :, 0]
+            self._pub_debug.publish(ros_msgs.debug_image_msg(gray, result, camera, out))
+
+        with self._lock:
+            self._processed += 1
+            self._period["processed"] += 1
+            self._period["tags"] += result.tags_detected
+            self._period["latency_ms"] += latency_ms
+            if pose is not None:
+                q = _quat(pose.T_cam_cap.rotation)
+                self._cap_buf.append((stamp_ns, q))
+                if pose.reliability >= cfg["calibration.min_reliability"]:
+                    self._frontal_buf.append((stamp_ns, q))
+
+    # -- diagnostics -----------------------------------------------------------------------------
+    def _on_diagnostics_timer(self) -> None:
+        now = time.monotonic()
+        dt = max(now - self._last_diag, 1e-3)
+        self._last_diag = now
+        with self._lock, self._mailbox_cv:
+            p = dict(self._period)
+            self._period = dict.fromkeys(p, 0)
+            self._period["latency_ms"] = 0.0
+            last_error = self._last_error
+        calib = self._processor.calibration
+        processed = p["processed"]
+        values = {
+            "fps": processed / dt,
+            "input_fps": p["received"] / dt,
+            "drop_rate": p["dropped"] / p["received"] if p["received"] else 0.0,
+            "mean_tags": p["tags"] / processed if processed else 0.0,
+            "mean_latency_ms": p["latency_ms"] / processed if processed else float("nan"),
+            "errors": p["errors"],
+            "dropped_frames_total": self._dropped,
+            "calibrated": calib.calibrated,
+            "calibration_mode": (self._last_calibration.mode if self._last_calibration
+                                 else ("loaded" if calib.calibrated else "none")),
+        }
+        if p["errors"]:
+            level, message = ros_msgs.LEVEL_ERROR, f"input errors: {last_error}"
+        elif p["received"] == 0:
+            level, message = ros_msgs.LEVEL_WARN, "no images"
+        elif not calib.calibrated:
+            level, message = ros_msgs.LEVEL_OK, "running, not calibrated"
+        else:
+            level, message = ros_msgs.LEVEL_OK, "running"
+        status = ros_msgs.diagnostic_status(f"{self.get_name()}: pipeline", level, message, values,
+                                            hardware_id=self._config["output_frame"])
+        header = Header(stamp=self.get_clock().now().to_msg())
+        self._pub_diag.publish(ros_msgs.diagnostic_array(header, status))
+
+    # -- lifecycle -------------------------------------------------------------------------------
+    @property
+    def dropped_frames(self) -> int:
+        return self._dropped
+
+    def destroy_node(self) -> None:
+        """Stop the worker, then destroy the node."""
+        with self._mailbox_cv:
+            self._running = False
+            self._mailbox_cv.notify_all()
+        if self._worker.is_alive() and threading.current_thread() is not self._worker:
+            self._worker.join(timeout=5.0)
+        super().destroy_node()
+
+
+def main(args: list[str] | None = None) -> int:
+    """Run ``ficap_node`` (Jazzy's idiom: spin until Ctrl-C or external shutdown)."""
+    rclpy.init(args=args)
+    node: FicapNode | None = None
+    code = 0
+    try:
+        node = FicapNode()
+        rclpy.spin(node, MultiThreadedExecutor(num_threads=4))
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    except FicapError as err:
+        print(f"ficap_node: {err}")
+        code = 1
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return code
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,314 @@
+"""Conversions between ROS 2 messages and the ficap_ros core types (no algorithms here).
+
+Images become numpy arrays the core accepts (grey uint8, or uint16 for ``mono16``), CameraInfo
+becomes a ``CameraModel``, results become PoseStamped / PoseWithCovarianceStamped / DiagnosticArray /
+MarkerArray / a debug Image. Quaternions in messages are the x, y, z, w fields (``q_xyzw``).
+"""
+
+from __future__ import annotations
+
+from typing import Mapping
+
+import cv2
+import numpy as np
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Point, Pose, PoseStamped, PoseWithCovarianceStamped
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+from std_msgs.msg import Header
+from visualization_msgs.msg import Marker, MarkerArray
+
+from ficap_ros.camera import CameraModel
+from ficap_ros.cap_model import CapModel
+from ficap_ros.errors import ImageError, IntrinsicsError
+from ficap_ros.pipeline import FrameResult
+from ficap_ros.transform import Transform
+
+__all__ = [
+    "IMAGE_ENCODINGS",
+    "image_to_array",
+    "compressed_to_array",
+    "array_to_image",
+    "camera_info_to_model",
+    "camera_model_to_info",
+    "stamp_to_ns",
+    "ns_to_stamp",
+    "pose_msg",
+    "pose_stamped",
+    "pose_with_covariance_stamped",
+    "diagnostic_status",
+    "diagnostic_array",
+    "markers_msg",
+    "debug_image_msg",
+    "LEVEL_OK",
+    "LEVEL_WARN",
+    "LEVEL_ERROR",
+]
+
+LEVEL_OK = DiagnosticStatus.OK
+LEVEL_WARN = DiagnosticStatus.WARN
+LEVEL_ERROR = DiagnosticStatus.ERROR
+
+#: encoding -> (channels, bytes per channel, cv2 conversion to grey or None).
+IMAGE_ENCODINGS: dict[str, tuple[int, int, int | None]] = {
+    "mono8": (1, 1, None),
+    "8UC1": (1, 1, None),
+    "mono16": (1, 2, None),
+    "16UC1": (1, 2, None),
+    "bgr8": (3, 1, cv2.COLOR_BGR2GRAY),
+    "rgb8": (3, 1, cv2.COLOR_RGB2GRAY),
+    "bgra8": (4, 1, cv2.COLOR_BGRA2GRAY),
+    "rgba8": (4, 1, cv2.COLOR_RGBA2GRAY),
+    # OpenCV's named-by-pattern aliases (4.5+); the older BayerXX names are offset by one pixel.
+    "bayer_rggb8": (1, 1, cv2.COLOR_BayerRGGB2GRAY),
+    "bayer_bggr8": (1, 1, cv2.COLOR_BayerBGGR2GRAY),
+    "bayer_gbrg8": (1, 1, cv2.COLOR_BayerGBRG2GRAY),
+    "bayer_grbg8": (1, 1, cv2.COLOR_BayerGRBG2GRAY),
+}
+
+
+# -- time ----------------------------------------------------------------------------------------
+def stamp_to_ns(stamp: Time) -> int:
+    """builtin_interfaces/Time -> integer nanoseconds."""
+    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
+
+
+def ns_to_stamp(stamp_ns: int) -> Time:
+    """Integer nanoseconds -> builtin_interfaces/Time."""
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    return Time(sec=sec, nanosec=nanosec)
+
+
+def _as_bytes(data: object) -> np.ndarray:
+    """Message ``uint8[]`` data (array.array, bytes, list) as a uint8 array, without a copy if possible."""
+    try:
+        return np.frombuffer(data, dtype=np.uint8)  # type: ignore[call-overload]
+    except TypeError:
+        return np.asarray(data, dtype=np.uint8).reshape(-1)
+
+
+# -- images --------------------------------------------------------------------------------------
+def image_to_array(msg: Image) -> np.ndarray:
+    """A ``sensor_msgs/Image`` as a grey array: uint8, or uint16 (native order) for mono16.
+
+    Honours ``step`` (row padding) and ``is_bigendian`` (16-bit data).
+
+    Raises:
+        ImageError: unknown encoding, zero size, a step shorter than a row, or data whose length
+            is not ``step * height``.
+    """
+    encoding = msg.encoding
+    if encoding not in IMAGE_ENCODINGS:
+        raise ImageError(
+            f"unsupported image encoding {encoding!r}; expected one of {', '.join(IMAGE_ENCODINGS)}"
+        )
+    channels, depth, code = IMAGE_ENCODINGS[encoding]
+    width, height, step = int(msg.width), int(msg.height), int(msg.step)
+    if width <= 0 or height <= 0:
+        raise ImageError(f"image has zero size ({width}x{height})")
+    row_bytes = width * channels * depth
+    if step < row_bytes:
+        raise ImageError(f"image step {step} is shorter than a {encoding} row of {row_bytes} bytes")
+    data = msg.data
+    n = len(data)
+    if n != step * height:
+        raise ImageError(
+            f"image data has {n} bytes, expected step*height = {step}*{height} = {step * height}"
+        )
+    buf = _as_bytes(data)
+    rows = buf.reshape(height, step)[:, :row_bytes]
+    if depth == 2:
+        dtype = np.dtype(">u2" if msg.is_bigendian else "<u2")
+        arr = np.ascontiguousarray(rows).view(dtype).reshape(height, width).astype(np.uint16)
+        return arr
+    arr = rows.reshape(height, width, channels) if channels > 1 else rows
+    arr = np.ascontiguousarray(arr)
+    if code is not None:
+        arr = cv2.cvtColor(arr, code)
+    return arr
+
+
+def compressed_to_array(msg: CompressedImage) -> np.ndarray:
+    """A ``sensor_msgs/CompressedImage`` (JPEG, PNG, ...) decoded to grey uint8.
+
+    Raises:
+        ImageError: empty or undecodable data.
+    """
+    buf = _as_bytes(msg.data)
+    if buf.size == 0:
+        raise ImageError("compressed image is empty")
+    gray = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+    if gray is None or gray.size == 0:
+        raise ImageError(f"cannot decode compressed image (format {msg.format!r}, {buf.size} bytes)")
+    return gray
+
+
+def array_to_image(array: np.ndarray, encoding: str, header: Header | None = None) -> Image:
+    """A numpy image (uint8 mono/bgr/rgb/bgra/rgba/bayer, uint16 mono16) as ``sensor_msgs/Image``."""
+    if encoding not in IMAGE_ENCODINGS:
+        raise ImageError(f"unsupported image encoding {encoding!r}")
+    channels, depth, _ = IMAGE_ENCODINGS[encoding]
+    arr = np.ascontiguousarray(array)
+    if arr.dtype.itemsize != depth or (arr.shape[2] if arr.ndim == 3 else 1) != channels:
+        raise ImageError(f"array {arr.shape} {arr.dtype} does not match encoding {encoding}")
+    msg = Image()
+    if header is not None:
+        msg.header = header
+    msg.height, msg.width = int(arr.shape[0]), int(arr.shape[1])
+    msg.encoding = encoding
+    msg.is_bigendian = int(arr.dtype.byteorder == ">")
+    msg.step = int(arr.shape[1] * channels * depth)
+    msg.data = arr.tobytes()
+    return msg
+
+
+# -- intrinsics ----------------------------------------------------------------------------------
+def camera_info_to_model(msg: CameraInfo, rectified: bool = False) -> CameraModel:
+    """A ``sensor_msgs/CameraInfo`` as a ``CameraModel``: K + D, or P's 3x3 when ``rectified``.
+
+    Raises:
+        IntrinsicsError: zero size, all-zero or NaN matrices, or an unknown lens model.
+    """
+    k = np.asarray(msg.k, dtype=np.float64)
+    if not np.any(k):
+        raise IntrinsicsError("CameraInfo K is all zero (camera not calibrated)")
+    if rectified and not np.any(np.asarray(msg.p, dtype=np.float64)):
+        raise IntrinsicsError("CameraInfo P is all zero but the image is rectified")
+    return CameraModel.from_camera_info(
+        int(msg.width), int(msg.height), k, list(msg.d), msg.distortion_model,
+        p=list(msg.p), rectified=rectified,
+    )
+
+
+def camera_model_to_info(camera: CameraModel, header: Header | None = None) -> CameraInfo:
+    """A ``CameraModel`` as ``sensor_msgs/CameraInfo`` (R identity, P = [K | 0])."""
+    msg = CameraInfo()
+    if header is not None:
+        msg.header = header
+    msg.width, msg.height = camera.width_px, camera.height_px
+    msg.distortion_model = "plumb_bob" if camera.distortion_model == "none" else camera.distortion_model
+    msg.d = [float(v) for v in camera.D] or [0.0] * 5
+    msg.k = camera.K.reshape(-1).tolist()
+    msg.r = np.eye(3).reshape(-1).tolist()
+    msg.p = np.hstack([camera.K, np.zeros((3, 1))]).reshape(-1).tolist()
+    return msg
+
+
+# -- poses ---------------------------------------------------------------------------------------
+def pose_msg(T: Transform) -> Pose:
+    """A transform (translation in metres) as ``geometry_msgs/Pose``."""
+    pose = Pose()
+    t = T.translation_m
+    pose.position.x, pose.position.y, pose.position.z = float(t[0]), float(t[1]), float(t[2])
+    x, y, z, w = T.q_xyzw
+    pose.orientation.x, pose.orientation.y = float(x), float(y)
+    pose.orientation.z, pose.orientation.w = float(z), float(w)
+    return pose
+
+
+def pose_stamped(header: Header, T: Transform) -> PoseStamped:
+    """``geometry_msgs/PoseStamped`` of ``T`` with the given header."""
+    return PoseStamped(header=header, pose=pose_msg(T))
+
+
+def pose_with_covariance_stamped(
+    header: Header, T: Transform, covariance: np.ndarray
+) -> PoseWithCovarianceStamped:
+    """``PoseWithCovarianceStamped``; ``covariance`` is 6x6 already in ROS order (x y z rx ry rz)."""
+    msg = PoseWithCovarianceStamped(header=header)
+    msg.pose.pose = pose_msg(T)
+    cov = np.asarray(covariance, dtype=np.float64).reshape(36)
+    msg.pose.covariance = [float(v) if np.isfinite(v) else 0.0 for v in cov]
+    return msg
+
+
+# -- diagnostics ---------------------------------------------------------------------------------
+def _fmt(value: object) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return str(value)
+
+
+def diagnostic_status(
+    name: str, level: bytes, message: str, values: Mapping[str, object], hardware_id: str = ""
+) -> DiagnosticStatus:
+    """One ``DiagnosticStatus`` with key/values formatted as strings."""
+    return DiagnosticStatus(
+        level=level, name=name, message=message, hardware_id=hardware_id,
+        values=[KeyValue(key=k, value=_fmt(v)) for k, v in values.items()],
+    )
+
+
+def diagnostic_array(header: Header, *statuses: DiagnosticStatus) -> DiagnosticArray:
+    """A ``DiagnosticArray`` of the statuses with the given header."""
+    return DiagnosticArray(header=header, status=list(statuses))
+
+
+# -- visualisation -------------------------------------------------------------------------------
+def _point(p: np.ndarray) -> Point:
+    return Point(x=float(p[0]), y=float(p[1]), z=float(p[2]))
+
+
+def markers_msg(
+    header: Header, model: CapModel, result: FrameResult, axis_length_m: float = 0.1
+) -> MarkerArray:
+    """Tag outlines (used tags green, others grey) and the head axes (x red, y green, z blue).
+
+    Without a pose the array only deletes the previous markers.
+    """
+    out = MarkerArray()
+    out.markers.append(Marker(header=header, ns="ficap", action=Marker.DELETEALL))
+    pose = result.pose
+    if pose is None or result.T_cam_head is None:
+        return out
+    used = set(pose.used_ids)
+    corners_cam = pose.T_cam_cap.apply(np.asarray(model.corners_mm, dtype=np.float64) / 1000.0)
+    for i, tag_id in enumerate(model.ids):
+        m = Marker(header=header, ns="ficap_tags", id=int(tag_id), type=Marker.LINE_STRIP,
+                   action=Marker.ADD)
+        m.pose.orientation.w = 1.0
+        m.scale.x = 0.002
+        c = corners_cam[i]
+        m.points = [_point(c[j % 4]) for j in range(5)]
+        on = int(tag_id) in used
+        m.color.r, m.color.g, m.color.b, m.color.a = (0.1, 0.9, 0.1, 1.0) if on else (0.5, 0.5, 0.5, 0.6)
+        out.markers.append(m)
+    T = result.T_cam_head
+    origin = T.translation_m
+    for axis in range(3):
+        m = Marker(header=header, ns="ficap_head_axes", id=axis, type=Marker.ARROW,
+                   action=Marker.ADD)
+        m.pose.orientation.w = 1.0
+        tip = origin + T.rotation.apply(np.eye(3)[axis]) * axis_length_m
+        m.points = [_point(origin), _point(tip)]
+        m.scale.x, m.scale.y, m.scale.z = 0.006, 0.012, 0.02
+        rgb = np.eye(3)[axis]
+        m.color.r, m.color.g, m.color.b, m.color.a = float(rgb[0]), float(rgb[1]), float(rgb[2]), 1.0
+        out.markers.append(m)
+    return out
+
+
+def debug_image_msg(
+    gray: np.ndarray, result: FrameResult | None, camera: CameraModel | None, header: Header,
+    axis_length_m: float = 0.1,
+) -> Image:
+    """A bgr8 image: detected corners and ids (OpenCV's drawing) and the head axes."""
+    img = gray if gray.dtype == np.uint8 else (gray >> 8).astype(np.uint8)
+    bgr = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+    if result is not None and result.detections:
+        corners = [d.corners_px.reshape(1, 4, 2).astype(np.float32) for d in result.detections]
+        ids = np.array([[d.tag_id] for d in result.detections], dtype=np.int32)
+        cv2.aruco.drawDetectedMarkers(bgr, corners, ids)
+    if result is not None and result.T_cam_head is not None and camera is not None:
+        T = result.T_cam_head
+        pts = np.vstack([T.translation_m, T.apply(np.eye(3) * axis_length_m)])
+        if np.all(pts[:, 2] > 0):
+            px = camera.project(pts)
+            if np.all(np.isfinite(px)):
+                o = tuple(int(round(v)) for v in px[0])
+                for axis, colour in enumerate([(0, 0, 255), (0, 255, 0), (255, 0, 0)]):
+                    tip = tuple(int(round(v)) for v in px[axis + 1])
+                    cv2.line(bgr, o, tip, colour, 2, cv2.LINE_AA)
+    return array_to_image(bgr, "bgr8", header)
