@@ -1,0 +1,160 @@
+"""As-built cap model by bundle adjustment: recovery of a perturbed cap from frames with exact truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from ficap_ros.camera import CameraModel
+from ficap_ros.cap_model import CapModel, load_model, nominal_model
+from ficap_ros.detection import TagDetection
+from ficap_ros.errors import ConfigError, ModelError
+from ficap_ros.metrics import rotation_from_ypr_deg
+from ficap_ros.model_build import (
+    BuildConfig,
+    CoverageError,
+    align_model,
+    build_model,
+    tag_frames,
+)
+from ficap_ros.pose import estimate_cap_pose
+from ficap_ros.transform import CAM_FROM_FORWARD, Transform
+
+CAMERA = CameraModel.pinhole(1280, 960, hfov_deg=60.0)
+
+
+def perturbed_model(seed: int, shift_rms_mm: float = 0.5, turn_sigma_deg: float = 1.0) -> CapModel:
+    """The nominal cap with every tag shifted (``shift_rms_mm`` rms) and turned about its normal.
+
+    The result is aligned to the nominal (the unobservable rigid motion of the whole cap removed),
+    so it can be compared with a built model directly.
+    """
+    rng = np.random.default_rng(seed)
+    nom = nominal_model()
+    corners = []
+    for c, centre, normal in zip(nom.corners_mm, nom.centres_mm, nom.normals):
+        turn = Rotation.from_rotvec(normal * np.radians(rng.normal(0.0, turn_sigma_deg)))
+        shift = rng.normal(0.0, shift_rms_mm / np.sqrt(3.0), 3)
+        corners.append(turn.apply(c - centre) + centre + shift)
+    corners = np.array(corners)
+    return CapModel(nom.ids, align_model(corners, nom.corners_mm).apply(corners))
+
+
+def observe(model: CapModel, count: int, seed: int, noise_px: float = 0.15,
+            camera: CameraModel = CAMERA) -> list[tuple[Transform, list[TagDetection]]]:
+    """Frames of a cap turning in front of a rear camera: exact projections plus pixel noise.
+
+    A tag is seen when it faces the camera (more than ~20 deg from edge-on) and lies in the image.
+    """
+    rng = np.random.default_rng(seed)
+    frames = []
+    for _ in range(count):
+        yaw, pitch, roll = rng.uniform([-45.0, -25.0, -20.0], [45.0, 25.0, 20.0])
+        rotation = CAM_FROM_FORWARD * rotation_from_ypr_deg(yaw, pitch, roll)
+        t_m = np.array([rng.uniform(-0.04, 0.04), rng.uniform(-0.04, 0.04), rng.uniform(0.45, 0.7)])
+        T = Transform(rotation, t_m)
+        dets = []
+        for tag_id, corners, centre, normal in zip(model.ids, model.corners_mm, model.centres_mm,
+                                                   model.normals):
+            c_cam = T.apply(centre / 1000.0)
+            if np.dot(rotation.apply(normal), c_cam / np.linalg.norm(c_cam)) > -0.35:
+                continue
+            px = camera.project(T.apply(corners / 1000.0))
+            if np.any(px < 0) or np.any(px >= [camera.width_px - 1, camera.height_px - 1]):
+                continue
+            dets.append(TagDetection(tag_id, px + rng.normal(0.0, noise_px, px.shape)))
+        frames.append((T, dets))
+    return frames
+
+
+def corner_rms_mm(a: CapModel, b: CapModel) -> float:
+    d = a.corners_mm - b.corners_mm
+    return float(np.sqrt(np.mean(np.sum(d * d, axis=-1))))
+
+
+@pytest.fixture(scope="module")
+def built():
+    truth = perturbed_model(seed=1)
+    frames = observe(truth, count=40, seed=2)
+    result = build_model([dets for _, dets in frames], CAMERA)
+    return truth, frames, result
+
+
+def test_recovers_the_perturbed_cap(built) -> None:
+    truth, _, result = built
+    nominal = nominal_model()
+    assert corner_rms_mm(truth, nominal) == pytest.approx(0.55, abs=0.15)  # the test is not trivial
+    assert corner_rms_mm(result.model, truth) < 0.2
+    assert result.frames_used == 40 and result.converged
+    # Reprojection rms matches the injected noise (0.15 px per axis = 0.21 px per corner).
+    assert result.rms_px == pytest.approx(0.15 * np.sqrt(2.0), rel=0.2)
+    # The reported deviations are the true ones.
+    r_nom, c_nom = tag_frames(nominal.corners_mm)
+    r_true, c_true = tag_frames(truth.corners_mm)
+    true_turn_deg = -np.degrees((r_nom.inv() * r_true).as_rotvec()[:, 2])
+    got_turn = np.array([d.about_normal_deg for d in result.deviations])
+    np.testing.assert_allclose(got_turn, true_turn_deg, atol=0.15)
+    got_offset = np.array([d.offset_mm for d in result.deviations])
+    np.testing.assert_allclose(got_offset, c_true - c_nom, atol=0.15)
+    assert [d.tag_id for d in result.deviations] == list(nominal.ids)
+    assert all(d.frames >= 3 for d in result.deviations)
+    # Every tag stays a rigid 32 mm square.
+    sides = np.linalg.norm(np.roll(result.model.corners_mm, -1, axis=1) - result.model.corners_mm, axis=-1)
+    np.testing.assert_allclose(sides, 32.0, atol=1e-6)
+    assert "reprojection rms" in result.table()
+    assert result.to_dict()["tags"][11]["id"] == 11
+
+
+def test_built_model_gives_better_poses_than_nominal(built) -> None:
+    truth, _, result = built
+    test_frames = observe(truth, count=30, seed=7)
+    errors = {}
+    for name, model in (("nominal", nominal_model()), ("built", result.model)):
+        rot_deg, trans_mm = [], []
+        for T_true, dets in test_frames:
+            pose = estimate_cap_pose(dets, model, CAMERA).pose
+            assert pose is not None
+            delta = T_true.inv() * pose.T_cam_cap
+            rot_deg.append(np.degrees(delta.rotation.magnitude()))
+            trans_mm.append(1000.0 * np.linalg.norm(delta.translation_m))
+        errors[name] = (float(np.sqrt(np.mean(np.square(rot_deg)))),
+                        float(np.sqrt(np.mean(np.square(trans_mm)))))
+    assert errors["built"][0] < 0.5 * errors["nominal"][0], errors
+    assert errors["built"][1] < 0.5 * errors["nominal"][1], errors
+
+
+def test_result_is_a_normal_model_file(built, tmp_path) -> None:
+    _, _, result = built
+    path = tmp_path / "cap_asbuilt.yaml"
+    result.model.save(path)
+    loaded = load_model(path)
+    assert loaded.ids == nominal_model().ids
+    np.testing.assert_allclose(loaded.corners_mm, result.model.corners_mm, atol=1e-9)
+
+
+def test_robust_to_a_wrong_tag(built) -> None:
+    truth, frames, _ = built
+    dets_per_frame = [list(dets) for _, dets in frames]
+    # One frame where tag 11's corners are 8 px off (a bad detection).
+    dets_per_frame[5] = [TagDetection(d.tag_id, d.corners_px + (8.0 if d.tag_id == 11 else 0.0))
+                         for d in dets_per_frame[5]]
+    result = build_model(dets_per_frame, CAMERA)
+    assert corner_rms_mm(result.model, truth) < 0.2
+
+
+def test_refuses_when_a_tag_is_not_covered() -> None:
+    truth = perturbed_model(seed=3)
+    frames = [dets for _, dets in observe(truth, count=20, seed=4)]
+    # Tag 0 only ever seen in frames with too few other tags.
+    no_zero = [[d for d in dets if d.tag_id != 0] for dets in frames]
+    no_zero[0] = [d for d in frames[0] if d.tag_id in (0, 1, 2)]
+    with pytest.raises(CoverageError, match=r"tag\(s\) 0 \(0\)"):
+        build_model(no_zero, CAMERA)
+    with pytest.raises(CoverageError, match="frame"):
+        build_model(frames[:1], CAMERA)
+    assert issubclass(CoverageError, ModelError)
+    with pytest.raises(ConfigError):
+        BuildConfig(min_tags_per_frame=1)
+    with pytest.raises(ConfigError):
+        build_model(frames, [CAMERA])
