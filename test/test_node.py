@@ -1,0 +1,269 @@
+"""ficap_node with real rclpy: bad inputs, parameters, services (no rendered frames needed).
+
+Every test gets its own rclpy Context on the ROS_DOMAIN_ID conftest sets; every wait is bounded.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from pathlib import Path
+from typing import Any, Callable
+
+import numpy as np
+import pytest
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseStamped
+from rcl_interfaces.srv import SetParameters
+from rclpy.context import Context
+from rclpy.executors import MultiThreadedExecutor
+from rclpy.parameter import Parameter
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+from std_msgs.msg import Header
+from std_srvs.srv import Trigger
+
+from ficap_ros import ros_msgs
+from ficap_ros.camera import CameraModel
+from ficap_ros.errors import ConfigError
+from ficap_ros.metrics import angle_deg
+from ficap_ros.node import FicapNode
+
+CONFIG = Path(__file__).resolve().parents[1] / "config" / "ficap.yaml"
+WAIT_S = 10.0
+
+
+class Harness:
+    """A FicapNode and a peer node (publishes inputs, records outputs) spinning in a thread."""
+
+    def __init__(self, overrides: dict[str, Any] | None = None, cli_args: list[str] | None = None,
+                 reference_topic: str | None = None) -> None:
+        self.context = Context()
+        rclpy.init(context=self.context)
+        params = [Parameter(k, value=v) for k, v in (overrides or {}).items()]
+        try:
+            self.node = FicapNode(context=self.context, parameter_overrides=params,
+                                  cli_args=cli_args)
+        except BaseException:
+            rclpy.try_shutdown(context=self.context)
+            raise
+        self.peer = rclpy.create_node("ficap_test_peer", context=self.context)
+        self.lock = threading.Lock()
+        self.head: list[PoseStamped] = []
+        self.cap: list[PoseStamped] = []
+        self.status: list[DiagnosticArray] = []
+        self.diagnostics: list[DiagnosticArray] = []
+        self.peer.create_subscription(PoseStamped, "head_pose", self._rec(self.head), 100)
+        self.peer.create_subscription(PoseStamped, "cap_pose", self._rec(self.cap), 100)
+        self.peer.create_subscription(DiagnosticArray, "status", self._rec(self.status), 100)
+        self.peer.create_subscription(DiagnosticArray, "/diagnostics", self._rec(self.diagnostics),
+                                      10)
+        self.pub_image = self.peer.create_publisher(Image, "image", 5)
+        self.pub_compressed = self.peer.create_publisher(CompressedImage, "image/compressed", 5)
+        self.pub_info = self.peer.create_publisher(CameraInfo, "camera_info", 5)
+        self.pub_ref = (self.peer.create_publisher(PoseStamped, reference_topic, 100)
+                        if reference_topic else None)
+        self.calibrate = self.peer.create_client(Trigger, "/ficap_node/calibrate")
+        self.clear = self.peer.create_client(Trigger, "/ficap_node/clear_calibration")
+        self.set_params = self.peer.create_client(SetParameters, "/ficap_node/set_parameters")
+        self.executor = MultiThreadedExecutor(num_threads=4, context=self.context)
+        self.executor.add_node(self.node)
+        self.executor.add_node(self.peer)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+        image_pub = self.pub_compressed if self.node._config["image_transport"] == "compressed" \
+            else self.pub_image
+        self.wait_for(lambda: image_pub.get_subscription_count() > 0
+                      and self.pub_info.get_subscription_count() > 0
+                      and self.peer.count_publishers("status") > 0, what="discovery")
+
+    def _rec(self, store: list) -> Callable[[Any], None]:
+        def cb(msg: Any) -> None:
+            with self.lock:
+                store.append(msg)
+        return cb
+
+    def wait_for(self, pred: Callable[[], bool], timeout: float = WAIT_S, what: str = "") -> None:
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            if pred():
+                return
+            time.sleep(0.01)
+        raise AssertionError(f"timed out after {timeout} s waiting for {what or pred}")
+
+    def statuses_for(self, stamp_ns: int) -> list:
+        with self.lock:
+            return [s.status[0] for s in self.status
+                    if ros_msgs.stamp_to_ns(s.header.stamp) == stamp_ns]
+
+    def publish_and_wait(self, msg: Image | CompressedImage, info: CameraInfo | None = None,
+                         attempts: int = 3):
+        """Publish (CameraInfo first), wait for this frame's status; re-send on a lost frame."""
+        stamp_ns = ros_msgs.stamp_to_ns(msg.header.stamp)
+        for _ in range(attempts):
+            if info is not None:
+                self.pub_info.publish(info)
+                time.sleep(0.005)
+            (self.pub_compressed if isinstance(msg, CompressedImage) else self.pub_image).publish(msg)
+            try:
+                self.wait_for(lambda: bool(self.statuses_for(stamp_ns)), timeout=WAIT_S / attempts)
+                return self.statuses_for(stamp_ns)[0]
+            except AssertionError:
+                continue
+        raise AssertionError(f"no status for frame {stamp_ns}")
+
+    def call(self, client, request, timeout: float = WAIT_S):
+        assert client.wait_for_service(timeout_sec=timeout), "service not available"
+        future = client.call_async(request)
+        self.wait_for(future.done, timeout, what="service response")
+        return future.result()
+
+    def close(self) -> None:
+        self.executor.shutdown(timeout_sec=2.0)
+        self.node.destroy_node()
+        self.peer.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+        self.thread.join(timeout=5.0)
+
+
+@pytest.fixture
+def harness_factory():
+    made: list[Harness] = []
+
+    def make(**kw: Any) -> Harness:
+        h = Harness(**kw)
+        made.append(h)
+        return h
+
+    yield make
+    for h in made:
+        h.close()
+
+
+def _header(stamp_ns: int) -> Header:
+    return Header(stamp=ros_msgs.ns_to_stamp(stamp_ns), frame_id="rear_cam_optical")
+
+
+def _info(camera: CameraModel, stamp_ns: int) -> CameraInfo:
+    return ros_msgs.camera_model_to_info(camera, _header(stamp_ns))
+
+
+def _level(status) -> bytes:
+    return bytes(status.level) if not isinstance(status.level, bytes) else status.level
+
+
+def test_bad_inputs_give_error_status_and_node_survives(harness_factory) -> None:
+    h = harness_factory(overrides={"warn_throttle_s": 0.0})
+    cam = CameraModel.pinhole(64, 48, hfov_deg=60.0)
+    grey = np.full((48, 64), 128, np.uint8)
+    t = 1_000_000_000
+
+    # 1. No CameraInfo yet.
+    st = h.publish_and_wait(ros_msgs.array_to_image(grey, "mono8", _header(t)))
+    assert _level(st) == ros_msgs.LEVEL_ERROR and "CameraInfo" in st.message
+
+    # 2. All-zero CameraInfo (an uncalibrated camera driver).
+    zero = _info(cam, t + 1)
+    zero.k = [0.0] * 9
+    st = h.publish_and_wait(ros_msgs.array_to_image(grey, "mono8", _header(t + 1)), zero)
+    assert _level(st) == ros_msgs.LEVEL_ERROR and "all zero" in st.message
+
+    # 3. NaN CameraInfo.
+    nan = _info(cam, t + 2)
+    nan.k = [float("nan")] * 9
+    st = h.publish_and_wait(ros_msgs.array_to_image(grey, "mono8", _header(t + 2)), nan)
+    assert _level(st) == ros_msgs.LEVEL_ERROR and "NaN" in st.message
+
+    # 4. Unknown encoding.
+    img = ros_msgs.array_to_image(grey, "mono8", _header(t + 3))
+    img.encoding = "yuv422_yuy2"
+    st = h.publish_and_wait(img, _info(cam, t + 3))
+    assert _level(st) == ros_msgs.LEVEL_ERROR and "encoding" in st.message
+
+    # 5. Wrong data length.
+    img = ros_msgs.array_to_image(grey, "mono8", _header(t + 4))
+    img.data = bytes(img.data)[:-10]
+    st = h.publish_and_wait(img, _info(cam, t + 4))
+    assert _level(st) == ros_msgs.LEVEL_ERROR and "bytes" in st.message
+
+    # 6. Image and intrinsics of different sizes.
+    st = h.publish_and_wait(ros_msgs.array_to_image(np.zeros((40, 60), np.uint8), "mono8",
+                                                    _header(t + 5)), _info(cam, t + 5))
+    assert _level(st) == ros_msgs.LEVEL_ERROR and "does not match" in st.message
+
+    # The node is alive: it still answers services and reports every error, and never posed.
+    resp = h.call(h.calibrate, Trigger.Request())
+    assert not resp.success and "no reliable frames" in resp.message
+    with h.lock:
+        assert len(h.head) == 0 and len(h.cap) == 0
+        assert {ros_msgs.stamp_to_ns(s.header.stamp) for s in h.status} >= set(range(t, t + 6))
+        values = {kv.key for kv in h.status[-1].status[0].values}
+    assert values >= {"tags_detected", "tags_used", "rms_px", "reliability", "calibrated",
+                      "latency_ms", "dropped_frames"}
+    # /diagnostics at 1 Hz reports the errors.
+    h.wait_for(lambda: any(d.status and _level(d.status[0]) == ros_msgs.LEVEL_ERROR
+                           for d in h.diagnostics), timeout=3.5, what="/diagnostics ERROR")
+
+
+def test_undecodable_jpeg_gives_error_status(harness_factory) -> None:
+    h = harness_factory(overrides={"image_transport": "compressed", "warn_throttle_s": 0.0})
+    cam = CameraModel.pinhole(64, 48, hfov_deg=60.0)
+    t = 2_000_000_000
+    bad = CompressedImage(header=_header(t), format="jpeg", data=b"\xff\xd8\xff\xe0garbage")
+    st = h.publish_and_wait(bad, _info(cam, t))
+    assert _level(st) == ros_msgs.LEVEL_ERROR and "decode" in st.message
+    assert h.node._image_sub.topic_name == "/image/compressed"
+
+
+def test_parameters_out_of_range_are_rejected(harness_factory) -> None:
+    h = harness_factory()
+    node = h.node
+    for name, value in [("pose.min_tags", 0), ("pose.min_tags", 40),
+                        ("calibration.max_spread_deg", 0.0), ("calibration.window_s", 1e9),
+                        ("frontal.mount_pitch_deg", 91.0), ("warn_reliability", 1.5),
+                        ("pose.method", "magic"), ("calibration.mode", "guess")]:
+        res = node.set_parameters([Parameter(name, value=value)])[0]
+        assert not res.successful, (name, value)
+        assert node.get_parameter(name).value != value
+    # Structural parameters are read-only.
+    res = node.set_parameters([Parameter("image_transport", value="compressed")])[0]
+    assert not res.successful
+    # Through the real parameter service too.
+    req = SetParameters.Request(parameters=[Parameter("pose.min_tags", value=99).to_parameter_msg()])
+    resp = h.call(h.set_params, req)
+    assert not resp.results[0].successful and node.get_parameter("pose.min_tags").value == 1
+    # In-range values apply to the running pipeline.
+    assert node.set_parameters([Parameter("pose.method", value="paper")])[0].successful
+    assert node._processor.pose_config.method == "paper"
+    assert node.set_parameters([Parameter("frontal.mount_pitch_deg", value=-10.0)])[0].successful
+    fwd = node.calibration.R_cam_frontal.apply([1.0, 0.0, 0.0])
+    assert np.degrees(np.arccos(fwd[2])) == pytest.approx(10.0) and fwd[1] < 0
+
+
+def test_params_file_loads_and_bad_overrides_refuse_to_start(tmp_path) -> None:
+    h = Harness(cli_args=["--ros-args", "--params-file", str(CONFIG)])
+    try:
+        assert h.node.get_parameter("calibration.window_s").value == 3.0
+        assert h.node.get_parameter("image_transport").value == "raw"
+    finally:
+        h.close()
+    with pytest.raises(ConfigError, match="pose.min_tags"):
+        Harness(overrides={"pose.min_tags": 50})
+    with pytest.raises(ConfigError, match="image_transport"):
+        Harness(overrides={"image_transport": "theora"})
+
+
+def test_calibration_file_loaded_at_start_and_cleared(harness_factory, tmp_path) -> None:
+    from scipy.spatial.transform import Rotation
+
+    from ficap_ros.calibration import CalibrationResult, load_calibration, save_calibration
+
+    path = tmp_path / "calib.yaml"
+    R = Rotation.from_euler("xyz", [3.0, -8.0, 2.0], degrees=True)
+    save_calibration(path, CalibrationResult(R, 90, 0.4, "frontal"))
+    h = harness_factory(overrides={"calibration.file": str(path)})
+    assert h.node.calibration.calibrated
+    assert angle_deg(h.node.calibration.R_cap_head, R) < 1e-6
+    resp = h.call(h.clear, Trigger.Request())
+    assert resp.success and not h.node.calibration.calibrated
+    assert not load_calibration(path).calibrated
