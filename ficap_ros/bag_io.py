@@ -515,6 +515,10 @@ class BagWriter:
         self._writer.open()
         return self
 
+    def set_custom_data(self, key: str, value: str) -> None:
+        """A string in metadata.yaml's ``custom_data`` (before the bag is closed)."""
+        self._writer.set_custom_data(key, value)
+
     def add_topic(self, topic: str, msgtype: str) -> None:
         """Declare a topic (once) before writing to it."""
         self._conns[topic] = self._writer.add_connection(topic, msgtype, typestore=self.typestore)

@@ -6,16 +6,17 @@ Frames and quaternions (CSV columns are w, x, y, z; ROS messages store x, y, z, 
         pose); yaw/pitch/roll as in ``ficap_ros.metrics``. Identity-mounted (R_cap_head = I) until
         a calibration is given (column ``calibrated``).
 
-labels.mcap topics (namespace ``/ficap`` by default), each message stamped with the image stamp
-(header and bag receive time):
-    ``<ns>/cap_pose`` PoseStamped, frame = the image's frame_id: T_cam_cap.
-    ``<ns>/head_pose`` PoseStamped, frame ``ficap_frontal``: T_frontal_head (position = the cap
-        origin in F, whose origin is the camera's).
-    ``<ns>/head_pose/with_covariance`` PoseWithCovarianceStamped: the same with the cap pose's
-        covariance rotated into F.
-    ``<ns>/status`` DiagnosticArray, one status ``ficap: pose`` per image: OK with a pose, WARN
-        without one, ERROR for an undecodable image; values tags_detected, tags_used, rms_px,
-        reliability, reason.
+labels.mcap holds the live node's topics (``ficap_ros.node``), with the same messages, each stamped
+with the image stamp (header and bag receive time), frame = the image's frame_id; names relative to
+``namespace`` (default none: ``/head_pose`` ...):
+    ``head_pose`` PoseStamped: T_cam_head = T_cam_cap * R_cap_head (camera optical frame).
+    ``head_pose/with_covariance`` PoseWithCovarianceStamped: the same with the estimator's 6x6
+        covariance (ROS order, camera axes).
+    ``cap_pose`` PoseStamped: T_cam_cap.
+    ``status`` DiagnosticArray, one status ``ficap`` per image: OK with a pose, WARN without one,
+        ERROR for an undecodable image; values tags_detected, tags_used, rms_px, reliability,
+        calibrated and, with a pose, yaw_deg, pitch_deg, roll_deg (R_frontal_head).
+Poses exist in the bag only for images with a pose; status for every image.
 """
 
 from __future__ import annotations
@@ -38,7 +39,6 @@ from ficap_ros.transform import Transform
 
 __all__ = [
     "LABEL_COLUMNS",
-    "FRONTAL_FRAME",
     "DEFAULT_NAMESPACE",
     "LabelRecord",
     "Labels",
@@ -57,8 +57,7 @@ LABEL_COLUMNS: tuple[str, ...] = (
     "head_qw", "head_qx", "head_qy", "head_qz", "head_yaw_deg", "head_pitch_deg", "head_roll_deg",
     "calibrated", "method", "detected_ids", "used_ids", "reason",
 )
-FRONTAL_FRAME = "ficap_frontal"
-DEFAULT_NAMESPACE = "/ficap"
+DEFAULT_NAMESPACE = ""
 DEFAULT_CAMERA_FRAME = "camera_optical_frame"
 
 
@@ -292,15 +291,6 @@ def label_topics(namespace: str = DEFAULT_NAMESPACE) -> dict[str, str]:
     }
 
 
-def _rotate_covariance(cov: np.ndarray, R: Rotation) -> np.ndarray:
-    """Covariance of a pose perturbed about fixed axes, expressed in axes rotated by ``R``."""
-    block = np.zeros((6, 6))
-    m = R.as_matrix()
-    block[:3, :3] = m
-    block[3:, 3:] = m
-    return block @ cov @ block.T
-
-
 def _status_msg(rec: LabelRecord) -> object:
     from ficap_ros.bag_io import header, jazzy_typestore
 
@@ -313,8 +303,13 @@ def _status_msg(rec: LabelRecord) -> object:
         ("reliability", _f(rec.reliability, 4)),
         ("calibrated", "true" if rec.calibrated else "false"),
     ]
+    if rec.T_frontal_head is not None:
+        ypr = yaw_pitch_roll_deg(rec.T_frontal_head.rotation)
+        values += [(f"{k}_deg", _f(float(v), 4)) for k, v in zip(("yaw", "pitch", "roll"), ypr)]
+    message = "pose" if rec.T_cam_cap is not None else (
+        rec.reason if rec.skipped else f"no pose: {rec.reason}")
     status = t["diagnostic_msgs/msg/DiagnosticStatus"](
-        level=level, name="ficap: pose", message=rec.reason or "ok", hardware_id=rec.frame_id,
+        level=level, name="ficap", message=message, hardware_id=rec.frame_id,
         values=[t["diagnostic_msgs/msg/KeyValue"](key=k, value=v) for k, v in values],
     )
     return t["diagnostic_msgs/msg/DiagnosticArray"](header=header(rec.stamp_ns, rec.frame_id),
@@ -346,11 +341,11 @@ def write_labels_bag(path: str | Path, records: Sequence[LabelRecord],
             if rec.T_cam_cap is not None and rec.T_frontal_head is not None:
                 bag.write(topics["cap_pose"], rec.stamp_ns,
                           pose_stamped_msg(rec.stamp_ns, rec.frame_id, rec.T_cam_cap))
+                T_cam_head = Transform(rec.R_frontal_cam.inv(), np.zeros(3)) * rec.T_frontal_head
                 bag.write(topics["head_pose"], rec.stamp_ns,
-                          pose_stamped_msg(rec.stamp_ns, FRONTAL_FRAME, rec.T_frontal_head))
-                cov = (np.zeros((6, 6)) if rec.covariance_cam is None
-                       else _rotate_covariance(rec.covariance_cam, rec.R_frontal_cam))
+                          pose_stamped_msg(rec.stamp_ns, rec.frame_id, T_cam_head))
+                cov = np.zeros((6, 6)) if rec.covariance_cam is None else rec.covariance_cam
                 bag.write(topics["head_pose_cov"], rec.stamp_ns,
-                          pose_with_covariance_stamped_msg(rec.stamp_ns, FRONTAL_FRAME,
-                                                           rec.T_frontal_head, cov))
+                          pose_with_covariance_stamped_msg(rec.stamp_ns, rec.frame_id,
+                                                           T_cam_head, cov))
             bag.write(topics["status"], rec.stamp_ns, _status_msg(rec))

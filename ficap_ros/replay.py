@@ -291,7 +291,7 @@ def replay(
     calibration: HeadCalibration | None = None,
     calibrate_window_s: tuple[float, float] | None = None,
     jobs: int = 1,
-    namespace: str = "/ficap",
+    namespace: str = "",
     progress: bool = True,
     progress_stream: IO[str] | None = None,
 ) -> ReplayOutput:

@@ -63,8 +63,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--calibrate-frontal", type=_window, metavar="START:END",
                         help="seconds from the start in which the wearer looks straight ahead: "
                              "calibrate R_cap_head from them and apply it to every frame")
-    parser.add_argument("--namespace", default="/ficap",
-                        help="topic namespace in labels.mcap (default: /ficap)")
+    parser.add_argument("--namespace", default="",
+                        help="topic namespace in labels.mcap (default: none, as the node: /head_pose ...)")
 
 
 def open_source(args: argparse.Namespace):  # noqa: ANN201 - FrameSource, imported lazily

@@ -1,0 +1,122 @@
+"""``ficap calibrate``: cap-to-head calibration from labels (the paper's Table 2 protocols)."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = ("compute R_cap_head from labels: a frontal window (--frontal START:END) or a reference "
+        "head-pose topic (--reference BAG:TOPIC with --first N or --random N)")
+
+
+def _window(text: str) -> tuple[float, float]:
+    from ficap_ros.replay import parse_window
+
+    try:
+        return parse_window(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+
+
+def _count(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected at least 1, got {value}")
+    return value
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("labels", metavar="LABELS", help="labels.csv or a replay output folder")
+    mode = parser.add_mutually_exclusive_group(required=True)
+    mode.add_argument("--frontal", type=_window, metavar="START:END",
+                      help="seconds from the first label in which the wearer looks straight ahead")
+    mode.add_argument("--reference", metavar="BAG:TOPIC",
+                      help="reference head pose (PoseStamped ...) paired with the labels by stamp")
+    pick = parser.add_mutually_exclusive_group()
+    pick.add_argument("--first", type=_count, metavar="N",
+                      help="reference mode: use the first N pairs (the paper's First 10/100/500)")
+    pick.add_argument("--random", type=_count, metavar="N",
+                      help="reference mode: use N random pairs (the paper's Random 100)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of --random (default 0)")
+    parser.add_argument("--max-dt-ms", type=float, default=20.0,
+                        help="reference mode: largest stamp difference of a pair, ms (default 20)")
+    parser.add_argument("--mount-pitch-deg", type=float, default=0.0,
+                        help="frontal mode: camera mount pitch in the frontal frame (default 0)")
+    parser.add_argument("--mount-yaw-deg", type=float, default=0.0,
+                        help="frontal mode: camera mount yaw (default 0)")
+    parser.add_argument("--mount-roll-deg", type=float, default=0.0,
+                        help="frontal mode: camera mount roll (default 0)")
+    parser.add_argument("--min-frames", type=_count, default=30,
+                        help="frontal mode: least frames with a pose in the window (default 30)")
+    parser.add_argument("--out", required=True, metavar="FILE", help="calibration YAML to write")
+
+
+def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    import numpy as np
+
+    from ficap_ros.calibration import (
+        calibrate_frontal,
+        calibrate_reference,
+        frontal_frame_rotation,
+        save_calibration,
+    )
+    from ficap_ros.errors import BagError, CalibrationError, ConfigError
+    from ficap_ros.labels import read_labels
+    from ficap_ros.replay import check_output_dir
+
+    check_output_dir(Path(args.out).parent if str(Path(args.out).parent) else Path("."))
+    labels = read_labels(args.labels)
+    pose_rows = np.nonzero(labels.has_pose)[0]
+    if pose_rows.size == 0:
+        raise CalibrationError(f"{args.labels} has no frame with a pose")
+    R_cam_cap_all = labels.cap_rotations()
+    stamps = labels.stamp_ns[pose_rows]
+    if args.frontal is not None:
+        if args.first or args.random:
+            raise ConfigError("--first and --random apply to --reference only")
+        start = int(labels.stamp_ns.min())
+        lo = start + int(args.frontal[0] * 1e9)
+        hi = start + int(args.frontal[1] * 1e9) if np.isfinite(args.frontal[1]) else 2**63 - 1
+        sel = (stamps >= lo) & (stamps <= hi)
+        if not np.any(sel):
+            raise CalibrationError(
+                f"no frame with a pose between {args.frontal[0]:g} s and {args.frontal[1]:g} s")
+        R_cam_frontal = frontal_frame_rotation(args.mount_pitch_deg, args.mount_yaw_deg,
+                                               args.mount_roll_deg)
+        result = calibrate_frontal(R_cam_cap_all[np.nonzero(sel)[0]], R_cam_frontal,
+                                   min_frames=args.min_frames)
+        save_calibration(args.out, result, R_cam_frontal=R_cam_frontal)
+        detail = f"frontal window {args.frontal[0]:g}-{args.frontal[1]:g} s"
+    else:
+        from ficap_ros.evaluation import load_series, pair_by_stamp
+
+        path, sep, topic = args.reference.partition(":")
+        if not sep or not topic.startswith("/"):
+            raise BagError(f"--reference expects BAG:TOPIC, got {args.reference!r}")
+        ref = load_series(args.reference)
+        i_lab, i_ref = pair_by_stamp(stamps, ref.stamp_ns, int(round(args.max_dt_ms * 1e6)))
+        if i_lab.size == 0:
+            raise CalibrationError(f"no reference pose within {args.max_dt_ms:g} ms of a label")
+        if args.first:
+            keep = np.arange(min(args.first, i_lab.size))
+        elif args.random:
+            rng = np.random.default_rng(args.seed)
+            keep = np.sort(rng.choice(i_lab.size, size=min(args.random, i_lab.size),
+                                      replace=False))
+        else:
+            keep = np.arange(i_lab.size)
+        result = calibrate_reference(R_cam_cap_all[i_lab[keep]], ref.rotations[i_ref[keep]])
+        # The reference frame becomes the frontal frame: head angles are then in its axes.
+        save_calibration(args.out, result, R_cam_frontal=result.R_cam_reference)
+        how = (f"first {args.first}" if args.first else
+               f"random {args.random} (seed {args.seed})" if args.random else "all")
+        detail = f"reference {args.reference}, {how} of {i_lab.size} pairs"
+    rv = np.degrees(result.R_cap_head.as_rotvec())
+    print(f"{result.mode} calibration from {detail}: {result.frames_used} frames used, spread "
+          f"{result.spread_deg:.2f} deg, R_cap_head rotvec [{rv[0]:.2f} {rv[1]:.2f} {rv[2]:.2f}] "
+          f"deg -> {args.out}")
+    return 0

@@ -1,0 +1,85 @@
+"""``ficap stats``: how often the cap is seen (the paper's section 6 figures)."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = ("frames with no tag, >= 1 and >= 4 tags, per-tag detection rate and reliability "
+        "histogram, from a bag/video (runs the pipeline) or from labels.csv")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from ficap_ros.commands.replay import add_input_arguments
+
+    add_input_arguments(parser)
+    parser.add_argument("--out", metavar="DIR",
+                        help="also write stats.json, reliability_histogram.png and "
+                             "tag_detection_rate.png here")
+
+
+def _is_labels(path: str) -> bool:
+    from pathlib import Path
+
+    p = Path(path)
+    return (p.is_file() and p.suffix.lower() == ".csv") or (p.is_dir() and (p / "labels.csv").exists())
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+    from pathlib import Path
+
+    import numpy as np
+
+    from ficap_ros.bag_io import write_file_atomic
+    from ficap_ros.cap_model import load_model, nominal_model
+    from ficap_ros.evaluation import detection_stats, plot_stats
+
+    model = load_model(args.model) if args.model else nominal_model()
+    if args.out:
+        from ficap_ros.replay import check_output_dir
+
+        check_output_dir(Path(args.out))
+    if _is_labels(args.input):
+        from ficap_ros.labels import read_labels
+
+        lab = read_labels(args.input)
+        stats = detection_stats(lab.tags_detected, lab.detected_ids, lab.reliability,
+                                lab.has_pose, lab.skipped, tuple(model.ids))
+    else:
+        from ficap_ros.commands.replay import open_source
+        from ficap_ros.pose import PoseConfig
+        from ficap_ros.replay import Progress, process_frames
+
+        source = open_source(args)
+        bar = Progress(source.count, "frames", enabled=not args.quiet)
+        frames = []
+        try:
+            for item in process_frames(source.raw_frames(), model, PoseConfig(method=args.method),
+                                       args.jobs):
+                frames.append(item)
+                bar.update()
+        finally:
+            bar.close()
+        stats = detection_stats(
+            np.array([len(f.detected_ids) for f in frames], dtype=int),
+            tuple(f.detected_ids for f in frames),
+            np.array([f.pose.reliability if f.pose is not None else np.nan for f in frames]),
+            np.array([f.pose is not None for f in frames], dtype=bool),
+            np.array([f.skipped for f in frames], dtype=bool),
+            tuple(model.ids),
+        )
+    d = stats.to_dict()
+    print(f"frames {d['frames']} (skipped {d['frames_skipped']}): no tag {d['frames_no_tag']} "
+          f"({d['pct_no_tag']:.2f} %), >=1 tag {d['frames_ge1_tag']} ({d['pct_ge1_tag']:.2f} %), "
+          f">=4 tags {d['frames_ge4_tags']} ({d['pct_ge4_tags']:.2f} %), with a pose "
+          f"{d['frames_with_pose']} ({d['pct_with_pose']:.2f} %)")
+    print("tag detection rate (%): " + " ".join(
+        f"{k}:{100 * v:.0f}" for k, v in stats.tag_rate.items()))
+    e, c = stats.reliability_edges, stats.reliability_counts
+    print("reliability histogram: " + " ".join(
+        f"[{e[i]:.1f},{e[i + 1]:.1f}):{int(c[i])}" for i in range(c.size)))
+    if args.out:
+        out = Path(args.out)
+        plot_stats(stats, out)
+        write_file_atomic(out / "stats.json", json.dumps(d, indent=2) + "\n")
+    return 0
