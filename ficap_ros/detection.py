@@ -302,10 +302,10 @@ def _bilinear(img: np.ndarray, x: np.ndarray, y: np.ndarray) -> tuple[np.ndarray
     fy = yc - y0
     flat = img.ravel()
     i00 = y0 * w + x0
-    v00 = flat[i00]
-    v01 = flat[i00 + 1]
-    v10 = flat[i00 + w]
-    v11 = flat[i00 + w + 1]
+    v00 = flat[i00].astype(np.float32)
+    v01 = flat[i00 + 1].astype(np.float32)
+    v10 = flat[i00 + w].astype(np.float32)
+    v11 = flat[i00 + w + 1].astype(np.float32)
     top = v00 + (v01 - v00) * fx
     bot = v10 + (v11 - v10) * fx
     return top + (bot - top) * fy, valid
@@ -337,12 +337,12 @@ def refine_corners_edge(
     c_init = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
     if len(c_init) == 0:
         return c_init.copy()
-    img = gray.astype(np.float32)
+    img = gray
     if cfg.edge_locator == "peak":
         import cv2
 
         # A smooth profile gives the gradient a well-defined peak even at a sharp edge.
-        img = cv2.GaussianBlur(img, (0, 0), 0.8)
+        img = cv2.GaussianBlur(gray.astype(np.float32), (0, 0), 0.8)
     corners = c_init.copy()
     side_len = np.linalg.norm(np.roll(c_init, -1, axis=1) - c_init, axis=2)  # (N, 4)
     cell_px = side_len.mean(axis=1) / _CELLS_PER_SIDE  # (N,)
@@ -423,8 +423,7 @@ def _edge_pass(
         s_edge = offs[0] + step * (j + 0.5 + np.clip(frac_j, -0.5, 0.5))
 
     # Weights: contrast, with weak or inverted profiles dropped (occlusion, glare, the wrong edge).
-    med_c = np.median(np.where(contrast > 0, contrast, np.nan), axis=2, keepdims=True)
-    med_c = np.nan_to_num(med_c, nan=0.0)
+    med_c = _masked_median(contrast, contrast > 0)[..., None]
     w = np.where(valid_prof & (contrast > 0.3 * med_c) & (contrast > 8.0), contrast, 0.0)
     w = w * (np.abs(s_edge) < half[:, None, None] - 0.25)
     p = base + nrm[:, :, None, :] * s_edge[..., None]  # (N,4,M,2) edge points
@@ -457,13 +456,19 @@ def _fit_lines(p: np.ndarray, w: np.ndarray) -> np.ndarray:
     line = _tls(p, w)
     for _ in range(2):
         r = p[..., 0] * line[..., None, 0] + p[..., 1] * line[..., None, 1] - line[..., None, 2]
-        absr = np.where(w > 0, np.abs(r), np.nan)
-        with np.errstate(all="ignore"):
-            mad = np.nanmedian(absr, axis=-1, keepdims=True) * 1.4826
-        mad = np.nan_to_num(mad, nan=0.0)
+        mad = _masked_median(np.abs(r), w > 0)[..., None] * 1.4826
         keep = np.abs(r) <= np.maximum(3.0 * mad, 0.05)
         line = _tls(p, w * keep)
     return line
+
+
+def _masked_median(x: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Median over the last axis of the entries where ``mask`` (0 where none); nanmedian is slow."""
+    srt = np.sort(np.where(mask, x, np.inf), axis=-1)
+    cnt = mask.sum(axis=-1)
+    lo = np.take_along_axis(srt, np.maximum((cnt - 1) // 2, 0)[..., None], -1)[..., 0]
+    hi = np.take_along_axis(srt, np.maximum(cnt // 2, 0)[..., None], -1)[..., 0]
+    return np.where(cnt > 0, 0.5 * (lo + hi), 0.0)
 
 
 def _tls(p: np.ndarray, w: np.ndarray) -> np.ndarray:
