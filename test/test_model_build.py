@@ -158,3 +158,47 @@ def test_refuses_when_a_tag_is_not_covered() -> None:
         BuildConfig(min_tags_per_frame=1)
     with pytest.raises(ConfigError):
         build_model(frames, [CAMERA])
+
+
+def test_cli_builds_from_a_bag_of_rendered_frames(tmp_path, capsys) -> None:
+    """End to end: synth renders the perturbed cap (held in the hand: no head), frames go into a
+    real MCAP bag with CameraInfo, ``ficap model build`` detects and adjusts."""
+    import json
+
+    from ficap_ros.bag_io import BagWriter, camera_info_msg, image_msg
+    from ficap_ros.cli import main
+    from ficap_ros.synth import RenderConfig, render
+
+    camera = CameraModel.pinhole(960, 720, hfov_deg=50.0)
+    truth = perturbed_model(seed=11)
+    rng = np.random.default_rng(12)
+    bag = tmp_path / "cap_views"
+    with BagWriter(bag) as writer:
+        writer.add_topic("/cam/image_raw", "sensor_msgs/msg/Image")
+        writer.add_topic("/cam/camera_info", "sensor_msgs/msg/CameraInfo")
+        for k in range(24):
+            yaw, pitch, roll = rng.uniform([-50.0, -40.0, -20.0], [50.0, 40.0, 20.0])
+            T = Transform(CAM_FROM_FORWARD * rotation_from_ypr_deg(yaw, pitch, roll),
+                          [rng.uniform(-0.02, 0.02), rng.uniform(-0.02, 0.02), rng.uniform(0.38, 0.48)])
+            frame = render(truth, camera, T, RenderConfig(head=False), seed=k)
+            stamp = 1_000_000_000 + k * 100_000_000
+            writer.write("/cam/camera_info", stamp, camera_info_msg(stamp, "cam", camera))
+            writer.write("/cam/image_raw", stamp, image_msg(stamp, "cam", frame.image, "mono8"))
+    out = tmp_path / "cap_asbuilt.yaml"
+    report = tmp_path / "report.json"
+    plot = tmp_path / "deviations.png"
+    assert main(["model", "build", str(bag), "--out", str(out), "--report", str(report),
+                 "--plot", str(plot), "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "reprojection rms" in printed and str(out) in printed
+    built_model = load_model(out)
+    assert corner_rms_mm(built_model, truth) < 0.2 < corner_rms_mm(nominal_model(), truth)
+    data = json.loads(report.read_text())
+    assert len(data["tags"]) == 23 and data["rms_px"] < 1.0
+    assert plot.read_bytes().startswith(b"\x89PNG")
+    # Too strict a coverage demand: one clear line, non-zero exit, no file written.
+    refused = tmp_path / "refused.yaml"
+    assert main(["model", "build", str(bag), "--out", str(refused), "--min-frames-per-tag", "30",
+                 "--quiet"]) == 1
+    assert "seen in too few frames" in capsys.readouterr().err
+    assert not refused.exists()

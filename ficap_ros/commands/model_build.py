@@ -1,0 +1,121 @@
+"""``ficap model build``: the as-built cap model from recordings, by bundle adjustment.
+
+Wired as a sub-verb of ``ficap model`` (``add_build_arguments`` / ``run_build``).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+HELP = "build the as-built cap model from recordings (rosbag2/MCAP, or video with --intrinsics)"
+
+
+def add_build_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("inputs", nargs="+", metavar="INPUT",
+                        help="rosbag2 folders, .mcap/.db3 files or videos (need --intrinsics)")
+    parser.add_argument("--out", required=True, help="as-built model YAML to write")
+    parser.add_argument("--model", dest="start_model",
+                        help="model to start from and align to (default: the nominal cap)")
+    parser.add_argument("--intrinsics", help="camera YAML (required for videos; overrides CameraInfo)")
+    parser.add_argument("--image-topic", help="image topic (default: the bag's only image topic)")
+    parser.add_argument("--camera-info-topic", help="CameraInfo topic (default: auto)")
+    parser.add_argument("--fps", type=float, help="video frame rate (default: the container's)")
+    parser.add_argument("--every", type=int, default=1, metavar="N",
+                        help="use every N-th frame of each input (default 1)")
+    parser.add_argument("--max-frames", type=int, default=400,
+                        help="at most this many frames in the adjustment (default 400)")
+    parser.add_argument("--min-tags", type=int, default=4,
+                        help="frames with fewer tags are not used (default 4)")
+    parser.add_argument("--min-frames-per-tag", type=int, default=3,
+                        help="every tag must be seen in this many used frames (default 3)")
+    parser.add_argument("--backend", choices=("opencv", "apriltag"), default="opencv",
+                        help="detector backend (default opencv)")
+    parser.add_argument("--refine", choices=("edge", "subpix", "apriltag", "none"), default="edge",
+                        help="corner refinement (default edge)")
+    parser.add_argument("--report", help="also write the per-tag report as JSON to this file")
+    parser.add_argument("--plot", help="also write a PNG plot of the per-tag deviations")
+    parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
+
+
+def _progress(quiet: bool):  # type: ignore[no-untyped-def]
+    def say(message: str) -> None:
+        if not quiet:
+            print(f"model build: {message}", file=sys.stderr, flush=True)
+    return say
+
+
+def run_build(args: argparse.Namespace) -> int:
+    import json
+    from pathlib import Path
+
+    from ficap_ros.bag_io import open_frames
+    from ficap_ros.cap_model import load_model, nominal_model, write_atomic
+    from ficap_ros.detection import DetectorConfig, TagDetector
+    from ficap_ros.errors import ConfigError
+    from ficap_ros.model_build import BuildConfig, build_model
+
+    if args.every < 1:
+        raise ConfigError(f"--every must be >= 1, got {args.every}")
+    say = _progress(args.quiet)
+    config = BuildConfig(min_tags_per_frame=args.min_tags, min_frames_per_tag=args.min_frames_per_tag,
+                         max_frames=args.max_frames)
+    start = load_model(args.start_model) if args.start_model else nominal_model()
+    detector = TagDetector(DetectorConfig(backend=args.backend, corner_refine=args.refine))
+    frames, cameras = [], []
+    for path in args.inputs:
+        source = open_frames(path, image_topic=args.image_topic,
+                             camera_info_topic=args.camera_info_topic,
+                             intrinsics=args.intrinsics, fps=args.fps)
+        read = kept = 0
+        for frame in source.frames():
+            if frame.index % args.every:
+                continue
+            read += 1
+            if frame.image is None or frame.camera is None:
+                continue
+            dets = [d for d in detector.detect(frame.image) if d.tag_id in start]
+            if len({d.tag_id for d in dets}) >= config.min_tags_per_frame:
+                frames.append(dets)
+                cameras.append(frame.camera)
+                kept += 1
+            if read % 100 == 0:
+                say(f"{path}: {read} frames read, {kept} with >= {config.min_tags_per_frame} tags")
+        say(f"{path}: {read} frames read, {kept} with >= {config.min_tags_per_frame} tags")
+    result = build_model(frames, cameras, nominal=start, config=config, progress=say)
+    result.model.save(args.out)
+    print(result.table())
+    print(f"wrote {args.out}")
+    if args.report:
+        write_atomic(Path(args.report), json.dumps(result.to_dict(), indent=1) + "\n")
+    if args.plot:
+        _plot(result, Path(args.plot))
+    return 0
+
+
+def _plot(result, path) -> None:  # type: ignore[no-untyped-def]
+    """Bar plot of per-tag centre offset (mm) and in-plane turn (deg)."""
+    import io
+
+    import numpy as np
+    from matplotlib.figure import Figure
+
+    from ficap_ros.cap_model import write_atomic
+
+    ids = [d.tag_id for d in result.deviations]
+    x = np.arange(len(ids))
+    fig = Figure(figsize=(10, 6))
+    ax1, ax2 = fig.subplots(2, 1, sharex=True)
+    ax1.bar(x, [d.offset_norm_mm for d in result.deviations], color="#1f77b4")
+    ax1.set_ylabel("centre offset, mm")
+    ax1.set_title(f"as-built vs nominal: corner rms {result.corner_rms_mm:.2f} mm, "
+                  f"reprojection rms {result.rms_px:.2f} px, {result.frames_used} frames")
+    ax2.bar(x, [d.about_normal_deg for d in result.deviations], color="#d62728")
+    ax2.axhline(0.0, color="k", linewidth=0.6)
+    ax2.set_ylabel("turn about normal, deg")
+    ax2.set_xticks(x, [str(i) for i in ids])
+    ax2.set_xlabel("tag id")
+    fig.tight_layout()
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", dpi=120)
+    write_atomic(path, buffer.getvalue())
