@@ -13,6 +13,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     fmt.add_argument("--json", action="store_true", help="print JSON (default)")
     fmt.add_argument("--yaml", action="store_true", help="print YAML")
     parser.add_argument("--out", help="write the model as YAML to this file instead of printing")
+    # ``ficap model build ...``: an optional sub-verb; plain ``ficap model [--json|--yaml|--out]``
+    # is unchanged.
+    from ficap_ros.commands import model_build
+
+    actions = parser.add_subparsers(dest="model_action", metavar="ACTION")
+    build = actions.add_parser("build", help=model_build.HELP, description=model_build.HELP)
+    model_build.add_build_arguments(build)
+    build.set_defaults(_run=model_build.run_build)
 
 
 def run(args: argparse.Namespace) -> int:
