@@ -75,7 +75,8 @@ ORIENTATION_NOTE = (
 )
 SCALE_NOTE = (
     "Print at 100 % / actual size (no fit to page). Black squares 32 mm, faces (cut lines) 40 mm;"
-    " the bar must measure 100 mm."
+    " the bar must measure 100 mm. Before cutting, write each id and an up arrow on the back of"
+    " its face."
 )
 
 _MARGIN_MM = 10.0

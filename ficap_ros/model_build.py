@@ -114,6 +114,11 @@ class TagDeviation:
     frames: int
     rms_px: float
 
+    def __post_init__(self) -> None:
+        offset = np.array(self.offset_mm, dtype=np.float64).reshape(3)
+        offset.setflags(write=False)
+        object.__setattr__(self, "offset_mm", offset)
+
     @property
     def offset_norm_mm(self) -> float:
         return float(np.linalg.norm(self.offset_mm))

@@ -202,3 +202,19 @@ def test_cli_builds_from_a_bag_of_rendered_frames(tmp_path, capsys) -> None:
                  "--quiet"]) == 1
     assert "seen in too few frames" in capsys.readouterr().err
     assert not refused.exists()
+
+
+def test_distorted_camera_and_per_frame_cameras() -> None:
+    """Corners in a distorted image are undistorted with each frame's own intrinsics."""
+    truth = perturbed_model(seed=5)
+    k = CAMERA.K
+    wide = CameraModel(1280, 960, k, [-0.25, 0.08, 0.0005, -0.0004, 0.0], "plumb_bob")
+    fisheye = CameraModel(1280, 960, k, [0.05, -0.01, 0.002, 0.0], "equidistant")
+    frames = observe(truth, 20, seed=6, camera=wide) + observe(truth, 20, seed=8, camera=fisheye)
+    cameras = [wide] * 20 + [fisheye] * 20
+    result = build_model([dets for _, dets in frames], cameras)
+    assert corner_rms_mm(result.model, truth) < 0.2
+    assert result.rms_px == pytest.approx(0.15 * np.sqrt(2.0), rel=0.25)
+    # Camera poses are reported in the built cap frame, metres.
+    for (T_true, _), T in zip(frames, result.T_cam_cap):
+        assert 1000.0 * np.linalg.norm(T.translation_m - T_true.translation_m) < 1.0
