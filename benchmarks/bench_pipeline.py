@@ -1,0 +1,96 @@
+"""Detection and pose time per frame at 540p and 1080p (one process, one thread).
+
+Usage: .venv/bin/python benchmarks/bench_pipeline.py [--frames N] [--record]
+Prints a table; with --record appends it, with machine, date and commit, to docs/benchmarks.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as dt
+import os
+import platform
+import subprocess
+import sys
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from ficap_ros.cap_model import nominal_model
+from ficap_ros.detection import DetectorConfig
+from ficap_ros.metrics import angle_deg
+from ficap_ros.pipeline import FrameProcessor
+from ficap_ros.pose import PoseConfig
+from ficap_ros.synth import RenderConfig, default_scene, naturalistic_drive, render
+
+ROOT = Path(__file__).resolve().parents[1]
+
+CONFIGS = {
+    "ficap (opencv+edge, joint)": (DetectorConfig(), PoseConfig()),
+    "ficap (opencv+edge, paper)": (DetectorConfig(), PoseConfig(method="paper")),
+    "naive peer (opencv+subpix, naive)": (DetectorConfig(corner_refine="subpix"), PoseConfig(method="naive")),
+    "apriltag3 backend (joint)": (DetectorConfig(backend="apriltag"), PoseConfig()),
+}
+
+
+def machine_line() -> str:
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
+                            text=True).stdout.strip() or "unknown"
+    return (f"{dt.date.today().isoformat()}, {cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, "
+            f"OpenCV {cv2.__version__}, commit {commit}")
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--frames", type=int, default=60)
+    parser.add_argument("--record", action="store_true", help="append the table to docs/benchmarks.md")
+    args = parser.parse_args()
+    cv2.setNumThreads(1)
+    model = nominal_model()
+    rows = []
+    for resolution in ("540p", "1080p"):
+        scene = default_scene(resolution)
+        drive = naturalistic_drive(args.frames * 5, fps=30.0, seed=3, scene=scene)[::5]
+        frames = [(render(model, scene.camera, d.T_cam_cap, RenderConfig(), seed=k), d) for k, d in enumerate(drive)]
+        for name, (det, pose) in CONFIGS.items():
+            proc = FrameProcessor(model, det, pose)
+            detect_ms, pose_ms, errs = [], [], []
+            for frame, truth in frames:
+                r = proc.process(frame.image, scene.camera)
+                detect_ms.append(r.detect_ms)
+                pose_ms.append(r.pose_ms)
+                errs.append(angle_deg(r.pose.T_cam_cap.rotation, truth.T_cam_cap.rotation) if r.pose else np.nan)
+            rows.append((resolution, name, np.median(detect_ms), np.median(pose_ms),
+                         np.nanmedian(errs), np.nanpercentile(errs, 95), int(np.sum(np.isfinite(errs)))))
+            print(f"{resolution:6} {name:36} detect {rows[-1][2]:6.2f} ms  pose {rows[-1][3]:5.2f} ms  "
+                  f"median {rows[-1][4]:.3f} deg  p95 {rows[-1][5]:.3f} deg", file=sys.stderr)
+    table = [
+        f"### bench_pipeline ({args.frames} rendered neutral frames per resolution)",
+        "",
+        f"Machine: {machine_line()}",
+        "",
+        "| resolution | pipeline | detect ms/frame (median) | pose ms/frame (median) | rotation error median (deg) | p95 (deg) | frames with pose |",
+        "|---|---|---|---|---|---|---|",
+    ]
+    table += [f"| {r[0]} | {r[1]} | {r[2]:.2f} | {r[3]:.2f} | {r[4]:.3f} | {r[5]:.3f} | {r[6]}/{args.frames} |" for r in rows]
+    text = "\n".join(table) + "\n"
+    print(text)
+    if args.record:
+        path = ROOT / "docs" / "benchmarks.md"
+        head = "" if path.exists() else "# Benchmarks\n\nEvery table below comes from a run of a script in `benchmarks/`, with its machine, date and commit.\n\n"
+        with path.open("a") as fh:
+            fh.write(head + text + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
