@@ -261,7 +261,7 @@ def layout_tag_sheets(ids: Sequence[int] | None = None, paper: str = "a4") -> tu
                                   grey=0.3))
         # Scale bar: ten alternating 10 mm segments in an outline, with the length written.
         bar_x = _MARGIN_MM
-        bar_y = height - _MARGIN_MM - 9.0
+        bar_y = height - _MARGIN_MM - 13.0
         for s in range(10):
             rects.append(Rect(bar_x + 10.0 * s, bar_y, 10.0, 3.0,
                               fill=0.0 if s % 2 == 0 else 1.0, group="scale-bar"))
