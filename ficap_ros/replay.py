@@ -213,7 +213,7 @@ def frontal_calibration(
         raise CalibrationError(
             f"no frame with a cap pose between {window_s[0]:g} s and {window_s[1]:g} s")
     result = calibrate_frontal(Rotation.concatenate(rots), base.R_cam_frontal,
-                               min_frames=min(30, len(rots)))
+                               min_frames=min(30, max(len(rots), 5)))
     cal = HeadCalibration(R_cap_head=result.R_cap_head, R_cam_frontal=base.R_cam_frontal,
                           calibrated=True)
     info = {"mode": "frontal", "window_s": [window_s[0], window_s[1]],

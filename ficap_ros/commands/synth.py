@@ -53,6 +53,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frames", type=_nonneg_int, default=300, help="frames (default 300)")
     parser.add_argument("--fps", type=float, default=30.0, help="frame rate (default 30)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    parser.add_argument("--frontal-s", type=float, default=3.0,
+                        help="initial looking-straight-ahead segment, s (default 3)")
     parser.add_argument("--jpeg-quality", type=int, default=95, help="JPEG quality (default 95)")
     parser.add_argument("--model", help="cap model YAML to render (default: nominal)")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
@@ -66,6 +68,8 @@ def run(args: argparse.Namespace) -> int:
 
     if not 1 <= args.jpeg_quality <= 100:
         raise ConfigError(f"--jpeg-quality must be in 1..100, got {args.jpeg_quality}")
+    if not args.frontal_s >= 0:
+        raise ConfigError(f"--frontal-s must be >= 0, got {args.frontal_s}")
     if not args.fps > 0:
         raise ConfigError(f"--fps must be positive, got {args.fps}")
     out = Path(args.out)
@@ -73,7 +77,8 @@ def run(args: argparse.Namespace) -> int:
         raise BagError(f"{out} exists already; choose a new --out")
     model = load_model(args.model) if args.model else nominal_model()
     info = write_synth_bag(out, model, args.resolution, args.lighting, args.frames, args.fps,
-                           args.seed, args.jpeg_quality, progress=not args.quiet)
+                           args.seed, args.jpeg_quality, progress=not args.quiet,
+                           frontal_s=args.frontal_s)
     print(f"{args.frames} frames {info['width']}x{info['height']} {args.lighting} -> {out} "
           f"({info['fps_rendered']:.1f} frames/s rendered)")
     return 0
@@ -81,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
 
 def write_synth_bag(
     out, model, resolution="540p", lighting="neutral", frames=300, fps=30.0, seed=0,
-    jpeg_quality=95, progress=True,
+    jpeg_quality=95, progress=True, frontal_s=3.0,
 ) -> dict:
     """Render ``ficap_ros.synth.naturalistic_drive`` into a rosbag2 MCAP folder at ``out``.
 
@@ -121,7 +126,7 @@ def write_synth_bag(
 
     scene = synth.default_scene(resolution)
     camera = scene.camera
-    drive = synth.naturalistic_drive(frames, fps, seed, scene)
+    drive = synth.naturalistic_drive(frames, fps, seed, scene, frontal_s=frontal_s)
     config = synth.RenderConfig(lighting=lighting, background_seed=seed)
     bool_type = jazzy_typestore().types["std_msgs/msg/Bool"]
     bar = Progress(len(drive), "frames rendered", enabled=progress)
@@ -136,7 +141,8 @@ def write_synth_bag(
         bag.set_custom_data("ficap.R_cam_frontal_q_wxyz", q_wxyz(scene.R_cam_frontal))
         bag.set_custom_data("ficap.synth", json.dumps(
             {"resolution": [camera.width_px, camera.height_px], "lighting": lighting,
-             "frames": frames, "fps": fps, "seed": seed, "jpeg_quality": jpeg_quality}))
+             "frames": frames, "fps": fps, "seed": seed, "jpeg_quality": jpeg_quality,
+             "frontal_s": frontal_s}))
         bag.add_topic(IMAGE_TOPIC, COMPRESSED_TYPE)
         bag.add_topic(CAMERA_INFO_TOPIC, CAMERA_INFO_TYPE)
         bag.add_topic(TRUTH_CAP_TOPIC, "geometry_msgs/msg/PoseStamped")

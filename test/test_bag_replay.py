@@ -1,0 +1,174 @@
+"""ficap synth -> ficap replay/stats/calibrate/evaluate on a rendered drive with exact ground truth."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+from rosbags.highlevel import AnyReader
+from scipy.spatial.transform import Rotation
+
+from ficap_ros.cli import main
+from ficap_ros.commands import synth as synth_cmd
+from ficap_ros.evaluation import read_series_bag
+from ficap_ros.labels import read_labels
+
+FRAMES = 45
+FPS = 5.0  # 9 s of drive: the 3 s frontal segment, then mirror and cluster glances
+
+
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    bag = tmp_path_factory.mktemp("synth") / "drive"
+    assert main(["synth", "--out", str(bag), "--resolution", "540p", "--frames", str(FRAMES),
+                 "--fps", str(FPS), "--seed", "3", "--quiet"]) == 0
+    return bag
+
+
+@pytest.fixture(scope="module")
+def replayed(drive: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    out = tmp_path_factory.mktemp("replay") / "out"
+    assert main(["replay", str(drive), "--out", str(out), "--calibrate-frontal", "0:2.9",
+                 "--quiet"]) == 0
+    return out
+
+
+def _true_R_cap_head(bag: Path) -> Rotation:
+    import yaml
+
+    meta = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
+    w, x, y, z = json.loads(meta["custom_data"]["ficap.R_cap_head_q_wxyz"])
+    return Rotation.from_quat([x, y, z, w])
+
+
+def test_synth_bag_contents(drive: Path) -> None:
+    with AnyReader([drive]) as reader:
+        counts = {c.topic: c.msgcount for c in reader.connections}
+    assert counts == {t: FRAMES for t in (
+        synth_cmd.IMAGE_TOPIC, synth_cmd.CAMERA_INFO_TOPIC, synth_cmd.TRUTH_CAP_TOPIC,
+        synth_cmd.TRUTH_HEAD_TOPIC, synth_cmd.TRUTH_HEAD_CAMERA_TOPIC, synth_cmd.TRUTH_FRONTAL_TOPIC)}
+
+
+def test_replay_recovers_ground_truth(drive: Path, replayed: Path) -> None:
+    labels = read_labels(replayed)
+    truth = read_series_bag(drive, synth_cmd.TRUTH_CAP_TOPIC)
+    assert len(labels) == FRAMES and labels.has_pose.all()
+    np.testing.assert_array_equal(labels.stamp_ns, truth.stamp_ns)  # stamped with image stamps
+    err_deg = np.degrees((labels.cap_rotations().inv() * truth.rotations).magnitude())
+    # The foundation's accuracy at 540p: cap orientation median well under 0.5 deg.
+    assert np.median(err_deg) < 0.5 and np.percentile(err_deg, 95) < 1.0
+    # Frontal calibration from the first 2.9 s recovers how the cap sits on the head.
+    summary = json.loads((replayed / "summary.json").read_text())
+    w, x, y, z = summary["calibration"]["R_cap_head_q_wxyz"]
+    cal_err = np.degrees((Rotation.from_quat([x, y, z, w]).inv() * _true_R_cap_head(drive)).magnitude())
+    assert cal_err < 0.5
+    assert summary["frames"] == FRAMES and summary["frames_skipped"] == 0
+    assert summary["pct_ge4_tags"] == 100.0 and summary["throughput_fps"] > 0
+
+
+def test_labels_bag_matches_csv(replayed: Path) -> None:
+    labels = read_labels(replayed)
+    for path in (replayed / "labels.mcap", replayed):  # single file, and the folder as a bag
+        with AnyReader([path]) as reader:
+            counts = {c.topic: c.msgcount for c in reader.connections}
+            assert counts == {"/head_pose": FRAMES, "/head_pose/with_covariance": FRAMES,
+                              "/cap_pose": FRAMES, "/status": FRAMES}
+            conns = [c for c in reader.connections if c.topic == "/cap_pose"]
+            stamps, quats = [], []
+            for conn, t, raw in reader.messages(connections=conns):
+                msg = reader.deserialize(raw, conn.msgtype)
+                s = msg.header.stamp
+                assert t == s.sec * 10**9 + s.nanosec
+                stamps.append(t)
+                o = msg.pose.orientation
+                quats.append([o.x, o.y, o.z, o.w])
+    np.testing.assert_array_equal(stamps, labels.stamp_ns)
+    err = np.degrees((Rotation.from_quat(quats).inv() * labels.cap_rotations()).magnitude())
+    assert err.max() < 1e-4
+
+
+def test_jobs_2_identical_to_jobs_1(drive: Path, replayed: Path, tmp_path: Path) -> None:
+    out = tmp_path / "j2"
+    assert main(["replay", str(drive), "--out", str(out), "--calibrate-frontal", "0:2.9",
+                 "--jobs", "2", "--quiet"]) == 0
+    assert (out / "labels.csv").read_bytes() == (replayed / "labels.csv").read_bytes()
+    assert (out / "labels.mcap").read_bytes() == (replayed / "labels.mcap").read_bytes()
+
+
+def test_evaluate_head_against_truth(drive: Path, replayed: Path, tmp_path: Path) -> None:
+    out = tmp_path / "eval"
+    assert main(["evaluate", "--truth", str(replayed), "--estimate",
+                 f"{drive}:{synth_cmd.TRUTH_HEAD_TOPIC}", "--out", str(out), "--no-plots"]) == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["n_paired"] == FRAMES
+    assert rep["geodesic_deg"]["median"] < 0.5 and rep["geodesic_deg"]["p95"] < 1.0
+
+
+def test_stats_from_labels_and_bag_agree(drive: Path, replayed: Path, tmp_path: Path,
+                                         capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["stats", str(replayed), "--out", str(tmp_path / "s1")]) == 0
+    from_labels = json.loads((tmp_path / "s1" / "stats.json").read_text())
+    summary = json.loads((replayed / "summary.json").read_text())
+    assert from_labels["frames"] == summary["frames"]
+    assert from_labels["frames_ge4_tags"] == summary["frames_ge4_tags"]
+    assert sum(from_labels["reliability_histogram"]["counts"]) == summary["frames_with_pose"]
+    rates = from_labels["tag_detection_rate"]
+    assert len(rates) == 23 and all(0.0 <= v <= 1.0 for v in rates.values())
+    labels = read_labels(replayed)
+    assert sum(rates.values()) * FRAMES == pytest.approx(labels.tags_detected.sum())
+    assert (tmp_path / "s1" / "reliability_histogram.png").read_bytes()[:4] == b"\x89PNG"
+
+
+def test_calibrate_frontal_from_labels(drive: Path, replayed: Path, tmp_path: Path) -> None:
+    from ficap_ros.calibration import load_calibration
+
+    out = tmp_path / "cal.yaml"
+    assert main(["calibrate", str(replayed), "--frontal", "0:2.9", "--min-frames", "10",
+                 "--out", str(out)]) == 0
+    cal = load_calibration(out)
+    err = np.degrees((cal.R_cap_head.inv() * _true_R_cap_head(drive)).magnitude())
+    assert cal.calibrated and err < 0.5
+    # The file drives a replay: same head poses as the in-replay frontal calibration.
+    out2 = tmp_path / "withcal"
+    assert main(["replay", str(drive), "--out", str(out2), "--calibration", str(out),
+                 "--quiet"]) == 0
+    a, b = read_labels(replayed), read_labels(out2)
+    diff = np.degrees((a.head_rotations().inv() * b.head_rotations()).magnitude())
+    assert diff.max() < 1e-3
+
+
+def test_ctrl_c_leaves_no_partial_output(drive: Path, tmp_path: Path,
+                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    import ficap_ros.replay as replay_mod
+
+    calls = {"n": 0}
+    real = replay_mod._process_one
+
+    def interrupted(raw):  # noqa: ANN001, ANN202
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+        return real(raw)
+
+    monkeypatch.setattr(replay_mod, "_process_one", interrupted)
+    out = tmp_path / "out"
+    assert main(["replay", str(drive), "--out", str(out), "--quiet"]) == 130
+    assert list(out.iterdir()) == []
+
+
+def test_replay_bad_inputs(drive: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    blocked = tmp_path / "file"
+    blocked.write_text("x")
+    cases = [
+        [str(tmp_path / "missing"), "--out", str(tmp_path / "o")],
+        [str(drive), "--out", str(blocked / "sub")],  # output under a file: not creatable
+        [str(drive), "--out", str(tmp_path / "o"), "--image-topic", "/nope"],
+        [str(drive), "--out", str(tmp_path / "o"), "--camera-info-topic", "/nope"],
+        [str(blocked), "--out", str(tmp_path / "o")],  # not a bag, not a video
+    ]
+    for args in cases:
+        assert main(["replay", *args, "--quiet"]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("ficap: error:"), err
