@@ -1,0 +1,94 @@
+"""ficap stats / replay on a small rendered bag with one corrupt frame, and on a video."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+import yaml
+
+from ficap_ros import synth
+from ficap_ros.bag_io import (
+    CAMERA_INFO_TYPE,
+    COMPRESSED_TYPE,
+    BagWriter,
+    camera_info_msg,
+    compressed_image_msg,
+)
+from ficap_ros.cap_model import nominal_model
+from ficap_ros.cli import main
+from ficap_ros.labels import read_labels
+
+N = 5
+BAD = 2
+T0 = 1_700_000_000_000_000_000
+
+
+@pytest.fixture(scope="module")
+def rendered() -> tuple[list[np.ndarray], synth.DriveScene]:
+    scene = synth.default_scene("540p")
+    drive = synth.naturalistic_drive(N, 30.0, 5, scene)
+    model = nominal_model()
+    return [synth.render(model, scene.camera, f.T_cam_cap, seed=f.index).image for f in drive], scene
+
+
+@pytest.fixture(scope="module")
+def bag(rendered, tmp_path_factory: pytest.TempPathFactory) -> Path:  # noqa: ANN001
+    images, scene = rendered
+    path = tmp_path_factory.mktemp("bags") / "drive.mcap"
+    with BagWriter(path, storage="mcap", layout="file") as w:
+        w.add_topic("/cam/image/compressed", COMPRESSED_TYPE)
+        w.add_topic("/cam/camera_info", CAMERA_INFO_TYPE)
+        for i, img in enumerate(images):
+            s = T0 + i * 33_333_333
+            w.write("/cam/camera_info", s, camera_info_msg(s, "cam", scene.camera))
+            data = cv2.imencode(".jpg", img)[1].tobytes() if i != BAD else b"\xff\xd8 truncated"
+            w.write("/cam/image/compressed", s, compressed_image_msg(s, "cam", data))
+    return path
+
+
+def test_replay_counts_the_corrupt_frame(bag: Path, tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    assert main(["replay", str(bag), "--out", str(out), "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["frames"] == N and summary["frames_skipped"] == 1
+    assert summary["frames_with_pose"] == N - 1
+    assert sum(summary["skipped_reasons"].values()) == 1
+    labels = read_labels(out)
+    assert len(labels) == N  # one row per image, the corrupt one without pose fields
+    assert labels.skipped.tolist() == [i == BAD for i in range(N)]
+    assert not labels.has_pose[BAD] and labels.has_pose.sum() == N - 1
+    row = (out / "labels.csv").read_text().splitlines()[1 + BAD].split(",")
+    assert row[6:20] == [""] * 14 and row[-1].startswith("undecodable")
+
+
+def test_stats_from_bag(bag: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["stats", str(bag), "--out", str(tmp_path), "--quiet"]) == 0
+    d = json.loads((tmp_path / "stats.json").read_text())
+    assert d["frames"] == N - 1 and d["frames_skipped"] == 1
+    assert d["frames_ge4_tags"] == N - 1 and d["frames_no_tag"] == 0
+    assert max(d["tag_detection_rate"].values()) == 1.0
+    assert (tmp_path / "tag_detection_rate.png").exists()
+    assert ">=4 tags" in capsys.readouterr().out
+
+
+def test_replay_video(rendered, tmp_path: Path) -> None:  # noqa: ANN001
+    images, scene = rendered
+    video = tmp_path / "drive.avi"
+    w, h = scene.camera.width_px, scene.camera.height_px
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (w, h))
+    for img in images:
+        writer.write(cv2.cvtColor(img, cv2.COLOR_GRAY2BGR))
+    writer.release()
+    intr = tmp_path / "camera.yaml"
+    intr.write_text(yaml.safe_dump(scene.camera.to_camera_yaml()))
+    out = tmp_path / "out"
+    assert main(["replay", str(video), "--intrinsics", str(intr), "--fps", "30", "--out",
+                 str(out), "--quiet"]) == 0
+    labels = read_labels(out)
+    assert len(labels) == N and labels.has_pose.all()
+    assert labels.stamp_ns[1] == 33_333_333
+    assert main(["replay", str(video), "--out", str(out), "--quiet"]) == 1  # no intrinsics
