@@ -376,43 +376,48 @@ def _edge_pass(
     nrm = nrm * np.where(sign == 0, 1.0, sign)
 
     # The search must stay between the data bits (one cell inside) and whatever lies beyond the
-    # white margin (one cell outside).
+    # white margin (one cell outside). The cell that matters is the one across this side: on a tag
+    # seen obliquely it is much narrower than the mean side / 8, so measure the tag's width along
+    # this side's normal (distance of the two opposite corners from the side's line).
+    opp = np.stack([np.roll(corners, -2, axis=1), np.roll(corners, -3, axis=1)], axis=2)  # (N,4,2,2)
+    width = np.abs(np.sum((opp - a[:, :, None, :]) * nrm[:, :, None, :], axis=3)).mean(axis=2)
+    cell_side = np.minimum(width / _CELLS_PER_SIDE, cell_px[:, None])  # (N,4)
     step = 0.25
-    half = np.clip(np.minimum(cfg.edge_search_px, cfg.edge_window_cells * cell_px), 0.75, None)
+    half = np.clip(np.minimum(cfg.edge_search_px, cfg.edge_window_cells * cell_side), 0.75, None)
     half = np.floor(half / step + 1e-9) * step  # window ends on samples: the integral is exact
     k = int(np.ceil(cfg.edge_search_px / step))
     offs = np.arange(-k, k + 1) * step  # (S,)
-    in_win = np.abs(offs)[None, :] <= half[:, None] + 1e-9  # (N,S)
+    in_win = np.abs(offs)[None, None, :] <= half[:, :, None] + 1e-9  # (N,4,S)
 
     t = np.linspace(cfg.edge_corner_skip, 1.0 - cfg.edge_corner_skip, m)  # (M,)
     base = a[:, :, None, :] + d[:, :, None, :] * t[None, None, :, None]  # (N,4,M,2)
     pts = base[:, :, :, None, :] + nrm[:, :, None, None, :] * offs[None, None, None, :, None]
     vals, valid = _bilinear(img, pts[..., 0], pts[..., 1])  # (N,4,M,S)
-    win = in_win[:, None, None, :]
+    win = in_win[:, :, None, :]
     valid_prof = np.all(valid | ~win, axis=3)  # (N,4,M)
 
     # Levels from the ends of each profile's window (inner = dark border, outer = white margin).
     idx = np.arange(len(offs))
-    lo_i = np.argmax(in_win, axis=1)  # first in-window index per tag
-    hi_i = len(offs) - 1 - np.argmax(in_win[:, ::-1], axis=1)
+    lo_i = np.argmax(in_win, axis=2)  # (N,4) first in-window index per side
+    hi_i = len(offs) - 1 - np.argmax(in_win[:, :, ::-1], axis=2)
     end_w = 2  # samples (0.5 px) averaged at each end
-    dark_mask = (idx[None, :] >= lo_i[:, None]) & (idx[None, :] < lo_i[:, None] + end_w)
-    light_mask = (idx[None, :] <= hi_i[:, None]) & (idx[None, :] > hi_i[:, None] - end_w)
-    dark = np.sum(vals * dark_mask[:, None, None, :], axis=3) / end_w
-    light = np.sum(vals * light_mask[:, None, None, :], axis=3) / end_w
+    dark_mask = (idx >= lo_i[..., None]) & (idx < lo_i[..., None] + end_w)  # (N,4,S)
+    light_mask = (idx <= hi_i[..., None]) & (idx > hi_i[..., None] - end_w)
+    dark = np.sum(vals * dark_mask[:, :, None, :], axis=3) / end_w
+    light = np.sum(vals * light_mask[:, :, None, :], axis=3) / end_w
     contrast = light - dark  # (N,4,M)
     frac = np.clip((vals - dark[..., None]) / np.where(contrast > 0, contrast, 1.0)[..., None], 0, 1)
     # Trapezoid integral of the normalised profile over the window.
     wts = np.where(in_win, step, 0.0)
-    wts[np.arange(n), lo_i] *= 0.5
-    wts[np.arange(n), hi_i] *= 0.5
-    integral = np.sum(frac * wts[:, None, None, :], axis=3)
-    s_edge = half[:, None, None] - integral  # (N,4,M)
+    np.put_along_axis(wts, lo_i[..., None], 0.5 * step, axis=2)
+    np.put_along_axis(wts, hi_i[..., None], 0.5 * step, axis=2)
+    integral = np.sum(frac * wts[:, :, None, :], axis=3)
+    s_edge = half[:, :, None] - integral  # (N,4,M)
     if cfg.edge_locator == "peak":
         # Gradient maximum along the normal, parabolic interpolation between samples.
         g = np.diff(vals, axis=3) / step  # (N,4,M,S-1) at offs[:-1] + step/2
-        g_win = in_win[:, :-1] & in_win[:, 1:]
-        g = np.where(g_win[:, None, None, :], g, -np.inf)
+        g_win = in_win[:, :, :-1] & in_win[:, :, 1:]
+        g = np.where(g_win[:, :, None, :], g, -np.inf)
         j = np.clip(np.argmax(g, axis=3), 1, g.shape[3] - 2)
         gm = np.take_along_axis(g, (j - 1)[..., None], 3)[..., 0]
         g0 = np.take_along_axis(g, j[..., None], 3)[..., 0]
@@ -425,7 +430,7 @@ def _edge_pass(
     # Weights: contrast, with weak or inverted profiles dropped (occlusion, glare, the wrong edge).
     med_c = _masked_median(contrast, contrast > 0)[..., None]
     w = np.where(valid_prof & (contrast > 0.3 * med_c) & (contrast > 8.0), contrast, 0.0)
-    w = w * (np.abs(s_edge) < half[:, None, None] - 0.25)
+    w = w * (np.abs(s_edge) < half[:, :, None] - 0.25)
     p = base + nrm[:, :, None, :] * s_edge[..., None]  # (N,4,M,2) edge points
 
     lines = _fit_lines(p, w)  # (N,4,3): nx, ny, rho with nx*x + ny*y = rho
