@@ -1,33 +1,824 @@
 """Rendered Fi-Cap frames with exact ground truth, and naturalistic driving head motion.
 
-(Stub: the API below is the contract; the implementation is being written.)
+Renderer (``render``): any ``CapModel`` seen by any ``CameraModel`` at a known ``T_cam_cap``.
+
+* Every front-facing face (40 mm white square, 32 mm tag36h11 centred, as drawn by
+  ``cv2.aruco.generateImageMarker``, upright: image top row along the model's TL->TR edge) is drawn
+  by a per-face homography, supersampled ``RenderConfig.supersample`` times over the face's
+  bounding box only and box-filtered down (``cv2.INTER_AREA``), so edges are anti-aliased and
+  unbiased: the tag's outer black corners land exactly at ``camera.project(T_cam_cap.apply(c))``
+  in OpenCV's pixel convention (pixel centres at integers).
+* Back faces are culled; front faces are painted far to near.
+* A dark, hair-textured head ellipsoid fixed in the cap frame hides faces behind it with a per-pixel
+  depth test (ray-ellipsoid intersection); its silhouette is anti-aliased from the image conic.
+* A static seeded car-interior background (``RenderConfig.background_seed``).
+* Lighting ``neutral`` / ``high`` (spotlights: clipped whites, lifted blacks) / ``low`` (dark,
+  one-sided light from the driver's front-right), then Gaussian blur, Gaussian noise and an optional
+  JPEG round trip, all seeded by ``seed``.
+* Distorted cameras: the ideal pinhole with the same K is rendered on a canvas large enough, then
+  ``cv2.remap``-ed into the distorted image, so ``corners_px`` (``camera.project``) stays exact.
+
+Motion (``naturalistic_drive``): a list of ``DriveFrame`` with the true head orientation in the
+frontal frame F (x forward, y left, z up), the head angles and the true cap pose in the camera, from
+a ``DriveScene`` (camera, frontal frame, neck pivot, true cap-on-head rotation). It starts with
+``frontal_s`` seconds of looking straight ahead, then mixes frontal driving with glances to the
+mirrors and the instrument cluster (minimum-jerk transitions, dwells, small roll and translation).
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+import functools
+import math
+from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from ficap_ros.camera import CameraModel
-from ficap_ros.cap_model import CapModel
-from ficap_ros.transform import Transform
+from ficap_ros.cap_model import FACE_SIDE_MM, TAG_SIDE_MM, CapModel
+from ficap_ros.errors import ConfigError
+from ficap_ros.metrics import rotation_from_ypr_deg
+from ficap_ros.transform import CAM_FROM_FORWARD, Transform
 
-__all__ = ["RenderConfig", "RenderedFrame", "render"]
+__all__ = [
+    "LIGHTINGS",
+    "HEAD_CENTRE_M",
+    "HEAD_SEMI_AXES_M",
+    "NECK_CENTRE_M",
+    "NECK_SEMI_AXES_M",
+    "RenderConfig",
+    "RenderedFrame",
+    "render",
+    "DriveScene",
+    "DriveFrame",
+    "default_scene",
+    "naturalistic_drive",
+    "RESOLUTIONS",
+]
+
+#: Illumination modes of ``RenderConfig.lighting``.
+LIGHTINGS = ("neutral", "high", "low")
+#: Head ellipsoid (hair/skull) in the cap frame C, metres: centre and semi-axes along x, y, z.
+#: Chosen so every face of the nominal cap lies just outside it (checked in test_synth): the back
+#: of the skull is ~5 mm under the centre tag. Geometry note: with every face outside this convex
+#: head, no front-facing face gets hidden by it over yaw +-80, pitch -20..+10 (faces turn away
+#: before the head can cover them); a head that pokes past the cap rim does hide faces.
+HEAD_CENTRE_M = (0.0225, 0.0, 0.0)
+HEAD_SEMI_AXES_M = (0.11, 0.08, 0.10)
+#: Neck (with the hairline) below the head, cap frame, metres: drawn and depth-tested like the head.
+NECK_CENTRE_M = (0.02, 0.0, -0.15)
+NECK_SEMI_AXES_M = (0.075, 0.075, 0.1)
+
+#: Named resolutions of ``default_scene``.
+RESOLUTIONS: dict[str, tuple[int, int]] = {
+    "360p": (640, 360),
+    "540p": (960, 540),
+    "720p": (1280, 720),
+    "1080p": (1920, 1080),
+}
+
+_CELLS_TAG = 8  # black border + 6x6 data
+_CELLS_FACE = 10  # plus the 1-cell white quiet zone each side (40 mm face / 4 mm cells)
+_NEAR_M = 0.02
+_WHITE_ALBEDO = 1.0
+_BLACK_ALBEDO = 0.15
+_HAIR_ALBEDO = 0.12
+
+
+@dataclass(frozen=True)
+class _Light:
+    """Per-mode light: irradiance ``ambient + diffuse * max(0, n . l)`` plus an additive floor."""
+
+    toward_light_cam: tuple[float, float, float]  # unit vector toward the light, camera optical frame
+    ambient: float
+    diffuse: float
+    floor: float  # flare / black level, grey levels
+    background_gain: float
+
+
+# Directions in the camera optical frame (x right, y down, z forward; the camera looks forward at
+# the back of the head): neutral light comes from behind the camera, slightly above; the low-light
+# source is outside at the driver's front-right, so faces turned away from it are in shadow.
+_LIGHTS: dict[str, _Light] = {
+    "neutral": _Light((0.25, -0.45, -0.86), 196.0, 30.0, 3.0, 1.0),
+    "high": _Light((0.3, -0.5, -0.81), 165.0, 45.0, 8.0, 1.25),
+    "low": _Light((0.85, -0.15, 0.5), 26.0, 75.0, 12.0, 0.3),
+}
 
 
 @dataclass(frozen=True)
 class RenderConfig:
+    """How a frame is rendered.
+
+    Attributes:
+        lighting: one of ``LIGHTINGS``.
+        noise_sigma: Gaussian pixel noise, grey levels (0 = none).
+        blur_sigma_px: Gaussian blur of the whole image, px (0 = none).
+        jpeg_quality: JPEG round trip at this quality (1..100), or None.
+        color: BGR output (hair and interior tinted) instead of grey.
+        supersample: supersampling factor per axis for faces (1..8); faces whose tag edge is
+            longer than 320/supersample px use less (at least 2), which keeps big faces cheap.
+        head: draw the head occluder.
+        background: draw the car interior (else a flat grey).
+        background_seed: seed of the static background and hair texture (keep it fixed over a video).
+        head_centre_m, head_semi_axes_m: head ellipsoid in the cap frame, metres.
+    """
+
     lighting: str = "neutral"
+    noise_sigma: float = 2.0
+    blur_sigma_px: float = 0.0
+    jpeg_quality: int | None = None
+    color: bool = False
+    supersample: int = 4
+    head: bool = True
+    background: bool = True
+    background_seed: int = 0
+    head_centre_m: tuple[float, float, float] = HEAD_CENTRE_M
+    head_semi_axes_m: tuple[float, float, float] = HEAD_SEMI_AXES_M
+
+    def __post_init__(self) -> None:
+        if self.lighting not in LIGHTINGS:
+            raise ConfigError(f"lighting must be one of {', '.join(LIGHTINGS)}, got {self.lighting!r}")
+        if not (self.noise_sigma >= 0.0 and self.blur_sigma_px >= 0.0):
+            raise ConfigError("noise_sigma and blur_sigma_px must be >= 0")
+        if self.jpeg_quality is not None and not 1 <= int(self.jpeg_quality) <= 100:
+            raise ConfigError(f"jpeg_quality must be in 1..100, got {self.jpeg_quality}")
+        if not 1 <= int(self.supersample) <= 8:
+            raise ConfigError(f"supersample must be in 1..8, got {self.supersample}")
+        if len(self.head_semi_axes_m) != 3 or min(self.head_semi_axes_m) <= 0.0:
+            raise ConfigError("head_semi_axes_m must be three positive lengths")
+        if len(self.head_centre_m) != 3:
+            raise ConfigError("head_centre_m must have three coordinates")
 
 
 @dataclass(frozen=True)
 class RenderedFrame:
+    """A rendered image with its exact ground truth.
+
+    Attributes:
+        image: uint8, (H, W) grey or (H, W, 3) BGR.
+        T_cam_cap: the true cap pose in the camera optical frame (metres).
+        corners_px: tag id -> (4, 2) exact projected outer corners (OpenCV order and pixel
+            convention, distorted image) of every front-facing tag, even if hidden or off-image.
+        visible_fraction: tag id -> share of the tag square that is inside the image and not hidden
+            by the head or other faces (same keys as ``corners_px``).
+        camera: the camera the frame was rendered for.
+    """
+
     image: np.ndarray
     T_cam_cap: Transform
     corners_px: dict[int, np.ndarray]
+    visible_fraction: dict[int, float] = field(default_factory=dict)
+    camera: CameraModel | None = None
+
+    def visible_ids(self, min_fraction: float = 0.999) -> list[int]:
+        """Ids whose visible fraction is at least ``min_fraction``."""
+        return sorted(k for k, v in self.visible_fraction.items() if v >= min_fraction)
 
 
-def render(model: CapModel, camera: CameraModel, T_cam_cap: Transform,
-           config: RenderConfig | None = None, seed: int = 0) -> RenderedFrame:
-    raise NotImplementedError
+# ------------------------------------------------------------------------------------------------
+# Textures and background (cached: deterministic in their arguments)
+# ------------------------------------------------------------------------------------------------
+@functools.lru_cache(maxsize=512)
+def _face_texture(tag_id: int, cell_px: int) -> np.ndarray:
+    """Face texture (10c, 10c, 3) uint8, channels: face coverage, tag-square mask, blackness.
+
+    Texture pixel j covers [j - 0.5, j + 0.5]; the tag's outer edge is at c - 0.5 and 9c - 0.5.
+    """
+    dictionary = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11)
+    marker = cv2.aruco.generateImageMarker(dictionary, int(tag_id), _CELLS_TAG * cell_px)
+    n = _CELLS_FACE * cell_px
+    tex = np.zeros((n, n, 3), np.uint8)
+    tex[..., 0] = 255
+    inner = slice(cell_px, (_CELLS_FACE - 1) * cell_px)
+    tex[inner, inner, 1] = 255
+    tex[inner, inner, 2] = 255 - marker
+    tex.setflags(write=False)
+    return tex
+
+
+def _smooth_noise(rng: np.random.Generator, h: int, w: int, scale_px: float) -> np.ndarray:
+    """Zero-mean, unit-ish smooth noise field (h, w) float32 with features of ``scale_px``."""
+    sh, sw = max(2, int(h / scale_px) + 2), max(2, int(w / scale_px) + 2)
+    small = rng.standard_normal((sh, sw)).astype(np.float32)
+    return cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC)
+
+
+@functools.lru_cache(maxsize=8)
+def _background(width: int, height: int, seed: int, color: bool) -> np.ndarray:
+    """Static car-interior albedo (H, W, C) float32 in [0, 1], C = 3 (BGR) or 1.
+
+    Seen from a camera behind the driver looking forward: windscreen with a soft outside scene,
+    A-pillars, roof liner, rear-view mirror, dashboard, instrument hood, centre screen and a
+    steering-wheel rim; all soft-edged and low-contrast so nothing looks like a tag.
+    """
+    rng = np.random.default_rng(seed + 7919)
+    w, h = width, height
+    s = w / 960.0  # drawing scale relative to 540p
+    yy = np.linspace(0.0, 1.0, h, dtype=np.float32)[:, None]
+    xx = np.linspace(0.0, 1.0, w, dtype=np.float32)[None, :]
+    horizon = 0.42 + 0.05 * rng.uniform(-1, 1)
+    dash = 0.6 + 0.05 * rng.uniform(-1, 1)
+    # Windscreen: bright sky gradient, darker landscape band below the horizon.
+    img = np.empty((h, w), np.float32)
+    sky = 0.78 - 0.18 * yy / horizon + 0.04 * np.sin(6.0 * xx + rng.uniform(0, 6))
+    land = 0.45 - 0.1 * (yy - horizon) + 0.05 * _smooth_noise(rng, h, w, 60 * s)
+    img[:] = np.where(yy < horizon, sky, land)
+    for _ in range(6):  # soft blobs: trees, buildings, clouds
+        cx, cy = rng.uniform(0.1, 0.9) * w, (horizon + rng.uniform(-0.12, 0.02)) * h
+        ax, ay = rng.uniform(30, 120) * s, rng.uniform(15, 50) * s
+        blob = np.zeros((h, w), np.float32)
+        cv2.ellipse(blob, (int(cx), int(cy)), (int(ax), int(ay)), 0.0, 0, 360, 1.0, -1)
+        img += rng.uniform(-0.15, 0.1) * cv2.GaussianBlur(blob, (0, 0), 12 * s)
+    # Roof liner on top, dashboard below.
+    roof = 0.08 + 0.03 * rng.uniform(-1, 1)
+    img = np.where(yy < roof, 0.55 + 0.05 * (yy / roof), img)
+    dash_tone = 0.2 + 0.04 * rng.uniform(-1, 1) - 0.08 * (yy - dash)
+    img = np.where(yy > dash, dash_tone, img).astype(np.float32)
+    # A-pillars: dark quads along both sides.
+    for side in (0, 1):
+        x_top, x_bot = (0.1, 0.02) if side == 0 else (0.9, 0.98)
+        poly = np.array(
+            [[x_top * w, 0], [x_bot * w, dash * h], [(0 if side == 0 else 1) * w, dash * h],
+             [(0 if side == 0 else 1) * w, 0]], np.int32)
+        cv2.fillConvexPoly(img, poly, 0.16 + 0.03 * rng.uniform(-1, 1))
+    # Rear-view mirror, instrument hood, centre screen, steering-wheel rim.
+    cv2.rectangle(img, (int(0.55 * w), int(0.1 * h)), (int(0.7 * w), int(0.17 * h)), 0.22, -1)
+    cv2.line(img, (int(0.62 * w), int(roof * h)), (int(0.62 * w), int(0.1 * h)), 0.2, max(1, int(4 * s)))
+    cv2.ellipse(img, (int(0.3 * w), int((dash + 0.02) * h)), (int(0.14 * w), int(0.06 * h)),
+                0.0, 180, 360, 0.1, -1)
+    cv2.rectangle(img, (int(0.52 * w), int((dash + 0.06) * h)), (int(0.64 * w), int((dash + 0.2) * h)),
+                  0.1, -1)
+    cv2.ellipse(img, (int(0.3 * w), int(1.02 * h)), (int(0.17 * w), int(0.2 * h)), 0.0, 180, 360,
+                0.08, max(2, int(22 * s)))
+    img += 0.025 * _smooth_noise(rng, h, w, 6 * s) + 0.02 * _smooth_noise(rng, h, w, 40 * s)
+    img = cv2.GaussianBlur(img, (0, 0), 1.6 * s)
+    img = np.clip(img, 0.02, 1.0)
+    if color:
+        tint_top = np.array([1.08, 1.0, 0.92], np.float32)  # bluish sky
+        tint_low = np.array([0.9, 0.97, 1.06], np.float32)  # warm interior
+        mix = (yy > horizon).astype(np.float32)[..., None]
+        out = img[..., None] * (tint_top * (1 - mix) + tint_low * mix)
+    else:
+        out = img[..., None]
+    out = np.ascontiguousarray(np.clip(out, 0.0, 1.0), dtype=np.float32)
+    out.setflags(write=False)
+    return out
+
+
+@functools.lru_cache(maxsize=16)
+def _hair_waves(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """Random wave vectors and phases for the hair texture (attached to the head)."""
+    rng = np.random.default_rng(seed + 104729)
+    k = rng.normal(0.0, 1.0, (6, 3))
+    k *= rng.uniform(8.0, 40.0, (6, 1)) / np.linalg.norm(k, axis=1, keepdims=True)
+    return k, rng.uniform(0.0, 2 * math.pi, 6)
+
+
+# ------------------------------------------------------------------------------------------------
+# Distortion maps
+# ------------------------------------------------------------------------------------------------
+@functools.lru_cache(maxsize=4)
+def _distortion_maps(
+    width: int, height: int, k_bytes: bytes, d_bytes: bytes, model: str
+) -> tuple[np.ndarray, np.ndarray, tuple[int, int, int, int]]:
+    """(map_x, map_y) float32: ideal-pinhole pixel seen by every distorted pixel, and the canvas
+    (offset_x, offset_y, canvas_w, canvas_h) the ideal image must cover."""
+    k = np.frombuffer(k_bytes, np.float64).reshape(3, 3)
+    d = np.frombuffer(d_bytes, np.float64)
+    cam = CameraModel(width, height, k, d, model)
+    u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    ideal = cam.undistort_px(np.stack([u.ravel(), v.ravel()], axis=1))
+    ideal = np.where(np.isfinite(ideal), ideal, -1e6)
+    # Never let a runaway (fisheye edge) blow up the canvas: at most 3x the image each way.
+    lo = np.maximum(np.floor(ideal.min(axis=0)) - 2, [-width, -height])
+    hi = np.minimum(np.ceil(ideal.max(axis=0)) + 3, [2 * width, 2 * height])
+    ox, oy = int(max(0, -lo[0])), int(max(0, -lo[1]))
+    cw, ch = int(max(width, hi[0]) + ox), int(max(height, hi[1]) + oy)
+    map_x = (ideal[:, 0] + ox).reshape(height, width).astype(np.float32)
+    map_y = (ideal[:, 1] + oy).reshape(height, width).astype(np.float32)
+    return map_x, map_y, (ox, oy, cw, ch)
+
+
+# ------------------------------------------------------------------------------------------------
+# Rendering
+# ------------------------------------------------------------------------------------------------
+def _homography(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
+    """Exact 3x3 homography from 4 point pairs (float64 DLT; getPerspectiveTransform is float32)."""
+    a = np.zeros((8, 8))
+    b = np.zeros(8)
+    for i, ((x, y), (u, v)) in enumerate(zip(src, dst)):
+        a[2 * i] = [x, y, 1, 0, 0, 0, -u * x, -u * y]
+        a[2 * i + 1] = [0, 0, 0, x, y, 1, -v * x, -v * y]
+        b[2 * i], b[2 * i + 1] = u, v
+    h = np.linalg.solve(a, b)
+    return np.append(h, 1.0).reshape(3, 3)
+
+
+def _irradiance(light: _Light, normals_cam: np.ndarray) -> np.ndarray:
+    l_vec = np.asarray(light.toward_light_cam, np.float64)
+    l_vec = l_vec / np.linalg.norm(l_vec)
+    return light.ambient + light.diffuse * np.clip(normals_cam @ l_vec, 0.0, None)
+
+
+@dataclass(frozen=True)
+class _HeadMaps:
+    """Head coverage and depth over its bounding box (x0, y0) .. (x1, y1) of the image."""
+
+    box: tuple[int, int, int, int]
+    alpha: np.ndarray  # (h, w) float32 coverage in [0, 1]
+    depth_m: np.ndarray  # (h, w) float32 depth of the near surface, inf where no head
+
+    def crop(self, x0: int, y0: int, x1: int, y1: int) -> tuple[np.ndarray, np.ndarray]:
+        """(alpha, depth) over an image ROI (zeros / inf outside the head box)."""
+        alpha = np.zeros((y1 - y0, x1 - x0), np.float32)
+        depth = np.full((y1 - y0, x1 - x0), np.inf, np.float32)
+        hx0, hy0, hx1, hy1 = self.box
+        ix0, iy0, ix1, iy1 = max(x0, hx0), max(y0, hy0), min(x1, hx1), min(y1, hy1)
+        if ix1 > ix0 and iy1 > iy0:
+            alpha[iy0 - y0:iy1 - y0, ix0 - x0:ix1 - x0] = self.alpha[iy0 - hy0:iy1 - hy0, ix0 - hx0:ix1 - hx0]
+            depth[iy0 - y0:iy1 - y0, ix0 - x0:ix1 - x0] = self.depth_m[iy0 - hy0:iy1 - hy0, ix0 - hx0:ix1 - hx0]
+        return alpha, depth
+
+
+def _render_head(
+    img: np.ndarray, k: np.ndarray, T_cam_cap: Transform, cfg: RenderConfig, light: _Light,
+    hair_tint: np.ndarray, centre_m: tuple[float, float, float] | None = None,
+    semi_axes_m: tuple[float, float, float] | None = None, albedo: float = _HAIR_ALBEDO,
+) -> _HeadMaps | None:
+    """Draw the head ellipsoid into ``img`` in place; return its coverage and depth maps.
+
+    The silhouette distance, depth and shading are smooth, so they are computed on a half-resolution
+    grid and upsampled; the anti-aliased edge comes from the upsampled signed distance (px) to the
+    silhouette conic.
+    """
+    h_img, w_img = img.shape[:2]
+    axes = np.asarray(semi_axes_m or cfg.head_semi_axes_m, np.float64)
+    centre_cam = T_cam_cap.apply(np.asarray(centre_m or cfg.head_centre_m, np.float64))
+    r = T_cam_cap.rotation.as_matrix()
+    g = np.linspace(0.0, math.pi, 13)
+    th, ph = np.meshgrid(g, np.linspace(0.0, 2 * math.pi, 25))
+    sphere = np.stack([np.sin(th) * np.cos(ph), np.sin(th) * np.sin(ph), np.cos(th)], -1).reshape(-1, 3)
+    pts = centre_cam + (sphere * axes) @ r.T
+    if np.any(pts[:, 2] < _NEAR_M):
+        x0, y0, x1, y1 = 0, 0, w_img, h_img
+    else:
+        # Surface samples miss the silhouette by under a few px at these sizes: 6 px margin.
+        uv = (pts / pts[:, 2:3]) @ k.T
+        x0 = int(max(0, math.floor(uv[:, 0].min()) - 6))
+        y0 = int(max(0, math.floor(uv[:, 1].min()) - 6))
+        x1 = int(min(w_img, math.ceil(uv[:, 0].max()) + 7))
+        y1 = int(min(h_img, math.ceil(uv[:, 1].max()) + 7))
+    if x1 - x0 < 2 or y1 - y0 < 2:
+        return None
+    w, h = x1 - x0, y1 - y0
+    wh, hh = (w + 1) // 2, (h + 1) // 2
+    # Half-res pixel j covers full-res pixels 2j, 2j + 1 of the box: centre at x0 + 2j + 0.5.
+    u = (x0 + 0.5 + 2.0 * np.arange(wh, dtype=np.float32))[None, :]
+    v = (y0 + 0.5 + 2.0 * np.arange(hh, dtype=np.float32))[:, None]
+    # Ray t * K^-1 [u v 1] (t = depth); in unit-sphere coordinates: o + t * M [u v 1].
+    m = np.diag(1.0 / axes) @ r.T @ np.linalg.inv(k)
+    o = np.diag(1.0 / axes) @ r.T @ (-centre_cam)
+    cc = float(o @ o - 1.0)
+    mf = [[float(m[i, j]) for j in range(3)] for i in range(3)]
+    of = [float(x) for x in o]
+    d = [mf[i][0] * u + mf[i][1] * v + mf[i][2] for i in range(3)]
+    a = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+    b = of[0] * d[0] + of[1] * d[1] + of[2] * d[2]
+    disc = b * b - cc * a
+    # Signed distance (px, positive inside) to the silhouette conic disc = 0: disc / |grad disc|.
+    db_du, db_dv = float(o @ m[:, 0]), float(o @ m[:, 1])
+    da_du = 2.0 * (mf[0][0] * d[0] + mf[1][0] * d[1] + mf[2][0] * d[2])
+    da_dv = 2.0 * (mf[0][1] * d[0] + mf[1][1] * d[1] + mf[2][1] * d[2])
+    gu = (2.0 * db_du) * b - cc * da_du
+    gv = (2.0 * db_dv) * b - cc * da_dv
+    dist = disc / np.maximum(np.sqrt(gu * gu + gv * gv), np.float32(1e-12))
+    t = (-b - np.sqrt(np.maximum(disc, 0.0))) / a
+    # Shading: the ellipsoid normal is A^-1 x (x on the unit sphere), turned into the camera frame.
+    xs = [of[i] + t * d[i] for i in range(3)]
+    ne = [xs[i] * float(1.0 / axes[i]) for i in range(3)]
+    l_vec = np.asarray(light.toward_light_cam, np.float64)
+    l_vec = (r.T @ (l_vec / np.linalg.norm(l_vec)))  # light direction in the cap frame
+    dot = float(l_vec[0]) * ne[0] + float(l_vec[1]) * ne[1] + float(l_vec[2]) * ne[2]
+    lam = np.maximum(dot / (np.sqrt(ne[0] * ne[0] + ne[1] * ne[1] + ne[2] * ne[2]) + 1e-12), 0.0)
+    waves, phases = _hair_waves(cfg.background_seed)
+    tex = np.zeros_like(a)
+    for kv, ph_ in zip(waves, phases):
+        tex += np.sin(float(kv[0]) * xs[0] + float(kv[1]) * xs[1] + float(kv[2]) * xs[2] + float(ph_))
+    rad = (albedo * (1.0 + 0.1 * tex)) * (light.ambient + light.diffuse * lam) + light.floor
+    valid = (t > 0) & (b < 0)
+    dist = np.where(valid, dist, -10.0)
+    t = np.where(valid, t, 1e3)  # 1e3 m: "far", never in front of a face
+    fields = cv2.merge([dist.astype(np.float32), t.astype(np.float32), rad.astype(np.float32)])
+    # Upsample: half-res sample j sits at full-res coordinate 2j + 0.5, which is what resize's
+    # pixel-centre mapping with an exact factor 2 assumes.
+    full = cv2.resize(fields, (2 * wh, 2 * hh), interpolation=cv2.INTER_LINEAR)[:h, :w]
+    alpha = np.clip(full[..., 0] + 0.5, 0.0, 1.0)
+    depth = np.where(alpha > 0, full[..., 1], np.inf).astype(np.float32)
+    roi = img[y0:y1, x0:x1]
+    al = alpha[..., None]
+    roi *= 1.0 - al
+    roi += (al * full[..., 2:3]) * hair_tint
+    return _HeadMaps((x0, y0, x1, y1), alpha, depth)
+
+
+def _render_scene(
+    model: CapModel, k: np.ndarray, width: int, height: int, T_cam_cap: Transform,
+    cfg: RenderConfig, rng: np.random.Generator,
+) -> tuple[np.ndarray, dict[int, float], list[int]]:
+    """Float32 (H, W, C) radiance of the ideal pinhole (K, no distortion); visible fractions."""
+    light = _LIGHTS[cfg.lighting]
+    channels = 3 if cfg.color else 1
+    if cfg.background:
+        img = _background(width, height, cfg.background_seed, cfg.color) * np.float32(
+            255.0 * light.background_gain * 0.85
+        )
+    else:
+        img = np.full((height, width, channels), 60.0 * light.background_gain, np.float32)
+    img = np.ascontiguousarray(img, dtype=np.float32)
+    hair_tint = (np.array([0.75, 0.9, 1.15], np.float32) if cfg.color else np.ones(1, np.float32))
+
+    occluders: list[_HeadMaps] = []
+    if cfg.head:
+        # Neck first (the head is in front of it seen from behind), then the head.
+        neck = _render_head(img, k, T_cam_cap, cfg, light, hair_tint * 1.15, NECK_CENTRE_M,
+                            NECK_SEMI_AXES_M, albedo=0.2)
+        head = _render_head(img, k, T_cam_cap, cfg, light, hair_tint)
+        occluders = [o for o in (neck, head) if o is not None]
+
+    rot = T_cam_cap.rotation.as_matrix()
+    faces_cam = T_cam_cap.apply(model.face_corners_mm().reshape(-1, 3) / 1000.0).reshape(-1, 4, 3)
+    tags_cam = T_cam_cap.apply(model.corners_mm.reshape(-1, 3) / 1000.0).reshape(-1, 4, 3)
+    normals_cam = model.normals @ rot.T
+    centres_cam = tags_cam.mean(axis=1)
+    front = (np.einsum("ij,ij->i", normals_cam, centres_cam) < 0.0) & np.all(
+        faces_cam[:, :, 2] > _NEAR_M, axis=1
+    )
+    order = sorted(np.flatnonzero(front), key=lambda i: -np.linalg.norm(centres_cam[i]))
+    irr = _irradiance(light, normals_cam)
+    k_inv = np.linalg.inv(k)
+    s_max = int(cfg.supersample)
+    id_buf = np.full((height, width), -1, np.int16)
+    tag_cov: dict[int, tuple[tuple[int, int, int, int], np.ndarray]] = {}
+    tag_area: dict[int, float] = {}
+    for i in order:
+        tag_id = model.ids[i]
+        pf = faces_cam[i] / faces_cam[i][:, 2:3] @ k.T
+        pt = tags_cam[i] / tags_cam[i][:, 2:3] @ k.T
+        pf, pt = pf[:, :2], pt[:, :2]
+        x_, y_ = pt[:, 0], pt[:, 1]
+        tag_area[tag_id] = 0.5 * abs(
+            float(np.dot(x_, np.roll(y_, -1)) - np.dot(y_, np.roll(x_, -1)))
+        )
+        x0 = int(max(0, math.floor(pf[:, 0].min()) - 1))
+        y0 = int(max(0, math.floor(pf[:, 1].min()) - 1))
+        x1 = int(min(width, math.ceil(pf[:, 0].max()) + 2))
+        y1 = int(min(height, math.ceil(pf[:, 1].max()) + 2))
+        if x1 <= x0 or y1 <= y0:
+            continue
+        w, h = x1 - x0, y1 - y0
+        edge_px = max(np.linalg.norm(pt - np.roll(pt, -1, axis=0), axis=1).max(), 1.0)
+        # Big faces have long edges whose box-filtered samples average out, and their cost grows
+        # with area: cap the supersampled edge near 320 px (never below 2x).
+        s = int(min(s_max, max(2, round(320.0 / edge_px))))
+        # Texture resolution: about one texel per supersample, so bilinear texture lookup adds
+        # under one supersample of blur (symmetric, hence unbiased) and never aliases the cells.
+        cell = int(min(64, max(2, 2 ** math.ceil(math.log2(edge_px * s / _CELLS_TAG)))))
+        tex = _face_texture(tag_id, cell)
+        c = float(cell)
+        src = np.array([[c - 0.5, c - 0.5], [9 * c - 0.5, c - 0.5], [9 * c - 0.5, 9 * c - 0.5],
+                        [c - 0.5, 9 * c - 0.5]])
+        # Image pixel x (centre convention) is supersampled pixel (x - x0 + 0.5) * s - 0.5.
+        dst = (pt - [x0, y0] + 0.5) * s - 0.5
+        hom = _homography(src, dst)
+        big = cv2.warpPerspective(tex, hom, (w * s, h * s), flags=cv2.INTER_LINEAR,
+                                  borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        small = cv2.resize(big, (w, h), interpolation=cv2.INTER_AREA).astype(np.float32) * (1 / 255)
+        cov, tsq, blk = small[..., 0], small[..., 1], small[..., 2]
+        occl = np.zeros_like(cov)
+        if occluders:
+            # Depth of the face plane along each pixel's ray (t with K^-1 [u v 1], z = 1).
+            n = normals_cam[i]
+            d0 = float(n @ faces_cam[i][0])
+            coef = n @ k_inv
+            uu = np.arange(x0, x1, dtype=np.float32)[None, :]
+            vv = np.arange(y0, y1, dtype=np.float32)[:, None]
+            denom = coef[0] * uu + coef[1] * vv + coef[2]
+            with np.errstate(divide="ignore", invalid="ignore"):
+                z_face = d0 / denom
+            z_face = np.where(z_face > 0, z_face, np.inf)
+            for occluder in occluders:
+                h_alpha, h_depth = occluder.crop(x0, y0, x1, y1)
+                occl = np.maximum(occl, h_alpha * (h_depth < z_face))
+        keep = 1.0 - occl
+        eff = cov * keep
+        premult = (irr[i] * (_WHITE_ALBEDO * cov - (_WHITE_ALBEDO - _BLACK_ALBEDO) * blk)
+                   + light.floor * cov) * keep
+        roi = img[y0:y1, x0:x1]
+        roi *= (1.0 - eff)[..., None]
+        roi += premult[..., None]
+        id_buf[y0:y1, x0:x1][eff > 0.5] = i
+        tag_cov[tag_id] = ((x0, y0, x1, y1), tsq)
+
+    visible: dict[int, float] = {}
+    front_ids = [model.ids[i] for i in order]
+    for i in order:
+        tag_id = model.ids[i]
+        if tag_id not in tag_cov or tag_area[tag_id] <= 0:
+            visible[tag_id] = 0.0
+            continue
+        (x0, y0, x1, y1), tsq = tag_cov[tag_id]
+        seen = float(tsq[id_buf[y0:y1, x0:x1] == i].sum())
+        visible[tag_id] = float(min(1.0, seen / tag_area[tag_id]))
+
+    if cfg.lighting == "high":
+        _spotlights(img, faces_cam[front], k, rng)
+    return img, visible, front_ids
+
+
+def _spotlights(img: np.ndarray, faces_cam: np.ndarray, k: np.ndarray, rng: np.random.Generator) -> None:
+    """Add 1-3 hot spots centred on parts of the cap: gain (clips whites) plus veiling glare
+    (lifts blacks), computed at low resolution and upsampled."""
+    h, w = img.shape[:2]
+    if len(faces_cam):
+        pts = faces_cam.reshape(-1, 3)
+        uv = (pts / pts[:, 2:3]) @ k.T
+        lo, hi = uv[:, :2].min(axis=0), uv[:, :2].max(axis=0)
+    else:
+        lo, hi = np.array([0.3 * w, 0.3 * h]), np.array([0.7 * w, 0.7 * h])
+    size = max(float(np.max(hi - lo)), 0.1 * w)
+    scale = 8
+    hs, ws = max(2, h // scale), max(2, w // scale)
+    yy = (np.arange(hs, dtype=np.float32)[:, None] + 0.5) * (h / hs)
+    xx = (np.arange(ws, dtype=np.float32)[None, :] + 0.5) * (w / ws)
+    gain = np.ones((hs, ws), np.float32)
+    glare = np.zeros((hs, ws), np.float32)
+    for _ in range(int(rng.integers(1, 4))):
+        cx, cy = rng.uniform(lo[0], hi[0]), rng.uniform(lo[1], hi[1])
+        sigma = rng.uniform(0.12, 0.3) * size
+        blob = np.exp(-((xx - cx) ** 2 + (yy - cy) ** 2) / (2 * sigma * sigma))
+        gain += rng.uniform(0.6, 1.3) * blob
+        glare += rng.uniform(40.0, 90.0) * blob
+    gain = cv2.resize(gain, (w, h), interpolation=cv2.INTER_LINEAR)
+    glare = cv2.resize(glare, (w, h), interpolation=cv2.INTER_LINEAR)
+    img *= gain[..., None]
+    img += glare[..., None]
+
+
+def render(
+    model: CapModel, camera: CameraModel, T_cam_cap: Transform,
+    config: RenderConfig | None = None, seed: int = 0,
+) -> RenderedFrame:
+    """Render ``model`` at pose ``T_cam_cap`` as seen by ``camera``.
+
+    Args:
+        model: cap model (cap frame C, mm).
+        camera: intrinsics and lens model; the image has its size.
+        T_cam_cap: cap pose in the camera optical frame (metres).
+        config: rendering options (default ``RenderConfig()``).
+        seed: seeds noise and spotlights (the background uses ``config.background_seed``).
+
+    Returns:
+        The frame with its exact ground truth (``RenderedFrame``).
+    """
+    cfg = config or RenderConfig()
+    rng = np.random.default_rng(seed)
+    width, height = camera.width_px, camera.height_px
+    if camera.is_distorted:
+        map_x, map_y, (ox, oy, cw, ch) = _distortion_maps(
+            width, height, camera.K.tobytes(), camera.D.tobytes(), camera.distortion_model
+        )
+        k_ideal = camera.K.copy()
+        k_ideal[0, 2] += ox
+        k_ideal[1, 2] += oy
+        scene, visible, front_ids = _render_scene(model, k_ideal, cw, ch, T_cam_cap, cfg, rng)
+        scene = cv2.remap(scene, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        if scene.ndim == 2:
+            scene = scene[..., None]
+    else:
+        scene, visible, front_ids = _render_scene(model, camera.K, width, height, T_cam_cap, cfg, rng)
+    if cfg.blur_sigma_px > 0:
+        scene = cv2.GaussianBlur(scene, (0, 0), cfg.blur_sigma_px)
+        if scene.ndim == 2:
+            scene = scene[..., None]
+    if cfg.noise_sigma > 0:
+        # OpenCV's SIMD Gaussian generator (5-10x numpy's), seeded from ``seed`` via ``rng``.
+        noise = np.empty(scene.shape, np.float32)
+        cv2.setRNGSeed(int(rng.integers(0, 2**31 - 1)))
+        cv2.randn(noise, 0.0, float(cfg.noise_sigma))
+        scene += noise
+    scene = scene[..., 0] if scene.shape[2] == 1 else scene
+    # Zero the negatives, then convertScaleAbs rounds and saturates at 255 (fast SIMD path).
+    image = cv2.convertScaleAbs(cv2.max(scene, 0.0))
+    if cfg.jpeg_quality is not None:
+        ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(cfg.jpeg_quality)])
+        image = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
+    corners_px: dict[int, np.ndarray] = {}
+    if front_ids:
+        idx = [model.index_of(t) for t in front_ids]
+        pts = T_cam_cap.apply(model.corners_mm[idx].reshape(-1, 3) / 1000.0)
+        px = camera.project(pts).reshape(-1, 4, 2)
+        for n, tag_id in enumerate(front_ids):
+            corners_px[tag_id] = px[n]
+    image.setflags(write=False)
+    return RenderedFrame(image=image, T_cam_cap=T_cam_cap, corners_px=corners_px,
+                         visible_fraction=visible, camera=camera)
+
+
+# ------------------------------------------------------------------------------------------------
+# Naturalistic driving head motion
+# ------------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class DriveScene:
+    """Fixed geometry of a driving recording.
+
+    Attributes:
+        camera: the rear camera.
+        R_cam_frontal: orientation of the frontal frame F (head zero pose: x forward, y left, z up)
+            in the camera optical frame.
+        p_cam_neck_m: neck pivot (the head turns about it) in the camera optical frame, m.
+        neck_to_cap_m: vector from the neck pivot to the cap origin in the head frame H, m.
+        R_cap_head: true orientation of the head frame H in the cap frame C (how the cap sits on
+            the head; what the pipeline's calibration must recover).
+    """
+
+    camera: CameraModel
+    R_cam_frontal: Rotation = field(default_factory=lambda: CAM_FROM_FORWARD)
+    p_cam_neck_m: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.15, 0.43]))
+    neck_to_cap_m: np.ndarray = field(default_factory=lambda: np.array([-0.04, 0.0, 0.13]))
+    R_cap_head: Rotation = field(
+        default_factory=lambda: Rotation.from_rotvec(np.radians([2.0, -9.0, 3.0]))
+    )
+
+    def __post_init__(self) -> None:
+        for name in ("p_cam_neck_m", "neck_to_cap_m"):
+            v = np.asarray(getattr(self, name), dtype=np.float64).reshape(-1).copy()
+            if v.size != 3 or not np.all(np.isfinite(v)):
+                raise ConfigError(f"DriveScene.{name} must be 3 finite numbers")
+            v.setflags(write=False)
+            object.__setattr__(self, name, v)
+
+    def cap_pose(self, R_frontal_head: Rotation, t_frontal_head_m: np.ndarray | None = None) -> Transform:
+        """T_cam_cap for a head orientation in F and a head translation in F (m, default none).
+
+        R_cam_cap = R_cam_frontal R_frontal_head R_cap_head^-1; the cap origin is the neck pivot
+        plus ``neck_to_cap_m`` turned with the head, plus the translation.
+        """
+        shift = np.zeros(3) if t_frontal_head_m is None else np.asarray(t_frontal_head_m, np.float64)
+        rotation = self.R_cam_frontal * R_frontal_head * self.R_cap_head.inv()
+        p_frontal = shift + R_frontal_head.apply(np.array(self.neck_to_cap_m))
+        return Transform(rotation, self.p_cam_neck_m + self.R_cam_frontal.apply(p_frontal))
+
+
+@dataclass(frozen=True)
+class DriveFrame:
+    """One frame of a drive with its exact ground truth.
+
+    Attributes:
+        index: frame number from 0.
+        stamp_ns: ``round(index * 1e9 / fps)``.
+        R_frontal_head: true head orientation in the frontal frame F.
+        ypr_deg: (yaw, pitch, roll) of ``R_frontal_head``, deg (ficap_ros.metrics convention).
+        t_frontal_head_m: head translation (lean) in F, m.
+        T_cam_cap: true cap pose in the camera optical frame, m.
+        frontal: inside the initial looking-straight-ahead segment (for calibration).
+        target: what the head is looking at or moving to: ``frontal``, ``left_mirror``,
+            ``right_mirror``, ``rear_mirror`` or ``cluster``.
+    """
+
+    index: int
+    stamp_ns: int
+    R_frontal_head: Rotation
+    ypr_deg: np.ndarray
+    t_frontal_head_m: np.ndarray
+    T_cam_cap: Transform
+    frontal: bool
+    target: str
+
+
+def default_scene(resolution: str | tuple[int, int] = "540p") -> DriveScene:
+    """The default rear-camera scene.
+
+    A 60 deg hfov pinhole about 0.45 m behind the back of the cap (0.54 m behind the cap origin)
+    and 6 cm above it, looking straight forward; the 32 mm centre tag is about 59 px wide at 540p
+    when frontal.
+
+    Args:
+        resolution: ``'360p'``, ``'540p'``, ``'720p'``, ``'1080p'`` or (width, height).
+    """
+    if isinstance(resolution, str):
+        if resolution not in RESOLUTIONS:
+            raise ConfigError(f"unknown resolution {resolution!r}; use {', '.join(RESOLUTIONS)} or (W, H)")
+        width, height = RESOLUTIONS[resolution]
+    else:
+        width, height = (int(v) for v in resolution)
+    camera = CameraModel.pinhole(width, height, hfov_deg=60.0)
+    neck_to_cap = np.array([-0.04, 0.0, 0.13])
+    # Frontal cap origin in F relative to the camera: ahead by 0.45 m + sphere radius, 6 cm lower.
+    p_frontal_cap = np.array([0.542, 0.0, -0.06])
+    p_cam_neck = CAM_FROM_FORWARD.apply(p_frontal_cap - neck_to_cap)
+    return DriveScene(camera=camera, R_cam_frontal=CAM_FROM_FORWARD, p_cam_neck_m=p_cam_neck,
+                      neck_to_cap_m=neck_to_cap)
+
+
+def _min_jerk(s: np.ndarray) -> np.ndarray:
+    s = np.clip(s, 0.0, 1.0)
+    return s ** 3 * (10.0 - 15.0 * s + 6.0 * s * s)
+
+
+# Glance targets: (label, sampler of (yaw, pitch, roll deg, tx, ty, tz m)).
+def _glance_target(label: str, rng: np.random.Generator) -> np.ndarray:
+    u = rng.uniform
+    if label == "left_mirror":
+        return np.array([u(45, 60), u(-8, -2), u(-4, 0), u(0.0, 0.01), u(0.005, 0.02), 0.0])
+    if label == "right_mirror":
+        return np.array([u(-60, -45), u(-8, -2), u(0, 4), u(0.0, 0.01), u(-0.02, -0.005), 0.0])
+    if label == "rear_mirror":
+        return np.array([u(-28, -22), u(3, 7), u(-2, 2), u(0.0, 0.01), u(-0.01, 0.0), u(0.0, 0.01)])
+    if label == "cluster":
+        return np.array([u(-4, 4), u(-23, -17), u(-1.5, 1.5), u(0.005, 0.015), 0.0, u(-0.01, 0.0)])
+    raise ConfigError(f"unknown glance target {label!r}")
+
+
+def naturalistic_drive(
+    n_frames: int, fps: float = 30.0, seed: int = 0, scene: DriveScene | None = None,
+    frontal_s: float = 3.0,
+) -> list[DriveFrame]:
+    """Naturalistic driver head motion with exact cap poses.
+
+    The first ``frontal_s`` seconds look straight ahead (natural sway under 1 deg). Then frontal
+    driving (a few degrees of wander, 1.5-4 s dwells) alternates with glances in random order, each
+    block of four glances visiting the left mirror (yaw +45..+60), the right mirror (-45..-60), the
+    rear-view mirror (about -25 yaw, +5 pitch) and the instrument cluster (-20 pitch), with small
+    roll and 1-2 cm of lean. Transitions follow the minimum-jerk profile 10s^3 - 15s^4 + 6s^5 and
+    take 0.35 s + 6 ms per degree; the head turns about the neck pivot of ``scene``.
+
+    Args:
+        n_frames: number of frames.
+        fps: frame rate, Hz.
+        seed: random seed (the whole drive is a function of the arguments).
+        scene: geometry (default ``default_scene()``).
+        frontal_s: length of the initial frontal segment, s.
+
+    Returns:
+        ``n_frames`` ``DriveFrame`` s.
+    """
+    if n_frames < 0 or not fps > 0 or frontal_s < 0:
+        raise ConfigError("naturalistic_drive needs n_frames >= 0, fps > 0 and frontal_s >= 0")
+    scene = scene or default_scene()
+    rng = np.random.default_rng(seed)
+    duration = n_frames / fps
+    # Natural sway: two slow sinusoids per axis, under 0.3 deg and 2 mm each (drawn first, so a
+    # longer drive with the same seed starts with the same frames).
+    freqs = rng.uniform(0.08, 0.5, (6, 2))
+    phases = rng.uniform(0.0, 2 * math.pi, (6, 2))
+    amps = np.concatenate([rng.uniform(0.1, 0.3, (3, 2)), rng.uniform(0.0005, 0.002, (3, 2))])
+    # Keyframes: piecewise min-jerk between poses p = (yaw, pitch, roll, tx, ty, tz).
+    # Each segment: (t_start, t_end, pose_from, pose_to, label).
+    segments: list[tuple[float, float, np.ndarray, np.ndarray, str]] = []
+    pose = np.zeros(6)
+    t = frontal_s
+    segments.append((0.0, t, pose, pose, "frontal"))
+    labels = ["left_mirror", "right_mirror", "rear_mirror", "cluster"]
+    bag: list[str] = []
+    while t < duration:
+        # Frontal driving: drift to a slightly off-centre frontal pose, dwell.
+        wander = np.array([rng.normal(0, 2.0), rng.normal(0, 1.5), rng.normal(0, 1.0),
+                           rng.normal(0, 0.004), rng.normal(0, 0.004), rng.normal(0, 0.003)])
+        move = 0.35 + 0.006 * float(np.abs(wander[:3] - pose[:3]).max())
+        dwell = rng.uniform(1.5, 4.0)
+        segments.append((t, t + move, pose, wander, "frontal"))
+        segments.append((t + move, t + move + dwell, wander, wander, "frontal"))
+        pose, t = wander, t + move + dwell
+        if not bag:
+            bag = list(rng.permutation(labels))
+        label = bag.pop()
+        target = _glance_target(label, rng)
+        move = 0.35 + 0.006 * float(np.abs(target[:3] - pose[:3]).max())
+        dwell = rng.uniform(0.4, 1.2)
+        segments.append((t, t + move, pose, target, label))
+        segments.append((t + move, t + move + dwell, target, target, label))
+        pose, t = target, t + move + dwell
+    starts = np.array([s[0] for s in segments])
+    frames: list[DriveFrame] = []
+    for index in range(n_frames):
+        ts = index / fps
+        j = int(np.searchsorted(starts, ts, side="right") - 1)
+        t0, t1, p0, p1, label = segments[max(j, 0)]
+        s = _min_jerk(np.array((ts - t0) / (t1 - t0) if t1 > t0 else 1.0))
+        p = p0 + (p1 - p0) * float(s)
+        p = p + np.sum(amps * np.sin(2 * math.pi * freqs * ts + phases), axis=1)
+        ypr = p[:3].copy()
+        R_frontal_head = rotation_from_ypr_deg(*ypr)
+        frames.append(DriveFrame(
+            index=index,
+            stamp_ns=int(round(index * 1e9 / fps)),
+            R_frontal_head=R_frontal_head,
+            ypr_deg=ypr,
+            t_frontal_head_m=p[3:].copy(),
+            T_cam_cap=scene.cap_pose(R_frontal_head, p[3:]),
+            frontal=ts < frontal_s,
+            target=label,
+        ))
+    return frames
