@@ -69,6 +69,8 @@ class CalibrationResult:
         mode: ``frontal`` or ``reference``.
         R_cam_reference: orientation of the reference frame in the camera optical frame
             (reference mode only, else None).
+        uncertainty_deg: predicted 1-sigma error of ``R_cap_head`` about its worst axis, degrees
+            (frontal: spread / sqrt(frames); reference: Gauss-Newton covariance of the fit).
     """
 
     R_cap_head: Rotation
@@ -76,6 +78,7 @@ class CalibrationResult:
     spread_deg: float
     mode: str
     R_cam_reference: Rotation | None = None
+    uncertainty_deg: float = float("nan")
 
 
 def frontal_frame_rotation(
@@ -140,7 +143,7 @@ def calibrate_frontal(
             f"frontal calibration spread {spread:.2f} deg exceeds {max_spread_deg:.2f} deg "
             "(the head moved or was not frontal)"
         )
-    return CalibrationResult(mean, used, spread, "frontal", None)
+    return CalibrationResult(mean, used, spread, "frontal", None, spread / math.sqrt(used))
 
 
 def _hand_eye_initial(A: Rotation, B: Rotation) -> tuple[Rotation, Rotation]:
@@ -168,14 +171,17 @@ def calibrate_reference(
 
     Solves ``R_cam_reference R_ref_head_i = R_cam_cap_i R_cap_head`` for pairs matched by stamp:
     OpenCV's ``calibrateRobotWorldHandEye`` (Shah) as the start, then ``least_squares`` over both
-    rotation vectors with a soft-L1 loss (scale ``loss_scale_deg``) so gross reference failures do
-    not pull the answer.
+    rotation vectors with a soft-L1 loss so gross reference failures do not pull the answer.
+    Accuracy is limited by the head motion: rotation of Y about an axis the head barely turned
+    about is only seen through the other axes, so the calibration session should look around in
+    yaw *and* pitch (``uncertainty_deg`` of the result says how well it worked).
 
     Args:
         R_cam_cap: stacked cap orientations in the camera optical frame.
         R_ref_head: stacked reference head orientations, paired element-wise with ``R_cam_cap``.
         min_pairs: least number of pairs.
-        loss_scale_deg: residual size beyond which the loss grows linearly, degrees.
+        loss_scale_deg: least residual size beyond which the loss grows linearly, degrees (the
+            scale used is the larger of this and 3x the robust residual sigma at the start).
     Returns:
         The calibration; ``frames_used`` = pairs whose residual is within 3x the RMS of the median,
         ``spread_deg`` = RMS residual over those pairs.
@@ -214,17 +220,34 @@ def calibrate_reference(
         X = Rotation.from_rotvec(params[3:])
         return np.degrees(((X * B).inv() * (A * Y)).as_rotvec()).reshape(-1)
 
-    sol = least_squares(
-        residuals, np.concatenate([Y0.as_rotvec(), X0.as_rotvec()]),
-        loss="soft_l1", f_scale=loss_scale_deg, x_scale=1.0,
-    )
+    x0 = np.concatenate([Y0.as_rotvec(), X0.as_rotvec()])
+    # Soft-L1 beyond 3 sigma of the start's residuals (robust MAD estimate): about as efficient as
+    # least squares for Gaussian reference noise, while gross reference failures stay bounded.
+    sigma0 = float(np.median(np.abs(residuals(x0)))) / 0.6745
+    f_scale = max(loss_scale_deg, 3.0 * sigma0) if np.isfinite(sigma0) else loss_scale_deg
+    sol = least_squares(residuals, x0, loss="soft_l1", f_scale=f_scale, x_scale=1.0)
     Y = Rotation.from_rotvec(sol.x[:3])
     X = Rotation.from_rotvec(sol.x[3:])
     resid = np.linalg.norm(residuals(sol.x).reshape(-1, 3), axis=1)
     rms_med = max(float(np.median(resid)), 1e-9)
     keep = resid <= 3.0 * rms_med + 1e-9
     spread = float(np.sqrt(np.mean(resid[keep] ** 2)))
-    return CalibrationResult(Y, int(np.count_nonzero(keep)), spread, "reference", X)
+    # Covariance of the parameters from the plain (unweighted) Jacobian of the kept pairs.
+    rows = np.repeat(keep, 3)
+    step = 1e-6
+    jac = np.empty((int(rows.sum()), 6))
+    for j in range(6):
+        dx = np.zeros(6)
+        dx[j] = step
+        jac[:, j] = (residuals(sol.x + dx)[rows] - residuals(sol.x - dx)[rows]) / (2 * step)
+    dof = max(int(rows.sum()) - 6, 1)
+    s2 = float(np.sum(residuals(sol.x)[rows] ** 2)) / dof
+    try:
+        cov = s2 * np.linalg.inv(jac.T @ jac)
+        uncertainty = float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0))))
+    except np.linalg.LinAlgError:
+        uncertainty = float("inf")
+    return CalibrationResult(Y, int(np.count_nonzero(keep)), spread, "reference", X, uncertainty)
 
 
 # -- files ---------------------------------------------------------------------------------------

@@ -444,7 +444,8 @@ class FicapNode(Node):
         self._last_calibration = result
         response.success = True
         response.message = (f"calibrated ({result.mode}) from {result.frames_used} frames, "
-                            f"spread {result.spread_deg:.2f} deg")
+                            f"spread {result.spread_deg:.2f} deg, uncertainty "
+                            f"{result.uncertainty_deg:.2f} deg")
         path = self._config["calibration.file"]
         if path:
             try:

@@ -76,6 +76,8 @@ def test_reference_recovers_both_rotations(seed: int) -> None:
     assert angle_deg(res.R_cam_reference, R_cam_ref) < 1.0
     # 2 deg per axis gives a ~3.5 deg RMS geodesic residual.
     assert 2.0 < res.spread_deg < 5.0
+    # The predicted 1-sigma error is of the size of the actual error (not 10x off either way).
+    assert 0.05 < res.uncertainty_deg < 1.0
 
 
 def test_reference_refuses_too_few_pairs_and_no_motion() -> None:
