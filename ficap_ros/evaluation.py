@@ -183,7 +183,7 @@ def _orientation(msg: Any) -> Any:
 
 def load_series(spec: str) -> PoseSeries:
     """``BAG:TOPIC`` (rosbag2 folder or .mcap/.db3 file and a topic), or a CSV / labels folder."""
-    path, sep, topic = spec.partition(":")
+    path, sep, topic = spec.rpartition(":")  # topics hold no ':', paths might
     if sep and topic.startswith("/") and Path(path).exists():
         return read_series_bag(path, topic)
     if not Path(spec).exists():

@@ -94,7 +94,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         from ficap_ros.evaluation import load_series, pair_by_stamp
 
-        path, sep, topic = args.reference.partition(":")
+        path, sep, topic = args.reference.rpartition(":")
         if not sep or not topic.startswith("/"):
             raise BagError(f"--reference expects BAG:TOPIC, got {args.reference!r}")
         ref = load_series(args.reference)
