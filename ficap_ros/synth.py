@@ -118,7 +118,7 @@ class RenderConfig:
         jpeg_quality: JPEG round trip at this quality (1..100), or None.
         color: BGR output (hair and interior tinted) instead of grey.
         supersample: supersampling factor per axis for faces (1..8); faces whose tag edge is
-            longer than 320/supersample px use less (at least 2), which keeps big faces cheap.
+            longer than 240/supersample px use less (at least 2), which keeps big faces cheap.
         head: draw the head occluder.
         background: draw the car interior (else a flat grey).
         background_seed: seed of the static background and hair texture (keep it fixed over a video).
@@ -480,8 +480,8 @@ def _render_scene(
         w, h = x1 - x0, y1 - y0
         edge_px = max(np.linalg.norm(pt - np.roll(pt, -1, axis=0), axis=1).max(), 1.0)
         # Big faces have long edges whose box-filtered samples average out, and their cost grows
-        # with area: cap the supersampled edge near 320 px (never below 2x).
-        s = int(min(s_max, max(2, round(320.0 / edge_px))))
+        # with area: cap the supersampled edge near 240 px (never below 2x).
+        s = int(min(s_max, max(2, round(240.0 / edge_px))))
         # Texture resolution: about one texel per supersample, so bilinear texture lookup adds
         # under one supersample of blur (symmetric, hence unbiased) and never aliases the cells.
         cell = int(min(64, max(2, 2 ** math.ceil(math.log2(edge_px * s / _CELLS_TAG)))))
@@ -610,7 +610,8 @@ def render(
         scene += noise
     scene = scene[..., 0] if scene.shape[2] == 1 else scene
     # Zero the negatives, then convertScaleAbs rounds and saturates at 255 (fast SIMD path).
-    image = cv2.convertScaleAbs(cv2.max(scene, 0.0))
+    np.maximum(scene, 0.0, out=scene)
+    image = cv2.convertScaleAbs(scene)
     if cfg.jpeg_quality is not None:
         ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(cfg.jpeg_quality)])
         image = cv2.imdecode(buf, cv2.IMREAD_UNCHANGED)
