@@ -300,7 +300,8 @@ class FicapNode(Node):
         self._pub_status = self.create_publisher(DiagnosticArray, "status", out_qos)
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", out_qos)
         self._pub_markers = self.create_publisher(MarkerArray, "markers", out_qos)
-        self._pub_debug = self.create_publisher(Image, "debug_image", qos_profile_sensor_data)
+        # Reliable publishers match both reliable and best-effort subscribers (rviz, rqt).
+        self._pub_debug = self.create_publisher(Image, "debug_image", 2)
 
         self._srv_calibrate = self.create_service(
             Trigger, "~/calibrate", self._on_calibrate, callback_group=self._service_group)

@@ -13,7 +13,9 @@ import numpy as np
 import pytest
 from geometry_msgs.msg import PoseStamped
 from scipy.spatial.transform import Rotation
+from sensor_msgs.msg import Image
 from std_srvs.srv import Trigger
+from visualization_msgs.msg import MarkerArray
 from test_node import Harness, _header, _info, _level, harness_factory  # noqa: F401
 
 from ficap_ros import ros_msgs
@@ -78,8 +80,19 @@ def _latencies(statuses) -> np.ndarray:
 def test_poses_come_back_with_stamps_and_accuracy(drive, harness_factory) -> None:
     scene, frames = drive
     h = harness_factory()
+    markers, debug = [], []
+    h.peer.create_subscription(MarkerArray, "markers", h._rec(markers), 10)
+    h.peer.create_subscription(Image, "debug_image", h._rec(debug), 10)
+    h.wait_for(lambda: h.node._pub_markers.get_subscription_count() > 0
+               and h.node._pub_debug.get_subscription_count() > 0, what="viz subscribers")
     statuses = _play(h, scene, frames)
     h.wait_for(lambda: len(h.cap) >= len(frames), timeout=5.0, what="all cap poses")
+    # Visualisation while subscribed: tag outlines + 3 head axes, and a colour debug image.
+    h.wait_for(lambda: bool(markers) and bool(debug), timeout=5.0, what="markers and debug image")
+    with h.lock:
+        assert len(markers[-1].markers) == 1 + 23 + 3
+        assert (debug[-1].encoding, debug[-1].width, debug[-1].height) == (
+            "bgr8", scene.camera.width_px, scene.camera.height_px)
     caps = _by_stamp(h.cap)
     heads = _by_stamp(h.head)
     rot_err, pos_err = [], []
