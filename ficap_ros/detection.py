@@ -87,6 +87,10 @@ class DetectorConfig:
         min_side_length_canonical_img: cv2.aruco.DetectorParameters of the same (camelCase)
             names, opencv backend only.
         quad_decimate: AprilTag's quad_decimate (apriltag backend only): 1 = full resolution.
+        search_decimate: search (ArUco or AprilTag) a box-averaged image this many times
+            smaller, then map the corners back and refine them on the full image (``edge``
+            refine needs the search corners within ``edge_max_shift_px``); 1 = no decimation.
+            Worth it only where tags are large (1080p with the default camera: 2).
         edge_search_px: half-length of the search along each side's normal (``edge`` refine);
             capped at 0.8 of a tag cell so the search stays on the black border and white margin.
         edge_samples_per_side: samples along each side (``edge`` refine).
@@ -117,6 +121,8 @@ class DetectorConfig:
     min_side_length_canonical_img: int = 32
     # AprilTag 3 (apriltag backend).
     quad_decimate: float = 1.0
+    # Both backends: search an image decimated by this factor (box average), refine at full size.
+    search_decimate: int = 1
     # Edge refinement.
     edge_search_px: float = 4.0
     edge_locator: str = "area"
@@ -135,6 +141,8 @@ class DetectorConfig:
             )
         if not self.quad_decimate >= 1.0:
             raise ConfigError(f"quad_decimate must be >= 1, got {self.quad_decimate}")
+        if self.search_decimate not in (1, 2, 3, 4):
+            raise ConfigError(f"search_decimate must be 1, 2, 3 or 4, got {self.search_decimate}")
         if not 3 <= self.adaptive_thresh_win_size_min <= self.adaptive_thresh_win_size_max:
             raise ConfigError("adaptive threshold window sizes must satisfy 3 <= min <= max")
         if self.adaptive_thresh_win_size_step < 1:
@@ -162,6 +170,7 @@ class TagDetector:
     def __init__(self, config: DetectorConfig | None = None) -> None:
         self.config = config or DetectorConfig()
         cfg = self.config
+        self._search_scale = 1.0
         if cfg.backend == "opencv":
             self._aruco = _make_aruco(cfg)
             self._apriltag = None
@@ -194,21 +203,47 @@ class TagDetector:
         Raises:
             ImageError: invalid image or ROI.
         """
-        gray = as_gray(image)
-        x0 = y0 = 0
-        if roi is not None:
-            x0, y0, x1, y1 = _clip_roi(roi, gray.shape)
-            gray = np.ascontiguousarray(gray[y0:y1, x0:x1])
+        full = as_gray(image)
+        dec = int(self.config.search_decimate)
+        x0, y0, x1, y1 = (0, 0, full.shape[1], full.shape[0]) if roi is None else _clip_roi(roi, full.shape)
+        if dec > 1:
+            # Decimation cells aligned with the full image's, so a ROI search sees the same pixels.
+            x0, y0 = x0 - x0 % dec, y0 - y0 % dec
+            x1, y1 = x0 + (x1 - x0) // dec * dec, y0 + (y1 - y0) // dec * dec
+        gray = full if (x0, y0, x1, y1) == (0, 0, full.shape[1], full.shape[0]) else np.ascontiguousarray(
+            full[y0:y1, x0:x1])
+        if dec > 1:
+            import cv2
+
+            # dec x dec box average: small pixel j covers full pixels dec*j .. dec*j + dec - 1.
+            gray = cv2.resize(gray, ((x1 - x0) // dec, (y1 - y0) // dec), interpolation=cv2.INTER_AREA)
+        # ArUco's perimeter limits are rates of the searched image's larger side: scale them so a
+        # ROI (or decimated) search keeps the full frame's limits in full-image pixels.
+        self._set_search_scale(max(full.shape) / (dec * max(gray.shape)))
         ids, corners, hamming, margin = self._search(gray)
+        # Corners in full-image coordinates, refined on the full image: a tag found in a ROI gets
+        # exactly the corners a full-frame search gives it (the refinement may look past the ROI).
+        if dec > 1:
+            corners = corners * dec + 0.5 * (dec - 1)
+        corners = corners + np.array([x0, y0], dtype=np.float64)
         if len(ids) and self.config.corner_refine == "edge":
-            corners = refine_corners_edge(gray, corners, self.config)
+            corners = refine_corners_edge(full, corners, self.config)
         elif len(ids) and self.config.corner_refine == "subpix" and self._apriltag is not None:
-            corners = _subpix(gray, corners)
-        offset = np.array([x0, y0], dtype=np.float64)
+            corners = _subpix(full, corners)
         return [
-            TagDetection(int(i), c + offset, int(h), float(m))
+            TagDetection(int(i), c, int(h), float(m))
             for i, c, h, m in zip(ids, corners, hamming, margin)
         ]
+
+    def _set_search_scale(self, scale: float) -> None:
+        """Perimeter-rate limits for a search image ``scale`` times smaller than the full frame."""
+        if self._aruco is None or scale == self._search_scale:
+            return
+        params = self._aruco.getDetectorParameters()
+        params.minMarkerPerimeterRate = float(self.config.min_marker_perimeter_rate) * scale
+        params.maxMarkerPerimeterRate = float(self.config.max_marker_perimeter_rate) * scale
+        self._aruco.setDetectorParameters(params)
+        self._search_scale = scale
 
     def _search(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """(ids (N,), corners (N,4,2) OpenCV order/convention, hamming (N,), margin (N,))."""

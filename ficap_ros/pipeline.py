@@ -78,8 +78,37 @@ class FrameResult:
         return self.pose.tags_used if self.pose is not None else 0
 
 
+#: Tracking: frames further apart than this are searched over the whole image.
+_TRACK_MAX_GAP_NS = 500_000_000
+#: Tracking margin around the predicted tags: this fraction of the region's size plus pixels.
+_TRACK_MARGIN_FRACTION = 0.25
+_TRACK_MARGIN_PX = 24
+#: Tracking: a predicted region larger than this share of the image is searched as a whole.
+_TRACK_MAX_AREA = 0.6
+
+
+@dataclass(frozen=True)
+class _TrackState:
+    T_cam_cap: Transform
+    stamp_ns: int
+    n_tags: int
+    camera_key: tuple
+
+
+def _camera_key(camera: CameraModel) -> tuple:
+    return (camera.width_px, camera.height_px, camera.K.tobytes(), camera.D.tobytes(),
+            camera.distortion_model)
+
+
 class FrameProcessor:
-    """Detect tags and estimate the cap and head pose of frames from one camera."""
+    """Detect tags and estimate the cap and head pose of frames from one camera.
+
+    Args:
+        model, detector, pose, calibration: cap model, detector, pose and head-calibration settings.
+        tracking: search the region predicted from the previous frame's pose first (see
+            ``process``); frames must then come from one camera in time order, which is how the
+            node and the bag tools feed it. ``False`` makes every frame independent.
+    """
 
     def __init__(
         self,
@@ -87,25 +116,101 @@ class FrameProcessor:
         detector: DetectorConfig | None = None,
         pose: PoseConfig | None = None,
         calibration: HeadCalibration | None = None,
+        tracking: bool = True,
     ) -> None:
         self.model = model or nominal_model()
         self.detector = TagDetector(detector)
         self.pose_config = pose or PoseConfig()
         self.calibration = calibration or HeadCalibration()
+        self.tracking = bool(tracking)
+        self._track: _TrackState | None = None
+        self.roi_searches = 0  # frames searched in the predicted region only
+        self.full_searches = 0  # frames searched over the whole image
 
     def detect(self, image: np.ndarray) -> tuple[TagDetection, ...]:
-        """Detections of the model's tags (validates the image; raises ``ImageError``)."""
+        """Detections of the model's tags in the whole image (stateless; raises ``ImageError``)."""
         gray = as_gray(image)
         return tuple(d for d in self.detector.detect(gray) if d.tag_id in self.model)
 
+    def reset_tracking(self) -> None:
+        """Forget the previous frame: the next frame is searched over the whole image."""
+        self._track = None
+
+    def _detect_tracked(self, gray: np.ndarray, camera: CameraModel, stamp_ns: int) -> tuple[TagDetection, ...]:
+        """Search the region predicted from the last pose; the whole image if that finds fewer tags."""
+        roi = self._predict_roi(camera, stamp_ns, gray.shape)
+        if roi is not None:
+            found = tuple(d for d in self.detector.detect(gray, roi=roi) if d.tag_id in self.model)
+            assert self._track is not None
+            # Fewer tags than last frame: search everything, unless the found tags all sit well
+            # inside the region (then the cap did not run out of it: the lost tag turned away or
+            # got too dark, and the whole image would give the same tags).
+            x, y, w, h = roi
+            inner = 0.5 * _TRACK_MARGIN_FRACTION * max(w, h) / (1 + 2 * _TRACK_MARGIN_FRACTION)
+            inside = bool(found) and all(
+                d.corners_px[:, 0].min() >= x + inner and d.corners_px[:, 0].max() <= x + w - inner
+                and d.corners_px[:, 1].min() >= y + inner and d.corners_px[:, 1].max() <= y + h - inner
+                for d in found)
+            if inside or len({d.tag_id for d in found}) >= self._track.n_tags:
+                self.roi_searches += 1
+                return found
+        self.full_searches += 1
+        return tuple(d for d in self.detector.detect(gray) if d.tag_id in self.model)
+
+    def _predict_roi(
+        self, camera: CameraModel, stamp_ns: int, shape: tuple[int, ...]
+    ) -> tuple[int, int, int, int] | None:
+        """(x, y, w, h) around every front-facing tag at the last pose, with a motion margin."""
+        tr = self._track
+        if tr is None or tr.camera_key != _camera_key(camera) or tr.n_tags == 0:
+            return None
+        if stamp_ns and tr.stamp_ns and not 0 <= stamp_ns - tr.stamp_ns <= _TRACK_MAX_GAP_NS:
+            return None
+        T = tr.T_cam_cap
+        normals_cam = T.rotation.apply(self.model.normals)
+        centres_cam = T.apply(self.model.centres_mm / 1000.0)
+        front = np.einsum("ij,ij->i", normals_cam, centres_cam) < 0.0
+        if not front.any():
+            return None
+        pts = T.apply(self.model.corners_mm[front].reshape(-1, 3) / 1000.0)
+        if np.any(pts[:, 2] <= 0.05):
+            return None
+        px = camera.project(pts)
+        if not np.all(np.isfinite(px)):
+            return None
+        lo, hi = px.min(axis=0), px.max(axis=0)
+        # Margin for the motion until the next frame (a fast 150 deg/s glance moves the cap by
+        # about a tenth of its size per 30 fps frame) plus the white quiet zone and ArUco's border.
+        margin = _TRACK_MARGIN_FRACTION * float(np.max(hi - lo)) + _TRACK_MARGIN_PX
+        x0, y0 = np.floor(lo - margin).astype(int)
+        x1, y1 = np.ceil(hi + margin).astype(int)
+        x0, y0 = max(int(x0), 0), max(int(y0), 0)
+        x1, y1 = min(int(x1), shape[1]), min(int(y1), shape[0])
+        if x1 - x0 < 16 or y1 - y0 < 16 or (x1 - x0) * (y1 - y0) > _TRACK_MAX_AREA * shape[0] * shape[1]:
+            return None  # off the image, or a region nearly as big as the frame
+        return x0, y0, x1 - x0, y1 - y0
+
     def process(self, image: np.ndarray, camera: CameraModel, stamp_ns: int = 0) -> FrameResult:
-        """Process one frame (raises ``ImageError`` for an invalid image)."""
+        """Process one frame (raises ``ImageError`` for an invalid image).
+
+        With ``tracking`` the tags are searched first in the region around the cap's last pose
+        (the whole image when there was none, when the frames are far apart in time, or when the
+        region gives fewer tags than the last frame had), with the whole image's search settings
+        and the refinement on the whole image, so a tag found there gets the same corners.
+        """
         t0 = time.perf_counter()
-        detections = self.detect(image)
+        if self.tracking:
+            gray = as_gray(image)
+            detections = self._detect_tracked(gray, camera, int(stamp_ns))
+        else:
+            detections = self.detect(image)
         t1 = time.perf_counter()
         result = estimate_cap_pose(detections, self.model, camera, self.pose_config)
         t2 = time.perf_counter()
         pose = result.pose
+        if self.tracking:
+            self._track = None if pose is None else _TrackState(
+                pose.T_cam_cap, int(stamp_ns), len({d.tag_id for d in detections}), _camera_key(camera))
         return FrameResult(
             stamp_ns=int(stamp_ns),
             detections=detections,

@@ -1,0 +1,85 @@
+"""Shared helpers of the benchmark scripts: machine line, timing, recording into docs/benchmarks.md."""
+
+from __future__ import annotations
+
+import datetime as dt
+import os
+import platform
+import re
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import cv2
+
+ROOT = Path(__file__).resolve().parents[1]
+DOC = ROOT / "docs" / "benchmarks.md"
+DOC_HEAD = (
+    "# Benchmarks\n\n"
+    "Every table below comes from a run of a script in `benchmarks/` (`make bench` runs them all with\n"
+    "modest sizes; each script takes `--frames` etc. for full-size runs). Each section says the machine,\n"
+    "date, commit and the load average while it ran: the benchmark machine has 2 cores shared with other\n"
+    "jobs, so timings are noisy; accuracy numbers are exact functions of the seeds.\n"
+)
+
+
+def load_avg() -> str:
+    try:
+        one, five, _ = os.getloadavg()
+        return f"load average {one:.1f} (1 min) / {five:.1f} (5 min) on {os.cpu_count()} cores"
+    except OSError:
+        return "load average unknown"
+
+
+def machine_line() -> str:
+    """Date, CPU, cores, Python, OpenCV, commit (with a ``+dirty`` mark)."""
+    cpu = platform.processor() or platform.machine()
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                cpu = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
+                            text=True).stdout.strip() or "unknown"
+    return (f"{dt.datetime.now().strftime('%Y-%m-%d %H:%M')}, {cpu}, {os.cpu_count()} cores, "
+            f"Python {platform.python_version()}, OpenCV {cv2.__version__}, commit {commit}")
+
+
+def record_section(name: str, body: str, path: Path = DOC) -> None:
+    """Write ``## name`` + body into docs/benchmarks.md, replacing a section of the same name."""
+    text = path.read_text() if path.exists() else DOC_HEAD
+    section = f"## {name}\n\n{body.rstrip()}\n\n"
+    pattern = re.compile(rf"^## {re.escape(name)}\n.*?(?=^## |\Z)", re.S | re.M)
+    if pattern.search(text):
+        text = pattern.sub(lambda _m: section, text, count=1)
+    else:
+        text = text.rstrip() + "\n\n" + section
+    tmp = path.with_suffix(".md.tmp")
+    tmp.write_text(text.rstrip() + "\n")
+    tmp.replace(path)
+
+
+def md_table(header: list[str], rows: list[list[object]]) -> str:
+    out = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    out += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+    return "\n".join(out)
+
+
+class Progress:
+    """One-line progress on stderr with rate and ETA."""
+
+    def __init__(self, total: int, label: str) -> None:
+        self.total, self.label, self.n, self.t0, self.last = total, label, 0, time.time(), 0.0
+
+    def update(self, n: int = 1) -> None:
+        self.n += n
+        now = time.time()
+        if now - self.last > 2.0 or self.n >= self.total:
+            self.last = now
+            rate = self.n / max(now - self.t0, 1e-9)
+            eta = (self.total - self.n) / max(rate, 1e-9)
+            print(f"\r  {self.label}: {self.n}/{self.total} ({rate:.1f}/s, ETA {eta:.0f} s)   ",
+                  end="" if self.n < self.total else "\n", file=sys.stderr, flush=True)
