@@ -634,33 +634,17 @@ def image_msg(stamp_ns: int, frame_id: str, image: np.ndarray, encoding: str) ->
 
 
 def write_file_atomic(path: str | Path, data: str | bytes) -> None:
-    """Write a file through a temporary sibling and a rename, with the usual umask permissions.
+    """``ficap_ros.cap_model.write_atomic`` (temp file, then rename) with a ``BagError`` on failure.
 
     Raises:
         BagError: the folder is not writable.
     """
-    import os
-    import tempfile
+    from ficap_ros.cap_model import write_atomic
 
-    path = Path(path)
-    payload = data.encode() if isinstance(data, str) else data
     try:
-        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+        write_atomic(Path(path), data)
     except OSError as err:
         raise BagError(f"cannot write {path}: {err.strerror or err}") from err
-    try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(payload)
-        umask = os.umask(0)
-        os.umask(umask)
-        os.chmod(tmp, 0o666 & ~umask)  # mkstemp makes 0600; outputs are ordinary files
-        os.replace(tmp, path)
-    except OSError as err:
-        _unlink(tmp)
-        raise BagError(f"cannot write {path}: {err.strerror or err}") from err
-    except BaseException:
-        _unlink(tmp)
-        raise
 
 
 def _unlink(path: str) -> None:

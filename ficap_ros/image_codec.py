@@ -74,6 +74,11 @@ def decode_image(
             f"image data holds {buf.size} bytes, {width}x{height} {encoding} with step {step} "
             f"needs {step * (height - 1) + row_bytes}"
         )
+    if buf.size > step * height:
+        raise ImageError(
+            f"image data holds {buf.size} bytes, more than {width}x{height} {encoding} with step "
+            f"{step} ({step * height})"
+        )
     if buf.size < step * height:  # last row without its padding: pad so the reshape works
         buf = np.concatenate([buf, np.zeros(step * height - buf.size, np.uint8)])
     rows = buf[: step * height].reshape(height, step)[:, :row_bytes]

@@ -20,6 +20,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from ficap_ros.camera import CameraModel
 from ficap_ros.cap_model import CapModel
+from ficap_ros.image_codec import decode_compressed, decode_image
 from ficap_ros.errors import ImageError, IntrinsicsError
 from ficap_ros.pipeline import FrameResult
 from ficap_ros.transform import Transform
@@ -91,41 +92,15 @@ def _as_bytes(data: object) -> np.ndarray:
 def image_to_array(msg: Image) -> np.ndarray:
     """A ``sensor_msgs/Image`` as a grey array: uint8, or uint16 (native order) for mono16.
 
-    Honours ``step`` (row padding) and ``is_bigendian`` (16-bit data).
+    The decoding is ``ficap_ros.image_codec.decode_image``, shared with the bag tools; it honours
+    ``step`` (row padding) and ``is_bigendian`` (16-bit data).
 
     Raises:
         ImageError: unknown encoding, zero size, a step shorter than a row, or data whose length
-            is not ``step * height``.
+            does not match ``step * height``.
     """
-    encoding = msg.encoding
-    if encoding not in IMAGE_ENCODINGS:
-        raise ImageError(
-            f"unsupported image encoding {encoding!r}; expected one of {', '.join(IMAGE_ENCODINGS)}"
-        )
-    channels, depth, code = IMAGE_ENCODINGS[encoding]
-    width, height, step = int(msg.width), int(msg.height), int(msg.step)
-    if width <= 0 or height <= 0:
-        raise ImageError(f"image has zero size ({width}x{height})")
-    row_bytes = width * channels * depth
-    if step < row_bytes:
-        raise ImageError(f"image step {step} is shorter than a {encoding} row of {row_bytes} bytes")
-    data = msg.data
-    n = len(data)
-    if n != step * height:
-        raise ImageError(
-            f"image data has {n} bytes, expected step*height = {step}*{height} = {step * height}"
-        )
-    buf = _as_bytes(data)
-    rows = buf.reshape(height, step)[:, :row_bytes]
-    if depth == 2:
-        dtype = np.dtype(">u2" if msg.is_bigendian else "<u2")
-        arr = np.ascontiguousarray(rows).view(dtype).reshape(height, width).astype(np.uint16)
-        return arr
-    arr = rows.reshape(height, width, channels) if channels > 1 else rows
-    arr = np.ascontiguousarray(arr)
-    if code is not None:
-        arr = cv2.cvtColor(arr, code)
-    return arr
+    return decode_image(msg.encoding, msg.height, msg.width, msg.step, _as_bytes(msg.data),
+                        msg.is_bigendian)
 
 
 def compressed_to_array(msg: CompressedImage) -> np.ndarray:
@@ -134,13 +109,7 @@ def compressed_to_array(msg: CompressedImage) -> np.ndarray:
     Raises:
         ImageError: empty or undecodable data.
     """
-    buf = _as_bytes(msg.data)
-    if buf.size == 0:
-        raise ImageError("compressed image is empty")
-    gray = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
-    if gray is None or gray.size == 0:
-        raise ImageError(f"cannot decode compressed image (format {msg.format!r}, {buf.size} bytes)")
-    return gray
+    return decode_compressed(_as_bytes(msg.data), msg.format)
 
 
 def array_to_image(array: np.ndarray, encoding: str, header: Header | None = None) -> Image:

@@ -176,7 +176,7 @@ def test_bad_inputs_give_error_status_and_node_survives(harness_factory) -> None
 
     # 4. Unknown encoding.
     img = ros_msgs.array_to_image(grey, "mono8", _header(t + 3))
-    img.encoding = "yuv422_yuy2"
+    img.encoding = "32FC1"
     st = h.publish_and_wait(img, _info(cam, t + 3))
     assert _level(st) == ros_msgs.LEVEL_ERROR and "encoding" in st.message
 

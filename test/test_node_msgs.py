@@ -83,17 +83,17 @@ def test_bayer_patterns_demosaic_to_the_right_grey(encoding: str) -> None:
 def test_bad_images_raise_image_error() -> None:
     good = _msg(_grey(), "mono8")
     bad = _msg(_grey(), "mono8")
-    bad.encoding = "yuv422_yuy2"
+    bad.encoding = "32FC1"  # float depth images are not a camera we read
     with pytest.raises(ImageError, match="unsupported image encoding"):
         ros_msgs.image_to_array(bad)
     short = Image(height=good.height, width=good.width, encoding="mono8", step=good.step,
                   data=bytes(good.data)[:-1])
-    with pytest.raises(ImageError, match="expected step\\*height"):
+    with pytest.raises(ImageError, match="image data holds"):
         ros_msgs.image_to_array(short)
     narrow = Image(height=4, width=10, encoding="bgr8", step=20, data=bytes(80))
-    with pytest.raises(ImageError, match="shorter than"):
+    with pytest.raises(ImageError, match="smaller than a bgr8 row"):
         ros_msgs.image_to_array(narrow)
-    with pytest.raises(ImageError, match="zero size"):
+    with pytest.raises(ImageError, match="no pixels"):
         ros_msgs.image_to_array(Image(encoding="mono8"))
 
 
