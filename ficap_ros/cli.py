@@ -28,6 +28,17 @@ VERBS: dict[str, str] = {
 }
 
 
+def positive_int(text: str) -> int:
+    """argparse type for counts (frames, pairs): an integer >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected at least 1, got {value}")
+    return value
+
+
 def _available_verbs() -> dict[str, object]:
     modules = {}
     for verb, module_name in VERBS.items():

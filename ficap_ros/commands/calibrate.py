@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from ficap_ros.cli import positive_int
+
 HELP = ("compute R_cap_head from labels: a frontal window (--frontal START:END) or a reference "
         "head-pose topic (--reference BAG:TOPIC with --first N or --random N)")
 
@@ -17,16 +19,6 @@ def _window(text: str) -> tuple[float, float]:
         raise argparse.ArgumentTypeError(str(err)) from None
 
 
-def _count(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected at least 1, got {value}")
-    return value
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("labels", metavar="LABELS", help="labels.csv or a replay output folder")
     mode = parser.add_mutually_exclusive_group(required=True)
@@ -35,9 +27,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     mode.add_argument("--reference", metavar="BAG:TOPIC",
                       help="reference head pose (PoseStamped ...) paired with the labels by stamp")
     pick = parser.add_mutually_exclusive_group()
-    pick.add_argument("--first", type=_count, metavar="N",
+    pick.add_argument("--first", type=positive_int, metavar="N",
                       help="reference mode: use the first N pairs (the paper's First 10/100/500)")
-    pick.add_argument("--random", type=_count, metavar="N",
+    pick.add_argument("--random", type=positive_int, metavar="N",
                       help="reference mode: use N random pairs (the paper's Random 100)")
     parser.add_argument("--seed", type=int, default=0, help="seed of --random (default 0)")
     parser.add_argument("--max-dt-ms", type=float, default=20.0,
@@ -48,7 +40,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="frontal mode: camera mount yaw (default 0)")
     parser.add_argument("--mount-roll-deg", type=float, default=0.0,
                         help="frontal mode: camera mount roll (default 0)")
-    parser.add_argument("--min-frames", type=_count, default=30,
+    parser.add_argument("--min-frames", type=positive_int, default=30,
                         help="frontal mode: least frames with a pose in the window (default 30)")
     parser.add_argument("--out", required=True, metavar="FILE", help="calibration YAML to write")
 

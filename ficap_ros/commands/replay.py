@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from ficap_ros.cli import positive_int
+
 HELP = ("replay a rosbag2 bag, .mcap file or video through the pipeline; write labels.mcap, "
         "labels.csv and summary.json")
 
@@ -15,16 +17,6 @@ def _window(text: str) -> tuple[float, float]:
         return parse_window(text)
     except ValueError as err:
         raise argparse.ArgumentTypeError(str(err)) from None
-
-
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a positive integer, got {value}")
-    return value
 
 
 def _positive_float(text: str) -> float:
@@ -50,7 +42,7 @@ def add_input_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--model", help="as-built cap model YAML (default: nominal)")
     parser.add_argument("--method", choices=("joint", "paper"), default="joint",
                         help="cap pose estimator (default: joint)")
-    parser.add_argument("--jobs", type=_positive_int, default=1,
+    parser.add_argument("--jobs", type=positive_int, default=1,
                         help="worker processes (output identical to --jobs 1)")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
 

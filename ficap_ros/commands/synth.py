@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from ficap_ros.cli import positive_int
+
 HELP = ("render a naturalistic drive of the cap into a rosbag2 MCAP bag: CompressedImage (JPEG), "
         "CameraInfo and ground-truth cap and head poses")
 
@@ -34,23 +36,13 @@ def _resolution(text: str) -> str | tuple[int, int]:
     return text
 
 
-def _nonneg_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected at least 1, got {value}")
-    return value
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, metavar="BAG", help="output rosbag2 folder")
     parser.add_argument("--resolution", type=_resolution, default="540p",
                         help="540p, 1080p (also 360p, 720p) or WxH (default 540p)")
     parser.add_argument("--lighting", choices=("neutral", "high", "low"), default="neutral",
                         help="the paper's illumination conditions (default neutral)")
-    parser.add_argument("--frames", type=_nonneg_int, default=300, help="frames (default 300)")
+    parser.add_argument("--frames", type=positive_int, default=300, help="frames (default 300)")
     parser.add_argument("--fps", type=float, default=30.0, help="frame rate (default 30)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--frontal-s", type=float, default=3.0,
