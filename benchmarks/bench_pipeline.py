@@ -1,7 +1,7 @@
 """Detection and pose time per frame at 540p and 1080p (one process, one thread).
 
 Usage: .venv/bin/python benchmarks/bench_pipeline.py [--frames N] [--record]
-Prints a table; with --record appends it, with machine, date and commit, to docs/benchmarks.md.
+Prints a table; with --record writes it (machine, date, commit) into docs/benchmarks.md, replacing its section.
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ def machine_line() -> str:
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--frames", type=int, default=60)
-    parser.add_argument("--record", action="store_true", help="append the table to docs/benchmarks.md")
+    parser.add_argument("--record", action="store_true", help="write the table into docs/benchmarks.md")
     args = parser.parse_args()
     cv2.setNumThreads(1)
     model = nominal_model()
@@ -74,7 +74,7 @@ def main() -> int:
             print(f"{resolution:6} {name:36} detect {rows[-1][2]:6.2f} ms  pose {rows[-1][3]:5.2f} ms  "
                   f"median {rows[-1][4]:.3f} deg  p95 {rows[-1][5]:.3f} deg", file=sys.stderr)
     table = [
-        f"### bench_pipeline ({args.frames} rendered neutral frames per resolution)",
+        f"bench_pipeline ({args.frames} rendered neutral frames per resolution)",
         "",
         f"Machine: {machine_line()}",
         "",
@@ -85,10 +85,10 @@ def main() -> int:
     text = "\n".join(table) + "\n"
     print(text)
     if args.record:
-        path = ROOT / "docs" / "benchmarks.md"
-        head = "" if path.exists() else "# Benchmarks\n\nEvery table below comes from a run of a script in `benchmarks/`, with its machine, date and commit.\n\n"
-        with path.open("a") as fh:
-            fh.write(head + text + "\n")
+        sys.path.insert(0, str(Path(__file__).resolve().parent))
+        from _common import load_avg, record_section
+
+        record_section("Pipeline (detect/pose ms and error)", text + f"\n{load_avg()} at the end.\n")
     return 0
 
 
