@@ -46,10 +46,15 @@ class ArucoDefaults:
         return [] if ids is None else [int(i) for i in ids.reshape(-1)]
 
 
+#: Every pupil-apriltags detector stays alive until exit: freeing one segfaulted in
+#: libapriltag (pupil-apriltags Detector.__del__) during these runs.
+_KEEP: list[object] = []
+
+
 def pipelines() -> dict[str, object]:
     """name -> FrameProcessor (detection + joint pose) or a detector-only object."""
     model = nominal_model()
-    return {
+    out = {
         "ficap (tracking, search_decimate 2)": FrameProcessor(model, DetectorConfig(search_decimate=2)),
         "ficap (tracking)": FrameProcessor(model),
         "ficap (no tracking) [before]": FrameProcessor(model, tracking=False),
@@ -59,6 +64,8 @@ def pipelines() -> dict[str, object]:
             model, DetectorConfig(backend="apriltag", corner_refine="apriltag", quad_decimate=2.0), tracking=False),
         "OpenCV ArUco defaults (detect only)": ArucoDefaults(),
     }
+    _KEEP.append(out)
+    return out
 
 
 def frame_table(n_frames: int) -> tuple[list[list[object]], dict]:
@@ -122,6 +129,7 @@ def swat_table() -> list[list[object]]:
         "AprilTag 3 decimate 2": TagDetector(DetectorConfig(backend="apriltag", corner_refine="apriltag",
                                                             quad_decimate=2.0)),
     }
+    _KEEP.append(dets)
     rows = []
     images = {name: cv2.imread(str(SWAT / name), cv2.IMREAD_GRAYSCALE) for name in truth}
     n_true = sum(len(v) for v in truth.values())
@@ -195,7 +203,9 @@ def main() -> int:
     print(text)
     if args.record:
         record_section("Speed", text)
-    return 0
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(0)  # skip the interpreter's teardown of the apriltag detectors (see _KEEP)
 
 
 if __name__ == "__main__":

@@ -23,6 +23,7 @@ RUNS = {
                    "--sweep-stride", "30"],
     "speed": ["bench_speed.py", "--frames", "60", "--replay-frames", "150"],
     "accuracy": ["bench_accuracy.py", "--frames", "1800", "--stride", "18"],
+    "node": ["bench_node.py", "--rates", "10,15,30,60", "--seconds", "4"],
     "pipeline": ["bench_pipeline.py", "--frames", "20"],
 }
 

@@ -1,0 +1,144 @@
+"""ficap_node over real rclpy on loopback: end-to-end latency and the highest sustained input rate.
+
+The node (``python -m ficap_ros.node``, default parameters, raw mono8 ``image`` + ``camera_info``)
+runs in its own process; this process publishes rendered consecutive drive frames at a fixed rate
+for ``--seconds`` per rate and records ``cap_pose``. Latency = arrival of the pose - publish time of
+its image (matched by stamp), p50/p99. A rate is sustained when at least 99 % of the published
+frames come back with a pose (the node's one-slot mailbox drops frames it cannot keep up with).
+DDS stays on loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, ROS_DOMAIN_ID 16 unless set).
+
+Usage: .venv/bin/python benchmarks/bench_node.py [--rates 15,30,60,120] [--seconds 5] [--record]
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
+os.environ.setdefault("ROS_DOMAIN_ID", "16")
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from _common import load_avg, machine_line, md_table, record_section  # noqa: E402
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--rates", default="15,30,60,120")
+    ap.add_argument("--seconds", type=float, default=5.0)
+    ap.add_argument("--resolutions", default="540p,1080p")
+    ap.add_argument("--frames", type=int, default=30, help="distinct rendered frames, looped")
+    ap.add_argument("--record", action="store_true")
+    args = ap.parse_args()
+
+    import rclpy
+    from geometry_msgs.msg import PoseStamped
+    from rclpy.executors import SingleThreadedExecutor
+    from sensor_msgs.msg import CameraInfo, Image
+    from std_msgs.msg import Header
+
+    from ficap_ros import ros_msgs
+    from ficap_ros.cap_model import nominal_model
+    from ficap_ros.synth import RenderConfig, default_scene, naturalistic_drive, render
+
+    rows = []
+    env = dict(os.environ)
+    for res in args.resolutions.split(","):
+        scene = default_scene(res)
+        model = nominal_model()
+        drive = naturalistic_drive(600 + args.frames, fps=30.0, seed=0, scene=scene)[600:]
+        images = [render(model, scene.camera, d.T_cam_cap, RenderConfig(), seed=d.index).image for d in drive]
+        node_proc = subprocess.Popen([sys.executable, "-m", "ficap_ros.node"], env=env,
+                                     stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        rclpy.init()
+        peer = rclpy.create_node("ficap_bench_peer")
+        lock = threading.Lock()
+        arrivals: dict[int, float] = {}
+
+        def on_pose(msg: PoseStamped) -> None:
+            t = time.perf_counter()
+            with lock:
+                arrivals[ros_msgs.stamp_to_ns(msg.header.stamp)] = t
+
+        peer.create_subscription(PoseStamped, "cap_pose", on_pose, 100)
+        pub_img = peer.create_publisher(Image, "image", 5)
+        pub_info = peer.create_publisher(CameraInfo, "camera_info", 5)
+        ex = SingleThreadedExecutor()
+        ex.add_node(peer)
+        spin = threading.Thread(target=ex.spin, daemon=True)
+        spin.start()
+        try:
+            end = time.monotonic() + 60
+            while pub_img.get_subscription_count() == 0 or peer.count_publishers("cap_pose") == 0:
+                if time.monotonic() > end:
+                    raise RuntimeError("ficap_node did not come up")
+                time.sleep(0.05)
+            stamp = 1_700_000_000_000_000_000
+            msgs = []
+            for img in images:
+                msgs.append(img)
+
+            def send(i: int, st: int) -> float:
+                h = Header()
+                h.stamp = ros_msgs.ns_to_stamp(st)
+                h.frame_id = "camera"
+                info = ros_msgs.camera_model_to_info(scene.camera, h)
+                im = ros_msgs.array_to_image(msgs[i % len(msgs)], "mono8", h)
+                pub_info.publish(info)
+                t = time.perf_counter()
+                pub_img.publish(im)
+                return t
+
+            # Warm-up: 20 frames lockstep-ish.
+            for i in range(20):
+                stamp += 33_333_333
+                send(i, stamp)
+                time.sleep(0.2)
+            for rate in (float(r) for r in args.rates.split(",")):
+                sent: dict[int, float] = {}
+                period = 1.0 / rate
+                n = int(args.seconds * rate)
+                t_next = time.perf_counter()
+                for i in range(n):
+                    stamp += int(1e9 / rate)
+                    sent[stamp] = send(i, stamp)
+                    t_next += period
+                    delay = t_next - time.perf_counter()
+                    if delay > 0:
+                        time.sleep(delay)
+                time.sleep(1.0)
+                with lock:
+                    lat = np.array([(arrivals[s] - t) * 1e3 for s, t in sent.items() if s in arrivals])
+                frac = len(lat) / max(n, 1)
+                rows.append([res, f"{rate:.0f}", n, f"{100 * frac:.1f} %",
+                             f"{np.percentile(lat, 50):.1f}" if len(lat) else "-",
+                             f"{np.percentile(lat, 99):.1f}" if len(lat) else "-",
+                             "yes" if frac >= 0.99 else "no"])
+                print(rows[-1], file=sys.stderr)
+        finally:
+            ex.shutdown()
+            peer.destroy_node()
+            rclpy.try_shutdown()
+            node_proc.terminate()
+            node_proc.wait(timeout=20)
+    text = "\n".join([
+        f"Machine: {machine_line()}; {load_avg()} at the end. Node process with default parameters "
+        "(opencv + edge, joint pose, tracking), raw mono8 images from another process over loopback DDS "
+        f"(Fast DDS unless RMW_IMPLEMENTATION says otherwise), {args.seconds:.0f} s per rate.", "",
+        md_table(["res", "input Hz", "frames sent", "frames with pose", "latency p50 ms", "p99 ms",
+                  "sustained (>= 99 %)"], rows)])
+    print(text)
+    if args.record:
+        record_section("Node latency and rate (rclpy, loopback)", text)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
