@@ -7,16 +7,13 @@ Prints a table; with --record writes it (machine, date, commit) into docs/benchm
 from __future__ import annotations
 
 import argparse
-import datetime as dt
-import os
-import platform
-import subprocess
 import sys
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from _common import machine_line  # noqa: E402  (benchmarks/ is the script folder)
 from ficap_ros.cap_model import nominal_model
 from ficap_ros.detection import DetectorConfig
 from ficap_ros.metrics import angle_deg
@@ -32,21 +29,6 @@ CONFIGS = {
     "naive peer (opencv+subpix, naive)": (DetectorConfig(corner_refine="subpix"), PoseConfig(method="naive")),
     "apriltag3 backend (joint)": (DetectorConfig(backend="apriltag"), PoseConfig()),
 }
-
-
-def machine_line() -> str:
-    cpu = platform.processor() or platform.machine()
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                cpu = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
-                            text=True).stdout.strip() or "unknown"
-    return (f"{dt.date.today().isoformat()}, {cpu}, {os.cpu_count()} cores, Python {platform.python_version()}, "
-            f"OpenCV {cv2.__version__}, commit {commit}")
 
 
 def main() -> int:
