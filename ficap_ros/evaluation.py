@@ -23,6 +23,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ficap_ros.errors import BagError
+from ficap_ros.labels import read_labels_text
 from ficap_ros.metrics import (
     angle_deg,
     phi3_deg,
@@ -101,13 +102,7 @@ def read_series_csv(path: str | Path) -> PoseSeries:
     Raises:
         BagError: unreadable file or missing columns.
     """
-    path = Path(path)
-    if path.is_dir():
-        path = path / "labels.csv"
-    try:
-        text = path.read_text()
-    except OSError as err:
-        raise BagError(f"cannot read {path}: {err.strerror or err}") from err
+    path, text = read_labels_text(path)
     reader = csv.DictReader(io.StringIO(text))
     cols = set(reader.fieldnames or [])
     if "stamp_ns" not in cols:
@@ -315,12 +310,18 @@ def evaluate(truth: PoseSeries, estimate: PoseSeries, max_dt_ms: float = 20.0) -
 
 
 # -- report --------------------------------------------------------------------------------------
-def _png(fig: Any, path: Path) -> None:
+def _png(fig: Any, path: Path) -> Path:
+    """Lay out, write atomically as PNG, close; returns ``path``."""
+    import matplotlib.pyplot as plt
+
     from ficap_ros.bag_io import write_file_atomic
 
+    fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
+    plt.close(fig)
     write_file_atomic(path, buf.getvalue())
+    return path
 
 
 def plot_report(result: EvaluationResult, out_dir: Path) -> list[Path]:
@@ -342,10 +343,7 @@ def plot_report(result: EvaluationResult, out_dir: Path) -> list[Path]:
     ax.set_ylabel("Frequency")
     ax.set_title("Head pose error")
     ax.legend()
-    fig.tight_layout()
-    paths.append(out_dir / "error_histogram.png")
-    _png(fig, paths[-1])
-    plt.close(fig)
+    paths.append(_png(fig, out_dir / "error_histogram.png"))
 
     t_s = (result.stamp_ns - result.stamp_ns[0]) / 1e9
     fig, axes = plt.subplots(3, 1, figsize=(8.0, 6.4), sharex=True)
@@ -356,10 +354,7 @@ def plot_report(result: EvaluationResult, out_dir: Path) -> list[Path]:
         axes[k].set_ylabel(f"{name} (°)")
     axes[0].legend(loc="upper right")
     axes[-1].set_xlabel("time (s)")
-    fig.tight_layout()
-    paths.append(out_dir / "timeseries.png")
-    _png(fig, paths[-1])
-    plt.close(fig)
+    paths.append(_png(fig, out_dir / "timeseries.png"))
 
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
     yaw = result.truth_ypr_deg[:, 0]
@@ -376,10 +371,7 @@ def plot_report(result: EvaluationResult, out_dir: Path) -> list[Path]:
     ax.set_xlabel("truth yaw (°)")
     ax.set_ylabel("geodesic error (°)")
     ax.legend()
-    fig.tight_layout()
-    paths.append(out_dir / "error_vs_yaw.png")
-    _png(fig, paths[-1])
-    plt.close(fig)
+    paths.append(_png(fig, out_dir / "error_vs_yaw.png"))
     return paths
 
 
@@ -549,10 +541,7 @@ def plot_stats(stats: DetectionStats, out_dir: Path) -> list[Path]:
     ax.set_xlabel("pose reliability")
     ax.set_ylabel("frames")
     ax.set_title(f"Reliability ({stats.frames_with_pose} frames with a pose)")
-    fig.tight_layout()
-    paths.append(out_dir / "reliability_histogram.png")
-    _png(fig, paths[-1])
-    plt.close(fig)
+    paths.append(_png(fig, out_dir / "reliability_histogram.png"))
 
     fig, ax = plt.subplots(figsize=(8.0, 4.0))
     ids = list(stats.tag_rate)
@@ -560,8 +549,5 @@ def plot_stats(stats: DetectionStats, out_dir: Path) -> list[Path]:
     ax.set_xlabel("tag id")
     ax.set_ylabel("detected in % of frames")
     ax.set_ylim(0, 100)
-    fig.tight_layout()
-    paths.append(out_dir / "tag_detection_rate.png")
-    _png(fig, paths[-1])
-    plt.close(fig)
+    paths.append(_png(fig, out_dir / "tag_detection_rate.png"))
     return paths

@@ -46,6 +46,7 @@ __all__ = [
     "record_from_result",
     "labels_csv_text",
     "read_labels",
+    "read_labels_text",
     "write_labels_bag",
     "label_topics",
 ]
@@ -231,19 +232,28 @@ def _num(text: str) -> float:
     return float(text) if text.strip() else math.nan
 
 
+def read_labels_text(path: str | Path) -> tuple[Path, str]:
+    """The text of a CSV file, or of ``labels.csv`` inside a replay output folder.
+
+    Raises:
+        BagError: the file cannot be read.
+    """
+    path = Path(path)
+    if path.is_dir():
+        path = path / "labels.csv"
+    try:
+        return path, path.read_text()
+    except OSError as err:
+        raise BagError(f"cannot read {path}: {err.strerror or err}") from err
+
+
 def read_labels(path: str | Path) -> Labels:
     """Read labels.csv (or a replay output folder holding one).
 
     Raises:
         BagError: missing file, or not a labels CSV.
     """
-    path = Path(path)
-    if path.is_dir():
-        path = path / "labels.csv"
-    try:
-        text = path.read_text()
-    except OSError as err:
-        raise BagError(f"cannot read labels {path}: {err.strerror or err}") from err
+    path, text = read_labels_text(path)
     rows = list(csv.DictReader(io.StringIO(text)))
     need = {"stamp_ns", "tags_detected", "cap_qw", "head_qw"}
     header = set(rows[0].keys()) if rows else set(next(csv.reader(io.StringIO(text)), []))
