@@ -224,11 +224,21 @@ def _refine(obs: _Observations, T0: Transform) -> tuple[Transform, np.ndarray, f
     R0 = T0.rotation
     x0 = np.concatenate([np.zeros(3), T0.translation_m])
 
+    # least_squares asks for the residuals and then the Jacobian at the same x: compute both once.
+    cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+
+    def both(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        key = x.tobytes()
+        if key not in cache:
+            cache.clear()
+            cache[key] = _residuals_and_jacobian(x, R0, obs.K, obs.model_m, obs.image_px)
+        return cache[key]
+
     def fun(x: np.ndarray) -> np.ndarray:
-        return _residuals_and_jacobian(x, R0, obs.K, obs.model_m, obs.image_px)[0]
+        return both(x)[0]
 
     def jac(x: np.ndarray) -> np.ndarray:
-        return _residuals_and_jacobian(x, R0, obs.K, obs.model_m, obs.image_px)[1]
+        return both(x)[1]
 
     sol = least_squares(fun, x0, jac=jac, method="lm", xtol=1e-12, ftol=1e-12, max_nfev=50)
     R = Rotation.from_rotvec(sol.x[:3]) * R0
