@@ -93,6 +93,7 @@ class DetectorConfig:
             Worth it only where tags are large (1080p with the default camera: 2).
         edge_search_px: half-length of the search along each side's normal (``edge`` refine);
             capped at 0.8 of a tag cell so the search stays on the black border and white margin.
+        edge_step_px: sample spacing along each side's normal (``edge`` refine).
         edge_samples_per_side: samples along each side (``edge`` refine).
         edge_corner_skip: fraction of each side left out next to each corner (``edge`` refine).
         edge_iterations: search-and-fit passes, each from the previous pass's corners.
@@ -125,6 +126,7 @@ class DetectorConfig:
     search_decimate: int = 1
     # Edge refinement.
     edge_search_px: float = 4.0
+    edge_step_px: float = 0.25
     edge_window_cells: float = 0.6
     edge_samples_per_side: int = 24
     edge_corner_skip: float = 0.15
@@ -148,6 +150,8 @@ class DetectorConfig:
             raise ConfigError("adaptive_thresh_win_size_step must be >= 1")
         if not 0.0 < self.edge_search_px <= 10.0:
             raise ConfigError(f"edge_search_px must be in (0, 10], got {self.edge_search_px}")
+        if not 0.05 <= self.edge_step_px <= 1.0:
+            raise ConfigError(f"edge_step_px must be in [0.05, 1], got {self.edge_step_px}")
         if not 4 <= self.edge_samples_per_side <= 256:
             raise ConfigError("edge_samples_per_side must be in [4, 256]")
         if not 0.0 <= self.edge_corner_skip < 0.45:
@@ -326,8 +330,6 @@ def _subpix(gray: np.ndarray, corners: np.ndarray) -> np.ndarray:
 _NEXT = np.array([1, 2, 3, 0])
 _OPPOSITE = (np.array([2, 3, 0, 1]), np.array([3, 0, 1, 2]))
 _PREV = np.array([3, 0, 1, 2])
-#: Sample spacing along each side's normal, px.
-_EDGE_STEP_PX = 0.25
 
 
 def refine_corners_edge(
@@ -386,7 +388,7 @@ def _edge_pass(
     """
     import cv2
 
-    n, m, step = len(corners), cfg.edge_samples_per_side, _EDGE_STEP_PX
+    n, m, step = len(corners), cfg.edge_samples_per_side, float(cfg.edge_step_px)
     a = corners.reshape(-1, 2)  # (R,2) side start
     d = corners[:, _NEXT].reshape(-1, 2) - a  # (R,2) side vector
     length = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)

@@ -6,15 +6,16 @@ The single code path shared by the live node, the bag tools, the demo and the be
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ficap_ros.camera import CameraModel
 from ficap_ros.cap_model import CapModel, nominal_model
-from ficap_ros.detection import DetectorConfig, TagDetection, TagDetector, as_gray
+from ficap_ros.detection import DetectorConfig, TagDetection, TagDetector, as_gray, refine_corners_edge_ok
 from ficap_ros.pose import CapPose, PoseConfig, estimate_cap_pose
+from ficap_ros.tracking import TrackConfig, extrapolate_pose, predict_tags, verify_tags, view_angles_deg
 from ficap_ros.transform import CAM_FROM_FORWARD, Transform
 
 __all__ = ["HeadCalibration", "FrameResult", "FrameProcessor"]
@@ -80,17 +81,23 @@ class FrameResult:
 
 #: Tracking: frames further apart than this are searched over the whole image.
 _TRACK_MAX_GAP_NS = 500_000_000
-#: Tracking margin around the predicted tags: this fraction of the region's size plus pixels.
+#: Tracking margin around the predicted tags (region search): this fraction of the region's size
+#: plus pixels.
 _TRACK_MARGIN_FRACTION = 0.25
 _TRACK_MARGIN_PX = 24
 #: Tracking: a predicted region larger than this share of the image is searched as a whole.
 _TRACK_MAX_AREA = 0.6
+#: Tracking, second look: a tag not verified at the extrapolated pose is looked for again at the
+#: pose of the verified tags when that moves its predicted corners by more than this.
+_TRACK_RETRY_PX = 0.5
 
 
 @dataclass(frozen=True)
 class _TrackState:
     T_cam_cap: Transform
+    T_prev: Transform | None  # the pose one frame earlier, for the velocity
     stamp_ns: int
+    dt_prev_ns: int  # stamp_ns minus the earlier frame's stamp (0: unknown)
     n_tags: int
     camera_key: tuple
 
@@ -105,9 +112,10 @@ class FrameProcessor:
 
     Args:
         model, detector, pose, calibration: cap model, detector, pose and head-calibration settings.
-        tracking: search the region predicted from the previous frame's pose first (see
-            ``process``); frames must then come from one camera in time order, which is how the
-            node and the bag tools feed it. ``False`` makes every frame independent.
+        tracking: follow the cap from frame to frame (see ``process``); frames must then come from
+            one camera in time order, which is how the node and the bag tools feed it. ``False``
+            makes every frame independent (every frame searched over the whole image).
+        track: tracking settings.
     """
 
     def __init__(
@@ -117,13 +125,28 @@ class FrameProcessor:
         pose: PoseConfig | None = None,
         calibration: HeadCalibration | None = None,
         tracking: bool = True,
+        track: TrackConfig | None = None,
     ) -> None:
         self.model = model or nominal_model()
         self.detector = TagDetector(detector)
         self.pose_config = pose or PoseConfig()
         self.calibration = calibration or HeadCalibration()
         self.tracking = bool(tracking)
+        self.track_config = track or TrackConfig()
+        # Tracked tags start from extrapolated corners, which can be a few px off after a sudden
+        # head movement: a coarse pass with a wide reach (still capped at 0.6 cell) and coarse
+        # sampling, then the detector's own pass from there.
+        base = self.detector.config
+        self._track_refine = (
+            replace(base, edge_search_px=8.0, edge_max_shift_px=8.0, edge_iterations=1,
+                    edge_samples_per_side=12, edge_step_px=0.5),
+            replace(base, edge_iterations=2),
+        )
+        # Search-free tracking rests on the edge refinement (it pulls predicted corners onto the
+        # border); with another corner refinement tracked frames are searched in the region.
+        self._verify_tracking = self.tracking and base.corner_refine == "edge"
         self._track: _TrackState | None = None
+        self.tracked_frames = 0  # frames whose tags were verified where the cap was predicted
         self.roi_searches = 0  # frames searched in the predicted region only
         self.full_searches = 0  # frames searched over the whole image
 
@@ -133,11 +156,70 @@ class FrameProcessor:
         return tuple(d for d in self.detector.detect(gray) if d.tag_id in self.model)
 
     def reset_tracking(self) -> None:
-        """Forget the previous frame: the next frame is searched over the whole image."""
+        """Forget the previous frames: the next frame is searched over the whole image."""
         self._track = None
 
-    def _detect_tracked(self, gray: np.ndarray, camera: CameraModel, stamp_ns: int) -> tuple[TagDetection, ...]:
-        """Search the region predicted from the last pose; the whole image if that finds fewer tags."""
+    def _predict_pose(self, camera: CameraModel, stamp_ns: int) -> Transform | None:
+        """The cap pose at ``stamp_ns`` extrapolated from the last two frames, or None."""
+        tr = self._track
+        if tr is None or tr.camera_key != _camera_key(camera) or tr.n_tags == 0:
+            return None
+        gap = stamp_ns - tr.stamp_ns
+        if stamp_ns and tr.stamp_ns and not 0 <= gap <= _TRACK_MAX_GAP_NS:
+            return None
+        ratio = gap / tr.dt_prev_ns if stamp_ns and tr.stamp_ns and tr.dt_prev_ns > 0 else 1.0
+        return extrapolate_pose(tr.T_cam_cap, tr.T_prev, min(ratio, 3.0))
+
+    def _verified(
+        self, gray: np.ndarray, ids: np.ndarray, corners: np.ndarray, passes: tuple[DetectorConfig, ...]
+    ) -> list[TagDetection]:
+        """Refine predicted corners (one call per config) and keep the tags whose cells read as their ids."""
+        refined, ok = corners, np.ones(len(ids), dtype=bool)
+        for config in passes:
+            refined, ok_pass = refine_corners_edge_ok(gray, refined, config)
+            ok &= ok_pass
+        ver, errors, contrast = verify_tags(gray, ids[ok], refined[ok], self.track_config)
+        return [TagDetection(int(i), c, int(e), float(m))
+                for i, c, e, m in zip(ids[ok][ver], refined[ok][ver], errors[ver], contrast[ver])]
+
+    def _track_tags(
+        self, gray: np.ndarray, camera: CameraModel, predicted: Transform
+    ) -> tuple[TagDetection, ...] | None:
+        """The model's tags verified where ``predicted`` puts them; None when too few verify."""
+        cfg = self.track_config
+        ids, corners = predict_tags(self.model, camera, predicted, cfg)
+        found = self._verified(gray, ids, corners, self._track_refine)
+        if len(found) < cfg.min_tags:
+            return None
+        missing = np.array([i not in {d.tag_id for d in found} for i in ids], dtype=bool)
+        if missing.any():
+            # Second look: the verified tags pin the pose down; where that moves a missing tag's
+            # predicted corners, the extrapolation was off for it, so refine it again from there.
+            first = estimate_cap_pose(found, self.model, camera, self.pose_config, start=predicted)
+            if first.pose is not None:
+                ids2, corners2 = predict_tags(self.model, camera, first.pose.T_cam_cap, cfg)
+                before = dict(zip(ids[missing].tolist(), corners[missing]))
+                retry = np.array([int(i) in before and np.abs(c - before[int(i)]).max() > _TRACK_RETRY_PX
+                                  for i, c in zip(ids2, corners2)], dtype=bool)
+                if retry.any():
+                    found += self._verified(gray, ids2[retry], corners2[retry], (self.detector.config,))
+        return tuple(found)
+
+    def _detect_tracked(
+        self, gray: np.ndarray, camera: CameraModel, stamp_ns: int
+    ) -> tuple[tuple[TagDetection, ...], Transform | None]:
+        """Tags of a frame that follows a tracked one, and the predicted pose (None: none).
+
+        First the tags are looked for where the extrapolated pose puts them (no search); if too
+        few verify, the region around the last pose is searched; if that finds fewer tags than
+        the last frame had, the whole image.
+        """
+        predicted = self._predict_pose(camera, stamp_ns)
+        if predicted is not None and self._verify_tracking:
+            found = self._track_tags(gray, camera, predicted)
+            if found is not None:
+                self.tracked_frames += 1
+                return found, predicted
         roi = self._predict_roi(camera, stamp_ns, gray.shape)
         if roi is not None:
             found = tuple(d for d in self.detector.detect(gray, roi=roi) if d.tag_id in self.model)
@@ -153,9 +235,9 @@ class FrameProcessor:
                 for d in found)
             if inside or len({d.tag_id for d in found}) >= self._track.n_tags:
                 self.roi_searches += 1
-                return found
+                return found, predicted
         self.full_searches += 1
-        return tuple(d for d in self.detector.detect(gray) if d.tag_id in self.model)
+        return tuple(d for d in self.detector.detect(gray) if d.tag_id in self.model), predicted
 
     def _predict_roi(
         self, camera: CameraModel, stamp_ns: int, shape: tuple[int, ...]
@@ -190,27 +272,59 @@ class FrameProcessor:
             return None  # off the image, or a region nearly as big as the frame
         return x0, y0, x1 - x0, y1 - y0
 
+    def _pose_grade(
+        self, detections: tuple[TagDetection, ...], predicted: Transform | None
+    ) -> tuple[TagDetection, ...]:
+        """The detections the pose should use: without the tags seen too obliquely at the
+        predicted pose (``TrackConfig.pose_max_view_angle_deg``) while enough others remain."""
+        limit = self.track_config.pose_max_view_angle_deg
+        if predicted is None or limit >= 90.0 or not self._verify_tracking:
+            return detections
+        angles = dict(zip(self.model.ids, view_angles_deg(self.model, predicted)))
+        kept = tuple(d for d in detections if angles[d.tag_id] <= limit)
+        if len({d.tag_id for d in kept}) < max(self.track_config.min_tags, self.pose_config.min_tags):
+            return detections
+        return kept
+
+    def _next_track(
+        self, T_cam_cap: Transform, stamp_ns: int, detections: tuple[TagDetection, ...], camera: CameraModel
+    ) -> _TrackState:
+        tr, key = self._track, _camera_key(camera)
+        # The velocity needs the previous frame to be the one just before (same camera, tracked).
+        follows = tr is not None and tr.camera_key == key and (
+            not (stamp_ns and tr.stamp_ns) or 0 < stamp_ns - tr.stamp_ns <= _TRACK_MAX_GAP_NS)
+        return _TrackState(
+            T_cam_cap, tr.T_cam_cap if follows and tr is not None else None, stamp_ns,
+            stamp_ns - tr.stamp_ns if follows and tr is not None and stamp_ns and tr.stamp_ns else 0,
+            len({d.tag_id for d in detections}), key)
+
     def process(self, image: np.ndarray, camera: CameraModel, stamp_ns: int = 0) -> FrameResult:
         """Process one frame (raises ``ImageError`` for an invalid image).
 
-        With ``tracking`` the tags are searched first in the region around the cap's last pose
-        (the whole image when there was none, when the frames are far apart in time, or when the
-        region gives fewer tags than the last frame had), with the whole image's search settings
-        and the refinement on the whole image, so a tag found there gets the same corners.
+        With ``tracking``, a frame that follows one with a pose is not searched: the cap pose is
+        extrapolated from the last two frames and its tags are refined and verified (their cells
+        read as their ids) where it puts them (``ficap_ros.tracking``). When fewer than
+        ``TrackConfig.min_tags`` verify, the region around the last pose is searched, and when that
+        finds fewer tags than the last frame had, the whole image. A search uses the whole
+        image's settings and refines on the whole image, so a tag gets the same corners however
+        it was found. Frames without a recent predecessor are searched over the whole image.
         """
         t0 = time.perf_counter()
+        predicted = None
         if self.tracking:
             gray = as_gray(image)
-            detections = self._detect_tracked(gray, camera, int(stamp_ns))
+            detections, predicted = self._detect_tracked(gray, camera, int(stamp_ns))
         else:
             detections = self.detect(image)
         t1 = time.perf_counter()
-        result = estimate_cap_pose(detections, self.model, camera, self.pose_config)
+        result = estimate_cap_pose(self._pose_grade(detections, predicted), self.model, camera,
+                                   self.pose_config, start=predicted)
         t2 = time.perf_counter()
         pose = result.pose
+        if pose is not None and pose.tags_detected != len({d.tag_id for d in detections}):
+            pose = replace(pose, tags_detected=len({d.tag_id for d in detections}))
         if self.tracking:
-            self._track = None if pose is None else _TrackState(
-                pose.T_cam_cap, int(stamp_ns), len({d.tag_id for d in detections}), _camera_key(camera))
+            self._track = None if pose is None else self._next_track(pose.T_cam_cap, int(stamp_ns), detections, camera)
         return FrameResult(
             stamp_ns=int(stamp_ns),
             detections=detections,

@@ -178,50 +178,53 @@ def reprojection_errors_px(obs_px: np.ndarray, K: np.ndarray, T: Transform, mode
 
 
 def _residuals_and_jacobian(
-    x: np.ndarray, R0: Rotation, K: np.ndarray, model_m: np.ndarray, image_px: np.ndarray
+    x: np.ndarray, R0: np.ndarray, K: np.ndarray, model_m: np.ndarray, image_px: np.ndarray
 ) -> tuple[np.ndarray, np.ndarray]:
     """Residuals (2N,) and Jacobian (2N, 6) for x = (d_theta (3, rad, camera axes), t (3, m)).
 
-    The pose is ``R = exp(d_theta) R0``, translation ``t``; perturbing on the left keeps the
-    covariance in the camera (parent) frame, as ROS's PoseWithCovariance expects.
+    The pose is ``R = exp(d_theta) R0`` (R0 a 3x3 matrix), translation ``t``; perturbing on the
+    left keeps the covariance in the camera (parent) frame, as ROS's PoseWithCovariance expects.
     """
-    R = Rotation.from_rotvec(x[:3]) * R0
-    X = R.apply(model_m.reshape(-1, 3))
+    R = cv2.Rodrigues(np.ascontiguousarray(x[:3]))[0] @ R0
+    X = model_m.reshape(-1, 3) @ R.T  # model points rotated into the camera's axes
     p = X + x[3:]
     fx, fy, s, cx, cy = K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2]
-    z = p[:, 2]
-    iz = 1.0 / z
+    iz = 1.0 / p[:, 2]
     xn, yn = p[:, 0] * iz, p[:, 1] * iz
     u = fx * xn + s * yn + cx
     v = fy * yn + cy
     obs = image_px.reshape(-1, 2)
-    res = np.empty(2 * len(p))
+    n = len(p)
+    res = np.empty(2 * n)
     res[0::2] = u - obs[:, 0]
     res[1::2] = v - obs[:, 1]
-    # d(u, v)/dp
-    du_dp = np.stack([fx * iz, s * iz, -(fx * xn + s * yn) * iz], axis=-1)
-    dv_dp = np.stack([np.zeros_like(z), fy * iz, -fy * yn * iz], axis=-1)
-    # dp/d_theta (small left rotation) = -[X]x
-    zeros = np.zeros_like(z)
-    skew = np.stack(
-        [
-            np.stack([zeros, X[:, 2], -X[:, 1]], axis=-1),
-            np.stack([-X[:, 2], zeros, X[:, 0]], axis=-1),
-            np.stack([X[:, 1], -X[:, 0], zeros], axis=-1),
-        ],
-        axis=1,
-    )  # (N, 3, 3) = -[X]x
-    jac = np.empty((2 * len(p), 6))
-    jac[0::2, :3] = np.einsum("nj,njk->nk", du_dp, skew)
-    jac[1::2, :3] = np.einsum("nj,njk->nk", dv_dp, skew)
-    jac[0::2, 3:] = du_dp
-    jac[1::2, 3:] = dv_dp
+    # d(u, v)/dp; a left rotation moves a point by d_theta x X, so d(u, v)/d_theta = X x d(u, v)/dp.
+    du_dp = np.empty((n, 3))
+    du_dp[:, 0] = fx * iz
+    du_dp[:, 1] = s * iz
+    du_dp[:, 2] = -(u - cx) * iz
+    dv_dp = np.zeros((n, 3))
+    dv_dp[:, 1] = fy * iz
+    dv_dp[:, 2] = -(v - cy) * iz
+    jac = np.empty((2 * n, 6))
+    x0, x1, x2 = X[:, 0], X[:, 1], X[:, 2]
+    for rows, g in ((jac[0::2], du_dp), (jac[1::2], dv_dp)):
+        rows[:, 0] = x1 * g[:, 2] - x2 * g[:, 1]  # X x g, written out (np.cross is slow on small arrays)
+        rows[:, 1] = x2 * g[:, 0] - x0 * g[:, 2]
+        rows[:, 2] = x0 * g[:, 1] - x1 * g[:, 0]
+        rows[:, 3:] = g
     return res, jac
+
+
+def _at(T: Transform, obs: _Observations) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals and Jacobian at pose ``T`` itself (d_theta = 0)."""
+    return _residuals_and_jacobian(np.concatenate([np.zeros(3), T.translation_m]), T.rotation.as_matrix(),
+                                   obs.K, obs.model_m, obs.image_px)
 
 
 def _refine(obs: _Observations, T0: Transform) -> tuple[Transform, np.ndarray, float]:
     """Least-squares reprojection refinement; returns (pose, covariance ROS order, rms_px)."""
-    R0 = T0.rotation
+    R0 = T0.rotation.as_matrix()
     x0 = np.concatenate([np.zeros(3), T0.translation_m])
 
     # least_squares asks for the residuals and then the Jacobian at the same x: compute both once.
@@ -240,10 +243,9 @@ def _refine(obs: _Observations, T0: Transform) -> tuple[Transform, np.ndarray, f
     def jac(x: np.ndarray) -> np.ndarray:
         return both(x)[1]
 
-    sol = least_squares(fun, x0, jac=jac, method="lm", xtol=1e-12, ftol=1e-12, max_nfev=50)
-    R = Rotation.from_rotvec(sol.x[:3]) * R0
-    T = Transform(R, sol.x[3:])
-    res, J = _residuals_and_jacobian(np.concatenate([np.zeros(3), sol.x[3:]]), R, obs.K, obs.model_m, obs.image_px)
+    sol = least_squares(fun, x0, jac=jac, method="lm", xtol=1e-10, ftol=1e-10, max_nfev=50)
+    T = Transform(Rotation.from_rotvec(sol.x[:3]) * T0.rotation, sol.x[3:])
+    res, J = _at(T, obs)
     return T, _covariance(res, J), float(np.sqrt(np.mean(res**2) * 2.0))
 
 
@@ -369,11 +371,18 @@ class _Solution:
     rms_px: float
 
 
-def _solve_joint(obs: _Observations, config: PoseConfig) -> _Solution | str:
-    start = _consensus_start(obs, config)
-    if start is None:
+def _solve_joint(obs: _Observations, config: PoseConfig, start: Transform | None = None) -> _Solution | str:
+    begin = None
+    if start is not None and _in_front(obs, start):
+        # A predicted pose (tracking) that every tag agrees with replaces the consensus search.
+        inliers = reprojection_errors_px(obs.image_px, obs.K, start, obs.model_m) < _inlier_threshold(obs, config)
+        if np.all(inliers):
+            begin = (start, inliers)
+    if begin is None:
+        begin = _consensus_start(obs, config)
+    if begin is None:
         return "no pose agrees with the detected tags"
-    T, inliers = start
+    T, inliers = begin
     used = obs.subset(inliers)
     # Tags that disagreed with the start may agree with the refined pose: re-admit, then trim.
     for _ in range(5):
@@ -381,15 +390,15 @@ def _solve_joint(obs: _Observations, config: PoseConfig) -> _Solution | str:
             return f"{len(used)} tag(s) left after outlier rejection, need {config.min_tags}"
         T, cov, rms = _refine(used, T)
         err_all = reprojection_errors_px(obs.image_px, obs.K, T, obs.model_m)
-        median = float(np.median(err_all[np.isin(obs.ids, used.ids)]))
+        current = np.isin(obs.ids, used.ids)
+        median = float(np.median(err_all[current]))
         limit = max(config.outlier_ratio * median, config.outlier_floor_px)
         keep = err_all <= limit
         if not np.any(keep):
             return "every tag is an outlier"
-        if tuple(np.array(obs.ids)[keep]) == used.ids:
-            break
+        if np.array_equal(keep, current):
+            return _Solution(T, used, cov, rms)  # refined on exactly the tags it keeps
         # Drop only the worst offender per round, so one bad tag cannot drag good ones out.
-        current = np.isin(obs.ids, used.ids)
         bad = current & ~keep
         if np.any(bad):
             worst = int(np.argmax(np.where(bad, err_all, -np.inf)))
@@ -439,8 +448,7 @@ def _solve_paper(obs: _Observations, config: PoseConfig) -> _Solution | str:
     # A tag is used when any of its corners survived; report reprojection statistics on those.
     tag_keep = keep.reshape(-1, 4).any(axis=1)
     used = obs.subset(tag_keep)
-    res, J = _residuals_and_jacobian(np.concatenate([np.zeros(3), T.translation_m]), T.rotation,
-                                     used.K, used.model_m, used.image_px)
+    res, J = _at(T, used)
     return _Solution(T, used, _covariance(res, J), float(np.sqrt(np.mean(res**2) * 2.0)))
 
 
@@ -455,8 +463,7 @@ def _solve_naive(obs: _Observations, config: PoseConfig) -> _Solution | str:
         return "solvePnP failed"
     rvec, tvec = cv2.solvePnPRefineLM(obj, img, obs.K, None, rvec, tvec)
     T = Transform.from_rvec_tvec(rvec, tvec)
-    res, J = _residuals_and_jacobian(np.concatenate([np.zeros(3), T.translation_m]), T.rotation,
-                                     obs.K, obs.model_m, obs.image_px)
+    res, J = _at(T, obs)
     return _Solution(T, obs, _covariance(res, J), float(np.sqrt(np.mean(res**2) * 2.0)))
 
 
@@ -508,6 +515,7 @@ def estimate_cap_pose(
     model: CapModel,
     camera: CameraModel,
     config: PoseConfig | None = None,
+    start: Transform | None = None,
 ) -> PoseResult:
     """Estimate T_cam_cap from detections of the model's tags.
 
@@ -516,15 +524,20 @@ def estimate_cap_pose(
         model: the cap model (corners in mm).
         camera: intrinsics of the image the detections come from.
         config: estimator settings.
+        start: a predicted pose (tracking), ``joint`` only: when every tag agrees with it, it
+            replaces the consensus search as the refinement's start. The answer does not depend on
+            it beyond the optimiser's tolerance.
     Returns:
         A ``PoseResult``: a ``CapPose``, or ``pose=None`` with the reason.
     """
     config = config or PoseConfig()
     K = camera.K
     groups: dict[int, list[np.ndarray]] = {}
-    for det in detections:
-        if det.tag_id in model:
-            corners = camera.undistort_px(det.corners_px)
+    ours = [d for d in detections if d.tag_id in model]
+    if ours:
+        # One undistortion call for every corner of the frame.
+        undistorted = camera.undistort_px(np.concatenate([d.corners_px for d in ours])).reshape(-1, 4, 2)
+        for det, corners in zip(ours, undistorted):
             if np.all(np.isfinite(corners)):
                 groups.setdefault(det.tag_id, []).append(corners)
     tags_detected = len(groups)
@@ -537,7 +550,10 @@ def estimate_cap_pose(
             f"{len(resolved)} usable tag(s) (after resolving duplicated ids), need {config.min_tags}",
         )
     obs = _make_obs(resolved, model, K)
-    solution = _SOLVERS[config.method](obs, config)
+    if config.method == "joint":
+        solution = _solve_joint(obs, config, start)
+    else:
+        solution = _SOLVERS[config.method](obs, config)
     if isinstance(solution, str):
         return PoseResult(None, tags_detected, solution)
     if not _in_front(solution.used, solution.T):

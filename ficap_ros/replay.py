@@ -1,9 +1,12 @@
 """Replay a recording through the pipeline: labels.mcap, labels.csv and summary.json.
 
-Every frame goes through ``FrameProcessor.process`` (the node's code path). With ``jobs > 1`` the
-main process reads the bag and worker processes decode and process frames; results come back in
-recording order and the per-frame computation does not depend on the worker, so the outputs are
-identical to ``jobs = 1`` (summary.json's timing fields aside).
+Every frame goes through ``FrameProcessor.process`` (the node's code path), with tracking: a frame
+is looked at where the previous frames put the cap. So that the outputs do not depend on how the
+frames are shared out, the recording is cut into segments of ``SEGMENT_FRAMES`` consecutive frames
+and tracking starts afresh (a whole-image search) at each segment's first frame, whatever ``jobs``
+is. With ``jobs > 1`` the main process reads the bag and worker processes decode and process whole
+segments; results come back in recording order, identical to ``jobs = 1`` (summary.json's timing
+fields aside).
 """
 
 from __future__ import annotations
@@ -138,7 +141,14 @@ def _process_one(raw: RawFrame) -> ProcessedFrame:
     )
 
 
-def _process_batch(raws: list[RawFrame]) -> list[ProcessedFrame]:
+#: Frames per tracking segment (see the module docstring): 64 frames are about 2 s at 30 fps, so
+#: the segment's whole-image search costs about a 64th of a search per frame.
+SEGMENT_FRAMES = 64
+
+
+def _process_segment(raws: list[RawFrame]) -> list[ProcessedFrame]:
+    assert _PROCESSOR is not None
+    _PROCESSOR.reset_tracking()
     return [_process_one(raw) for raw in raws]
 
 
@@ -149,10 +159,11 @@ def process_frames(
 
     Undecodable frames come back with ``pose`` None and ``reason`` ``undecodable: ...``.
     """
+    it = iter(raws)
     if jobs <= 1:
         _init_worker(model, pose, single_thread=False)
-        for raw in raws:
-            yield _process_one(raw)
+        while segment := list(islice(it, SEGMENT_FRAMES)):
+            yield from _process_segment(segment)
         return
     import multiprocessing
 
@@ -160,16 +171,14 @@ def process_frames(
         jobs, initializer=_init_worker, initargs=(model, pose, True))
     try:
         # Bounded look-ahead: Pool.imap would read the whole bag into memory ahead of the
-        # workers, so feed it a few small batches per worker at a time, keeping the order.
-        it = iter(raws)
-        batch_size = 4
+        # workers, so keep one segment per worker in flight plus one, in order.
         pending: list[Any] = []
         while True:
-            while len(pending) < 2 * jobs:
-                batch = list(islice(it, batch_size))
-                if not batch:
+            while len(pending) < jobs + 1:
+                segment = list(islice(it, SEGMENT_FRAMES))
+                if not segment:
                     break
-                pending.append(pool.apply_async(_process_batch, (batch,)))
+                pending.append(pool.apply_async(_process_segment, (segment,)))
             if not pending:
                 break
             yield from pending.pop(0).get()

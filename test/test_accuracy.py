@@ -23,7 +23,8 @@ from ficap_ros.synth import RenderConfig, default_scene, naturalistic_drive, ren
 
 MODEL = nominal_model()
 OURS = FrameProcessor(MODEL)
-PEER = FrameProcessor(MODEL, DetectorConfig(corner_refine="subpix"), PoseConfig(method="naive"))
+# The peer is the afternoon pipeline: every frame searched, OpenCV sub-pixel corners, one PnP.
+PEER = FrameProcessor(MODEL, DetectorConfig(corner_refine="subpix"), PoseConfig(method="naive"), tracking=False)
 
 
 @lru_cache(maxsize=None)
