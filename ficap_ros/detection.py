@@ -93,7 +93,8 @@ class DetectorConfig:
             Worth it only where tags are large (1080p with the default camera: 2).
         edge_search_px: half-length of the search along each side's normal (``edge`` refine);
             capped at 0.8 of a tag cell so the search stays on the black border and white margin.
-        edge_step_px: sample spacing along each side's normal (``edge`` refine).
+        edge_profile_samples: samples across each side's window (odd; ``edge`` refine): their
+            spacing is the window's length / (samples - 1).
         edge_samples_per_side: samples along each side (``edge`` refine).
         edge_corner_skip: fraction of each side left out next to each corner (``edge`` refine).
         edge_iterations: search-and-fit passes, each from the previous pass's corners.
@@ -126,7 +127,7 @@ class DetectorConfig:
     search_decimate: int = 1
     # Edge refinement.
     edge_search_px: float = 4.0
-    edge_step_px: float = 0.25
+    edge_profile_samples: int = 17
     edge_window_cells: float = 0.6
     edge_samples_per_side: int = 24
     edge_corner_skip: float = 0.15
@@ -150,8 +151,8 @@ class DetectorConfig:
             raise ConfigError("adaptive_thresh_win_size_step must be >= 1")
         if not 0.0 < self.edge_search_px <= 10.0:
             raise ConfigError(f"edge_search_px must be in (0, 10], got {self.edge_search_px}")
-        if not 0.05 <= self.edge_step_px <= 1.0:
-            raise ConfigError(f"edge_step_px must be in [0.05, 1], got {self.edge_step_px}")
+        if not (5 <= self.edge_profile_samples <= 65 and self.edge_profile_samples % 2 == 1):
+            raise ConfigError(f"edge_profile_samples must be odd, in [5, 65], got {self.edge_profile_samples}")
         if not 4 <= self.edge_samples_per_side <= 256:
             raise ConfigError("edge_samples_per_side must be in [4, 256]")
         if not 0.0 <= self.edge_corner_skip < 0.45:
@@ -388,7 +389,7 @@ def _edge_pass(
     """
     import cv2
 
-    n, m, step = len(corners), cfg.edge_samples_per_side, float(cfg.edge_step_px)
+    n, m = len(corners), cfg.edge_samples_per_side
     a = corners.reshape(-1, 2)  # (R,2) side start
     d = corners[:, _NEXT].reshape(-1, 2) - a  # (R,2) side vector
     length = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
@@ -405,49 +406,47 @@ def _edge_pass(
     opp = corners[:, _OPPOSITE[0]].reshape(-1, 2) + corners[:, _OPPOSITE[1]].reshape(-1, 2) - 2 * a
     width = np.abs(np.einsum("ij,ij->i", opp, nrm)) / 2.0
     cell_side = np.minimum(width / _CELLS_PER_SIDE, cell_px)
-    # Window half-length in samples: the window ends on samples, so the trapezoid integral is exact.
-    half_n = np.floor(np.clip(np.minimum(cfg.edge_search_px, cfg.edge_window_cells * cell_side), 0.75, None)
-                      / step + 1e-9).astype(np.int64)  # (R,)
-    half = half_n * step
-    k = int(half_n.max())
-    j = np.arange(-k, k + 1)  # (S,) sample index along the normal
-    offs = (j * step).astype(np.float32)
+    half = np.clip(np.minimum(cfg.edge_search_px, cfg.edge_window_cells * cell_side), 0.75, None)  # (R,)
+    # Every side's window [-half, half] holds the same number of samples, so their spacing
+    # follows the window (0.1 px on a small tag's side, 0.5 px on a large one's): the same
+    # relative resolution everywhere and one array shape for all sides.
+    k = (cfg.edge_profile_samples - 1) // 2
+    step = half / k  # (R,)
+    j = np.arange(-k, k + 1, dtype=np.float32)  # (S,) sample index along the normal
 
     t = np.linspace(cfg.edge_corner_skip, 1.0 - cfg.edge_corner_skip, m)  # (M,)
-    base = a[:, None, :] + d[:, None, :] * t[None, :, None]  # (R,M,2)
-    nrm32 = nrm.astype(np.float32)
-    map_x = base[..., 0].astype(np.float32)[..., None] + nrm32[:, None, 0:1] * offs  # (R,M,S)
-    map_y = base[..., 1].astype(np.float32)[..., None] + nrm32[:, None, 1:2] * offs
+    base = (a[:, None, :] + d[:, None, :] * t[None, :, None]).astype(np.float32)  # (R,M,2)
+    dn = (nrm * step[:, None]).astype(np.float32)  # (R,2) one sample step along the normal
+    map_x = base[..., 0, None] + dn[:, None, 0:1] * j  # (R,M,S)
+    map_y = base[..., 1, None] + dn[:, None, 1:2] * j
     s_len = len(j)
     # cv2.remap: bilinear in C++ (positions to 1/32 px, values to 1 grey level; both average out
     # over a profile and a side: measured 0.001 px on the median corner error).
     vals = cv2.remap(img, map_x.reshape(-1, s_len), map_y.reshape(-1, s_len), cv2.INTER_LINEAR,
                      borderMode=cv2.BORDER_REPLICATE).reshape(map_x.shape).astype(np.float32)
 
-    # Per-side weights over the profile: the dark level (inner end of the window: black border),
-    # the light level (outer end: white margin), the trapezoid integral over the window.
-    hn = half_n[:, None]
-    ends = np.empty((len(a), s_len, 2), dtype=np.float32)
-    ends[..., 0] = ((j >= -hn) & (j < -hn + 2)) * 0.5  # 2 samples (0.5 px) at each end
-    ends[..., 1] = ((j <= hn) & (j > hn - 2)) * 0.5
-    trap = ((np.abs(j) <= hn) * step - (np.abs(j) == hn) * (0.5 * step)).astype(np.float32)  # (R,S)
-    levels = np.matmul(vals, ends)  # (R,M,2)
-    dark, contrast = levels[..., 0], levels[..., 1] - levels[..., 0]
+    # Dark level: the window's inner end (black border); light level: its outer end (white
+    # margin); the edge: the window's outer end minus the trapezoid integral of the normalised
+    # profile over the window.
+    dark = 0.5 * (vals[..., 0] + vals[..., 1])  # (R,M)
+    contrast = 0.5 * (vals[..., -1] + vals[..., -2]) - dark
     frac = (vals - dark[..., None]) / np.where(contrast > 0, contrast, 1.0)[..., None]
     np.clip(frac, 0.0, 1.0, out=frac)
-    s_edge = half[:, None] - np.matmul(frac, trap[:, :, None])[..., 0].astype(np.float64)  # (R,M)
+    trap = np.ones(s_len, dtype=np.float32)
+    trap[[0, -1]] = 0.5
+    s_edge = half[:, None] - (frac @ trap).astype(np.float64) * step[:, None]  # (R,M)
     contrast = contrast.astype(np.float64)
 
     # Weights: contrast, with weak or inverted profiles dropped (occlusion, glare, the wrong edge),
     # samples whose edge sits at the window's end, and samples off the image.
     med_c = _masked_median(contrast, contrast > 0)
     w = np.where((contrast > 0.3 * med_c[:, None]) & (contrast > 8.0)
-                 & (np.abs(s_edge) < half[:, None] - 0.25), contrast, 0.0)
+                 & (np.abs(s_edge) < half[:, None] - np.maximum(step, 0.25)[:, None]), contrast, 0.0)
     h_img, w_img = img.shape
-    reach = k * step + 1.0
+    reach = float(half.max()) + 1.0
     if not (corners.min() >= reach and np.all(corners.max(axis=(0, 1)) <= (w_img - 1 - reach, h_img - 1 - reach))):
         inside = (map_x >= 0) & (map_y >= 0) & (map_x <= w_img - 1) & (map_y <= h_img - 1)
-        w = w * np.all(inside | ~(np.abs(j) <= hn)[:, None, :], axis=2)
+        w = w * np.all(inside, axis=2)
 
     # Line per side in the side's own coordinates: edge offset s = alpha + beta * (along - mean).
     along = t[None, :] * length[:, None]  # (R,M) px along the side

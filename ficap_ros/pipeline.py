@@ -90,6 +90,9 @@ _TRACK_MAX_AREA = 0.6
 #: Tracking, second look: a tag not verified at the extrapolated pose is looked for again at the
 #: pose of the verified tags when that moves its predicted corners by more than this.
 _TRACK_RETRY_PX = 0.5
+#: Tracking: a refinement pass that moves no corner by more than this started on the edges, so its
+#: result is final.
+_TRACK_CONVERGED_PX = 0.05
 
 
 @dataclass(frozen=True)
@@ -133,13 +136,14 @@ class FrameProcessor:
         self.calibration = calibration or HeadCalibration()
         self.tracking = bool(tracking)
         self.track_config = track or TrackConfig()
-        # Tracked tags start from extrapolated corners, which can be a few px off after a sudden
-        # head movement: a coarse pass with a wide reach (still capped at 0.6 cell) and coarse
-        # sampling, then the detector's own pass from there.
+        # Tracked tags start from extrapolated corners: usually within a tenth of a pixel, so one
+        # refinement pass converges; after a sudden head movement a few px off, out of the fine
+        # pass's reach, so those get a coarse pass with a wide reach (capped at 0.6 cell) first.
         base = self.detector.config
-        self._track_refine = (
+        self._fine_pass = replace(base, edge_iterations=1)
+        self._coarse_passes = (
             replace(base, edge_search_px=8.0, edge_max_shift_px=8.0, edge_iterations=1,
-                    edge_samples_per_side=12, edge_step_px=0.5),
+                    edge_samples_per_side=12, edge_profile_samples=9),
             replace(base, edge_iterations=2),
         )
         # Search-free tracking rests on the edge refinement (it pulls predicted corners onto the
@@ -147,6 +151,7 @@ class FrameProcessor:
         self._verify_tracking = self.tracking and base.corner_refine == "edge"
         self._track: _TrackState | None = None
         self.tracked_frames = 0  # frames whose tags were verified where the cap was predicted
+        self.second_looks = 0  # tracked frames that looked again at the verified tags' pose
         self.roi_searches = 0  # frames searched in the predicted region only
         self.full_searches = 0  # frames searched over the whole image
 
@@ -170,17 +175,33 @@ class FrameProcessor:
         ratio = gap / tr.dt_prev_ns if stamp_ns and tr.stamp_ns and tr.dt_prev_ns > 0 else 1.0
         return extrapolate_pose(tr.T_cam_cap, tr.T_prev, min(ratio, 3.0))
 
-    def _verified(
-        self, gray: np.ndarray, ids: np.ndarray, corners: np.ndarray, passes: tuple[DetectorConfig, ...]
-    ) -> list[TagDetection]:
-        """Refine predicted corners (one call per config) and keep the tags whose cells read as their ids."""
-        refined, ok = corners, np.ones(len(ids), dtype=bool)
-        for config in passes:
-            refined, ok_pass = refine_corners_edge_ok(gray, refined, config)
-            ok &= ok_pass
+    def _refine_predicted(self, gray: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Edge-refine predicted corners: one pass, a second where the first moved a corner by more
+        than ``_TRACK_CONVERGED_PX``, and coarse-then-fine passes where the first failed."""
+        refined, ok = refine_corners_edge_ok(gray, corners, self._fine_pass)
+        moved = np.linalg.norm(refined - corners, axis=2).max(axis=1)
+        again = ok & (moved > _TRACK_CONVERGED_PX)
+        if again.any():
+            refined[again], ok[again] = refine_corners_edge_ok(gray, refined[again], self._fine_pass)
+        if not ok.all():
+            lost = ~ok
+            c = corners[lost]
+            ok_lost = np.ones(len(c), dtype=bool)
+            for config in self._coarse_passes:
+                c, ok_pass = refine_corners_edge_ok(gray, c, config)
+                ok_lost &= ok_pass
+            refined[lost], ok[lost] = c, ok_lost
+        return refined, ok
+
+    def _verified(self, gray: np.ndarray, ids: np.ndarray, corners: np.ndarray) -> tuple[list[TagDetection], float]:
+        """Refine predicted corners and keep the tags whose cells read as their ids; also the
+        largest distance, px, a verified tag's corner moved from its prediction."""
+        refined, ok = self._refine_predicted(gray, corners)
         ver, errors, contrast = verify_tags(gray, ids[ok], refined[ok], self.track_config)
-        return [TagDetection(int(i), c, int(e), float(m))
-                for i, c, e, m in zip(ids[ok][ver], refined[ok][ver], errors[ver], contrast[ver])]
+        moved = np.linalg.norm(refined[ok][ver] - corners[ok][ver], axis=2)
+        return ([TagDetection(int(i), c, int(e), float(m))
+                 for i, c, e, m in zip(ids[ok][ver], refined[ok][ver], errors[ver], contrast[ver])],
+                float(moved.max()) if moved.size else 0.0)
 
     def _track_tags(
         self, gray: np.ndarray, camera: CameraModel, predicted: Transform
@@ -188,13 +209,15 @@ class FrameProcessor:
         """The model's tags verified where ``predicted`` puts them; None when too few verify."""
         cfg = self.track_config
         ids, corners = predict_tags(self.model, camera, predicted, cfg)
-        found = self._verified(gray, ids, corners, self._track_refine)
+        found, moved_px = self._verified(gray, ids, corners)
         if len(found) < cfg.min_tags:
             return None
         missing = np.array([i not in {d.tag_id for d in found} for i in ids], dtype=bool)
-        if missing.any():
-            # Second look: the verified tags pin the pose down; where that moves a missing tag's
-            # predicted corners, the extrapolation was off for it, so refine it again from there.
+        if missing.any() and moved_px > _TRACK_RETRY_PX:
+            # Second look: the verified tags moved from their predicted corners, so the
+            # extrapolation was off; they pin the pose down, and where that pose moves a missing
+            # tag's predicted corners, that tag is refined again from there.
+            self.second_looks += 1
             first = estimate_cap_pose(found, self.model, camera, self.pose_config, start=predicted)
             if first.pose is not None:
                 ids2, corners2 = predict_tags(self.model, camera, first.pose.T_cam_cap, cfg)
@@ -202,7 +225,7 @@ class FrameProcessor:
                 retry = np.array([int(i) in before and np.abs(c - before[int(i)]).max() > _TRACK_RETRY_PX
                                   for i, c in zip(ids2, corners2)], dtype=bool)
                 if retry.any():
-                    found += self._verified(gray, ids2[retry], corners2[retry], (self.detector.config,))
+                    found += self._verified(gray, ids2[retry], corners2[retry])[0]
         return tuple(found)
 
     def _detect_tracked(
