@@ -471,19 +471,19 @@ def _edge_pass(
 
 
 def _fit_side_lines(x: np.ndarray, s: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Weighted straight-line fits s = alpha + beta (x - x_mean) per row, two rounds of 3-sigma
+    """Weighted straight-line fits s = alpha + beta (x - x_mean) per row, one round of 3-sigma
     (MAD) outlier rejection; returns (alpha, beta, samples kept) per row.
 
     A fit in the side's own frame (x along the side, s across it) equals the total-least-squares
     line to first order in the slope, which the previous pass has already made small.
     """
-    for round_ in range(3):
+    for round_ in range(2):
         sw = np.maximum(w.sum(axis=1), 1e-12)
         xm = (w * x).sum(axis=1) / sw
         dx = x - xm[:, None]
         alpha = (w * s).sum(axis=1) / sw
         beta = (w * dx * s).sum(axis=1) / np.maximum((w * dx * dx).sum(axis=1), 1e-12)
-        if round_ == 2:
+        if round_ == 1:
             break
         r = np.abs(s - alpha[:, None] - beta[:, None] * dx)
         mad = 1.4826 * _masked_median(r, w > 0)

@@ -114,6 +114,11 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               choices=("opencv", "apriltag"), read_only=True),
     ParamSpec("detector.corner_refine", "edge", "Corner refinement.",
               choices=("edge", "subpix", "apriltag", "none"), read_only=True),
+    ParamSpec("detector.search_decimate", 1, "Search an image this many times smaller (corners "
+              "are refined at full size); 2 pays off at 1080p and above.", range=(1, 4),
+              read_only=True),
+    ParamSpec("tracking", True, "Follow the cap from frame to frame: verify its tags where the "
+              "last poses predict them, search only when that fails.", read_only=True),
     ParamSpec("pose.method", "joint", "Pose estimator: 'joint' (PnP over all corners) or "
               "'paper' (per-tag + Kabsch + outlier trimming).", choices=tuple(POSE_METHODS)),
     ParamSpec("pose.min_tags", 1, "Fewest tags for a pose.", range=(1, 23)),
@@ -227,9 +232,11 @@ class FicapNode(Node):
         self._processor = FrameProcessor(
             model=model,
             detector=DetectorConfig(backend=cfg["detector.backend"],
-                                    corner_refine=cfg["detector.corner_refine"]),
+                                    corner_refine=cfg["detector.corner_refine"],
+                                    search_decimate=cfg["detector.search_decimate"]),
             pose=PoseConfig(method=cfg["pose.method"], min_tags=cfg["pose.min_tags"]),
             calibration=HeadCalibration(R_cam_frontal=self._R_cam_frontal(cfg)),
+            tracking=cfg["tracking"],
         )
         self._static_camera: CameraModel | None = None
         self._static_camera_error = ""
@@ -563,6 +570,7 @@ class FicapNode(Node):
             "rms_px": pose.rms_px if pose is not None else float("nan"),
             "reliability": pose.reliability if pose is not None else 0.0,
             "calibrated": self._processor.calibration.calibrated,
+            "search": result.search if result is not None else "",
             "latency_ms": latency_ms,
             "dropped_frames": self._dropped,
         }

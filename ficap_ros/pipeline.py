@@ -59,6 +59,9 @@ class FrameResult:
         T_cam_head: head pose in the camera optical frame (None without a pose).
         R_frontal_head: head orientation in the frontal frame (None without a pose).
         detect_ms, pose_ms: time spent, ms.
+        search: how the tags were found: ``tracked`` (verified where the last poses predicted
+            them, no search), ``region`` (searched around the last pose) or ``image`` (the whole
+            image searched).
     """
 
     stamp_ns: int
@@ -69,6 +72,7 @@ class FrameResult:
     R_frontal_head: Rotation | None
     detect_ms: float
     pose_ms: float
+    search: str = "image"
 
     @property
     def tags_detected(self) -> int:
@@ -230,8 +234,9 @@ class FrameProcessor:
 
     def _detect_tracked(
         self, gray: np.ndarray, camera: CameraModel, stamp_ns: int
-    ) -> tuple[tuple[TagDetection, ...], Transform | None]:
-        """Tags of a frame that follows a tracked one, and the predicted pose (None: none).
+    ) -> tuple[tuple[TagDetection, ...], Transform | None, str]:
+        """Tags of a frame, the predicted pose (None: none) and how the tags were found
+        (``FrameResult.search``).
 
         First the tags are looked for where the extrapolated pose puts them (no search); if too
         few verify, the region around the last pose is searched; if that finds fewer tags than
@@ -242,7 +247,7 @@ class FrameProcessor:
             found = self._track_tags(gray, camera, predicted)
             if found is not None:
                 self.tracked_frames += 1
-                return found, predicted
+                return found, predicted, "tracked"
         roi = self._predict_roi(camera, stamp_ns, gray.shape)
         if roi is not None:
             found = tuple(d for d in self.detector.detect(gray, roi=roi) if d.tag_id in self.model)
@@ -258,9 +263,9 @@ class FrameProcessor:
                 for d in found)
             if inside or len({d.tag_id for d in found}) >= self._track.n_tags:
                 self.roi_searches += 1
-                return found, predicted
+                return found, predicted, "region"
         self.full_searches += 1
-        return tuple(d for d in self.detector.detect(gray) if d.tag_id in self.model), predicted
+        return tuple(d for d in self.detector.detect(gray) if d.tag_id in self.model), predicted, "image"
 
     def _predict_roi(
         self, camera: CameraModel, stamp_ns: int, shape: tuple[int, ...]
@@ -333,10 +338,10 @@ class FrameProcessor:
         it was found. Frames without a recent predecessor are searched over the whole image.
         """
         t0 = time.perf_counter()
-        predicted = None
+        predicted, search = None, "image"
         if self.tracking:
             gray = as_gray(image)
-            detections, predicted = self._detect_tracked(gray, camera, int(stamp_ns))
+            detections, predicted, search = self._detect_tracked(gray, camera, int(stamp_ns))
         else:
             detections = self.detect(image)
         t1 = time.perf_counter()
@@ -357,4 +362,5 @@ class FrameProcessor:
             R_frontal_head=None if pose is None else self.calibration.head_in_frontal(pose.T_cam_cap),
             detect_ms=(t1 - t0) * 1e3,
             pose_ms=(t2 - t1) * 1e3,
+            search=search,
         )

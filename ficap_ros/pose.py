@@ -161,9 +161,9 @@ class _Observations:
         return len(self.ids)
 
 
-def _project(K: np.ndarray, rotation: Rotation, t_m: np.ndarray, points_m: np.ndarray) -> np.ndarray:
+def _project(K: np.ndarray, T: Transform, points_m: np.ndarray) -> np.ndarray:
     """Pinhole projection (no distortion) of points (..., 3) in the cap frame."""
-    p = rotation.apply(points_m.reshape(-1, 3)) + t_m
+    p = T.apply(points_m.reshape(-1, 3))
     z = p[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         u = K[0, 0] * p[:, 0] / z + K[0, 1] * p[:, 1] / z + K[0, 2]
@@ -173,7 +173,7 @@ def _project(K: np.ndarray, rotation: Rotation, t_m: np.ndarray, points_m: np.nd
 
 def reprojection_errors_px(obs_px: np.ndarray, K: np.ndarray, T: Transform, model_m: np.ndarray) -> np.ndarray:
     """Per-tag RMS reprojection error (T,) in px of corners (T, 4, 2) under pose ``T``."""
-    proj = _project(K, T.rotation, T.translation_m, model_m)
+    proj = _project(K, T, model_m)
     return np.sqrt(np.mean(np.sum((proj - obs_px) ** 2, axis=-1), axis=-1))
 
 
@@ -218,13 +218,13 @@ def _residuals_and_jacobian(
 
 def _at(T: Transform, obs: _Observations) -> tuple[np.ndarray, np.ndarray]:
     """Residuals and Jacobian at pose ``T`` itself (d_theta = 0)."""
-    return _residuals_and_jacobian(np.concatenate([np.zeros(3), T.translation_m]), T.rotation.as_matrix(),
+    return _residuals_and_jacobian(np.concatenate([np.zeros(3), T.translation_m]), T.rotation_matrix,
                                    obs.K, obs.model_m, obs.image_px)
 
 
 def _refine(obs: _Observations, T0: Transform) -> tuple[Transform, np.ndarray, float]:
     """Least-squares reprojection refinement; returns (pose, covariance ROS order, rms_px)."""
-    R0 = T0.rotation.as_matrix()
+    R0 = T0.rotation_matrix
     x0 = np.concatenate([np.zeros(3), T0.translation_m])
 
     # least_squares asks for the residuals and then the Jacobian at the same x: compute both once.

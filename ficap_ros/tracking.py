@@ -100,7 +100,7 @@ def view_angles_deg(model: CapModel, T_cam_cap: Transform) -> np.ndarray:
     """Angle (model.ids order) between each tag's outward normal and its line of sight to the
     camera, deg: 0 = seen head-on, 90 = edge-on, above 90 = facing away."""
     centres_cam = T_cam_cap.apply(model.centres_mm / 1000.0)
-    normals_cam = T_cam_cap.rotation.apply(model.normals)
+    normals_cam = model.normals @ T_cam_cap.rotation_matrix.T
     dist = np.maximum(np.linalg.norm(centres_cam, axis=1), 1e-9)
     return np.degrees(np.arccos(np.clip(-np.einsum("ij,ij->i", normals_cam, centres_cam) / dist, -1.0, 1.0)))
 

@@ -9,6 +9,7 @@ our CSV columns are w, x, y, z) or ``q_xyzw`` (scipy's order).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -78,11 +79,17 @@ class Transform:
         r_inv = self.rotation.inv()
         return Transform(r_inv, -r_inv.apply(np.array(self.translation_m)))
 
+    @cached_property
+    def rotation_matrix(self) -> np.ndarray:
+        """3x3 rotation matrix R_a_b (read-only; computed once: the pose code applies it often)."""
+        m = self.rotation.as_matrix()
+        m.setflags(write=False)
+        return m
+
     def apply(self, points: np.ndarray) -> np.ndarray:
         """Map points (..., 3) from frame b into frame a (same length unit as the translation)."""
-        return self.rotation.apply(np.array(points, dtype=np.float64).reshape(-1, 3)).reshape(
-            np.shape(points)
-        ) + self.translation_m
+        pts = np.asarray(points, dtype=np.float64)
+        return (pts.reshape(-1, 3) @ self.rotation_matrix.T + self.translation_m).reshape(pts.shape)
 
 
 #: Rotation of a REP-103 body frame (x forward, y left, z up) whose x axis looks along the camera's

@@ -84,13 +84,15 @@ def test_tracked_frames_match_searched_frames() -> None:
     scene, frames = _drive(24, 590)
     tracked = FrameProcessor(MODEL)
     searched = FrameProcessor(MODEL, tracking=False)
-    err_t, err_s, found_t, found_s, n_visible = [], [], 0, 0, 0
+    err_t, err_s, found_t, found_s, n_visible, n_tracked = [], [], 0, 0, 0, 0
     corner_t: list[np.ndarray] = []
     corner_s: list[np.ndarray] = []
     for k, frame in enumerate(frames):
         rt = tracked.process(frame.image, scene.camera, (k + 1) * FRAME_NS)
         rs = searched.process(frame.image, scene.camera, (k + 1) * FRAME_NS)
         assert rt.pose is not None and rs.pose is not None
+        n_tracked += rt.search == "tracked"
+        assert rs.search == "image"
         err_t.append(angle_deg(rt.pose.T_cam_cap.rotation, frame.T_cam_cap.rotation))
         err_s.append(angle_deg(rs.pose.T_cam_cap.rotation, frame.T_cam_cap.rotation))
         vis = _visible(frame)
@@ -107,6 +109,7 @@ def test_tracked_frames_match_searched_frames() -> None:
                 corner_t.append(np.linalg.norm(d.corners_px - frame.corners_px[d.tag_id], axis=1))
                 corner_s.append(np.linalg.norm(by_id[d.tag_id] - frame.corners_px[d.tag_id], axis=1))
     assert tracked.tracked_frames >= len(frames) - 2, (tracked.tracked_frames, tracked.full_searches)
+    assert n_tracked == tracked.tracked_frames
     assert found_t >= found_s
     assert np.median(err_t) <= 1.25 * np.median(err_s) + 0.002
     assert np.percentile(err_t, 95) <= 1.25 * np.percentile(err_s, 95) + 0.002
