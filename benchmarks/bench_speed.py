@@ -4,16 +4,20 @@ Per frame, one process, one thread (cv2.setNumThreads(1), nthreads=1): JPEG deco
 and total ms at 540p and 1080p on consecutive rendered drive frames (a glance included, JPEG q95 as
 ``ficap synth`` writes), with each detector's recall (tags at least 99.9 % visible in the render)
 and false detections on the same frames, and recall on the real photos of
-``/work/shared/data/real_apriltag/swatbotics_mapping_feb_2014`` (hand-labelled ids). Then the
-wall-clock throughput of ``ficap replay`` with ``--jobs 1`` and ``--jobs 2`` on a ``ficap synth`` bag.
+``/work/shared/data/real_apriltag/swatbotics_mapping_feb_2014`` (hand-labelled ids). "raw" = detect +
+pose (an uncompressed image in memory, as the node gets from a raw Image topic). Then where the time
+goes (cProfile of the default pipeline at 1080p, shares of the total), and the wall-clock throughput
+of ``ficap replay`` with ``--jobs 1`` and ``--jobs 2`` on a ``ficap synth`` bag.
 
-Usage: .venv/bin/python benchmarks/bench_speed.py [--frames 60] [--replay-frames 150] [--record]
+Usage: .venv/bin/python benchmarks/bench_speed.py [--frames 150] [--replay-frames 150] [--record]
 """
 
 from __future__ import annotations
 
 import argparse
+import cProfile
 import os
+import pstats
 import subprocess
 import sys
 import tempfile
@@ -85,13 +89,14 @@ def frame_table(n_frames: int) -> tuple[list[list[object]], dict]:
             prog.update()
         for name, proc in pipelines().items():
             dec_ms, det_ms, pose_ms, tot_ms = [], [], [], []
-            hits = n_true = fp = 0
-            for buf, (vis, front) in zip(jpegs, truth):
+            hits = n_true = fp = searched = 0
+            for k, (buf, (vis, front)) in enumerate(zip(jpegs, truth)):
                 t0 = time.perf_counter()
                 gray = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
                 t1 = time.perf_counter()
                 if isinstance(proc, FrameProcessor):
-                    r = proc.process(gray, scene.camera, 0)
+                    r = proc.process(gray, scene.camera, (k + 1) * FRAME_NS)
+                    searched += r.search != "tracked"
                     ids = {d.tag_id for d in r.detections}
                     det_ms.append(r.detect_ms)
                     pose_ms.append(r.pose_ms)
@@ -106,12 +111,50 @@ def frame_table(n_frames: int) -> tuple[list[list[object]], dict]:
                 n_true += len(vis)
                 fp += len(ids - front)
             tot = float(np.mean(tot_ms))
+            raw = tot - float(np.mean(dec_ms))
             rows.append([res, name, f"{np.mean(dec_ms):.2f}", f"{np.mean(det_ms):.2f}",
                          "-" if np.isnan(pose_ms).all() else f"{np.nanmean(pose_ms):.2f}",
-                         f"{tot:.2f}", f"{1000 / tot:.0f}", f"{hits / max(n_true, 1):.3f}", fp])
-            headline[(res, name)] = tot
+                         f"{raw:.2f}", f"{1000 / raw:.0f}", f"{np.median(np.subtract(tot_ms, dec_ms)):.2f}",
+                         f"{tot:.2f}", f"{1000 / tot:.0f}", f"{hits / max(n_true, 1):.3f}", fp,
+                         searched if isinstance(proc, FrameProcessor) else "-"])
+            headline[(res, name)] = (tot, raw, hits / max(n_true, 1))
             print(f"{res} {name:40} " + " ".join(str(c) for c in rows[-1][2:]), file=sys.stderr)
+        if res == "1080p":
+            headline["profile"] = profile_table(jpegs, scene.camera)
     return rows, headline
+
+
+#: Frame spacing of the 30 fps drive, ns (tracking extrapolates with the stamps).
+FRAME_NS = 33_333_333
+
+#: Stages of the default pipeline, by the function that does each (cumulative time).
+STAGES = (
+    ("predict the tags (extrapolated pose, projection)", "tracking.py", "predict_tags"),
+    ("edge refinement of tracked tags", "pipeline.py", "_refine_predicted"),
+    ("verify tracked tags (read their cells)", "tracking.py", "verify_tags"),
+    ("search (ArUco + edge refinement; first frame, fallbacks)", "detection.py", "detect"),
+    ("pose (joint, incl. the second look's)", "pose.py", "estimate_cap_pose"),
+    ("JPEG decode (replay only)", "~", "<built-in method cv2.imdecode>"),
+)
+
+
+def profile_table(jpegs: list[np.ndarray], camera) -> list[list[object]]:
+    """Where the default pipeline's time goes: cProfile cumulative time per stage, as shares."""
+    proc = FrameProcessor(nominal_model())
+    prof = cProfile.Profile()
+    prof.enable()
+    for k, buf in enumerate(jpegs):
+        proc.process(cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE), camera, (k + 1) * FRAME_NS)
+    prof.disable()
+    stats = pstats.Stats(prof).stats  # {(file, line, func): (cc, nc, tt, ct, callers)}
+    total = sum(v[2] for v in stats.values())
+    rows = []
+    for label, file_end, func in STAGES:
+        ct = sum(v[3] for (f, _line, name), v in stats.items() if name == func and f.endswith(file_end))
+        if func.startswith("<built-in"):
+            ct = sum(v[3] for (f, _line, name), v in stats.items() if "imdecode" in name)
+        rows.append([label, f"{100 * ct / total:.0f} %"])
+    return rows
 
 
 def swat_table() -> list[list[object]]:
@@ -169,7 +212,7 @@ def replay_table(n_frames: int) -> list[list[object]]:
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--frames", type=int, default=60, help="consecutive frames per resolution (default 60)")
+    ap.add_argument("--frames", type=int, default=150, help="consecutive frames per resolution (default 150)")
     ap.add_argument("--replay-frames", type=int, default=150, help="frames of the replayed bag (0: skip)")
     ap.add_argument("--record", action="store_true")
     args = ap.parse_args()
@@ -186,13 +229,21 @@ def main() -> int:
              "detected that are not on a front-facing face. 'AprilTag 3 ... + joint pose' is pupil-apriltags "
              "1-thread detection (library corners) with our pose; ArUco defaults = "
              "cv2.aruco.DetectorParameters() untouched.", "",
-             md_table(["res", "pipeline", "decode", "detect", "pose", "total", "fps", "recall", "false"], rows)]
+             md_table(["res", "pipeline", "decode", "detect", "pose", "raw", "raw fps", "raw median", "total",
+                       "fps", "recall", "false", "searched"], rows),
+             "", "'raw' = detect + pose (mean ms; an uncompressed image, as from a raw Image topic); 'total' adds "
+             "the JPEG decode (a compressed bag); 'searched' = frames the pipeline had to search (the rest were "
+             "tracked: verified where the last poses predicted the tags)."]
     for res in ("540p", "1080p"):
-        at3 = head[(res, "AprilTag 3 decimate 1 + joint pose")]
+        at3_tot, at3_raw, at3_rec = head[(res, "AprilTag 3 decimate 1 + joint pose")]
         for name in ("ficap (tracking)", "ficap (tracking, search_decimate 2)"):
-            ours = head[(res, name)]
-            parts += ["", f"{res}: {name} total {ours:.1f} ms/frame = {at3 / ours:.1f}x faster than AprilTag 3 "
-                      f"decimate 1 (+ the same pose) on the same frames (compare the recall column)."]
+            tot, raw, rec = head[(res, name)]
+            parts += ["", f"{res}: {name}: raw {raw:.1f} ms/frame ({1000 / raw:.0f} fps), with JPEG decode "
+                      f"{tot:.1f} ms/frame = {at3_tot / tot:.1f}x faster than AprilTag 3 decimate 1 (+ the same pose) "
+                      f"on the same frames, recall {rec:.3f} vs {at3_rec:.3f}."]
+    parts += ["", "### Where the time goes (cProfile of `ficap (tracking)` over the 1080p frames, decode included; "
+              "shares of the total, profiler overhead included)", "",
+              md_table(["stage", "share"], head["profile"])]
     if swat:
         parts += ["", "### Recall on real photos (swatbotics mapping_feb_2014, 72 images, hand-labelled ids)", "",
                   md_table(["detector", "found", "recall", "false", "ms/image (816x612)"], swat)]

@@ -537,8 +537,9 @@ def estimate_cap_pose(
     if ours:
         # One undistortion call for every corner of the frame.
         undistorted = camera.undistort_px(np.concatenate([d.corners_px for d in ours])).reshape(-1, 4, 2)
-        for det, corners in zip(ours, undistorted):
-            if np.all(np.isfinite(corners)):
+        finite = np.isfinite(undistorted).all(axis=(1, 2))
+        for det, corners, ok in zip(ours, undistorted, finite):
+            if ok:
                 groups.setdefault(det.tag_id, []).append(corners)
     tags_detected = len(groups)
     if tags_detected == 0:

@@ -141,9 +141,9 @@ def _process_one(raw: RawFrame) -> ProcessedFrame:
     )
 
 
-#: Frames per tracking segment (see the module docstring): 64 frames are about 2 s at 30 fps, so
-#: the segment's whole-image search costs about a 64th of a search per frame.
-SEGMENT_FRAMES = 64
+#: Frames per tracking segment (see the module docstring): 128 frames are about 4 s at 30 fps, so
+#: the segment's whole-image search costs about a 128th of a search per frame.
+SEGMENT_FRAMES = 128
 
 
 def _process_segment(raws: list[RawFrame]) -> list[ProcessedFrame]:
