@@ -44,6 +44,11 @@ def machine_line() -> str:
         pass
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True,
                             text=True).stdout.strip() or "unknown"
+    # The package is installed editable: uncommitted changes to it are what the benchmark measured.
+    dirty = subprocess.run(["git", "status", "--porcelain", "--", "ficap_ros", "benchmarks"], cwd=ROOT,
+                           capture_output=True, text=True).stdout.strip()
+    if dirty:
+        commit += "+dirty"
     return (f"{dt.datetime.now().strftime('%Y-%m-%d %H:%M')}, {cpu}, {os.cpu_count()} cores, "
             f"Python {platform.python_version()}, OpenCV {cv2.__version__}, commit {commit}")
 

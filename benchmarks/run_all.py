@@ -19,9 +19,8 @@ from pathlib import Path
 HERE = Path(__file__).resolve().parent
 RUNS = {
     "calibration": ["bench_calibration.py", "--sessions", "10"],
-    "visibility": ["bench_visibility.py", "--frames", "3600", "--stride", "12", "--sweep-frames", "1800",
-                   "--sweep-stride", "30"],
-    "speed": ["bench_speed.py", "--frames", "60", "--replay-frames", "150"],
+    "visibility": ["bench_visibility.py"],
+    "speed": ["bench_speed.py", "--frames", "150", "--replay-frames", "300"],
     "accuracy": ["bench_accuracy.py", "--frames", "1800", "--stride", "18"],
     "node": ["bench_node.py", "--rates", "10,15,30,60", "--seconds", "4"],
     "pipeline": ["bench_pipeline.py", "--frames", "20"],
