@@ -7,7 +7,15 @@ its image (matched by stamp), p50/p99. A rate is sustained when at least 99 % of
 frames come back with a pose (the node's one-slot mailbox drops frames it cannot keep up with).
 DDS stays on loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, ROS_DOMAIN_ID 16 unless set).
 
-Usage: .venv/bin/python benchmarks/bench_node.py [--rates 15,30,60,120] [--seconds 5] [--record]
+``--transports default,LARGE_DATA`` repeats the runs with Fast DDS's builtin-transports setting
+(``FASTDDS_BUILTIN_TRANSPORTS``, Fast DDS >= 2.13): ``DEFAULT`` sends a sample bigger than the
+shared-memory segment as UDP fragments, which best-effort delivery loses under load (a 1080p mono8
+image is 2 MB); ``LARGE_DATA`` moves user data to shared memory / TCP. ``compressed`` publishes
+JPEG (quality 95) ``CompressedImage`` on ``image/compressed`` to a node started with
+``image_transport:=compressed`` (default transports).
+
+Usage: .venv/bin/python benchmarks/bench_node.py [--rates 15,30,60,120] [--seconds 5]
+       [--transports default,LARGE_DATA] [--record]
 """
 
 from __future__ import annotations
@@ -20,6 +28,7 @@ import threading
 import time
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
@@ -34,14 +43,17 @@ def main() -> int:
     ap.add_argument("--rates", default="15,30,60,120")
     ap.add_argument("--seconds", type=float, default=5.0)
     ap.add_argument("--resolutions", default="540p,1080p")
-    ap.add_argument("--frames", type=int, default=30, help="distinct rendered frames, looped")
+    ap.add_argument("--frames", type=int, default=90, help="distinct consecutive rendered frames, looped")
+    ap.add_argument("--transports", default="default",
+                    help="comma-separated: default, compressed (JPEG on image/compressed) or a "
+                         "FASTDDS_BUILTIN_TRANSPORTS value such as LARGE_DATA")
     ap.add_argument("--record", action="store_true")
     args = ap.parse_args()
 
     import rclpy
     from geometry_msgs.msg import PoseStamped
     from rclpy.executors import SingleThreadedExecutor
-    from sensor_msgs.msg import CameraInfo, Image
+    from sensor_msgs.msg import CameraInfo, CompressedImage, Image
     from std_msgs.msg import Header
 
     from ficap_ros import ros_msgs
@@ -49,13 +61,25 @@ def main() -> int:
     from ficap_ros.synth import RenderConfig, default_scene, naturalistic_drive, render
 
     rows = []
-    env = dict(os.environ)
-    for res in args.resolutions.split(","):
-        scene = default_scene(res)
-        model = nominal_model()
-        drive = naturalistic_drive(600 + args.frames, fps=30.0, seed=0, scene=scene)[600:]
-        images = [render(model, scene.camera, d.T_cam_cap, RenderConfig(), seed=d.index).image for d in drive]
-        node_proc = subprocess.Popen([sys.executable, "-m", "ficap_ros.node"], env=env,
+    runs = [(res, tr) for tr in args.transports.split(",") for res in args.resolutions.split(",")]
+    rendered: dict[str, tuple] = {}
+    for res, transport in runs:
+        os.environ.pop("FASTDDS_BUILTIN_TRANSPORTS", None)
+        if transport not in ("default", "compressed"):
+            os.environ["FASTDDS_BUILTIN_TRANSPORTS"] = transport
+        compressed = transport == "compressed"
+        env = dict(os.environ)
+        if res not in rendered:
+            scene = default_scene(res)
+            model = nominal_model()
+            drive = naturalistic_drive(600 + args.frames, fps=30.0, seed=0, scene=scene)[600:]
+            rendered[res] = (scene, [render(model, scene.camera, d.T_cam_cap, RenderConfig(), seed=d.index).image
+                                     for d in drive])
+        scene, images = rendered[res]
+        node_cmd = [sys.executable, "-m", "ficap_ros.node"]
+        if compressed:
+            node_cmd += ["--ros-args", "-p", "image_transport:=compressed"]
+        node_proc = subprocess.Popen(node_cmd, env=env,
                                      stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         rclpy.init()
         peer = rclpy.create_node("ficap_bench_peer")
@@ -68,7 +92,9 @@ def main() -> int:
                 arrivals[ros_msgs.stamp_to_ns(msg.header.stamp)] = t
 
         peer.create_subscription(PoseStamped, "cap_pose", on_pose, 100)
-        pub_img = peer.create_publisher(Image, "image", 5)
+        pub_img = (peer.create_publisher(CompressedImage, "image/compressed", 5) if compressed
+                   else peer.create_publisher(Image, "image", 5))
+        jpegs = [cv2.imencode(".jpg", im, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes() for im in images]
         pub_info = peer.create_publisher(CameraInfo, "camera_info", 5)
         ex = SingleThreadedExecutor()
         ex.add_node(peer)
@@ -90,7 +116,10 @@ def main() -> int:
                 h.stamp = ros_msgs.ns_to_stamp(st)
                 h.frame_id = "camera"
                 info = ros_msgs.camera_model_to_info(scene.camera, h)
-                im = ros_msgs.array_to_image(msgs[i % len(msgs)], "mono8", h)
+                if compressed:
+                    im = CompressedImage(header=h, format="jpeg", data=jpegs[i % len(jpegs)])
+                else:
+                    im = ros_msgs.array_to_image(msgs[i % len(msgs)], "mono8", h)
                 pub_info.publish(info)
                 t = time.perf_counter()
                 pub_img.publish(im)
@@ -117,7 +146,7 @@ def main() -> int:
                 with lock:
                     lat = np.array([(arrivals[s] - t) * 1e3 for s, t in sent.items() if s in arrivals])
                 frac = len(lat) / max(n, 1)
-                rows.append([res, f"{rate:.0f}", n, f"{100 * frac:.1f} %",
+                rows.append([res, transport, f"{rate:.0f}", n, f"{100 * frac:.1f} %",
                              f"{np.percentile(lat, 50):.1f}" if len(lat) else "-",
                              f"{np.percentile(lat, 99):.1f}" if len(lat) else "-",
                              "yes" if frac >= 0.99 else "no"])
@@ -132,7 +161,7 @@ def main() -> int:
         f"Machine: {machine_line()}; {load_avg()} at the end. Node process with default parameters "
         "(opencv + edge, joint pose, tracking), raw mono8 images from another process over loopback DDS "
         f"(Fast DDS unless RMW_IMPLEMENTATION says otherwise), {args.seconds:.0f} s per rate.", "",
-        md_table(["res", "input Hz", "frames sent", "frames with pose", "latency p50 ms", "p99 ms",
+        md_table(["res", "DDS transports", "input Hz", "frames sent", "frames with pose", "latency p50 ms", "p99 ms",
                   "sustained (>= 99 %)"], rows)])
     print(text)
     if args.record:
