@@ -10,7 +10,8 @@ DDS stays on loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, ROS_DOMAIN_ID 16
 ``--transports default,LARGE_DATA`` repeats the runs with Fast DDS's builtin-transports setting
 (``FASTDDS_BUILTIN_TRANSPORTS``, Fast DDS >= 2.13): ``DEFAULT`` sends a sample bigger than the
 shared-memory segment as UDP fragments, which best-effort delivery loses under load (a 1080p mono8
-image is 2 MB); ``LARGE_DATA`` moves user data to shared memory / TCP. ``compressed`` publishes
+image is 2 MB); ``LARGE_DATA`` moves user data to shared memory / TCP; ``shm_large`` loads
+``config/fastdds_shm_large.xml`` (shared memory only, 32 MB segments). ``compressed`` publishes
 JPEG (quality 95) ``CompressedImage`` on ``image/compressed`` to a node started with
 ``image_transport:=compressed`` (default transports).
 
@@ -21,9 +22,11 @@ Usage: .venv/bin/python benchmarks/bench_node.py [--rates 15,30,60,120] [--secon
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import subprocess
 import sys
+import tempfile
 import threading
 import time
 from pathlib import Path
@@ -35,7 +38,7 @@ os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.setdefault("ROS_DOMAIN_ID", "16")
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import load_avg, machine_line, md_table, record_section  # noqa: E402
+from _common import ROOT, load_avg, machine_line, md_table, record_section  # noqa: E402
 
 
 def main() -> int:
@@ -45,10 +48,51 @@ def main() -> int:
     ap.add_argument("--resolutions", default="540p,1080p")
     ap.add_argument("--frames", type=int, default=90, help="distinct consecutive rendered frames, looped")
     ap.add_argument("--transports", default="default",
-                    help="comma-separated: default, compressed (JPEG on image/compressed) or a "
+                    help="comma-separated: default, compressed (JPEG on image/compressed), shm_large or a "
                          "FASTDDS_BUILTIN_TRANSPORTS value such as LARGE_DATA")
     ap.add_argument("--record", action="store_true")
+    ap.add_argument("--rows-json", type=Path, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
+    transports = args.transports.split(",")
+    if len(transports) == 1:
+        rows = measure(args, transports[0])
+    else:
+        # Fast DDS reads its transport settings once per process (at the first participant), so
+        # every transport runs in a process of its own, with the setting in place from the start.
+        rows = []
+        with tempfile.TemporaryDirectory() as tmp:
+            for tr in transports:
+                out = Path(tmp) / f"{tr}.json"
+                cmd = [sys.executable, __file__, "--transports", tr, "--rates", args.rates, "--seconds",
+                       str(args.seconds), "--resolutions", args.resolutions, "--frames", str(args.frames),
+                       "--rows-json", str(out)]
+                subprocess.run(cmd, check=True)
+                rows += json.loads(out.read_text())
+    if args.rows_json is not None:
+        args.rows_json.write_text(json.dumps(rows))
+        return 0
+    text = "\n".join([
+        f"Machine: {machine_line()}; {load_avg()} at the end. Node process with default parameters "
+        "(opencv + edge, joint pose, tracking), raw mono8 images (or JPEG, 'compressed') from another "
+        "process over loopback DDS (Fast DDS), each transport setting in fresh processes, "
+        f"{args.seconds:.0f} s per rate.", "",
+        md_table(["res", "DDS transports", "input Hz", "frames sent", "frames with pose", "latency p50 ms", "p99 ms",
+                  "sustained (>= 99 %)"], rows)])
+    print(text)
+    if args.record:
+        record_section("Node latency and rate (rclpy, loopback)", text)
+    return 0
+
+
+def measure(args: argparse.Namespace, transport: str) -> list[list[object]]:
+    """Rows of the table for one transport setting (set before this process makes a participant)."""
+    os.environ.pop("FASTDDS_BUILTIN_TRANSPORTS", None)
+    os.environ.pop("FASTRTPS_DEFAULT_PROFILES_FILE", None)
+    if transport == "shm_large":
+        os.environ["FASTRTPS_DEFAULT_PROFILES_FILE"] = str(ROOT / "config" / "fastdds_shm_large.xml")
+    elif transport not in ("default", "compressed"):
+        os.environ["FASTDDS_BUILTIN_TRANSPORTS"] = transport
+    compressed = transport == "compressed"
 
     import rclpy
     from geometry_msgs.msg import PoseStamped
@@ -60,22 +104,13 @@ def main() -> int:
     from ficap_ros.cap_model import nominal_model
     from ficap_ros.synth import RenderConfig, default_scene, naturalistic_drive, render
 
-    rows = []
-    runs = [(res, tr) for tr in args.transports.split(",") for res in args.resolutions.split(",")]
-    rendered: dict[str, tuple] = {}
-    for res, transport in runs:
-        os.environ.pop("FASTDDS_BUILTIN_TRANSPORTS", None)
-        if transport not in ("default", "compressed"):
-            os.environ["FASTDDS_BUILTIN_TRANSPORTS"] = transport
-        compressed = transport == "compressed"
-        env = dict(os.environ)
-        if res not in rendered:
-            scene = default_scene(res)
-            model = nominal_model()
-            drive = naturalistic_drive(600 + args.frames, fps=30.0, seed=0, scene=scene)[600:]
-            rendered[res] = (scene, [render(model, scene.camera, d.T_cam_cap, RenderConfig(), seed=d.index).image
-                                     for d in drive])
-        scene, images = rendered[res]
+    rows: list[list[object]] = []
+    env = dict(os.environ)
+    for res in args.resolutions.split(","):
+        scene = default_scene(res)
+        model = nominal_model()
+        drive = naturalistic_drive(600 + args.frames, fps=30.0, seed=0, scene=scene)[600:]
+        images = [render(model, scene.camera, d.T_cam_cap, RenderConfig(), seed=d.index).image for d in drive]
         node_cmd = [sys.executable, "-m", "ficap_ros.node"]
         if compressed:
             node_cmd += ["--ros-args", "-p", "image_transport:=compressed"]
@@ -157,16 +192,7 @@ def main() -> int:
             rclpy.try_shutdown()
             node_proc.terminate()
             node_proc.wait(timeout=20)
-    text = "\n".join([
-        f"Machine: {machine_line()}; {load_avg()} at the end. Node process with default parameters "
-        "(opencv + edge, joint pose, tracking), raw mono8 images from another process over loopback DDS "
-        f"(Fast DDS unless RMW_IMPLEMENTATION says otherwise), {args.seconds:.0f} s per rate.", "",
-        md_table(["res", "DDS transports", "input Hz", "frames sent", "frames with pose", "latency p50 ms", "p99 ms",
-                  "sustained (>= 99 %)"], rows)])
-    print(text)
-    if args.record:
-        record_section("Node latency and rate (rclpy, loopback)", text)
-    return 0
+    return rows
 
 
 if __name__ == "__main__":
