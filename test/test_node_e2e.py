@@ -114,6 +114,11 @@ def test_poses_come_back_with_stamps_and_accuracy(drive, harness_factory) -> Non
     assert np.percentile(rot_err, 95) < 1.0
     assert np.median(pos_err) < 0.01
     assert all(_level(s) in (ros_msgs.LEVEL_OK, ros_msgs.LEVEL_WARN) for s in statuses)
+    # The status says how each frame's tags were found: the first by a whole-image search, later
+    # ones close in time to a posed frame by tracking.
+    searches = [next(kv.value for kv in s.values if kv.key == "search") for s in statuses]
+    assert set(searches) <= {"tracked", "region", "image"}
+    assert searches[0] == "image" and "tracked" in searches
 
 
 def test_frontal_calibration(drive, harness_factory, tmp_path) -> None:
