@@ -77,11 +77,22 @@ def main() -> int:
         "process over loopback DDS (Fast DDS), each transport setting in fresh processes, "
         f"{args.seconds:.0f} s per rate.", "",
         md_table(["res", "DDS transports", "input Hz", "frames sent", "frames with pose", "latency p50 ms", "p99 ms",
-                  "sustained (>= 99 %)"], rows)])
+                  "sustained (>= 99 %)", "node peak RSS MB"], rows)])
     print(text)
     if args.record:
         record_section("Node latency and rate (rclpy, loopback)", text)
     return 0
+
+
+def _peak_rss_mb(pid: int) -> str:
+    """The process's peak resident memory (VmHWM), MB, from /proc; '-' where unavailable."""
+    try:
+        for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+            if line.startswith("VmHWM:"):
+                return f"{int(line.split()[1]) / 1024:.0f}"
+    except OSError:
+        pass
+    return "-"
 
 
 def measure(args: argparse.Namespace, transport: str) -> list[list[object]]:
@@ -190,6 +201,10 @@ def measure(args: argparse.Namespace, transport: str) -> list[list[object]]:
             ex.shutdown()
             peer.destroy_node()
             rclpy.try_shutdown()
+            peak_mb = _peak_rss_mb(node_proc.pid)
+            for row in rows:
+                if row[0] == res and row[1] == transport and len(row) == 8:
+                    row.append(peak_mb)
             node_proc.terminate()
             node_proc.wait(timeout=20)
     return rows

@@ -190,6 +190,14 @@ def swat_table() -> list[list[object]]:
     return rows
 
 
+#: Runs argv[1:] and prints the peak resident memory (KiB) of the largest process it waited for
+#: (with --jobs N: the largest of the main process and its workers).
+_PEAK_RSS_PROBE = (
+    "import resource, subprocess, sys; subprocess.run(sys.argv[1:], check=True); "
+    "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)"
+)
+
+
 def replay_table(n_frames: int) -> list[list[object]]:
     ficap = [sys.executable, "-m", "ficap_ros.cli"]
     env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=os.environ.get("ROS_DOMAIN_ID", "16"))
@@ -202,10 +210,13 @@ def replay_table(n_frames: int) -> list[list[object]]:
             for jobs in (1, 2):
                 out = Path(tmp) / f"out_{res}_{jobs}"
                 t0 = time.perf_counter()
-                subprocess.run(ficap + ["replay", str(bag), "--out", str(out), "--jobs", str(jobs), "--quiet"],
-                               check=True, env=env)
+                # A wrapper process per run, so its RUSAGE_CHILDREN peak is this run's alone.
+                probe = subprocess.run(
+                    [sys.executable, "-c", _PEAK_RSS_PROBE, *ficap, "replay", str(bag), "--out", str(out),
+                     "--jobs", str(jobs), "--quiet"], check=True, env=env, capture_output=True, text=True)
                 s = time.perf_counter() - t0
-                rows.append([res, jobs, n_frames, f"{s:.1f}", f"{n_frames / s:.1f}"])
+                peak_mb = int(probe.stdout.strip().splitlines()[-1]) / 1024
+                rows.append([res, jobs, n_frames, f"{s:.1f}", f"{n_frames / s:.1f}", f"{peak_mb:.0f}"])
                 print("replay", rows[-1], file=sys.stderr)
     return rows
 
@@ -249,7 +260,7 @@ def main() -> int:
                   md_table(["detector", "found", "recall", "false", "ms/image (816x612)"], swat)]
     if rep:
         parts += ["", "### `ficap replay` throughput (wall clock incl. start-up, `ficap synth` MCAP bag, JPEG)", "",
-                  md_table(["res", "--jobs", "frames", "seconds", "frames/s"], rep)]
+                  md_table(["res", "--jobs", "frames", "seconds", "frames/s", "peak RSS MB (largest process)"], rep)]
     text = "\n".join(parts)
     print(text)
     if args.record:
