@@ -217,7 +217,8 @@ class FrameProcessor:
         found, moved_px = self._verified(gray, ids, corners)
         if len(found) < cfg.min_tags:
             return None
-        missing = np.array([i not in {d.tag_id for d in found} for i in ids], dtype=bool)
+        found_ids = {d.tag_id for d in found}
+        missing = np.array([i not in found_ids for i in ids], dtype=bool)
         if missing.any() and moved_px > _TRACK_RETRY_PX:
             # Second look: the verified tags moved from their predicted corners, so the
             # extrapolation was off; they pin the pose down, and where that pose moves a missing
