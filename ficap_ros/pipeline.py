@@ -169,15 +169,23 @@ class FrameProcessor:
         """Forget the previous frames: the next frame is searched over the whole image."""
         self._track = None
 
+    def _usable_track(self, camera: CameraModel, stamp_ns: int) -> _TrackState | None:
+        """The last posed frame's state if a frame at ``stamp_ns`` can follow it (same camera;
+        stamps in order and at most ``_TRACK_MAX_GAP_NS`` apart, or unknown), else None."""
+        tr = self._track
+        if tr is None or tr.camera_key != _camera_key(camera):
+            return None
+        if stamp_ns and tr.stamp_ns and not 0 <= stamp_ns - tr.stamp_ns <= _TRACK_MAX_GAP_NS:
+            return None
+        return tr
+
     def _predict_pose(self, camera: CameraModel, stamp_ns: int) -> Transform | None:
         """The cap pose at ``stamp_ns`` extrapolated from the last two frames, or None."""
-        tr = self._track
-        if tr is None or tr.camera_key != _camera_key(camera) or tr.n_tags == 0:
+        tr = self._usable_track(camera, stamp_ns)
+        if tr is None:
             return None
-        gap = stamp_ns - tr.stamp_ns
-        if stamp_ns and tr.stamp_ns and not 0 <= gap <= _TRACK_MAX_GAP_NS:
-            return None
-        ratio = gap / tr.dt_prev_ns if stamp_ns and tr.stamp_ns and tr.dt_prev_ns > 0 else 1.0
+        timed = bool(stamp_ns and tr.stamp_ns and tr.dt_prev_ns > 0)
+        ratio = (stamp_ns - tr.stamp_ns) / tr.dt_prev_ns if timed else 1.0
         return extrapolate_pose(tr.T_cam_cap, tr.T_prev, min(ratio, 3.0))
 
     def _refine_predicted(self, gray: np.ndarray, corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -273,15 +281,11 @@ class FrameProcessor:
         self, camera: CameraModel, stamp_ns: int, shape: tuple[int, ...]
     ) -> tuple[int, int, int, int] | None:
         """(x, y, w, h) around every front-facing tag at the last pose, with a motion margin."""
-        tr = self._track
-        if tr is None or tr.camera_key != _camera_key(camera) or tr.n_tags == 0:
-            return None
-        if stamp_ns and tr.stamp_ns and not 0 <= stamp_ns - tr.stamp_ns <= _TRACK_MAX_GAP_NS:
+        tr = self._usable_track(camera, stamp_ns)
+        if tr is None:
             return None
         T = tr.T_cam_cap
-        normals_cam = T.rotation.apply(self.model.normals)
-        centres_cam = T.apply(self.model.centres_mm / 1000.0)
-        front = np.einsum("ij,ij->i", normals_cam, centres_cam) < 0.0
+        front = view_angles_deg(self.model, T) < 90.0
         if not front.any():
             return None
         pts = T.apply(self.model.corners_mm[front].reshape(-1, 3) / 1000.0)
@@ -319,14 +323,15 @@ class FrameProcessor:
     def _next_track(
         self, T_cam_cap: Transform, stamp_ns: int, detections: tuple[TagDetection, ...], camera: CameraModel
     ) -> _TrackState:
-        tr, key = self._track, _camera_key(camera)
-        # The velocity needs the previous frame to be the one just before (same camera, tracked).
-        follows = tr is not None and tr.camera_key == key and (
-            not (stamp_ns and tr.stamp_ns) or 0 < stamp_ns - tr.stamp_ns <= _TRACK_MAX_GAP_NS)
+        # The velocity needs the previous posed frame to be the one just before, at another stamp.
+        prev = self._usable_track(camera, stamp_ns)
+        timed = prev is not None and bool(stamp_ns and prev.stamp_ns)
+        if timed and stamp_ns == prev.stamp_ns:  # type: ignore[union-attr]
+            prev = None
         return _TrackState(
-            T_cam_cap, tr.T_cam_cap if follows and tr is not None else None, stamp_ns,
-            stamp_ns - tr.stamp_ns if follows and tr is not None and stamp_ns and tr.stamp_ns else 0,
-            len({d.tag_id for d in detections}), key)
+            T_cam_cap, None if prev is None else prev.T_cam_cap, stamp_ns,
+            stamp_ns - prev.stamp_ns if prev is not None and timed else 0,
+            len({d.tag_id for d in detections}), _camera_key(camera))
 
     def process(self, image: np.ndarray, camera: CameraModel, stamp_ns: int = 0) -> FrameResult:
         """Process one frame (raises ``ImageError`` for an invalid image).

@@ -149,6 +149,7 @@ def _cell_grid() -> np.ndarray:
 
 
 _GRID = _cell_grid()
+_GRID_H = np.concatenate([_GRID, np.ones((len(_GRID), 1))], axis=1)  # homogeneous (100, 3)
 _RING_MARGIN = ((_GRID < 0) | (_GRID > _CELLS)).any(axis=1)  # the white quiet zone
 _INNER = ~_RING_MARGIN  # the 8x8 tag cells, row-major
 _BORDER = ((_GRID[_INNER] < 1) | (_GRID[_INNER] > _CELLS - 1)).any(axis=1)  # of the 64: the black border
@@ -194,8 +195,7 @@ def verify_tags(
         hom = _homographies(np.asarray(corners_px, dtype=np.float64))
     except np.linalg.LinAlgError:
         return np.zeros(k, dtype=bool), np.full(k, 64), np.zeros(k)
-    g = np.concatenate([_GRID, np.ones((len(_GRID), 1))], axis=1)  # (100, 3)
-    p = np.einsum("kij,gj->kgi", hom, g)
+    p = np.einsum("kij,gj->kgi", hom, _GRID_H)
     with np.errstate(divide="ignore", invalid="ignore"):
         xy = (p[..., :2] / p[..., 2:3]).astype(np.float32)  # (K, 100, 2)
     vals = cv2.remap(gray, xy[..., 0], xy[..., 1], cv2.INTER_LINEAR,
