@@ -5,11 +5,13 @@ from __future__ import annotations
 import os
 
 # Set before any test imports rclpy: loopback only, and a ROS_DOMAIN_ID per xdist worker so tests
-# that run at once never see each other's topics.
+# that run at once never see each other's topics. FICAP_TEST_DOMAIN_BASE moves the whole block, so
+# two test runs on one machine (two checkouts) can run at the same time.
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
 _worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
-os.environ["ROS_DOMAIN_ID"] = str(60 + int(_worker.lstrip("gw") or 0))
+_base = int(os.environ.get("FICAP_TEST_DOMAIN_BASE", "60"))
+os.environ["ROS_DOMAIN_ID"] = str(_base + int(_worker.lstrip("gw") or 0))
 
 from pathlib import Path  # noqa: E402
 
