@@ -5,6 +5,10 @@ Two error measures between orientations, both in degrees:
         *half* the angle of the rotation that takes one orientation to the other.
     ``angle_deg`` = 2 * Phi3, the geodesic angle (the angle of R1^T R2). Our own thresholds use it.
 
+Corner errors (``corner_errors_px``) of detected tag corners against the true ones, pixels: the
+distance, and the *radial offset* (the error's component along the tag centre -> corner direction;
+negative = the corner sits inside the tag, the signature of a tone-curve bias).
+
 Head angles (``yaw_pitch_roll_deg``) of a head frame H (x forward, y left, z up) in a reference
 frame with the same axes at zero pose: R = Rz(yaw) Ry(-pitch) Rx(roll), intrinsic z-y'-x'':
     yaw: positive turning to the wearer's left;
@@ -26,6 +30,7 @@ __all__ = [
     "rotation_from_ypr_deg",
     "robust_mean_rotation",
     "summarize_errors",
+    "corner_errors_px",
 ]
 
 
@@ -114,3 +119,22 @@ def summarize_errors(errors_deg: np.ndarray) -> dict[str, float]:
         "p95": float(np.percentile(e, 95)),
         "max": float(np.max(e)),
     }
+
+
+def corner_errors_px(corners_px: np.ndarray, true_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-corner error of tag corners against the truth.
+
+    Args:
+        corners_px: (N, 4, 2) estimated corners.
+        true_px: (N, 4, 2) true corners, same order.
+
+    Returns:
+        (error_px, radial_px), each (N, 4): the distance, and the signed component along the
+        direction from the true tag centre to the true corner (negative = inward).
+    """
+    est = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    true = np.asarray(true_px, dtype=np.float64).reshape(-1, 4, 2)
+    diff = est - true
+    out = true - true.mean(axis=1, keepdims=True)
+    out /= np.maximum(np.linalg.norm(out, axis=2, keepdims=True), 1e-12)
+    return np.linalg.norm(diff, axis=2), np.einsum("nkd,nkd->nk", diff, out)
