@@ -17,6 +17,7 @@ setup(
         ("share/" + package_name + "/config", glob("config/*")),
     ],
     install_requires=["setuptools"],
+    extras_require={"ray": ["ray==2.60.0"]},  # ficap replay --ray (requirements.txt pins all)
     zip_safe=True,
     maintainer="ficap_ros maintainers",
     maintainer_email="maintainers@users.noreply.h-seed-c0fda0a4.example",

@@ -20,7 +20,7 @@ from collections import Counter
 from dataclasses import dataclass, field
 from pathlib import Path
 from itertools import islice
-from typing import IO, Any, Iterable, Iterator
+from typing import IO, Any, Callable, Iterable, Iterator
 
 import numpy as np
 
@@ -303,6 +303,8 @@ def replay(
     namespace: str = "",
     progress: bool = True,
     progress_stream: IO[str] | None = None,
+    engine: Callable[[Iterable[RawFrame]], Iterable[ProcessedFrame]] | None = None,
+    summary_extra: dict[str, Any] | None = None,
 ) -> ReplayOutput:
     """Process every frame of ``source`` and write labels.mcap, labels.csv and summary.json.
 
@@ -317,6 +319,9 @@ def replay(
         jobs: worker processes.
         namespace: topic namespace of labels.mcap.
         progress: show progress on ``progress_stream`` (stderr).
+        engine: what turns the raw frames into processed ones, in order (default:
+            ``process_frames`` with ``jobs`` processes; ``ficap_ros.fleet`` passes a Ray one).
+        summary_extra: more fields for summary.json (the fleet's fingerprint).
 
     Raises:
         BagError: unreadable input or unwritable output. CalibrationError: bad frontal window.
@@ -328,7 +333,8 @@ def replay(
     t0 = time.perf_counter()
     frames: list[ProcessedFrame] = []
     try:
-        for item in process_frames(source.raw_frames(), model, pose, jobs):
+        raws = source.raw_frames()
+        for item in (engine(raws) if engine else process_frames(raws, model, pose, jobs)):
             frames.append(item)
             bar.update()
     finally:
@@ -356,6 +362,7 @@ def replay(
             "R_cap_head_q_wxyz": _q_wxyz(cal.R_cap_head),
             "R_cam_frontal_q_wxyz": _q_wxyz(cal.R_cam_frontal),
         },
+        **(summary_extra or {}),
     }
     files = [out / "labels.mcap", out / "metadata.yaml", out / "labels.csv", out / "summary.json"]
     write_labels_bag(out / "labels.mcap", records, namespace)

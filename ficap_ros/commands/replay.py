@@ -6,8 +6,9 @@ import argparse
 
 from ficap_ros.cli import positive_int
 
-HELP = ("replay a rosbag2 bag, .mcap file or video through the pipeline; write labels.mcap, "
-        "labels.csv and summary.json")
+HELP = ("replay rosbag2 bags, .mcap files or videos (or folder trees of them, or a manifest) "
+        "through the pipeline; write labels.mcap, labels.csv and summary.json per recording, "
+        "optionally on Ray")
 
 
 def _window(text: str) -> tuple[float, float]:
@@ -29,10 +30,16 @@ def _positive_float(text: str) -> float:
     return value
 
 
-def add_input_arguments(parser: argparse.ArgumentParser) -> None:
-    """The options that say how to read a recording (shared with ``ficap stats``)."""
-    parser.add_argument("input", metavar="INPUT",
-                        help="rosbag2 folder (sqlite3 or MCAP), single .mcap/.db3 file, or video")
+def add_input_arguments(parser: argparse.ArgumentParser, many: bool = False) -> None:
+    """The options that say how to read a recording (shared with ``ficap stats``); ``many``:
+    several inputs (recordings or folder trees holding them)."""
+    if many:
+        parser.add_argument("input", metavar="INPUT", nargs="*",
+                            help="rosbag2 folders (sqlite3 or MCAP), .mcap/.db3 files or videos, or "
+                                 "folders searched for them (outputs mirror the inputs under --out)")
+    else:
+        parser.add_argument("input", metavar="INPUT",
+                            help="rosbag2 folder (sqlite3 or MCAP), single .mcap/.db3 file, or video")
     parser.add_argument("--image-topic", help="Image or CompressedImage topic (auto when only one)")
     parser.add_argument("--camera-info-topic", help="CameraInfo topic (auto)")
     parser.add_argument("--intrinsics", metavar="CAMERA_YAML",
@@ -48,7 +55,7 @@ def add_input_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    add_input_arguments(parser)
+    add_input_arguments(parser, many=True)
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     parser.add_argument("--calibration", metavar="FILE",
                         help="head calibration YAML (ficap calibrate / the node's service)")
@@ -57,13 +64,40 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "calibrate R_cap_head from them and apply it to every frame")
     parser.add_argument("--namespace", default="",
                         help="topic namespace in labels.mcap (default: none, as the node: /head_pose ...)")
+    fleet = parser.add_argument_group(
+        "fleet", "several recordings: one output folder each under --out (mirroring the inputs) "
+                 "and fleet_summary.csv/.json/.png; recordings whose outputs match this run's "
+                 "fingerprint are skipped")
+    fleet.add_argument("--manifest", metavar="FILE",
+                       help="text file listing inputs, one per line (relative to the file; "
+                            "# comments); relative entries mirror their paths under --out")
+    fleet.add_argument("--ray", action="store_true",
+                       help="run on an embedded local Ray (loopback only; --jobs CPUs)")
+    fleet.add_argument("--ray-address", metavar="ADDR",
+                       help="run on an existing Ray cluster (e.g. auto, HEAD:6379)")
+    fleet.add_argument("--retries", type=int, default=2, metavar="N",
+                       help="Ray: re-runs of a segment whose worker died (default 2)")
+    fleet.add_argument("--force", action="store_true",
+                       help="redo recordings whose outputs are already current")
+    fleet.add_argument("--videos", action="store_true",
+                       help="also take video files found in searched folders (needs --intrinsics)")
 
 
-def open_source(args: argparse.Namespace):  # noqa: ANN201 - FrameSource, imported lazily
+def open_source(args: argparse.Namespace, path: object = None):  # noqa: ANN201 - FrameSource
     from ficap_ros.bag_io import open_frames
 
-    return open_frames(args.input, args.image_topic, args.camera_info_topic, args.intrinsics,
-                       args.fps)
+    return open_frames(args.input if path is None else path, args.image_topic,
+                       args.camera_info_topic, args.intrinsics, args.fps)
+
+
+def _is_fleet(args: argparse.Namespace) -> bool:
+    """Several recordings, a folder tree, a manifest or Ray: the fleet runner (ficap_ros.fleet)."""
+    from pathlib import Path
+
+    from ficap_ros.fleet import is_recording
+
+    return bool(len(args.input) != 1 or args.manifest or args.ray or args.ray_address
+                or not is_recording(Path(args.input[0]), videos=True))
 
 
 def run(args: argparse.Namespace) -> int:
@@ -79,7 +113,14 @@ def run(args: argparse.Namespace) -> int:
         from ficap_ros.calibration import load_calibration
 
         calibration = load_calibration(args.calibration)
+    if not args.input and not args.manifest:
+        from ficap_ros.errors import ConfigError
+
+        raise ConfigError("give at least one INPUT or --manifest FILE")
     check_output_dir(Path(args.out))
+    if _is_fleet(args):
+        return _run_fleet(args, model, calibration)
+    args.input = args.input[0]
     source = open_source(args)
     out = replay(source, args.out, model, PoseConfig(method=args.method), calibration,
                  args.calibrate_frontal, args.jobs, args.namespace, progress=not args.quiet)
@@ -88,3 +129,34 @@ def run(args: argparse.Namespace) -> int:
           f">=1 tag {s['pct_ge1_tag']:.1f} %, >=4 tags {s['pct_ge4_tags']:.1f} %, "
           f"{s['frames_skipped']} skipped, {s['throughput_fps']} fps -> {args.out}")
     return 0
+
+
+def _run_fleet(args: argparse.Namespace, model, calibration) -> int:  # noqa: ANN001
+    from pathlib import Path
+
+    from ficap_ros.errors import ConfigError
+    from ficap_ros.fleet import find_recordings, label_settings, run_fleet
+    from ficap_ros.pose import PoseConfig
+
+    if args.retries < 0:
+        raise ConfigError(f"--retries must be >= 0, got {args.retries}")
+    recordings = find_recordings(args.input, args.manifest, args.out, videos=args.videos)
+    pose = PoseConfig(method=args.method)
+    settings = label_settings(model, pose, calibration, args.calibrate_frontal, args.namespace,
+                              args.image_topic, args.camera_info_topic, args.intrinsics, args.fps)
+    single = len(recordings) == 1 and str(recordings[0].rel) == "."
+    fleet = run_fleet(
+        recordings, args.out, lambda path: open_source(args, path), model, pose, settings,
+        calibration, args.calibrate_frontal, args.namespace, args.jobs, args.ray_address,
+        args.ray, args.retries, args.force, progress=not args.quiet, summary_files=not single)
+    for r in fleet.results:
+        if r.status == "failed":
+            print(f"{r.rel}: failed: {r.error}")
+        elif r.status == "damaged":
+            print(f"{r.rel}: damaged: {r.frames} frames recovered, {r.frames_lost} lost")
+    frames = sum(r.frames for r in fleet.results if r.status in ("done", "damaged"))
+    print(f"{len(fleet.results)} recordings: {fleet.count('done')} done, "
+          f"{fleet.count('skipped')} skipped (current), {fleet.count('damaged')} damaged, "
+          f"{fleet.count('failed')} failed; {frames} frames in {fleet.wall_s:.1f} s "
+          f"({fleet.engine}, {fleet.workers} workers) -> {Path(args.out) / ('' if single else 'fleet_summary.csv')}")
+    return 1 if fleet.count("failed") or fleet.count("damaged") else 0
