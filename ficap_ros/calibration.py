@@ -33,15 +33,15 @@ from scipy.spatial.transform import Rotation
 
 from ficap_ros.cap_model import write_atomic
 from ficap_ros.errors import CalibrationError
-from ficap_ros.metrics import angle_deg, robust_mean_rotation, rotation_from_ypr_deg
+from ficap_ros.metrics import angle_deg, robust_mean_rotation
 from ficap_ros.pipeline import HeadCalibration
-from ficap_ros.transform import CAM_FROM_FORWARD
+from ficap_ros.transform import CAM_FROM_FORWARD, Transform
 
 __all__ = [
     "CalibrationResult",
     "calibrate_frontal",
     "calibrate_reference",
-    "frontal_frame_rotation",
+    "frontal_from_camera_mount",
     "save_calibration",
     "load_calibration",
     "CALIBRATION_FORMAT",
@@ -81,23 +81,17 @@ class CalibrationResult:
     uncertainty_deg: float = float("nan")
 
 
-def frontal_frame_rotation(
-    mount_pitch_deg: float = 0.0, mount_yaw_deg: float = 0.0, mount_roll_deg: float = 0.0
-) -> Rotation:
+def frontal_from_camera_mount(T_parent_cam: Transform | None) -> Rotation:
     """R_cam_frontal: the frontal frame F (x forward, y left, z up) in the camera optical frame.
 
-    The mount angles are the camera's forward body frame (x along the optical axis, y left, z up)
-    in F, with the head-angle convention of ``ficap_ros.metrics``: yaw positive turned to the left,
-    pitch positive tilted up, roll positive toward the right. A camera pitched down by 10 deg is
-    ``mount_pitch_deg=-10``. All zero gives ``CAM_FROM_FORWARD`` (the camera looks straight ahead).
-
-    Args:
-        mount_pitch_deg, mount_yaw_deg, mount_roll_deg: camera mount angles, degrees.
-    Returns:
-        R_cam_frontal.
+    F takes the axes of the camera mount's parent frame (the vehicle's ``base_link`` in REP-103's
+    x forward, y left, z up): ``T_parent_cam`` is the ``camera_mount`` transform, the camera's
+    optical frame in that frame (``static_transform_publisher``'s convention). Without a mount the
+    camera is taken to look straight ahead: ``CAM_FROM_FORWARD``.
     """
-    R_frontal_camfwd = rotation_from_ypr_deg(mount_yaw_deg, mount_pitch_deg, mount_roll_deg)
-    return CAM_FROM_FORWARD * R_frontal_camfwd.inv()
+    if T_parent_cam is None:
+        return CAM_FROM_FORWARD
+    return T_parent_cam.rotation.inv()
 
 
 def _count(rotations: Rotation) -> int:
@@ -118,7 +112,7 @@ def calibrate_frontal(
 
     Args:
         R_cam_cap: stacked cap orientations in the camera optical frame.
-        R_cam_frontal: the frontal frame in the camera frame (``frontal_frame_rotation``).
+        R_cam_frontal: the frontal frame in the camera frame (``frontal_from_camera_mount``).
         min_frames: least number of inlier frames.
         max_spread_deg: largest accepted RMS geodesic residual of the inliers, degrees.
     Returns:

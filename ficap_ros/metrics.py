@@ -10,10 +10,12 @@ distance, and the *radial offset* (the error's component along the tag centre ->
 negative = the corner sits inside the tag, the signature of a tone-curve bias).
 
 Head angles (``yaw_pitch_roll_deg``) of a head frame H (x forward, y left, z up) in a reference
-frame with the same axes at zero pose: R = Rz(yaw) Ry(-pitch) Rx(roll), intrinsic z-y'-x'':
-    yaw: positive turning to the wearer's left;
-    pitch: positive looking up (the instrument cluster is at about -20 deg);
-    roll: positive tilting the head toward the right shoulder (right-hand rotation about x).
+frame with the same axes at zero pose, REP-103: right-hand rotations, R = Rz(yaw) Ry(pitch) Rx(roll)
+(intrinsic z-y'-x''), the same numbers as tf2's ``getRPY`` / ``getEulerYPR``:
+    yaw: positive turning to the wearer's left (right-hand about +z, up);
+    pitch: positive nose DOWN (right-hand about +y, which points left; the instrument cluster is at
+        about +20 deg, a glance up at the rear-view mirror about -5 deg);
+    roll: positive tilting the head toward the right shoulder (right-hand about +x, forward).
 """
 
 from __future__ import annotations
@@ -57,15 +59,12 @@ def yaw_pitch_roll_deg(rotation: Rotation) -> np.ndarray:
 
     Returns shape (3,) for one rotation, (N, 3) for stacked ones.
     """
-    zyx = rotation.as_euler("ZYX", degrees=True)
-    out = np.array(zyx, dtype=np.float64)
-    out[..., 1] = -out[..., 1]
-    return out
+    return np.array(rotation.as_euler("ZYX", degrees=True), dtype=np.float64)
 
 
 def rotation_from_ypr_deg(yaw_deg: float, pitch_deg: float, roll_deg: float) -> Rotation:
-    """Inverse of ``yaw_pitch_roll_deg`` for one rotation."""
-    return Rotation.from_euler("ZYX", [yaw_deg, -pitch_deg, roll_deg], degrees=True)
+    """Inverse of ``yaw_pitch_roll_deg`` for one rotation (REP-103: pitch positive nose down)."""
+    return Rotation.from_euler("ZYX", [yaw_deg, pitch_deg, roll_deg], degrees=True)
 
 
 def robust_mean_rotation(

@@ -4,11 +4,16 @@ Subscribes (relative names, remappable):
     ``image`` (sensor_msgs/Image) or ``image/compressed`` (sensor_msgs/CompressedImage), chosen by
     ``image_transport``; ``camera_info`` (sensor_msgs/CameraInfo); the reference head pose
     ``calibration.reference_topic`` (geometry_msgs/PoseStamped) when set.
-Publishes (header = the image's; frame_id replaced by ``output_frame`` when set):
-    ``head_pose`` (PoseStamped: T_cam_head = T_cam_cap * R_cap_head), ``head_pose/with_covariance``
-    (PoseWithCovarianceStamped, the estimator's covariance in ROS order), ``cap_pose`` (PoseStamped,
-    uncalibrated), ``status`` (DiagnosticArray, one per frame), ``/diagnostics`` (1 Hz), ``markers``
-    (MarkerArray) and ``debug_image`` (Image) only while someone subscribes.
+Publishes (stamp = the image's; poses in the image's frame, or in ``output_frame`` through the
+``camera_mount`` transform):
+    ``head_pose`` (PoseStamped: T_out_head = T_out_cam * T_cam_cap * R_cap_head),
+    ``head_pose/with_covariance`` (PoseWithCovarianceStamped, the estimator's covariance in ROS
+    order, rotated into the output frame), ``cap_pose`` (PoseStamped, uncalibrated),
+    ``head_pose/frontal`` (PoseStamped: the head in the frontal frame F), ``head_rpy_deg``
+    (Vector3Stamped: x roll, y pitch, z yaw of the head in F, degrees, REP-103), ``quality``
+    (JointState: numeric per-frame tag counts, reliability, rms and error bounds by name), ``status``
+    (DiagnosticArray, one per frame), ``/diagnostics`` (1 Hz health), ``markers`` (MarkerArray, in the
+    camera frame) and ``debug_image`` (Image) only while someone subscribes.
 Services:
     ``~/calibrate`` (std_srvs/Trigger), ``~/clear_calibration`` (std_srvs/Trigger).
 
@@ -30,11 +35,12 @@ from typing import Any
 import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, Vector3Stamped
 from rcl_interfaces.msg import (
     FloatingPointRange,
     IntegerRange,
     ParameterDescriptor,
+    ParameterType,
     SetParametersResult,
 )
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
@@ -44,7 +50,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
 from scipy.spatial.transform import Rotation
-from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, JointState
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
@@ -54,7 +60,7 @@ from ficap_ros.calibration import (
     CalibrationResult,
     calibrate_frontal,
     calibrate_reference,
-    frontal_frame_rotation,
+    frontal_from_camera_mount,
     load_calibration,
     save_calibration,
 )
@@ -65,6 +71,7 @@ from ficap_ros.errors import CalibrationError, ConfigError, FicapError, Intrinsi
 from ficap_ros.metrics import angle_deg, yaw_pitch_roll_deg
 from ficap_ros.pipeline import FrameProcessor, FrameResult, HeadCalibration
 from ficap_ros.pose import POSE_METHODS, PoseConfig
+from ficap_ros.transform import Transform, rotate_covariance
 
 __all__ = ["FicapNode", "ParamSpec", "PARAMETERS", "NodeConfig", "main"]
 
@@ -107,7 +114,16 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               "image's is used; otherwise the latest one.", range=(0.0, 1000.0)),
     ParamSpec("image_is_rectified", False, "The image is rectified: use CameraInfo P, no "
               "distortion."),
-    ParamSpec("output_frame", "", "frame_id of the outputs ('' = the image's frame_id)."),
+    ParamSpec("output_frame", "", "frame_id of the pose outputs ('' = the image's frame_id); "
+              "needs camera_mount, which moves the poses into it."),
+    ParamSpec("camera_mount", [0.0] * 7, "The camera's optical frame (the image's frame_id) in "
+              "output_frame, or in frontal_frame when output_frame is '': x y z (m) qx qy qz qw, "
+              "static_transform_publisher's order. Its parent's axes are the frontal frame "
+              "(x forward, y left, z up). All zeros = not set (the camera looks straight ahead)."),
+    ParamSpec("frontal_frame", "ficap_frontal", "frame_id of head_pose/frontal and head_rpy_deg "
+              "when output_frame is '' (with output_frame set, the frontal frame is output_frame)."),
+    ParamSpec("diagnostics.hardware_id", "", "hardware_id of /diagnostics ('' = the camera's "
+              "frame_id, from the images)."),
     ParamSpec("model_file", "", "Cap model YAML/JSON ('' = the nominal 23-tag cap).",
               read_only=True),
     ParamSpec("detector.backend", "opencv", "Tag detector backend.",
@@ -128,12 +144,6 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               range=(0.0, 1.0)),
     ParamSpec("warn_throttle_s", 5.0, "Least interval between repeated input warnings, s.",
               range=(0.0, 3600.0)),
-    ParamSpec("frontal.mount_pitch_deg", 0.0, "Camera mount pitch in the frontal (vehicle) frame, "
-              "deg, positive up (a camera pitched down 10 deg is -10).", range=(-90.0, 90.0)),
-    ParamSpec("frontal.mount_yaw_deg", 0.0, "Camera mount yaw in the frontal frame, deg, positive "
-              "to the left.", range=(-180.0, 180.0)),
-    ParamSpec("frontal.mount_roll_deg", 0.0, "Camera mount roll in the frontal frame, deg, "
-              "positive toward the right.", range=(-180.0, 180.0)),
     ParamSpec("calibration.mode", "auto", "~/calibrate mode: 'frontal', 'reference', or 'auto' "
               "(reference when calibration.reference_topic is set).",
               choices=("auto", "frontal", "reference")),
@@ -157,6 +167,26 @@ PARAMETERS: tuple[ParamSpec, ...] = (
 )
 _SPECS = {p.name: p for p in PARAMETERS}
 
+#: Parameters that no longer exist, with what replaced them (a params file naming them refuses to
+#: start: silently ignoring a camera mount would tilt every head angle).
+REMOVED_PARAMETERS: dict[str, str] = {
+    name: "replaced by camera_mount (x y z qx qy qz qw of the camera's optical frame in the "
+          "vehicle frame, static_transform_publisher order; see README 'Migration')"
+    for name in ("frontal.mount_pitch_deg", "frontal.mount_yaw_deg", "frontal.mount_roll_deg")
+}
+
+
+def camera_mount_transform(values: Any) -> Transform | None:
+    """The ``camera_mount`` parameter as T_parent_cam, or None when it is all zeros (not set).
+
+    Raises:
+        ConfigError: not 7 finite numbers or not a unit quaternion.
+    """
+    v = np.asarray(list(values), dtype=np.float64)
+    if v.size == 7 and not np.any(v):
+        return None
+    return Transform.from_xyz_q_xyzw(v, "camera_mount")
+
 
 @dataclass(frozen=True)
 class NodeConfig:
@@ -179,6 +209,9 @@ def _descriptor(spec: ParamSpec) -> ParameterDescriptor:
             from_value=int(spec.range[0]), to_value=int(spec.range[1]), step=1)]
     if spec.choices is not None:
         d.additional_constraints = "one of: " + ", ".join(spec.choices)
+    if isinstance(spec.default, list):
+        d.type = ParameterType.PARAMETER_DOUBLE_ARRAY
+        d.additional_constraints = "7 numbers x y z qx qy qz qw (unit quaternion), or all zeros"
     return d
 
 
@@ -188,6 +221,12 @@ def validate_parameter(name: str, value: Any) -> str:
     if spec is None:
         return ""  # use_sim_time and other rclpy parameters
     want = type(spec.default)
+    if want is list:
+        try:
+            camera_mount_transform(value)
+        except (ConfigError, TypeError, ValueError) as err:
+            return str(err) if isinstance(err, ConfigError) else f"{name}: {err}"
+        return ""
     if want is float and isinstance(value, int) and not isinstance(value, bool):
         value = float(value)
     if not isinstance(value, want) or (want is int and isinstance(value, bool)):
@@ -222,6 +261,12 @@ class FicapNode(Node):
             reason = validate_parameter(spec.name, self.get_parameter(spec.name).value)
             if reason:
                 raise ConfigError(reason)
+        removed = sorted(set(self._override_names()) & set(REMOVED_PARAMETERS))
+        if removed:
+            raise ConfigError(f"parameter {removed[0]} was {REMOVED_PARAMETERS[removed[0]]}")
+        reason = _frames_reason({s.name: self.get_parameter(s.name).value for s in PARAMETERS})
+        if reason:
+            raise ConfigError(reason)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
         self._config = self._read_config()
@@ -235,7 +280,7 @@ class FicapNode(Node):
                                     corner_refine=cfg["detector.corner_refine"],
                                     search_decimate=cfg["detector.search_decimate"]),
             pose=PoseConfig(method=cfg["pose.method"], min_tags=cfg["pose.min_tags"]),
-            calibration=HeadCalibration(R_cam_frontal=self._R_cam_frontal(cfg)),
+            calibration=HeadCalibration(R_cam_frontal=frontal_from_camera_mount(self._mount)),
             tracking=cfg["tracking"],
         )
         self._static_camera: CameraModel | None = None
@@ -266,6 +311,7 @@ class FicapNode(Node):
         self._last_error = ""
         self._period = {"received": 0, "dropped": 0, "processed": 0, "tags": 0, "latency_ms": 0.0,
                         "errors": 0}
+        self._camera_frame = ""  # the frame_id of the last image (the default hardware_id)
 
         # Callback groups: frames, side inputs, services and timers never wait on each other.
         self._input_group = MutuallyExclusiveCallbackGroup()
@@ -304,6 +350,9 @@ class FicapNode(Node):
         self._pub_head_cov = self.create_publisher(
             PoseWithCovarianceStamped, "head_pose/with_covariance", out_qos)
         self._pub_cap = self.create_publisher(PoseStamped, "cap_pose", out_qos)
+        self._pub_head_frontal = self.create_publisher(PoseStamped, "head_pose/frontal", out_qos)
+        self._pub_rpy = self.create_publisher(Vector3Stamped, "head_rpy_deg", out_qos)
+        self._pub_quality = self.create_publisher(JointState, "quality", out_qos)
         self._pub_status = self.create_publisher(DiagnosticArray, "status", out_qos)
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", out_qos)
         self._pub_markers = self.create_publisher(MarkerArray, "markers", out_qos)
@@ -319,6 +368,7 @@ class FicapNode(Node):
                                              callback_group=self._timer_group)
         self._last_diag = time.monotonic()
 
+        self.unknown_parameters = self._warn_unknown_parameters()
         self._worker = threading.Thread(target=self._work, name="ficap_worker", daemon=True)
         self._worker.start()
         self.get_logger().info(
@@ -327,33 +377,53 @@ class FicapNode(Node):
             f"{'calibrated' if self._processor.calibration.calibrated else 'not calibrated'}")
 
     # -- parameters ------------------------------------------------------------------------------
+    def _override_names(self) -> list[str]:
+        """Names given to this node by params files (matched by node name, ``/**`` included) and
+        ``-p``/``parameter_overrides``. rclpy keeps them in ``_parameter_overrides`` and has no
+        public accessor; without it no unknown name could be reported."""
+        return list(getattr(self, "_parameter_overrides", {}) or {})
+
+    def _warn_unknown_parameters(self) -> list[str]:
+        """Override names the node does not declare (misspelt keys would otherwise be silently
+        ignored): one warning naming them. rclpy's own (``use_sim_time``, ``qos_overrides.*``) count
+        as known."""
+        unknown = sorted(n for n in self._override_names()
+                         if not self.has_parameter(n) and not n.startswith("qos_overrides."))
+        if unknown:
+            self.get_logger().warning(
+                f"unknown parameter(s) ignored: {', '.join(unknown)} (ficap_node declares: "
+                f"{', '.join(p.name for p in PARAMETERS)})")
+        return unknown
+
     def _read_config(self) -> NodeConfig:
         values = {}
         for spec in PARAMETERS:
             v = self.get_parameter(spec.name).value
-            values[spec.name] = float(v) if isinstance(spec.default, float) else v
+            if isinstance(spec.default, float):
+                v = float(v)
+            elif isinstance(spec.default, list):
+                v = [float(x) for x in v]
+            values[spec.name] = v
+        self._mount = camera_mount_transform(values["camera_mount"])
         return NodeConfig(values)
-
-    @staticmethod
-    def _R_cam_frontal(cfg: NodeConfig) -> Rotation:
-        return frontal_frame_rotation(
-            mount_pitch_deg=cfg["frontal.mount_pitch_deg"],
-            mount_yaw_deg=cfg["frontal.mount_yaw_deg"],
-            mount_roll_deg=cfg["frontal.mount_roll_deg"],
-        )
 
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
         for p in params:
             reason = validate_parameter(p.name, p.value)
             if reason:
                 return SetParametersResult(successful=False, reason=reason)
+        values = dict(self._config.values)
+        values.update({p.name: p.value for p in params})
+        reason = _frames_reason(values)
+        if reason:
+            return SetParametersResult(successful=False, reason=reason)
         return SetParametersResult(successful=True)
 
     def _after_set_parameters(self, params: list[Parameter]) -> None:
         self._config = cfg = self._read_config()
         self._processor.pose_config = PoseConfig(method=cfg["pose.method"],
                                                  min_tags=cfg["pose.min_tags"])
-        R_cam_frontal = self._R_cam_frontal(cfg)
+        R_cam_frontal = frontal_from_camera_mount(self._mount)
         old = self._processor.calibration
         if angle_deg(old.R_cam_frontal, R_cam_frontal) > 1e-9:
             self._processor.calibration = HeadCalibration(old.R_cap_head, R_cam_frontal,
@@ -374,7 +444,7 @@ class FicapNode(Node):
             self.get_logger().warning(
                 f"calibration {path} was made with a frontal frame "
                 f"{angle_deg(loaded.R_cam_frontal, R_cam_frontal):.2f} deg from the current "
-                "frontal.mount_* parameters; head angles keep the current frontal frame")
+                "camera_mount parameter; head angles keep the current frontal frame")
         self._processor.calibration = HeadCalibration(loaded.R_cap_head, R_cam_frontal,
                                                       loaded.calibrated)
         self.get_logger().info(f"loaded calibration {path} (calibrated: {loaded.calibrated})")
@@ -551,6 +621,16 @@ class FicapNode(Node):
         frame = self._config["output_frame"] or header.frame_id
         return Header(stamp=header.stamp, frame_id=frame)
 
+    def _frontal_header(self, header: Header) -> Header:
+        frame = self._config["output_frame"] or self._config["frontal_frame"]
+        return Header(stamp=header.stamp, frame_id=frame)
+
+    def _T_frontal_cam(self) -> Transform:
+        """The camera in the frontal frame F: the mount, or at F's origin looking forward."""
+        if self._mount is not None:
+            return self._mount
+        return Transform(self._processor.calibration.R_cam_frontal.inv(), np.zeros(3))
+
     def _report_error(self, header: Header, reason: str) -> None:
         with self._lock:
             self._errors += 1
@@ -561,6 +641,7 @@ class FicapNode(Node):
             STATUS_NAME, ros_msgs.LEVEL_ERROR, reason, self._status_values(None, float("nan")),
             hardware_id=header.frame_id)
         self._pub_status.publish(ros_msgs.diagnostic_array(self._out_header(header), status))
+        self._pub_quality.publish(ros_msgs.quality_msg(header, self._quality_values(None, float("nan"))))
 
     def _status_values(self, result: FrameResult | None, latency_ms: float) -> dict[str, object]:
         pose = result.pose if result is not None else None
@@ -579,9 +660,21 @@ class FicapNode(Node):
             values.update(yaw_deg=float(yaw), pitch_deg=float(pitch), roll_deg=float(roll))
         return values
 
+    def _quality_values(self, result: FrameResult | None, latency_ms: float) -> dict[str, float]:
+        pose = result.pose if result is not None else None
+        nan = float("nan")
+        return {
+            "tags_detected": float(result.tags_detected if result is not None else 0),
+            "tags_used": float(result.tags_used if result is not None else 0),
+            "reliability": float(pose.reliability) if pose is not None else 0.0,
+            "rms_px": float(pose.rms_px) if pose is not None else nan,
+            "latency_ms": float(latency_ms),
+        }
+
     def _process(self, msg: Image | CompressedImage, received_ns: int) -> None:
         cfg = self._config
         header = msg.header
+        self._camera_frame = header.frame_id
         stamp_ns = ros_msgs.stamp_to_ns(header.stamp)
         try:
             if isinstance(msg, CompressedImage):
@@ -603,11 +696,22 @@ class FicapNode(Node):
         published = (pose is not None and result.T_cam_head is not None
                      and pose.reliability >= cfg["publish_min_reliability"])
         if published:
-            self._pub_head.publish(ros_msgs.pose_stamped(out, result.T_cam_head))
+            assert pose is not None and result.T_cam_head is not None
+            # Into output_frame through the mount (identity when the outputs stay in the camera's).
+            T_out_cam = self._mount if cfg["output_frame"] else Transform.identity()
+            cov = pose.covariance if self._mount is None or not cfg["output_frame"] else \
+                rotate_covariance(pose.covariance, T_out_cam.rotation)
+            self._pub_head.publish(ros_msgs.pose_stamped(out, T_out_cam * result.T_cam_head))
             self._pub_head_cov.publish(
-                ros_msgs.pose_with_covariance_stamped(out, result.T_cam_head, pose.covariance))
-            self._pub_cap.publish(ros_msgs.pose_stamped(out, pose.T_cam_cap))
+                ros_msgs.pose_with_covariance_stamped(out, T_out_cam * result.T_cam_head, cov))
+            self._pub_cap.publish(ros_msgs.pose_stamped(out, T_out_cam * pose.T_cam_cap))
+            frontal = self._frontal_header(header)
+            self._pub_head_frontal.publish(
+                ros_msgs.pose_stamped(frontal, self._T_frontal_cam() * result.T_cam_head))
+            if result.R_frontal_head is not None:
+                self._pub_rpy.publish(ros_msgs.rpy_deg_msg(frontal, result.R_frontal_head))
         latency_ms = (time.monotonic_ns() - received_ns) / 1e6
+        self._pub_quality.publish(ros_msgs.quality_msg(header, self._quality_values(result, latency_ms)))
 
         if pose is None:
             level, message = ros_msgs.LEVEL_WARN, f"no pose: {result.reason or 'no tags'}"
@@ -620,11 +724,13 @@ class FicapNode(Node):
                                             hardware_id=header.frame_id)
         self._pub_status.publish(ros_msgs.diagnostic_array(out, status))
 
+        # Markers and the debug image are drawn in camera coordinates: the camera's frame.
+        cam_header = Header(stamp=header.stamp, frame_id=header.frame_id)
         if self._pub_markers.get_subscription_count() > 0:
-            self._pub_markers.publish(ros_msgs.markers_msg(out, self._processor.model, result))
+            self._pub_markers.publish(ros_msgs.markers_msg(cam_header, self._processor.model, result))
         if self._pub_debug.get_subscription_count() > 0:
             gray = image if image.ndim == 2 else image[:, :, 0]
-            self._pub_debug.publish(ros_msgs.debug_image_msg(gray, result, camera, out))
+            self._pub_debug.publish(ros_msgs.debug_image_msg(gray, result, camera, cam_header))
 
         with self._lock:
             self._processed += 1
@@ -669,8 +775,9 @@ class FicapNode(Node):
             level, message = ros_msgs.LEVEL_OK, "running, not calibrated"
         else:
             level, message = ros_msgs.LEVEL_OK, "running"
-        status = ros_msgs.diagnostic_status(f"{self.get_name()}: pipeline", level, message, values,
-                                            hardware_id=self._config["output_frame"])
+        status = ros_msgs.diagnostic_status(
+            f"{self.get_name()}: pipeline", level, message, values,
+            hardware_id=self._config["diagnostics.hardware_id"] or self._camera_frame)
         header = Header(stamp=self.get_clock().now().to_msg())
         self._pub_diag.publish(ros_msgs.diagnostic_array(header, status))
 
@@ -687,6 +794,14 @@ class FicapNode(Node):
         if self._worker.is_alive() and threading.current_thread() is not self._worker:
             self._worker.join(timeout=5.0)
         super().destroy_node()
+
+
+def _frames_reason(values: dict[str, Any]) -> str:
+    """Why the output_frame / camera_mount combination is refused ('' when it is fine)."""
+    if values.get("output_frame") and camera_mount_transform(values["camera_mount"]) is None:
+        return (f"output_frame {values['output_frame']!r} needs camera_mount (the camera's optical "
+                "frame in it: x y z qx qy qz qw); without it the poses would only be relabelled")
+    return ""
 
 
 def main(args: list[str] | None = None) -> int:

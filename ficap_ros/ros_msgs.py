@@ -13,14 +13,16 @@ import cv2
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Point, Pose, PoseStamped, PoseWithCovarianceStamped
-from sensor_msgs.msg import CameraInfo, CompressedImage, Image
+from geometry_msgs.msg import Point, Pose, PoseStamped, PoseWithCovarianceStamped, Vector3, Vector3Stamped
+from scipy.spatial.transform import Rotation
+from sensor_msgs.msg import CameraInfo, CompressedImage, Image, JointState
 from std_msgs.msg import Header
 from visualization_msgs.msg import Marker, MarkerArray
 
 from ficap_ros.camera import CameraModel
 from ficap_ros.cap_model import CapModel
 from ficap_ros.image_codec import decode_compressed, decode_image
+from ficap_ros.metrics import yaw_pitch_roll_deg
 from ficap_ros.errors import ImageError, IntrinsicsError
 from ficap_ros.pipeline import FrameResult
 from ficap_ros.transform import Transform
@@ -37,6 +39,8 @@ __all__ = [
     "pose_msg",
     "pose_stamped",
     "pose_with_covariance_stamped",
+    "rpy_deg_msg",
+    "quality_msg",
     "diagnostic_status",
     "diagnostic_array",
     "markers_msg",
@@ -189,6 +193,23 @@ def pose_with_covariance_stamped(
     cov = np.asarray(covariance, dtype=np.float64).reshape(36)
     msg.pose.covariance = [float(v) if np.isfinite(v) else 0.0 for v in cov]
     return msg
+
+
+def rpy_deg_msg(header: Header, R_frontal_head: Rotation) -> Vector3Stamped:
+    """``Vector3Stamped`` of the head angles in degrees: x roll, y pitch, z yaw (each about its
+    axis, REP-103 right-hand, intrinsic ZYX: tf2's ``getRPY``); pitch positive nose down."""
+    yaw, pitch, roll = (float(v) for v in yaw_pitch_roll_deg(R_frontal_head))
+    return Vector3Stamped(header=header, vector=Vector3(x=roll, y=pitch, z=yaw))
+
+
+def quality_msg(header: Header, values: Mapping[str, float]) -> JointState:
+    """Per-frame numbers as a ``sensor_msgs/JointState``: ``name[i]`` labels ``position[i]``.
+
+    JointState is the standard stamped message of named numbers that Foxglove and PlotJuggler
+    plot by name; velocity and effort stay empty. NaN where a value does not exist (no pose).
+    """
+    return JointState(header=header, name=list(values),
+                      position=[float(v) for v in values.values()])
 
 
 # -- diagnostics ---------------------------------------------------------------------------------

@@ -14,7 +14,9 @@ from functools import cached_property
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-__all__ = ["Transform", "CAM_FROM_FORWARD"]
+from ficap_ros.errors import ConfigError
+
+__all__ = ["Transform", "CAM_FROM_FORWARD", "rotate_covariance"]
 
 
 @dataclass(frozen=True)
@@ -43,6 +45,25 @@ class Transform:
         """From a 4x4 homogeneous matrix (translation in metres)."""
         m = np.asarray(matrix, dtype=np.float64)
         return cls(Rotation.from_matrix(m[:3, :3]), m[:3, 3])
+
+    @classmethod
+    def from_xyz_q_xyzw(cls, values: "list[float] | tuple[float, ...] | np.ndarray",
+                        name: str = "transform") -> Transform:
+        """From the 7 numbers of ``static_transform_publisher``: x y z (m) qx qy qz qw.
+
+        As there, the numbers are the pose of the child frame in the parent frame (``T_parent_child``).
+        The quaternion is normalised when its norm is within 1e-3 of 1 (YAML rounding).
+
+        Raises:
+            ConfigError: not 7 finite numbers, or a quaternion that is not unit length.
+        """
+        v = np.asarray(values, dtype=np.float64).reshape(-1)
+        if v.size != 7 or not np.all(np.isfinite(v)):
+            raise ConfigError(f"{name} must be 7 finite numbers: x y z (m) qx qy qz qw")
+        norm = float(np.linalg.norm(v[3:]))
+        if abs(norm - 1.0) > 1e-3:
+            raise ConfigError(f"{name} quaternion (qx qy qz qw) must be unit length, norm {norm:.6g}")
+        return cls(Rotation.from_quat(v[3:] / norm), v[:3])
 
     @property
     def matrix(self) -> np.ndarray:
@@ -97,3 +118,14 @@ class Transform:
 CAM_FROM_FORWARD = Rotation.from_matrix(
     np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
 )
+
+
+def rotate_covariance(covariance: np.ndarray, rotation: Rotation) -> np.ndarray:
+    """A 6x6 pose covariance (ROS order: x y z, rotation about x y z, both in the parent frame's
+    axes) re-expressed in a parent frame rotated by ``rotation`` (R_new_old): each 3x3 block is
+    conjugated by R, so variances move with the axes and the total is unchanged."""
+    R = rotation.as_matrix()
+    B = np.zeros((6, 6))
+    B[:3, :3] = R
+    B[3:, 3:] = R
+    return B @ np.asarray(covariance, dtype=np.float64).reshape(6, 6) @ B.T

@@ -10,14 +10,26 @@ from ficap_ros.calibration import (
     CalibrationResult,
     calibrate_frontal,
     calibrate_reference,
-    frontal_frame_rotation,
+    frontal_from_camera_mount,
     load_calibration,
     save_calibration,
 )
 from ficap_ros.errors import CalibrationError
 from ficap_ros.metrics import angle_deg, rotation_from_ypr_deg
 from ficap_ros.pipeline import HeadCalibration
-from ficap_ros.transform import CAM_FROM_FORWARD
+from ficap_ros.transform import CAM_FROM_FORWARD, Transform
+
+
+def _mount(pitch_down_deg: float = 0.0, yaw_left_deg: float = 0.0) -> Transform:
+    """camera_mount of a camera behind the wearer looking forward, pitched down and yawed left:
+    built from its axes in base_link (x forward, y left, z up), not from Euler angles."""
+    p, y = np.radians(pitch_down_deg), np.radians(yaw_left_deg)
+    z_cam = np.array([np.cos(p) * np.cos(y), np.cos(p) * np.sin(y), -np.sin(p)])  # optical axis
+    x_cam = np.array([np.sin(y), -np.cos(y), 0.0])  # image right
+    y_cam = np.cross(z_cam, x_cam)  # image down
+    R = np.column_stack([x_cam, y_cam, z_cam])
+    assert np.allclose(R.T @ R, np.eye(3)) and np.linalg.det(R) > 0
+    return Transform(Rotation.from_matrix(R), [-0.6, 0.0, 1.2])
 
 
 def _noise(rng: np.random.Generator, n: int, sigma_deg: float) -> Rotation:
@@ -29,7 +41,7 @@ def _noise(rng: np.random.Generator, n: int, sigma_deg: float) -> Rotation:
 def test_frontal_recovers_cap_to_head(seed: int) -> None:
     rng = np.random.default_rng(seed)
     R_cap_head = Rotation.random(random_state=seed)
-    R_cam_frontal = frontal_frame_rotation(mount_pitch_deg=-10.0)
+    R_cam_frontal = frontal_from_camera_mount(_mount(pitch_down_deg=10.0))
     n = 90
     # The wearer looks "straight ahead" with ~1 deg of natural wobble per axis, and the cap
     # estimate adds 0.5 deg more; 10 % of the frames are gross glances elsewhere.
@@ -67,7 +79,9 @@ def test_reference_recovers_both_rotations(seed: int) -> None:
     n = 300
     # Naturalistic head motion: yaw +-40, pitch +-15, roll +-8 deg.
     ypr = rng.uniform([-40, -15, -8], [40, 15, 8], size=(n, 3))
-    R_ref_head_true = Rotation.concatenate([rotation_from_ypr_deg(*a) for a in ypr])
+    # (Pitch mirrored: the same rotations this test drew before head angles became REP-103; the
+    # sign does not matter to the calibration, so the seeded sample is kept.)
+    R_ref_head_true = Rotation.concatenate([rotation_from_ypr_deg(a[0], -a[1], a[2]) for a in ypr])
     R_cam_cap = R_cam_ref * R_ref_head_true * R_cap_head.inv() * _noise(rng, n, 0.3)
     R_ref_head = R_ref_head_true * _noise(rng, n, 2.0)  # 2 deg per axis reference noise
     res = calibrate_reference(R_cam_cap, R_ref_head)
@@ -92,21 +106,22 @@ def test_reference_refuses_too_few_pairs_and_no_motion() -> None:
         calibrate_reference(still, still)
 
 
-def test_frontal_frame_rotation_axes() -> None:
-    assert angle_deg(frontal_frame_rotation(), CAM_FROM_FORWARD) < 1e-9
+def test_frontal_frame_from_camera_mount_axes() -> None:
+    assert angle_deg(frontal_from_camera_mount(None), CAM_FROM_FORWARD) < 1e-9
+    assert angle_deg(frontal_from_camera_mount(_mount()), CAM_FROM_FORWARD) < 1e-9
     # Camera pitched down 10 deg: the horizontal forward direction appears above the optical axis
     # (negative optical y), 10 deg off it.
-    fwd_cam = frontal_frame_rotation(mount_pitch_deg=-10.0).apply([1.0, 0.0, 0.0])
+    fwd_cam = frontal_from_camera_mount(_mount(pitch_down_deg=10.0)).apply([1.0, 0.0, 0.0])
     assert fwd_cam[1] < 0
     assert np.degrees(np.arccos(fwd_cam[2])) == pytest.approx(10.0, abs=1e-9)
     # Camera yawed to the left: vehicle forward appears to the right of the image centre (+x).
-    fwd_cam = frontal_frame_rotation(mount_yaw_deg=15.0).apply([1.0, 0.0, 0.0])
+    fwd_cam = frontal_from_camera_mount(_mount(yaw_left_deg=15.0)).apply([1.0, 0.0, 0.0])
     assert fwd_cam[0] > 0 and np.degrees(np.arctan2(fwd_cam[0], fwd_cam[2])) == pytest.approx(15.0)
 
 
 def test_save_load_round_trip(tmp_path) -> None:
     R_cap_head = Rotation.random(random_state=7)
-    R_cam_frontal = frontal_frame_rotation(mount_pitch_deg=-5.0)
+    R_cam_frontal = frontal_from_camera_mount(_mount(pitch_down_deg=5.0))
     res = CalibrationResult(R_cap_head, 42, 1.25, "reference", Rotation.random(random_state=8))
     path = tmp_path / "sub" / "calib.yaml"
     save_calibration(path, res, R_cam_frontal=R_cam_frontal)

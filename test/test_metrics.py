@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -35,12 +37,48 @@ def test_yaw_pitch_roll_convention() -> None:
     left = rotation_from_ypr_deg(30, 0, 0)
     # Yaw +30: the nose (x) turns toward +y (left).
     assert left.apply([1, 0, 0])[1] > 0.4
-    up = rotation_from_ypr_deg(0, 20, 0)
-    assert up.apply([1, 0, 0])[2] > 0.3  # pitch +: nose up
+    down = rotation_from_ypr_deg(0, 20, 0)
+    assert down.apply([1, 0, 0])[2] < -0.3  # pitch +: nose DOWN (REP-103, right-hand about +y left)
     roll = rotation_from_ypr_deg(0, 0, 15)
     assert roll.apply([0, 1, 0])[2] > 0.2  # roll +: left ear up, toward the right shoulder
     ypr = np.array([40.0, -20.0, 5.0])
     np.testing.assert_allclose(yaw_pitch_roll_deg(rotation_from_ypr_deg(*ypr)), ypr, atol=1e-9)
+
+
+def _tf2_get_rpy(q_xyzw: np.ndarray) -> tuple[float, float, float]:
+    """tf2's ``Quaternion -> Matrix3x3 -> getRPY`` (LinearMath/Matrix3x3.h), written out here from
+    its formulas so the test does not lean on scipy's Euler code: the matrix of ``setRotation`` and
+    ``getEulerYPR``'s yaw = atan2(m10, m00), pitch = asin(-m20), roll = atan2(m21, m22) (radians)."""
+    x, y, z, w = (float(v) for v in q_xyzw)
+    s = 2.0 / (x * x + y * y + z * z + w * w)
+    xs, ys, zs = x * s, y * s, z * s
+    wx, wy, wz = w * xs, w * ys, w * zs
+    xx, xy, xz = x * xs, x * ys, x * zs
+    yy, yz, zz = y * ys, y * zs, z * zs
+    m = [[1.0 - (yy + zz), xy - wz, xz + wy],
+         [xy + wz, 1.0 - (xx + zz), yz - wx],
+         [xz - wy, yz + wx, 1.0 - (xx + yy)]]
+    yaw = math.atan2(m[1][0], m[0][0])
+    pitch = math.asin(max(-1.0, min(1.0, -m[2][0])))
+    roll = math.atan2(m[2][1], m[2][2])
+    return roll, pitch, yaw
+
+
+def test_head_angles_match_tf2_get_rpy() -> None:
+    # A known rotation: the head turned 25 deg about +y (REP-103's left axis), i.e. nose down,
+    # as the quaternion (0, sin(12.5 deg), 0, cos(12.5 deg)); then a general one.
+    half = math.radians(25.0) / 2
+    q_down = np.array([0.0, math.sin(half), 0.0, math.cos(half)])
+    roll, pitch, yaw = _tf2_get_rpy(q_down)
+    assert math.degrees(pitch) == pytest.approx(25.0, abs=1e-9)
+    ypr = yaw_pitch_roll_deg(Rotation.from_quat(q_down))
+    assert ypr[1] == pytest.approx(25.0, abs=1e-9)  # same sign as tf2: nose down positive
+    assert Rotation.from_quat(q_down).apply([1.0, 0.0, 0.0])[2] < 0  # and it is nose down
+    rng = np.random.default_rng(5)
+    for q in Rotation.from_euler("ZYX", rng.uniform(-60, 60, (20, 3)), degrees=True).as_quat():
+        r, p, y = _tf2_get_rpy(q)
+        np.testing.assert_allclose(yaw_pitch_roll_deg(Rotation.from_quat(q)),
+                                   np.degrees([y, p, r]), atol=1e-9)
 
 
 def test_robust_mean_ignores_outliers() -> None:

@@ -13,12 +13,14 @@ from typing import Any, Callable
 import numpy as np
 import pytest
 import rclpy
+import yaml
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from rcl_interfaces.srv import SetParameters
 from rclpy.context import Context
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.parameter import Parameter
+from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
@@ -220,7 +222,9 @@ def test_parameters_out_of_range_are_rejected(harness_factory) -> None:
     node = h.node
     for name, value in [("pose.min_tags", 0), ("pose.min_tags", 40),
                         ("calibration.max_spread_deg", 0.0), ("calibration.window_s", 1e9),
-                        ("frontal.mount_pitch_deg", 91.0), ("warn_reliability", 1.5),
+                        ("camera_mount", [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 3.0]),
+                        ("output_frame", "base_link"),  # no camera_mount: refused
+                        ("warn_reliability", 1.5),
                         ("pose.method", "magic"), ("calibration.mode", "guess")]:
         res = node.set_parameters([Parameter(name, value=value)])[0]
         assert not res.successful, (name, value)
@@ -235,7 +239,15 @@ def test_parameters_out_of_range_are_rejected(harness_factory) -> None:
     # In-range values apply to the running pipeline.
     assert node.set_parameters([Parameter("pose.method", value="paper")])[0].successful
     assert node._processor.pose_config.method == "paper"
-    assert node.set_parameters([Parameter("frontal.mount_pitch_deg", value=-10.0)])[0].successful
+    # A camera pitched down 10 deg (REP-103: +10 about base_link's y): built from its axes.
+    p = np.radians(10.0)
+    R_base_cam = np.column_stack([[0.0, -1.0, 0.0], [-np.sin(p), 0.0, -np.cos(p)],
+                                  [np.cos(p), 0.0, -np.sin(p)]])
+    q = Rotation.from_matrix(R_base_cam).as_quat()
+    mount = [0.2, 0.0, 1.1, *q]
+    res = node.set_parameters([Parameter("camera_mount", value=mount),
+                               Parameter("output_frame", value="base_link")])
+    assert all(r.successful for r in res), res
     fwd = node.calibration.R_cam_frontal.apply([1.0, 0.0, 0.0])
     assert np.degrees(np.arccos(fwd[2])) == pytest.approx(10.0) and fwd[1] < 0
 
@@ -245,12 +257,65 @@ def test_params_file_loads_and_bad_overrides_refuse_to_start(tmp_path) -> None:
     try:
         assert h.node.get_parameter("calibration.window_s").value == 3.0
         assert h.node.get_parameter("image_transport").value == "raw"
+        assert h.node.unknown_parameters == []
     finally:
         h.close()
     with pytest.raises(ConfigError, match="pose.min_tags"):
         Harness(overrides={"pose.min_tags": 50})
     with pytest.raises(ConfigError, match="image_transport"):
         Harness(overrides={"image_transport": "theora"})
+    with pytest.raises(ConfigError, match="needs camera_mount"):
+        Harness(overrides={"output_frame": "base_link"})
+    # The removed mount angles refuse to start, naming their replacement.
+    with pytest.raises(ConfigError, match="frontal.mount_pitch_deg was replaced by camera_mount"):
+        Harness(overrides={"frontal.mount_pitch_deg": -10.0})
+
+
+def _node_with_args(cli_args: list[str]) -> tuple[Context, FicapNode]:
+    context = Context()
+    rclpy.init(context=context)
+    try:
+        return context, FicapNode(context=context, cli_args=cli_args)
+    except BaseException:
+        rclpy.try_shutdown(context=context)
+        raise
+
+
+def test_shipped_params_file_applies_under_a_namespace_and_new_name(tmp_path) -> None:
+    # The shipped file with a few values changed (and one key misspelt), given to a node that
+    # runs namespaced and renamed, as a launch file or `ros2 run ... -r __ns:=/rear` would.
+    data = yaml.safe_load(CONFIG.read_text())
+    assert list(data) == ["/**"]
+    params = data["/**"]["ros__parameters"]
+    params.update({"pose.min_tags": 3, "calibration.window_s": 7.5, "warn_reliability": 0.25,
+                   "frontal_frame": "rear_frontal", "pose.min_tag": 2})
+    path = tmp_path / "rear.yaml"
+    path.write_text(yaml.safe_dump(data))
+    context, node = _node_with_args(["--ros-args", "-r", "__ns:=/rear", "-r", "__node:=ficap_rear",
+                                     "--params-file", str(path)])
+    try:
+        assert (node.get_namespace(), node.get_name()) == ("/rear", "ficap_rear")
+        assert node.get_parameter("pose.min_tags").value == 3
+        assert node.get_parameter("calibration.window_s").value == 7.5
+        assert node.get_parameter("warn_reliability").value == 0.25
+        assert node.get_parameter("frontal_frame").value == "rear_frontal"
+        assert node._processor.pose_config.min_tags == 3  # and the pipeline uses them
+        assert node.unknown_parameters == ["pose.min_tag"]  # named in the start-up warning
+        assert node._image_sub.topic_name == "/rear/image"
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
+    # The old key 'ficap_node:' does not match the renamed node: nothing applies (what the
+    # '/**' key fixes).
+    old = {"ficap_node": {"ros__parameters": {"pose.min_tags": 3}}}
+    path.write_text(yaml.safe_dump(old))
+    context, node = _node_with_args(["--ros-args", "-r", "__node:=ficap_rear",
+                                     "--params-file", str(path)])
+    try:
+        assert node.get_parameter("pose.min_tags").value == 1
+    finally:
+        node.destroy_node()
+        rclpy.try_shutdown(context=context)
 
 
 def test_calibration_file_loaded_at_start_and_cleared(harness_factory, tmp_path) -> None:

@@ -187,3 +187,84 @@ def test_newest_frame_wins_and_services_stay_responsive(drive, harness_factory) 
     assert len(seen) + dropped <= len(burst)
     assert dropped > 0 and len(seen) < len(burst)  # stale frames were not queued
     assert call_s < 1.0
+
+
+def _matrix(pose) -> np.ndarray:
+    """4x4 of a geometry_msgs/Pose from its quaternion by the textbook formula (independent of
+    ficap_ros.transform and of scipy)."""
+    x, y, z, w = (pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w)
+    m = np.eye(4)
+    m[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                 [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                 [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
+    m[:3, 3] = [pose.position.x, pose.position.y, pose.position.z]
+    return m
+
+
+def test_output_frame_through_camera_mount(drive, harness_factory) -> None:
+    from geometry_msgs.msg import PoseWithCovarianceStamped, Vector3Stamped
+    from sensor_msgs.msg import JointState
+
+    scene, frames = drive
+    few = frames[-6:]  # glances, away from frontal
+    # Camera behind the driver: 0.9 m behind and 0.35 m above base_link's origin, pitched down
+    # 12 deg and yawed 5 deg to the left; its quaternion from its axes written in base_link.
+    p, yw = np.radians(12.0), np.radians(5.0)
+    z_cam = np.array([np.cos(p) * np.cos(yw), np.cos(p) * np.sin(yw), -np.sin(p)])
+    x_cam = np.array([np.sin(yw), -np.cos(yw), 0.0])
+    R_base_cam = np.column_stack([x_cam, np.cross(z_cam, x_cam), z_cam])
+    mount = [-0.9, 0.02, 0.35, *Rotation.from_matrix(R_base_cam).as_quat()]
+    M_base_cam = np.eye(4)
+    M_base_cam[:3, :3], M_base_cam[:3, 3] = R_base_cam, mount[:3]
+
+    runs = {}
+    for name, overrides in (("camera", {}),
+                            ("base", {"output_frame": "base_link", "camera_mount": mount})):
+        h = harness_factory(overrides={"tracking": False, **overrides})  # frames independent
+        cov, frontal, rpy, quality = [], [], [], []
+        h.peer.create_subscription(PoseWithCovarianceStamped, "head_pose/with_covariance",
+                                   h._rec(cov), 50)
+        h.peer.create_subscription(PoseStamped, "head_pose/frontal", h._rec(frontal), 50)
+        h.peer.create_subscription(Vector3Stamped, "head_rpy_deg", h._rec(rpy), 50)
+        h.peer.create_subscription(JointState, "quality", h._rec(quality), 50)
+        h.wait_for(lambda: h.node._pub_quality.get_subscription_count() > 0
+                   and h.node._pub_rpy.get_subscription_count() > 0, what="subscribers")
+        _play(h, scene, few)
+        h.wait_for(lambda: len(cov) >= len(few) and len(quality) >= len(few)
+                   and len(rpy) >= len(few), timeout=5.0, what="outputs")
+        with h.lock:
+            runs[name] = dict(head=_by_stamp(h.head), cap=_by_stamp(h.cap), cov=_by_stamp(cov),
+                              frontal=_by_stamp(frontal), rpy=_by_stamp(rpy),
+                              quality=_by_stamp(quality))
+        h.close()  # before the next run: its peer must not hear this node
+    cam, base = runs["camera"], runs["base"]
+    for truth, _ in few:
+        t = truth.stamp_ns
+        assert base["head"][t].header.frame_id == "base_link"
+        assert cam["head"][t].header.frame_id == "rear_cam_optical"
+        # Head and cap in base_link = mount composed with the camera-frame pose (4x4 products).
+        for key in ("head", "cap"):
+            want = M_base_cam @ _matrix(cam[key][t].pose)
+            np.testing.assert_allclose(_matrix(base[key][t].pose), want, atol=1e-6)
+        # The covariance moves with the axes: blockdiag(R, R) C blockdiag(R, R)^T.
+        B = np.kron(np.eye(2), R_base_cam)
+        C_cam = np.array(cam["cov"][t].pose.covariance).reshape(6, 6)
+        C_base = np.array(base["cov"][t].pose.covariance).reshape(6, 6)
+        np.testing.assert_allclose(C_base, B @ C_cam @ B.T, atol=1e-12 + 1e-6 * np.abs(C_cam).max())
+        # The frontal frame is base_link's axes: head_pose/frontal is the head in base_link, and
+        # head_rpy_deg its REP-103 angles (tf2's getRPY: roll atan2(m21, m22), pitch asin(-m20),
+        # yaw atan2(m10, m00)).
+        assert base["frontal"][t].header.frame_id == "base_link"
+        m = _matrix(base["frontal"][t].pose)
+        np.testing.assert_allclose(m, _matrix(base["head"][t].pose), atol=1e-9)
+        v = base["rpy"][t].vector
+        np.testing.assert_allclose(
+            [v.x, v.y, v.z],
+            np.degrees([np.arctan2(m[2, 1], m[2, 2]), np.arcsin(-m[2, 0]), np.arctan2(m[1, 0], m[0, 0])]),
+            atol=1e-6)
+        # Without a mount the frontal frame is named by frontal_frame.
+        assert cam["frontal"][t].header.frame_id == "ficap_frontal"
+        q = base["quality"][t]
+        values = dict(zip(q.name, q.position))
+        assert values["tags_used"] >= 4 and 0.0 < values["reliability"] <= 1.0
+        assert values["tags_detected"] >= values["tags_used"]

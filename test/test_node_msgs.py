@@ -172,7 +172,8 @@ def test_array_to_image_round_trip() -> None:
 
 # -- parameters ----------------------------------------------------------------------------------
 def test_config_file_lists_every_parameter_with_its_default() -> None:
-    data = yaml.safe_load(CONFIG.read_text())["ficap_node"]["ros__parameters"]
+    # Keyed '/**' so it applies under any node name and namespace.
+    data = yaml.safe_load(CONFIG.read_text())["/**"]["ros__parameters"]
     assert set(data) == {p.name for p in PARAMETERS}
     for p in PARAMETERS:
         assert data[p.name] == p.default and type(data[p.name]) is type(p.default), p.name
@@ -186,7 +187,12 @@ def test_validation_rejects_out_of_range_and_unknown_choices() -> None:
     assert "one of" in validate_parameter("pose.method", "magic")
     assert "one of" in validate_parameter("image_transport", "theora")
     assert "must be a" in validate_parameter("pose.min_tags", "3")
-    assert validate_parameter("frontal.mount_pitch_deg", -10) == ""  # int accepted for a float
+    assert validate_parameter("warn_throttle_s", 2) == ""  # int accepted for a float
+    assert validate_parameter("camera_mount", [0.0] * 7) == ""  # all zeros: not set
+    assert validate_parameter("camera_mount", [0.1, 0.0, 1.2, 0.5, -0.5, 0.5, -0.5]) == ""
+    assert "unit length" in validate_parameter("camera_mount", [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 2.0])
+    assert "7 finite" in validate_parameter("camera_mount", [0.0, 0.0, 1.0])
+    assert "7 finite" in validate_parameter("camera_mount", [float("nan")] * 3 + [0.0, 0.0, 0.0, 1.0])
     assert validate_parameter("use_sim_time", True) == ""
 
 

@@ -34,12 +34,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="seed of --random (default 0)")
     parser.add_argument("--max-dt-ms", type=float, default=20.0,
                         help="reference mode: largest stamp difference of a pair, ms (default 20)")
-    parser.add_argument("--mount-pitch-deg", type=float, default=0.0,
-                        help="frontal mode: camera mount pitch in the frontal frame (default 0)")
-    parser.add_argument("--mount-yaw-deg", type=float, default=0.0,
-                        help="frontal mode: camera mount yaw (default 0)")
-    parser.add_argument("--mount-roll-deg", type=float, default=0.0,
-                        help="frontal mode: camera mount roll (default 0)")
+    parser.add_argument("--camera-mount", type=float, nargs=7,
+                        metavar=("X", "Y", "Z", "QX", "QY", "QZ", "QW"),
+                        help="frontal mode: the camera's optical frame in the vehicle frame "
+                             "(static_transform_publisher order, m and quaternion); the frontal "
+                             "frame takes the vehicle's axes (default: camera looks straight ahead)")
     parser.add_argument("--min-frames", type=positive_int, default=30,
                         help="frontal mode: least frames with a pose in the window (default 30)")
     parser.add_argument("--out", required=True, metavar="FILE", help="calibration YAML to write")
@@ -53,7 +52,7 @@ def run(args: argparse.Namespace) -> int:
     from ficap_ros.calibration import (
         calibrate_frontal,
         calibrate_reference,
-        frontal_frame_rotation,
+        frontal_from_camera_mount,
         save_calibration,
     )
     from ficap_ros.errors import BagError, CalibrationError, ConfigError
@@ -77,8 +76,11 @@ def run(args: argparse.Namespace) -> int:
         if not np.any(sel):
             raise CalibrationError(
                 f"no frame with a pose between {args.frontal[0]:g} s and {args.frontal[1]:g} s")
-        R_cam_frontal = frontal_frame_rotation(args.mount_pitch_deg, args.mount_yaw_deg,
-                                               args.mount_roll_deg)
+        from ficap_ros.transform import Transform
+
+        mount = (Transform.from_xyz_q_xyzw(args.camera_mount, "--camera-mount")
+                 if args.camera_mount else None)
+        R_cam_frontal = frontal_from_camera_mount(mount)
         result = calibrate_frontal(R_cam_cap_all[np.nonzero(sel)[0]], R_cam_frontal,
                                    min_frames=args.min_frames)
         save_calibration(args.out, result, R_cam_frontal=R_cam_frontal)
