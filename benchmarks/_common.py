@@ -8,7 +8,6 @@ import platform
 import re
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import cv2
@@ -73,18 +72,9 @@ def md_table(header: list[str], rows: list[list[object]]) -> str:
     return "\n".join(out)
 
 
-class Progress:
-    """One-line progress on stderr with rate and ETA."""
+def Progress(total: int, label: str):  # noqa: ANN201, N802 - a tqdm bar
+    """Progress on stderr (tqdm: rate and ETA; silent when stderr is not a terminal)."""
+    from tqdm import tqdm
 
-    def __init__(self, total: int, label: str) -> None:
-        self.total, self.label, self.n, self.t0, self.last = total, label, 0, time.time(), 0.0
-
-    def update(self, n: int = 1) -> None:
-        self.n += n
-        now = time.time()
-        if now - self.last > 2.0 or self.n >= self.total:
-            self.last = now
-            rate = self.n / max(now - self.t0, 1e-9)
-            eta = (self.total - self.n) / max(rate, 1e-9)
-            print(f"\r  {self.label}: {self.n}/{self.total} ({rate:.1f}/s, ETA {eta:.0f} s)   ",
-                  end="" if self.n < self.total else "\n", file=sys.stderr, flush=True)
+    return tqdm(total=total, desc=f"  {label}", unit="frame", file=sys.stderr, disable=None,
+                smoothing=0.1)

@@ -39,6 +39,18 @@ def positive_int(text: str) -> int:
     return value
 
 
+def _version() -> str:
+    """The installed package's version (the package metadata), else the source's."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("ficap_ros")
+    except PackageNotFoundError:
+        from ficap_ros import __version__
+
+        return __version__
+
+
 def _available_verbs() -> dict[str, object]:
     modules = {}
     for verb, module_name in VERBS.items():
@@ -54,6 +66,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog="ficap", description="Fi-Cap head-pose ground truth: tools around the core."
     )
+    parser.add_argument("--version", action="version", version=f"ficap {_version()}")
     sub = parser.add_subparsers(dest="verb", metavar="VERB", required=True)
     for verb, module in _available_verbs().items():
         p = sub.add_parser(verb, help=module.HELP, description=module.HELP)  # type: ignore[attr-defined]

@@ -341,18 +341,21 @@ def plot_report(result: EvaluationResult, out_dir: Path) -> list[Path]:
             label="Φ3 = arccos|q1·q2|")
     ax.set_xlabel("Error degrees (°)")
     ax.set_ylabel("Frequency")
-    ax.set_title("Head pose error")
+    ax.set_title(f"Head pose error ({result.geodesic_deg.size} paired frames)")
     ax.legend()
     paths.append(_png(fig, out_dir / "error_histogram.png"))
 
     t_s = (result.stamp_ns - result.stamp_ns[0]) / 1e9
     fig, axes = plt.subplots(3, 1, figsize=(8.0, 6.4), sharex=True)
+    sign = ("+ left", "+ nose down", "+ right ear down")  # REP-103 right-hand signs
     for k, name in enumerate(("yaw", "pitch", "roll")):
         axes[k].plot(t_s, result.truth_ypr_deg[:, k], "-", color="k", lw=1.0, label="truth")
         axes[k].plot(t_s, result.estimate_ypr_deg[:, k], "-", color="tab:red", lw=0.8,
                      label="estimate")
-        axes[k].set_ylabel(f"{name} (°)")
+        axes[k].set_ylabel(f"{name} (°, {sign[k]})")
     axes[0].legend(loc="upper right")
+    axes[0].set_title(f"Head yaw, pitch, roll in the frontal frame, REP-103 "
+                      f"({t_s.size} paired frames)")
     axes[-1].set_xlabel("time (s)")
     paths.append(_png(fig, out_dir / "timeseries.png"))
 
@@ -368,8 +371,9 @@ def plot_report(result: EvaluationResult, out_dir: Path) -> list[Path]:
             centres.append(0.5 * (edges[b] + edges[b + 1]))
             medians.append(float(np.median(sel)))
     ax.plot(centres, medians, "-o", color="k", ms=3, label="median per bin")
-    ax.set_xlabel("truth yaw (°)")
+    ax.set_xlabel("truth yaw (°, + left)")
     ax.set_ylabel("geodesic error (°)")
+    ax.set_title(f"Head pose error against yaw ({yaw.size} paired frames)")
     ax.legend()
     paths.append(_png(fig, out_dir / "error_vs_yaw.png"))
     return paths
@@ -485,9 +489,14 @@ class DetectionStats:
         }
 
 
+#: Reliability histogram edges: 0.1 wide up to 0.8, 0.02 wide above, where good frames differ.
+RELIABILITY_EDGES = np.concatenate([np.linspace(0.0, 0.8, 9), np.linspace(0.82, 1.0, 10)])
+
+
 def detection_stats(
     tags_detected: np.ndarray, detected_ids: tuple[tuple[int, ...], ...], reliability: np.ndarray,
-    has_pose: np.ndarray, skipped: np.ndarray, model_ids: tuple[int, ...], bins: int = 10,
+    has_pose: np.ndarray, skipped: np.ndarray, model_ids: tuple[int, ...],
+    edges: np.ndarray | None = None,
 ) -> DetectionStats:
     """Counts of frames by tags detected, per-tag detection rate and the reliability histogram.
 
@@ -498,7 +507,8 @@ def detection_stats(
         has_pose: (N,) bool.
         skipped: (N,) bool, undecodable frames (left out of every count but their own).
         model_ids: the cap's tag ids (rows of the per-tag table).
-        bins: reliability histogram bins over [0, 1].
+        edges: reliability histogram bin edges over [0, 1] (default ``RELIABILITY_EDGES``; the
+            last bin includes 1.0).
     """
     keep = ~np.asarray(skipped, dtype=bool)
     td = np.asarray(tags_detected)[keep]
@@ -511,7 +521,7 @@ def detection_stats(
                     counts[t] += 1
     rel = np.asarray(reliability, dtype=np.float64)[keep & np.asarray(has_pose, dtype=bool)]
     rel = rel[np.isfinite(rel)]
-    edges = np.linspace(0.0, 1.0, bins + 1)
+    edges = RELIABILITY_EDGES if edges is None else np.asarray(edges, dtype=np.float64)
     hist, _ = np.histogram(np.clip(rel, 0.0, 1.0), bins=edges)
     return DetectionStats(
         frames=n,
@@ -536,11 +546,13 @@ def plot_stats(stats: DetectionStats, out_dir: Path) -> list[Path]:
     paths = []
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
     e = stats.reliability_edges
-    ax.bar(0.5 * (e[:-1] + e[1:]), stats.reliability_counts, width=np.diff(e) * 0.9,
-           color="tab:green")
-    ax.set_xlabel("pose reliability")
-    ax.set_ylabel("frames")
-    ax.set_title(f"Reliability ({stats.frames_with_pose} frames with a pose)")
+    # Counts per unit of reliability (frames / bin width): bins of different widths compare.
+    ax.bar(e[:-1], stats.reliability_counts / np.diff(e), width=np.diff(e), align="edge",
+           color="tab:green", edgecolor="white", linewidth=0.5)
+    ax.set_xlabel("pose reliability (bins 0.1 wide below 0.8, 0.02 above)")
+    ax.set_ylabel("frames per 1.0 of reliability")
+    ax.set_xlim(0.0, 1.0)
+    ax.set_title(f"Reliability ({stats.frames_with_pose} frames with a pose of {stats.frames})")
     paths.append(_png(fig, out_dir / "reliability_histogram.png"))
 
     fig, ax = plt.subplots(figsize=(8.0, 4.0))
@@ -549,5 +561,6 @@ def plot_stats(stats: DetectionStats, out_dir: Path) -> list[Path]:
     ax.set_xlabel("tag id")
     ax.set_ylabel("detected in % of frames")
     ax.set_ylim(0, 100)
+    ax.set_title(f"Tag detection rate ({stats.frames} frames)")
     paths.append(_png(fig, out_dir / "tag_detection_rate.png"))
     return paths

@@ -3,8 +3,9 @@
 Frames and quaternions (CSV columns are w, x, y, z; ROS messages store x, y, z, w):
     cap_q*, cap_*_m: T_cam_cap, the cap frame C in the camera optical frame (m).
     head_q*, head_*_deg: R_frontal_head, the head frame H in the frontal frame F (the head's zero
-        pose); yaw/pitch/roll as in ``ficap_ros.metrics``. Identity-mounted (R_cap_head = I) until
-        a calibration is given (column ``calibrated``).
+        pose); yaw/pitch/roll as in ``ficap_ros.metrics``: REP-103 (right-hand, intrinsic ZYX, as
+        tf2's getRPY), pitch positive nose DOWN. Identity-mounted (R_cap_head = I) until a
+        calibration is given (column ``calibrated``).
 
 labels.mcap holds the live node's topics (``ficap_ros.node``), with the same messages, each stamped
 with the image stamp (header and bag receive time), frame = the image's frame_id; names relative to
@@ -13,10 +14,18 @@ with the image stamp (header and bag receive time), frame = the image's frame_id
     ``head_pose/with_covariance`` PoseWithCovarianceStamped: the same with the estimator's 6x6
         covariance (ROS order, camera axes).
     ``cap_pose`` PoseStamped: T_cam_cap.
+    ``head_pose/frontal`` PoseStamped: T_frontal_head, frame ``ficap_frontal`` (F).
+    ``head_rpy_deg`` Vector3Stamped: x roll, y pitch, z yaw of H in F, degrees (REP-103).
+    ``quality`` JointState: ``name[i]`` labels ``position[i]``: tags_detected, tags_used,
+        reliability, rms_px (NaN without a pose); every image.
     ``status`` DiagnosticArray, one status ``ficap`` per image: OK with a pose, WARN without one,
         ERROR for an undecodable image; values tags_detected, tags_used, rms_px, reliability,
         calibrated and, with a pose, yaw_deg, pitch_deg, roll_deg (R_frontal_head).
-Poses exist in the bag only for images with a pose; status for every image.
+    ``/tf`` (never namespaced) tf2_msgs/TFMessage per posed image: ``ficap_frontal`` -> the camera
+        frame (R_frontal_cam, the frontal frame's orientation; origin at the camera), camera ->
+        ``ficap_cap`` (T_cam_cap), ``ficap_cap`` -> ``ficap_head`` (R_cap_head), so a 3-D view
+        (Foxglove, RViz) fixed in ``ficap_frontal`` shows the head moving.
+Poses exist in the bag only for images with a pose; status and quality for every image.
 """
 
 from __future__ import annotations
@@ -60,6 +69,10 @@ LABEL_COLUMNS: tuple[str, ...] = (
 )
 DEFAULT_NAMESPACE = ""
 DEFAULT_CAMERA_FRAME = "camera_optical_frame"
+#: TF frame names of labels.mcap (the camera's is the image's frame_id).
+FRONTAL_FRAME = "ficap_frontal"
+CAP_FRAME = "ficap_cap"
+HEAD_FRAME = "ficap_head"
 
 
 @dataclass(frozen=True)
@@ -291,14 +304,75 @@ def read_labels(path: str | Path) -> Labels:
 
 
 def label_topics(namespace: str = DEFAULT_NAMESPACE) -> dict[str, str]:
-    """Topic name per label stream: cap_pose, head_pose, head_pose_cov, status."""
+    """Topic name per label stream: cap_pose, head_pose, head_pose_cov, head_frontal, head_rpy,
+    quality, status, tf (``/tf`` is global, as in ROS: never namespaced)."""
     ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
     return {
         "cap_pose": f"{ns}/cap_pose",
         "head_pose": f"{ns}/head_pose",
         "head_pose_cov": f"{ns}/head_pose/with_covariance",
+        "head_frontal": f"{ns}/head_pose/frontal",
+        "head_rpy": f"{ns}/head_rpy_deg",
+        "quality": f"{ns}/quality",
         "status": f"{ns}/status",
+        "tf": "/tf",
     }
+
+
+def _quality_values(rec: LabelRecord) -> dict[str, float]:
+    """The numbers of the ``quality`` topic (the node's, less its latency)."""
+    return {
+        "tags_detected": float(rec.tags_detected),
+        "tags_used": float(rec.tags_used),
+        "reliability": float(rec.reliability) if math.isfinite(rec.reliability) else 0.0,
+        "rms_px": float(rec.rms_px),
+    }
+
+
+def _quality_msg(rec: LabelRecord) -> object:
+    from ficap_ros.bag_io import header, jazzy_typestore
+
+    values = _quality_values(rec)
+    return jazzy_typestore().types["sensor_msgs/msg/JointState"](
+        header=header(rec.stamp_ns, rec.frame_id), name=list(values),
+        position=np.array(list(values.values()), dtype=np.float64),
+        velocity=np.zeros(0, dtype=np.float64), effort=np.zeros(0, dtype=np.float64))
+
+
+def _rpy_msg(rec: LabelRecord) -> object:
+    from ficap_ros.bag_io import header, jazzy_typestore
+
+    assert rec.T_frontal_head is not None
+    t = jazzy_typestore().types
+    yaw, pitch, roll = (float(v) for v in yaw_pitch_roll_deg(rec.T_frontal_head.rotation))
+    return t["geometry_msgs/msg/Vector3Stamped"](
+        header=header(rec.stamp_ns, FRONTAL_FRAME),
+        vector=t["geometry_msgs/msg/Vector3"](x=roll, y=pitch, z=yaw))
+
+
+def _tf_msg(rec: LabelRecord) -> object:
+    """tf2_msgs/TFMessage: frontal -> camera, camera -> cap, cap -> head (stamp = the image's)."""
+    from ficap_ros.bag_io import header, jazzy_typestore
+
+    assert rec.T_cam_cap is not None and rec.T_frontal_head is not None
+    t = jazzy_typestore().types
+    T_frontal_cam = Transform(rec.R_frontal_cam, np.zeros(3))
+    T_cap_head = rec.T_cam_cap.inv() * T_frontal_cam.inv() * rec.T_frontal_head
+
+    def stamped(parent: str, child: str, T: Transform) -> object:
+        x, y, z = (float(v) for v in T.translation_m)
+        qx, qy, qz, qw = (float(v) for v in T.q_xyzw)
+        return t["geometry_msgs/msg/TransformStamped"](
+            header=header(rec.stamp_ns, parent), child_frame_id=child,
+            transform=t["geometry_msgs/msg/Transform"](
+                translation=t["geometry_msgs/msg/Vector3"](x=x, y=y, z=z),
+                rotation=t["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)))
+
+    return t["tf2_msgs/msg/TFMessage"](transforms=[
+        stamped(FRONTAL_FRAME, rec.frame_id, T_frontal_cam),
+        stamped(rec.frame_id, CAP_FRAME, rec.T_cam_cap),
+        stamped(CAP_FRAME, HEAD_FRAME, T_cap_head),
+    ])
 
 
 def _status_msg(rec: LabelRecord) -> object:
@@ -346,7 +420,11 @@ def write_labels_bag(path: str | Path, records: Sequence[LabelRecord],
         bag.add_topic(topics["cap_pose"], "geometry_msgs/msg/PoseStamped")
         bag.add_topic(topics["head_pose"], "geometry_msgs/msg/PoseStamped")
         bag.add_topic(topics["head_pose_cov"], "geometry_msgs/msg/PoseWithCovarianceStamped")
+        bag.add_topic(topics["head_frontal"], "geometry_msgs/msg/PoseStamped")
+        bag.add_topic(topics["head_rpy"], "geometry_msgs/msg/Vector3Stamped")
+        bag.add_topic(topics["quality"], "sensor_msgs/msg/JointState")
         bag.add_topic(topics["status"], "diagnostic_msgs/msg/DiagnosticArray")
+        bag.add_topic(topics["tf"], "tf2_msgs/msg/TFMessage")
         for rec in records:
             if rec.T_cam_cap is not None and rec.T_frontal_head is not None:
                 bag.write(topics["cap_pose"], rec.stamp_ns,
@@ -358,4 +436,9 @@ def write_labels_bag(path: str | Path, records: Sequence[LabelRecord],
                 bag.write(topics["head_pose_cov"], rec.stamp_ns,
                           pose_with_covariance_stamped_msg(rec.stamp_ns, rec.frame_id,
                                                            T_cam_head, cov))
+                bag.write(topics["head_frontal"], rec.stamp_ns,
+                          pose_stamped_msg(rec.stamp_ns, FRONTAL_FRAME, rec.T_frontal_head))
+                bag.write(topics["head_rpy"], rec.stamp_ns, _rpy_msg(rec))
+                bag.write(topics["tf"], rec.stamp_ns, _tf_msg(rec))
+            bag.write(topics["quality"], rec.stamp_ns, _quality_msg(rec))
             bag.write(topics["status"], rec.stamp_ns, _status_msg(rec))

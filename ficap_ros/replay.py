@@ -35,54 +35,15 @@ __all__ = ["Progress", "ProcessedFrame", "process_frames", "frontal_calibration"
            "ReplayOutput", "replay", "check_output_dir"]
 
 
-class Progress:
-    """A progress bar on a terminal, plain lines (every ~10 % or 10 s) otherwise."""
+def Progress(total: int, label: str = "frames", stream: IO[str] | None = None,  # noqa: N802
+             enabled: bool = True) -> Any:
+    """A ``tqdm`` bar on stderr: per-frame updates, rate and ETA (tqdm's moving average), and
+    nothing at all when the stream is not a terminal (logs, CI) or ``enabled`` is False."""
+    from tqdm import tqdm
 
-    def __init__(self, total: int, label: str = "frames", stream: IO[str] | None = None,
-                 enabled: bool = True) -> None:
-        self.total = max(int(total), 0)
-        self.label = label
-        self.stream = stream if stream is not None else sys.stderr
-        self.enabled = enabled
-        self.tty = enabled and bool(getattr(self.stream, "isatty", lambda: False)())
-        self.count = 0
-        self.t0 = time.monotonic()
-        self._last_print = self.t0
-        self._last_pct = -1
-
-    def update(self, n: int = 1) -> None:
-        self.count += n
-        if not self.enabled:
-            return
-        now = time.monotonic()
-        rate = self.count / max(now - self.t0, 1e-9)
-        if self.tty:
-            if now - self._last_print < 0.1 and self.count != self.total:
-                return
-            self._last_print = now
-            if self.total:
-                frac = min(self.count / self.total, 1.0)
-                bar = "#" * int(frac * 30)
-                eta = (self.total - self.count) / rate if rate > 0 else 0.0
-                text = (f"\r[{bar:<30}] {self.count}/{self.total} {self.label} "
-                        f"{rate:5.1f}/s eta {eta:4.0f}s")
-            else:
-                text = f"\r{self.count} {self.label} {rate:5.1f}/s"
-            self.stream.write(text)
-            self.stream.flush()
-            return
-        pct = int(100 * self.count / self.total) // 10 * 10 if self.total else -1
-        if (pct > self._last_pct and pct >= 0) or now - self._last_print >= 10.0:
-            self._last_pct = max(pct, self._last_pct)
-            self._last_print = now
-            of = f"/{self.total}" if self.total else ""
-            self.stream.write(f"ficap: {self.count}{of} {self.label} ({rate:.1f}/s)\n")
-            self.stream.flush()
-
-    def close(self) -> None:
-        if self.enabled and self.tty:
-            self.stream.write("\n")
-            self.stream.flush()
+    return tqdm(total=max(int(total), 0) or None, desc=label, unit="frame",
+                file=stream if stream is not None else sys.stderr, dynamic_ncols=True,
+                smoothing=0.1, disable=None if enabled else True)
 
 
 @dataclass(frozen=True)
@@ -113,10 +74,12 @@ class ProcessedFrame:
 
 # -- worker side ---------------------------------------------------------------------------------
 _PROCESSOR: FrameProcessor | None = None
+_DONE: Any = None  # frames finished in this pool (a shared counter), for the progress bar
 
 
-def _init_worker(model: CapModel, pose: PoseConfig, single_thread: bool) -> None:
-    global _PROCESSOR
+def _init_worker(model: CapModel, pose: PoseConfig, single_thread: bool, done: Any = None) -> None:
+    global _PROCESSOR, _DONE
+    _DONE = done
     if single_thread:
         import cv2
 
@@ -149,26 +112,44 @@ SEGMENT_FRAMES = 128
 def _process_segment(raws: list[RawFrame]) -> list[ProcessedFrame]:
     assert _PROCESSOR is not None
     _PROCESSOR.reset_tracking()
-    return [_process_one(raw) for raw in raws]
+    out = []
+    for raw in raws:
+        out.append(_process_one(raw))
+        if _DONE is not None:
+            with _DONE.get_lock():
+                _DONE.value += 1
+    return out
 
 
 def process_frames(
     raws: Iterable[RawFrame], model: CapModel, pose: PoseConfig, jobs: int = 1,
+    on_progress: Callable[[int], None] | None = None,
 ) -> Iterator[ProcessedFrame]:
     """Run the pipeline over raw frames, in order, in ``jobs`` processes.
 
     Undecodable frames come back with ``pose`` None and ``reason`` ``undecodable: ...``.
+    ``on_progress`` is called with the number of frames processed so far, frame by frame (with
+    ``jobs > 1`` the workers count into a shared counter, read about 10 times a second while
+    waiting for the next segment, so a bar moves smoothly although results come in segments).
     """
     it = iter(raws)
     if jobs <= 1:
         _init_worker(model, pose, single_thread=False)
+        done = 0
         while segment := list(islice(it, SEGMENT_FRAMES)):
-            yield from _process_segment(segment)
+            assert _PROCESSOR is not None
+            _PROCESSOR.reset_tracking()
+            for raw in segment:
+                yield _process_one(raw)
+                done += 1
+                if on_progress is not None:
+                    on_progress(done)
         return
     import multiprocessing
 
-    pool = multiprocessing.get_context("spawn").Pool(
-        jobs, initializer=_init_worker, initargs=(model, pose, True))
+    ctx = multiprocessing.get_context("spawn")
+    counter = ctx.Value("q", 0)
+    pool = ctx.Pool(jobs, initializer=_init_worker, initargs=(model, pose, True, counter))
     try:
         # Bounded look-ahead: Pool.imap would read the whole bag into memory ahead of the
         # workers, so keep one segment per worker in flight plus one, in order.
@@ -181,7 +162,14 @@ def process_frames(
                 pending.append(pool.apply_async(_process_segment, (segment,)))
             if not pending:
                 break
-            yield from pending.pop(0).get()
+            head = pending.pop(0)
+            while not head.ready():
+                head.wait(0.1)
+                if on_progress is not None:
+                    on_progress(counter.value)
+            if on_progress is not None:
+                on_progress(counter.value)
+            yield from head.get()
         pool.close()
     finally:
         pool.terminate()
@@ -334,9 +322,13 @@ def replay(
     frames: list[ProcessedFrame] = []
     try:
         raws = source.raw_frames()
-        for item in (engine(raws) if engine else process_frames(raws, model, pose, jobs)):
-            frames.append(item)
-            bar.update()
+        if engine is not None:
+            for item in engine(raws):
+                frames.append(item)
+                bar.update()
+        else:
+            frames.extend(process_frames(raws, model, pose, jobs,
+                                         on_progress=lambda n: bar.update(n - bar.n)))
     finally:
         bar.close()
     elapsed = time.perf_counter() - t0

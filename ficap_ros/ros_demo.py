@@ -123,12 +123,14 @@ class _Player(Node):
         self.pub_image.publish(image)
 
 
-def run_demo(bag: Path, frontal_s: float, every: int) -> int:
-    """Play ``bag`` into a live node and print head pose against truth; returns an exit code."""
+def run_demo(bag: Path, frontal_s: float, every: int, method: str = "joint") -> int:
+    """Play ``bag`` into a live node (``pose.method`` = ``method``) and print head pose against
+    truth; returns an exit code."""
     recording = load_recording(bag)
     rclpy.init()
     node = FicapNode(parameter_overrides=[
         Parameter("image_transport", value="compressed"),
+        Parameter("pose.method", value=method),
         Parameter("calibration.window_s", value=float(frontal_s) - 0.2),
     ])
     player = _Player()

@@ -73,8 +73,9 @@ def test_labels_bag_matches_csv(replayed: Path) -> None:
     for path in (replayed / "labels.mcap", replayed):  # single file, and the folder as a bag
         with AnyReader([path]) as reader:
             counts = {c.topic: c.msgcount for c in reader.connections}
-            assert counts == {"/head_pose": FRAMES, "/head_pose/with_covariance": FRAMES,
-                              "/cap_pose": FRAMES, "/status": FRAMES}
+            assert counts == {t: FRAMES for t in (
+                "/head_pose", "/head_pose/with_covariance", "/cap_pose", "/head_pose/frontal",
+                "/head_rpy_deg", "/quality", "/status", "/tf")}
             conns = [c for c in reader.connections if c.topic == "/cap_pose"]
             stamps, quats = [], []
             for conn, t, raw in reader.messages(connections=conns):
@@ -89,12 +90,83 @@ def test_labels_bag_matches_csv(replayed: Path) -> None:
     assert err.max() < 1e-4
 
 
+def _tf_matrix(tr) -> np.ndarray:  # noqa: ANN001 - a decoded geometry_msgs/Transform
+    """4x4 by the textbook quaternion formula (independent of ficap_ros and scipy)."""
+    x, y, z, w = tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w
+    m = np.eye(4)
+    m[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                 [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                 [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
+    m[:3, 3] = [tr.translation.x, tr.translation.y, tr.translation.z]
+    return m
+
+
+def test_labels_tf_decodes_with_mcap_ros2(replayed: Path) -> None:
+    """labels.mcap's /tf, /head_rpy_deg and /quality read by the MCAP project's own ROS 2 decoder
+    (mcap-ros2-support, as Foxglove's tooling does), and the TF chain composes to the labels."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    labels = read_labels(replayed)
+    summary = json.loads((replayed / "summary.json").read_text())
+    w, x, y, z = summary["calibration"]["R_cap_head_q_wxyz"]
+    R_cap_head = Rotation.from_quat([x, y, z, w]).as_matrix()
+    tf, rpy, quality, schemas = {}, {}, {}, {}
+    with open(replayed / "labels.mcap", "rb") as f:
+        reader = make_reader(f, decoder_factories=[DecoderFactory()])
+        for schema, channel, message, msg in reader.iter_decoded_messages(
+                topics=["/tf", "/head_rpy_deg", "/quality"]):
+            schemas[channel.topic] = schema.name
+            {"/tf": tf, "/head_rpy_deg": rpy, "/quality": quality}[channel.topic][message.log_time] = msg
+    assert schemas == {"/tf": "tf2_msgs/msg/TFMessage", "/head_rpy_deg": "geometry_msgs/msg/Vector3Stamped",
+                       "/quality": "sensor_msgs/msg/JointState"}
+    assert sorted(tf) == list(labels.stamp_ns)
+    for k, stamp in enumerate(labels.stamp_ns):
+        chain = {(t.header.frame_id, t.child_frame_id): t for t in tf[stamp].transforms}
+        cam = next(c for p, c in chain if p == "ficap_frontal")  # the image's frame_id
+        assert set(chain) == {("ficap_frontal", cam), (cam, "ficap_cap"), ("ficap_cap", "ficap_head")}
+        assert all(t.header.stamp.sec * 10**9 + t.header.stamp.nanosec == stamp
+                                    for t in chain.values())
+        M_cam_cap = _tf_matrix(chain[(cam, "ficap_cap")].transform)
+        np.testing.assert_allclose(M_cam_cap[:3, 3], labels.t_cam_cap_m[k], atol=2e-6)
+        M_cap_head = _tf_matrix(chain[("ficap_cap", "ficap_head")].transform)
+        np.testing.assert_allclose(M_cap_head[:3, :3], R_cap_head, atol=1e-6)
+        M = _tf_matrix(chain[("ficap_frontal", cam)].transform) @ M_cam_cap @ M_cap_head
+        qw, qx, qy, qz = labels.q_frontal_head_wxyz[k]
+        R_csv = Rotation.from_quat([qx, qy, qz, qw]).as_matrix()
+        np.testing.assert_allclose(M[:3, :3], R_csv, atol=1e-6)
+        # head_rpy_deg: x roll, y pitch, z yaw = the CSV's REP-103 angles.
+        v = rpy[stamp].vector
+        yaw, pitch, roll = labels.head_ypr_deg[k]
+        np.testing.assert_allclose([v.x, v.y, v.z], [roll, pitch, yaw], atol=1e-3)
+        values = dict(zip(quality[stamp].name, quality[stamp].position))
+        assert values["tags_detected"] == labels.tags_detected[k]
+        assert values["reliability"] == pytest.approx(labels.reliability[k], abs=1e-4)
+
+
 def test_jobs_2_identical_to_jobs_1(drive: Path, replayed: Path, tmp_path: Path) -> None:
     out = tmp_path / "j2"
     assert main(["replay", str(drive), "--out", str(out), "--calibrate-frontal", "0:2.9",
                  "--jobs", "2", "--quiet"]) == 0
     assert (out / "labels.csv").read_bytes() == (replayed / "labels.csv").read_bytes()
     assert (out / "labels.mcap").read_bytes() == (replayed / "labels.mcap").read_bytes()
+
+
+def test_jobs_2_progress_moves_frame_by_frame(drive: Path) -> None:
+    """With --jobs the results come back a whole segment at a time, but the bar is fed the
+    workers' shared frame counter: it moves through intermediate counts, never backwards."""
+    from ficap_ros.bag_io import open_frames
+    from ficap_ros.cap_model import nominal_model
+    from ficap_ros.pose import PoseConfig
+    from ficap_ros.replay import process_frames
+
+    seen: list[int] = []
+    source = open_frames(drive)
+    frames = list(process_frames(source.raw_frames(), nominal_model(), PoseConfig(), jobs=2,
+                                 on_progress=seen.append))
+    assert len(frames) == FRAMES and seen[-1] == FRAMES
+    assert all(a <= b for a, b in zip(seen, seen[1:]))
+    assert len({n for n in seen if 0 < n < FRAMES}) >= 2  # not one jump from 0 to the segment
 
 
 def test_evaluate_head_against_truth(drive: Path, replayed: Path, tmp_path: Path) -> None:

@@ -1,9 +1,11 @@
 """``ficap demo``: the sample drive recording through a live ficap_node, against its ground truth.
 
-The sample recording is a ``ficap synth`` drive (540p, neutral light, seed 1: 3 s looking ahead,
-then glances to the mirrors and the instrument cluster), built once into a cache folder
-(``$FICAP_CACHE`` or ``~/.cache/ficap_ros``) and replayed from there. ``--offline`` runs the
-same frames through the core without ROS.
+The sample recording is a ``ficap synth`` drive (by default 540p, neutral light, seed 1, 240
+frames: 3 s looking ahead, then glances to the mirrors and the instrument cluster), built once per
+set of options into a cache folder (``$FICAP_CACHE`` or ``~/.cache/ficap_ros``) and replayed from
+there. ``--offline`` renders the same kind of drive through the core without ROS. Every option
+applies to both modes (``--resolution``, ``--lighting``, ``--seed``, ``--frames`` choose the
+drive, ``--method`` the node's ``pose.method`` or the core's estimator, ``--every`` the printing).
 """
 
 from __future__ import annotations
@@ -19,37 +21,59 @@ SAMPLE = {"resolution": "540p", "lighting": "neutral", "frames": 240, "fps": 30.
           "jpeg_quality": 90, "frontal_s": 3.0}
 
 
-def sample_recording(progress: bool = True) -> Path:
-    """The sample drive recording (a rosbag2 MCAP folder), rendered on first use."""
+def sample_recording(progress: bool = True, **options: object) -> Path:
+    """The sample drive recording (a rosbag2 MCAP folder), rendered on first use.
+
+    ``options`` override ``SAMPLE`` (resolution, lighting, frames, seed); each set of options has
+    its own cache folder.
+    """
     from ficap_ros.cap_model import nominal_model
     from ficap_ros.commands.synth import write_synth_bag
 
+    sample = {**SAMPLE, **options}
     cache = Path(os.environ.get("FICAP_CACHE", Path.home() / ".cache" / "ficap_ros"))
-    key = "_".join(str(v) for v in SAMPLE.values())
+    key = "_".join(str(v).replace(" ", "").replace(",", "x").strip("()") for v in sample.values())
     bag = cache / f"sample_drive_{key}"
     if not (bag / "metadata.yaml").exists():
         cache.mkdir(parents=True, exist_ok=True)
         print(f"ficap demo: rendering the sample drive recording once into {bag} ...", flush=True)
-        write_synth_bag(bag, nominal_model(), progress=progress, **SAMPLE)
+        write_synth_bag(bag, nominal_model(), progress=progress, **sample)
     return bag
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
+    from ficap_ros.cli import positive_int
+    from ficap_ros.commands.synth import _resolution
+
     parser.add_argument("--offline", action="store_true",
                         help="run the core on freshly rendered frames instead (no ROS)")
-    parser.add_argument("--frames", type=int, default=150, help="--offline: frames to render (30 fps)")
-    parser.add_argument("--resolution", default="540p", help="540p, 1080p or WxH")
-    parser.add_argument("--lighting", default="neutral", choices=("neutral", "high", "low"))
-    parser.add_argument("--method", default="joint", choices=("joint", "paper", "naive"))
-    parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--every", type=int, default=6, help="print every Nth frame")
+    parser.add_argument("--frames", type=positive_int, default=None,
+                        help=f"frames of the drive at 30 fps (default {SAMPLE['frames']}; "
+                             "--offline 150); live, more than the 3 s (90 frames) of looking "
+                             "ahead that the calibration uses")
+    parser.add_argument("--resolution", type=_resolution, default=SAMPLE["resolution"],
+                        help="360p, 540p, 720p, 1080p or WxH (default %(default)s)")
+    parser.add_argument("--lighting", default=SAMPLE["lighting"], choices=("neutral", "high", "low"))
+    parser.add_argument("--method", default="joint", choices=("joint", "paper", "naive"),
+                        help="cap pose estimator (live: the node's pose.method)")
+    parser.add_argument("--seed", type=int, default=SAMPLE["seed"], help="drive and noise seed")
+    parser.add_argument("--every", type=positive_int, default=6, help="print every Nth frame")
 
 
 def run(args: argparse.Namespace) -> int:
     if not args.offline:
+        from ficap_ros.errors import ConfigError
         from ficap_ros.ros_demo import run_demo
 
-        return run_demo(sample_recording(), frontal_s=float(SAMPLE["frontal_s"]), every=args.every)
+        frames = args.frames if args.frames is not None else int(SAMPLE["frames"])
+        frontal_frames = int(float(SAMPLE["frontal_s"]) * float(SAMPLE["fps"]))
+        if frames <= frontal_frames:
+            raise ConfigError(f"--frames {frames}: the live demo calibrates on the first "
+                              f"{frontal_frames} frames and needs more after them")
+        bag = sample_recording(resolution=args.resolution, lighting=args.lighting,
+                               frames=frames, seed=args.seed)
+        return run_demo(bag, frontal_s=float(SAMPLE["frontal_s"]), every=args.every,
+                        method=args.method)
     return run_offline(args)
 
 
@@ -63,15 +87,14 @@ def run_offline(args: argparse.Namespace) -> int:
     from ficap_ros.pose import PoseConfig
     from ficap_ros.synth import RenderConfig, default_scene, naturalistic_drive, render
 
-    if args.frames < 1:
-        raise ConfigError("--frames must be at least 1")
+    frames = args.frames if args.frames is not None else 150
     model = nominal_model()
     scene = default_scene(args.resolution)
-    drive = naturalistic_drive(args.frames, fps=30.0, seed=args.seed, scene=scene)
+    drive = naturalistic_drive(frames, fps=30.0, seed=args.seed, scene=scene)
     processor = FrameProcessor(model, pose=PoseConfig(method=args.method))
     config = RenderConfig(lighting=args.lighting)
     cam = scene.camera
-    print(f"ficap demo: {args.frames} frames, {cam.width_px}x{cam.height_px}, {args.lighting} light, "
+    print(f"ficap demo: {frames} frames, {cam.width_px}x{cam.height_px}, {args.lighting} light, "
           f"method {args.method}; cap pose T_cam_cap vs ground truth")
     print(f"{'frame':>5} {'t_s':>6} {'tags':>5} {'used':>4} {'rms_px':>6} {'rel':>5} "
           f"{'yaw':>7} {'pitch':>7} {'roll':>7} {'x_m':>7} {'y_m':>7} {'z_m':>6} {'err_deg':>8}")

@@ -52,12 +52,9 @@ def run(args: argparse.Namespace) -> int:
 
         source = open_source(args)
         bar = Progress(source.count, "frames", enabled=not args.quiet)
-        frames = []
         try:
-            for item in process_frames(source.raw_frames(), model, PoseConfig(method=args.method),
-                                       args.jobs):
-                frames.append(item)
-                bar.update()
+            frames = list(process_frames(source.raw_frames(), model, PoseConfig(method=args.method),
+                                         args.jobs, on_progress=lambda n: bar.update(n - bar.n)))
         finally:
             bar.close()
         stats = detection_stats(
@@ -77,7 +74,8 @@ def run(args: argparse.Namespace) -> int:
         f"{k}:{100 * v:.0f}" for k, v in stats.tag_rate.items()))
     e, c = stats.reliability_edges, stats.reliability_counts
     print("reliability histogram: " + " ".join(
-        f"[{e[i]:.1f},{e[i + 1]:.1f}):{int(c[i])}" for i in range(c.size)))
+        f"[{e[i]:.2f},{e[i + 1]:.2f}{']' if i == c.size - 1 else ')'}:{int(c[i])}"
+        for i in range(c.size)))
     if args.out:
         out = Path(args.out)
         plot_stats(stats, out)

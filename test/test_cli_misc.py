@@ -1,0 +1,61 @@
+"""ficap --version, the demo's options, and the progress bar (tqdm) of replay."""
+
+from __future__ import annotations
+
+import io
+
+import pytest
+
+from ficap_ros.cli import main
+
+
+def test_version(capsys: pytest.CaptureFixture[str]) -> None:
+    from ficap_ros import __version__
+
+    with pytest.raises(SystemExit) as exc:
+        main(["--version"])
+    assert exc.value.code == 0
+    assert capsys.readouterr().out.strip() == f"ficap {__version__}"
+
+
+def test_demo_rejects_what_it_cannot_honour(capsys: pytest.CaptureFixture[str]) -> None:
+    # Live: a drive no longer than the 3 s frontal segment cannot be calibrated: one line, exit 1
+    # (before anything is rendered or ROS started).
+    assert main(["demo", "--frames", "60"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "--frames 60" in err[0]
+    for bad in (["--lighting", "dusk"], ["--method", "magic"], ["--frames", "0"],
+                ["--every", "0"], ["--resolution", "10x10"], ["--seed", "x"]):
+        with pytest.raises(SystemExit) as exc:
+            main(["demo", *bad])
+        assert exc.value.code == 2, bad
+
+
+def test_demo_offline_honours_its_options(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["demo", "--offline", "--frames", "3", "--resolution", "640x360",
+                 "--lighting", "low", "--method", "naive", "--seed", "4", "--every", "2"]) == 0
+    out = capsys.readouterr().out
+    assert "3 frames, 640x360, low light, method naive" in out
+    rows = [ln for ln in out.splitlines() if ln[:5].strip().isdigit()]
+    assert [int(r.split()[0]) for r in rows] == [0, 2]  # every 2nd frame printed
+
+
+def test_progress_is_per_frame_and_quiet_off_a_terminal() -> None:
+    from ficap_ros.replay import Progress
+
+    class Tty(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    tty = Tty()
+    bar = Progress(5, "frames", tty)
+    for n in range(1, 6):
+        bar.update(1)
+        assert bar.n == n
+    bar.close()
+    assert "5/5" in tty.getvalue() and "frame/s" in tty.getvalue()
+    plain = io.StringIO()  # a log file: nothing
+    bar = Progress(5, "frames", plain)
+    bar.update(5)
+    bar.close()
+    assert plain.getvalue() == ""
