@@ -114,7 +114,7 @@ def main() -> int:
         f"One naturalistic drive (seed 0) of {args.frames} frames at 30 fps ({args.frames / 30:.0f} s), "
         + (f"every {args.stride}th frame rendered: {n} frames per condition"
            if args.stride > 1 else f"all {n} frames rendered")
-        + " (`ficap_ros.synth.render`, default camera, noise sigma 2). Same frames for every method. "
+        + " (`ficap_ros.synth.render`, default camera and image chain: PSF, sensor noise, sRGB). Same frames for every method. "
         "Errors of the cap orientation against the rendered truth, mean / median / p95 in degrees: "
         "Phi3 = arccos(|q1.q2|) (the paper's metric, half the geodesic angle) and the geodesic angle. "
         "'bar' = median and p95 at most half the naive peer's.",

@@ -1,7 +1,7 @@
 """Section 6: share of frames with >= 1 and >= 4 tags detected, pose error, and where to mount the camera.
 
 Every count here is a *detector* result: rendered frames (``ficap_ros.synth.render``, default
-``RenderConfig``: neutral light, noise sigma 2) go through ``ficap_ros.pipeline.FrameProcessor``
+``RenderConfig``: neutral light, the default image chain) go through ``ficap_ros.pipeline.FrameProcessor``
 with its default settings, and the cap orientation is compared with the render's exact truth
 (geodesic angle, ``ficap_ros.metrics.angle_deg``). The renderer's own visibility (a tag counts when
 at least ``--min-visible`` of it is in the image and not hidden by the head or neck, it faces the
@@ -316,7 +316,7 @@ def main() -> int:
         f"Machine: {machine} (at the start); {load_start} at the start, {load_avg()} at the end; "
         f"{minutes:.1f} min (run with `nice -n 10`). Code: {code}.", "",
         "Every count is a detector result: frames rendered by `ficap_ros.synth.render` (default `RenderConfig`: "
-        "neutral light, noise sigma 2, head and neck occluders, no headrest, seat, hands or other people) are run "
+        "neutral light, the default image chain (PSF, sensor noise, sRGB), head and neck occluders, no headrest, seat, hands or other people) are run "
         "through `ficap_ros.pipeline.FrameProcessor` with default settings; 'with pose' = the pipeline returned a "
         "cap pose; error = geodesic angle between the estimated and the rendered cap orientation "
         "(`ficap_ros.metrics.angle_deg`, twice the paper's Phi3); 'tags used' = tags kept by the pose. "

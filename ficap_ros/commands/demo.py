@@ -32,7 +32,8 @@ def sample_recording(progress: bool = True, **options: object) -> Path:
 
     sample = {**SAMPLE, **options}
     cache = Path(os.environ.get("FICAP_CACHE", Path.home() / ".cache" / "ficap_ros"))
-    key = "_".join(str(v).replace(" ", "").replace(",", "x").strip("()") for v in sample.values())
+    # "chain2": frames from synth's camera chain (PSF, sensor, tone curve); a new renderer, a new key.
+    key = "_".join(str(v).replace(" ", "").replace(",", "x").strip("()") for v in sample.values()) + "_chain2"
     bag = cache / f"sample_drive_{key}"
     if not (bag / "metadata.yaml").exists():
         cache.mkdir(parents=True, exist_ok=True)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 
 from ficap_ros.cli import positive_int
 
@@ -36,6 +37,16 @@ def _resolution(text: str) -> str | tuple[int, int]:
     return text
 
 
+def _check_knob(flag: str, value: float | None, positive: bool) -> None:
+    """One-line ConfigError for a NaN, infinite, negative (or, if ``positive``, zero) knob."""
+    from ficap_ros.errors import ConfigError
+
+    if value is None:
+        return
+    if not math.isfinite(value) or value < 0 or (positive and value == 0):
+        raise ConfigError(f"{flag} must be a finite number {'> 0' if positive else '>= 0'}, got {value}")
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, metavar="BAG", help="output rosbag2 folder")
     parser.add_argument("--resolution", type=_resolution, default="540p",
@@ -48,6 +59,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--frontal-s", type=float, default=3.0,
                         help="initial looking-straight-ahead segment, s (default 3)")
     parser.add_argument("--jpeg-quality", type=int, default=95, help="JPEG quality (default 95)")
+    cam = parser.add_argument_group(
+        "camera", "the image formation chain (linear light -> lens PSF -> motion blur -> sensor -> "
+        "tone curve -> 8 bit -> JPEG; see ficap_ros.synth)")
+    cam.add_argument("--psf-sigma-px", type=float, default=None,
+                     help="Gaussian lens PSF sigma, px, in linear light (default 0.7 px at 1080p, "
+                     "times sqrt(height/1080); 0 = none)")
+    cam.add_argument("--defocus-px", type=float, default=0.0,
+                     help="radius of a defocus disc PSF, px (default 0 = in focus)")
+    cam.add_argument("--tone", choices=("srgb", "gamma", "filmic", "linear"), default="srgb",
+                     help="the camera's tone curve (default srgb; linear = an idealised camera)")
+    cam.add_argument("--gamma", type=float, default=2.2,
+                     help="exponent of --tone gamma: value ** (1/GAMMA) (default 2.2)")
+    cam.add_argument("--exposure-ms", type=float, default=None,
+                     help="exposure time, ms (default: the lighting's auto-exposure: neutral 8, high 4, "
+                     "low 20); the gain follows unless --gain is given")
+    cam.add_argument("--gain", type=float, default=None,
+                     help="sensor gain (default auto: keeps the lighting's brightness)")
+    cam.add_argument("--motion-blur", action="store_true",
+                     help="integrate the head motion over the exposure (truth = mid-exposure pose)")
+    cam.add_argument("--no-noise", action="store_true", help="no shot or read noise")
     parser.add_argument("--model", help="cap model YAML to render (default: nominal)")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
 
@@ -57,6 +88,7 @@ def run(args: argparse.Namespace) -> int:
 
     from ficap_ros.cap_model import load_model, nominal_model
     from ficap_ros.errors import BagError, ConfigError
+    from ficap_ros.synth import RenderConfig
 
     if not 1 <= args.jpeg_quality <= 100:
         raise ConfigError(f"--jpeg-quality must be in 1..100, got {args.jpeg_quality}")
@@ -67,10 +99,18 @@ def run(args: argparse.Namespace) -> int:
     out = Path(args.out)
     if out.exists():
         raise BagError(f"{out} exists already; choose a new --out")
+    for flag, value, positive in (("--psf-sigma-px", args.psf_sigma_px, False),
+                                  ("--defocus-px", args.defocus_px, False), ("--gamma", args.gamma, True),
+                                  ("--exposure-ms", args.exposure_ms, True), ("--gain", args.gain, True)):
+        _check_knob(flag, value, positive)
+    # Built here so a bad knob fails before anything is written.
+    config = RenderConfig(lighting=args.lighting, background_seed=args.seed, psf_sigma_px=args.psf_sigma_px,
+                          defocus_radius_px=args.defocus_px, tone=args.tone, gamma=args.gamma,
+                          exposure_ms=args.exposure_ms, gain=args.gain, noise=not args.no_noise)
     model = load_model(args.model) if args.model else nominal_model()
     info = write_synth_bag(out, model, args.resolution, args.lighting, args.frames, args.fps,
                            args.seed, args.jpeg_quality, progress=not args.quiet,
-                           frontal_s=args.frontal_s)
+                           frontal_s=args.frontal_s, config=config, motion_blur=args.motion_blur)
     print(f"{args.frames} frames {info['width']}x{info['height']} {args.lighting} -> {out} "
           f"({info['fps_rendered']:.1f} frames/s rendered)")
     return 0
@@ -78,9 +118,13 @@ def run(args: argparse.Namespace) -> int:
 
 def write_synth_bag(
     out, model, resolution="540p", lighting="neutral", frames=300, fps=30.0, seed=0,
-    jpeg_quality=95, progress=True, frontal_s=3.0,
+    jpeg_quality=95, progress=True, frontal_s=3.0, config=None, motion_blur=False,
 ) -> dict:
     """Render ``ficap_ros.synth.naturalistic_drive`` into a rosbag2 MCAP folder at ``out``.
+
+    ``config`` (a ``synth.RenderConfig``; default: the realistic chain for ``lighting``) sets the
+    camera; with ``motion_blur`` each frame integrates the motion over its exposure, centred on
+    the frame's stamp (the truth is the pose at the stamp).
 
     Topics (all stamped START_NS + the drive's stamp; header stamp = bag receive time):
         ``/camera/image_raw/compressed`` CompressedImage (JPEG), frame ``camera_optical_frame``;
@@ -97,6 +141,7 @@ def write_synth_bag(
     Returns:
         dict with width, height, frames, fps_rendered.
     """
+    import dataclasses
     import json
     import time
 
@@ -118,8 +163,13 @@ def write_synth_bag(
 
     scene = synth.default_scene(resolution)
     camera = scene.camera
-    drive = synth.naturalistic_drive(frames, fps, seed, scene, frontal_s=frontal_s)
-    config = synth.RenderConfig(lighting=lighting, background_seed=seed)
+    motion = synth.naturalistic_motion(frames / fps, seed, scene, frontal_s=frontal_s)
+    drive = [motion.frame(i, fps) for i in range(frames)]
+    if config is None:
+        config = synth.RenderConfig(lighting=lighting, background_seed=seed, **synth.REALISTIC)
+    elif config.lighting != lighting:
+        config = dataclasses.replace(config, lighting=lighting)
+    exposure_ms, gain = config.exposure_and_gain()
     bool_type = jazzy_typestore().types["std_msgs/msg/Bool"]
     bar = Progress(len(drive), "frames rendered", enabled=progress)
     t0 = time.perf_counter()
@@ -134,7 +184,10 @@ def write_synth_bag(
         bag.set_custom_data("ficap.synth", json.dumps(
             {"resolution": [camera.width_px, camera.height_px], "lighting": lighting,
              "frames": frames, "fps": fps, "seed": seed, "jpeg_quality": jpeg_quality,
-             "frontal_s": frontal_s}))
+             "frontal_s": frontal_s, "psf_sigma_px": config.psf_sigma_for(camera.height_px),
+             "defocus_radius_px": config.defocus_radius_px, "tone": config.tone, "gamma": config.gamma,
+             "exposure_ms": exposure_ms, "gain": gain, "noise": config.noise,
+             "motion_blur": bool(motion_blur)}))
         bag.add_topic(IMAGE_TOPIC, COMPRESSED_TYPE)
         bag.add_topic(CAMERA_INFO_TOPIC, CAMERA_INFO_TYPE)
         bag.add_topic(TRUTH_CAP_TOPIC, "geometry_msgs/msg/PoseStamped")
@@ -144,7 +197,8 @@ def write_synth_bag(
         R_frontal_cam = Transform(scene.R_cam_frontal.inv(), np.zeros(3))
         for f in drive:
             stamp = START_NS + f.stamp_ns
-            rendered = synth.render(model, camera, f.T_cam_cap, config, seed=seed * 100003 + f.index)
+            pose = motion.around(f.stamp_ns / 1e9) if motion_blur else f.T_cam_cap
+            rendered = synth.render(model, camera, pose, config, seed=seed * 100003 + f.index)
             ok, jpg = cv2.imencode(".jpg", rendered.image, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
             if not ok:  # pragma: no cover - OpenCV always encodes a uint8 image
                 raise RuntimeError("JPEG encoding failed")
