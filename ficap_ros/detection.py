@@ -89,8 +89,20 @@ class DetectorConfig:
         quad_decimate: AprilTag's quad_decimate (apriltag backend only): 1 = full resolution.
         search_decimate: search (ArUco or AprilTag) a box-averaged image this many times
             smaller, then map the corners back and refine them on the full image (``edge``
-            refine needs the search corners within ``edge_max_shift_px``); 1 = no decimation.
-            Worth it only where tags are large (1080p with the default camera: 2).
+            refine needs the search corners within ``edge_max_shift_px``); 1 = no decimation;
+            0 (default) = the largest factor (up to 4) that keeps the searched image's longer
+            side at least ``search_min_side_px`` (1080p: 2, 4K: 4, 720p and below: 1), where
+            the cap's tags stay large enough for ArUco (a fourth of the pixels to search);
+            AprilTag 3 has its own ``quad_decimate``, so 0 is 1 there.
+        decimated_thresh_win_size_px: a decimated ArUco search thresholds once, with this
+            window (px of the searched image), instead of over the adaptive_thresh_win_size
+            range: a third of the search's cost. The tags of a frame large enough to decimate
+            are 10-50 px there, which one window covers, and the pipeline reads the tags a
+            search misses at the pose of those it found. 0: the full range.
+        decode_rejected, decode_max_bit_errors: the search's second chance (opencv backend with
+            ``edge`` refine): the quads ArUco rejected are edge-refined at full size and read
+            again (``tracking.decode_tags``, at most this many of 36 bits corrected). ArUco's
+            own reading at its polygon corners loses small, blurred or oblique tags.
         edge_search_px: half-length of the search along each side's normal (``edge`` refine);
             capped at 0.8 of a tag cell so the search stays on the black border and white margin.
         edge_profile_samples: samples across each side's window (odd; ``edge`` refine): their
@@ -123,8 +135,14 @@ class DetectorConfig:
     min_side_length_canonical_img: int = 32
     # AprilTag 3 (apriltag backend).
     quad_decimate: float = 1.0
-    # Both backends: search an image decimated by this factor (box average), refine at full size.
-    search_decimate: int = 1
+    # Both backends: search an image decimated by this factor (box average), refine at full size;
+    # 0 = by image size (see search_min_side_px).
+    search_decimate: int = 0
+    search_min_side_px: int = 960
+    decimated_thresh_win_size_px: int = 13
+    # ArUco: read the quads it rejected once more at their edge-refined corners.
+    decode_rejected: bool = True
+    decode_max_bit_errors: int = 2
     # Edge refinement.
     edge_search_px: float = 4.0
     edge_profile_samples: int = 17
@@ -143,8 +161,15 @@ class DetectorConfig:
             )
         if not self.quad_decimate >= 1.0:
             raise ConfigError(f"quad_decimate must be >= 1, got {self.quad_decimate}")
-        if self.search_decimate not in (1, 2, 3, 4):
-            raise ConfigError(f"search_decimate must be 1, 2, 3 or 4, got {self.search_decimate}")
+        if self.search_decimate not in (0, 1, 2, 3, 4):
+            raise ConfigError(f"search_decimate must be 0 (auto), 1, 2, 3 or 4, got {self.search_decimate}")
+        if self.decimated_thresh_win_size_px and not 3 <= self.decimated_thresh_win_size_px <= 99:
+            raise ConfigError("decimated_thresh_win_size_px must be 0 or in [3, 99], "
+                              f"got {self.decimated_thresh_win_size_px}")
+        if self.search_min_side_px < 64:
+            raise ConfigError(f"search_min_side_px must be >= 64, got {self.search_min_side_px}")
+        if not 0 <= self.decode_max_bit_errors <= 3:
+            raise ConfigError(f"decode_max_bit_errors must be in 0..3, got {self.decode_max_bit_errors}")
         if not 3 <= self.adaptive_thresh_win_size_min <= self.adaptive_thresh_win_size_max:
             raise ConfigError("adaptive threshold window sizes must satisfy 3 <= min <= max")
         if self.adaptive_thresh_win_size_step < 1:
@@ -173,6 +198,7 @@ class TagDetector:
         self.config = config or DetectorConfig()
         cfg = self.config
         self._search_scale = 1.0
+        self._one_window = False
         if cfg.backend == "opencv":
             self._aruco = _make_aruco(cfg)
             self._apriltag = None
@@ -206,7 +232,8 @@ class TagDetector:
             ImageError: invalid image or ROI.
         """
         full = as_gray(image)
-        dec = int(self.config.search_decimate)
+        dec = int(self.config.search_decimate) or (
+            1 if self._apriltag is not None else _auto_decimate(full.shape, self.config.search_min_side_px))
         x0, y0, x1, y1 = (0, 0, full.shape[1], full.shape[0]) if roi is None else _clip_roi(roi, full.shape)
         if dec > 1:
             # Decimation cells aligned with the full image's, so a ROI search sees the same pixels.
@@ -221,15 +248,19 @@ class TagDetector:
             gray = cv2.resize(gray, ((x1 - x0) // dec, (y1 - y0) // dec), interpolation=cv2.INTER_AREA)
         # ArUco's perimeter limits are rates of the searched image's larger side: scale them so a
         # ROI (or decimated) search keeps the full frame's limits in full-image pixels.
-        self._set_search_scale(max(full.shape) / (dec * max(gray.shape)))
-        ids, corners, hamming, margin = self._search(gray)
+        self._set_search_scale(max(full.shape) / (dec * max(gray.shape)), dec > 1)
+        ids, corners, hamming, margin, rejected = self._search(gray)
         # Corners in full-image coordinates, refined on the full image: a tag found in a ROI gets
         # exactly the corners a full-frame search gives it (the refinement may look past the ROI).
+        offset = np.array([x0, y0], dtype=np.float64)
         if dec > 1:
-            corners = corners * dec + 0.5 * (dec - 1)
-        corners = corners + np.array([x0, y0], dtype=np.float64)
+            corners, rejected = corners * dec + 0.5 * (dec - 1), rejected * dec + 0.5 * (dec - 1)
+        corners = corners + offset
         if len(ids) and self.config.corner_refine == "edge":
             corners = refine_corners_edge(full, corners, self.config)
+        if len(rejected) and self.config.corner_refine == "edge" and self.config.decode_rejected:
+            ids, corners, hamming, margin = self._second_chance(
+                full, rejected + offset, ids, corners, hamming, margin)
         elif len(ids) and self.config.corner_refine == "subpix" and self._apriltag is not None:
             corners = _subpix(full, corners)
         return [
@@ -237,32 +268,64 @@ class TagDetector:
             for i, c, h, m in zip(ids, corners, hamming, margin)
         ]
 
-    def _set_search_scale(self, scale: float) -> None:
-        """Perimeter-rate limits for a search image ``scale`` times smaller than the full frame."""
-        if self._aruco is None or scale == self._search_scale:
+    def _set_search_scale(self, scale: float, decimated: bool = False) -> None:
+        """Perimeter-rate limits for a search image ``scale`` times smaller than the full frame,
+        and the threshold windows of a decimated search."""
+        cfg = self.config
+        one_window = decimated and cfg.decimated_thresh_win_size_px > 0
+        if self._aruco is None or (scale, one_window) == (self._search_scale, self._one_window):
             return
         params = self._aruco.getDetectorParameters()
-        params.minMarkerPerimeterRate = float(self.config.min_marker_perimeter_rate) * scale
-        params.maxMarkerPerimeterRate = float(self.config.max_marker_perimeter_rate) * scale
+        params.minMarkerPerimeterRate = float(cfg.min_marker_perimeter_rate) * scale
+        params.maxMarkerPerimeterRate = float(cfg.max_marker_perimeter_rate) * scale
+        lo, hi = ((cfg.decimated_thresh_win_size_px,) * 2 if one_window else
+                  (cfg.adaptive_thresh_win_size_min, cfg.adaptive_thresh_win_size_max))
+        params.adaptiveThreshWinSizeMin, params.adaptiveThreshWinSizeMax = int(lo), int(hi)
         self._aruco.setDetectorParameters(params)
-        self._search_scale = scale
+        self._search_scale, self._one_window = scale, one_window
 
-    def _search(self, gray: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """(ids (N,), corners (N,4,2) OpenCV order/convention, hamming (N,), margin (N,))."""
+    def _second_chance(
+        self, full: np.ndarray, quads: np.ndarray, ids: np.ndarray, corners: np.ndarray,
+        hamming: np.ndarray, margin: np.ndarray,
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Detections plus the rejected ``quads`` that read as tags of ids not yet found."""
+        from ficap_ros.tracking import decode_tags
+
+        # A loose read at the polygon corners first, so only plausible quads pay for the refinement.
+        maybe, _, _, _ = decode_tags(full, quads, max_bit_errors=8)
+        if not maybe.any():
+            return ids, corners, hamming, margin
+        refined = refine_corners_edge(full, quads[maybe], self.config)
+        ok, new_ids, errors, ordered = decode_tags(full, refined, self.config.decode_max_bit_errors)
+        seen = {int(i) for i in ids}
+        keep = []
+        for k in np.flatnonzero(ok):  # one detection per id: the inner contours of a tag repeat it
+            if int(new_ids[k]) not in seen:
+                seen.add(int(new_ids[k]))
+                keep.append(k)
+        if not keep:
+            return ids, corners, hamming, margin
+        return (np.concatenate([ids, new_ids[keep]]), np.concatenate([corners, ordered[keep]]),
+                np.concatenate([hamming, errors[keep]]), np.concatenate([margin, np.full(len(keep), np.nan)]))
+
+    def _search(self, gray: np.ndarray) -> tuple[np.ndarray, ...]:
+        """(ids (N,), corners (N,4,2) OpenCV order/convention, hamming (N,), margin (N,),
+        rejected quads (R,4,2))."""
         if self._aruco is not None:
-            corners, ids, _rejected = self._aruco.detectMarkers(gray)
+            corners, ids, rejected = self._aruco.detectMarkers(gray)
+            rej = np.asarray(rejected, dtype=np.float64).reshape(-1, 4, 2)
             if ids is None or len(ids) == 0:
-                return _empty()
+                return (*_empty(), rej)
             c = np.asarray(corners, dtype=np.float64).reshape(-1, 4, 2)
             if self.config.corner_refine == "apriltag":
                 # OpenCV's port of AprilTag's refinement returns AprilTag's pixel convention
                 # (measured: +0.5 px in x and y on rendered tags and on the swarmathon labels).
                 c += _APRILTAG_PIXEL_OFFSET_PX
             n = len(c)
-            return ids.reshape(-1), c, np.zeros(n, int), np.full(n, np.nan)
+            return ids.reshape(-1), c, np.zeros(n, int), np.full(n, np.nan), rej
         dets = self._apriltag.detect(gray)  # type: ignore[union-attr]
         if not dets:
-            return _empty()
+            return (*_empty(), np.zeros((0, 4, 2)))
         c = np.array([d.corners for d in dets], dtype=np.float64)[:, _APRILTAG_TO_OPENCV]
         c += _APRILTAG_PIXEL_OFFSET_PX
         return (
@@ -270,7 +333,13 @@ class TagDetector:
             c,
             np.array([d.hamming for d in dets], dtype=int),
             np.array([d.decision_margin for d in dets], dtype=np.float64),
+            np.zeros((0, 4, 2)),
         )
+
+
+def _auto_decimate(shape: tuple[int, ...], min_side_px: int) -> int:
+    """The largest search decimation (<= 4) leaving the longer side at least ``min_side_px``."""
+    return max(1, min(4, max(shape[:2]) // max(int(min_side_px), 1)))
 
 
 def _empty() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:

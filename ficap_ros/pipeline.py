@@ -154,11 +154,13 @@ class FrameProcessor:
         # Search-free tracking rests on the edge refinement (it pulls predicted corners onto the
         # border); with another corner refinement tracked frames are searched in the region.
         self._verify_tracking = self.tracking and base.corner_refine == "edge"
+        self._locate_pose = replace(self.pose_config, method="naive")
         self._track: _TrackState | None = None
         self.tracked_frames = 0  # frames whose tags were verified where the cap was predicted
         self.second_looks = 0  # tracked frames that looked again at the verified tags' pose
         self.roi_searches = 0  # frames searched in the predicted region only
         self.full_searches = 0  # frames searched over the whole image
+        self.search_completions = 0  # searches whose pose found more of the model's tags
 
     def detect(self, image: np.ndarray) -> tuple[TagDetection, ...]:
         """Detections of the model's tags in the whole image (stateless; raises ``ImageError``)."""
@@ -273,9 +275,38 @@ class FrameProcessor:
                 for d in found)
             if inside or len({d.tag_id for d in found}) >= self._track.n_tags:
                 self.roi_searches += 1
-                return found, predicted, "region"
+                found, seen_at = self._complete_search(gray, camera, found, predicted)
+                return found, seen_at, "region"
         self.full_searches += 1
-        return tuple(d for d in self.detector.detect(gray) if d.tag_id in self.model), predicted, "image"
+        found = tuple(d for d in self.detector.detect(gray) if d.tag_id in self.model)
+        found, seen_at = self._complete_search(gray, camera, found, predicted)
+        return found, seen_at, "image"
+
+    def _complete_search(
+        self, gray: np.ndarray, camera: CameraModel, found: tuple[TagDetection, ...],
+        predicted: Transform | None,
+    ) -> tuple[tuple[TagDetection, ...], Transform | None]:
+        """A search's tags plus the model's other tags read where the searched ones put them.
+
+        The search (decimated on large frames) loses the smallest and most oblique tags; the cap
+        is rigid, so the pose of the tags it found predicts the rest, which are edge-refined and
+        verified exactly as tracked tags are. Returns the tags and the pose they were looked for
+        at (the search's pose, or ``predicted`` when too few tags were found to pose the cap).
+        """
+        if not self._verify_tracking or len({d.tag_id for d in found}) < self.track_config.min_tags:
+            return found, predicted
+        # One SQPnP + LM is enough to place the others: a wrong prediction verifies no tag, and
+        # the final pose only starts from it if every tag agrees with it.
+        first = estimate_cap_pose(found, self.model, camera, self._locate_pose)
+        if first.pose is None:
+            return found, predicted
+        ids, corners = predict_tags(self.model, camera, first.pose.T_cam_cap, self.track_config)
+        have = {d.tag_id for d in found}
+        missing = np.array([int(i) not in have for i in ids], dtype=bool)
+        if missing.any():
+            self.search_completions += 1
+            found = found + tuple(self._verified(gray, ids[missing], corners[missing])[0])
+        return found, first.pose.T_cam_cap
 
     def _predict_roi(
         self, camera: CameraModel, stamp_ns: int, shape: tuple[int, ...]
