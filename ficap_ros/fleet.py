@@ -699,11 +699,16 @@ def _plot(fleet: FleetResult) -> bytes:
     fig, axes = plt.subplots(1, len(panels), figsize=(3.0 * len(panels), height), sharey=True)
     ys = range(len(rs))
     for ax, (label, title, value) in zip(axes, panels):
-        ax.barh(list(ys), [value(r) for r in rs], color=colours)
+        values = [value(r) for r in rs]
+        ax.barh(list(ys), values, color=colours)
+        ax.set_xlim(0, max(max(values, default=0) * 1.05, 1e-9) if any(values) else 1)
         ax.set_title(title, fontsize=8)
         ax.set_xlabel(label, fontsize=8)
         ax.tick_params(labelsize=7)
-        ax.invert_yaxis() if ax is axes[0] else None
+    for y, r in zip(ys, rs):  # a failed recording has no bars: say so where they would be
+        if r.status == "failed":
+            axes[0].text(0, y, " failed", va="center", fontsize=7, color=_STATUS_COLOURS["failed"])
+    axes[0].invert_yaxis()
     axes[0].set_yticks(list(ys), names)
     handles = [plt.Rectangle((0, 0), 1, 1, color=c) for c in _STATUS_COLOURS.values()]
     fig.legend(handles, list(_STATUS_COLOURS), loc="lower center", ncol=4, fontsize=8, frameon=False)
