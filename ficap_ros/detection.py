@@ -257,7 +257,7 @@ class TagDetector:
             corners, rejected = corners * dec + 0.5 * (dec - 1), rejected * dec + 0.5 * (dec - 1)
         corners = corners + offset
         if len(ids) and self.config.corner_refine == "edge":
-            corners = refine_corners_edge(full, corners, self.config)
+            corners = self._refine(full, corners, dec)
         if len(rejected) and self.config.corner_refine == "edge" and self.config.decode_rejected:
             ids, corners, hamming, margin = self._second_chance(
                 full, rejected + offset, ids, corners, hamming, margin)
@@ -284,6 +284,21 @@ class TagDetector:
         self._aruco.setDetectorParameters(params)
         self._search_scale, self._one_window = scale, one_window
 
+    def _refine(self, full: np.ndarray, corners: np.ndarray, dec: int) -> np.ndarray:
+        """Edge-refined corners; from a decimated search, a tag the refinement cannot reach (its
+        polygon corners up to ``dec`` times further off) gets a wide coarse pass, then the fine one."""
+        refined, ok = refine_corners_edge_ok(full, corners, self.config)
+        if dec > 1 and not ok.all():
+            from dataclasses import replace
+
+            coarse = replace(self.config, edge_search_px=8.0, edge_max_shift_px=8.0, edge_iterations=1,
+                             edge_samples_per_side=12, edge_profile_samples=9)
+            lost = ~ok
+            c, ok1 = refine_corners_edge_ok(full, corners[lost], coarse)
+            c, ok2 = refine_corners_edge_ok(full, c, self.config)
+            refined[lost] = np.where((ok1 & ok2)[:, None, None], c, refined[lost])
+        return refined
+
     def _second_chance(
         self, full: np.ndarray, quads: np.ndarray, ids: np.ndarray, corners: np.ndarray,
         hamming: np.ndarray, margin: np.ndarray,
@@ -295,7 +310,7 @@ class TagDetector:
         maybe, _, _, _ = decode_tags(full, quads, max_bit_errors=8)
         if not maybe.any():
             return ids, corners, hamming, margin
-        refined = refine_corners_edge(full, quads[maybe], self.config)
+        refined = self._refine(full, quads[maybe], 2)  # polygon corners: a coarse pass may be needed
         ok, new_ids, errors, ordered = decode_tags(full, refined, self.config.decode_max_bit_errors)
         seen = {int(i) for i in ids}
         keep = []

@@ -608,10 +608,14 @@ class _FleetProgress:
         self._recordings, self._done, self._failed = recordings, done, failed
         self._bar = None
         if enabled:
+            import sys
+
             from tqdm import tqdm
 
+            # A fleet runs for hours, often into a log: there a line every 30 s, not silence.
+            tty = sys.stderr.isatty()
             self._bar = tqdm(total=total_frames, unit="frame", desc="fleet", dynamic_ncols=True,
-                             mininterval=0.5)
+                             mininterval=0.5 if tty else 30.0, smoothing=0.05)
             self._postfix()
 
     def _postfix(self) -> None:

@@ -159,4 +159,5 @@ def _run_fleet(args: argparse.Namespace, model, calibration) -> int:  # noqa: AN
           f"{fleet.count('skipped')} skipped (current), {fleet.count('damaged')} damaged, "
           f"{fleet.count('failed')} failed; {frames} frames in {fleet.wall_s:.1f} s "
           f"({fleet.engine}, {fleet.workers} workers) -> {Path(args.out) / ('' if single else 'fleet_summary.csv')}")
-    return 1 if fleet.count("failed") or fleet.count("damaged") else 0
+    # 1: a recording has no labels; 3 (as a single replay of a damaged input): frames were lost.
+    return 1 if fleet.count("failed") else 3 if fleet.count("damaged") else 0
