@@ -13,6 +13,7 @@ against ``cv2.cornerSubPix`` and OpenCV's AprilTag refinement.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 from typing import Any
 
 import numpy as np
@@ -25,6 +26,13 @@ __all__ = [
     "TagDetector",
     "as_gray",
     "refine_corners_edge",
+    "refine_corners_edge_ok",
+    "unbias_corners_edge",
+    "fit_tag_edges",
+    "refine_tag_corners",
+    "tag_cells",
+    "tag_homographies",
+    "TAG_CELLS",
     "BACKENDS",
     "CORNER_REFINES",
 ]
@@ -37,7 +45,7 @@ _APRILTAG_TO_OPENCV = (1, 0, 3, 2)
 #: AprilTag puts (0, 0) at the outer corner of the top-left pixel; OpenCV at its centre.
 _APRILTAG_PIXEL_OFFSET_PX = -0.5
 #: tag36h11's black square is 8 cells wide (6x6 data + 1-cell black border each side).
-_CELLS_PER_SIDE = 8
+TAG_CELLS = 8
 
 
 @dataclass(frozen=True)
@@ -112,6 +120,11 @@ class DetectorConfig:
         edge_iterations: search-and-fit passes, each from the previous pass's corners.
         edge_max_shift_px: a refined corner further than this from the search's corner is
             rejected (the unrefined corner is kept); also capped at a quarter of the tag side.
+        edge_unbias: remove the tone-curve bias of the edge-fitted corners from each tag's own
+            black border (``unbias_corners_edge``); ``edge`` refine only.
+        edge_fit: then fit each tag's homography to all its cell edges at once, with the
+            tone-curve shift as a free parameter (``fit_tag_edges``); ``edge`` refine only.
+        edge_fit_iterations: sample-and-solve rounds of that fit.
     """
 
     backend: str = "opencv"
@@ -151,6 +164,9 @@ class DetectorConfig:
     edge_corner_skip: float = 0.15
     edge_iterations: int = 2
     edge_max_shift_px: float = 4.0
+    edge_unbias: bool = True
+    edge_fit: bool = True
+    edge_fit_iterations: int = 2
 
     def __post_init__(self) -> None:
         if self.backend not in BACKENDS:
@@ -186,6 +202,8 @@ class DetectorConfig:
             raise ConfigError("edge_iterations must be in [1, 10]")
         if not self.edge_max_shift_px > 0.0:
             raise ConfigError("edge_max_shift_px must be > 0")
+        if not 1 <= self.edge_fit_iterations <= 5:
+            raise ConfigError(f"edge_fit_iterations must be in [1, 5], got {self.edge_fit_iterations}")
 
 
 class TagDetector:
@@ -261,6 +279,9 @@ class TagDetector:
         if len(rejected) and self.config.corner_refine == "edge" and self.config.decode_rejected:
             ids, corners, hamming, margin = self._second_chance(
                 full, rejected + offset, ids, corners, hamming, margin)
+        if len(ids) and self.config.corner_refine == "edge":
+            # Free of the tone-curve bias, every tag found (searched or read again).
+            corners = refine_tag_corners(full, corners, ids, self.config)
         elif len(ids) and self.config.corner_refine == "subpix" and self._apriltag is not None:
             corners = _subpix(full, corners)
         return [
@@ -452,7 +473,7 @@ def refine_corners_edge_ok(
     if len(c_init) == 0:
         return c_init.copy(), np.zeros(0, dtype=bool)
     side_len = np.linalg.norm(c_init[:, _NEXT] - c_init, axis=2)  # (N, 4)
-    cell_px = np.repeat(side_len.mean(axis=1) / _CELLS_PER_SIDE, 4)  # (4N,) one per side
+    cell_px = np.repeat(side_len.mean(axis=1) / TAG_CELLS, 4)  # (4N,) one per side
     corners = c_init
     ok = np.ones(len(c_init), dtype=bool)
     for _ in range(cfg.edge_iterations):
@@ -489,7 +510,7 @@ def _edge_pass(
     # this side's normal (distance of the two opposite corners from the side's line).
     opp = corners[:, _OPPOSITE[0]].reshape(-1, 2) + corners[:, _OPPOSITE[1]].reshape(-1, 2) - 2 * a
     width = np.abs(np.einsum("ij,ij->i", opp, nrm)) / 2.0
-    cell_side = np.minimum(width / _CELLS_PER_SIDE, cell_px)
+    cell_side = np.minimum(width / TAG_CELLS, cell_px)
     half = np.clip(np.minimum(cfg.edge_search_px, cfg.edge_window_cells * cell_side), 0.75, None)  # (R,)
     # Every side's window [-half, half] holds the same number of samples, so their spacing
     # follows the window (0.1 px on a small tag's side, 0.5 px on a large one's): the same
@@ -583,6 +604,448 @@ def _masked_median(x: np.ndarray, mask: np.ndarray) -> np.ndarray:
     lo = srt[rows, np.maximum((cnt - 1) // 2, 0)]
     hi = srt[rows, np.maximum(cnt // 2, 0)]
     return np.where(cnt > 0, 0.5 * (lo + hi), 0.0)
+
+
+# ------------------------------------------------------------------------------------------------
+# Tone-curve bias: the black border's two edges
+# ------------------------------------------------------------------------------------------------
+@lru_cache(maxsize=None)
+def tag_cells(tag_id: int) -> np.ndarray:
+    """The 8x8 cells of a tag36h11 tag (True = black), in OpenCV's drawing (corner order c0..c3)."""
+    import cv2
+
+    dictionary = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11)
+    img = cv2.aruco.generateImageMarker(dictionary, int(tag_id), TAG_CELLS, borderBits=1)
+    cells = img == 0
+    cells.setflags(write=False)
+    return cells
+
+
+def tag_homographies(corners_px: np.ndarray) -> np.ndarray:
+    """(K, 3, 3) maps from tag cell units (c0 at (0, 0), c1 at (8, 0), c2 at (8, 8)) to the image,
+    one linear solve for all tags."""
+    src = np.array([[0, 0], [TAG_CELLS, 0], [TAG_CELLS, TAG_CELLS], [0, TAG_CELLS]], dtype=np.float64)
+    corners_px = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    k = len(corners_px)
+    a = np.zeros((k, 8, 8))
+    rhs = corners_px.reshape(k, 8)
+    for i, (x, y) in enumerate(src):
+        u, v = corners_px[:, i, 0], corners_px[:, i, 1]
+        a[:, 2 * i, 0:3] = (x, y, 1.0)
+        a[:, 2 * i, 6] = -x * u
+        a[:, 2 * i, 7] = -y * u
+        a[:, 2 * i + 1, 3:6] = (x, y, 1.0)
+        a[:, 2 * i + 1, 6] = -x * v
+        a[:, 2 * i + 1, 7] = -y * v
+    h = np.linalg.solve(a, rhs[..., None])[..., 0]
+    return np.concatenate([h, np.ones((k, 1))], axis=1).reshape(k, 3, 3)
+
+
+def _apply_h(hom: np.ndarray, uv: np.ndarray) -> np.ndarray:
+    """Points (P, 2) through homographies (P, 3, 3), one per point."""
+    p = np.einsum("pij,pj->pi", hom[:, :, :2], uv) + hom[:, :, 2]
+    return p[:, :2] / p[:, 2:3]
+
+
+#: Where the inner edge of the border is sampled across a white data cell (fractions of the cell
+#: along the side): away from the cell's ends, where the neighbouring black cells blur in.
+_INNER_FRACTIONS = (0.35, 0.5, 0.65)
+
+
+@lru_cache(maxsize=None)
+def _inner_edge_samples(tag_id: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sample points on the inner edge of the black border, where a white data cell borders it.
+
+    Returns (side (S,) int, uv (S, 2) in tag cell units, c0 at (0, 0), x right, y down). Side k
+    runs from corner k to corner k + 1: 0 top (inner edge y = 1), 1 right (x = 7), 2 bottom
+    (y = 7), 3 left (x = 1).
+    """
+    cells = tag_cells(tag_id)
+    sides, uv = [], []
+    for j in range(1, TAG_CELLS - 1):
+        for f in _INNER_FRACTIONS:
+            t = j + f
+            for side, white, point in (
+                (0, not cells[1, j], (t, 1.0)),
+                (1, not cells[j, TAG_CELLS - 2], (TAG_CELLS - 1.0, t)),
+                (2, not cells[TAG_CELLS - 2, j], (t, TAG_CELLS - 1.0)),
+                (3, not cells[j, 1], (1.0, t)),
+            ):
+                if white:
+                    sides.append(side)
+                    uv.append(point)
+    out = np.array(sides, dtype=np.int64), np.array(uv, dtype=np.float64).reshape(-1, 2)
+    for a in out:
+        a.setflags(write=False)
+    return out
+
+
+def _side_lines(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Outward unit normals (N, 4, 2) and offsets rho (N, 4) of the lines through corners k, k+1
+    (a point p is on side k's line when normal . p = rho; larger = further out)."""
+    d = corners[:, _NEXT] - corners
+    u = d / np.maximum(np.linalg.norm(d, axis=2, keepdims=True), 1e-12)
+    nrm = np.stack([u[..., 1], -u[..., 0]], axis=-1)
+    centre = corners.mean(axis=1, keepdims=True)
+    flip = np.einsum("nkd,nkd->nk", corners + 0.5 * d - centre, nrm) < 0
+    nrm = np.where(flip[..., None], -nrm, nrm)
+    return nrm, np.einsum("nkd,nkd->nk", nrm, corners)
+
+
+def _intersect_sides(nrm: np.ndarray, rho: np.ndarray) -> np.ndarray:
+    """Corners (N, 4, 2) where side k-1's line meets side k's."""
+    n1, r1 = nrm[:, _PREV], rho[:, _PREV]
+    det = n1[..., 0] * nrm[..., 1] - n1[..., 1] * nrm[..., 0]
+    det = np.where(np.abs(det) > 1e-9, det, 1e-9)
+    x = (r1 * nrm[..., 1] - n1[..., 1] * rho) / det
+    y = (n1[..., 0] * rho - r1 * nrm[..., 0]) / det
+    return np.stack([x, y], axis=-1)
+
+
+def refine_tag_corners(
+    gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray, config: DetectorConfig | None = None
+) -> np.ndarray:
+    """The tag-aware stage after the line fit: ``unbias_corners_edge`` then ``fit_tag_edges``
+    (each as ``config`` enables it). Corners (N, 4, 2) from ``refine_corners_edge``; ids (N,)."""
+    cfg = config or DetectorConfig()
+    corners = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    if len(corners) == 0 or cfg.corner_refine != "edge":
+        return corners.copy()
+    ids = np.asarray(ids).reshape(-1)
+    if cfg.edge_unbias:
+        corners = unbias_corners_edge(gray, corners, ids, cfg)
+    if cfg.edge_fit:
+        corners = fit_tag_edges(gray, corners, ids, cfg, cfg.edge_fit_iterations)[0]
+    return corners
+
+
+def unbias_corners_edge(
+    gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray, config: DetectorConfig | None = None
+) -> np.ndarray:
+    """Remove the tone-curve bias from edge-fitted corners, using each tag's own black border.
+
+    A lens blurs *linear* light; the camera's tone curve (sRGB, gamma, an S-curve) and clipping
+    then move the grey-level midpoint of every black/white edge toward the black, by an amount
+    delta that depends on the curve, the blur and the contrast, none of which we know. The fitted
+    outer edge of the border therefore sits delta *inside* the tag. The border's inner edge, where
+    a white data cell meets it, has black on its outer side, so the same estimator puts it delta
+    *outside* its true place: the measured border is 2 delta thinner than one cell. The tag's
+    geometry (the homography of its corners) says how wide one cell is at each point, so
+
+        delta = (cell width - measured border width) / 2
+
+    per side, from the samples across the white cells of the first data ring (known from the id),
+    with no model of the camera's response. Each side's line is then moved out by its delta and
+    the corners re-intersected; the cell width is re-read from the corrected corners (it
+    converges in two rounds). A side with few samples leans on its tag's mean, a tag with none on
+    the frame's median. Samples where the two edges are too close to resolve (cells under 2 px
+    across) are not used.
+
+    Args:
+        gray: (H, W) uint8 image.
+        corners_px: (N, 4, 2) corners from ``refine_corners_edge`` (OpenCV order and convention).
+        ids: (N,) the tags' ids (their data cells say where the border's inner edge is).
+        config: window settings (``edge_search_px``, ``edge_window_cells``, ``edge_profile_samples``).
+
+    Returns:
+        (N, 4, 2) corrected corners (a tag keeps its input corners when no estimate is possible
+        or the correction is implausibly large).
+    """
+    cfg = config or DetectorConfig()
+    c_in = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    n = len(c_in)
+    if n == 0:
+        return c_in.copy()
+    tables = [_inner_edge_samples(int(i)) for i in ids]
+    counts = np.array([len(t[0]) for t in tables])
+    tag_of = np.repeat(np.arange(n), counts)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    side = np.concatenate([t[0] for t in tables])
+    uv = np.concatenate([t[1] for t in tables])
+    # uv on the outer edge straight across from each inner sample (one cell out).
+    uv_out = uv + _SIDE_OUT[side]
+    nrm, rho = _side_lines(c_in)
+    nk = nrm[tag_of, side]  # (T, 2)
+
+    # Measure both edges of the border straight across each white data cell, with the same
+    # window: the inner edge around where the fitted corners put it (then again around what was
+    # found, so the window sits on the edge), the outer edge around the fitted line.
+    try:
+        hom = tag_homographies(c_in)
+    except np.linalg.LinAlgError:
+        return c_in.copy()
+    p_in, p_out = _apply_h(hom[tag_of], uv), _apply_h(hom[tag_of], uv_out)
+    width0 = np.einsum("td,td->t", nk, p_out - p_in)  # px, one cell across
+    half = np.clip(np.minimum(cfg.edge_search_px, cfg.edge_window_cells * width0), 0.75, None)
+    samples = cfg.edge_profile_samples
+    # The inner edge has its light side inward: offsets along -nk.
+    s1, _ = _step_offset(gray, p_in, -nk, half, samples)
+    s1 = np.clip(s1, -half, half)
+    s2, c_inner = _step_offset(gray, p_in - nk * s1[:, None], -nk, half, samples)
+    inner = np.einsum("td,td->t", nk, p_in) - s1 - s2
+    o1, c_outer = _step_offset(gray, p_out, nk, half, samples)
+    outer = np.einsum("td,td->t", nk, p_out) + o1
+    step = half / ((samples - 1) // 2)
+    contrast = np.minimum(c_inner, c_outer)
+    med_c = _group_median(contrast, np.ones(len(contrast), dtype=bool), starts, counts)
+    valid = (np.isfinite(inner) & np.isfinite(outer) & (width0 >= 2.0) & (np.abs(s2) < half - step)
+             & (np.abs(o1) < half - step) & (contrast > 8.0) & (contrast > 0.5 * med_c[tag_of]))
+    # The midline between the two measured edges is unbiased (both moved toward the black by the
+    # same amount); the true outer edge is half a cell beyond it.
+    midline = 0.5 * (inner + outer)
+
+    group = tag_of * 4 + side
+    corners = c_in
+    delta = np.zeros((n, 4))
+    for _ in range(2):
+        hom = tag_homographies(corners)
+        p_in_c, p_out_c = _apply_h(hom[tag_of], uv), _apply_h(hom[tag_of], uv_out)
+        width = np.einsum("td,td->t", nk, p_out_c - p_in_c)  # one cell across, corrected geometry
+        d = midline + 0.5 * width - rho[tag_of, side]  # (T,) how far the fitted line is inside, px
+        delta = _pooled_delta(d, valid, group, starts, counts)
+        corners = _intersect_sides(nrm, rho + delta)
+    # A correction beyond a third of a cell (or 2 px) is no tone curve: keep those tags' corners.
+    cell = np.linalg.norm(c_in[:, _NEXT] - c_in, axis=2).min(axis=1) / TAG_CELLS
+    sane = (np.abs(delta).max(axis=1) <= np.minimum(cell / 3.0, 2.0)) & np.isfinite(corners).all(axis=(1, 2))
+    return np.where(sane[:, None, None], corners, c_in)
+
+
+#: Tag-unit step from a side's inner edge to its outer edge (sides 0..3: top, right, bottom, left).
+_SIDE_OUT = np.array([[0.0, -1.0], [1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]])
+#: Samples' worth of prior weight of a tag's mean delta on each side (three samples = one cell).
+_SIDE_PRIOR_SAMPLES = 3.0
+
+
+def _pooled_delta(
+    d: np.ndarray, valid: np.ndarray, group: np.ndarray, starts: np.ndarray, counts: np.ndarray
+) -> np.ndarray:
+    """Per-side delta (N, 4): each side's mean over its valid samples, outliers (beyond 3 MAD of
+    the tag's median) dropped, shrunk toward its tag's mean; tags without samples get the median
+    of the other tags."""
+    n = len(counts)
+    tag_of = np.repeat(np.arange(n), counts)
+    tag_med = _group_median(d, valid, starts, counts)
+    tag_mad = 1.4826 * _group_median(np.abs(d - tag_med[tag_of]), valid, starts, counts)
+    keep = valid & np.isfinite(d) & (np.abs(d - tag_med[tag_of]) <= np.maximum(3.0 * tag_mad[tag_of], 0.1))
+    dv = np.where(keep, d, 0.0)
+    side_sum = np.bincount(group, weights=dv, minlength=4 * n).reshape(n, 4)
+    side_cnt = np.bincount(group, weights=keep.astype(np.float64), minlength=4 * n).reshape(n, 4)
+    tag_cnt = side_cnt.sum(axis=1)
+    has = tag_cnt > 0
+    tag_mean = np.where(has, side_sum.sum(axis=1) / np.maximum(tag_cnt, 1e-12), 0.0)
+    frame = float(np.median(tag_mean[has])) if has.any() else 0.0
+    tag_mean = np.where(has, tag_mean, frame)
+    prior = _SIDE_PRIOR_SAMPLES
+    return (side_sum + prior * tag_mean[:, None]) / (side_cnt + prior)
+
+
+@lru_cache(maxsize=None)
+def _cell_edge_samples(tag_id: int) -> tuple[np.ndarray, np.ndarray]:
+    """Sample points on every black/white cell boundary of a tag and its white quiet zone.
+
+    Returns (uv (S, 2) in tag cell units, c0 at (0, 0), x right, y down; nu (S, 2) the boundary's
+    unit normal in tag units, pointing from the black cell to the white one). Each boundary is one
+    cell long and sampled at ``_EDGE_FRACTIONS`` of its length (away from the cell corners, where
+    the blur mixes in the cells diagonally across).
+    """
+    cells = np.ones((TAG_CELLS + 2, TAG_CELLS + 2), dtype=bool)  # True = white, with the quiet zone
+    cells[1:-1, 1:-1] = ~tag_cells(tag_id)
+    uv, nu = [], []
+    size = TAG_CELLS + 2
+    for r in range(size):
+        for c in range(size):
+            for dr, dc in ((0, 1), (1, 0)):
+                r2, c2 = r + dr, c + dc
+                if r2 >= size or c2 >= size or cells[r, c] == cells[r2, c2]:
+                    continue
+                # Boundary between cell (r, c) and its right (dc) or lower (dr) neighbour, in tag
+                # units where the tag's cell (0, 0) spans [0, 1]: grid index i -> i - 1.
+                sign = 1.0 if cells[r2, c2] else -1.0  # +: the neighbour is the white one
+                for f in _EDGE_FRACTIONS:
+                    if dc:
+                        uv.append((c2 - 1.0, r - 1.0 + f))
+                        nu.append((sign, 0.0))
+                    else:
+                        uv.append((c - 1.0 + f, r2 - 1.0))
+                        nu.append((0.0, sign))
+    out = np.array(uv, dtype=np.float64), np.array(nu, dtype=np.float64)
+    for a in out:
+        a.setflags(write=False)
+    return out
+
+
+_EDGE_FRACTIONS = (0.3, 0.7)
+#: Samples across each boundary's window (half a cell each way).
+_FIT_PROFILE_SAMPLES = 11
+
+
+def _step_offset(
+    img: np.ndarray, centre: np.ndarray, to_light: np.ndarray, half: np.ndarray, samples: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Area location of a dark-to-light step along ``to_light`` (unit, (P, 2)) in the window
+    [-half, half] around ``centre``: (offset px along ``to_light`` (P,), contrast (P,)).
+
+    The estimator of ``_edge_pass``: levels from the window's two end samples, the edge where the
+    trapezoid integral of the normalised profile puts it (exact for any blur of a step in linear
+    light; under a tone curve, shifted toward the dark side by the same amount for every edge of
+    the same blur and contrast).
+    """
+    import cv2
+
+    k = (samples - 1) // 2
+    j = np.arange(-k, k + 1, dtype=np.float32)
+    step = half / k
+    d = (to_light * step[:, None]).astype(np.float32)
+    c = centre.astype(np.float32)
+    vals = cv2.remap(img, c[:, 0:1] + d[:, 0:1] * j, c[:, 1:2] + d[:, 1:2] * j, cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
+    dark = 0.5 * (vals[:, 0] + vals[:, 1])
+    contrast = 0.5 * (vals[:, -1] + vals[:, -2]) - dark
+    frac = (vals - dark[:, None]) / np.where(contrast > 0, contrast, 1.0)[:, None]
+    np.clip(frac, 0.0, 1.0, out=frac)
+    area = frac.sum(axis=1) - 0.5 * (frac[:, 0] + frac[:, -1])  # trapezoid rule
+    return half - area.astype(np.float64) * step, contrast.astype(np.float64)
+
+
+def fit_tag_edges(
+    gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray, config: DetectorConfig | None = None,
+    iterations: int = 2,
+) -> tuple[np.ndarray, np.ndarray]:
+    """Corners from every cell edge of each tag at once, free of the tone-curve bias.
+
+    The tag is a known pattern: every boundary between a black and a white cell (its border's
+    two edges, the data cells', the quiet zone's) lies where the tag's homography H maps it. A
+    camera's tone curve and clipping move each measured boundary toward its black side by one
+    amount delta (one blur, one contrast, one curve per tag), which we do not know. Boundaries of
+    both orientations and polarities are spread over the tag, so H (8 parameters) and delta are
+    separable: each sample's measured offset s along the image normal (toward the white cell) is
+    modelled as n . J_H dh - delta and one weighted least-squares step per iteration updates H and
+    delta together (re-sampling the image each time); samples beyond 3.5 robust sigmas are
+    dropped. About three times as many edge pixels as the four outer lines see, and no line is
+    extrapolated to a corner.
+
+    Args:
+        gray: (H, W) uint8 image.
+        corners_px: (N, 4, 2) starting corners (``refine_corners_edge``; within ~0.3 cell).
+        ids: (N,) tag ids (their cells say where the boundaries are).
+        config: ``edge_search_px`` and ``edge_profile_samples``.
+        iterations: sample-and-solve rounds.
+
+    Returns:
+        (corners (N, 4, 2), delta_px (N,)): corrected corners (a tag keeps its input corners when
+        its cells are too small to resolve or the fit is implausible) and each tag's fitted edge
+        shift toward black, px (NaN where not fitted).
+    """
+    cfg = config or DetectorConfig()
+    c_in = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    n = len(c_in)
+    delta = np.full(n, np.nan)
+    if n == 0:
+        return c_in.copy(), delta
+    tables = [_cell_edge_samples(int(i)) for i in ids]
+    counts = np.array([len(t[0]) for t in tables])
+    tag_of = np.repeat(np.arange(n), counts)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    uv = np.concatenate([t[0] for t in tables])
+    nu = np.concatenate([t[1] for t in tables])
+    u, v = uv[:, 0], uv[:, 1]
+    try:
+        h = tag_homographies(c_in).reshape(n, 9)[:, :8].copy()
+    except np.linalg.LinAlgError:
+        return c_in.copy(), delta
+    samples = _FIT_PROFILE_SAMPLES
+    keep = np.ones(len(uv), dtype=bool)
+    fitted = np.zeros(n, dtype=bool)
+    for it in range(iterations):
+        ht = h[tag_of]
+        den = ht[:, 6] * u + ht[:, 7] * v + 1.0
+        px = (ht[:, 0] * u + ht[:, 1] * v + ht[:, 2]) / den
+        py = (ht[:, 3] * u + ht[:, 4] * v + ht[:, 5]) / den
+        # Image normal of the boundary: J^-T nu, J = d(px, py)/d(u, v).
+        j11 = (ht[:, 0] - ht[:, 6] * px) / den
+        j12 = (ht[:, 1] - ht[:, 7] * px) / den
+        j21 = (ht[:, 3] - ht[:, 6] * py) / den
+        j22 = (ht[:, 4] - ht[:, 7] * py) / den
+        det = j11 * j22 - j12 * j21
+        gx = (j22 * nu[:, 0] - j21 * nu[:, 1]) / det
+        gy = (-j12 * nu[:, 0] + j11 * nu[:, 1]) / det
+        gnorm = np.hypot(gx, gy)
+        nx, ny = gx / gnorm, gy / gnorm
+        cell_px = 1.0 / gnorm  # one cell across this boundary, px
+        half = np.minimum(cfg.edge_search_px, 0.5 * cell_px)
+        s, contrast = _step_offset(gray, np.column_stack([px, py]), np.column_stack([nx, ny]),
+                                   half, samples)
+        step = half / ((samples - 1) // 2)
+        med_c = _group_median(contrast, keep, starts, counts)
+        ok = (keep & (cell_px >= 2.0) & np.isfinite(s) & (np.abs(s) < half - step)
+              & (contrast > 8.0) & (contrast > 0.5 * med_c[tag_of]))
+        # Rows of the linearised model s = n . J_h dh - delta; columns scaled to unit size.
+        jac = np.zeros((len(uv), 9))
+        jac[:, 0], jac[:, 1], jac[:, 2] = nx * u / den, nx * v / den, nx / den
+        jac[:, 3], jac[:, 4], jac[:, 5] = ny * u / den, ny * v / den, ny / den
+        jac[:, 6] = -(nx * px + ny * py) * u / den
+        jac[:, 7] = -(nx * px + ny * py) * v / den
+        jac[:, 8] = -1.0
+        for _round in range(2):
+            w = ok.astype(np.float64)
+            sol, solved = _solve_grouped(jac, s, w, starts, 24)
+            if _round == 1:
+                break
+            r = s - np.einsum("ti,ti->t", jac, sol[tag_of])
+            sig = 1.4826 * _group_median(np.abs(r), ok, starts, counts)
+            ok &= np.abs(r) <= np.maximum(3.5 * sig[tag_of], 0.05)
+        h = h + np.where(solved[:, None], sol[:, :8], 0.0)
+        delta = np.where(solved, sol[:, 8], np.nan)
+        fitted = solved
+        if it == iterations - 2:
+            keep = ok  # the last round samples where the previous one trusted the image
+    full = np.concatenate([h, np.ones((n, 1))], axis=1).reshape(n, 3, 3)
+    src = np.array([[0, 0, 1], [TAG_CELLS, 0, 1], [TAG_CELLS, TAG_CELLS, 1], [0, TAG_CELLS, 1]], float)
+    p = np.einsum("nij,kj->nki", full, src)
+    corners = p[..., :2] / p[..., 2:3]
+    cell = np.linalg.norm(c_in[:, _NEXT] - c_in, axis=2).min(axis=1) / TAG_CELLS
+    moved = np.linalg.norm(corners - c_in, axis=2).max(axis=1)
+    good = fitted & np.isfinite(corners).all(axis=(1, 2)) & (moved <= np.minimum(0.35 * cell, 2.5))
+    return np.where(good[:, None, None], corners, c_in), np.where(good, delta, np.nan)
+
+
+def _group_median(x: np.ndarray, mask: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Median of ``x`` over the masked entries of each contiguous group (0 where none)."""
+    n = len(counts)
+    pad = np.full((n, int(counts.max()) if n else 0), np.nan)
+    group = np.repeat(np.arange(n), counts)
+    pad[group, np.arange(len(x)) - starts[group]] = np.where(mask, x, np.nan)
+    return _masked_median(np.nan_to_num(pad, nan=np.inf), np.isfinite(pad))
+
+
+def _solve_grouped(
+    jac: np.ndarray, rhs: np.ndarray, w: np.ndarray, starts: np.ndarray, min_rows: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """Weighted least squares per contiguous group of rows: (solutions (n, P), solved (n,))."""
+    n, p = len(starts), jac.shape[1]
+    ends = np.append(starts[1:], len(rhs))
+    jw = jac * w[:, None]
+    ata = np.empty((n, p, p))
+    for g in range(n):  # a few dozen small products: cheaper than one (T, P, P) outer product
+        ata[g] = jw[starts[g]:ends[g]].T @ jac[starts[g]:ends[g]]
+    atb = np.add.reduceat(jw * rhs[:, None], starts, axis=0)
+    rows = np.add.reduceat((w > 0).astype(np.float64), starts)
+    # Column scaling: the parameters differ in size by orders of magnitude.
+    d = np.sqrt(np.maximum(np.einsum("nii->ni", ata), 1e-30))
+    a_s = ata / d[:, :, None] / d[:, None, :]
+    solved = rows >= min_rows
+    sol = np.zeros((n, p))
+    if solved.any():
+        try:
+            sol[solved] = np.linalg.solve(a_s[solved], (atb / d)[solved][..., None])[..., 0] / d[solved]
+        except np.linalg.LinAlgError:  # a degenerate tag: solve one by one, dropping it
+            for g in np.flatnonzero(solved):
+                try:
+                    sol[g] = np.linalg.solve(a_s[g], atb[g] / d[g]) / d[g]
+                except np.linalg.LinAlgError:
+                    solved[g] = False
+    solved &= np.isfinite(sol).all(axis=1)
+    return sol, solved
 
 
 def as_gray(image: np.ndarray) -> np.ndarray:

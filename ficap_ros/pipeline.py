@@ -13,7 +13,14 @@ from scipy.spatial.transform import Rotation
 
 from ficap_ros.camera import CameraModel
 from ficap_ros.cap_model import CapModel, nominal_model
-from ficap_ros.detection import DetectorConfig, TagDetection, TagDetector, as_gray, refine_corners_edge_ok
+from ficap_ros.detection import (
+    DetectorConfig,
+    TagDetection,
+    TagDetector,
+    as_gray,
+    refine_corners_edge_ok,
+    refine_tag_corners,
+)
 from ficap_ros.pose import CapPose, PoseConfig, estimate_cap_pose
 from ficap_ros.tracking import TrackConfig, extrapolate_pose, predict_tags, verify_tags, view_angles_deg
 from ficap_ros.transform import CAM_FROM_FORWARD, Transform
@@ -212,6 +219,8 @@ class FrameProcessor:
         """Refine predicted corners and keep the tags whose cells read as their ids; also the
         largest distance, px, a verified tag's corner moved from its prediction."""
         refined, ok = self._refine_predicted(gray, corners)
+        # The tone-curve bias and the cell-edge fit, as on searched tags (one corner estimator).
+        refined[ok] = refine_tag_corners(gray, refined[ok], ids[ok], self.detector.config)
         ver, errors, contrast = verify_tags(gray, ids[ok], refined[ok], self.track_config)
         moved = np.linalg.norm(refined[ok][ver] - corners[ok][ver], axis=2)
         return ([TagDetection(int(i), c, int(e), float(m))

@@ -17,23 +17,19 @@ tracking cannot verify enough tags (``pipeline.FrameProcessor``).
 from __future__ import annotations
 
 from dataclasses import dataclass
-from functools import lru_cache
-
 import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ficap_ros.camera import CameraModel
 from ficap_ros.cap_model import CapModel
+from ficap_ros.detection import TAG_CELLS as _CELLS
+from ficap_ros.detection import tag_cells, tag_homographies
 from ficap_ros.errors import ConfigError
 from ficap_ros.transform import Transform
 
 __all__ = ["TrackConfig", "extrapolate_pose", "predict_tags", "verify_tags", "decode_tags", "tag_cells",
            "view_angles_deg"]
-
-#: tag36h11 drawn by OpenCV: 8x8 cells (1-cell black border around 6x6 data bits).
-_CELLS = 8
-
 
 @dataclass(frozen=True)
 class TrackConfig:
@@ -132,16 +128,6 @@ def predict_tags(
     return ids[keep], px[keep]
 
 
-@lru_cache(maxsize=None)
-def tag_cells(tag_id: int) -> np.ndarray:
-    """The 8x8 cells of a tag36h11 tag (True = black), in OpenCV's drawing (corner order c0..c3)."""
-    dictionary = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11)
-    img = cv2.aruco.generateImageMarker(dictionary, int(tag_id), _CELLS, borderBits=1)
-    cells = img == 0
-    cells.setflags(write=False)
-    return cells
-
-
 def _cell_grid() -> np.ndarray:
     """Centres (100, 2) of the 10x10 cells (white margin ring + 8x8 tag), in cell units from c0."""
     c = np.arange(-1, _CELLS + 1) + 0.5
@@ -154,24 +140,6 @@ _GRID_H = np.concatenate([_GRID, np.ones((len(_GRID), 1))], axis=1)  # homogeneo
 _RING_MARGIN = ((_GRID < 0) | (_GRID > _CELLS)).any(axis=1)  # the white quiet zone
 _INNER = ~_RING_MARGIN  # the 8x8 tag cells, row-major
 _BORDER = ((_GRID[_INNER] < 1) | (_GRID[_INNER] > _CELLS - 1)).any(axis=1)  # of the 64: the black border
-
-
-def _homographies(corners_px: np.ndarray) -> np.ndarray:
-    """(K, 3, 3) maps from cell units (c0 at (0, 0), c2 at (8, 8)) to the image, one solve for all."""
-    src = np.array([[0, 0], [_CELLS, 0], [_CELLS, _CELLS], [0, _CELLS]], dtype=np.float64)
-    k = len(corners_px)
-    a = np.zeros((k, 8, 8))
-    rhs = corners_px.reshape(k, 8)
-    for i, (x, y) in enumerate(src):
-        u, v = corners_px[:, i, 0], corners_px[:, i, 1]
-        a[:, 2 * i, 0:3] = (x, y, 1.0)
-        a[:, 2 * i, 6] = -x * u
-        a[:, 2 * i, 7] = -y * u
-        a[:, 2 * i + 1, 3:6] = (x, y, 1.0)
-        a[:, 2 * i + 1, 6] = -x * v
-        a[:, 2 * i + 1, 7] = -y * v
-    h = np.linalg.solve(a, rhs[..., None])[..., 0]
-    return np.concatenate([h, np.ones((k, 1))], axis=1).reshape(k, 3, 3)
 
 
 def verify_tags(
@@ -193,7 +161,7 @@ def verify_tags(
     if k == 0:
         return np.zeros(0, dtype=bool), np.zeros(0, dtype=int), np.zeros(0)
     try:
-        hom = _homographies(np.asarray(corners_px, dtype=np.float64))
+        hom = tag_homographies(np.asarray(corners_px, dtype=np.float64))
     except np.linalg.LinAlgError:
         return np.zeros(k, dtype=bool), np.full(k, 64), np.zeros(k)
     p = np.einsum("kij,gj->kgi", hom, _GRID_H)
