@@ -36,10 +36,8 @@ from ficap_ros.metrics import corner_errors_px  # noqa: E402
 #: The corner methods compared: name -> detector settings.
 METHODS: dict[str, DetectorConfig] = {
     "ficap edge": DetectorConfig(),
-    "ficap edge as fitted": DetectorConfig(edge_unbias=False, edge_fit=False),
-    "ficap edge lines": DetectorConfig(edge_fit=False),
-    "ficap edge fit only": DetectorConfig(edge_unbias=False),
-    "ficap edge fit3": DetectorConfig(edge_unbias=False, edge_fit_iterations=3),
+    "ficap lines + border unbias": DetectorConfig(edge_fit=False),
+    "ficap lines (before)": DetectorConfig(edge_unbias=False, edge_fit=False),
     "AprilTag 3": DetectorConfig(backend="apriltag", corner_refine="apriltag"),
     "OpenCV subpix": DetectorConfig(corner_refine="subpix"),
 }

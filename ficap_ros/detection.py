@@ -706,16 +706,27 @@ def refine_tag_corners(
     gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray, config: DetectorConfig | None = None
 ) -> np.ndarray:
     """The tag-aware stage after the line fit: ``unbias_corners_edge`` then ``fit_tag_edges``
-    (each as ``config`` enables it). Corners (N, 4, 2) from ``refine_corners_edge``; ids (N,)."""
+    (each as ``config`` enables it) on every tag whose cells span ``_MIN_TAG_CELL_PX`` both ways;
+    a smaller tag keeps its line-fit corners. A tag's corners depend on its own pixels only (a
+    region search gives the full frame's corners). Corners (N, 4, 2) from
+    ``refine_corners_edge``; ids (N,).
+    """
     cfg = config or DetectorConfig()
-    corners = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
-    if len(corners) == 0 or cfg.corner_refine != "edge":
-        return corners.copy()
+    corners = np.array(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    if len(corners) == 0 or cfg.corner_refine != "edge" or not (cfg.edge_unbias or cfg.edge_fit):
+        return corners
     ids = np.asarray(ids).reshape(-1)
-    if cfg.edge_unbias:
-        corners = unbias_corners_edge(gray, corners, ids, cfg)
-    if cfg.edge_fit:
-        corners = fit_tag_edges(gray, corners, ids, cfg, cfg.edge_fit_iterations)[0]
+    nrm, rho = _side_lines(corners)
+    # Width of the tag across each side (opposite corners from the side's line), in cells.
+    across = rho[:, :, None] - np.einsum("nkd,njd->nkj", nrm, corners)
+    good = across.max(axis=2).min(axis=1) / TAG_CELLS >= _MIN_TAG_CELL_PX
+    if good.any():
+        c = corners[good]
+        if cfg.edge_unbias:
+            c = unbias_corners_edge(gray, c, ids[good], cfg)
+        if cfg.edge_fit:
+            c = fit_tag_edges(gray, c, ids[good], cfg, cfg.edge_fit_iterations)[0]
+        corners[good] = c
     return corners
 
 
@@ -737,8 +748,8 @@ def unbias_corners_edge(
     per side, from the samples across the white cells of the first data ring (known from the id),
     with no model of the camera's response. Each side's line is then moved out by its delta and
     the corners re-intersected; the cell width is re-read from the corrected corners (it
-    converges in two rounds). A side with few samples leans on its tag's mean, a tag with none on
-    the frame's median. Samples where the two edges are too close to resolve (cells under 2 px
+    converges in two rounds). A side with few samples leans on its tag's mean; a tag with none
+    is left as it is. Samples where the two edges are too close to resolve (cells under 2 px
     across) are not used.
 
     Args:
@@ -786,10 +797,10 @@ def unbias_corners_edge(
     o1, c_outer = _step_offset(gray, p_out, nk, half, samples)
     outer = np.einsum("td,td->t", nk, p_out) + o1
     step = half / ((samples - 1) // 2)
-    contrast = np.minimum(c_inner, c_outer)
-    med_c = _group_median(contrast, np.ones(len(contrast), dtype=bool), starts, counts)
-    valid = (np.isfinite(inner) & np.isfinite(outer) & (width0 >= 2.0) & (np.abs(s2) < half - step)
-             & (np.abs(o1) < half - step) & (contrast > 8.0) & (contrast > 0.5 * med_c[tag_of]))
+    # A white cell as white as the quiet zone across the border: where its neighbours (or the
+    # pixel footprint) darken it, its edge is not the outer edge's mirror image.
+    valid = (np.isfinite(inner) & np.isfinite(outer) & (width0 >= _MIN_CELL_PX) & (np.abs(s2) < half - step)
+             & (np.abs(o1) < half - step) & (c_outer > 8.0) & (c_inner >= _MIN_CONTRAST_RATIO * c_outer))
     # The midline between the two measured edges is unbiased (both moved toward the black by the
     # same amount); the true outer edge is half a cell beyond it.
     midline = 0.5 * (inner + outer)
@@ -810,6 +821,14 @@ def unbias_corners_edge(
     return np.where(sane[:, None, None], corners, c_in)
 
 
+#: Fewest px a cell must span across an edge for the edge to be measured next to its neighbours:
+#: a window of half a cell each way must hold the blurred step and stay off the next edge.
+_MIN_CELL_PX = 2.0
+#: ... and a tag is fitted on its own when its cells span this much across both axes.
+_MIN_TAG_CELL_PX = 2.0
+#: A sample's contrast must be at least this share of a clean reference (the quiet zone across
+#: the border; a tag's 90th percentile): darker means its window saw a neighbouring cell.
+_MIN_CONTRAST_RATIO = 0.7
 #: Tag-unit step from a side's inner edge to its outer edge (sides 0..3: top, right, bottom, left).
 _SIDE_OUT = np.array([[0.0, -1.0], [1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]])
 #: Samples' worth of prior weight of a tag's mean delta on each side (three samples = one cell).
@@ -820,8 +839,7 @@ def _pooled_delta(
     d: np.ndarray, valid: np.ndarray, group: np.ndarray, starts: np.ndarray, counts: np.ndarray
 ) -> np.ndarray:
     """Per-side delta (N, 4): each side's mean over its valid samples, outliers (beyond 3 MAD of
-    the tag's median) dropped, shrunk toward its tag's mean; tags without samples get the median
-    of the other tags."""
+    the tag's median) dropped, shrunk toward its tag's mean (0 for a tag without samples)."""
     n = len(counts)
     tag_of = np.repeat(np.arange(n), counts)
     tag_med = _group_median(d, valid, starts, counts)
@@ -833,8 +851,6 @@ def _pooled_delta(
     tag_cnt = side_cnt.sum(axis=1)
     has = tag_cnt > 0
     tag_mean = np.where(has, side_sum.sum(axis=1) / np.maximum(tag_cnt, 1e-12), 0.0)
-    frame = float(np.median(tag_mean[has])) if has.any() else 0.0
-    tag_mean = np.where(has, tag_mean, frame)
     prior = _SIDE_PRIOR_SAMPLES
     return (side_sum + prior * tag_mean[:, None]) / (side_cnt + prior)
 
@@ -976,9 +992,11 @@ def fit_tag_edges(
         s, contrast = _step_offset(gray, np.column_stack([px, py]), np.column_stack([nx, ny]),
                                    half, samples)
         step = half / ((samples - 1) // 2)
-        med_c = _group_median(contrast, keep, starts, counts)
-        ok = (keep & (cell_px >= 2.0) & np.isfinite(s) & (np.abs(s) < half - step)
-              & (contrast > 8.0) & (contrast > 0.5 * med_c[tag_of]))
+        # Full contrast only: a boundary whose window ends are darkened by a neighbouring black
+        # cell (or lightened by a white one) is not a clean step.
+        top_c = _group_quantile(contrast, keep & np.isfinite(contrast), starts, counts, 0.9)
+        ok = (keep & (cell_px >= _MIN_CELL_PX) & np.isfinite(s) & (np.abs(s) < half - step)
+              & (contrast > 8.0) & (contrast >= _MIN_CONTRAST_RATIO * top_c[tag_of]))
         # Rows of the linearised model s = n . J_h dh - delta; columns scaled to unit size.
         jac = np.zeros((len(uv), 9))
         jac[:, 0], jac[:, 1], jac[:, 2] = nx * u / den, nx * v / den, nx / den
@@ -987,8 +1005,13 @@ def fit_tag_edges(
         jac[:, 7] = -(nx * px + ny * py) * v / den
         jac[:, 8] = -1.0
         for _round in range(2):
-            w = ok.astype(np.float64)
+            # Noise-optimal weights: a sample's position noise goes as 1 / its contrast.
+            w = np.where(ok, (contrast / np.maximum(top_c[tag_of], 1.0)) ** 2, 0.0)
             sol, solved = _solve_grouped(jac, s, w, starts, 24)
+            # Both edge directions must be seen, or the fit is free along one of them.
+            used = w > 0
+            vertical = np.add.reduceat(used & (np.abs(nu[:, 0]) > 0.5), starts)
+            solved &= (vertical >= 12) & (np.add.reduceat(used, starts) - vertical >= 12)
             if _round == 1:
                 break
             r = s - np.einsum("ti,ti->t", jac, sol[tag_of])
@@ -1011,11 +1034,24 @@ def fit_tag_edges(
 
 def _group_median(x: np.ndarray, mask: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
     """Median of ``x`` over the masked entries of each contiguous group (0 where none)."""
+    return _group_quantile(x, mask, starts, counts, 0.5)
+
+
+def _group_quantile(
+    x: np.ndarray, mask: np.ndarray, starts: np.ndarray, counts: np.ndarray, q: float
+) -> np.ndarray:
+    """Quantile ``q`` (nearest rank) of ``x`` over the masked entries of each contiguous group
+    (0 where none)."""
     n = len(counts)
-    pad = np.full((n, int(counts.max()) if n else 0), np.nan)
+    pad = np.full((n, int(counts.max()) if n else 0), np.inf)
     group = np.repeat(np.arange(n), counts)
-    pad[group, np.arange(len(x)) - starts[group]] = np.where(mask, x, np.nan)
-    return _masked_median(np.nan_to_num(pad, nan=np.inf), np.isfinite(pad))
+    pad[group, np.arange(len(x)) - starts[group]] = np.where(mask, x, np.inf)
+    if q == 0.5:
+        return _masked_median(pad, np.isfinite(pad))
+    srt = np.sort(pad, axis=1)
+    cnt = np.isfinite(pad).sum(axis=1)
+    rank = np.clip(np.round(q * (cnt - 1)).astype(int), 0, None)
+    return np.where(cnt > 0, srt[np.arange(n), rank], 0.0)
 
 
 def _solve_grouped(
