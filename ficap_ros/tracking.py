@@ -17,6 +17,7 @@ tracking cannot verify enough tags (``pipeline.FrameProcessor``).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -224,7 +225,7 @@ def decode_tags(
         return np.zeros(0, bool), np.zeros(0, int), np.zeros(0, int), c.copy()
     rolled = np.stack([np.roll(c, -r, axis=1) for r in range(4)], axis=1).reshape(-1, 4, 2)  # (4K,)
     try:
-        hom = _homographies(rolled)
+        hom = tag_homographies(rolled)
     except np.linalg.LinAlgError:
         return np.zeros(k, bool), np.zeros(k, int), np.full(k, 36), c.copy()
     p = np.einsum("kij,gj->kgi", hom, _GRID_H)
