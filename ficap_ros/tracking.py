@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from functools import lru_cache
+
 import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
