@@ -1,16 +1,40 @@
 """The cap as built, by bundle adjustment over frames that see many tags at once.
 
 Unknowns: every tag is a rigid 32 mm square with its own 6-DoF pose in the cap frame (``R_cap_tag``,
-``t_cap_tag_mm``), and every frame has its camera pose ``T_cam_cap``. Residuals are the
-reprojection errors of the detected corners (undistorted with the frame's intrinsics, so every lens
-model shares one pinhole projection), minimised with ``scipy.optimize.least_squares`` (TRF, sparse
-Jacobian from ``jac_sparsity``, robust ``soft_l1`` loss so a bad corner cannot drag a tag).
+``t_cap_tag_mm``); every frame has its camera pose ``T_cam_cap``; and one global nuisance, the
+*edge offset* of the detected corners (px, positive outward). Residuals are the reprojection errors
+of the detected corners (undistorted with the frame's intrinsics, so every lens model shares one
+pinhole projection), minimised with ``scipy.optimize.least_squares`` (TRF, sparse Jacobian from
+``jac_sparsity``, robust ``soft_l1`` loss so a bad corner cannot drag a tag).
 
-Gauge: the reprojections are unchanged by a rigid motion of the whole cap (the 32 mm tag side fixes
-the scale). A weak prior (``prior_sigma_mm``) on every tag centre toward the nominal keeps the
-solver well posed; after the solve the model is Kabsch-aligned to the nominal corners, so the
-as-built cap frame is the nominal one in the least-squares sense, and per-tag deviations are
-relative to it.
+Why the edge offset. A corner detector that fits the tag's border lines finds them displaced by a
+roughly constant fraction of a pixel when the image chain (lens blur, tone curve, JPEG) is not
+symmetric about the black-white edge: on real images the corners sit ~0.2-0.9 px inside each tag.
+If the printed 32 mm side were the only metric reference, every tag would look ~1 % small and the
+solver would grow the whole cap by ~1 % to fit (a replay with that model then puts the cap ~7 mm
+too far away). So the predicted corner of a tag is its projected corner moved so that both of its
+border lines shift by the same ``edge_offset_px`` along their outward normals in the image (the
+intersection of the two shifted lines), the way a border-line detector errs.
+
+Why the size is anchored to the nominal layout. An edge offset and a uniform scale of the cap are
+nearly interchangeable in the images (both change how large a tag looks), and only the spread of
+distances and view angles separates them. Hand assembly moves and turns plates; it does not grow
+the cap. So every tag has a prior toward its nominal place (``assembly_sigma_mm``, about the
+accuracy of gluing a plate by hand) and orientation (``assembly_sigma_deg``). Each plate's own
+deviation is measured by the images (its prior weighs about (0.05 mm / 1 mm)^2 against the data);
+the cap's overall size, which the images barely see once the edge offset is free, stays where 23
+independently placed plates put it: within about ``assembly_sigma_mm / sqrt(23)`` of the nominal
+radius. The priors also fix the gauge (the rigid motion of the whole cap the images cannot see);
+after the solve the model is Kabsch-aligned to the nominal corners, so the as-built cap frame is the
+nominal one in the least-squares sense, and per-tag deviations are relative to it.
+
+Trust. Each tag's deviation comes with a standard deviation from the Gauss-Newton covariance (the
+Schur complement over the camera poses, the whole-cap rigid motion projected out), with its
+observation count and the spread of the directions it was seen from. ``BuildResult.problems`` lists
+every reason not to trust the model (solver budget reached, a tag seen too rarely or from one
+direction only or with a large uncertainty); ``replay_check`` re-estimates every frame's pose with
+the nominal and the built model, the pose code replay uses, and adds a problem when the built model
+fits the recording worse or moves the cap along the line of sight by more than hand assembly can.
 
 Tag frame (local): x along the tag's top edge (TL -> TR), y down (TL -> BL), z = x cross y (into
 the cap); local corners (-16, -16, 0), (16, -16, 0), (16, 16, 0), (-16, 16, 0) mm = TL, TR, BR, BL.
@@ -23,7 +47,7 @@ from typing import Callable, Sequence
 
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.sparse import coo_matrix
+from scipy.sparse import coo_matrix, csr_matrix
 from scipy.spatial.transform import Rotation
 
 from ficap_ros.camera import CameraModel
@@ -37,9 +61,13 @@ __all__ = [
     "BuildConfig",
     "TagDeviation",
     "BuildResult",
+    "ReplayCheck",
     "build_model",
+    "replay_check",
     "tag_frames",
     "align_model",
+    "size_ratio",
+    "edge_shift_px",
 ]
 
 _HALF = TAG_SIDE_MM / 2.0
@@ -55,7 +83,7 @@ class CoverageError(ModelError):
 
 @dataclass(frozen=True)
 class BuildConfig:
-    """Settings of ``build_model``.
+    """Settings of ``build_model`` and ``replay_check``.
 
     Attributes:
         min_tags_per_frame: frames with fewer (pose-inlier) model tags are not used.
@@ -63,10 +91,27 @@ class BuildConfig:
         max_frames: at most this many frames are used (evenly spaced over the input).
         loss: ``least_squares`` robust loss (``soft_l1``, ``huber``, ``cauchy``, ``linear``).
         f_scale_px: residual (px) where the robust loss starts to flatten.
-        prior_sigma_mm: sigma of the weak prior of tag centres toward the nominal (gauge only).
+        assembly_sigma_mm: how far (per axis, 1 sigma) a plate may sit from its nominal place: the
+            prior that anchors the cap's overall size and the gauge.
+        assembly_sigma_deg: the same for its orientation (each rotation axis).
+        fit_edge_offset: estimate the global edge offset of the detected corners; ``False`` holds it
+            at ``edge_offset_px`` (the printed tag side is then the only scale reference).
+        edge_offset_px: start (or fixed) value of the edge offset, px, positive outward.
+        anchor_size: hold the RMS radius of the tag centres (about their centroid) at the
+            nominal's (a stiff prior, 1e-4 relative): the cap's overall size comes from the
+            nominal layout, the plates' moves and turns from the images. ``False`` leaves the size
+            to the images and the per-plate priors.
         outlier_px: after a first solve, a tag observation whose corner RMS exceeds this (and 5x the
             median) is dropped and the problem solved again.
         max_nfev: function evaluation budget of each solve.
+        max_corner_sigma_mm: a tag whose corners are less certain than this (1 sigma, rms over the
+            four, after the gauge) is poorly observed: at a quarter of the ~1 mm a plate is off
+            by hand, a built tag is clearly closer to the truth than its nominal place.
+        min_view_spread_deg: a tag seen from directions spanning less than this is poorly observed
+            (its distance along the one line of sight rests on its apparent size alone).
+        max_depth_change: ``replay_check``: the largest median relative change of the camera-cap
+            distance between the built and the nominal model's poses (a fraction; hand assembly
+            changes the cap's size by about 0.1 %).
     """
 
     min_tags_per_frame: int = 4
@@ -74,9 +119,16 @@ class BuildConfig:
     max_frames: int = 400
     loss: str = "soft_l1"
     f_scale_px: float = 1.0
-    prior_sigma_mm: float = 50.0
+    assembly_sigma_mm: float = 1.0
+    assembly_sigma_deg: float = 2.0
+    fit_edge_offset: bool = True
+    edge_offset_px: float = 0.0
+    anchor_size: bool = True
     outlier_px: float = 3.0
     max_nfev: int = 100
+    max_corner_sigma_mm: float = 0.25
+    min_view_spread_deg: float = 10.0
+    max_depth_change: float = 0.0025
 
     def __post_init__(self) -> None:
         if self.min_tags_per_frame < 2:
@@ -85,11 +137,18 @@ class BuildConfig:
             raise ConfigError(f"min_frames_per_tag must be >= 1, got {self.min_frames_per_tag}")
         if self.max_frames < 2:
             raise ConfigError(f"max_frames must be >= 2, got {self.max_frames}")
+        if self.max_nfev < 1:
+            raise ConfigError(f"max_nfev must be >= 1, got {self.max_nfev}")
         if self.loss not in ("linear", "soft_l1", "huber", "cauchy", "arctan"):
             raise ConfigError(f"unknown loss {self.loss!r}")
-        for name in ("f_scale_px", "prior_sigma_mm", "outlier_px"):
+        for name in ("f_scale_px", "assembly_sigma_mm", "assembly_sigma_deg", "outlier_px",
+                     "max_corner_sigma_mm", "max_depth_change"):
             if not getattr(self, name) > 0:
                 raise ConfigError(f"{name} must be positive, got {getattr(self, name)}")
+        if not np.isfinite(self.edge_offset_px) or abs(self.edge_offset_px) > 5.0:
+            raise ConfigError(f"edge_offset_px must be within +-5 px, got {self.edge_offset_px}")
+        if not 0.0 <= self.min_view_spread_deg < 180.0:
+            raise ConfigError(f"min_view_spread_deg must be in [0, 180), got {self.min_view_spread_deg}")
 
 
 @dataclass(frozen=True)
@@ -99,20 +158,34 @@ class TagDeviation:
     Attributes:
         tag_id: the tag.
         offset_mm: built centre minus nominal centre (3,), cap frame, mm.
+        offset_sigma_mm: 1-sigma uncertainty of that offset (root of the covariance's trace), mm.
         rotation_deg: angle of the rotation from the nominal to the built tag, deg.
         about_normal_deg: its signed component about the tag normal (in-plane turn), deg.
+        about_normal_sigma_deg: 1-sigma uncertainty of that turn, deg.
         corner_rms_mm: RMS distance of the four corners from the nominal ones, mm.
-        frames: used frames that saw the tag.
+        corner_sigma_mm: 1-sigma uncertainty of the corners (rms over the four), mm.
+        frames: used frames that saw the tag (observations).
+        view_angle_min_deg, view_angle_max_deg: range of its angle between the line of sight and
+            the tag normal over those frames, deg.
+        view_spread_deg: largest angle between two directions it was seen from, deg.
         rms_px: RMS reprojection error of its corners over those frames, px.
+        problem: why it is poorly observed ("" when it is not).
     """
 
     tag_id: int
     offset_mm: np.ndarray
+    offset_sigma_mm: float
     rotation_deg: float
     about_normal_deg: float
+    about_normal_sigma_deg: float
     corner_rms_mm: float
+    corner_sigma_mm: float
     frames: int
+    view_angle_min_deg: float
+    view_angle_max_deg: float
+    view_spread_deg: float
     rms_px: float
+    problem: str = ""
 
     def __post_init__(self) -> None:
         offset = np.array(self.offset_mm, dtype=np.float64).reshape(3)
@@ -125,6 +198,64 @@ class TagDeviation:
 
 
 @dataclass(frozen=True)
+class ReplayCheck:
+    """The recording's frames posed with the nominal and with the built model (``replay_check``).
+
+    Both models share the nominal cap frame (the built one is aligned to it), so their poses of
+    one frame are directly comparable. Nothing here needs ground truth.
+
+    Attributes:
+        frames: frames posed by both models.
+        rms_px_nominal, rms_px_built: median over frames of the pose's reprojection rms, px.
+        translation_change_mm: median |t_built - t_nominal|, mm.
+        translation_change_p95_mm: its 95th percentile, mm.
+        depth_change: median of |t_built| / |t_nominal| - 1 (a fraction; > 0: the built model puts
+            the cap farther away, the signature of a grown cap).
+        rotation_change_deg: median geodesic angle between the two orientations, deg.
+        problems: the built model would place the cap worse than the nominal one (it must not be
+            used: ``ficap model build`` refuses to write it).
+        warnings: the built model fits the recording worse than the nominal one (not to be trusted;
+            written only with ``--allow-partial``).
+    """
+
+    frames: int
+    rms_px_nominal: float
+    rms_px_built: float
+    translation_change_mm: float
+    translation_change_p95_mm: float
+    depth_change: float
+    rotation_change_deg: float
+    problems: tuple[str, ...] = ()
+    warnings: tuple[str, ...] = ()
+
+    @property
+    def ok(self) -> bool:
+        return not self.problems and not self.warnings
+
+    def table(self) -> str:
+        return "\n".join([
+            f"replay check over {self.frames} frames (pose of every frame with each model):",
+            f"  reprojection rms median: nominal {self.rms_px_nominal:.3f} px, built {self.rms_px_built:.3f} px",
+            f"  translation built vs nominal: median {self.translation_change_mm:.2f} mm, "
+            f"p95 {self.translation_change_p95_mm:.2f} mm; distance {100.0 * self.depth_change:+.3f} %; "
+            f"rotation median {self.rotation_change_deg:.3f} deg",
+        ] + [f"  PROBLEM: {p}" for p in self.problems] + [f"  WARNING: {w}" for w in self.warnings])
+
+    def to_dict(self) -> dict[str, object]:
+        return {
+            "frames": self.frames,
+            "rms_px_nominal": self.rms_px_nominal,
+            "rms_px_built": self.rms_px_built,
+            "translation_change_mm": self.translation_change_mm,
+            "translation_change_p95_mm": self.translation_change_p95_mm,
+            "depth_change": self.depth_change,
+            "rotation_change_deg": self.rotation_change_deg,
+            "problems": list(self.problems),
+            "warnings": list(self.warnings),
+        }
+
+
+@dataclass(frozen=True)
 class BuildResult:
     """An as-built cap model and how it was obtained.
 
@@ -133,6 +264,10 @@ class BuildResult:
         nominal: the model it started from.
         deviations: per tag, in model order.
         rms_px: RMS reprojection error of every used corner after the solve, px.
+        edge_offset_px: the fitted (or held) edge offset of the detected corners, px, + outward.
+        edge_offset_sigma_px: its 1-sigma uncertainty (0 when held).
+        median_side_px: median apparent tag side over the observations, px.
+        size_ratio: size of the built cap over the nominal one (``size_ratio``), 1 = same size.
         frames_given: frames passed in.
         frames_used: frames used in the adjustment.
         frame_indices: positions (in the input) of the used frames.
@@ -140,12 +275,18 @@ class BuildResult:
         observations: tag observations used (frame x tag).
         observations_dropped: tag observations dropped as outliers.
         converged: the solver stopped on a tolerance (not on its budget).
+        nfev: function evaluations of the last solve.
+        problems: every reason not to trust the model ("" free; empty when trusted).
     """
 
     model: CapModel
     nominal: CapModel = field(repr=False)
     deviations: tuple[TagDeviation, ...]
     rms_px: float
+    edge_offset_px: float
+    edge_offset_sigma_px: float
+    median_side_px: float
+    size_ratio: float
     frames_given: int
     frames_used: int
     frame_indices: tuple[int, ...] = field(repr=False)
@@ -153,6 +294,12 @@ class BuildResult:
     observations: int
     observations_dropped: int
     converged: bool
+    nfev: int
+    problems: tuple[str, ...] = ()
+
+    @property
+    def trusted(self) -> bool:
+        return not self.problems
 
     @property
     def corner_rms_mm(self) -> float:
@@ -160,21 +307,39 @@ class BuildResult:
         d = self.model.corners_mm - self.nominal.corners_mm
         return float(np.sqrt(np.mean(np.sum(d * d, axis=-1))))
 
+    @property
+    def effective_side_mm(self) -> float:
+        """The tag side a side-only scale would have seen: 32 mm grown by twice the edge offset at
+        the median apparent side (what the edge offset would have done to the cap's size)."""
+        return TAG_SIDE_MM * (1.0 + 2.0 * self.edge_offset_px / self.median_side_px)
+
     def table(self) -> str:
         """A plain-text report: one line per tag, then the totals."""
-        lines = [" id  frames  dx_mm  dy_mm  dz_mm  |d|_mm  rot_deg  about_n_deg  rms_px"]
+        lines = [" id  obs  view_deg  spread  dx_mm  dy_mm  dz_mm  |d|_mm  +-sd_mm  rot_deg  "
+                 "about_n_deg  +-sd_deg  rms_px  flag"]
         for d in self.deviations:
             lines.append(
-                f"{d.tag_id:3d}  {d.frames:6d}  {d.offset_mm[0]:+5.2f}  {d.offset_mm[1]:+5.2f}  "
-                f"{d.offset_mm[2]:+5.2f}  {d.offset_norm_mm:6.2f}  {d.rotation_deg:7.2f}  "
-                f"{d.about_normal_deg:+11.2f}  {d.rms_px:6.2f}"
+                f"{d.tag_id:3d}  {d.frames:3d}  {d.view_angle_min_deg:3.0f}-{d.view_angle_max_deg:<3.0f}  "
+                f"{d.view_spread_deg:6.1f}  {d.offset_mm[0]:+5.2f}  {d.offset_mm[1]:+5.2f}  "
+                f"{d.offset_mm[2]:+5.2f}  {d.offset_norm_mm:6.2f}  {d.offset_sigma_mm:7.3f}  "
+                f"{d.rotation_deg:7.2f}  {d.about_normal_deg:+11.2f}  {d.about_normal_sigma_deg:8.3f}  "
+                f"{d.rms_px:6.2f}  {'POOR' if d.problem else 'ok'}"
             )
         lines.append(
             f"frames used {self.frames_used}/{self.frames_given}, observations {self.observations} "
             f"(dropped {self.observations_dropped}), reprojection rms {self.rms_px:.3f} px, "
             f"corner rms from nominal {self.corner_rms_mm:.3f} mm"
-            + ("" if self.converged else ", NOT CONVERGED (budget reached)")
         )
+        lines.append(
+            f"edge offset of the detected corners {self.edge_offset_px:+.3f} +- "
+            f"{self.edge_offset_sigma_px:.3f} px (+ outward; at the median tag side "
+            f"{self.median_side_px:.0f} px a side-only scale would have read the tags as "
+            f"{self.effective_side_mm:.2f} mm); cap size vs nominal {100.0 * (self.size_ratio - 1.0):+.3f} % "
+            "(anchored: hand assembly moves plates, it does not grow the cap)"
+        )
+        lines.append("solver " + ("converged" if self.converged else "NOT CONVERGED (budget reached)")
+                     + f" after {self.nfev} evaluations")
+        lines += [f"PROBLEM: {p}" for p in self.problems]
         return "\n".join(lines)
 
     def to_dict(self) -> dict[str, object]:
@@ -182,21 +347,36 @@ class BuildResult:
         return {
             "rms_px": self.rms_px,
             "corner_rms_mm": self.corner_rms_mm,
+            "edge_offset_px": self.edge_offset_px,
+            "edge_offset_sigma_px": self.edge_offset_sigma_px,
+            "median_side_px": self.median_side_px,
+            "effective_side_mm": self.effective_side_mm,
+            "size_ratio": self.size_ratio,
             "frames_given": self.frames_given,
             "frames_used": self.frames_used,
             "observations": self.observations,
             "observations_dropped": self.observations_dropped,
             "converged": self.converged,
+            "nfev": self.nfev,
+            "trusted": self.trusted,
+            "problems": list(self.problems),
             "tags": [
                 {
                     "id": d.tag_id,
                     "offset_mm": [float(v) for v in d.offset_mm],
                     "offset_norm_mm": d.offset_norm_mm,
+                    "offset_sigma_mm": d.offset_sigma_mm,
                     "rotation_deg": d.rotation_deg,
                     "about_normal_deg": d.about_normal_deg,
+                    "about_normal_sigma_deg": d.about_normal_sigma_deg,
                     "corner_rms_mm": d.corner_rms_mm,
+                    "corner_sigma_mm": d.corner_sigma_mm,
                     "frames": d.frames,
+                    "view_angle_min_deg": d.view_angle_min_deg,
+                    "view_angle_max_deg": d.view_angle_max_deg,
+                    "view_spread_deg": d.view_spread_deg,
                     "rms_px": d.rms_px,
+                    "problem": d.problem,
                 }
                 for d in self.deviations
             ],
@@ -231,6 +411,40 @@ def align_model(corners_mm: np.ndarray, reference_mm: np.ndarray) -> Transform:
     return Transform(rotation, mb - rotation.apply(ma))
 
 
+def size_ratio(corners_mm: np.ndarray, reference_mm: np.ndarray) -> float:
+    """Size of a cap relative to another: ratio of the RMS distances of their corners from their
+    centroids (rotation and translation do not change it)."""
+    a = np.asarray(corners_mm, dtype=np.float64).reshape(-1, 3)
+    b = np.asarray(reference_mm, dtype=np.float64).reshape(-1, 3)
+    return float(np.sqrt(np.sum((a - a.mean(0)) ** 2) / np.sum((b - b.mean(0)) ** 2)))
+
+
+def edge_shift_px(quads_px: np.ndarray, offset_px: float) -> np.ndarray:
+    """Where a border-line detector puts the corners of quads whose edges it finds ``offset_px``
+    outside the true ones (negative: inside).
+
+    Args:
+        quads_px: (..., 4, 2) true image corners, in order around the quad (either sense).
+        offset_px: the edge offset, px, positive outward.
+    Returns:
+        (..., 4, 2) corners where both lines through each corner are moved by the offset along
+        their outward normals (the corners of the offset quad).
+    """
+    q = np.asarray(quads_px, dtype=np.float64)
+    edge = np.roll(q, -1, axis=-2) - q  # edge k runs from corner k to k+1
+    normal = np.stack([edge[..., 1], -edge[..., 0]], axis=-1)
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    mid = q + 0.5 * edge
+    outward = np.sign(np.sum((mid - q.mean(axis=-2, keepdims=True)) * normal, axis=-1))
+    normal *= outward[..., None]
+    a = normal  # corner k is on edge k ...
+    b = np.roll(normal, 1, axis=-2)  # ... and on edge k-1
+    det = a[..., 0] * b[..., 1] - a[..., 1] * b[..., 0]
+    # Solve [a; b] d = [offset, offset] per corner.
+    d = np.stack([b[..., 1] - a[..., 1], a[..., 0] - b[..., 0]], axis=-1) / det[..., None]
+    return q + float(offset_px) * d
+
+
 # -- the adjustment -----------------------------------------------------------------------------
 @dataclass
 class _Problem:
@@ -243,10 +457,44 @@ class _Problem:
     n_frames: int
     n_tags: int
 
+    def subset(self, keep: np.ndarray) -> _Problem:
+        return _Problem(self.obs_frame[keep], self.obs_tag[keep], self.obs_px[keep], self.intr[keep],
+                        self.n_frames, self.n_tags)
 
-def _residuals(x: np.ndarray, p: _Problem, prior_mm: np.ndarray, prior_sigma_mm: float) -> np.ndarray:
-    tags = x[: 6 * p.n_tags].reshape(p.n_tags, 6)
-    frames = x[6 * p.n_tags:].reshape(p.n_frames, 6)
+
+#: Relative sigma of the size anchor: stiff enough to hold the size to a few parts per million
+#: (on blender_dev's as-built set: 2 ppm),
+#: soft enough to keep the problem well conditioned.
+_SIZE_SIGMA = 1e-4
+
+
+@dataclass(frozen=True)
+class _Priors:
+    centres_mm: np.ndarray  # (N, 3) nominal tag centres
+    rotations: Rotation  # (N,) nominal tag orientations
+    sigma_mm: float
+    sigma_rad: float
+
+    @property
+    def radius_mm(self) -> float:
+        return _rms_radius(self.centres_mm)
+
+
+def _rms_radius(centres_mm: np.ndarray) -> float:
+    return float(np.sqrt(np.mean(np.sum((centres_mm - centres_mm.mean(axis=0)) ** 2, axis=1))))
+
+
+def _unpack(x: np.ndarray, p: _Problem, config: BuildConfig) -> tuple[np.ndarray, float, np.ndarray]:
+    n_tag = 6 * p.n_tags
+    tags = x[:n_tag].reshape(p.n_tags, 6)
+    if config.fit_edge_offset:
+        offset, frames = float(x[n_tag]), x[n_tag + 1:]
+    else:
+        offset, frames = config.edge_offset_px, x[n_tag:]
+    return tags, offset, frames.reshape(p.n_frames, 6)
+
+
+def _project(tags: np.ndarray, frames: np.ndarray, p: _Problem) -> np.ndarray:
     corners_cap = _corners_from_params(tags[:, :3], tags[:, 3:])  # (N, 4, 3)
     r_cam = Rotation.from_rotvec(frames[:, :3]).as_matrix()  # (F, 3, 3)
     pts = corners_cap[p.obs_tag]  # (M, 4, 3)
@@ -254,32 +502,100 @@ def _residuals(x: np.ndarray, p: _Problem, prior_mm: np.ndarray, prior_sigma_mm:
     z = cam[..., 2]
     u = p.intr[:, None, 0] * cam[..., 0] / z + p.intr[:, None, 2]
     v = p.intr[:, None, 1] * cam[..., 1] / z + p.intr[:, None, 3]
-    res = np.stack([u, v], axis=-1) - p.obs_px
-    prior = (tags[:, 3:] - prior_mm) / prior_sigma_mm
-    return np.concatenate([res.reshape(-1), prior.reshape(-1)])
+    return np.stack([u, v], axis=-1)
 
 
-def _sparsity(p: _Problem) -> coo_matrix:
-    m = len(p.obs_tag)
-    rows_per_obs = 8
-    n_params = 6 * (p.n_tags + p.n_frames)
-    rows, cols = [], []
-    obs_rows = np.arange(m * rows_per_obs).reshape(m, rows_per_obs)
+def _residuals(x: np.ndarray, p: _Problem, priors: _Priors, config: BuildConfig) -> np.ndarray:
+    tags, offset, frames = _unpack(x, p, config)
+    predicted = edge_shift_px(_project(tags, frames, p), offset)
+    res = predicted - p.obs_px
+    # Priors: where hand assembly puts a plate (anchors the cap's size and the gauge).
+    prior_t = (tags[:, 3:] - priors.centres_mm) / priors.sigma_mm
+    prior_r = (priors.rotations.inv() * Rotation.from_rotvec(tags[:, :3])).as_rotvec() / priors.sigma_rad
+    parts = [res.reshape(-1), prior_t.reshape(-1), prior_r.reshape(-1)]
+    if config.anchor_size:
+        size = _rms_radius(tags[:, 3:]) / priors.radius_mm - 1.0
+        parts.append(np.array([size / _SIZE_SIGMA]))
+    return np.concatenate(parts)
+
+
+def _n_params(p: _Problem, config: BuildConfig) -> int:
+    return 6 * (p.n_tags + p.n_frames) + int(config.fit_edge_offset)
+
+
+def _jacobian(x: np.ndarray, p: _Problem, priors: _Priors, config: BuildConfig) -> csr_matrix:
+    """Sparse Jacobian of ``_residuals``: forward differences in 13 grouped evaluations, the size
+    anchor's row analytic.
+
+    Tags never share a residual row with each other, nor frames with each other, so the k-th
+    parameter of every tag (or every frame) is stepped at once (the usual column grouping of a
+    bundle adjustment). The size anchor's row touches every tag centre; left to a generic grouped
+    difference it would split the centres into 3N groups (6x the evaluations), so it is written
+    out: d r / d t_i = (t_i - mean t) / (N r).
+    """
+    n_tag6 = 6 * p.n_tags
+    frame_base = n_tag6 + int(config.fit_edge_offset)
+    m8 = 8 * len(p.obs_tag)
+    f0 = _residuals(x, p, priors, config)
+    obs_rows = np.arange(m8).reshape(-1, 8)
+    rows, cols, vals = [], [], []
+
+    def step_of(idx: np.ndarray) -> np.ndarray:
+        return 1.49e-8 * np.maximum(1.0, np.abs(x[idx]))
+
     for k in range(6):
-        for cols_of, base in ((p.obs_tag, 0), (p.obs_frame, 6 * p.n_tags)):
-            rows.append(obs_rows.reshape(-1))
-            cols.append(np.repeat(base + 6 * cols_of + k, rows_per_obs))
-    prior_rows = m * rows_per_obs + np.arange(3 * p.n_tags)
-    rows.append(prior_rows)
-    cols.append((6 * np.arange(p.n_tags)[:, None] + 3 + np.arange(3)[None, :]).reshape(-1))
-    r = np.concatenate(rows)
-    c = np.concatenate(cols)
-    return coo_matrix((np.ones(len(r)), (r, c)), shape=(m * rows_per_obs + 3 * p.n_tags, n_params))
+        # Every tag's k-th parameter: observation rows and the tag's own prior rows.
+        idx = 6 * np.arange(p.n_tags) + k
+        h = step_of(idx)
+        xs = x.copy()
+        xs[idx] += h
+        df = _residuals(xs, p, priors, config) - f0
+        rows.append(obs_rows.reshape(-1))
+        cols.append(np.repeat(idx[p.obs_tag], 8))
+        vals.append((df[:m8].reshape(-1, 8) / h[p.obs_tag, None]).reshape(-1))
+        prior_rows = m8 + (3 * np.arange(p.n_tags)[:, None] + np.arange(3)[None, :])
+        if k >= 3:  # a centre: its own translation-prior row
+            pr = m8 + 3 * np.arange(p.n_tags) + (k - 3)
+            rows.append(pr)
+            cols.append(idx)
+            vals.append(df[pr] / h)
+        else:  # a rotation: the three rotation-prior rows of its tag
+            pr = (prior_rows + 3 * p.n_tags).reshape(-1)
+            rows.append(pr)
+            cols.append(np.repeat(idx, 3))
+            vals.append(df[pr] / np.repeat(h, 3))
+        # Every frame's k-th parameter: observation rows only.
+        idx = frame_base + 6 * np.arange(p.n_frames) + k
+        h = step_of(idx)
+        xs = x.copy()
+        xs[idx] += h
+        df = _residuals(xs, p, priors, config) - f0
+        rows.append(obs_rows.reshape(-1))
+        cols.append(np.repeat(idx[p.obs_frame], 8))
+        vals.append((df[:m8].reshape(-1, 8) / h[p.obs_frame, None]).reshape(-1))
+    if config.fit_edge_offset:
+        h = float(step_of(np.array([n_tag6]))[0])
+        xs = x.copy()
+        xs[n_tag6] += h
+        df = _residuals(xs, p, priors, config) - f0
+        rows.append(np.arange(m8))
+        cols.append(np.full(m8, n_tag6))
+        vals.append(df[:m8] / h)
+    n_rows = len(f0)
+    if config.anchor_size:
+        t = x[:n_tag6].reshape(-1, 6)[:, 3:]
+        radius = _rms_radius(t)
+        grad = (t - t.mean(axis=0)) / (len(t) * radius) / priors.radius_mm / _SIZE_SIGMA
+        rows.append(np.full(3 * p.n_tags, n_rows - 1))
+        cols.append((6 * np.arange(p.n_tags)[:, None] + 3 + np.arange(3)[None, :]).reshape(-1))
+        vals.append(grad.reshape(-1))
+    return coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                      shape=(n_rows, _n_params(p, config))).tocsr()
 
 
-def _solve(p: _Problem, x0: np.ndarray, prior_mm: np.ndarray, config: BuildConfig):  # type: ignore[no-untyped-def]
+def _solve(p: _Problem, x0: np.ndarray, priors: _Priors, config: BuildConfig):  # type: ignore[no-untyped-def]
     return least_squares(
-        _residuals, x0, args=(p, prior_mm, config.prior_sigma_mm), jac_sparsity=_sparsity(p),
+        _residuals, x0, jac=_jacobian, args=(p, priors, config),
         method="trf", loss=config.loss, f_scale=config.f_scale_px, x_scale="jac",
         max_nfev=config.max_nfev, xtol=1e-10, ftol=1e-10, gtol=1e-10,
     )
@@ -302,6 +618,7 @@ def build_model(
     nominal: CapModel | None = None,
     config: BuildConfig | None = None,
     progress: Callable[[str], None] | None = None,
+    allow_partial: bool = False,
 ) -> BuildResult:
     """Estimate the as-built cap from per-frame detections.
 
@@ -312,10 +629,14 @@ def build_model(
         nominal: the model to start from and align to (default: the cap-spec nominal).
         config: settings.
         progress: called with a one-line message at each stage.
+        allow_partial: build even when a tag is not covered (it then rests on its prior and is
+            listed in ``problems``) instead of raising ``CoverageError``.
     Returns:
-        A ``BuildResult``; ``result.model.save(path)`` writes a normal cap model YAML.
+        A ``BuildResult``; check ``result.problems`` (and ``replay_check``) before using
+        ``result.model`` (``result.model.save(path)`` writes a normal cap model YAML).
     Raises:
-        CoverageError: too few usable frames, or a tag not seen often enough with enough others.
+        CoverageError: fewer than two usable frames; or, unless ``allow_partial``, a tag not seen
+            often enough with enough others.
         ConfigError: one camera per frame was expected but the counts differ.
     """
     config = config or BuildConfig()
@@ -353,7 +674,11 @@ def build_model(
             f"only {len(used)} frame(s) with a pose from >= {config.min_tags_per_frame} tags; "
             "record the cap from several angles so many tags are seen at once"
         )
-    _check_coverage(nominal, [[d.tag_id for d in dets] for _, _, dets in used], config)
+    problems: list[str] = []
+    coverage = _coverage_problems(nominal, [[d.tag_id for d in dets] for _, _, dets in used], config)
+    if coverage and not allow_partial:
+        raise CoverageError(coverage[0])
+    problems += coverage
     say(f"adjusting {len(nominal)} tags over {len(used)} frames")
 
     # 2. Flat observation arrays (undistorted corners, per-observation intrinsics).
@@ -371,76 +696,199 @@ def build_model(
 
     # 3. Initial values: nominal tag frames; camera poses from the nominal model (mm).
     r_tags, centres = tag_frames(nominal.corners_mm)
+    priors = _Priors(centres.copy(), r_tags, config.assembly_sigma_mm,
+                     np.radians(config.assembly_sigma_deg))
     x_tags = np.hstack([r_tags.as_rotvec(), centres])
     x_frames = np.array([np.hstack([T.rvec, T.translation_m * 1000.0]) for _, T, _ in used])
-    x0 = np.concatenate([x_tags.reshape(-1), x_frames.reshape(-1)])
-    prior_mm = centres.copy()
+    x_offset = [config.edge_offset_px] if config.fit_edge_offset else []
+    x0 = np.concatenate([x_tags.reshape(-1), x_offset, x_frames.reshape(-1)])
 
-    solution = _solve(problem, x0, prior_mm, config)
+    solution = _solve(problem, x0, priors, config)
     dropped = 0
-    per_obs = _observation_rms_px(solution.x, problem, prior_mm, config)
+    per_obs = _observation_rms_px(solution.x, problem, priors, config)
     limit = max(config.outlier_px, 5.0 * float(np.median(per_obs)))
     bad = per_obs > limit
     if bad.any():
         dropped = int(bad.sum())
         say(f"dropping {dropped} tag observation(s) above {limit:.2f} px rms; solving again")
-        keep = ~bad
-        problem = _Problem(problem.obs_frame[keep], problem.obs_tag[keep], problem.obs_px[keep],
-                           problem.intr[keep], problem.n_frames, problem.n_tags)
-        _check_coverage(nominal, _ids_per_frame(problem, nominal), config)
-        solution = _solve(problem, solution.x, prior_mm, config)
-    per_obs = _observation_rms_px(solution.x, problem, prior_mm, config)
+        problem = problem.subset(~bad)
+        after = _coverage_problems(nominal, _ids_per_frame(problem, nominal), config)
+        if after and not allow_partial:
+            raise CoverageError(after[0] + f" (after dropping {dropped} outlier observation(s))")
+        problems += [p for p in after if p not in problems]
+        solution = _solve(problem, solution.x, priors, config)
+    per_obs = _observation_rms_px(solution.x, problem, priors, config)
+    converged = bool(solution.status > 0)
+    if not converged:
+        problems.append(f"the solver stopped at its budget of {config.max_nfev} evaluations "
+                        "without converging")
 
-    # 4. Gauge: align the built corners to the nominal ones.
-    tags = solution.x[: 6 * problem.n_tags].reshape(-1, 6)
-    frames_x = solution.x[6 * problem.n_tags:].reshape(-1, 6)
-    built = _corners_from_params(tags[:, :3], tags[:, 3:])
-    T_nom_built = align_model(built, nominal.corners_mm)  # mm
-    built = T_nom_built.apply(built)
+    # 4. Uncertainty (before the gauge alignment; the covariance is projected onto it below).
+    tags, offset, frames_x = _unpack(solution.x, problem, config)
+    raw = _corners_from_params(tags[:, :3], tags[:, 3:])
+    cov_corners, offset_var = _structure_covariance(solution, problem, config, raw)
+
+    # 5. Gauge: align the built corners to the nominal ones.
+    T_nom_built = align_model(raw, nominal.corners_mm)  # mm
+    built = T_nom_built.apply(raw)
     model = CapModel(nominal.ids, built)
+    R_nb = T_nom_built.rotation.as_matrix()
+    cov_corners = _rotate_covariance(cov_corners, R_nb)
     T_built_nom_m = Transform(T_nom_built.rotation, T_nom_built.translation_m / 1000.0).inv()
     poses = tuple(
         Transform(Rotation.from_rotvec(fx[:3]), fx[3:] / 1000.0) * T_built_nom_m for fx in frames_x
     )
 
-    # 5. Report.
-    r_nom, c_nom = tag_frames(nominal.corners_mm)
-    r_built, c_built = tag_frames(built)
-    delta = (r_nom.inv() * r_built).as_rotvec()  # in the nominal tag frame; z = inward normal
-    deviations = []
-    for i, tag_id in enumerate(nominal.ids):
-        mine = problem.obs_tag == i
-        d_corner = built[i] - nominal.corners_mm[i]
-        deviations.append(TagDeviation(
-            tag_id=tag_id,
-            offset_mm=c_built[i] - c_nom[i],
-            rotation_deg=float(np.degrees(np.linalg.norm(delta[i]))),
-            # Tag z points into the cap: a positive turn about the outward normal is -z.
-            about_normal_deg=float(np.degrees(-delta[i][2])),
-            corner_rms_mm=float(np.sqrt(np.mean(np.sum(d_corner * d_corner, axis=-1)))),
-            frames=int(mine.sum()),
-            rms_px=float(np.sqrt(np.mean(per_obs[mine] ** 2))) if mine.any() else float("nan"),
-        ))
+    # 6. Report.
+    deviations = _deviations(nominal, built, cov_corners, problem, per_obs, poses, config)
+    for d in deviations:
+        if d.problem:
+            problems.append(f"tag {d.tag_id}: {d.problem}")
     rms = float(np.sqrt(np.mean(per_obs ** 2)))
-    say(f"reprojection rms {rms:.3f} px after {solution.nfev} evaluations")
+    quads = problem.obs_px
+    side_px = float(np.median(np.linalg.norm(np.roll(quads, -1, axis=1) - quads, axis=-1)))
+    say(f"reprojection rms {rms:.3f} px after {solution.nfev} evaluations, edge offset {offset:+.3f} px")
     return BuildResult(
         model=model,
         nominal=nominal,
         deviations=tuple(deviations),
         rms_px=rms,
+        edge_offset_px=float(offset),
+        edge_offset_sigma_px=float(np.sqrt(offset_var)),
+        median_side_px=side_px,
+        size_ratio=size_ratio(built, nominal.corners_mm),
         frames_given=len(frames),
         frames_used=len(used),
         frame_indices=tuple(index for index, _, _ in used),
         T_cam_cap=poses,
         observations=len(problem.obs_tag),
         observations_dropped=dropped,
-        converged=bool(solution.status > 0),
+        converged=converged,
+        nfev=int(solution.nfev),
+        problems=tuple(problems),
     )
 
 
-def _observation_rms_px(x: np.ndarray, p: _Problem, prior_mm: np.ndarray,
-                        config: BuildConfig) -> np.ndarray:
-    res = _residuals(x, p, prior_mm, config.prior_sigma_mm)[: 8 * len(p.obs_tag)]
+def _rotate_covariance(cov: np.ndarray, R: np.ndarray) -> np.ndarray:
+    """Covariance (K, 3, K, 3) of points, expressed after rotating every point by ``R``."""
+    return np.einsum("ab,ibjc,dc->iajd", R, cov, R)
+
+
+def _structure_covariance(solution, p: _Problem, config: BuildConfig,  # type: ignore[no-untyped-def]
+                          corners_mm: np.ndarray) -> tuple[np.ndarray, float]:
+    """Covariance of the built corners (N*4, 3, N*4, 3), mm^2, with the whole cap's rigid motion
+    projected out, and the edge offset's variance (px^2).
+
+    Gauss-Newton covariance sigma^2 (J^T J)^-1 of the structure (tag poses and edge offset), the
+    camera poses eliminated by the Schur complement (each frame's 6x6 block is independent).
+    sigma^2 is the residual variance per degree of freedom. The rigid motion of the whole cap is
+    only held by the priors and is removed by the alignment to the nominal, so it is projected out.
+    """
+    J = solution.jac.tocsr() if hasattr(solution.jac, "tocsr") else np.asarray(solution.jac)
+    n_struct = 6 * p.n_tags + int(config.fit_edge_offset)
+    H = (J.T @ J)
+    H = H.toarray() if hasattr(H, "toarray") else np.asarray(H)
+    A = H[:n_struct, :n_struct]
+    B = H[:n_struct, n_struct:]
+    S = A.copy()
+    for f in range(p.n_frames):
+        sl = slice(6 * f, 6 * f + 6)
+        D = H[n_struct:, n_struct:][sl, sl]
+        Bf = B[:, sl]
+        S -= Bf @ np.linalg.solve(D, Bf.T)
+    cov_struct = np.linalg.pinv(S, hermitian=True)
+    m_obs = 8 * len(p.obs_tag)
+    dof = max(m_obs - H.shape[0], 1)
+    res = solution.fun[:m_obs]
+    sigma2 = float(np.sum(res * res) / dof)
+    cov_struct *= sigma2
+    offset_var = float(cov_struct[-1, -1]) if config.fit_edge_offset else 0.0
+
+    # Corners as a linear function of the tag parameters (numerical, per tag: 6 columns).
+    n = p.n_tags
+    Jc = np.zeros((n * 12, n_struct))
+    tags = solution.x[: 6 * n].reshape(n, 6)
+    for i in range(n):
+        for k in range(6):
+            step = 1e-6 if k < 3 else 1e-4
+            hi, lo = tags[i].copy(), tags[i].copy()
+            hi[k] += step
+            lo[k] -= step
+            dc = (_corners_from_params(hi[None, :3], hi[None, 3:]) -
+                  _corners_from_params(lo[None, :3], lo[None, 3:]))[0] / (2 * step)
+            Jc[12 * i: 12 * i + 12, 6 * i + k] = dc.reshape(-1)
+    cov = Jc @ cov_struct @ Jc.T
+    # Project out infinitesimal rigid motions of all corners (the gauge).
+    pts = corners_mm.reshape(-1, 3)
+    pts = pts - pts.mean(axis=0)
+    G = np.zeros((len(pts) * 3, 6))
+    for a in range(3):
+        G[a::3, a] = 1.0
+        e = np.zeros(3)
+        e[a] = 1.0
+        G[:, 3 + a] = np.cross(e, pts).reshape(-1)
+    P = np.eye(len(G)) - G @ np.linalg.pinv(G)
+    cov = P @ cov @ P.T
+    return cov.reshape(n * 4, 3, n * 4, 3), offset_var
+
+
+def _deviations(nominal: CapModel, built: np.ndarray, cov: np.ndarray, p: _Problem,
+                per_obs: np.ndarray, poses: Sequence[Transform], config: BuildConfig) -> list[TagDeviation]:
+    r_nom, c_nom = tag_frames(nominal.corners_mm)
+    r_built, c_built = tag_frames(built)
+    delta = (r_nom.inv() * r_built).as_rotvec()  # in the nominal tag frame; z = inward normal
+    normals = CapModel(nominal.ids, built).normals
+    cam_centres_mm = np.array([T.inv().translation_m * 1000.0 for T in poses])
+    out = []
+    for i, tag_id in enumerate(nominal.ids):
+        mine = p.obs_tag == i
+        d_corner = built[i] - nominal.corners_mm[i]
+        block = cov[4 * i: 4 * i + 4, :, 4 * i: 4 * i + 4, :]  # (4, 3, 4, 3)
+        corner_var = np.array([np.trace(block[k, :, k, :]) for k in range(4)])
+        centre_cov = block.sum(axis=(0, 2)) / 16.0
+        # In-plane turn: tangential corner motion over the corner radius, averaged over corners.
+        radial = built[i] - built[i].mean(axis=0)
+        w = np.cross(normals[i], radial) / np.sum(radial * radial, axis=1, keepdims=True) / 4.0
+        turn_var = float(np.einsum("ka,kalb,lb->", w, block, w))
+        views = cam_centres_mm[p.obs_frame[mine]] - c_built[i]
+        views /= np.linalg.norm(views, axis=1, keepdims=True)
+        if len(views):
+            angles = np.degrees(np.arccos(np.clip(views @ normals[i], -1.0, 1.0)))
+            pairwise = np.degrees(np.arccos(np.clip(views @ views.T, -1.0, 1.0)))
+            a_min, a_max, spread = float(angles.min()), float(angles.max()), float(pairwise.max())
+        else:
+            a_min = a_max = spread = float("nan")
+        corner_sigma = float(np.sqrt(np.mean(corner_var)))
+        frames_seen = int(mine.sum())
+        why = []
+        if frames_seen < config.min_frames_per_tag:
+            why.append(f"seen in {frames_seen} frame(s) (need {config.min_frames_per_tag})")
+        elif spread < config.min_view_spread_deg:
+            why.append(f"seen from directions only {spread:.1f} deg apart (need {config.min_view_spread_deg:g})")
+        if corner_sigma > config.max_corner_sigma_mm:
+            why.append(f"corner uncertainty {corner_sigma:.3f} mm (limit {config.max_corner_sigma_mm:g})")
+        out.append(TagDeviation(
+            tag_id=tag_id,
+            offset_mm=c_built[i] - c_nom[i],
+            offset_sigma_mm=float(np.sqrt(max(np.trace(centre_cov), 0.0))),
+            rotation_deg=float(np.degrees(np.linalg.norm(delta[i]))),
+            # Tag z points into the cap: a positive turn about the outward normal is -z.
+            about_normal_deg=float(np.degrees(-delta[i][2])),
+            about_normal_sigma_deg=float(np.degrees(np.sqrt(max(turn_var, 0.0)))),
+            corner_rms_mm=float(np.sqrt(np.mean(np.sum(d_corner * d_corner, axis=-1)))),
+            corner_sigma_mm=corner_sigma,
+            frames=frames_seen,
+            view_angle_min_deg=a_min,
+            view_angle_max_deg=a_max,
+            view_spread_deg=spread,
+            rms_px=float(np.sqrt(np.mean(per_obs[mine] ** 2))) if mine.any() else float("nan"),
+            problem="; ".join(why),
+        ))
+    return out
+
+
+def _observation_rms_px(x: np.ndarray, p: _Problem, priors: _Priors, config: BuildConfig) -> np.ndarray:
+    res = _residuals(x, p, priors, config)[: 8 * len(p.obs_tag)]
     return np.sqrt(np.mean(res.reshape(-1, 4, 2) ** 2, axis=(1, 2)) * 2.0)
 
 
@@ -451,7 +899,7 @@ def _ids_per_frame(p: _Problem, nominal: CapModel) -> list[list[int]]:
     return out
 
 
-def _check_coverage(nominal: CapModel, ids_per_frame: list[list[int]], config: BuildConfig) -> None:
+def _coverage_problems(nominal: CapModel, ids_per_frame: list[list[int]], config: BuildConfig) -> list[str]:
     """Every tag seen in enough frames (each with enough tags), all tags linked through frames."""
     counts = {tag_id: 0 for tag_id in nominal.ids}
     parent = {tag_id: tag_id for tag_id in nominal.ids}
@@ -468,16 +916,81 @@ def _check_coverage(nominal: CapModel, ids_per_frame: list[list[int]], config: B
         for tag_id in ids:
             counts[tag_id] += 1
             parent[root(tag_id)] = root(ids[0])
+    out = []
     short = [f"{t} ({n})" for t, n in counts.items() if n < config.min_frames_per_tag]
     if short:
-        raise CoverageError(
+        out.append(
             f"tag(s) {', '.join(short)} seen in too few frames together with "
             f">= {config.min_tags_per_frame - 1} other tags (need {config.min_frames_per_tag}); "
             "record more views showing them"
         )
     groups = {root(t) for t in nominal.ids}
     if len(groups) > 1:
-        raise CoverageError(
+        out.append(
             f"the tags fall into {len(groups)} groups never seen together in one frame; "
             "record views that show tags of neighbouring groups at once"
         )
+    return out
+
+
+# -- the replay check ---------------------------------------------------------------------------
+def replay_check(
+    frames: Sequence[Sequence[TagDetection]],
+    camera: CameraModel | Sequence[CameraModel],
+    built: CapModel,
+    nominal: CapModel | None = None,
+    config: BuildConfig | None = None,
+) -> ReplayCheck:
+    """Pose every frame with the nominal and with the built model and compare (no truth needed).
+
+    The poses come from ``ficap_ros.pose.estimate_cap_pose`` with the replay's default settings, on
+    the detections the model was built from. Problems: the built model fits the frames worse (its
+    median reprojection rms is higher: a warning), or it moves the cap along the line of sight by
+    more than ``config.max_depth_change`` (a problem): the nominal layout fixes the cap's size to
+    within what hand assembly changes, so a distance change beyond that means the built cap has
+    the wrong size and would place the cap worse than the nominal model.
+    """
+    from ficap_ros.pose import estimate_cap_pose
+
+    config = config or BuildConfig()
+    nominal = nominal or nominal_model()
+    cameras = [camera] * len(frames) if isinstance(camera, CameraModel) else list(camera)
+    if len(cameras) != len(frames):
+        raise ConfigError(f"{len(frames)} frames but {len(cameras)} cameras")
+    rms_n, rms_b, dt_mm, depth, rot = [], [], [], [], []
+    for dets, cam in zip(frames, cameras):
+        a = estimate_cap_pose(dets, nominal, cam).pose
+        b = estimate_cap_pose(dets, built, cam).pose
+        if a is None or b is None:
+            continue
+        rms_n.append(a.rms_px)
+        rms_b.append(b.rms_px)
+        ta, tb = a.T_cam_cap.translation_m, b.T_cam_cap.translation_m
+        dt_mm.append(1000.0 * float(np.linalg.norm(tb - ta)))
+        depth.append(float(np.linalg.norm(tb) / np.linalg.norm(ta)) - 1.0)
+        rot.append(float(np.degrees((a.T_cam_cap.rotation.inv() * b.T_cam_cap.rotation).magnitude())))
+    if not rms_n:
+        return ReplayCheck(0, *([float("nan")] * 6), problems=("no frame could be posed by both models",))
+    check = dict(
+        frames=len(rms_n),
+        rms_px_nominal=float(np.median(rms_n)),
+        rms_px_built=float(np.median(rms_b)),
+        translation_change_mm=float(np.median(dt_mm)),
+        translation_change_p95_mm=float(np.percentile(dt_mm, 95)),
+        depth_change=float(np.median(depth)),
+        rotation_change_deg=float(np.median(rot)),
+    )
+    problems, warnings = [], []
+    if check["rms_px_built"] > check["rms_px_nominal"]:
+        warnings.append(
+            f"the built model fits the recording worse than the nominal one (median reprojection "
+            f"rms {check['rms_px_built']:.3f} px vs {check['rms_px_nominal']:.3f} px)"
+        )
+    if abs(check["depth_change"]) > config.max_depth_change:
+        problems.append(
+            f"the built model moves the cap {100.0 * check['depth_change']:+.2f} % along the line of "
+            f"sight (median {check['translation_change_mm']:.2f} mm) against the nominal one; hand "
+            f"assembly cannot change the cap's size that much (limit "
+            f"{100.0 * config.max_depth_change:.2f} %): the built cap's scale is wrong"
+        )
+    return ReplayCheck(**check, problems=tuple(problems), warnings=tuple(warnings))

@@ -1,6 +1,12 @@
 """``ficap model build``: the as-built cap model from recordings, by bundle adjustment.
 
 Wired as a sub-verb of ``ficap model`` (``add_build_arguments`` / ``run_build``).
+
+After the adjustment the recording is posed again with the nominal and with the built model
+(``ficap_ros.model_build.replay_check``) and both are printed. Exit status 1, nothing written:
+the built model would place the cap worse than the nominal one (it changes the cap's distance by
+more than hand assembly can), or, unless ``--allow-partial``, the solver did not converge, a tag is
+poorly observed, or the built model fits the recording worse than the nominal one.
 """
 
 from __future__ import annotations
@@ -33,6 +39,18 @@ def add_build_arguments(parser: argparse.ArgumentParser) -> None:
                         help="detector backend (default opencv)")
     parser.add_argument("--refine", choices=("edge", "subpix", "apriltag", "none"), default="edge",
                         help="corner refinement (default edge)")
+    parser.add_argument("--max-nfev", type=int, default=100, metavar="N",
+                        help="solver budget in function evaluations (default 100)")
+    parser.add_argument("--assembly-sigma-mm", type=float, default=1.0,
+                        help="how far a plate may sit from its nominal place by hand, 1 sigma per "
+                             "axis (default 1.0)")
+    parser.add_argument("--edge-offset", default="fit", metavar="fit|PX",
+                        help="edge offset of the detected corners: fitted (default), or held at PX "
+                             "(+ outward; 0 makes the printed tag side the only scale reference)")
+    parser.add_argument("--allow-partial", action="store_true",
+                        help="write the model even when the solver did not converge, a tag is "
+                             "poorly observed or the model fits the recording worse than nominal "
+                             "(a model that moves the cap is never written)")
     parser.add_argument("--report", help="also write the per-tag report as JSON to this file")
     parser.add_argument("--plot", help="also write a PNG plot of the per-tag deviations")
     parser.add_argument("--quiet", action="store_true", help="no progress on stderr")
@@ -53,13 +71,21 @@ def run_build(args: argparse.Namespace) -> int:
     from ficap_ros.cap_model import load_model, nominal_model, write_atomic
     from ficap_ros.detection import DetectorConfig, TagDetector
     from ficap_ros.errors import ConfigError
-    from ficap_ros.model_build import BuildConfig, build_model
+    from ficap_ros.model_build import BuildConfig, build_model, replay_check
 
     if args.every < 1:
         raise ConfigError(f"--every must be >= 1, got {args.every}")
+    if args.edge_offset == "fit":
+        edge = {"fit_edge_offset": True}
+    else:
+        try:
+            edge = {"fit_edge_offset": False, "edge_offset_px": float(args.edge_offset)}
+        except ValueError:
+            raise ConfigError(f"--edge-offset must be 'fit' or a number of px, got {args.edge_offset!r}") from None
     say = _progress(args.quiet)
     config = BuildConfig(min_tags_per_frame=args.min_tags, min_frames_per_tag=args.min_frames_per_tag,
-                         max_frames=args.max_frames)
+                         max_frames=args.max_frames, max_nfev=args.max_nfev,
+                         assembly_sigma_mm=args.assembly_sigma_mm, **edge)
     start = load_model(args.start_model) if args.start_model else nominal_model()
     detector = TagDetector(DetectorConfig(backend=args.backend, corner_refine=args.refine))
     frames, cameras = [], []
@@ -82,14 +108,32 @@ def run_build(args: argparse.Namespace) -> int:
             if read % 100 == 0:
                 say(f"{path}: {read} frames read, {kept} with >= {config.min_tags_per_frame} tags")
         say(f"{path}: {read} frames read, {kept} with >= {config.min_tags_per_frame} tags")
-    result = build_model(frames, cameras, nominal=start, config=config, progress=say)
-    result.model.save(args.out)
+    result = build_model(frames, cameras, nominal=start, config=config, progress=say,
+                         allow_partial=args.allow_partial)
     print(result.table())
-    print(f"wrote {args.out}")
+    say("posing the recording with the nominal and with the built model")
+    check = replay_check(frames, cameras, result.model, start, config)
+    print(check.table())
     if args.report:
-        write_atomic(Path(args.report), json.dumps(result.to_dict(), indent=1) + "\n")
+        write_atomic(Path(args.report),
+                     json.dumps({**result.to_dict(), "replay_check": check.to_dict()}, indent=1) + "\n")
     if args.plot:
         _plot(result, Path(args.plot))
+    if check.problems:
+        for p in check.problems:
+            print(f"model build: {p}", file=sys.stderr)
+        print(f"model build: refusing to write {args.out}: the built model would place the cap "
+              "worse than the nominal one", file=sys.stderr)
+        return 1
+    doubts = list(result.problems) + list(check.warnings)
+    for p in doubts:
+        print(f"model build: {'warning: ' if args.allow_partial else ''}{p}", file=sys.stderr)
+    if doubts and not args.allow_partial:
+        print(f"model build: not writing {args.out}: the model is not to be trusted (see above); "
+              "--allow-partial writes it anyway", file=sys.stderr)
+        return 1
+    result.model.save(args.out)
+    print(f"wrote {args.out}" + (" (partial: see the warnings)" if doubts else ""))
     return 0
 
 
