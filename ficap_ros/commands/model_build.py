@@ -47,6 +47,10 @@ def add_build_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--edge-offset", default="fit", metavar="fit|PX",
                         help="edge offset of the detected corners: fitted (default), or held at PX "
                              "(+ outward; 0 makes the printed tag side the only scale reference)")
+    parser.add_argument("--size", choices=("nominal", "images"), default="nominal",
+                        help="the cap's overall size: the nominal layout's (default; hand assembly "
+                             "moves plates, it does not grow the cap) or the images' (only with a "
+                             "corner detector known to be unbiased)")
     parser.add_argument("--allow-partial", action="store_true",
                         help="write the model even when the solver did not converge, a tag is "
                              "poorly observed or the model fits the recording worse than nominal "
@@ -85,7 +89,8 @@ def run_build(args: argparse.Namespace) -> int:
     say = _progress(args.quiet)
     config = BuildConfig(min_tags_per_frame=args.min_tags, min_frames_per_tag=args.min_frames_per_tag,
                          max_frames=args.max_frames, max_nfev=args.max_nfev,
-                         assembly_sigma_mm=args.assembly_sigma_mm, **edge)
+                         assembly_sigma_mm=args.assembly_sigma_mm, anchor_size=args.size == "nominal",
+                         **edge)
     start = load_model(args.start_model) if args.start_model else nominal_model()
     detector = TagDetector(DetectorConfig(backend=args.backend, corner_refine=args.refine))
     frames, cameras = [], []
