@@ -206,14 +206,15 @@ def test_refuses_when_a_tag_is_not_covered() -> None:
 
 
 def test_cli_builds_from_a_bag_of_rendered_frames(tmp_path, capsys) -> None:
-    """End to end: synth renders the perturbed cap (held in the hand: no head; blurred, so the
-    detected corners carry the renderer's own edge bias), frames go into a real MCAP bag with
-    CameraInfo, ``ficap model build`` detects, adjusts and replays with both models."""
+    """End to end: synth renders the perturbed cap (held in the hand: no head) through the realistic
+    image chain (lens PSF in linear light, sensor noise, sRGB tone curve: today's corners come out
+    biased inward), frames go into a real MCAP bag with CameraInfo, ``ficap model build`` detects,
+    adjusts and replays with both models."""
     import json
 
     from ficap_ros.bag_io import BagWriter, camera_info_msg, image_msg
     from ficap_ros.cli import main
-    from ficap_ros.synth import RenderConfig, render
+    from ficap_ros.synth import REALISTIC, RenderConfig, render
 
     camera = CameraModel.pinhole(960, 720, hfov_deg=50.0)
     truth = perturbed_model(seed=11)
@@ -226,7 +227,7 @@ def test_cli_builds_from_a_bag_of_rendered_frames(tmp_path, capsys) -> None:
             yaw, pitch, roll = rng.uniform([-50.0, -40.0, -20.0], [50.0, 40.0, 20.0])
             T = Transform(CAM_FROM_FORWARD * rotation_from_ypr_deg(yaw, pitch, roll),
                           [rng.uniform(-0.02, 0.02), rng.uniform(-0.02, 0.02), rng.uniform(0.38, 0.48)])
-            frame = render(truth, camera, T, RenderConfig(head=False, blur_sigma_px=0.8), seed=k)
+            frame = render(truth, camera, T, RenderConfig(head=False, **REALISTIC), seed=k)
             stamp = 1_000_000_000 + k * 100_000_000
             writer.write("/cam/camera_info", stamp, camera_info_msg(stamp, "cam", camera))
             writer.write("/cam/image_raw", stamp, image_msg(stamp, "cam", frame.image, "mono8"))
@@ -239,7 +240,8 @@ def test_cli_builds_from_a_bag_of_rendered_frames(tmp_path, capsys) -> None:
     assert "reprojection rms" in printed and str(out) in printed
     assert "replay check" in printed and "nominal" in printed and "built" in printed
     built_model = load_model(out)
-    print(f"rendered: built {rigid_rms_mm(built_model, truth):.3f} mm rigid rms from the truth")
+    print(f"rendered: built {rigid_rms_mm(built_model, truth):.3f} mm rigid rms from the truth, "
+          f"edge offset {json.loads(report.read_text())['edge_offset_px']:+.3f} px")
     assert rigid_rms_mm(built_model, truth) < 0.1 < 0.2 < corner_rms_mm(nominal_model(), truth)
     data = json.loads(report.read_text())
     assert len(data["tags"]) == 23 and data["rms_px"] < 1.0 and data["trusted"]
@@ -372,8 +374,8 @@ def test_unconverged_build_exits_non_zero(tmp_path, capsys) -> None:
 
 def test_cli_builds_from_a_synth_drive(tmp_path, capsys) -> None:
     """``ficap synth --model`` renders a drive of a hand-built cap on a head (occluder, car interior,
-    the renderer's image chain, JPEG); ``ficap model build`` on that bag is within 0.1 mm of the
-    truth and its replay check passes."""
+    the realistic image chain: PSF in linear light, sensor noise, sRGB tone curve, JPEG);
+    ``ficap model build`` on that bag is within 0.1 mm of the truth and its replay check passes."""
     import json
 
     from ficap_ros.cli import main
@@ -398,3 +400,5 @@ def test_cli_builds_from_a_synth_drive(tmp_path, capsys) -> None:
     check = data["replay_check"]
     assert check["rms_px_built"] < check["rms_px_nominal"] and not check["problems"]
     assert abs(data["edge_offset_px"]) < 0.6
+    print(f"synth drive: built {rigid_rms_mm(built_model, truth):.3f} mm rigid rms from the truth, "
+          f"edge offset {data['edge_offset_px']:+.3f} px")
