@@ -153,6 +153,7 @@ class FrameProcessor:
         # pass's reach, so those get a coarse pass with a wide reach (capped at 0.6 cell) first.
         base = self.detector.config
         self._fine_pass = replace(base, edge_iterations=1)
+        self._tracked_corners = replace(base, edge_fit_iterations=1)
         self._coarse_passes = (
             replace(base, edge_search_px=8.0, edge_max_shift_px=8.0, edge_iterations=1,
                     edge_samples_per_side=12, edge_profile_samples=9),
@@ -220,7 +221,7 @@ class FrameProcessor:
         largest distance, px, a verified tag's corner moved from its prediction."""
         refined, ok = self._refine_predicted(gray, corners)
         # The tone-curve bias and the cell-edge fit, as on searched tags (one corner estimator).
-        refined[ok] = refine_tag_corners(gray, refined[ok], ids[ok], self.detector.config)
+        refined[ok] = refine_tag_corners(gray, refined[ok], ids[ok], self._tracked_corners)
         ver, errors, contrast = verify_tags(gray, ids[ok], refined[ok], self.track_config)
         moved = np.linalg.norm(refined[ok][ver] - corners[ok][ver], axis=2)
         return ([TagDetection(int(i), c, int(e), float(m))
