@@ -321,10 +321,13 @@ class RayEngine:
         num_cpus: CPUs of the embedded Ray (default: the machine's).
         retries: times a segment is re-run when its worker or node dies.
         model, pose: what every task processes with (shipped once through the object store).
+        segment_fn: the task, ``fn((model, pose), raws) -> processed frames`` (default: the
+            pipeline; tests pass one that fails).
     """
 
     def __init__(self, model: CapModel, pose: PoseConfig, address: str | None = None,
-                 num_cpus: int | None = None, retries: int = 2) -> None:
+                 num_cpus: int | None = None, retries: int = 2,
+                 segment_fn: Callable[..., list[Any]] | None = None) -> None:
         # Never phone home (usage statistics), and keep an embedded Ray on loopback: Ray replaces
         # 127.0.0.1 by the machine's outward address unless it believes clusters are off.
         # The variable is read when ray is imported (here, and by the worker processes, which
@@ -359,7 +362,10 @@ class RayEngine:
         # Two segments per CPU in flight: workers never wait for the driver, and the driver holds
         # at most 2 x CPUs x 128 undecoded frames.
         self._slots = threading.BoundedSemaphore(2 * self.cpus)
-        self._task = ray.remote(num_cpus=1, max_retries=int(retries))(_ray_segment)
+        # Retries cover a worker or node that dies (max_retries); an exception raised by the
+        # pipeline would only repeat, so it fails its recording at once.
+        self._task = ray.remote(num_cpus=1, max_retries=int(retries), retry_exceptions=False)(
+            segment_fn or _ray_segment)
         self._config = ray.put((model, pose))
 
     def process(self, raws: Iterable[RawFrame]) -> Iterator[Any]:
@@ -496,6 +502,7 @@ def run_fleet(
     force: bool = False,
     progress: bool = True,
     summary_files: bool = True,
+    ray_engine: RayEngine | None = None,
 ) -> FleetResult:
     """Replay every recording into ``out / rec.rel`` (see the module docstring).
 
@@ -507,6 +514,7 @@ def run_fleet(
         retries: Ray task retries when a worker dies.
         force: redo recordings whose outputs are current.
         summary_files: write fleet_summary.csv/.json/.png at the top of ``out``.
+        ray_engine: a Ray engine to use (not closed here) instead of starting one.
 
     Returns:
         One result per recording, in the given order. A failing recording does not stop the others.
@@ -537,7 +545,10 @@ def run_fleet(
                          len(results), sum(r.status == "failed" for r in results.values()), progress)
     fleet = FleetResult(engine="processes", workers=jobs)
     try:
-        if todo and (use_ray or ray_address):
+        if todo and ray_engine is not None:
+            engine = ray_engine
+            fleet.engine, fleet.workers = "ray", engine.cpus
+        elif todo and (use_ray or ray_address):
             engine = RayEngine(model, pose, ray_address, jobs if ray_address is None else None, retries)
             fleet.engine, fleet.workers = ("ray" if ray_address is None else f"ray {ray_address}",
                                            engine.cpus)
@@ -572,7 +583,7 @@ def run_fleet(
                     future.result()
     finally:
         bar.close()
-        if engine is not None:
+        if engine is not None and engine is not ray_engine:
             engine.close()
         fleet.results = [results[i] for i in sorted(results)]
         fleet.wall_s = time.perf_counter() - t0

@@ -248,3 +248,58 @@ def test_no_ray_import_without_ray(fleet_in: Path, tmp_path: Path) -> None:
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout.strip().endswith("ok")
+
+
+def test_ray_retries_a_dead_worker_and_fails_only_the_broken_recording(
+    fleet_in: Path, tmp_path: Path, local_ray, small_segments
+) -> None:
+    from ficap_ros.bag_io import open_frames
+    from ficap_ros.cap_model import nominal_model
+    from ficap_ros.fleet import RayEngine, label_settings, run_fleet
+    from ficap_ros.pose import PoseConfig
+
+    model, pose = nominal_model(), PoseConfig()
+    recs = [Recording(fleet_in / "alice/d1", Path("d1")), Recording(fleet_in / "bob/d2", Path("d2"))]
+    ref = tmp_path / "ref"
+    assert main(["replay", str(recs[0].path), "--out", str(ref), "--quiet"]) == 0
+    settings = label_settings(model, pose)
+
+    # A worker process that dies on its first task: Ray re-runs the segment, the labels are whole.
+    marker = str(tmp_path / "died")
+
+    def dies_once(config, raws):  # runs in a Ray worker (pickled by value)
+        import os as _os
+        from pathlib import Path as _Path
+
+        from ficap_ros.fleet import _ray_segment
+
+        if not _Path(marker).exists():
+            _Path(marker).touch()
+            _os._exit(1)
+        return _ray_segment(config, raws)
+
+    engine = RayEngine(model, pose, retries=2, segment_fn=dies_once)
+    fleet = run_fleet(recs[:1], tmp_path / "retried", open_frames, model, pose, settings,
+                      progress=False, ray_engine=engine)
+    assert Path(marker).exists() and [r.status for r in fleet.results] == ["done"]
+    for name in ("labels.csv", "labels.mcap"):
+        assert (tmp_path / "retried/d1" / name).read_bytes() == (ref / name).read_bytes()
+
+    # A segment whose processing raises (not a dead worker: no retry) fails its recording only.
+    poison = next(iter(open_frames(recs[1].path).raw_frames())).payload
+
+    def breaks_on_d2(config, raws):
+        from ficap_ros.fleet import _ray_segment
+
+        if any(r.payload == poison for r in raws):
+            raise RuntimeError("pipeline bug on this segment")
+        return _ray_segment(config, raws)
+
+    engine = RayEngine(model, pose, retries=2, segment_fn=breaks_on_d2)
+    fleet = run_fleet(recs, tmp_path / "isolated", open_frames, model, pose, settings,
+                      progress=False, ray_engine=engine)
+    by_rel = {r.rel: r for r in fleet.results}
+    assert by_rel["d1"].status == "done" and by_rel["d1"].frames == FRAMES
+    assert by_rel["d2"].status == "failed" and "pipeline bug on this segment" in by_rel["d2"].error
+    assert (tmp_path / "isolated/d1/labels.csv").read_bytes() == (ref / "labels.csv").read_bytes()
+    assert not (tmp_path / "isolated/d2/summary.json").exists()
