@@ -6,6 +6,10 @@ Frames and quaternions (CSV columns are w, x, y, z; ROS messages store x, y, z, 
         pose); yaw/pitch/roll as in ``ficap_ros.metrics``: REP-103 (right-hand, intrinsic ZYX, as
         tf2's getRPY), pitch positive nose DOWN. Identity-mounted (R_cap_head = I) until a
         calibration is given (column ``calibrated``).
+    rot_err95_deg, trans_err95_mm: predicted 95 % bounds of this frame's cap pose error, the
+        geodesic rotation angle (deg) and the translation length (mm), from the covariance
+        (``ficap_ros.pose``: residuals, corner bias, cap model, intrinsics); ``reliability`` is
+        derived from rot_err95_deg. They do not include the head calibration's own uncertainty.
 
 labels.mcap holds the live node's topics (``ficap_ros.node``), with the same messages, each stamped
 with the image stamp (header and bag receive time), frame = the image's frame_id; names relative to
@@ -17,7 +21,7 @@ with the image stamp (header and bag receive time), frame = the image's frame_id
     ``head_pose/frontal`` PoseStamped: T_frontal_head, frame ``ficap_frontal`` (F).
     ``head_rpy_deg`` Vector3Stamped: x roll, y pitch, z yaw of H in F, degrees (REP-103).
     ``quality`` JointState: ``name[i]`` labels ``position[i]``: tags_detected, tags_used,
-        reliability, rms_px (NaN without a pose); every image.
+        reliability, rms_px, rot_err95_deg, trans_err95_mm (NaN without a pose); every image.
     ``status`` DiagnosticArray, one status ``ficap`` per image: OK with a pose, WARN without one,
         ERROR for an undecodable image; values tags_detected, tags_used, rms_px, reliability,
         calibrated and, with a pose, yaw_deg, pitch_deg, roll_deg (R_frontal_head).
@@ -63,6 +67,7 @@ __all__ = [
 #: CSV columns, in order.
 LABEL_COLUMNS: tuple[str, ...] = (
     "frame", "stamp_ns", "tags_detected", "tags_used", "rms_px", "reliability",
+    "rot_err95_deg", "trans_err95_mm",
     "cap_qw", "cap_qx", "cap_qy", "cap_qz", "cap_x_m", "cap_y_m", "cap_z_m",
     "head_qw", "head_qx", "head_qy", "head_qz", "head_yaw_deg", "head_pitch_deg", "head_roll_deg",
     "calibrated", "method", "detected_ids", "used_ids", "reason",
@@ -93,6 +98,8 @@ class LabelRecord:
         calibrated: whether a head calibration was applied.
         method: pose method name.
         reason: why there is no pose ("" with a pose); ``undecodable: ...`` for a skipped image.
+        rot_err95_deg, trans_err95_mm: predicted 95 % bounds of the cap pose's rotation error
+            (geodesic, deg) and translation error (mm); NaN without a pose.
     """
 
     frame: int
@@ -111,6 +118,8 @@ class LabelRecord:
     calibrated: bool
     method: str
     reason: str
+    rot_err95_deg: float = math.nan
+    trans_err95_mm: float = math.nan
 
     @property
     def skipped(self) -> bool:
@@ -150,6 +159,7 @@ def record_from_pose(
         tuple(sorted(pose.used_ids)), float(pose.rms_px), float(pose.reliability), pose.T_cam_cap,
         T_frontal_head, np.asarray(pose.covariance, dtype=np.float64).reshape(6, 6),
         R_frontal_cam, calibration.calibrated, pose.method or method, "",
+        float(pose.rot_err95_deg), float(pose.trans_err95_mm),
     )
 
 
@@ -174,7 +184,8 @@ def _csv_row(rec: LabelRecord) -> list[str]:
         head = [_f(v, 9) for v in rec.T_frontal_head.q_wxyz] + [_f(v, 4) for v in ypr]
     return [
         str(rec.frame), str(rec.stamp_ns), str(rec.tags_detected), str(rec.tags_used),
-        _f(rec.rms_px, 4), _f(rec.reliability, 4), *cap, *head, "1" if rec.calibrated else "0",
+        _f(rec.rms_px, 4), _f(rec.reliability, 4), _f(rec.rot_err95_deg, 4),
+        _f(rec.trans_err95_mm, 3), *cap, *head, "1" if rec.calibrated else "0",
         rec.method, " ".join(map(str, rec.detected_ids)), " ".join(map(str, rec.used_ids)),
         rec.reason,
     ]
@@ -198,6 +209,7 @@ class Labels:
         stamp_ns: (N,) int64.
         tags_detected, tags_used: (N,) int.
         rms_px, reliability: (N,) float.
+        rot_err95_deg, trans_err95_mm: (N,) predicted 95 % error bounds (NaN where absent).
         has_pose: (N,) bool.
         q_cam_cap_wxyz: (N, 4); t_cam_cap_m: (N, 3).
         q_frontal_head_wxyz: (N, 4); head_ypr_deg: (N, 3).
@@ -219,6 +231,8 @@ class Labels:
     calibrated: np.ndarray
     detected_ids: tuple[tuple[int, ...], ...]
     reasons: tuple[str, ...]
+    rot_err95_deg: np.ndarray | None = None
+    trans_err95_mm: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.stamp_ns.size)
@@ -298,6 +312,8 @@ def read_labels(path: str | Path) -> Labels:
                                  for r in rows], dtype=bool),
             detected_ids=ids,
             reasons=tuple((r.get("reason") or "") for r in rows),
+            rot_err95_deg=col("rot_err95_deg"),
+            trans_err95_mm=col("trans_err95_mm"),
         )
     except (ValueError, KeyError, TypeError) as err:
         raise BagError(f"{path}: malformed labels row: {err}") from err
@@ -326,6 +342,8 @@ def _quality_values(rec: LabelRecord) -> dict[str, float]:
         "tags_used": float(rec.tags_used),
         "reliability": float(rec.reliability) if math.isfinite(rec.reliability) else 0.0,
         "rms_px": float(rec.rms_px),
+        "rot_err95_deg": float(rec.rot_err95_deg),
+        "trans_err95_mm": float(rec.trans_err95_mm),
     }
 
 
@@ -385,6 +403,8 @@ def _status_msg(rec: LabelRecord) -> object:
         ("tags_used", str(rec.tags_used)),
         ("rms_px", _f(rec.rms_px, 4)),
         ("reliability", _f(rec.reliability, 4)),
+        ("rot_err95_deg", _f(rec.rot_err95_deg, 4)),
+        ("trans_err95_mm", _f(rec.trans_err95_mm, 3)),
         ("calibrated", "true" if rec.calibrated else "false"),
     ]
     if rec.T_frontal_head is not None:
@@ -432,7 +452,8 @@ def write_labels_bag(path: str | Path, records: Sequence[LabelRecord],
                 T_cam_head = Transform(rec.R_frontal_cam.inv(), np.zeros(3)) * rec.T_frontal_head
                 bag.write(topics["head_pose"], rec.stamp_ns,
                           pose_stamped_msg(rec.stamp_ns, rec.frame_id, T_cam_head))
-                cov = np.zeros((6, 6)) if rec.covariance_cam is None else rec.covariance_cam
+                assert rec.covariance_cam is not None  # finite and positive: pose.py's guarantee
+                cov = rec.covariance_cam
                 bag.write(topics["head_pose_cov"], rec.stamp_ns,
                           pose_with_covariance_stamped_msg(rec.stamp_ns, rec.frame_id,
                                                            T_cam_head, cov))

@@ -70,7 +70,7 @@ from ficap_ros.detection import DetectorConfig
 from ficap_ros.errors import CalibrationError, ConfigError, FicapError, IntrinsicsError
 from ficap_ros.metrics import angle_deg, yaw_pitch_roll_deg
 from ficap_ros.pipeline import FrameProcessor, FrameResult, HeadCalibration
-from ficap_ros.pose import POSE_METHODS, PoseConfig
+from ficap_ros.pose import POSE_METHODS, PoseConfig, UncertaintyConfig
 from ficap_ros.transform import Transform, rotate_covariance
 
 __all__ = ["FicapNode", "ParamSpec", "PARAMETERS", "NodeConfig", "main"]
@@ -99,6 +99,8 @@ class ParamSpec:
     choices: tuple[str, ...] | None = None
     read_only: bool = False
 
+
+_UNCERTAINTY = UncertaintyConfig()  # the covariance floors' defaults, declared in pose.py
 
 PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("image_transport", "raw", "Input transport: 'raw' subscribes to image, 'compressed' "
@@ -138,6 +140,27 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("pose.method", "joint", "Pose estimator: 'joint' (PnP over all corners) or "
               "'paper' (per-tag + Kabsch + outlier trimming).", choices=tuple(POSE_METHODS)),
     ParamSpec("pose.min_tags", 1, "Fewest tags for a pose.", range=(1, 23)),
+    ParamSpec("uncertainty.corner_noise_px", _UNCERTAINTY.corner_noise_px,
+              "Covariance floor (added to the residual-based term): independent corner noise, px.",
+              range=(0.001, 10.0)),
+    ParamSpec("uncertainty.corner_bias_px", _UNCERTAINTY.corner_bias_px,
+              "Covariance floor: per-tag radial corner bias, px.", range=(0.0, 10.0)),
+    ParamSpec("uncertainty.corner_bias_common_px", _UNCERTAINTY.corner_bias_common_px,
+              "Covariance floor: radial corner bias shared by all tags of a frame, px.",
+              range=(0.0, 10.0)),
+    ParamSpec("uncertainty.model_mm", _UNCERTAINTY.model_mm,
+              "Covariance floor: each tag plate's shift against the cap model, mm per axis "
+              "(misplaced plates the residuals show come on top).", range=(0.0, 20.0)),
+    ParamSpec("uncertainty.model_deg", _UNCERTAINTY.model_deg,
+              "Covariance floor: each tag plate's turn against the cap model, deg per axis.",
+              range=(0.0, 20.0)),
+    ParamSpec("uncertainty.principal_point_px", _UNCERTAINTY.principal_point_px,
+              "Covariance: principal point error of the intrinsics, px per axis (0 = exact; a "
+              "constant offset that a frontal calibration absorbs in the head angles).",
+              range=(0.0, 100.0)),
+    ParamSpec("uncertainty.focal_rel", _UNCERTAINTY.focal_rel,
+              "Covariance: relative focal length error of the intrinsics (0 = exact).",
+              range=(0.0, 0.5)),
     ParamSpec("publish_min_reliability", 0.0, "Poses less reliable than this are not published "
               "(status still is).", range=(0.0, 1.0)),
     ParamSpec("warn_reliability", 0.5, "Status level is WARN below this reliability.",
@@ -279,7 +302,7 @@ class FicapNode(Node):
             detector=DetectorConfig(backend=cfg["detector.backend"],
                                     corner_refine=cfg["detector.corner_refine"],
                                     search_decimate=cfg["detector.search_decimate"]),
-            pose=PoseConfig(method=cfg["pose.method"], min_tags=cfg["pose.min_tags"]),
+            pose=_pose_config(cfg),
             calibration=HeadCalibration(R_cam_frontal=frontal_from_camera_mount(self._mount)),
             tracking=cfg["tracking"],
         )
@@ -421,8 +444,7 @@ class FicapNode(Node):
 
     def _after_set_parameters(self, params: list[Parameter]) -> None:
         self._config = cfg = self._read_config()
-        self._processor.pose_config = PoseConfig(method=cfg["pose.method"],
-                                                 min_tags=cfg["pose.min_tags"])
+        self._processor.pose_config = _pose_config(cfg)
         R_cam_frontal = frontal_from_camera_mount(self._mount)
         old = self._processor.calibration
         if angle_deg(old.R_cam_frontal, R_cam_frontal) > 1e-9:
@@ -650,6 +672,8 @@ class FicapNode(Node):
             "tags_used": result.tags_used if result is not None else 0,
             "rms_px": pose.rms_px if pose is not None else float("nan"),
             "reliability": pose.reliability if pose is not None else 0.0,
+            "rot_err95_deg": pose.rot_err95_deg if pose is not None else float("nan"),
+            "trans_err95_mm": pose.trans_err95_mm if pose is not None else float("nan"),
             "calibrated": self._processor.calibration.calibrated,
             "search": result.search if result is not None else "",
             "latency_ms": latency_ms,
@@ -668,6 +692,8 @@ class FicapNode(Node):
             "tags_used": float(result.tags_used if result is not None else 0),
             "reliability": float(pose.reliability) if pose is not None else 0.0,
             "rms_px": float(pose.rms_px) if pose is not None else nan,
+            "rot_err95_deg": float(pose.rot_err95_deg) if pose is not None else nan,
+            "trans_err95_mm": float(pose.trans_err95_mm) if pose is not None else nan,
             "latency_ms": float(latency_ms),
         }
 
@@ -794,6 +820,15 @@ class FicapNode(Node):
         if self._worker.is_alive() and threading.current_thread() is not self._worker:
             self._worker.join(timeout=5.0)
         super().destroy_node()
+
+
+def _pose_config(cfg: NodeConfig) -> PoseConfig:
+    """The pose settings of the parameters (estimator and covariance floors)."""
+    u = {f: cfg[f"uncertainty.{f}"] for f in ("corner_noise_px", "corner_bias_px",
+                                               "corner_bias_common_px", "model_mm", "model_deg",
+                                               "principal_point_px", "focal_rel")}
+    return PoseConfig(method=cfg["pose.method"], min_tags=cfg["pose.min_tags"],
+                      uncertainty=UncertaintyConfig(**u))
 
 
 def _frames_reason(values: dict[str, Any]) -> str:

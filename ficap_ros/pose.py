@@ -22,12 +22,25 @@ share one pinhole solver, and works in metres (model corners are mm / 1000).
 Duplicated ids (a tag seen twice: a reflection, a second cap, a spurious decode) are resolved after
 a first pose from the unique tags: the copy that agrees with the pose is kept, or both are dropped.
 
-Reliability (``CapPose.reliability``, in [0, 1]) is the product of three factors, each 1 when ideal:
-    ``min(1, tags_used / 4)``                    (fewer than four tags: weaker geometry; one tag is
-                                                 ambiguous up to a flip),
-    ``exp(-0.5 (rms_px / 1.0 px)^2)``            (corners that do not fit the model),
-    ``exp(-0.5 (sigma_rot_deg / 1.0 deg)^2)``    (sigma_rot: square root of the largest eigenvalue
-                                                 of the rotation block of the covariance).
+Covariance (``CapPose.covariance``, 6x6, ROS order, camera axes): first-order propagation through
+the least-squares fit (``A = (J^T J)^-1 J^T`` maps corner displacements to pose changes) of
+    the residual-based term: each tag's corner residuals split into orthonormal patterns (shift,
+        scale, turn, shears, projective: how misplaced plates, radial corner bias and noise move a
+        tag's corners), each pattern group's variance pooled over the frame's tags with the
+        degrees of freedom the fit took from it subtracted (its leverage), plus the tags' common
+        radial offset;
+    the floors of ``UncertaintyConfig`` added to it: independent corner noise, radial corner bias
+        (per tag and common), each plate shifted and turned as a rigid whole against the cap
+        model, the intrinsics (principal point, focal length).
+Pooling by pattern matters: a tag's corner errors are not independent (a blurred border moves all
+four corners inward), and treating them as such misjudges which pose directions they disturb.
+``rot_err95_deg`` / ``trans_err95_mm`` are the 95 % quantiles of the rotation angle / translation
+length under the covariance (``error_bound95``).
+
+Reliability (``CapPose.reliability``, in [0, 1]) is derived from the rotation bound alone, so it
+ranks frames as the bound does: ``0.5 ** (rot_err95_deg / RELIABILITY_HALF_DEG)`` (one half at a
+1 deg bound, 0.93 at 0.1 deg), times ``min(1, tags_used / 4)`` (with fewer tags the residuals say
+little, and one tag has a mirror solution a first-order covariance does not see).
 """
 
 from __future__ import annotations
@@ -53,8 +66,55 @@ __all__ = [
     "PoseResult",
     "estimate_cap_pose",
     "reliability_score",
+    "UncertaintyConfig",
+    "uncertainty_terms",
+    "combine_uncertainty",
+    "error_bound95",
     "reprojection_errors_px",
 ]
+
+
+@dataclass(frozen=True)
+class UncertaintyConfig:
+    """Floors of the pose covariance: error sources added to the residual-based term (1-sigma).
+
+    The residual-based term already carries what the corners show in each frame (noise, per-tag
+    corner bias, misplaced plates: ``uncertainty_terms``). The floors add what residuals cannot
+    show or estimate reliably from a few tags; they also make sure no pose is ever "exact".
+    Defaults are physical minima for an edge-fitted corner on an 8-bit image and a cap model
+    whose plates sit as modelled; raise them for a cap known to be built worse, and set the
+    intrinsics terms from the camera calibration's own error estimates (CameraInfo carries none).
+
+    Attributes:
+        corner_noise_px: independent corner noise, px (quantisation and sensor noise of an edge
+            fit: a few hundredths of a pixel at best).
+        corner_bias_px: radial offset of a tag's corners toward or away from its centre (blur and
+            tone curve move dark borders), independent per tag, px.
+        corner_bias_common_px: the same offset shared by every tag of a frame, px (a fit absorbs
+            part of it into the depth, where the residuals cannot see it).
+        model_mm, model_deg: each tag plate's placement on the built cap against the model, per
+            axis (shift, mm; turn about the plate centre, deg).
+        principal_point_px, focal_rel: intrinsics error (principal point per axis, px; focal
+            length, relative). 0 by default: CameraInfo says nothing of it, rendered intrinsics
+            are exact, and a constant intrinsics error is a constant rotation offset that a
+            frontal calibration absorbs in the head angles.
+    """
+
+    corner_noise_px: float = 0.02
+    corner_bias_px: float = 0.02
+    corner_bias_common_px: float = 0.02
+    model_mm: float = 0.02
+    model_deg: float = 0.05
+    principal_point_px: float = 0.0
+    focal_rel: float = 0.0
+
+    def __post_init__(self) -> None:
+        values = (self.corner_noise_px, self.corner_bias_px, self.corner_bias_common_px,
+                  self.model_mm, self.model_deg, self.principal_point_px, self.focal_rel)
+        if not all(np.isfinite(v) and v >= 0 for v in values):
+            raise ConfigError("uncertainty sigmas must be finite and >= 0")
+        if self.corner_noise_px <= 0:
+            raise ConfigError("corner_noise_px must be > 0 (no pose is exact)")
 
 
 @dataclass(frozen=True)
@@ -72,6 +132,7 @@ class PoseConfig:
         inlier_fraction: see ``inlier_px``.
         paper_threshold_mm: ``paper``: trimming stops when the RMS 3-D corner residual is below this.
         paper_min_corners: ``paper``: never trim below this many corners.
+        uncertainty: the error sources of the covariance (``UncertaintyConfig``).
     """
 
     method: str = "joint"
@@ -82,6 +143,7 @@ class PoseConfig:
     inlier_fraction: float = 0.1
     paper_threshold_mm: float = 1.0
     paper_min_corners: int = 4
+    uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
 
     def __post_init__(self) -> None:
         if self.method not in POSE_METHODS:
@@ -105,10 +167,13 @@ class CapPose:
         used_ids: their ids, sorted.
         rms_px: RMS reprojection error of the used corners, px (undistorted image).
         covariance: 6x6, ROS order (x, y, z in m; rotation about the camera's x, y, z in rad), of a
-            small perturbation ``T = (exp(d_theta) R, t + d_t)`` of ``T_cam_cap``; from the final
-            refinement's Jacobian, scaled by the residual variance.
-        reliability: score in [0, 1] (module docstring).
+            small perturbation ``T = (exp(d_theta) R, t + d_t)`` of ``T_cam_cap``: every error
+            source of ``UncertaintyConfig`` propagated through the fit (module docstring); finite
+            and positive definite.
+        reliability: score in [0, 1] from ``rot_err95_deg`` (module docstring).
         method: the estimator's name.
+        rot_err95_deg: predicted 95 % bound of the geodesic rotation error of ``T_cam_cap``, deg.
+        trans_err95_mm: predicted 95 % bound of the length of its translation error, mm.
     """
 
     T_cam_cap: Transform
@@ -119,6 +184,8 @@ class CapPose:
     covariance: np.ndarray
     reliability: float
     method: str
+    rot_err95_deg: float = float("nan")
+    trans_err95_mm: float = float("nan")
 
     @property
     def rotation_sigma_deg(self) -> float:
@@ -268,12 +335,17 @@ def _rotation_sigma_deg(cov: np.ndarray) -> float:
     return float(np.degrees(np.sqrt(max(np.max(np.linalg.eigvalsh(block)), 0.0))))
 
 
-def reliability_score(tags_used: int, rms_px: float, covariance: np.ndarray) -> float:
-    """Reliability in [0, 1]; the mapping is in the module docstring."""
-    sigma = _rotation_sigma_deg(covariance)
-    if not (np.isfinite(rms_px) and np.isfinite(sigma)):
+#: The 95 % rotation bound at which reliability is one half, deg.
+RELIABILITY_HALF_DEG = 1.0
+
+
+def reliability_score(tags_used: int, rot_err95_deg: float) -> float:
+    """Reliability in [0, 1] from the rotation bound; the mapping is in the module docstring."""
+    if not np.isfinite(rot_err95_deg) or tags_used < 1:
         return 0.0
-    score = min(1.0, tags_used / 4.0) * np.exp(-0.5 * (rms_px / 1.0) ** 2) * np.exp(-0.5 * sigma**2)
+    # Fewer than four tags: a weak geometry whose residuals say little (one tag leaves 2 degrees of
+    # freedom) and, for one tag, IPPE's mirror solution, which a first-order covariance cannot see.
+    score = 0.5 ** (rot_err95_deg / RELIABILITY_HALF_DEG) * min(1.0, tags_used / 4.0)
     return float(np.clip(score, 0.0, 1.0))
 
 
@@ -561,14 +633,186 @@ def estimate_cap_pose(
         return PoseResult(None, tags_detected, "pose puts the cap behind the camera")
     rms = solution.rms_px
     used_n = len(solution.used)
+    terms, seen = uncertainty_terms(solution.used, solution.T)
+    covariance = combine_uncertainty(terms, seen, config.uncertainty)
+    rot95, trans95 = error_bound95(covariance)
     pose = CapPose(
         T_cam_cap=solution.T,
         tags_detected=tags_detected,
         tags_used=used_n,
         used_ids=solution.used.ids,
         rms_px=rms,
-        covariance=solution.covariance,
-        reliability=reliability_score(used_n, rms, solution.covariance),
+        covariance=covariance,
+        reliability=reliability_score(used_n, rot95),
         method=config.method,
+        rot_err95_deg=rot95,
+        trans_err95_mm=trans95,
     )
     return PoseResult(pose, tags_detected, "")
+
+
+# -- calibrated uncertainty ------------------------------------------------------------------------
+
+
+#: Per-tag corner patterns (columns of ``_tag_basis``) grouped as the residuals are pooled.
+_PATTERNS = {"shift": [0, 1], "scale": [2], "turn": [3], "shear": [4, 5], "projective": [6, 7]}
+_ROS_ORDER = np.array([3, 4, 5, 0, 1, 2])
+
+
+def _tag_basis(corners_px: np.ndarray) -> np.ndarray:
+    """(tags, 8, 8): per tag an orthonormal basis of its corners' displacements (x0 y0 ... x3 y3):
+    shift x, shift y, scale (radial), turn, two shears, and the two left (projective), in that
+    order (Gram-Schmidt from the tag's observed corner layout; the identity completes it)."""
+    n_tags = corners_px.shape[0]
+    p = corners_px - corners_px.mean(axis=1, keepdims=True)
+    p = p / np.maximum(np.linalg.norm(p.reshape(n_tags, -1), axis=1), 1e-9)[:, None, None]
+    zero = np.zeros((n_tags, 4))
+    one = np.ones((n_tags, 4))
+    patterns = [np.stack([one, zero], 2), np.stack([zero, one], 2), p,
+                np.stack([-p[..., 1], p[..., 0]], 2), np.stack([p[..., 0], -p[..., 1]], 2),
+                np.stack([p[..., 1], p[..., 0]], 2)]
+    M = np.concatenate([np.stack([c.reshape(n_tags, 8) for c in patterns], 2),
+                        np.broadcast_to(np.eye(8), (n_tags, 8, 8))], 2)
+    Q, _ = np.linalg.qr(M)
+    return Q[:, :, :8]
+
+
+def uncertainty_terms(
+    obs: _Observations, T: Transform
+) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """What the covariance is built from.
+
+    Returns:
+        terms: per error source, the pose covariance (6x6, ROS order) that one unit of its sigma
+            causes, by first-order propagation through the fit (``A = (J^T J)^-1 J^T``): each
+            residual pattern group of ``_PATTERNS`` (1 px per pattern coordinate, independent per
+            tag), ``noise`` (1 px, every coordinate independent), ``bias`` (1 px radial at every
+            corner, independent per tag), ``bias_common`` (the same for all tags),
+            ``model_t`` / ``model_r`` (each plate shifted 1 mm / turned 1 deg about each cap axis),
+            ``principal_point`` (1 px per axis), ``focal`` (relative 1).
+        seen: what the residuals show: per pattern group the sigma of its coefficients pooled
+            over the tags (less the share the fit absorbed: the hat matrix's leverage of the
+            group), and ``bias_common``, the tags' mean radial offset (px per corner).
+    """
+    res, J = _at(T, obs)
+    n_tags = len(obs)
+    n = 4 * n_tags
+    try:
+        JtJ_inv = np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        JtJ_inv = np.full((6, 6), np.inf)  # combine_uncertainty turns this into "unknown"
+    A = JtJ_inv @ J.T  # (6, 2n): pose change per corner coordinate displacement
+    A_tag = A.reshape(6, n_tags, 8)
+
+    def ros(c: np.ndarray) -> np.ndarray:
+        return c[np.ix_(_ROS_ORDER, _ROS_ORDER)]
+
+    def together(modes: np.ndarray) -> np.ndarray:  # (2n, k) modes shared by all tags
+        am = A @ modes
+        return ros(am @ am.T)
+
+    def per_tag(modes: np.ndarray) -> np.ndarray:  # (tags, 8, k) modes independent per tag
+        am = np.einsum("ktj,tjm->tkm", A_tag, modes)
+        return ros(np.einsum("tkm,tlm->kl", am, am))
+
+    K = obs.K
+    R = T.rotation_matrix
+    Xc = obs.model_m.reshape(-1, 3) @ R.T + T.translation_m  # corners in the camera frame
+    iz = 1.0 / Xc[:, 2]
+    fx, fy, s = K[0, 0], K[1, 1], K[0, 1]
+    uv = obs.image_px.reshape(-1, 2)
+    G = np.zeros((n, 2, 3))  # d(u, v)/d(point in the camera frame)
+    G[:, 0, 0] = fx * iz
+    G[:, 0, 1] = s * iz
+    G[:, 0, 2] = -(fx * Xc[:, 0] + s * Xc[:, 1]) * iz * iz
+    G[:, 1, 1] = fy * iz
+    G[:, 1, 2] = -fy * Xc[:, 1] * iz * iz
+    GR = G @ R  # d(u, v)/d(point in the cap frame)
+
+    B = _tag_basis(obs.image_px)
+    terms: dict[str, np.ndarray] = {"noise": ros(JtJ_inv)}
+    for group, idx in _PATTERNS.items():
+        terms[group] = per_tag(B[:, :, idx])
+    radial = 2.0 * B[:, :, 2]  # 1 px radial at each corner (the pattern has norm 1 over 4 corners)
+    terms["bias"] = per_tag(radial[:, :, None])
+    terms["bias_common"] = together(radial.reshape(-1, 1))
+    lever = obs.model_m.reshape(-1, 3) - np.repeat(obs.model_m.mean(axis=1), 4, axis=0)
+    eye = np.eye(3)
+    shift = np.einsum("nij,kj->nik", GR, eye * 1e-3)  # (n, 2, 3): 1 mm along each cap axis
+    turn = np.einsum("nij,nkj->nik", GR, np.cross(eye[None], lever[:, None]) * np.radians(1.0))
+    terms["model_t"] = per_tag(shift.reshape(n_tags, 8, 3))
+    terms["model_r"] = per_tag(turn.reshape(n_tags, 8, 3))
+    axes = np.zeros((2 * n, 2))
+    axes[0::2, 0] = 1.0
+    axes[1::2, 1] = 1.0
+    terms["principal_point"] = together(axes)
+    terms["focal"] = together((uv - K[:2, 2]).reshape(-1, 1))
+
+    # The residuals in each tag's patterns; per group, the coefficients' variance pooled over the
+    # tags, with the degrees of freedom the fit took from the group (its leverage) subtracted.
+    coef = np.einsum("tjm,tj->tm", B, -res.reshape(n_tags, 8))
+    hat = (J @ A).reshape(n_tags, 8, n_tags, 8)[np.arange(n_tags), :, np.arange(n_tags), :]
+    leverage = np.einsum("tjm,tjs,tsm->tm", B, hat, B)
+    mean_scale = float(coef[:, 2].mean())
+    seen: dict[str, float] = {}
+    for group, idx in _PATTERNS.items():
+        c = coef[:, idx] - (mean_scale if group == "scale" else 0.0)
+        dof = len(idx) * n_tags - float(np.sum(leverage[:, idx]))
+        dof -= 1.0 if group == "scale" else 0.0  # the common offset, taken out above
+        seen[group] = float(np.sqrt(np.sum(c**2) / dof)) if dof > 0.5 else 0.0
+    seen["bias_common"] = abs(mean_scale) / 2.0
+    return terms, seen
+
+
+def combine_uncertainty(terms: dict[str, np.ndarray], seen: dict[str, float],
+                        config: UncertaintyConfig) -> np.ndarray:
+    """The pose covariance (6x6, ROS order, camera axes): the residual-based term (each pattern
+    group's sigma as the residuals show it) plus the floors of ``config``, each source's unit
+    covariance times its variance. Finite and positive definite: a degenerate fit gives a huge
+    diagonal (1 m, 180 deg), never zeros or infinities."""
+    c = config
+    cov = sum(seen[g] ** 2 * terms[g] for g in _PATTERNS)
+    cov = cov + (c.corner_noise_px**2 * terms["noise"] + c.corner_bias_px**2 * terms["bias"]
+                 + (seen["bias_common"] ** 2 + c.corner_bias_common_px**2) * terms["bias_common"]
+                 + c.model_mm**2 * terms["model_t"] + c.model_deg**2 * terms["model_r"]
+                 + c.principal_point_px**2 * terms["principal_point"]
+                 + c.focal_rel**2 * terms["focal"])
+    cov = 0.5 * (cov + cov.T)
+    if not np.all(np.isfinite(cov)):
+        cov = np.diag([1.0, 1.0, 1.0, np.pi**2, np.pi**2, np.pi**2])
+    return cov
+
+
+def _chi_quantile_table() -> tuple[np.ndarray, np.ndarray]:
+    from scipy.stats import chi2
+
+    nu = np.linspace(0.5, 3.0, 251)
+    return nu, np.sqrt(chi2.ppf(0.95, nu))
+
+
+_NU, _SQRT_Q95 = _chi_quantile_table()
+
+
+def _norm_quantile95(lam: np.ndarray) -> float:
+    """95 % quantile of sqrt(sum lam_i z_i^2), z standard normal: Welch-Satterthwaite's scaled
+    chi-square (scale sum lam^2 / sum lam, nu = (sum lam)^2 / sum lam^2 degrees of freedom;
+    exact for equal eigenvalues, within 3 % otherwise)."""
+    total = float(np.sum(lam))
+    if total <= 0.0:
+        return 0.0
+    sq = float(np.sum(lam**2))
+    nu = total * total / sq
+    return float(np.sqrt(sq / total) * np.interp(nu, _NU, _SQRT_Q95))
+
+
+def error_bound95(covariance: np.ndarray) -> tuple[float, float]:
+    """(rotation deg, translation mm): 95 % quantiles of the geodesic rotation error and of the
+    translation error's length under the covariance (Gaussian, first order)."""
+    out = []
+    for block, scale in ((covariance[3:, 3:], np.degrees(1.0)), (covariance[:3, :3], 1e3)):
+        if not np.all(np.isfinite(block)):
+            out.append(float("inf"))
+            continue
+        lam = np.clip(np.linalg.eigvalsh(0.5 * (block + block.T)), 0.0, None)
+        out.append(_norm_quantile95(lam) * scale)
+    return out[0], out[1]

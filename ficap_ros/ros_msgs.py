@@ -187,11 +187,15 @@ def pose_stamped(header: Header, T: Transform) -> PoseStamped:
 def pose_with_covariance_stamped(
     header: Header, T: Transform, covariance: np.ndarray
 ) -> PoseWithCovarianceStamped:
-    """``PoseWithCovarianceStamped``; ``covariance`` is 6x6 already in ROS order (x y z rx ry rz)."""
+    """``PoseWithCovarianceStamped``; ``covariance`` is 6x6 already in ROS order (x y z rx ry rz)
+    (non-finite: replaced by a huge diagonal, never by zeros)."""
     msg = PoseWithCovarianceStamped(header=header)
     msg.pose.pose = pose_msg(T)
     cov = np.asarray(covariance, dtype=np.float64).reshape(36)
-    msg.pose.covariance = [float(v) if np.isfinite(v) else 0.0 for v in cov]
+    if not np.all(np.isfinite(cov)):
+        # Never "exact": an unknown covariance goes out huge (1 m, 180 deg), not as zeros.
+        cov = np.diag([1.0, 1.0, 1.0, np.pi**2, np.pi**2, np.pi**2]).reshape(36)
+    msg.pose.covariance = [float(v) for v in cov]
     return msg
 
 

@@ -43,6 +43,16 @@ def _true_R_cap_head(bag: Path) -> Rotation:
     return Rotation.from_quat([x, y, z, w])
 
 
+def _true_positions(bag: Path) -> np.ndarray:
+    with AnyReader([bag]) as reader:
+        conns = [c for c in reader.connections if c.topic == synth_cmd.TRUTH_CAP_TOPIC]
+        out = []
+        for conn, _, raw in reader.messages(connections=conns):
+            p = reader.deserialize(raw, conn.msgtype).pose.position
+            out.append([p.x, p.y, p.z])
+    return np.array(out)
+
+
 def test_synth_bag_contents(drive: Path) -> None:
     with AnyReader([drive]) as reader:
         counts = {c.topic: c.msgcount for c in reader.connections}
@@ -66,6 +76,14 @@ def test_replay_recovers_ground_truth(drive: Path, replayed: Path) -> None:
     assert cal_err < 0.5
     assert summary["frames"] == FRAMES and summary["frames_skipped"] == 0
     assert summary["pct_ge4_tags"] == 100.0 and summary["throughput_fps"] > 0
+    # Every label says how wrong it may be: finite, positive 95 % bounds that hold for the
+    # frames' true errors, and a reliability that is the bound's.
+    assert np.all(np.isfinite(labels.rot_err95_deg)) and np.all(labels.rot_err95_deg > 0)
+    assert np.all(np.isfinite(labels.trans_err95_mm)) and np.all(labels.trans_err95_mm > 0)
+    assert np.mean(err_deg <= labels.rot_err95_deg) >= 0.85
+    t_err_mm = 1e3 * np.linalg.norm(labels.t_cam_cap_m - _true_positions(drive), axis=1)
+    assert np.mean(t_err_mm <= labels.trans_err95_mm) >= 0.85
+    np.testing.assert_allclose(labels.reliability, 0.5 ** labels.rot_err95_deg, atol=2e-3)
 
 
 def test_labels_bag_matches_csv(replayed: Path) -> None:

@@ -268,3 +268,10 @@ def test_output_frame_through_camera_mount(drive, harness_factory) -> None:
         values = dict(zip(q.name, q.position))
         assert values["tags_used"] >= 4 and 0.0 < values["reliability"] <= 1.0
         assert values["tags_detected"] >= values["tags_used"]
+        # The frame's predicted error bounds, numeric; and no pose goes out with a covariance
+        # that claims exactness (or infinity).
+        assert 0.0 < values["rot_err95_deg"] < 5.0 and 0.0 < values["trans_err95_mm"] < 50.0
+        assert values["reliability"] == pytest.approx(0.5 ** values["rot_err95_deg"], abs=1e-6)
+        for run in (cam, base):
+            C = np.array(run["cov"][t].pose.covariance).reshape(6, 6)
+            assert np.all(np.isfinite(C)) and np.linalg.eigvalsh(C).min() > 0
