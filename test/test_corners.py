@@ -1,0 +1,123 @@
+"""Corners free of the tone-curve bias (issue 10), on frames rendered through the realistic chain.
+
+A lens blurs linear light; the camera's tone curve then moves every black/white edge toward its
+black side, so a grey-midpoint corner sits inside the tag (the naive peer: 0.3-1.9 px). Our
+corners are measured against the exact truth of ``ficap_ros.synth`` frames rendered with a lens
+PSF, sensor noise, clipping, each tone curve and JPEG, on fully visible tags within 70 deg of
+head-on (what the issue's targets are stated for).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ficap_ros.cap_model import nominal_model
+from ficap_ros.detection import DetectorConfig, TagDetector, fit_tag_edges, refine_corners_edge_ok
+from ficap_ros.metrics import corner_errors_px
+from ficap_ros.synth import RenderConfig, default_scene, naturalistic_drive, render
+from ficap_ros.tracking import view_angles_deg
+
+MODEL = nominal_model()
+OURS = TagDetector(DetectorConfig())
+PEER = TagDetector(DetectorConfig(corner_refine="subpix"))
+
+
+def _errors(detector: TagDetector, frames) -> tuple[np.ndarray, np.ndarray, int, int]:
+    """(corner errors, radial offsets, clean tags found, clean tags) over the frames."""
+    err, rad, found_n, clean_n = [], [], 0, 0
+    for fr in frames:
+        angles = dict(zip(MODEL.ids, view_angles_deg(MODEL, fr.T_cam_cap)))
+        clean = [t for t in fr.visible_ids(0.999) if angles[t] <= 70.0]
+        found = {d.tag_id: d.corners_px for d in detector.detect(fr.image)}
+        ids = [t for t in clean if t in found]
+        e, r = corner_errors_px(np.array([found[t] for t in ids]), np.array([fr.corners_px[t] for t in ids]))
+        err.append(e.ravel())
+        rad.append(r.ravel())
+        found_n += len(ids)
+        clean_n += len(clean)
+    return np.concatenate(err), np.concatenate(rad), found_n, clean_n
+
+
+def _frames(resolution: str, config: RenderConfig, n: int = 3):
+    scene = default_scene(resolution)
+    drive = naturalistic_drive(n, fps=1.0, seed=5, scene=scene, frontal_s=0.0)
+    return [render(MODEL, scene.camera, d.T_cam_cap, config, seed=d.index) for d in drive]
+
+
+@pytest.mark.parametrize(
+    "resolution, tone, gamma, psf_sigma_px, lighting",
+    [
+        ("540p", "srgb", 2.2, None, "neutral"),
+        ("540p", "gamma", 1.8, 1.0, "high"),
+        ("540p", "filmic", 2.2, 0.4, "neutral"),
+        ("1080p", "srgb", 2.2, 1.0, "high"),
+        ("1080p", "filmic", 2.2, 0.7, "neutral"),
+        ("1080p", "gamma", 1.8, 0.4, "high"),
+    ],
+)
+def test_corners_unbiased_under_each_tone_curve(resolution, tone, gamma, psf_sigma_px, lighting) -> None:
+    """The issue's targets: median <= 0.15 px, p95 <= 0.5 px, mean radial offset within
+    +-0.05 px, where the naive peer on the same frames is >= 0.2 px inward."""
+    frames = _frames(resolution, RenderConfig(lighting=lighting, tone=tone, gamma=gamma,
+                                              psf_sigma_px=psf_sigma_px, jpeg_quality=95))
+    err, rad, found, clean = _errors(OURS, frames)
+    peer_err, peer_rad, _, _ = _errors(PEER, frames)
+    print(f"ours median {np.median(err):.3f} p95 {np.percentile(err, 95):.3f} radial {rad.mean():+.3f} "
+          f"({found}/{clean} tags); peer radial {peer_rad.mean():+.3f}")
+    assert found >= 0.85 * clean
+    assert np.median(err) <= 0.15
+    assert np.percentile(err, 95) <= 0.5
+    assert abs(rad.mean()) <= 0.05
+    assert peer_rad.mean() <= -0.2
+    assert np.median(err) <= 0.5 * np.median(peer_err)
+
+
+def test_corners_in_low_light() -> None:
+    """Low light (one side lamp, gain 2.5, noisy): errors stay small and the bias is a fraction
+    of the peer's; ours lean outward by up to ~0.1 px with a sharp lens (PSF 0.4 px), measured
+    and left open (docs/benchmarks.md), so the bound here is 0.12 px, not the 0.05 of the others."""
+    frames = _frames("540p", RenderConfig(lighting="low", tone="srgb", psf_sigma_px=0.7, jpeg_quality=95))
+    err, rad, found, clean = _errors(OURS, frames)
+    _, peer_rad, _, _ = _errors(PEER, frames)
+    assert found >= 0.8 * clean
+    assert np.median(err) <= 0.2
+    assert np.percentile(err, 95) <= 0.6
+    assert abs(rad.mean()) <= 0.12
+    assert abs(rad.mean()) <= 0.5 * abs(peer_rad.mean())
+
+
+def test_fit_recovers_a_known_erosion() -> None:
+    """What the estimator rests on: a tone curve acts like an erosion of the black by delta (every
+    edge's grey midpoint moves into the black). Draw a tag whose black is eroded by exactly 0.4 px
+    (no blur, linear tone: the edges are exactly there). The line fit of the outer edges is pulled
+    in by the full 0.4 px per side; the cell-edge fit must put the corners back on the true square
+    and report delta ~ 0.4 px."""
+    import cv2
+
+    from ficap_ros.detection import tag_cells
+
+    cell, ss, delta, tag_id, size = 12.0, 10, 0.4, 11, 160
+    x0 = y0 = 32.3  # outer corner c0 at a sub-pixel position
+    # Supersampled: supersampled pixel k covers image [k / ss - 0.5, (k + 1) / ss - 0.5].
+    black = np.zeros((size * ss, size * ss), np.uint8)
+    cells = tag_cells(tag_id)
+    for r in range(8):
+        for c in range(8):
+            if cells[r, c]:
+                xa, ya = x0 + c * cell, y0 + r * cell
+                black[int(round((ya + 0.5) * ss)):int(round((ya + cell + 0.5) * ss)),
+                      int(round((xa + 0.5) * ss)):int(round((xa + cell + 0.5) * ss))] = 1
+    k = int(round(delta * ss))
+    black = cv2.erode(black, np.ones((2 * k + 1, 2 * k + 1), np.uint8))
+    img = cv2.resize(np.where(black > 0, 20, 235).astype(np.uint8), (size, size), interpolation=cv2.INTER_AREA)
+    true = np.array([[x0, y0], [x0 + 8 * cell, y0], [x0 + 8 * cell, y0 + 8 * cell], [x0, y0 + 8 * cell]])
+    start = true + np.array([[0.3, -0.2], [-0.1, 0.25], [0.2, 0.1], [-0.25, -0.15]])
+    lines, ok = refine_corners_edge_ok(img, start[None])
+    assert ok[0]
+    _, rad_lines = corner_errors_px(lines, true[None])
+    assert rad_lines.mean() == pytest.approx(-delta * np.sqrt(2.0), abs=0.05)  # each side in by delta
+    fitted, fitted_delta = fit_tag_edges(img, lines, np.array([tag_id]), iterations=3)
+    err, _ = corner_errors_px(fitted, true[None])
+    assert err.max() <= 0.05  # from 0.57 px radial; what is left is the sampling of unblurred edges
+    assert fitted_delta[0] == pytest.approx(delta, abs=0.03)
