@@ -221,10 +221,8 @@ class TagDetector:
             self._aruco = _make_aruco(cfg)
             self._apriltag = None
         else:
-            import pupil_apriltags
-
             self._aruco = None
-            self._apriltag = pupil_apriltags.Detector(
+            self._apriltag = _apriltag_detector_class()(
                 families="tag36h11",
                 nthreads=1,
                 quad_decimate=float(cfg.quad_decimate),
@@ -376,6 +374,33 @@ class TagDetector:
 def _auto_decimate(shape: tuple[int, ...], min_side_px: int) -> int:
     """The largest search decimation (<= 4) leaving the longer side at least ``min_side_px``."""
     return max(1, min(4, max(shape[:2]) // max(int(min_side_px), 1)))
+
+
+@lru_cache(maxsize=None)
+def _apriltag_detector_class() -> type:
+    """pupil-apriltags' Detector, freed in the right order.
+
+    pupil-apriltags 1.0.4's ``Detector.__del__`` destroys the tag families first and then the
+    detector, whose destroy still releases each family's decode table: a use after free that
+    corrupts the heap and, now and then, kills the process long after (seen as "malloc():
+    mismatching next->prev_size" in a test worker). Here the detector goes first.
+    """
+    import pupil_apriltags
+
+    class Detector(pupil_apriltags.Detector):  # type: ignore[misc]
+        def __del__(self) -> None:
+            ptr = getattr(self, "tag_detector_ptr", None)
+            if ptr is None:
+                return
+            self.libc.apriltag_detector_destroy.restype = None
+            self.libc.apriltag_detector_destroy(ptr)
+            self.tag_detector_ptr = None
+            for family, tf in self.tag_families.items():
+                destroy = getattr(self.libc, f"{family}_destroy")
+                destroy.restype = None
+                destroy(tf)
+
+    return Detector
 
 
 def _empty() -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
