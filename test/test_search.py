@@ -127,15 +127,6 @@ def test_searched_1080p_frames_find_at_least_apriltag3s_tags(frames_1080p) -> No
     camera, frames = frames_1080p
     model = nominal_model()
     at3 = TagDetector(DetectorConfig(backend="apriltag", corner_refine="apriltag"))
-    try:
-        _check_at_least_apriltag3(camera, frames, model, at3)
-    finally:
-        # pupil-apriltags' Detector.__del__ frees the tag family before the detector that uses
-        # it and now and then segfaults: leak a few kB instead.
-        at3._apriltag.tag_detector_ptr = None
-
-
-def _check_at_least_apriltag3(camera, frames, model, at3) -> None:
     for f in frames:
         proc = FrameProcessor(model)  # a fresh processor: the frame is searched
         gray = f.image if f.image.ndim == 2 else cv2.cvtColor(f.image, cv2.COLOR_BGR2GRAY)
