@@ -18,7 +18,10 @@ setup(
         ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
     ],
     install_requires=["setuptools"],
-    extras_require={"ray": ["ray==2.60.0"]},  # ficap replay --ray (requirements.txt pins all)
+    # ficap replay --ray; colcon test runs pytest when it is a test dependency (the Jazzy
+    # ament_python form). requirements.txt pins every version.
+    extras_require={"ray": ["ray==2.60.0"],
+                    "test": ["pytest", "pytest-xdist", "pytest-timeout", "hypothesis"]},
     zip_safe=True,
     maintainer="ficap_ros maintainers",
     maintainer_email="maintainers@users.noreply.h-seed-c0fda0a4.example",

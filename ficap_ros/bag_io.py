@@ -8,8 +8,12 @@ Reading is split in two so ``ficap replay --jobs N`` can decode in worker proces
 ``FrameSource.raw_frames()`` yields picklable ``RawFrame`` records (stamp, camera, undecoded
 payload) and ``decode_raw`` turns one into a grey image. ``FrameSource.frames()`` does both.
 
-Errors: anything wrong with the container (missing, corrupt, truncated, no such topic, no intrinsics)
-raises ``BagError``; one undecodable image becomes a frame whose ``error`` says why.
+Errors: a container that cannot be read at all (missing, not a bag, no such topic, no intrinsics)
+raises ``BagError``; one undecodable image becomes a frame whose ``error`` says why. A damaged
+container (MCAP without footer, sqlite3 cut short, video cut mid-frame) yields every complete
+frame before the damage (``ficap_ros.bag_salvage``), and ``FrameSource.loss`` then says what was
+lost: how many frames (exact when the bag's metadata or the video container says, else estimated
+from the frame rate, else unknown) and their time range.
 """
 
 from __future__ import annotations
@@ -23,8 +27,8 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from ficap_ros.camera import CameraModel, load_camera_yaml
-from ficap_ros.errors import BagError, FicapError, ImageError
+from ficap_ros.camera import CameraModel, camera_from_info, load_camera_yaml
+from ficap_ros.errors import BagError, FicapError, ImageError, OutputError
 from ficap_ros.image_codec import decode_compressed, decode_image
 
 __all__ = [
@@ -34,6 +38,7 @@ __all__ = [
     "VIDEO_SUFFIXES",
     "RawFrame",
     "Frame",
+    "Loss",
     "FrameSource",
     "open_frames",
     "decode_raw",
@@ -99,6 +104,49 @@ class Frame:
     frame_id: str = ""
 
 
+@dataclass(frozen=True)
+class Loss:
+    """Frames a damaged recording could not give.
+
+    Attributes:
+        detail: one line: what is damaged and where.
+        frames_lost: how many images were lost; None when the container cannot say.
+        estimated: ``frames_lost`` is a lower bound estimated from the frame rate and the
+            damaged part's time range (an MCAP chunk cut short says until when its messages ran,
+            not how many; chunks after it leave no trace without the bag's metadata.yaml).
+        after_ns: stamp of the last frame read (0 when none).
+        until_ns: stamp until which frames were lost, when known.
+    """
+
+    detail: str
+    frames_lost: int | None
+    estimated: bool
+    after_ns: int
+    until_ns: int | None
+
+    def describe(self, start_ns: int) -> str:
+        """One line for the command line: count, time range (s from ``start_ns``), cause."""
+        count = ("an unknown number of frames" if self.frames_lost is None else
+                 f"{'at least ' if self.estimated else ''}{self.frames_lost} frame"
+                 f"{'' if self.frames_lost == 1 else 's'}")
+        t0 = (self.after_ns - start_ns) / 1e9 if self.after_ns else 0.0
+        span = (f"after {t0:.3f} s" if self.until_ns is None else
+                f"between {t0:.3f} s and {(self.until_ns - start_ns) / 1e9:.3f} s")
+        return f"LOST {count} {span} ({self.detail})"
+
+    def to_dict(self, start_ns: int) -> dict[str, Any]:
+        return {
+            "detail": self.detail,
+            "frames_lost": self.frames_lost,
+            "estimated": self.estimated,
+            "after_ns": self.after_ns,
+            "until_ns": self.until_ns,
+            "after_s": round((self.after_ns - start_ns) / 1e9, 6) if self.after_ns else 0.0,
+            "until_s": (round((self.until_ns - start_ns) / 1e9, 6)
+                        if self.until_ns is not None else None),
+        }
+
+
 def decode_raw(raw: RawFrame) -> np.ndarray:
     """Decode a raw frame to a grey image (uint8, or uint16 for 16-bit sources).
 
@@ -150,23 +198,37 @@ def _bag_errors() -> tuple[type[BaseException], ...]:
             KeyError, IndexError, EOFError, AssertionError)
 
 
-def open_bag_reader(path: Path) -> Any:
-    """An open rosbags ``AnyReader`` on a rosbag2 folder or a single ``.mcap``/``.db3`` file.
+def open_bag_reader(path: Path, salvage: bool = True) -> Any:
+    """An open reader on a rosbag2 folder or a single ``.mcap``/``.db3`` file.
+
+    Normally rosbags' ``AnyReader``. When it refuses a damaged bag (an MCAP without footer, a
+    sqlite3 database cut short, a folder whose recorder died before writing metadata.yaml) and
+    ``salvage`` is set, a ``bag_salvage.SalvageReader`` over the complete messages; its
+    ``damage`` says what could not be read (``AnyReader`` has none).
 
     Raises:
-        BagError: missing, not a bag, corrupt or truncated.
+        BagError: missing, not a bag, or nothing readable.
     """
     from rosbags.highlevel import AnyReader
+
+    from ficap_ros.bag_salvage import SalvageReader, storage_files
 
     path = Path(path)
     if not path.exists():
         raise BagError(f"{path} does not exist")
     if path.is_dir() and not (path / "metadata.yaml").exists():
+        if salvage and storage_files(path):
+            return SalvageReader(path, jazzy_typestore())
         raise BagError(f"{path} is a folder without metadata.yaml, not a rosbag2 bag")
     try:
         reader = AnyReader([path], default_typestore=jazzy_typestore())
         reader.open()
     except _bag_errors() as err:
+        if salvage and (path.is_dir() or path.suffix.lower() in (".mcap", ".db3")):
+            try:
+                return SalvageReader(path, jazzy_typestore())
+            except BagError:
+                pass  # not even a damaged bag: report rosbags' reason
         raise BagError(f"cannot read bag {path}: {_one_line(err)}") from err
     return reader
 
@@ -177,18 +239,8 @@ def _one_line(err: BaseException) -> str:
 
 
 def _camera_from_info(msg: Any, rectified: bool) -> CameraModel:
-    """CameraModel from a deserialized CameraInfo (ROS 2 lower-case or ROS 1 upper-case fields)."""
-    def field(name: str) -> Any:
-        return getattr(msg, name, None) if hasattr(msg, name) else getattr(msg, name.upper())
-
-    k = np.asarray(field("k"), dtype=np.float64)
-    p = np.asarray(field("p"), dtype=np.float64)
-    d = np.asarray(field("d"), dtype=np.float64)
-    if not np.any(k) and np.any(p):  # some drivers fill only P
-        rectified = True
-    return CameraModel.from_camera_info(
-        int(msg.width), int(msg.height), k, d, str(msg.distortion_model), p, rectified=rectified
-    )
+    """CameraModel from a deserialized CameraInfo: the node's rule (``camera_from_info``)."""
+    return camera_from_info(msg, rectified)
 
 
 def _pick_camera_info(topics: dict[str, str], image_topic: str) -> str | None:
@@ -228,6 +280,28 @@ class FrameSource:
         self._info: list[tuple[int, CameraModel]] = []
         self._msgtype = ""
         self._rectified = False
+        self._damage: Any = None  # bag_salvage.Damage of the container, if damaged
+        self._read = 0  # images the last full iteration yielded
+        self._last_ns = 0  # log time (video: stamp) of the last image read
+        self._midway: str = ""  # an error that stopped an iteration early
+        self._expected: int | None = None  # images the container says it holds
+        self._until_ns: int | None = None
+        self._dt_ns = 0.0
+
+    @property
+    def loss(self) -> Loss | None:
+        """What a damaged container could not give (after a full iteration); None when intact."""
+        detail = self._midway or (self._damage.detail if self._damage is not None else "")
+        if not detail:
+            return None
+        lost: int | None = None
+        estimated = False
+        if self._expected is not None and self._expected >= self._read:
+            lost = self._expected - self._read
+        elif self._until_ns is not None and self._read >= 2 and self._dt_ns > 0:
+            lost = max(int(round((self._until_ns - self._last_ns) / self._dt_ns)), 0)
+            estimated = True
+        return Loss(detail, lost, estimated, self._last_ns, self._until_ns)
 
     # -- iteration ------------------------------------------------------------------------------
     def raw_frames(self) -> Iterator[RawFrame]:
@@ -262,6 +336,8 @@ class FrameSource:
         try:
             conns = [c for c in reader.connections if c.topic == self.image_topic]
             index = 0
+            first_ns = last_ns = 0
+            self._midway = ""
             it = reader.messages(connections=conns)
             while True:
                 try:
@@ -269,11 +345,15 @@ class FrameSource:
                 except StopIteration:
                     break
                 except _bag_errors() as err:
-                    raise BagError(
-                        f"bag {self.path} is corrupt after {index} images: {_one_line(err)}"
-                    ) from err
+                    # Damage the index did not show: keep what was read, say what stopped it.
+                    self._midway = f"unreadable after {index} images: {_one_line(err)}"
+                    break
+                first_ns = first_ns or int(log_ns)
+                last_ns = int(log_ns)
                 yield self._raw_from_message(reader, conn, log_ns, raw, index)
                 index += 1
+            self._read, self._last_ns = index, last_ns
+            self._dt_ns = (last_ns - first_ns) / (index - 1) if index > 1 else 0.0
         finally:
             reader.close()
 
@@ -320,6 +400,13 @@ class FrameSource:
             self._rectified = "rect" in image_topic.rsplit("/", 2)[-1] or (
                 image_topic.endswith("/compressed") and "rect" in image_topic.rsplit("/", 3)[-2])
             self.count = sum(c.msgcount for c in reader.connections if c.topic == image_topic)
+            self._damage = getattr(reader, "damage", None)
+            if self._damage is not None:
+                expected = self._damage.expected_counts
+                self._expected = expected.get(image_topic) if expected else None
+                self._until_ns = self._damage.lost_until_ns
+            else:
+                self._expected = self.count
             if self._intrinsics is None:
                 if camera_info_topic:
                     if camera_info_topic not in topics:
@@ -359,7 +446,8 @@ class FrameSource:
                 assert last is not None
                 out.append((stamp_to_ns(msg.header.stamp) or int(log_ns), last))
         except _bag_errors() as err:
-            raise BagError(f"bag {self.path} is corrupt: {_one_line(err)}") from err
+            if not out:  # damage past some CameraInfo only costs the frames after it
+                raise BagError(f"bag {self.path} is corrupt: {_one_line(err)}") from err
         if not out:
             raise BagError(f"topic {topic} holds no valid CameraInfo; pass --intrinsics camera.yaml")
         out.sort(key=lambda item: item[0])
@@ -382,6 +470,7 @@ class FrameSource:
         assert camera is not None
         try:
             index = 0
+            self._midway = ""
             while True:
                 ok, img = cap.read()
                 if not ok:
@@ -393,6 +482,14 @@ class FrameSource:
                     camera = _camera_for_size(camera, gray.shape[1], gray.shape[0], self.path)
                 yield RawFrame(index, stamp, camera, "array", gray)
                 index += 1
+            # The container's frame count (AVI/MKV headers) says how many a cut file lost.
+            self._read, self._last_ns = index, (int(round((index - 1) * 1e9 / self._fps))
+                                                if index else 0)
+            self._dt_ns = 1e9 / self._fps
+            if self.count > index:
+                self._midway = f"video ends after {index} of the {self.count} frames its header lists"
+                self._expected = self.count
+                self._until_ns = int(round((self.count - 1) * 1e9 / self._fps))
         finally:
             cap.release()
 
@@ -499,6 +596,7 @@ class BagWriter:
         self._conns: dict[str, Any] = {}
 
     def __enter__(self) -> BagWriter:
+        import shutil
         import tempfile
 
         from rosbags.rosbag2 import StoragePlugin, Writer
@@ -508,11 +606,15 @@ class BagWriter:
             parent.mkdir(parents=True, exist_ok=True)
             self._tmpdir = Path(tempfile.mkdtemp(prefix=f".{self.path.name}.", dir=parent))
         except OSError as err:
-            raise BagError(f"cannot write to {parent}: {err.strerror or err}") from err
+            raise OutputError(f"cannot write to {parent}: {err.strerror or err}") from err
         name = self.path.stem if self.layout == "file" else self.path.name
         plugin = StoragePlugin.MCAP if self.storage == "mcap" else StoragePlugin.SQLITE3
         self._writer = Writer(self._tmpdir / name, version=9, storage_plugin=plugin)
-        self._writer.open()
+        try:
+            self._writer.open()
+        except OSError as err:
+            shutil.rmtree(self._tmpdir, ignore_errors=True)
+            raise OutputError(f"cannot write {self.path}: {err.strerror or err}") from err
         return self
 
     def set_custom_data(self, key: str, value: str) -> None:
@@ -526,7 +628,11 @@ class BagWriter:
     def write(self, topic: str, stamp_ns: int, msg: Any) -> None:
         """Serialize ``msg`` (a rosbags message object) and write it with receive time ``stamp_ns``."""
         conn = self._conns[topic]
-        self._writer.write(conn, int(stamp_ns), self.typestore.serialize_cdr(msg, conn.msgtype))
+        try:
+            self._writer.write(conn, int(stamp_ns),
+                               self.typestore.serialize_cdr(msg, conn.msgtype))
+        except OSError as err:  # a full disk: one line, and __exit__ removes the temporary
+            raise OutputError(f"cannot write {self.path}: {err.strerror or err}") from err
 
     def __exit__(self, exc_type: Any, exc: Any, tb: Any) -> None:
         import shutil
@@ -539,7 +645,10 @@ class BagWriter:
                 except Exception:  # noqa: BLE001 - the original error matters, not this one
                     pass
                 return
-            self._writer.close()
+            try:
+                self._writer.close()
+            except OSError as err:
+                raise OutputError(f"cannot write {self.path}: {err.strerror or err}") from err
             inner = self._tmpdir / (self.path.stem if self.layout == "file" else self.path.name)
             try:
                 if self.layout == "file":
@@ -550,7 +659,7 @@ class BagWriter:
                         shutil.rmtree(self.path)
                     os_replace(inner, self.path)
             except OSError as err:
-                raise BagError(f"cannot write {self.path}: {err.strerror or err}") from err
+                raise OutputError(f"cannot write {self.path}: {err.strerror or err}") from err
         finally:
             shutil.rmtree(self._tmpdir, ignore_errors=True)
 
@@ -634,17 +743,14 @@ def image_msg(stamp_ns: int, frame_id: str, image: np.ndarray, encoding: str) ->
 
 
 def write_file_atomic(path: str | Path, data: str | bytes) -> None:
-    """``ficap_ros.cap_model.write_atomic`` (temp file, then rename) with a ``BagError`` on failure.
+    """``ficap_ros.files.write_output_file``: temp file then rename, one-line errors.
 
     Raises:
-        BagError: the folder is not writable.
+        OutputError: a folder, or the folder is not writable.
     """
-    from ficap_ros.cap_model import write_atomic
+    from ficap_ros.files import write_output_file
 
-    try:
-        write_atomic(Path(path), data)
-    except OSError as err:
-        raise BagError(f"cannot write {path}: {err.strerror or err}") from err
+    write_output_file(path, data)
 
 
 def _unlink(path: str) -> None:

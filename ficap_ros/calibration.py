@@ -31,8 +31,8 @@ import yaml
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from ficap_ros.cap_model import write_atomic
-from ficap_ros.errors import CalibrationError
+from ficap_ros.errors import CalibrationError, OutputError
+from ficap_ros.files import read_text, write_output_file
 from ficap_ros.metrics import angle_deg, robust_mean_rotation
 from ficap_ros.pipeline import HeadCalibration
 from ficap_ros.transform import CAM_FROM_FORWARD, Transform
@@ -274,6 +274,10 @@ def save_calibration(
             frame, default ``CAM_FROM_FORWARD``).
         result: how it was computed (mode, frames used, spread, R_cam_reference), when known.
         R_cam_frontal: frontal frame for a ``CalibrationResult`` argument.
+
+    Raises:
+        OutputError: ``path`` is a folder, an existing file that is not a calibration, or cannot
+            be written (one line).
     """
     if isinstance(calibration, CalibrationResult):
         result = calibration
@@ -296,9 +300,20 @@ def save_calibration(
         if result.R_cam_reference is not None:
             data["R_cam_reference_q_wxyz"] = _q_wxyz(result.R_cam_reference)
     path = Path(path)
-    if path.parent and not path.parent.exists():
-        path.parent.mkdir(parents=True, exist_ok=True)
-    write_atomic(path, yaml.safe_dump(data, sort_keys=False))
+    if path.is_file():
+        # Only a calibration replaces a calibration: an unreadable or foreign file at this path
+        # (a typo in calibration.file, a binary) is the user's, not ours to overwrite.
+        try:
+            load_calibration(path)
+        except CalibrationError as err:
+            raise OutputError(f"{path} exists and is not a readable calibration ({err}); "
+                              "not overwritten") from err
+    if str(path.parent) and not path.parent.exists():
+        try:
+            path.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise OutputError(f"cannot create folder {path.parent}: {err.strerror or err}") from err
+    write_output_file(path, yaml.safe_dump(data, sort_keys=False), what="calibration")
 
 
 def load_calibration(path: str | Path) -> HeadCalibration:
@@ -307,10 +322,9 @@ def load_calibration(path: str | Path) -> HeadCalibration:
     Raises:
         CalibrationError: missing, unreadable or malformed file.
     """
+    text = read_text(path, "calibration", CalibrationError)
     try:
-        data = yaml.safe_load(Path(path).read_text())
-    except OSError as err:
-        raise CalibrationError(f"cannot read calibration {path}: {err.strerror or err}") from err
+        data = yaml.safe_load(text)
     except yaml.YAMLError as err:
         raise CalibrationError(f"calibration {path} is not valid YAML") from err
     if not isinstance(data, dict) or "R_cap_head_q_wxyz" not in data:
@@ -324,5 +338,22 @@ def load_calibration(path: str | Path) -> HeadCalibration:
     return HeadCalibration(
         R_cap_head=_from_q_wxyz(data["R_cap_head_q_wxyz"], "R_cap_head_q_wxyz"),
         R_cam_frontal=R_cam_frontal,
-        calibrated=bool(data.get("calibrated", True)),
+        calibrated=_flag(data.get("calibrated", True), f"calibration {path}: calibrated"),
     )
+
+
+def _flag(value: Any, name: str) -> bool:
+    """A YAML boolean; the strings a hand-edited file may hold ("no", "false", "0") too.
+
+    ``bool("no")`` is True, which once loaded ``calibrated: "no"`` as calibrated.
+    """
+    if isinstance(value, bool):
+        return value
+    if isinstance(value, int) and value in (0, 1):
+        return bool(value)
+    text = str(value).strip().lower()
+    if text in ("true", "yes", "on", "1"):
+        return True
+    if text in ("false", "no", "off", "0"):
+        return False
+    raise CalibrationError(f"{name} must be true or false, got {value!r}")

@@ -22,8 +22,9 @@ import numpy as np
 import yaml
 
 from ficap_ros.errors import IntrinsicsError
+from ficap_ros.files import read_text
 
-__all__ = ["CameraModel", "DISTORTION_MODELS", "load_camera_yaml"]
+__all__ = ["CameraModel", "DISTORTION_MODELS", "load_camera_yaml", "camera_from_info"]
 
 #: Number of distortion coefficients each lens model takes (at least; extra zeros are allowed).
 DISTORTION_MODELS: dict[str, int] = {
@@ -191,12 +192,13 @@ class CameraModel:
 
 def load_camera_yaml(path: str | Path) -> CameraModel:
     """Read intrinsics in the camera_calibration YAML format; raises ``IntrinsicsError``."""
+    text = read_text(path, "intrinsics", IntrinsicsError)
     try:
-        data = yaml.safe_load(Path(path).read_text())
-    except OSError as err:
-        raise IntrinsicsError(f"cannot read intrinsics {path}: {err.strerror or err}") from err
+        data = yaml.safe_load(text)
     except yaml.YAMLError as err:
         raise IntrinsicsError(f"intrinsics {path} is not valid YAML") from err
+    if not isinstance(data, dict):
+        raise IntrinsicsError(f"intrinsics {path} is not a camera_calibration YAML mapping")
     try:
         k = data["camera_matrix"]["data"]
         d = data.get("distortion_coefficients", {}).get("data", []) or []
@@ -204,5 +206,38 @@ def load_camera_yaml(path: str | Path) -> CameraModel:
         return CameraModel.from_camera_info(
             int(data["image_width"]), int(data["image_height"]), k, d, model
         )
-    except (KeyError, TypeError, ValueError) as err:
+    except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as err:
         raise IntrinsicsError(f"intrinsics {path}: missing or malformed field {err}") from err
+
+
+def camera_from_info(msg: Any, rectified: bool = False) -> CameraModel:
+    """A ``sensor_msgs/CameraInfo`` as a ``CameraModel``: the one rule of the node and the bag tools.
+
+    ``msg`` is any object with CameraInfo's fields (an rclpy message, a rosbags message, ROS 1's
+    upper-case ``K``/``D``/``P``). K + D are used, or P's left 3x3 and no distortion when the image
+    is ``rectified``. Some drivers fill only P (K all zero): that image is taken as rectified.
+
+    Raises:
+        IntrinsicsError: K and P both all zero (camera not calibrated), a rectified image without
+            P, zero size, NaN/inf, or an unknown lens model.
+    """
+    def field(name: str) -> Any:
+        value = getattr(msg, name, None)
+        return getattr(msg, name.upper(), None) if value is None else value
+
+    try:
+        k = np.asarray(field("k"), dtype=np.float64).reshape(-1)
+        p = np.asarray(field("p"), dtype=np.float64).reshape(-1)
+        d = np.asarray(field("d"), dtype=np.float64).reshape(-1)
+        width, height = int(msg.width), int(msg.height)
+    except (TypeError, ValueError, AttributeError, OverflowError) as err:
+        raise IntrinsicsError(f"malformed CameraInfo: {err}") from err
+    has_p = p.size == 12 and bool(np.any(p))
+    if not np.any(k):
+        if not has_p:
+            raise IntrinsicsError("CameraInfo K and P are all zero (camera not calibrated)")
+        rectified = True  # some drivers fill only P
+    if rectified and not has_p:
+        raise IntrinsicsError("CameraInfo P is all zero but the image is rectified")
+    return CameraModel.from_camera_info(width, height, k, d, str(field("distortion_model") or ""),
+                                        p, rectified=rectified)

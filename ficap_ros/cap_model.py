@@ -16,7 +16,6 @@ from __future__ import annotations
 import json
 import math
 import os
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -24,7 +23,8 @@ from typing import Any
 import numpy as np
 import yaml
 
-from ficap_ros.errors import ModelError
+from ficap_ros.errors import ModelError, OutputError
+from ficap_ros.files import read_text, write_atomic, write_output_file
 
 __all__ = [
     "TAG_SIDE_MM",
@@ -203,40 +203,17 @@ class CapModel:
         return header + yaml.safe_dump(self.to_dict(), sort_keys=False, default_flow_style=None)
 
     def save(self, path: str | os.PathLike[str]) -> None:
-        """Write the model as YAML, atomically."""
-        write_atomic(Path(path), self.to_yaml())
+        """Write the model as YAML, atomically.
 
-
-def write_atomic(path: Path, text: str | bytes) -> None:
-    """Write ``text`` to ``path`` through a temporary file in the same folder, then rename.
-
-    A crash or Ctrl-C never leaves a half-written file at ``path``.
-    """
-    path = Path(path)
-    data = text.encode() if isinstance(text, str) else text
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
-    try:
-        # mkstemp creates the file 0600; give the result the permissions a plain open() would.
-        umask = os.umask(0)
-        os.umask(umask)
-        os.fchmod(fd, 0o666 & ~umask)
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except FileNotFoundError:
-            pass
-        raise
+        Raises:
+            OutputError: ``path`` is a folder or its folder is missing or not writable.
+        """
+        write_output_file(path, self.to_yaml(), what="cap model")
 
 
 def load_model(path: str | os.PathLike[str]) -> CapModel:
     """Load a cap model from YAML (or JSON, a subset of YAML); raises ``ModelError``."""
-    try:
-        text = Path(path).read_text()
-    except OSError as err:
-        raise ModelError(f"cannot read cap model {path}: {err.strerror or err}") from err
+    text = read_text(path, "cap model", ModelError)
     try:
         data = yaml.safe_load(text)
     except yaml.YAMLError as err:

@@ -2,7 +2,9 @@
 
 Each verb lives in ``ficap_ros/commands/<verb>.py`` and provides ``HELP``, ``add_arguments(parser)``
 and ``run(args) -> int``; heavy imports happen inside ``run`` so ``ficap --help`` stays quick.
-Errors a user can cause print one line (``ficap: error: ...``) and exit 1.
+Errors a user can cause print one line (``ficap: error: ...``) and exit 1. Exit codes: 0 done,
+1 error, 2 bad arguments (argparse), 3 done but frames were lost to a damaged input (the summary
+line says how many and when), 130 interrupted.
 """
 
 from __future__ import annotations
@@ -13,6 +15,9 @@ import sys
 from typing import Sequence
 
 from ficap_ros.errors import FicapError
+
+#: Exit code of a verb that finished but lost frames to a damaged (cut, corrupt) input.
+EXIT_FRAMES_LOST = 3
 
 #: Verb -> module under ficap_ros.commands, in the order ``--help`` lists them.
 VERBS: dict[str, str] = {
@@ -51,6 +56,19 @@ def _version() -> str:
         return __version__
 
 
+def finite_float(text: str) -> float:
+    """argparse type for a real number: NaN and infinity are refused (they poison every result)."""
+    import math
+
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
 def _available_verbs() -> dict[str, object]:
     modules = {}
     for verb, module_name in VERBS.items():
@@ -76,10 +94,14 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    from ficap_ros.native_log import ThrottledStderr
+
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        return int(args._run(args) or 0)
+        # libjpeg/FFmpeg print on fd 2 per damaged frame: throttled to a warning per kind.
+        with ThrottledStderr():
+            return int(args._run(args) or 0)
     except FicapError as err:
         print(f"ficap: error: {err}", file=sys.stderr)
         return 1

@@ -15,6 +15,7 @@ __all__ = [
     "ConfigError",
     "CalibrationError",
     "BagError",
+    "OutputError",
 ]
 
 
@@ -44,3 +45,7 @@ class CalibrationError(FicapError):
 
 class BagError(FicapError):
     """A bag or video cannot be read or written (corrupt, truncated, missing topic)."""
+
+
+class OutputError(FicapError):
+    """An output cannot be written, or would overwrite an input or a folder ficap did not write."""

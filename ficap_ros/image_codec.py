@@ -11,7 +11,39 @@ import numpy as np
 
 from ficap_ros.errors import ImageError
 
-__all__ = ["ENCODINGS", "decode_image", "decode_compressed"]
+__all__ = ["ENCODINGS", "decode_image", "decode_compressed", "check_pixel_budget", "max_pixels",
+           "DEFAULT_MAX_PIXELS"]
+
+#: Largest image accepted, in pixels (``FICAP_MAX_PIXELS`` overrides it). 40 MP holds every
+#: camera a cap is filmed with (1080p is 2.1 MP, 4K 8.3 MP, a 12 MP phone photo); an 8000x6000
+#: photo (48 MP) took 2.3 GB in detection and died under a 1.5 GB limit with a cv2.error.
+DEFAULT_MAX_PIXELS = 40_000_000
+
+
+def max_pixels() -> int:
+    """The pixel budget: ``FICAP_MAX_PIXELS`` when set to a positive integer, else the default."""
+    import os
+
+    text = os.environ.get("FICAP_MAX_PIXELS", "").strip()
+    try:
+        value = int(text) if text else DEFAULT_MAX_PIXELS
+    except ValueError:
+        return DEFAULT_MAX_PIXELS
+    return value if value > 0 else DEFAULT_MAX_PIXELS
+
+
+def check_pixel_budget(width: int, height: int, what: str = "image",
+                       budget: int | None = None) -> None:
+    """Refuse an image above the pixel budget before it costs memory.
+
+    Raises:
+        ImageError: ``width * height`` exceeds ``budget`` (default ``max_pixels()``).
+    """
+    limit = max_pixels() if budget is None else int(budget)
+    if int(width) * int(height) > limit:
+        raise ImageError(
+            f"{what} is {int(width)}x{int(height)} ({int(width) * int(height) / 1e6:.1f} MP), "
+            f"above the {limit / 1e6:.1f} MP budget (FICAP_MAX_PIXELS)")
 
 # encoding -> (channels, bytes per channel); Bayer patterns are one channel.
 _LAYOUT: dict[str, tuple[int, int]] = {
@@ -61,14 +93,21 @@ def decode_image(
     if enc not in _LAYOUT:
         raise ImageError(f"unsupported image encoding {encoding!r}")
     channels, depth = _LAYOUT[enc]
-    height, width, step = int(height), int(width), int(step)
+    try:
+        height, width, step = int(height), int(width), int(step)
+    except (TypeError, ValueError, OverflowError) as err:
+        raise ImageError(f"image size fields are not integers: {err}") from None
     if height <= 0 or width <= 0:
         raise ImageError(f"image has no pixels ({width}x{height})")
+    check_pixel_budget(width, height)
     row_bytes = width * channels * depth
     if step < row_bytes:
         raise ImageError(f"image step {step} is smaller than a {encoding} row of {row_bytes} bytes")
-    buf = np.frombuffer(memoryview(data).cast("B") if not isinstance(data, np.ndarray) else
-                        np.ascontiguousarray(data).view(np.uint8).reshape(-1), dtype=np.uint8)
+    try:
+        buf = np.frombuffer(memoryview(data).cast("B") if not isinstance(data, np.ndarray) else
+                            np.ascontiguousarray(data).view(np.uint8).reshape(-1), dtype=np.uint8)
+    except (TypeError, ValueError) as err:
+        raise ImageError(f"image data is not a byte buffer: {err}") from None
     if buf.size < step * (height - 1) + row_bytes:
         raise ImageError(
             f"image data holds {buf.size} bytes, {width}x{height} {encoding} with step {step} "
@@ -114,11 +153,20 @@ def decode_compressed(data: bytes | np.ndarray, fmt: str = "") -> np.ndarray:
     Raises:
         ImageError: empty or undecodable data.
     """
-    buf = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) else data
+    try:
+        buf = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) else data
+    except (TypeError, ValueError) as err:
+        raise ImageError(f"compressed image data is not a byte buffer: {err}") from None
     if buf.size == 0:
         raise ImageError("compressed image is empty")
-    img = cv2.imdecode(np.ascontiguousarray(buf.reshape(-1).view(np.uint8)), cv2.IMREAD_GRAYSCALE)
+    try:
+        img = cv2.imdecode(np.ascontiguousarray(buf.reshape(-1).view(np.uint8)),
+                           cv2.IMREAD_GRAYSCALE)
+    except cv2.error as err:  # e.g. a header claiming more pixels than OpenCV allows
+        raise ImageError(f"cannot decode compressed image ({buf.size} bytes): "
+                         f"{str(err).strip().splitlines()[-1]}") from None
     if img is None:
         kind = f" {fmt}" if fmt else ""
         raise ImageError(f"cannot decode compressed{kind} image ({buf.size} bytes)")
+    check_pixel_budget(img.shape[1], img.shape[0])
     return img

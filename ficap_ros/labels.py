@@ -265,25 +265,38 @@ def read_labels_text(path: str | Path) -> tuple[Path, str]:
     Raises:
         BagError: the file cannot be read.
     """
+    from ficap_ros.files import read_text
+
     path = Path(path)
     if path.is_dir():
         path = path / "labels.csv"
-    try:
-        return path, path.read_text()
-    except OSError as err:
-        raise BagError(f"cannot read {path}: {err.strerror or err}") from err
+    return path, read_text(path, "labels", BagError)
 
 
 def read_labels(path: str | Path) -> Labels:
     """Read labels.csv (or a replay output folder holding one).
 
+    A last row cut short (no final newline, fewer fields) is dropped; any other row whose field
+    count differs from the header's is an error.
+
     Raises:
-        BagError: missing file, or not a labels CSV.
+        BagError: missing file, not UTF-8 text, or not a labels CSV.
     """
     path, text = read_labels_text(path)
-    rows = list(csv.DictReader(io.StringIO(text)))
+    try:
+        table = [r for r in csv.reader(io.StringIO(text)) if r]
+    except csv.Error as err:
+        raise BagError(f"{path} is not a labels CSV: {err}") from err
+    columns = table[0] if table else []
+    body = table[1:]
+    if body and len(body[-1]) != len(columns) and not text.endswith("\n"):
+        body.pop()  # a last row cut short (an interrupted copy) is not a frame
+    for n, r in enumerate(body):
+        if len(r) != len(columns):
+            raise BagError(f"{path}: row {n + 2} has {len(r)} fields, the header {len(columns)}")
+    rows = [dict(zip(columns, r)) for r in body]
     need = {"stamp_ns", "tags_detected", "cap_qw", "head_qw"}
-    header = set(rows[0].keys()) if rows else set(next(csv.reader(io.StringIO(text)), []))
+    header = set(columns)
     if not need <= header:
         raise BagError(f"{path} is not a labels CSV (missing {', '.join(sorted(need - header))})")
     try:

@@ -25,6 +25,7 @@ to be processed. All detection and pose estimation is ``ficap_ros.pipeline.Frame
 from __future__ import annotations
 
 import math
+import sys
 import threading
 import time
 from collections import deque
@@ -68,6 +69,7 @@ from ficap_ros.camera import CameraModel, load_camera_yaml
 from ficap_ros.cap_model import load_model, nominal_model
 from ficap_ros.detection import DetectorConfig
 from ficap_ros.errors import CalibrationError, ConfigError, FicapError, IntrinsicsError
+from ficap_ros.native_log import ThrottledStderr
 from ficap_ros.metrics import angle_deg, yaw_pitch_roll_deg
 from ficap_ros.pipeline import FrameProcessor, FrameResult, HeadCalibration
 from ficap_ros.pose import POSE_METHODS, PoseConfig, UncertaintyConfig
@@ -552,7 +554,11 @@ class FicapNode(Node):
                 save_calibration(path, calib, result)
                 response.message += f", saved to {path}"
             except (OSError, FicapError) as err:
-                response.message += f", NOT saved: {err}"
+                # In use, but lost at the next start: the caller must know (success=False).
+                response.success = False
+                response.message += f"; in use but NOT saved: {err}"
+                self.get_logger().error(response.message)
+                return response
         self.get_logger().info(response.message)
         return response
 
@@ -569,7 +575,11 @@ class FicapNode(Node):
             try:
                 save_calibration(path, self._processor.calibration)
             except (OSError, FicapError) as err:
-                response.message += f" (file not updated: {err})"
+                # save_calibration never replaces a file that is not a calibration.
+                response.success = False
+                response.message += f" in memory; {path} NOT updated: {err}"
+                self.get_logger().error(response.message)
+                return response
         self.get_logger().info(response.message)
         return response
 
@@ -849,11 +859,14 @@ def main(args: list[str] | None = None) -> int:
         # Callbacks only fill the mailbox, publish or answer services (the worker thread does the
         # processing), so one executor thread suffices; rclpy's MultiThreadedExecutor spent more
         # of the GIL polling its futures than the callbacks needed (measured: cProfile, 30 Hz).
-        rclpy.spin(node, SingleThreadedExecutor())
+        log = node.get_logger()
+        # libjpeg/FFmpeg print per damaged frame on fd 2: through the logger, throttled.
+        with ThrottledStderr(lambda text: log.warning(text)):
+            rclpy.spin(node, SingleThreadedExecutor())
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except FicapError as err:
-        print(f"ficap_node: {err}")
+        print(f"ficap_node: {err}", file=sys.stderr)
         code = 1
     finally:
         if node is not None:

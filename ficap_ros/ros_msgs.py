@@ -19,7 +19,7 @@ from sensor_msgs.msg import CameraInfo, CompressedImage, Image, JointState
 from std_msgs.msg import Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-from ficap_ros.camera import CameraModel
+from ficap_ros.camera import CameraModel, camera_from_info
 from ficap_ros.cap_model import CapModel
 from ficap_ros.image_codec import decode_compressed, decode_image
 from ficap_ros.metrics import yaw_pitch_roll_deg
@@ -137,20 +137,13 @@ def array_to_image(array: np.ndarray, encoding: str, header: Header | None = Non
 
 # -- intrinsics ----------------------------------------------------------------------------------
 def camera_info_to_model(msg: CameraInfo, rectified: bool = False) -> CameraModel:
-    """A ``sensor_msgs/CameraInfo`` as a ``CameraModel``: K + D, or P's 3x3 when ``rectified``.
+    """A ``sensor_msgs/CameraInfo`` as a ``CameraModel`` (``ficap_ros.camera.camera_from_info``,
+    the rule the bag tools use too: K + D, or P's 3x3 when ``rectified`` or K is all zero).
 
     Raises:
         IntrinsicsError: zero size, all-zero or NaN matrices, or an unknown lens model.
     """
-    k = np.asarray(msg.k, dtype=np.float64)
-    if not np.any(k):
-        raise IntrinsicsError("CameraInfo K is all zero (camera not calibrated)")
-    if rectified and not np.any(np.asarray(msg.p, dtype=np.float64)):
-        raise IntrinsicsError("CameraInfo P is all zero but the image is rectified")
-    return CameraModel.from_camera_info(
-        int(msg.width), int(msg.height), k, list(msg.d), msg.distortion_model,
-        p=list(msg.p), rectified=rectified,
-    )
+    return camera_from_info(msg, rectified=rectified)
 
 
 def camera_model_to_info(camera: CameraModel, header: Header | None = None) -> CameraInfo:

@@ -17,12 +17,12 @@ from pathlib import Path  # noqa: E402
 
 import pytest  # noqa: E402
 
-SHARED = Path(__file__).resolve().parents[1].parent / "shared"
-REAL_APRILTAG = SHARED / "data" / "real_apriltag"
+#: Real photos the detection tests need, kept in the repository (test/data/README.md: sources and
+#: licences) so a fresh clone tests without the workplace's ../shared; benchmarks read the full sets.
+REAL_APRILTAG = Path(__file__).resolve().parent / "data" / "real_apriltag"
 
 
 @pytest.fixture(scope="session")
 def real_apriltag_dir() -> Path:
-    if not REAL_APRILTAG.is_dir():
-        pytest.fail(f"shared data not found at {REAL_APRILTAG}")
+    assert REAL_APRILTAG.is_dir(), f"test photos missing at {REAL_APRILTAG}"
     return REAL_APRILTAG

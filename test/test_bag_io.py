@@ -160,11 +160,20 @@ def test_corrupt_and_truncated_bags(tmp_path: Path) -> None:
     junk.write_bytes(b"this is not an mcap file at all" * 10)
     with pytest.raises(BagError):
         open_frames(junk)
-    # A truncated MCAP (recording killed mid-write): no footer.
+    # A truncated MCAP (recording killed mid-write): no footer, yet every complete image before
+    # the cut is recovered (test_damaged_inputs.py covers the recovery in depth).
     good = tmp_path / "good.mcap"
-    _write_bag(good, layout="file", n=20)
+    images = _write_bag(good, layout="file", n=20)
     cut = tmp_path / "cut.mcap"
     cut.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    source = open_frames(cut)
+    frames = list(source)
+    assert 5 <= len(frames) < 20
+    for frame, image in zip(frames, images):
+        np.testing.assert_array_equal(frame.image, image)
+    assert source.loss is not None and source.loss.frames_lost == 20 - len(frames)
+    # Cut inside the first record: nothing to recover.
+    cut.write_bytes(good.read_bytes()[:40])
     with pytest.raises(BagError):
         list(open_frames(cut))
     # A sqlite3 bag whose database is garbage.

@@ -245,7 +245,16 @@ def test_ctrl_c_leaves_no_partial_output(drive: Path, tmp_path: Path,
     monkeypatch.setattr(replay_mod, "_process_one", interrupted)
     out = tmp_path / "out"
     assert main(["replay", str(drive), "--out", str(out), "--quiet"]) == 130
-    assert list(out.iterdir()) == []
+    assert list(tmp_path.iterdir()) == []  # no output, no temporary folder left beside it
+    # A previous output survives an interrupted re-run whole (replaced as a unit, or not at all).
+    monkeypatch.setattr(replay_mod, "_process_one", real)
+    assert main(["replay", str(drive), "--out", str(out), "--quiet"]) == 0
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    calls["n"] = 0
+    monkeypatch.setattr(replay_mod, "_process_one", interrupted)
+    assert main(["replay", str(drive), "--out", str(out), "--quiet"]) == 130
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    assert [p.name for p in tmp_path.iterdir()] == ["out"]
 
 
 def test_replay_bad_inputs(drive: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -103,8 +103,11 @@ def _mapping(real_apriltag_dir: Path):
 
 @pytest.mark.parametrize(
     "config,min_recall",
-    # The tuned ArUco search measures 0.949 here (docs/detection.md), just under AprilTag 3's 0.96.
-    [(DetectorConfig(), 0.94), (DetectorConfig(backend="apriltag", corner_refine="none"), 0.95)],
+    # test/data holds every 6th photo of the set (12 photos, 37 tags). On them ArUco finds 33,
+    # AprilTag 3 35; the bars allow one more miss each. On all 72 photos (236 tags, ../shared,
+    # docs/detection.md) the tuned ArUco search measures 0.949, AprilTag 3 0.962.
+    [(DetectorConfig(), 32 / 37 - 1e-9),
+     (DetectorConfig(backend="apriltag", corner_refine="none"), 34 / 37 - 1e-9)],
     ids=["opencv", "apriltag"],
 )
 def test_recall_and_false_positives_on_real_photos(real_apriltag_dir, config, min_recall):

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from ficap_ros.cli import positive_int
+from ficap_ros.cli import finite_float, positive_int
 
 HELP = ("compute R_cap_head from labels: a frontal window (--frontal START:END) or a reference "
         "head-pose topic (--reference BAG:TOPIC with --first N or --random N)")
@@ -32,9 +32,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     pick.add_argument("--random", type=positive_int, metavar="N",
                       help="reference mode: use N random pairs (the paper's Random 100)")
     parser.add_argument("--seed", type=int, default=0, help="seed of --random (default 0)")
-    parser.add_argument("--max-dt-ms", type=float, default=20.0,
+    parser.add_argument("--max-dt-ms", type=finite_float, default=20.0,
                         help="reference mode: largest stamp difference of a pair, ms (default 20)")
-    parser.add_argument("--camera-mount", type=float, nargs=7,
+    parser.add_argument("--camera-mount", type=finite_float, nargs=7,
                         metavar=("X", "Y", "Z", "QX", "QY", "QZ", "QW"),
                         help="frontal mode: the camera's optical frame in the vehicle frame "
                              "(static_transform_publisher order, m and quaternion); the frontal "
@@ -57,9 +57,9 @@ def run(args: argparse.Namespace) -> int:
     )
     from ficap_ros.errors import BagError, CalibrationError, ConfigError
     from ficap_ros.labels import read_labels
-    from ficap_ros.replay import check_output_dir
+    from ficap_ros.files import check_file_target
 
-    check_output_dir(Path(args.out).parent if str(Path(args.out).parent) else Path("."))
+    check_file_target(args.out, "calibration")  # before reading anything
     labels = read_labels(args.labels)
     pose_rows = np.nonzero(labels.has_pose)[0]
     if pose_rows.size == 0:

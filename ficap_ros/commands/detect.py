@@ -18,33 +18,48 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import json
+    import sys
 
     import cv2
 
     from ficap_ros.detection import DetectorConfig, TagDetector
-    from ficap_ros.errors import ImageError
+    from ficap_ros.errors import FicapError, ImageError
+    from ficap_ros.image_codec import check_pixel_budget
 
     detector = TagDetector(DetectorConfig(backend=args.backend, corner_refine=args.refine))
     results = []
+    failed = 0
+    # Each image is reported as soon as it is done: one bad file among many costs its own line,
+    # not the results of the others.
     for path in args.images:
-        image = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
-        if image is None:
-            raise ImageError(f"cannot read image {path!r} (missing, unreadable or not an image)")
-        dets = detector.detect(image)
-        results.append({
+        try:
+            image = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
+            if image is None:
+                raise ImageError(f"cannot read image {path!r} (missing, unreadable or not an image)")
+            check_pixel_budget(image.shape[1], image.shape[0], what=f"image {path!r}")
+            dets = detector.detect(image)
+        except (FicapError, cv2.error) as err:
+            failed += 1
+            message = str(err).strip().splitlines()[-1] if str(err).strip() else type(err).__name__
+            print(f"ficap: error: {message}", file=sys.stderr)
+            if args.json:
+                results.append({"image": path, "error": message})
+            continue
+        res = {
             "image": path,
             "detections": [
                 {"id": d.tag_id, "corners_px": [[round(float(x), 4), round(float(y), 4)]
                                                 for x, y in d.corners_px]}
                 for d in dets
             ],
-        })
-    if args.json:
-        print(json.dumps(results, indent=1))
-        return 0
-    for res in results:
+        }
+        if args.json:
+            results.append(res)
+            continue
         print(f"{res['image']}: {len(res['detections'])} tag(s)")
         for det in res["detections"]:
             corners = "  ".join(f"({x:8.2f}, {y:8.2f})" for x, y in det["corners_px"])
-            print(f"  id {det['id']:4d}  {corners}")
-    return 0
+            print(f"  id {det['id']:4d}  {corners}", flush=True)
+    if args.json:
+        print(json.dumps(results, indent=1))
+    return 1 if failed else 0

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from ficap_ros.cli import finite_float
+
 HELP = ("compare a head-pose estimate (BAG:TOPIC or CSV) with Fi-Cap labels: geodesic and Phi3 "
         "errors, per-axis errors, report.md/json and plots")
 
@@ -14,7 +16,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--estimate", required=True, metavar="BAG:TOPIC|CSV",
                         help="estimator output: a pose topic of a bag, or a CSV with stamp_ns and "
                              "qw,qx,qy,qz or yaw_deg,pitch_deg,roll_deg (head in the frontal frame)")
-    parser.add_argument("--max-dt-ms", type=float, default=20.0,
+    parser.add_argument("--max-dt-ms", type=finite_float, default=20.0,
                         help="largest stamp difference of a pair, ms (default 20)")
     parser.add_argument("--out", default="evaluation", metavar="DIR",
                         help="report folder (default: ./evaluation)")

@@ -77,6 +77,8 @@ def run_build(args: argparse.Namespace) -> int:
     from ficap_ros.errors import ConfigError
     from ficap_ros.model_build import BuildConfig, build_model, replay_check
 
+    from ficap_ros.files import check_file_target
+
     if args.every < 1:
         raise ConfigError(f"--every must be >= 1, got {args.every}")
     if args.edge_offset == "fit":
@@ -86,6 +88,11 @@ def run_build(args: argparse.Namespace) -> int:
             edge = {"fit_edge_offset": False, "edge_offset_px": float(args.edge_offset)}
         except ValueError:
             raise ConfigError(f"--edge-offset must be 'fit' or a number of px, got {args.edge_offset!r}") from None
+    # Before minutes of detection and adjustment: every output must be writable.
+    check_file_target(args.out, "model")
+    for extra, what in ((args.report, "report"), (args.plot, "plot")):
+        if extra:
+            check_file_target(extra, what)
     say = _progress(args.quiet)
     config = BuildConfig(min_tags_per_frame=args.min_tags, min_frames_per_tag=args.min_frames_per_tag,
                          max_frames=args.max_frames, max_nfev=args.max_nfev,

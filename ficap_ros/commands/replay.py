@@ -100,10 +100,25 @@ def _is_fleet(args: argparse.Namespace) -> bool:
                 or not is_recording(Path(args.input[0]), videos=True))
 
 
+def cap_jobs(args: argparse.Namespace) -> int:
+    """``--jobs`` capped at the cores available; says so on stderr when it is."""
+    import sys
+
+    from ficap_ros.replay import capped_jobs
+
+    jobs, note = capped_jobs(args.jobs)
+    if note:
+        print(f"ficap: {note}", file=sys.stderr)
+    return jobs
+
+
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from ficap_ros.cap_model import load_model, nominal_model
+    from ficap_ros.cli import EXIT_FRAMES_LOST
+    from ficap_ros.errors import BagError
+    from ficap_ros.files import check_output_folder
     from ficap_ros.pose import PoseConfig
     from ficap_ros.replay import check_output_dir, replay
 
@@ -117,18 +132,30 @@ def run(args: argparse.Namespace) -> int:
         from ficap_ros.errors import ConfigError
 
         raise ConfigError("give at least one INPUT or --manifest FILE")
-    check_output_dir(Path(args.out))
     if _is_fleet(args):
+        check_output_dir(Path(args.out))
         return _run_fleet(args, model, calibration)
     args.input = args.input[0]
+    check_output_folder(Path(args.out), [args.input])  # before any processing
+    jobs = cap_jobs(args)
     source = open_source(args)
     out = replay(source, args.out, model, PoseConfig(method=args.method), calibration,
-                 args.calibrate_frontal, args.jobs, args.namespace, progress=not args.quiet)
+                 args.calibrate_frontal, jobs, args.namespace, progress=not args.quiet)
     s = out.summary
-    print(f"{s['frames']} frames, {s['frames_with_pose']} with a pose ({s['pct_with_pose']:.1f} %), "
-          f">=1 tag {s['pct_ge1_tag']:.1f} %, >=4 tags {s['pct_ge4_tags']:.1f} %, "
-          f"{s['frames_skipped']} skipped, {s['throughput_fps']} fps -> {args.out}")
-    return 0
+    line = (f"{s['frames']} frames, {s['frames_with_pose']} with a pose "
+            f"({s['pct_with_pose']:.1f} %), >=1 tag {s['pct_ge1_tag']:.1f} %, >=4 tags "
+            f"{s['pct_ge4_tags']:.1f} %, {s['frames_skipped']} skipped, "
+            f"{s['throughput_fps']} fps -> {args.out}")
+    if out.loss is not None:
+        line += f"; {out.loss.describe(source.start_ns)}"
+    print(line)
+    if s["frames"] and not s["frames_decoded"]:
+        reasons = s["skipped_reasons"]
+        top = max(reasons, key=reasons.get) if reasons else "no image decoded"
+        raise BagError(f"none of the {s['frames']} frames could be used ({top})")
+    if s["frames"] == 0:
+        raise BagError(f"{args.input} holds no image on {source.image_topic or 'its video track'}")
+    return EXIT_FRAMES_LOST if out.loss is not None else 0
 
 
 def _run_fleet(args: argparse.Namespace, model, calibration) -> int:  # noqa: ANN001

@@ -35,6 +35,7 @@ def run(args: argparse.Namespace) -> int:
     from ficap_ros.evaluation import detection_stats, plot_stats
 
     model = load_model(args.model) if args.model else nominal_model()
+    lost_line, lost_info = "", None
     if args.out:
         from ficap_ros.replay import check_output_dir
 
@@ -50,11 +51,14 @@ def run(args: argparse.Namespace) -> int:
         from ficap_ros.pose import PoseConfig
         from ficap_ros.replay import Progress, process_frames
 
+        from ficap_ros.commands.replay import cap_jobs
+
+        jobs = cap_jobs(args)
         source = open_source(args)
         bar = Progress(source.count, "frames", enabled=not args.quiet)
         try:
             frames = list(process_frames(source.raw_frames(), model, PoseConfig(method=args.method),
-                                         args.jobs, on_progress=lambda n: bar.update(n - bar.n)))
+                                         jobs, on_progress=lambda n: bar.update(n - bar.n)))
         finally:
             bar.close()
         stats = detection_stats(
@@ -65,7 +69,13 @@ def run(args: argparse.Namespace) -> int:
             np.array([f.skipped for f in frames], dtype=bool),
             tuple(model.ids),
         )
+        loss = source.loss
+        if loss is not None:
+            lost_line = loss.describe(source.start_ns)
+            lost_info = loss.to_dict(source.start_ns)
     d = stats.to_dict()
+    if lost_line:
+        d["lost"] = lost_info
     print(f"frames {d['frames']} (skipped {d['frames_skipped']}): no tag {d['frames_no_tag']} "
           f"({d['pct_no_tag']:.2f} %), >=1 tag {d['frames_ge1_tag']} ({d['pct_ge1_tag']:.2f} %), "
           f">=4 tags {d['frames_ge4_tags']} ({d['pct_ge4_tags']:.2f} %), with a pose "
@@ -80,4 +90,9 @@ def run(args: argparse.Namespace) -> int:
         out = Path(args.out)
         plot_stats(stats, out)
         write_file_atomic(out / "stats.json", json.dumps(d, indent=2) + "\n")
+    if lost_line:
+        from ficap_ros.cli import EXIT_FRAMES_LOST
+
+        print(lost_line)
+        return EXIT_FRAMES_LOST
     return 0

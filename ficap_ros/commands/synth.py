@@ -5,7 +5,7 @@ from __future__ import annotations
 import argparse
 import math
 
-from ficap_ros.cli import positive_int
+from ficap_ros.cli import finite_float, positive_int
 
 HELP = ("render a naturalistic drive of the cap into a rosbag2 MCAP bag: CompressedImage (JPEG), "
         "CameraInfo and ground-truth cap and head poses")
@@ -33,6 +33,13 @@ def _resolution(text: str) -> str | tuple[int, int]:
             raise argparse.ArgumentTypeError(f"expected WxH, got {text!r}") from None
         if min(size) < 64:
             raise argparse.ArgumentTypeError(f"resolution {text} is too small")
+        from ficap_ros.errors import ImageError
+        from ficap_ros.image_codec import check_pixel_budget
+
+        try:
+            check_pixel_budget(*size, what="rendered image")
+        except ImageError as err:
+            raise argparse.ArgumentTypeError(str(err)) from None
         return size
     return text
 
@@ -54,9 +61,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lighting", choices=("neutral", "high", "low"), default="neutral",
                         help="the paper's illumination conditions (default neutral)")
     parser.add_argument("--frames", type=positive_int, default=300, help="frames (default 300)")
-    parser.add_argument("--fps", type=float, default=30.0, help="frame rate (default 30)")
+    parser.add_argument("--fps", type=finite_float, default=30.0, help="frame rate (default 30)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    parser.add_argument("--frontal-s", type=float, default=3.0,
+    parser.add_argument("--frontal-s", type=finite_float, default=3.0,
                         help="initial looking-straight-ahead segment, s (default 3)")
     parser.add_argument("--jpeg-quality", type=int, default=95, help="JPEG quality (default 95)")
     cam = parser.add_argument_group(

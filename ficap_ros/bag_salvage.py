@@ -1,0 +1,431 @@
+"""What survives of a damaged recording: every complete message before the damage.
+
+A killed recorder or a full disk leaves an MCAP file without its footer and summary (rosbags'
+indexed reader then refuses the whole file: "File end magic is invalid"), or a sqlite3 database
+cut short ("database disk image is malformed"). ``SalvageReader`` reads such files front to back
+and offers the part of rosbags' ``AnyReader`` interface the bag tools use (``connections``,
+``messages``, ``deserialize``, ``close``), plus what it could not read (``damage``).
+
+* MCAP: records are walked in file order. A chunk cut short is decompressed as far as its bytes
+  go (no compression, zstd and lz4 all decode a prefix) and its complete messages are kept; the
+  chunk header still says until when its messages ran, which bounds the lost time range.
+* sqlite3: the database is copied to a temporary file (the input is only read), cut to whole
+  pages with the header's page count set to match, and the messages table is read in rowid order
+  (the order the recorder inserted them) until the first unreadable page.
+
+Message definitions come from the file (MCAP schemas, rosbag2's ``message_definitions`` table)
+when the Jazzy typestore does not know a type.
+"""
+
+from __future__ import annotations
+
+import mmap
+import os
+import shutil
+import sqlite3
+import struct
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Iterator, Sequence
+
+from ficap_ros.errors import BagError
+
+__all__ = ["SalvageConnection", "Damage", "SalvageReader", "storage_files"]
+
+_MAGIC = b"\x89MCAP0\r\n"
+_OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK, _OP_FOOTER = 0x03, 0x04, 0x05, 0x06, 0x02
+
+
+@dataclass(frozen=True)
+class SalvageConnection:
+    """A topic of a salvaged file (the fields of rosbags' ``Connection`` the tools read)."""
+
+    id: int
+    topic: str
+    msgtype: str
+    msgcount: int
+
+
+@dataclass(frozen=True)
+class Damage:
+    """What could not be read.
+
+    Attributes:
+        detail: one line: where and how the file is damaged.
+        last_good_ns: log time of the last message recovered (0 when none).
+        lost_until_ns: log time until which messages were lost, when the file says (the header
+            of a chunk cut short, or the bag's metadata.yaml), else None.
+        expected_counts: messages per topic the bag's metadata.yaml promises, when it has one.
+    """
+
+    detail: str
+    last_good_ns: int
+    lost_until_ns: int | None
+    expected_counts: dict[str, int] | None
+
+
+def storage_files(path: Path) -> list[Path]:
+    """The MCAP/sqlite3 files of a bag: the file itself, or a folder's, in name order."""
+    if path.is_dir():
+        return sorted(p for p in path.iterdir() if p.suffix.lower() in (".mcap", ".db3"))
+    return [path]
+
+
+def _metadata(path: Path) -> tuple[dict[str, int] | None, int | None]:
+    """(message count per topic, end time ns) from a rosbag2 folder's metadata.yaml, if any."""
+    meta = (path if path.is_dir() else path.parent) / "metadata.yaml"
+    if not meta.is_file():
+        return None, None
+    try:
+        import yaml
+
+        info = yaml.safe_load(meta.read_text(encoding="utf-8"))["rosbag2_bagfile_information"]
+        counts = {str(t["topic_metadata"]["name"]): int(t["message_count"])
+                  for t in info["topics_with_message_count"]}
+        end = int(info["starting_time"]["nanoseconds_since_epoch"]) + int(
+            info["duration"]["nanoseconds"])
+        files = [str(f) for f in info.get("relative_file_paths", [])]
+    except Exception:  # noqa: BLE001 - a damaged metadata.yaml only means no expected counts
+        return None, None
+    if path.is_file() and files and path.name not in files:
+        return None, None  # a metadata.yaml beside the file, but of another bag
+    return counts, end
+
+
+# -- MCAP ----------------------------------------------------------------------------------------
+class _Cursor:
+    """Little-endian fields of an MCAP record body; ``EOFError`` past the end."""
+
+    def __init__(self, data: bytes | memoryview) -> None:
+        self.data = memoryview(data)
+        self.pos = 0
+
+    def take(self, n: int) -> memoryview:
+        if n < 0 or self.pos + n > len(self.data):
+            raise EOFError
+        out = self.data[self.pos: self.pos + n]
+        self.pos += n
+        return out
+
+    def u16(self) -> int:
+        return struct.unpack("<H", self.take(2))[0]
+
+    def u32(self) -> int:
+        return struct.unpack("<I", self.take(4))[0]
+
+    def u64(self) -> int:
+        return struct.unpack("<Q", self.take(8))[0]
+
+    def string(self) -> str:
+        return bytes(self.take(self.u32())).decode("utf-8", "replace")
+
+
+def _records(data: Any, start: int) -> Iterator[tuple[int, bytes, bool, int]]:
+    """(opcode, body, complete, offset) of consecutive records; the last may be incomplete.
+
+    ``data`` is bytes or a read-only mmap (slices are copies, so no view outlives the map)."""
+    pos = start
+    while pos + 9 <= len(data):
+        op = data[pos]
+        (length,) = struct.unpack("<Q", data[pos + 1: pos + 9])
+        body = data[pos + 9: pos + 9 + length]
+        complete = len(body) == length
+        yield op, body, complete, pos
+        if not complete:
+            return
+        pos += 9 + length
+    if pos < len(data):
+        yield -1, data[pos:], False, pos  # a record header cut short
+
+
+def _decompress_prefix(compression: str, data: bytes) -> bytes:
+    """As much of a chunk's records as a (possibly cut) compressed buffer holds."""
+    if compression == "":
+        return data
+    try:
+        if compression == "zstd":
+            try:
+                from compression import zstd  # Python 3.14
+            except ImportError:
+                from backports import zstd  # type: ignore[no-redef]
+            return zstd.ZstdDecompressor().decompress(data)
+        if compression == "lz4":
+            import lz4.frame
+
+            return lz4.frame.LZ4FrameDecompressor().decompress(data)
+    except Exception:  # noqa: BLE001 - a damaged compressed stream holds nothing usable
+        return b""
+    return b""
+
+
+class _McapFile:
+    """One MCAP file walked front to back."""
+
+    def __init__(self, path: Path) -> None:
+        self.path = path
+        self.schemas: dict[int, tuple[str, str, bytes]] = {}
+        self.channels: dict[int, tuple[str, int]] = {}
+        self.damage = ""
+        self.lost_until_ns: int | None = None
+
+    def _inner(self, records: bytes, complete: bool) -> Iterator[tuple[int, int, bytes]]:
+        for op, body, whole, _ in _records(records, 0):
+            if not whole:
+                if complete:
+                    self.damage = self.damage or "a record inside a chunk is cut short"
+                return
+            yield from self._record(op, body)
+
+    def _record(self, op: int, body: bytes) -> Iterator[tuple[int, int, bytes]]:
+        c = _Cursor(body)
+        try:
+            if op == _OP_SCHEMA:
+                sid, name, enc = c.u16(), c.string(), c.string()
+                self.schemas[sid] = (name, enc, bytes(c.take(c.u32())))
+            elif op == _OP_CHANNEL:
+                cid, sid, topic = c.u16(), c.u16(), c.string()
+                self.channels[cid] = (topic, sid)
+            elif op == _OP_MESSAGE:
+                cid, _seq, log_ns = c.u16(), c.u32(), c.u64()
+                c.u64()  # publish time
+                yield cid, log_ns, bytes(body[c.pos:])
+        except EOFError:
+            self.damage = self.damage or f"a record of {self.path.name} is malformed"
+
+    def messages(self) -> Iterator[tuple[int, int, bytes]]:
+        """(channel id, log time, payload) of every complete message, in file order."""
+        with open(self.path, "rb") as handle:
+            size = os.fstat(handle.fileno()).st_size
+            if size < len(_MAGIC):
+                self.damage = f"{self.path.name} is empty or cut before its first record"
+                return
+            with mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ) as mm:
+                if mm[:8] != _MAGIC:
+                    raise BagError(f"{self.path} is not an MCAP file")
+                footer = False
+                for op, body, complete, offset in _records(mm, 8):
+                    if op == _OP_FOOTER:
+                        footer = True
+                        break
+                    if op == _OP_CHUNK:
+                        yield from self._chunk(body, complete, offset, size)
+                    elif complete:
+                        yield from self._record(op, body)
+                    if not complete:
+                        self.damage = self.damage or (
+                            f"{self.path.name} ends inside a record at byte {offset} of "
+                            f"{size} (no footer)")
+                        break
+                if not footer and not self.damage:
+                    self.damage = f"{self.path.name} has no footer (file cut short)"
+
+    def _chunk(self, body: bytes, complete: bool, offset: int,
+               size: int) -> Iterator[tuple[int, int, bytes]]:
+        c = _Cursor(body)
+        try:
+            c.u64()
+            end_ns = c.u64()
+            c.u64()  # uncompressed size
+            c.u32()  # crc
+            compression = c.string()
+            length = c.u64()
+        except EOFError:
+            self.damage = (f"{self.path.name} ends inside a chunk header at byte {offset} of "
+                           f"{size}")
+            return
+        payload = body[c.pos: c.pos + length]
+        whole = complete and len(payload) == length
+        if not whole:
+            self.lost_until_ns = end_ns
+            self.damage = (f"{self.path.name} ends inside a chunk at byte {offset} of {size} "
+                           "(no footer)")
+        yield from self._inner(_decompress_prefix(compression, payload), whole)
+
+
+# -- sqlite3 -------------------------------------------------------------------------------------
+def _sqlite_copy(path: Path, tmpdir: Path) -> tuple[Path, str]:
+    """A readable copy of a database cut short: whole pages, header page count to match."""
+    data = bytearray(path.read_bytes())
+    if len(data) < 100 or not data.startswith(b"SQLite format 3\x00"):
+        raise BagError(f"{path} is not an SQLite database")
+    (page,) = struct.unpack(">H", data[16:18])
+    page = 65536 if page == 1 else page
+    if page < 512:
+        raise BagError(f"{path} has an invalid SQLite header")
+    (header_pages,) = struct.unpack(">I", data[28:32])
+    pages = len(data) // page
+    detail = ""
+    if len(data) % page or (header_pages and pages < header_pages):
+        detail = (f"{path.name} is cut short ({len(data)} bytes, {pages} whole pages of "
+                  f"{header_pages or '?'})")
+    del data[pages * page:]
+    data[28:32] = struct.pack(">I", pages)
+    copy = tmpdir / path.name
+    copy.write_bytes(bytes(data))
+    return copy, detail
+
+
+class _SqliteFile:
+    """One rosbag2 sqlite3 file read in rowid order up to the first unreadable page."""
+
+    def __init__(self, path: Path, tmpdir: Path) -> None:
+        self.path = path
+        self.copy, self.damage = _sqlite_copy(path, tmpdir)
+        self.lost_until_ns: int | None = None
+        self.topics: dict[int, tuple[str, str]] = {}
+        self.definitions: dict[str, tuple[str, str]] = {}
+        con = self._connect()
+        try:
+            for tid, name, msgtype in con.execute("SELECT id, name, type FROM topics"):
+                self.topics[int(tid)] = (str(name), str(msgtype))
+            try:
+                for msgtype, enc, text in con.execute(
+                        "SELECT topic_type, encoding, encoded_message_definition "
+                        "FROM message_definitions"):
+                    self.definitions[str(msgtype)] = (str(enc), str(text))
+            except sqlite3.Error:
+                pass  # rosbag2 before Iron: no definitions table
+        except sqlite3.Error as err:
+            raise BagError(f"cannot read {path}: {err}") from err
+        finally:
+            con.close()
+
+    def _connect(self) -> sqlite3.Connection:
+        return sqlite3.connect(f"file:{self.copy}?mode=ro", uri=True)
+
+    def messages(self) -> Iterator[tuple[int, int, bytes]]:
+        con = self._connect()
+        try:
+            rows = con.execute("SELECT topic_id, timestamp, data FROM messages ORDER BY id")
+            while True:
+                try:
+                    row = rows.fetchone()
+                except sqlite3.Error as err:
+                    self.damage = self.damage or f"{self.path.name}: {err}"
+                    return
+                if row is None:
+                    return
+                yield int(row[0]), int(row[1]), bytes(row[2])
+        except sqlite3.Error as err:
+            self.damage = self.damage or f"{self.path.name}: {err}"
+        finally:
+            con.close()
+
+
+# -- the reader ----------------------------------------------------------------------------------
+class SalvageReader:
+    """Complete messages of damaged MCAP/sqlite3 files (see the module docstring).
+
+    Args:
+        path: a ``.mcap``/``.db3`` file or a rosbag2 folder.
+        typestore: rosbags typestore for deserialization (the Jazzy one).
+
+    Raises:
+        BagError: not an MCAP/sqlite3 file, or nothing at all could be read.
+    """
+
+    def __init__(self, path: Path, typestore: Any) -> None:
+        self.path = Path(path)
+        self.typestore = typestore
+        self._tmpdir = Path(tempfile.mkdtemp(prefix="ficap-salvage-"))
+        self._files: list[Any] = []
+        self._conn_by_key: dict[tuple[int, int], SalvageConnection] = {}
+        self.connections: list[SalvageConnection] = []
+        self._registered: set[str] = set()
+        try:
+            self._open()
+        except BaseException:
+            self.close()
+            raise
+
+    def _open(self) -> None:
+        files = storage_files(self.path)
+        if not files:
+            raise BagError(f"{self.path} holds no .mcap or .db3 file")
+        for f in files:
+            self._files.append(_SqliteFile(f, self._tmpdir) if f.suffix.lower() == ".db3"
+                               else _McapFile(f))
+        counts: dict[tuple[int, int], int] = {}
+        self.last_good_ns = 0
+        for n, f in enumerate(self._files):
+            for cid, log_ns, _ in f.messages():
+                counts[(n, cid)] = counts.get((n, cid), 0) + 1
+                self.last_good_ns = max(self.last_good_ns, log_ns)
+        by_topic: dict[str, int] = {}
+        for n, f in enumerate(self._files):
+            for cid, (topic, msgtype) in self._channels(f).items():
+                by_topic.setdefault(topic, len(by_topic))
+                conn = SalvageConnection(by_topic[topic], topic, msgtype, counts.get((n, cid), 0))
+                self._conn_by_key[(n, cid)] = conn
+        merged: dict[str, SalvageConnection] = {}
+        for conn in self._conn_by_key.values():
+            prev = merged.get(conn.topic)
+            merged[conn.topic] = conn if prev is None else SalvageConnection(
+                prev.id, prev.topic, prev.msgtype, prev.msgcount + conn.msgcount)
+        self.connections = sorted(merged.values(), key=lambda c: c.id)
+        if not any(c.msgcount for c in self.connections):
+            detail = "; ".join(f.damage for f in self._files if f.damage) or "no messages"
+            raise BagError(f"nothing readable in {self.path}: {detail}")
+        expected, end_ns = _metadata(self.path)
+        # Until when messages were lost: the latest the files or the metadata say (chunks after
+        # the cut one may be lost whole; only metadata.yaml knows about them).
+        until = [f.lost_until_ns for f in self._files if f.lost_until_ns is not None]
+        if end_ns is not None:
+            until.append(end_ns)
+        detail = "; ".join(f.damage for f in self._files if f.damage)
+        self.damage: Damage | None = None
+        if detail:
+            self.damage = Damage(detail, self.last_good_ns, max(until) if until else None,
+                                 expected)
+
+    def _channels(self, f: Any) -> dict[int, tuple[str, str]]:
+        if isinstance(f, _SqliteFile):
+            for msgtype, (enc, text) in f.definitions.items():
+                self._register(msgtype, enc, text)
+            return dict(f.topics)
+        out = {}
+        for cid, (topic, sid) in f.channels.items():
+            name, enc, data = f.schemas.get(sid, ("", "", b""))
+            self._register(name, enc, data.decode("utf-8", "replace"))
+            out[cid] = (topic, name)
+        return out
+
+    def _register(self, msgtype: str, encoding: str, text: str) -> None:
+        """Add a type the typestore lacks from the file's own definition (best effort)."""
+        if not msgtype or msgtype in self.typestore.types or msgtype in self._registered:
+            return
+        self._registered.add(msgtype)
+        try:
+            from rosbags.typesys import get_types_from_msg
+
+            if encoding in ("ros2msg", "msg") and text:
+                self.typestore.register(get_types_from_msg(text, msgtype))
+        except Exception:  # noqa: BLE001 - an unknown type only makes its messages unreadable
+            pass
+
+    def open(self) -> None:
+        """Already open (``AnyReader`` compatibility)."""
+
+    def messages(self, connections: Sequence[SalvageConnection] | None = None
+                 ) -> Iterator[tuple[SalvageConnection, int, bytes]]:
+        """(connection, log time ns, raw CDR) of every complete message, in file order."""
+        wanted = None if connections is None else {c.topic for c in connections}
+        for n, f in enumerate(self._files):
+            for cid, log_ns, raw in f.messages():
+                conn = self._conn_by_key.get((n, cid))
+                if conn is not None and (wanted is None or conn.topic in wanted):
+                    yield conn, log_ns, raw
+
+    def deserialize(self, raw: bytes, msgtype: str) -> Any:
+        return self.typestore.deserialize_cdr(raw, msgtype)
+
+    def close(self) -> None:
+        shutil.rmtree(self._tmpdir, ignore_errors=True)
+
+    def __enter__(self) -> SalvageReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+

@@ -1,0 +1,116 @@
+"""Messages that C libraries print straight to stderr (libjpeg, libpng, FFmpeg), throttled.
+
+OpenCV's JPEG decoder lets libjpeg print "Corrupt JPEG data: ..." on file descriptor 2 for every
+damaged frame, and FFmpeg prints "[mjpeg @ 0x...] ..." lines; ``cv2.setLogLevel`` does not reach
+them. A stream of corrupt JPEGs printed ~500 such lines. ``ThrottledStderr`` puts a pipe on file
+descriptor 2 for its lifetime: a thread forwards every line to the real stderr unchanged, except
+the lines of those libraries, which go to ``emit`` at most once per ``throttle_s`` per kind, with
+the number held back. The CLI emits them as ``ficap: warning: ...``; the node through its logger.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import sys
+import threading
+import time
+from typing import Callable
+
+__all__ = ["ThrottledStderr", "LIBRARY_LINE"]
+
+#: Lines of the C libraries under OpenCV (libjpeg, libpng, FFmpeg): at the start of a line.
+LIBRARY_LINE = re.compile(
+    rb"^(Corrupt JPEG data|Premature end of JPEG|Invalid SOS|Bogus |Unsupported marker|"
+    rb"JPEG datastream|Not a JPEG|Warning: unknown JFIF|libpng (warning|error)|"
+    rb"\[[\w ,./-]+ @ 0x[0-9a-fA-F]+\])")
+
+
+class ThrottledStderr:
+    """Context manager: C-library lines on fd 2 through ``emit``, throttled; the rest unchanged.
+
+    Args:
+        emit: receives one line (without newline) per kind and ``throttle_s``.
+        throttle_s: least interval between two lines of one kind.
+    """
+
+    def __init__(self, emit: Callable[[str], None] | None = None, throttle_s: float = 5.0) -> None:
+        self.throttle_s = float(throttle_s)
+        self._emit = emit
+        self._saved = -1
+        self._read_fd = -1
+        self._thread: threading.Thread | None = None
+        self._last: dict[bytes, float] = {}
+        self._held: dict[bytes, int] = {}
+
+    def _default_emit(self, text: str) -> None:
+        os.write(self._saved, f"ficap: warning: {text}\n".encode(errors="replace"))
+
+    def __enter__(self) -> ThrottledStderr:
+        try:
+            sys.stderr.flush()
+            self._saved = os.dup(2)
+            self._read_fd, write_fd = os.pipe()
+            os.dup2(write_fd, 2)
+            os.close(write_fd)
+        except OSError:
+            self._saved = -1  # no usable fd 2 (a daemon): leave stderr alone
+            return self
+        self._thread = threading.Thread(target=self._pump, name="ficap-stderr", daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        if self._saved < 0:
+            return
+        try:
+            sys.stderr.flush()
+        except (OSError, ValueError):
+            pass
+        os.dup2(self._saved, 2)  # closes the pipe's last write end held here: the pump ends
+        if self._thread is not None:
+            self._thread.join(timeout=2.0)  # worker processes may still hold a write end
+        self._flush_held()
+        os.close(self._saved)
+        self._saved = -1
+
+    def _pump(self) -> None:
+        buffer = b""
+        while True:
+            try:
+                chunk = os.read(self._read_fd, 65536)
+            except OSError:
+                chunk = b""
+            if not chunk:
+                break
+            buffer += chunk
+            *lines, buffer = buffer.split(b"\n")
+            for line in lines:
+                self._line(line)
+        if buffer:
+            self._line(buffer)
+        os.close(self._read_fd)
+
+    def _line(self, line: bytes) -> None:
+        match = LIBRARY_LINE.match(line)
+        if match is None:
+            os.write(self._saved, line + b"\n")
+            return
+        kind = re.sub(rb"0x[0-9a-fA-F]+|\d+", b"#", line)[:40]
+        now = time.monotonic()
+        if now - self._last.get(kind, -1e9) < self.throttle_s:
+            self._held[kind] = self._held.get(kind, 0) + 1
+            return
+        self._last[kind] = now
+        held = self._held.pop(kind, 0)
+        text = line.decode(errors="replace").strip()
+        if held:
+            text += f" ({held} more like it in the last {self.throttle_s:g} s)"
+        (self._emit or self._default_emit)(text)
+
+    def _flush_held(self) -> None:
+        for kind, held in sorted(self._held.items()):
+            if held:
+                (self._emit or self._default_emit)(
+                    f"{kind.decode(errors='replace').strip()}... ({held} more held back)")
+        self._held.clear()
