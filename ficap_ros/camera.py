@@ -26,6 +26,10 @@ from ficap_ros.files import read_text
 
 __all__ = ["CameraModel", "DISTORTION_MODELS", "load_camera_yaml", "camera_from_info"]
 
+#: Largest image side accepted in intrinsics: beyond any camera, so a larger value is a typo or a
+#: hostile file (the pixel budget of ``image_codec`` bounds the images themselves).
+MAX_SIDE_PX = 100_000
+
 #: Number of distortion coefficients each lens model takes (at least; extra zeros are allowed).
 DISTORTION_MODELS: dict[str, int] = {
     "none": 0,
@@ -72,6 +76,10 @@ class CameraModel:
             raise IntrinsicsError(
                 f"camera image size must be positive, got {self.width_px}x{self.height_px}"
             )
+        if max(int(self.width_px), int(self.height_px)) > MAX_SIDE_PX:
+            raise IntrinsicsError(
+                f"camera image size {self.width_px}x{self.height_px} is beyond any camera "
+                f"(largest side {MAX_SIDE_PX} px)")
         if not (0.0 < cx < self.width_px and 0.0 < cy < self.height_px):
             raise IntrinsicsError(
                 f"principal point ({cx:.1f}, {cy:.1f}) lies outside the "

@@ -109,8 +109,9 @@ class ThrottledStderr:
         (self._emit or self._default_emit)(text)
 
     def _flush_held(self) -> None:
+        # At exit the caller's logger may be gone (the node's context is shut down): plain stderr.
         for kind, held in sorted(self._held.items()):
             if held:
-                (self._emit or self._default_emit)(
+                self._default_emit(
                     f"{kind.decode(errors='replace').strip()}... ({held} more held back)")
         self._held.clear()

@@ -26,3 +26,12 @@ REAL_APRILTAG = Path(__file__).resolve().parent / "data" / "real_apriltag"
 def real_apriltag_dir() -> Path:
     assert REAL_APRILTAG.is_dir(), f"test photos missing at {REAL_APRILTAG}"
     return REAL_APRILTAG
+
+
+# Property tests (test_fuzz_readers.py): derandomized, so a failure reproduces on every run and
+# machine; no example database written into the checkout; no deadline on a shared 2-core box.
+from hypothesis import settings as _hypothesis_settings  # noqa: E402
+
+_hypothesis_settings.register_profile("ficap", max_examples=80, deadline=None, database=None,
+                                      derandomize=True)
+_hypothesis_settings.load_profile("ficap")

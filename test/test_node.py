@@ -167,6 +167,7 @@ def test_bad_inputs_give_error_status_and_node_survives(harness_factory) -> None
     # 2. All-zero CameraInfo (an uncalibrated camera driver).
     zero = _info(cam, t + 1)
     zero.k = [0.0] * 9
+    zero.p = [0.0] * 12
     st = h.publish_and_wait(ros_msgs.array_to_image(grey, "mono8", _header(t + 1)), zero)
     assert _level(st) == ros_msgs.LEVEL_ERROR and "all zero" in st.message
 

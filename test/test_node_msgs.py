@@ -130,7 +130,9 @@ def test_camera_info_to_model() -> None:
     back = ros_msgs.camera_model_to_info(cam)
     assert ros_msgs.camera_info_to_model(back).K.tolist() == cam.K.tolist()
     with pytest.raises(IntrinsicsError, match="all zero"):
-        ros_msgs.camera_info_to_model(_info(k=[0.0] * 9))
+        ros_msgs.camera_info_to_model(_info(k=[0.0] * 9, p=[0.0] * 12))
+    # K all zero with a valid P (some drivers): P, as the bag tools do (one rule).
+    assert ros_msgs.camera_info_to_model(_info(k=[0.0] * 9)).K.tolist() == rect.K.tolist()
     with pytest.raises(IntrinsicsError, match="NaN"):
         ros_msgs.camera_info_to_model(_info(k=[float("nan")] + [0.0] * 8))
     with pytest.raises(IntrinsicsError, match="P is all zero"):

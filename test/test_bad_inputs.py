@@ -1,0 +1,196 @@
+"""The bad-input corpus (test/data/bad_inputs, written by test/make_bad_inputs.py) against every
+reader and verb that takes each file: a one-line error, a recovered result or a labelled skip,
+never a traceback.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from ficap_ros.bag_io import open_bag_reader, open_frames
+from ficap_ros.calibration import load_calibration
+from ficap_ros.camera import load_camera_yaml
+from ficap_ros.cap_model import load_model
+from ficap_ros.cli import EXIT_FRAMES_LOST, main
+from ficap_ros.errors import FicapError
+from ficap_ros.image_codec import decode_compressed
+from ficap_ros.labels import read_labels
+
+CORPUS = Path(__file__).resolve().parent / "data" / "bad_inputs"
+BAGS = sorted([p for p in CORPUS.glob("*.mcap")] + [p for p in CORPUS.iterdir() if p.is_dir()])
+IMAGES = sorted([*CORPUS.glob("*.jpg"), *CORPUS.glob("*.png")])
+INTRINSICS = sorted(CORPUS.glob("intrinsics_*.yaml"))
+CALIBRATIONS = sorted(CORPUS.glob("calibration_*.yaml"))
+MODELS = sorted(CORPUS.glob("model_*.yaml"))
+LABELS = sorted(CORPUS.glob("labels_*.csv"))
+#: A valid bag of the corpus (tags 5 5 / 300 586 / 3 300) to pair with bad side files.
+VALID_BAG = CORPUS / "bag_duplicated_and_foreign_ids.mcap"
+
+#: Exit codes of ``ficap replay`` where the outcome is known exactly; others must be 0, 1 or 3.
+REPLAY_EXPECTED = {
+    "mcap_truncated.mcap": EXIT_FRAMES_LOST,  # recovered: frames before the cut, loss reported
+    "sqlite_torn": EXIT_FRAMES_LOST,
+    "not_a_bag.mcap": 1,
+    "mcap_magic_only.mcap": 1,
+    "metadata_binary": 1,
+    "sqlite_garbage": 1,
+    "bag_wrong_encoding.mcap": 1,  # every frame skipped
+    "bag_unknown_encoding.mcap": 1,
+    "bag_camera_info_zero.mcap": 1,  # no valid CameraInfo and no --intrinsics
+    "bag_camera_info_nan.mcap": 1,
+    "bag_camera_info_p_only.mcap": 0,  # P is enough (the node's rule)
+    "bag_broken_jpeg.mcap": 0,  # two of four skipped, labelled
+    "bag_duplicated_and_foreign_ids.mcap": 0,
+}
+
+
+def test_corpus_is_present_and_small() -> None:
+    files = [p for p in CORPUS.rglob("*") if p.is_file()]
+    assert len(files) >= 45
+    assert sum(p.stat().st_size for p in files) < 1_000_000
+
+
+def _check_cli(argv: list[str], capsys: pytest.CaptureFixture[str]) -> int:
+    code = main(argv)
+    err = capsys.readouterr().err
+    assert "Traceback" not in err, err
+    assert code in (0, 1, EXIT_FRAMES_LOST), (argv, code, err)
+    if code == 1:
+        errors = [ln for ln in err.strip().splitlines() if ln.startswith("ficap: error:")]
+        assert len(errors) == 1, err
+    return code
+
+
+@pytest.mark.parametrize("bag", BAGS, ids=lambda p: p.name)
+def test_bags_through_every_verb(bag: Path, tmp_path: Path,
+                                 capsys: pytest.CaptureFixture[str]) -> None:
+    out = tmp_path / "out"
+    code = _check_cli(["replay", str(bag), "--out", str(out), "--quiet"], capsys)
+    if bag.name in REPLAY_EXPECTED:
+        assert code == REPLAY_EXPECTED[bag.name]
+    if code in (0, EXIT_FRAMES_LOST):
+        summary = json.loads((out / "summary.json").read_text())
+        assert sum(summary["skipped_reasons"].values()) == summary["frames_skipped"]
+        assert (summary["lost"] is not None) == (code == EXIT_FRAMES_LOST)
+    _check_cli(["stats", str(bag), "--quiet"], capsys)
+    _check_cli(["model", "build", str(bag), "--out", str(tmp_path / "m.yaml"), "--quiet"], capsys)
+    _check_cli(["evaluate", "--truth", f"{bag}:/head_pose", "--estimate", f"{bag}:/head_pose",
+                "--out", str(tmp_path / "ev"), "--no-plots"], capsys)
+
+
+@pytest.mark.parametrize("bag", BAGS, ids=lambda p: p.name)
+def test_bag_readers_raise_only_ficap_errors(bag: Path) -> None:
+    try:
+        source = open_frames(bag)
+        frames = list(source.frames())
+    except FicapError:
+        return
+    for frame in frames:
+        assert (frame.image is None) == (frame.error is not None)
+    reader = open_bag_reader(bag)
+    reader.close()
+
+
+def test_duplicated_and_foreign_ids_are_kept_out_of_the_pose(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    assert main(["replay", str(VALID_BAG), "--out", str(out), "--quiet"]) == 0
+    rows = (out / "labels.csv").read_text().splitlines()[1:]
+    ids = [r.split(",")[-2] for r in rows]
+    assert ids[1] == ""  # 300 and 586 are not cap tags
+    assert ids[2] == "3"
+
+
+@pytest.mark.parametrize("image", IMAGES, ids=lambda p: p.name)
+def test_images_through_detect_and_the_decoder(image: Path,
+                                               capsys: pytest.CaptureFixture[str]) -> None:
+    code = _check_cli(["detect", str(image)], capsys)
+    # libjpeg decodes a JPEG cut short with the missing rows grey (and a throttled warning).
+    expected = {"tags_duplicated_ids.png": 0, "tags_foreign_ids.png": 0, "jpeg_truncated.jpg": 0}
+    assert code == expected.get(image.name, 1)
+    try:
+        decode_compressed(image.read_bytes())
+    except FicapError:
+        pass
+
+
+def test_detect_lists_duplicated_and_foreign_ids(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["detect", "--json", str(CORPUS / "tags_duplicated_ids.png"),
+                 str(CORPUS / "tags_foreign_ids.png")]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert [d["id"] for d in out[0]["detections"]] == [5, 5]
+    assert sorted(d["id"] for d in out[1]["detections"]) == [300, 586]
+
+
+@pytest.mark.parametrize("path", INTRINSICS, ids=lambda p: p.name)
+def test_bad_intrinsics(path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(FicapError):
+        load_camera_yaml(path)
+    assert _check_cli(["replay", str(VALID_BAG), "--out", str(tmp_path / "o"), "--intrinsics",
+                       str(path), "--quiet"], capsys) == 1
+
+
+@pytest.mark.parametrize("path", CALIBRATIONS, ids=lambda p: p.name)
+def test_bad_calibrations(path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(FicapError):
+        load_calibration(path)
+    assert _check_cli(["replay", str(VALID_BAG), "--out", str(tmp_path / "o"), "--calibration",
+                       str(path), "--quiet"], capsys) == 1
+
+
+@pytest.mark.parametrize("path", MODELS, ids=lambda p: p.name)
+def test_bad_models(path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(FicapError):
+        load_model(path)
+    assert _check_cli(["model", "--model", str(path)], capsys) == 1
+    assert _check_cli(["replay", str(VALID_BAG), "--out", str(tmp_path / "o"), "--model",
+                       str(path), "--quiet"], capsys) == 1
+
+
+@pytest.mark.parametrize("path", LABELS, ids=lambda p: p.name)
+def test_bad_labels(path: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    try:
+        labels = read_labels(path)
+    except FicapError:
+        labels = None
+    if path.name == "labels_torn_row.csv":
+        assert labels is not None and len(labels.stamp_ns) == 1  # the torn row is no frame
+    stats = _check_cli(["stats", str(path)], capsys)
+    assert stats == (0 if labels is not None else 1)
+    _check_cli(["calibrate", str(path), "--frontal", "0:1", "--out", str(tmp_path / "c.yaml")],
+               capsys)
+    _check_cli(["evaluate", "--truth", str(path), "--estimate", str(path), "--out",
+                str(tmp_path / "ev"), "--no-plots"], capsys)
+
+
+def test_node_starts_or_refuses_in_one_line_on_every_bad_file() -> None:
+    """The node's three file parameters with every bad YAML of the corpus (real rclpy)."""
+    import rclpy
+    from rclpy.context import Context
+    from rclpy.parameter import Parameter
+
+    from ficap_ros.node import FicapNode
+
+    context = Context()
+    rclpy.init(context=context)
+    try:
+        for param, files, fatal in (("camera_info_file", INTRINSICS, False),
+                                    ("calibration.file", CALIBRATIONS, False),
+                                    ("model_file", MODELS, True)):
+            for path in files:
+                try:
+                    node = FicapNode(context=context,
+                                     parameter_overrides=[Parameter(param, value=str(path))])
+                except FicapError as err:
+                    assert fatal, (param, path, err)
+                    assert "\n" not in str(err)
+                    continue
+                assert not fatal, (param, path)
+                assert not node.calibration.calibrated
+                node.destroy_node()
+    finally:
+        rclpy.try_shutdown(context=context)
+    assert np.isfinite(0.0)
