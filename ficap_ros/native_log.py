@@ -26,6 +26,9 @@ LIBRARY_LINE = re.compile(
     rb"\[[\w ,./-]+ @ 0x[0-9a-fA-F]+\])")
 
 
+_PIECE = re.compile(rb"(\r|\n)")
+
+
 class ThrottledStderr:
     """Context manager: C-library lines on fd 2 through ``emit``, throttled; the rest unchanged.
 
@@ -50,7 +53,19 @@ class ThrottledStderr:
         try:
             sys.stderr.flush()
             self._saved = os.dup(2)
-            self._read_fd, write_fd = os.pipe()
+            if os.isatty(2):
+                # A terminal stays a terminal (progress bars draw only on one): a pseudo-terminal
+                # of the same size, raw so that bytes pass unchanged.
+                import fcntl
+                import termios
+                import tty
+
+                self._read_fd, write_fd = os.openpty()
+                tty.setraw(write_fd)
+                size = fcntl.ioctl(self._saved, termios.TIOCGWINSZ, b"\0" * 8)
+                fcntl.ioctl(write_fd, termios.TIOCSWINSZ, size)
+            else:
+                self._read_fd, write_fd = os.pipe()
             os.dup2(write_fd, 2)
             os.close(write_fd)
         except OSError:
@@ -79,22 +94,25 @@ class ThrottledStderr:
         while True:
             try:
                 chunk = os.read(self._read_fd, 65536)
-            except OSError:
+            except OSError:  # EIO: the pseudo-terminal's last writer closed it
                 chunk = b""
             if not chunk:
                 break
             buffer += chunk
-            *lines, buffer = buffer.split(b"\n")
-            for line in lines:
-                self._line(line)
+            # Pieces end at \n or \r (a progress bar redraws its line after \r): each is
+            # passed on, or throttled when it is a library's line, as soon as it is complete.
+            parts = _PIECE.split(buffer)
+            buffer = parts.pop()
+            for text, end in zip(parts[0::2], parts[1::2]):
+                self._line(text, end)
         if buffer:
-            self._line(buffer)
+            self._line(buffer, b"\n")
         os.close(self._read_fd)
 
-    def _line(self, line: bytes) -> None:
-        match = LIBRARY_LINE.match(line)
+    def _line(self, line: bytes, end: bytes = b"\n") -> None:
+        match = LIBRARY_LINE.match(line) if end == b"\n" else None
         if match is None:
-            os.write(self._saved, line + b"\n")
+            os.write(self._saved, line + end)
             return
         kind = re.sub(rb"0x[0-9a-fA-F]+|\d+", b"#", line)[:40]
         now = time.monotonic()

@@ -401,19 +401,43 @@ def test_ctrl_c_during_parallel_replay_prints_one_line(tmp_path: Path) -> None:
     bag = tmp_path / "noise"
     _small_bag(bag, "mcap", n=300)
     out = tmp_path / "out"
-    env = {**os.environ, "PYTHONUNBUFFERED": "1"}
+    import pty
+    import re
+
+    # The progress bar (tqdm) draws only on a terminal: give the command one for stderr, and
+    # interrupt once the bar shows processed frames (the workers are busy then).
+    import fcntl
+    import struct
+    import termios
+
+    master, slave = pty.openpty()
+    fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 30, 120, 0, 0))  # 120 columns
     proc = subprocess.Popen([*FICAP, "replay", str(bag), "--out", str(out), "--jobs", "2"],
-                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, env=env,
-                            cwd=ROOT, start_new_session=True)
-    assert proc.stderr is not None
-    first = proc.stderr.readline()  # the first progress line: workers are running
-    assert first.startswith(b"ficap:"), first
-    os.killpg(proc.pid, signal.SIGINT)  # as a terminal's Ctrl-C: the whole process group
-    _, err = proc.communicate(timeout=120)
-    lines = [ln for ln in err.decode().splitlines() if not ln.startswith("ficap: ") or
-             "interrupted" in ln]
-    assert proc.returncode == 130, err.decode()
-    assert lines == ["ficap: interrupted"], err.decode()
+                            stdout=subprocess.DEVNULL, stderr=slave, cwd=ROOT,
+                            start_new_session=True)
+    os.close(slave)
+    seen = b""
+    try:
+        while not re.search(rb"\b[1-9]\d*/300\b", seen):
+            chunk = os.read(master, 4096)  # raises OSError (EIO) if the command ended first
+            seen += chunk
+        os.killpg(proc.pid, signal.SIGINT)  # as a terminal's Ctrl-C: the whole process group
+        while True:
+            try:
+                chunk = os.read(master, 4096)
+            except OSError:
+                break
+            if not chunk:
+                break
+            seen += chunk
+    finally:
+        proc.wait(timeout=120)
+        os.close(master)
+    text = seen.decode(errors="replace")
+    lines = [ln.strip() for ln in re.split(r"[\r\n]+", text) if ln.strip()]
+    other = [ln for ln in lines if not ln.startswith("frames:") and "\x1b" not in ln]
+    assert proc.returncode == 130, text
+    assert other == ["ficap: interrupted"], text
     assert not out.exists()
 
 
