@@ -146,6 +146,26 @@ def capped_jobs(requested: int) -> tuple[int, str]:
     return max(requested, 1), ""
 
 
+def _quiet_pool(ctx: Any, jobs: int, initargs: tuple) -> Any:
+    """A worker pool whose processes ignore Ctrl-C from their first instruction.
+
+    Ctrl-C reaches the whole process group; only the main process must handle it (stop the pool,
+    print one line). The initializer also ignores SIGINT, but a worker still importing numpy or
+    scipy when Ctrl-C comes has not run it yet: start the workers with SIGINT ignored (an
+    ignored signal stays ignored across exec, and Python keeps it so).
+    """
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return ctx.Pool(jobs, initializer=_init_worker, initargs=initargs)
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        return ctx.Pool(jobs, initializer=_init_worker, initargs=initargs)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def process_frames(
     raws: Iterable[RawFrame], model: CapModel, pose: PoseConfig, jobs: int = 1,
     on_progress: Callable[[int], None] | None = None,
@@ -175,7 +195,7 @@ def process_frames(
 
     ctx = multiprocessing.get_context("spawn")
     counter = ctx.Value("q", 0)
-    pool = ctx.Pool(jobs, initializer=_init_worker, initargs=(model, pose, True, counter))
+    pool = _quiet_pool(ctx, jobs, (model, pose, True, counter))
     try:
         # Bounded look-ahead: Pool.imap would read the whole bag into memory ahead of the
         # workers, so keep one segment per worker in flight plus one, in order.
