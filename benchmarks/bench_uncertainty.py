@@ -9,7 +9,7 @@ of ``T_cam_cap``: the geodesic rotation angle and the translation length. Per se
     and, beside it, the residual-only bound (sigma_res^2 (J^T J)^-1, the covariance before).
 Sets: every ``../shared/data/blender_dev`` set (independent renders; a check, nothing is tuned to
 them) and ``ficap synth`` drives (540p/1080p x neutral/high/low, one frame a second of a
-naturalistic drive, seed per condition). Ours (joint) and the naive peer (OpenCV sub-pixel corners +
+naturalistic drive, seed per condition, the realistic image chain ``ficap synth`` renders). Ours (joint) and the naive peer (OpenCV sub-pixel corners +
 SQPnP/LM), whose worse corners the bounds must follow too.
 
 Usage: .venv/bin/python benchmarks/bench_uncertainty.py [--frames 60] [--record] [--dump FILE]
@@ -123,7 +123,7 @@ def blender_sets() -> dict[str, tuple]:
 
 
 def synth_sets(n_frames: int, resolutions: list[str], lightings: list[str]) -> dict[str, tuple]:
-    from ficap_ros.synth import RenderConfig, default_scene, naturalistic_drive, render
+    from ficap_ros.synth import REALISTIC, RenderConfig, default_scene, naturalistic_drive, render
 
     model = nominal_model()
     out = {}
@@ -133,7 +133,7 @@ def synth_sets(n_frames: int, resolutions: list[str], lightings: list[str]) -> d
             seed = 100 + 10 * i + j
             # One frame a second: tracking restarts every frame, as on the irregular blender sets.
             drive = naturalistic_drive(n_frames * 30, fps=30.0, seed=seed, scene=scene)[::30]
-            cfg = RenderConfig(lighting=light)
+            cfg = RenderConfig(lighting=light, **REALISTIC)  # what `ficap synth` renders
 
             def frames(drive=drive, cfg=cfg, scene=scene, seed=seed):  # noqa: ANN001, ANN202
                 for d in drive:

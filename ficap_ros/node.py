@@ -144,7 +144,7 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("pose.min_tags", 1, "Fewest tags for a pose.", range=(1, 23)),
     ParamSpec("uncertainty.corner_noise_px", _UNCERTAINTY.corner_noise_px,
               "Covariance floor (added to the residual-based term): independent corner noise, px.",
-              range=(0.001, 10.0)),
+              range=(0.0001, 10.0)),
     ParamSpec("uncertainty.corner_bias_px", _UNCERTAINTY.corner_bias_px,
               "Covariance floor: per-tag radial corner bias, px.", range=(0.0, 10.0)),
     ParamSpec("uncertainty.corner_bias_common_px", _UNCERTAINTY.corner_bias_common_px,
@@ -156,6 +156,9 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("uncertainty.model_deg", _UNCERTAINTY.model_deg,
               "Covariance floor: each tag plate's turn against the cap model, deg per axis.",
               range=(0.0, 20.0)),
+    ParamSpec("uncertainty.residual_inflation", _UNCERTAINTY.residual_inflation,
+              "Covariance: factor on the residual-based sigmas for corner errors neighbouring tags "
+              "share (calibrated on ficap synth drives).", range=(1.0, 10.0)),
     ParamSpec("uncertainty.principal_point_px", _UNCERTAINTY.principal_point_px,
               "Covariance: principal point error of the intrinsics, px per axis (0 = exact; a "
               "constant offset that a frontal calibration absorbs in the head angles).",
@@ -836,7 +839,8 @@ def _pose_config(cfg: NodeConfig) -> PoseConfig:
     """The pose settings of the parameters (estimator and covariance floors)."""
     u = {f: cfg[f"uncertainty.{f}"] for f in ("corner_noise_px", "corner_bias_px",
                                                "corner_bias_common_px", "model_mm", "model_deg",
-                                               "principal_point_px", "focal_rel")}
+                                               "principal_point_px", "focal_rel",
+                                               "residual_inflation")}
     return PoseConfig(method=cfg["pose.method"], min_tags=cfg["pose.min_tags"],
                       uncertainty=UncertaintyConfig(**u))
 

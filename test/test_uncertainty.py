@@ -82,7 +82,7 @@ def _floors_only(corners: dict[int, np.ndarray], T, cfg: UncertaintyConfig) -> n
 
 
 SOURCES = UncertaintyConfig(corner_noise_px=0.1, corner_bias_px=0.1, corner_bias_common_px=0.1,
-                            model_mm=0.3, model_deg=0.5)
+                            model_mm=0.3, model_deg=0.5, residual_inflation=1.0)
 
 
 def _monte_carlo(T, cfg: UncertaintyConfig, config: PoseConfig, n: int = 300):  # noqa: ANN001, ANN202
@@ -123,7 +123,7 @@ def test_residuals_alone_cover_what_they_show() -> None:
     the frame's tags) covers errors from noise, per-tag bias and misplaced plates by itself."""
     T = _truth(25.0)
     tiny = UncertaintyConfig(corner_noise_px=1e-4, corner_bias_px=0.0, corner_bias_common_px=0.0,
-                             model_mm=0.0, model_deg=0.0)
+                             model_mm=0.0, model_deg=0.0, residual_inflation=1.0)
     drawn = UncertaintyConfig(corner_noise_px=0.1, corner_bias_px=0.1, corner_bias_common_px=0.0,
                               model_mm=0.3, model_deg=0.5)
     _, mc = _monte_carlo(T, drawn, PoseConfig(uncertainty=tiny))
