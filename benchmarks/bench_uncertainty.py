@@ -202,7 +202,8 @@ def main() -> int:
                 f"(`UncertaintyConfig` defaults): corner noise {u.corner_noise_px} px, corner bias "
                 f"{u.corner_bias_px} px per tag and {u.corner_bias_common_px} px common, cap model "
                 f"{u.model_mm} mm / {u.model_deg} deg per plate, intrinsics {u.principal_point_px} px "
-                f"/ {u.focal_rel} (exact for rendered data). blender_dev is a check: nothing is "
+                f"/ {u.focal_rel} (exact for rendered data); residual-based sigmas x"
+                f"{u.residual_inflation} (calibrated on the synth rows). blender_dev is a check: nothing is "
                 "tuned to it. Synth: one frame a second of a naturalistic drive per condition.\n\n"
                 + table)
         record_section("Calibrated uncertainty (bench_uncertainty.py)", body)
