@@ -121,6 +121,7 @@ def main() -> int:
     t0 = time.time()
     rows = []
     worst_ratio = {m: 1.0 for m in names}
+    ratios: dict[str, list[float]] = {"radial": [], "rms": []}
     for set_name in args.sets.split(","):
         ds = blender_dev.load_set(set_name)
         # The consecutive-frame set: every 5th frame, so its poses differ like the other sets'.
@@ -135,6 +136,8 @@ def main() -> int:
             ratio_r = s["radial_mean"] / b["radial_mean"] if b["radial_mean"] else float("nan")
             ratio_rms = s["rms"] / b["rms"] if b["rms"] else float("nan")
             agree = all(1 / AGREE_FACTOR <= x <= AGREE_FACTOR for x in (ratio_r, ratio_rms))
+            ratios["radial"].append(ratio_r)
+            ratios["rms"].append(ratio_rms)
             for x in (ratio_r, ratio_rms):
                 if np.isfinite(x) and x > 0:
                     worst_ratio[m] = max(worst_ratio[m], x, 1 / x)
@@ -169,6 +172,21 @@ def main() -> int:
             "",
             "Worst ratio per method (max of ratio and 1/ratio over sets, radial and rms): "
             + ", ".join(f"{m} {v:.2f}" for m, v in worst_ratio.items()) + ".",
+            "",
+            f"Reading it: the inward bias (mean radial offset) agrees closely, synth/blender "
+            f"{np.nanmin(ratios['radial']):.2f}-{np.nanmax(ratios['radial']):.2f}, in every set, tone "
+            "curve and lighting: it is the physics of the chain (blur in linear light, then the tone "
+            "curve and clipping), which both renderers share. The rms is lower on synth frames "
+            f"({np.nanmin(ratios['rms']):.2f}-{np.nanmax(ratios['rms']):.2f} of blender's), most for "
+            "OpenCV sub-pixel: the part of the error that is scatter around the bias has sources synth "
+            "does not model: path-tracing noise at 6-8 samples per pixel on top of the sensor noise, "
+            "plates that are real geometry (the cap's surfaces, shading across a tag), and a busier "
+            "scene next to the tags (headrest, ears, seat). The clean-tag corner counts also differ: "
+            "the same detectors find fewer of blender's clean tags at 540p (the `ficap edge` column's "
+            "count against synth's for the same poses), again a scatter/contrast effect rather than a "
+            "bias. Renderer constants are physical choices (black ink 5 % of white paper, full well "
+            "8000 e-, read noise 4 e-, flare 0.4-0.8 % of full well, the paper's three spotlights for "
+            "high light), not fits to these frames.",
         ])
         record_section("Renderer realism (synth vs blender_dev)", body)
     return 0
