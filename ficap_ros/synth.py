@@ -42,9 +42,11 @@ Why the order matters: a lens blurs light, the camera then bends it. After a ton
 grey point of a blurred black/white edge sits on the black side of the true edge (about 0.5-0.8
 sigma for sRGB, further where whites clip), which is what corner methods that look for a grey
 midpoint or a gradient peak inherit on real images. ``tone="linear", psf_sigma_px=0`` gives the
-idealised images the geometry tests want. Cost, roughly (2 shared cores, one thread): 60-110 ms
-per 540p frame and 70-180 ms per 1080p frame (most of it the faces and the head); motion blur
-multiplies the scene part by its sub-frame count.
+idealised images the geometry tests want. Cost (measured roughly on a loaded shared machine, one
+thread, against the renderer before this chain): 540p about the same (105 vs 125 ms per frame
+there), 1080p about 1.5x (289 vs 192 ms: big faces are now supersampled at least 3x); the camera
+stages themselves are a few ms. Motion blur renders the scene once per sub-frame (odd count, <= 0.5
+px of corner travel between two), so only fast motion costs more (+10 % over a drive at 8 ms).
 
 Motion (``naturalistic_drive``): a list of ``DriveFrame`` with the true head orientation in the
 frontal frame F (x forward, y left, z up), the head angles and the true cap pose in the camera, from
