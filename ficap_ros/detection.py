@@ -12,7 +12,8 @@ against ``cv2.cornerSubPix`` and OpenCV's AprilTag refinement.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 from functools import lru_cache
 from typing import Any
 
@@ -30,6 +31,8 @@ __all__ = [
     "unbias_corners_edge",
     "fit_tag_edges",
     "refine_tag_corners",
+    "shift_tag_edges",
+    "with_frame_edge_shift",
     "tag_cells",
     "tag_homographies",
     "TAG_CELLS",
@@ -57,12 +60,16 @@ class TagDetection:
         corners_px: (4, 2) float64, OpenCV order and pixel convention, distorted image.
         hamming: bit errors corrected while decoding (0 when the backend does not say).
         decision_margin: backend's decoding confidence (NaN when the backend does not say).
+        edge_shift_px: how far the camera's tone curve moved this tag's black/white edges toward
+            the black, px, as its cell-edge fit measured and removed (``fit_tag_edges``); NaN
+            when the tag was not fitted (too small or oblique, or another corner refinement).
     """
 
     tag_id: int
     corners_px: np.ndarray
     hamming: int = 0
     decision_margin: float = float("nan")
+    edge_shift_px: float = float("nan")
 
     def __post_init__(self) -> None:
         c = np.asarray(self.corners_px, dtype=np.float64).reshape(4, 2).copy()
@@ -277,14 +284,15 @@ class TagDetector:
         if len(rejected) and self.config.corner_refine == "edge" and self.config.decode_rejected:
             ids, corners, hamming, margin = self._second_chance(
                 full, rejected + offset, ids, corners, hamming, margin)
+        shift = np.full(len(ids), np.nan)
         if len(ids) and self.config.corner_refine == "edge":
             # Free of the tone-curve bias, every tag found (searched or read again).
-            corners = refine_tag_corners(full, corners, ids, self.config)
+            corners, shift = refine_tag_corners(full, corners, ids, self.config)
         elif len(ids) and self.config.corner_refine == "subpix" and self._apriltag is not None:
             corners = _subpix(full, corners)
         return [
-            TagDetection(int(i), c, int(h), float(m))
-            for i, c, h, m in zip(ids, corners, hamming, margin)
+            TagDetection(int(i), c, int(h), float(m), float(e))
+            for i, c, h, m, e in zip(ids, corners, hamming, margin, shift)
         ]
 
     def _set_search_scale(self, scale: float, decimated: bool = False) -> None:
@@ -729,17 +737,27 @@ def _intersect_sides(nrm: np.ndarray, rho: np.ndarray) -> np.ndarray:
 
 def refine_tag_corners(
     gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray, config: DetectorConfig | None = None
-) -> np.ndarray:
+) -> tuple[np.ndarray, np.ndarray]:
     """The tag-aware stage after the line fit: ``unbias_corners_edge`` then ``fit_tag_edges``
     (each as ``config`` enables it) on every tag whose cells span ``_MIN_TAG_CELL_PX`` both ways;
-    a smaller tag keeps its line-fit corners. A tag's corners depend on its own pixels only (a
-    region search gives the full frame's corners). Corners (N, 4, 2) from
-    ``refine_corners_edge``; ids (N,).
+    a smaller tag keeps its line-fit corners (``shift_tag_edges`` can move them by the frame's
+    shift). A tag's corners depend on its own pixels only (a region search gives the full frame's
+    corners).
+
+    Args:
+        gray: (H, W) uint8 image.
+        corners_px: (N, 4, 2) corners from ``refine_corners_edge``.
+        ids: (N,) their ids.
+        config: detector settings.
+
+    Returns:
+        (corners (N, 4, 2), edge shift px (N,): ``fit_tag_edges``'s delta, NaN where not fitted).
     """
     cfg = config or DetectorConfig()
     corners = np.array(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    delta = np.full(len(corners), np.nan)
     if len(corners) == 0 or cfg.corner_refine != "edge" or not (cfg.edge_unbias or cfg.edge_fit):
-        return corners
+        return corners, delta
     ids = np.asarray(ids).reshape(-1)
     nrm, rho = _side_lines(corners)
     # Width of the tag across each side (opposite corners from the side's line), in cells.
@@ -750,9 +768,35 @@ def refine_tag_corners(
         if cfg.edge_unbias:
             c = unbias_corners_edge(gray, c, ids[good], cfg)
         if cfg.edge_fit:
-            c = fit_tag_edges(gray, c, ids[good], cfg, cfg.edge_fit_iterations)[0]
+            c, delta[good] = fit_tag_edges(gray, c, ids[good], cfg, cfg.edge_fit_iterations)
         corners[good] = c
-    return corners
+    return corners, delta
+
+
+def with_frame_edge_shift(detections: Sequence[TagDetection]) -> tuple[TagDetection, ...]:
+    """The detections of one frame, the unfitted ones (``edge_shift_px`` NaN) moved out by the
+    median shift of the fitted ones (unchanged when none was fitted; their ``edge_shift_px``
+    stays NaN: measured on other tags, not on them)."""
+    shifts = [d.edge_shift_px for d in detections if np.isfinite(d.edge_shift_px)]
+    todo = [k for k, d in enumerate(detections) if not np.isfinite(d.edge_shift_px)]
+    if not shifts or not todo:
+        return tuple(detections)
+    moved = shift_tag_edges(np.array([detections[k].corners_px for k in todo]), float(np.median(shifts)))
+    out = list(detections)
+    for k, c in zip(todo, moved):
+        out[k] = replace(out[k], corners_px=c)
+    return tuple(out)
+
+
+def shift_tag_edges(corners_px: np.ndarray, shift_px: float) -> np.ndarray:
+    """Line-fit corners (N, 4, 2) with every side moved out by ``shift_px``: the frame's tone-curve
+    shift applied to tags too small or oblique to measure their own (the shift is the camera's
+    blur and tone curve, so it is shared by the tags of a frame)."""
+    c = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    if len(c) == 0 or not np.isfinite(shift_px):
+        return c.copy()
+    nrm, rho = _side_lines(c)
+    return _intersect_sides(nrm, rho + float(shift_px))
 
 
 def unbias_corners_edge(

@@ -20,6 +20,7 @@ from ficap_ros.detection import (
     as_gray,
     refine_corners_edge_ok,
     refine_tag_corners,
+    with_frame_edge_shift,
 )
 from ficap_ros.pose import CapPose, PoseConfig, estimate_cap_pose
 from ficap_ros.tracking import TrackConfig, extrapolate_pose, predict_tags, verify_tags, view_angles_deg
@@ -221,11 +222,13 @@ class FrameProcessor:
         largest distance, px, a verified tag's corner moved from its prediction."""
         refined, ok = self._refine_predicted(gray, corners)
         # The tone-curve bias and the cell-edge fit, as on searched tags (one corner estimator).
-        refined[ok] = refine_tag_corners(gray, refined[ok], ids[ok], self._tracked_corners)
+        shift = np.full(len(ids), np.nan)
+        refined[ok], shift[ok] = refine_tag_corners(gray, refined[ok], ids[ok], self._tracked_corners)
         ver, errors, contrast = verify_tags(gray, ids[ok], refined[ok], self.track_config)
         moved = np.linalg.norm(refined[ok][ver] - corners[ok][ver], axis=2)
-        return ([TagDetection(int(i), c, int(e), float(m))
-                 for i, c, e, m in zip(ids[ok][ver], refined[ok][ver], errors[ver], contrast[ver])],
+        return ([TagDetection(int(i), c, int(e), float(m), float(x))
+                 for i, c, e, m, x in zip(ids[ok][ver], refined[ok][ver], errors[ver], contrast[ver],
+                                          shift[ok][ver])],
                 float(moved.max()) if moved.size else 0.0)
 
     def _track_tags(
@@ -392,6 +395,8 @@ class FrameProcessor:
             detections, predicted, search = self._detect_tracked(gray, camera, int(stamp_ns))
         else:
             detections = self.detect(image)
+        # Tags too small or oblique to measure their own tone-curve shift take the frame's.
+        detections = with_frame_edge_shift(detections)
         t1 = time.perf_counter()
         result = estimate_cap_pose(self._pose_grade(detections, predicted), self.model, camera,
                                    self.pose_config, start=predicted)

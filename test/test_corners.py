@@ -121,3 +121,22 @@ def test_fit_recovers_a_known_erosion() -> None:
     err, _ = corner_errors_px(fitted, true[None])
     assert err.max() <= 0.05  # from 0.57 px radial; what is left is the sampling of unblurred edges
     assert fitted_delta[0] == pytest.approx(delta, abs=0.03)
+
+
+def test_frame_edge_shift_moves_only_the_unfitted_tags() -> None:
+    """A tag too small to fit its own edges takes the median shift of the frame's fitted tags:
+    each side moves out by it (a square of side s grows to s + 2 shift); fitted tags stay."""
+    from ficap_ros.detection import TagDetection, with_frame_edge_shift
+
+    square = np.array([[10.0, 10.0], [30.0, 10.0], [30.0, 30.0], [10.0, 30.0]])
+    fitted = [TagDetection(1, square + 100, edge_shift_px=0.3), TagDetection(2, square + 200, edge_shift_px=0.5),
+              TagDetection(3, square + 300, edge_shift_px=0.4)]
+    small = TagDetection(4, square, edge_shift_px=float("nan"))
+    out = with_frame_edge_shift(fitted + [small])
+    for a, b in zip(out[:3], fitted):
+        np.testing.assert_array_equal(a.corners_px, b.corners_px)
+    np.testing.assert_allclose(out[3].corners_px, square + np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * 0.4,
+                               atol=1e-9)
+    assert np.isnan(out[3].edge_shift_px)
+    # Nothing fitted (another corner refinement): nothing moves.
+    assert with_frame_edge_shift([small])[0] is small
