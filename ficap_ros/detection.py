@@ -108,7 +108,8 @@ class DetectorConfig:
             0 (default) = the largest factor (up to 4) that keeps the searched image's longer
             side at least ``search_min_side_px`` (1080p: 2, 4K: 4, 720p and below: 1), where
             the cap's tags stay large enough for ArUco (a fourth of the pixels to search);
-            AprilTag 3 has its own ``quad_decimate``, so 0 is 1 there.
+            AprilTag 3 has its own ``quad_decimate``, and ArUco's own corner refinements
+            (``subpix``, ``apriltag``) would refine on the decimated image, so 0 is 1 for those.
         decimated_thresh_win_size_px: a decimated ArUco search thresholds once, with this
             window (px of the searched image), instead of over the adaptive_thresh_win_size
             range: a third of the search's cost. The tags of a frame large enough to decimate
@@ -255,8 +256,11 @@ class TagDetector:
             ImageError: invalid image or ROI.
         """
         full = as_gray(image)
+        # Auto decimation only where the corners are refined on the full image afterwards (``edge``):
+        # ArUco's own refinements (``subpix``, ``apriltag``) would run on the decimated image.
         dec = int(self.config.search_decimate) or (
-            1 if self._apriltag is not None else _auto_decimate(full.shape, self.config.search_min_side_px))
+            1 if self._apriltag is not None or self.config.corner_refine != "edge"
+            else _auto_decimate(full.shape, self.config.search_min_side_px))
         x0, y0, x1, y1 = (0, 0, full.shape[1], full.shape[0]) if roi is None else _clip_roi(roi, full.shape)
         if dec > 1:
             # Decimation cells aligned with the full image's, so a ROI search sees the same pixels.
