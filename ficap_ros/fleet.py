@@ -45,7 +45,7 @@ from typing import Any, Callable, Iterable, Iterator, Sequence
 from ficap_ros import __version__
 from ficap_ros.bag_io import VIDEO_SUFFIXES, FrameSource, RawFrame, write_file_atomic
 from ficap_ros.cap_model import CapModel
-from ficap_ros.errors import BagError, FicapError
+from ficap_ros.errors import BagError, ConfigError, FicapError
 from ficap_ros.pipeline import HeadCalibration
 from ficap_ros.pose import PoseConfig
 
@@ -333,14 +333,21 @@ class RayEngine:
         # The variable is read when ray is imported (here, and by the worker processes, which
         # inherit it); a ray imported earlier gets the constant set as well.
         os.environ.setdefault("RAY_USAGE_STATS_ENABLED", "0")
-        if address is None:
+        loopback = address is None or _is_loopback_address(address)
+        if loopback:
             os.environ["RAY_ENABLE_WINDOWS_OR_OSX_CLUSTER"] = "0"
-        import ray
+        if address is not None:
+            _check_reachable(address)
+        try:
+            import ray
+        except ModuleNotFoundError as err:
+            raise ConfigError("--ray needs ray: pip install ray==2.60.0 (pinned in requirements.txt; "
+                              "the extra ficap_ros[ray])") from err
 
         self._ray = ray
         self._owned = not ray.is_initialized()
         if self._owned:
-            if address is None:
+            if loopback:
                 from ray._private import ray_constants
 
                 ray_constants.ENABLE_RAY_CLUSTER = False
@@ -352,12 +359,12 @@ class RayEngine:
                 else:
                     ray.init(address=address, log_to_driver=False, logging_level="ERROR")
             except Exception as err:  # ray raises ConnectionError, RuntimeError, ValueError ...
-                raise BagError(f"cannot start Ray{'' if address is None else f' at {address}'}: "
+                raise ConfigError(f"cannot start Ray{'' if address is None else f' at {address}'}: "
                                f"{str(err).splitlines()[0] if str(err) else type(err).__name__}") from err
             node_ip = ray.util.get_node_ip_address()
             if address is None and not node_ip.startswith("127."):
                 ray.shutdown()
-                raise BagError(f"the embedded Ray came up on {node_ip}, not loopback; refusing to run")
+                raise ConfigError(f"the embedded Ray came up on {node_ip}, not loopback; refusing to run")
         self.cpus = max(int(ray.cluster_resources().get("CPU", 1)), 1)
         # Two segments per CPU in flight: workers never wait for the driver, and the driver holds
         # at most 2 x CPUs x 128 undecoded frames.
@@ -405,6 +412,34 @@ class RayEngine:
     def close(self) -> None:
         if self._owned and self._ray.is_initialized():
             self._ray.shutdown()
+
+
+def _host_port(address: str) -> tuple[str, int] | None:
+    """(host, port) of ``HOST:PORT`` or ``ray://HOST:PORT``; None for ``auto`` and the like."""
+    text = address.split("://", 1)[-1].rstrip("/")
+    host, sep, port = text.rpartition(":")
+    if not sep or not port.isdigit() or not host:
+        return None
+    return host.strip("[]"), int(port)
+
+
+def _is_loopback_address(address: str) -> bool:
+    hp = _host_port(address)
+    return hp is not None and (hp[0] in ("localhost", "::1") or hp[0].startswith("127."))
+
+
+def _check_reachable(address: str, timeout_s: float = 5.0) -> None:
+    """Fail in one line when a cluster's port does not answer (ray.init retries for minutes)."""
+    import socket
+
+    hp = _host_port(address)
+    if hp is None:
+        return
+    try:
+        with socket.create_connection(hp, timeout=timeout_s):
+            pass
+    except OSError as err:
+        raise ConfigError(f"no Ray cluster answers at {address}: {err.strerror or err}") from err
 
 
 # -- the fleet -----------------------------------------------------------------------------------
@@ -520,7 +555,7 @@ def run_fleet(
         One result per recording, in the given order. A failing recording does not stop the others.
 
     Raises:
-        BagError: ``out`` not writable; Ray not startable.
+        BagError: ``out`` not writable. ConfigError: Ray missing or not startable.
     """
     from ficap_ros import replay as replay_mod
 

@@ -307,3 +307,19 @@ def test_ray_retries_a_dead_worker_and_fails_only_the_broken_recording(
     assert by_rel["d2"].status == "failed" and "pipeline bug on this segment" in by_rel["d2"].error
     assert (tmp_path / "isolated/d1/labels.csv").read_bytes() == (ref / "labels.csv").read_bytes()
     assert not (tmp_path / "isolated/d2/summary.json").exists()
+
+
+def test_unreachable_cluster_is_one_line(fleet_in: Path, tmp_path: Path, capsys) -> None:
+    """--ray-address that nothing answers: a one-line error at once (ray.init would retry for
+    minutes), and nothing written."""
+    import socket
+
+    with socket.socket() as s:  # a loopback port that was free a moment ago
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    rc = main(["replay", str(fleet_in / "alice/d1"), "--out", str(tmp_path / "o"),
+               "--ray-address", f"127.0.0.1:{port}", "--quiet"])
+    err = capsys.readouterr().err
+    assert rc == 1 and f"no Ray cluster answers at 127.0.0.1:{port}" in err
+    assert len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "o" / "labels.csv").exists()
