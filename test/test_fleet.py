@@ -119,6 +119,8 @@ def test_ray_fleet_identical_resumable_and_reports_damage(
     for rel in ("alice/d1", "bob/d2"):
         refs[rel] = tmp_path / "ref" / rel
         assert main(["replay", str(fleet_in / rel), "--out", str(refs[rel]), "--quiet"]) == 0
+    cut_ref = tmp_path / "ref" / "cut"
+    assert main(["replay", str(fleet_in / "bob/cut.mcap"), "--out", str(cut_ref), "--quiet"]) == 3
     out = tmp_path / "out"
     args = ["replay", str(fleet_in), "--out", str(out), "--ray", "--jobs", "2", "--quiet"]
     # The cut recording yields its frames before the cut (issue 13's recovery): "damaged", and
@@ -139,6 +141,9 @@ def test_ray_fleet_identical_resumable_and_reports_damage(
     assert rows["alice/d1"]["frames"] == FRAMES and rows["alice/d1"]["pct_with_pose"] == 100.0
     assert 0.5 < rows["alice/d1"]["reliability_mean"] <= 1.0
     assert rows["bob/cut"]["status"] == "damaged"
+    # What was recovered is labelled exactly as a single replay of the cut file labels it.
+    for name in ("labels.csv", "labels.mcap"):
+        assert (out / "bob/cut" / name).read_bytes() == (cut_ref / name).read_bytes(), name
     assert 0 < rows["bob/cut"]["frames"] < FRAMES and rows["bob/cut"]["frames_lost"] > 0
     assert doc["fleet"]["engine"] == "ray" and doc["fleet"]["workers"] == 2
     assert doc["fleet"]["frames_processed"] == 2 * FRAMES + rows["bob/cut"]["frames"]
