@@ -717,6 +717,17 @@ def _inner_edge_samples(tag_id: int) -> tuple[np.ndarray, np.ndarray]:
     return out
 
 
+def _stack_samples(
+    tables: list[tuple[np.ndarray, ...]],
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[np.ndarray]]:
+    """Per-tag sample tables stacked tag after tag: (counts (N,), tag of each sample (T,), first
+    sample of each tag (N,), the tables' columns concatenated)."""
+    counts = np.array([len(t[0]) for t in tables])
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    columns = [np.concatenate([t[k] for t in tables]) for k in range(len(tables[0]))]
+    return counts, np.repeat(np.arange(len(tables)), counts), starts, columns
+
+
 def _side_lines(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Outward unit normals (N, 4, 2) and offsets rho (N, 4) of the lines through corners k, k+1
     (a point p is on side k's line when normal . p = rho; larger = further out)."""
@@ -840,12 +851,7 @@ def unbias_corners_edge(
     n = len(c_in)
     if n == 0:
         return c_in.copy()
-    tables = [_inner_edge_samples(int(i)) for i in ids]
-    counts = np.array([len(t[0]) for t in tables])
-    tag_of = np.repeat(np.arange(n), counts)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    side = np.concatenate([t[0] for t in tables])
-    uv = np.concatenate([t[1] for t in tables])
+    counts, tag_of, starts, (side, uv) = _stack_samples([_inner_edge_samples(int(i)) for i in ids])
     # uv on the outer edge straight across from each inner sample (one cell out).
     uv_out = uv + _SIDE_OUT[side]
     nrm, rho = _side_lines(c_in)
@@ -1031,12 +1037,7 @@ def fit_tag_edges(
     delta = np.full(n, np.nan)
     if n == 0:
         return c_in.copy(), delta
-    tables = [_cell_edge_samples(int(i)) for i in ids]
-    counts = np.array([len(t[0]) for t in tables])
-    tag_of = np.repeat(np.arange(n), counts)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    uv = np.concatenate([t[0] for t in tables])
-    nu = np.concatenate([t[1] for t in tables])
+    counts, tag_of, starts, (uv, nu) = _stack_samples([_cell_edge_samples(int(i)) for i in ids])
     u, v = uv[:, 0], uv[:, 1]
     try:
         h = tag_homographies(c_in).reshape(n, 9)[:, :8].copy()
