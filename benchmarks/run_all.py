@@ -1,4 +1,5 @@
-"""Run every benchmark with modest sizes (about 15-20 min on 2 idle cores) and record the tables.
+"""Run every benchmark with modest sizes (about 15-20 min on 2 idle cores, plus the 10 min soak) and
+record the tables.
 
 Each script writes its section of docs/benchmarks.md (replacing the section of the same name) with
 machine, date, commit and load. Full-size runs: call the scripts directly, e.g.
@@ -24,6 +25,8 @@ RUNS = {
     "accuracy": ["bench_accuracy.py", "--frames", "1800", "--stride", "18"],
     "node": ["bench_node.py", "--rates", "10,15,30,60", "--seconds", "4"],
     "pipeline": ["bench_pipeline.py", "--frames", "20"],
+    # Issue 13's soak is long by definition (10 min at 30 Hz): skip it with --only when in a hurry.
+    "soak": ["bench_soak.py", "--minutes", "10"],
 }
 
 

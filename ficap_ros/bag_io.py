@@ -29,7 +29,7 @@ import numpy as np
 
 from ficap_ros.camera import CameraModel, camera_from_info, load_camera_yaml
 from ficap_ros.errors import BagError, FicapError, ImageError, OutputError
-from ficap_ros.image_codec import decode_compressed, decode_image
+from ficap_ros.image_codec import check_pixel_budget, decode_compressed, decode_image
 
 __all__ = [
     "IMAGE_TYPE",
@@ -483,6 +483,11 @@ class FrameSource:
                     break
                 stamp = int(round(index * 1e9 / self._fps))
                 gray = cv2.cvtColor(img, cv2.COLOR_BGR2GRAY) if img.ndim == 3 else img
+                if index == 0:
+                    try:
+                        check_pixel_budget(gray.shape[1], gray.shape[0], what=f"video {self.path}")
+                    except ImageError as err:
+                        raise BagError(str(err)) from None
                 if index == 0 and (gray.shape[1], gray.shape[0]) != (camera.width_px,
                                                                      camera.height_px):
                     camera = _camera_for_size(camera, gray.shape[1], gray.shape[0], self.path)

@@ -163,6 +163,9 @@ def test_stats_and_model_build_read_a_cut_mcap(drive: Path, tmp_path: Path,
     cut = _cut_copy(drive, tmp_path / "cut", 0.9)
     assert main(["stats", str(cut), "--quiet"]) == EXIT_FRAMES_LOST
     assert "LOST" in capsys.readouterr().out
+    main(["model", "build", str(cut), "--out", str(tmp_path / "m.yaml"), "--quiet",
+          "--max-frames", "20"])
+    assert f"{cut}: LOST " in capsys.readouterr().err
     frames = list(open_frames(cut).frames())
     assert len(frames) >= 0.8 * FRAMES and all(f.image is not None for f in frames)
 
@@ -216,6 +219,20 @@ def test_video_cut_mid_frame(tmp_path: Path) -> None:
     assert 20 <= n < 30
     assert source.loss is not None and source.loss.frames_lost == 30 - n
     assert source.loss.until_ns == pytest.approx(29 / 25 * 1e9, abs=1)
+
+
+def test_video_above_the_pixel_budget(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    video = tmp_path / "v.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (160, 120))
+    for i in range(3):
+        writer.write(np.full((120, 160, 3), 40 * i, np.uint8))
+    writer.release()
+    intrinsics = tmp_path / "cam.yaml"
+    intrinsics.write_text(yaml.safe_dump(CameraModel.pinhole(160, 120, f_px=100.0)
+                                         .to_camera_yaml()))
+    monkeypatch.setenv("FICAP_MAX_PIXELS", str(160 * 120 - 1))
+    with pytest.raises(BagError, match="budget"):
+        list(open_frames(video, intrinsics=intrinsics).raw_frames())
 
 
 def test_folder_of_a_recorder_killed_before_metadata(drive: Path, tmp_path: Path) -> None:

@@ -120,6 +120,9 @@ def run_build(args: argparse.Namespace) -> int:
             if read % 100 == 0:
                 say(f"{path}: {read} frames read, {kept} with >= {config.min_tags_per_frame} tags")
         say(f"{path}: {read} frames read, {kept} with >= {config.min_tags_per_frame} tags")
+        if source.loss is not None:  # a damaged recording: its frames before the damage are used
+            print(f"ficap: warning: {path}: {source.loss.describe(source.start_ns)}",
+                  file=sys.stderr)
     result = build_model(frames, cameras, nominal=start, config=config, progress=say,
                          allow_partial=args.allow_partial)
     print(result.table())
