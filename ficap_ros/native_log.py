@@ -40,19 +40,25 @@ class ThrottledStderr:
     def __init__(self, emit: Callable[[str], None] | None = None, throttle_s: float = 5.0) -> None:
         self.throttle_s = float(throttle_s)
         self._emit = emit
-        self._saved = -1
+        self._saved = self._saved_fd = -1
         self._read_fd = -1
         self._thread: threading.Thread | None = None
         self._last: dict[bytes, float] = {}
         self._held: dict[bytes, int] = {}
 
     def _default_emit(self, text: str) -> None:
-        os.write(self._saved, f"ficap: warning: {text}\n".encode(errors="replace"))
+        self._write(f"ficap: warning: {text}\n".encode(errors="replace"))
+
+    def _write(self, data: bytes) -> None:
+        try:
+            os.write(self._saved_fd, data)
+        except OSError:
+            pass  # the real stderr is gone (closed pipe): nothing left to tell
 
     def __enter__(self) -> ThrottledStderr:
         try:
             sys.stderr.flush()
-            self._saved = os.dup(2)
+            self._saved = self._saved_fd = os.dup(2)
             if os.isatty(2):
                 # A terminal stays a terminal (progress bars draw only on one): a pseudo-terminal
                 # of the same size, raw so that bytes pass unchanged.
@@ -86,7 +92,8 @@ class ThrottledStderr:
         if self._thread is not None:
             self._thread.join(timeout=2.0)  # worker processes may still hold a write end
         self._flush_held()
-        os.close(self._saved)
+        if self._thread is None or not self._thread.is_alive():
+            os.close(self._saved)  # else the pump still forwards a child's last lines to it
         self._saved = -1
 
     def _pump(self) -> None:
@@ -112,7 +119,7 @@ class ThrottledStderr:
     def _line(self, line: bytes, end: bytes = b"\n") -> None:
         match = LIBRARY_LINE.match(line) if end == b"\n" else None
         if match is None:
-            os.write(self._saved, line + end)
+            self._write(line + end)
             return
         kind = re.sub(rb"0x[0-9a-fA-F]+|\d+", b"#", line)[:40]
         now = time.monotonic()
