@@ -12,7 +12,7 @@ against ``cv2.cornerSubPix`` and OpenCV's AprilTag refinement.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 from functools import lru_cache
 from typing import Any
@@ -717,15 +717,21 @@ def _inner_edge_samples(tag_id: int) -> tuple[np.ndarray, np.ndarray]:
     return out
 
 
-def _stack_samples(
-    tables: list[tuple[np.ndarray, ...]],
+@lru_cache(maxsize=256)
+def _stacked(
+    table: Callable[[int], tuple[np.ndarray, ...]], ids: tuple[int, ...],
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[np.ndarray]]:
-    """Per-tag sample tables stacked tag after tag: (counts (N,), tag of each sample (T,), first
-    sample of each tag (N,), the tables' columns concatenated)."""
+    """The per-tag sample ``table`` of each id stacked tag after tag: (counts (N,), tag of each
+    sample (T,), first sample of each tag (N,), the tables' columns concatenated). Cached: a
+    tracked cap shows the same ids frame after frame."""
+    tables = [table(i) for i in ids]
     counts = np.array([len(t[0]) for t in tables])
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     columns = [np.concatenate([t[k] for t in tables]) for k in range(len(tables[0]))]
-    return counts, np.repeat(np.arange(len(tables)), counts), starts, columns
+    out = counts, np.repeat(np.arange(len(tables)), counts), starts, columns
+    for a in (*out[:3], *columns):
+        a.setflags(write=False)
+    return out
 
 
 def _side_lines(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -851,7 +857,7 @@ def unbias_corners_edge(
     n = len(c_in)
     if n == 0:
         return c_in.copy()
-    counts, tag_of, starts, (side, uv) = _stack_samples([_inner_edge_samples(int(i)) for i in ids])
+    counts, tag_of, starts, (side, uv) = _stacked(_inner_edge_samples, tuple(int(i) for i in ids))
     # uv on the outer edge straight across from each inner sample (one cell out).
     uv_out = uv + _SIDE_OUT[side]
     nrm, rho = _side_lines(c_in)
@@ -887,12 +893,15 @@ def unbias_corners_edge(
     group = tag_of * 4 + side
     corners = c_in
     delta = np.zeros((n, 4))
+    keep = None
     for _ in range(2):
         hom = tag_homographies(corners)
         p_in_c, p_out_c = _apply_h(hom[tag_of], uv), _apply_h(hom[tag_of], uv_out)
         width = np.einsum("td,td->t", nk, p_out_c - p_in_c)  # one cell across, corrected geometry
         d = midline + 0.5 * width - rho[tag_of, side]  # (T,) how far the fitted line is inside, px
-        delta = _pooled_delta(d, valid, group, starts, counts)
+        if keep is None:  # the outliers: from the first round (the second moves d by ~1 %)
+            keep = _inlier_samples(d, valid, starts, counts)
+        delta = _pooled_delta(d, keep, group, n)
         corners = _intersect_sides(nrm, rho + delta)
     # A correction beyond a third of a cell (or 2 px) is no tone curve: keep those tags' corners.
     cell = np.linalg.norm(c_in[:, _NEXT] - c_in, axis=2).min(axis=1) / TAG_CELLS
@@ -914,16 +923,17 @@ _SIDE_OUT = np.array([[0.0, -1.0], [1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]])
 _SIDE_PRIOR_SAMPLES = 3.0
 
 
-def _pooled_delta(
-    d: np.ndarray, valid: np.ndarray, group: np.ndarray, starts: np.ndarray, counts: np.ndarray
-) -> np.ndarray:
-    """Per-side delta (N, 4): each side's mean over its valid samples, outliers (beyond 3 MAD of
-    the tag's median) dropped, shrunk toward its tag's mean (0 for a tag without samples)."""
-    n = len(counts)
-    tag_of = np.repeat(np.arange(n), counts)
+def _inlier_samples(d: np.ndarray, valid: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """The valid samples within 3 MAD (at least 0.1 px) of their tag's median."""
+    tag_of = np.repeat(np.arange(len(counts)), counts)
     tag_med = _group_median(d, valid, starts, counts)
     tag_mad = 1.4826 * _group_median(np.abs(d - tag_med[tag_of]), valid, starts, counts)
-    keep = valid & np.isfinite(d) & (np.abs(d - tag_med[tag_of]) <= np.maximum(3.0 * tag_mad[tag_of], 0.1))
+    return valid & np.isfinite(d) & (np.abs(d - tag_med[tag_of]) <= np.maximum(3.0 * tag_mad[tag_of], 0.1))
+
+
+def _pooled_delta(d: np.ndarray, keep: np.ndarray, group: np.ndarray, n: int) -> np.ndarray:
+    """Per-side delta (N, 4): each side's mean over its kept samples, shrunk toward its tag's
+    mean (0 for a tag without samples)."""
     dv = np.where(keep, d, 0.0)
     side_sum = np.bincount(group, weights=dv, minlength=4 * n).reshape(n, 4)
     side_cnt = np.bincount(group, weights=keep.astype(np.float64), minlength=4 * n).reshape(n, 4)
@@ -1037,7 +1047,7 @@ def fit_tag_edges(
     delta = np.full(n, np.nan)
     if n == 0:
         return c_in.copy(), delta
-    counts, tag_of, starts, (uv, nu) = _stack_samples([_cell_edge_samples(int(i)) for i in ids])
+    counts, tag_of, starts, (uv, nu) = _stacked(_cell_edge_samples, tuple(int(i) for i in ids))
     u, v = uv[:, 0], uv[:, 1]
     try:
         h = tag_homographies(c_in).reshape(n, 9)[:, :8].copy()
@@ -1081,14 +1091,13 @@ def fit_tag_edges(
         for _round in range(2):
             # Noise-optimal weights: a sample's position noise goes as 1 / its contrast.
             w = np.where(ok, (contrast / np.maximum(top_c[tag_of], 1.0)) ** 2, 0.0)
-            sol, solved = _solve_grouped(jac, s, w, starts, 24)
+            sol, solved, r = _solve_grouped(jac, s, w, starts, 24)
             # Both edge directions must be seen, or the fit is free along one of them.
             used = w > 0
             vertical = np.add.reduceat(used & (np.abs(nu[:, 0]) > 0.5), starts)
             solved &= (vertical >= 12) & (np.add.reduceat(used, starts) - vertical >= 12)
             if _round == 1:
                 break
-            r = s - np.einsum("ti,ti->t", jac, sol[tag_of])
             sig = 1.4826 * _group_median(np.abs(r), ok, starts, counts)
             ok &= np.abs(r) <= np.maximum(3.5 * sig[tag_of], 0.05)
         h = h + np.where(solved[:, None], sol[:, :8], 0.0)
@@ -1130,15 +1139,18 @@ def _group_quantile(
 
 def _solve_grouped(
     jac: np.ndarray, rhs: np.ndarray, w: np.ndarray, starts: np.ndarray, min_rows: int
-) -> tuple[np.ndarray, np.ndarray]:
-    """Weighted least squares per contiguous group of rows: (solutions (n, P), solved (n,))."""
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Weighted least squares per contiguous group of rows: (solutions (n, P), solved (n,),
+    residuals rhs - jac @ solution (T,))."""
     n, p = len(starts), jac.shape[1]
     ends = np.append(starts[1:], len(rhs))
     jw = jac * w[:, None]
     ata = np.empty((n, p, p))
+    atb = np.empty((n, p))
     for g in range(n):  # a few dozen small products: cheaper than one (T, P, P) outer product
-        ata[g] = jw[starts[g]:ends[g]].T @ jac[starts[g]:ends[g]]
-    atb = np.add.reduceat(jw * rhs[:, None], starts, axis=0)
+        a, b = starts[g], ends[g]
+        ata[g] = jw[a:b].T @ jac[a:b]
+        atb[g] = jw[a:b].T @ rhs[a:b]
     rows = np.add.reduceat((w > 0).astype(np.float64), starts)
     # Column scaling: the parameters differ in size by orders of magnitude.
     d = np.sqrt(np.maximum(np.einsum("nii->ni", ata), 1e-30))
@@ -1155,7 +1167,11 @@ def _solve_grouped(
                 except np.linalg.LinAlgError:
                     solved[g] = False
     solved &= np.isfinite(sol).all(axis=1)
-    return sol, solved
+    resid = np.empty_like(rhs)
+    for g in range(n):
+        a, b = starts[g], ends[g]
+        resid[a:b] = rhs[a:b] - jac[a:b] @ sol[g]
+    return sol, solved, resid
 
 
 def as_gray(image: np.ndarray) -> np.ndarray:
