@@ -9,10 +9,14 @@ Two sources with exact truth:
 
 Builders compared on the same detections (``ficap model build``'s: OpenCV search + edge refinement):
 
-* ``side only``: the printed 32 mm side is the only scale reference (edge offset held at 0, size
-  free, gauge-only priors): the builder before issue 12;
-* ``offset, size free``: the edge offset fitted, the size left to the images;
-* ``ficap`` (default): the edge offset fitted and the cap's size anchored to the nominal layout.
+* ``side only (before)``: the printed 32 mm side is the only scale reference (edge offset held at
+  0, size free, gauge-only priors): the builder before issue 12;
+* ``offset, size free``: the edge offset fitted, the size left to the images (``--size images``);
+* ``offset, size anchored``: the edge offset fitted, the cap's size anchored to the nominal layout
+  (``--size nominal``);
+* ``ficap (auto)`` (default): the anchored model, or, when the fitted offset changes the size less
+  than hand assembly does, the printed side with the offset held at 0 (``--size tag-side``, with
+  per-plate priors); the row says which.
 
 Columns: detected-corner radial offset against the truth (negative = inside the tag); built corners'
 rms distance from the truth after a rigid alignment; built cap size over the true one; fitted edge
@@ -49,10 +53,11 @@ from ficap_ros.pipeline import FrameProcessor  # noqa: E402
 from ficap_ros.transform import Transform  # noqa: E402
 
 BUILDERS = {
-    "side only": BuildConfig(fit_edge_offset=False, anchor_size=False, assembly_sigma_mm=50.0,
-                             assembly_sigma_deg=30.0),
-    "offset, size free": BuildConfig(anchor_size=False),
-    "ficap": BuildConfig(),
+    "side only (before)": BuildConfig(fit_edge_offset=False, anchor_size=False, assembly_sigma_mm=50.0,
+                                      assembly_sigma_deg=30.0, size="fixed"),
+    "offset, size free": BuildConfig(anchor_size=False, size="fixed"),
+    "offset, size anchored": BuildConfig(size="fixed"),
+    "ficap (auto)": BuildConfig(),
 }
 
 
@@ -179,7 +184,7 @@ def evaluate(rec: Recording) -> tuple[list[list[object]], list[list[object]], di
         verdict = "writes" if not (check.problems or check.warnings or r.problems) else (
             "refuses (moves the cap)" if check.problems else "refuses: " + "; ".join(r.problems + check.warnings)[:60])
         build_rows.append([
-            rec.name, name, f"{rigid_rms_mm(r.model, rec.truth):.3f}",
+            rec.name, name + (f" → {r.size_source}" if config.size == "auto" else ""), f"{rigid_rms_mm(r.model, rec.truth):.3f}",
             f"{100.0 * (size_ratio(r.model.corners_mm, rec.truth.corners_mm) - 1.0):+.3f}",
             f"{r.edge_offset_px:+.3f} ± {r.edge_offset_sigma_px:.3f}", f"{r.rms_px:.3f}",
             f"{check.translation_change_mm:.2f} / {100.0 * check.depth_change:+.2f} %",

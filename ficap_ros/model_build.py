@@ -101,6 +101,13 @@ class BuildConfig:
             nominal's (a stiff prior, 1e-4 relative): the cap's overall size comes from the
             nominal layout, the plates' moves and turns from the images. ``False`` leaves the size
             to the images and the per-plate priors.
+        size: ``auto`` (default): the anchored, edge-offset model is solved first; when the size
+            change its fitted edge offset implies (2 |offset| / median tag side, with the size
+            free) is smaller than what hand assembly does to the size (``assembly_sigma_mm /
+            (sqrt(N) r)``, r the RMS radius of the tag centres), the corners are unbiased enough
+            for the printed side to be the better scale reference, and the model is solved again
+            with the offset held at 0 and the size free. ``fixed``: ``fit_edge_offset`` and
+            ``anchor_size`` as given.
         outlier_px: after a first solve, a tag observation whose corner RMS exceeds this (and 5x the
             median) is dropped and the problem solved again.
         max_nfev: function evaluation budget of each solve.
@@ -108,7 +115,9 @@ class BuildConfig:
             four, after the gauge) is poorly observed: at a quarter of the ~1 mm a plate is off
             by hand, a built tag is clearly closer to the truth than its nominal place.
         min_view_spread_deg: a tag seen from directions spanning less than this is poorly observed
-            (its distance along the one line of sight rests on its apparent size alone).
+            (its distance along the one line of sight rests on its apparent size alone). Default 0
+            (reported, not judged): the uncertainty already carries the geometry, and a 1080p
+            synth drive had a tag seen within 6 deg that was built to 0.05 mm.
         max_depth_change: ``replay_check``: the largest median relative change of the camera-cap
             distance between the built and the nominal model's poses (a fraction). A correct
             as-built model moves it by what the nominal model gets wrong, about 0.1 % (0.01 % on
@@ -126,10 +135,11 @@ class BuildConfig:
     fit_edge_offset: bool = True
     edge_offset_px: float = 0.0
     anchor_size: bool = True
+    size: str = "auto"
     outlier_px: float = 3.0
     max_nfev: int = 100
     max_corner_sigma_mm: float = 0.25
-    min_view_spread_deg: float = 10.0
+    min_view_spread_deg: float = 0.0
     max_depth_change: float = 0.003
 
     def __post_init__(self) -> None:
@@ -141,6 +151,8 @@ class BuildConfig:
             raise ConfigError(f"max_frames must be >= 2, got {self.max_frames}")
         if self.max_nfev < 1:
             raise ConfigError(f"max_nfev must be >= 1, got {self.max_nfev}")
+        if self.size not in ("auto", "fixed"):
+            raise ConfigError(f"size must be 'auto' or 'fixed', got {self.size!r}")
         if self.loss not in ("linear", "soft_l1", "huber", "cauchy", "arctan"):
             raise ConfigError(f"unknown loss {self.loss!r}")
         for name in ("f_scale_px", "assembly_sigma_mm", "assembly_sigma_deg", "outlier_px",
@@ -273,6 +285,10 @@ class BuildResult:
         size_ratio_images: the size the images alone give (the same adjustment with the size free;
             NaN when the size was not anchored): it differs from the nominal by the cap's true
             size change plus what the edge-offset model misses of the detector's bias.
+        edge_offset_images_px: the edge offset of that size-free adjustment (NaN when not run).
+        size_source: where the cap's size came from: ``nominal layout`` (anchored), ``tag side``
+            (offset held, size free: the printed side is the scale) or ``images`` (offset fitted,
+            size free).
         frames_given: frames passed in.
         frames_used: frames used in the adjustment.
         frame_indices: positions (in the input) of the used frames.
@@ -293,6 +309,8 @@ class BuildResult:
     median_side_px: float
     size_ratio: float
     size_ratio_images: float
+    edge_offset_images_px: float
+    size_source: str
     frames_given: int
     frames_used: int
     frame_indices: tuple[int, ...] = field(repr=False)
@@ -343,10 +361,10 @@ class BuildResult:
             f"{self.effective_side_mm:.2f} mm)"
         )
         lines.append(
-            f"cap size vs nominal {100.0 * (self.size_ratio - 1.0):+.3f} %"
+            f"cap size vs nominal {100.0 * (self.size_ratio - 1.0):+.3f} %, from the {self.size_source}"
             + ("" if np.isnan(self.size_ratio_images) else
-               f" (anchored to the nominal layout: hand assembly moves plates, it does not grow the cap; "
-               f"the images alone would say {100.0 * (self.size_ratio_images - 1.0):+.3f} %)")
+               f" (the images with the edge offset fitted and the size free: "
+               f"{100.0 * (self.size_ratio_images - 1.0):+.3f} %, offset {self.edge_offset_images_px:+.3f} px)")
         )
         lines.append("solver " + ("converged" if self.converged else "NOT CONVERGED (budget reached)")
                      + f" after {self.nfev} evaluations")
@@ -364,6 +382,8 @@ class BuildResult:
             "effective_side_mm": self.effective_side_mm,
             "size_ratio": self.size_ratio,
             "size_ratio_images": None if np.isnan(self.size_ratio_images) else self.size_ratio_images,
+            "edge_offset_images_px": None if np.isnan(self.edge_offset_images_px) else self.edge_offset_images_px,
+            "size_source": self.size_source,
             "frames_given": self.frames_given,
             "frames_used": self.frames_used,
             "observations": self.observations,
@@ -731,19 +751,36 @@ def build_model(
             raise CoverageError(after[0] + f" (after dropping {dropped} outlier observation(s))")
         problems += [p for p in after if p not in problems]
         solution = _solve(problem, solution.x, priors, config)
+    # What the images alone say about the size (a diagnostic beside the anchored model, and the
+    # ``auto`` decision): the same problem with the size free, from the anchored solution.
+    size_images = offset_images = float("nan")
+    if config.anchor_size and config.fit_edge_offset:
+        free = replace(config, anchor_size=False)
+        x_free = _solve(problem, solution.x, priors, free).x
+        t_free, offset_images, _ = _unpack(x_free, problem, free)
+        size_images = size_ratio(_corners_from_params(t_free[:, :3], t_free[:, 3:]), nominal.corners_mm)
+    quads = problem.obs_px
+    side_px = float(np.median(np.linalg.norm(np.roll(quads, -1, axis=1) - quads, axis=-1)))
+    if config.size == "auto" and config.anchor_size and config.fit_edge_offset:
+        bias_size = 2.0 * abs(offset_images) / side_px
+        assembly_size = config.assembly_sigma_mm / (np.sqrt(len(nominal)) * priors.radius_mm)
+        if bias_size < assembly_size:
+            say(f"edge offset {offset_images:+.3f} px changes the size by {100 * bias_size:.3f} %, less "
+                f"than hand assembly's {100 * assembly_size:.3f} %: the printed tag side sets the size")
+            anchored = config
+            config = replace(config, fit_edge_offset=False, edge_offset_px=0.0, anchor_size=False)
+            x_side = np.delete(solution.x, 6 * problem.n_tags) if anchored.fit_edge_offset else solution.x
+            solution = _solve(problem, x_side, priors, config)
+        else:
+            say(f"edge offset {offset_images:+.3f} px changes the size by {100 * bias_size:.3f} %, more "
+                f"than hand assembly's {100 * assembly_size:.3f} %: the nominal layout sets the size")
+    size_source = ("nominal layout" if config.anchor_size else
+                   "images" if config.fit_edge_offset else "tag side")
     per_obs = _observation_rms_px(solution.x, problem, priors, config)
     converged = bool(solution.status > 0)
     if not converged:
         problems.append(f"the solver stopped at its budget of {config.max_nfev} evaluations "
                         "without converging")
-    # What the images alone say about the size (a diagnostic beside the anchored model): the same
-    # problem with the size free, from the anchored solution.
-    size_images = float("nan")
-    if config.anchor_size and config.fit_edge_offset:
-        free = replace(config, anchor_size=False)
-        x_free = _solve(problem, solution.x, priors, free).x
-        t_free = _unpack(x_free, problem, free)[0]
-        size_images = size_ratio(_corners_from_params(t_free[:, :3], t_free[:, 3:]), nominal.corners_mm)
 
     # 4. Uncertainty (before the gauge alignment; the covariance is projected onto it below).
     tags, offset, frames_x = _unpack(solution.x, problem, config)
@@ -767,8 +804,6 @@ def build_model(
         if d.problem:
             problems.append(f"tag {d.tag_id}: {d.problem}")
     rms = float(np.sqrt(np.mean(per_obs ** 2)))
-    quads = problem.obs_px
-    side_px = float(np.median(np.linalg.norm(np.roll(quads, -1, axis=1) - quads, axis=-1)))
     say(f"reprojection rms {rms:.3f} px after {solution.nfev} evaluations, edge offset {offset:+.3f} px")
     return BuildResult(
         model=model,
@@ -780,6 +815,8 @@ def build_model(
         median_side_px=side_px,
         size_ratio=size_ratio(built, nominal.corners_mm),
         size_ratio_images=size_images,
+        edge_offset_images_px=float(offset_images),
+        size_source=size_source,
         frames_given=len(frames),
         frames_used=len(used),
         frame_indices=tuple(index for index, _, _ in used),

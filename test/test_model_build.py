@@ -115,8 +115,9 @@ def test_recovers_the_perturbed_cap(built) -> None:
     assert corner_rms_mm(truth, nominal) == pytest.approx(0.55, abs=0.15)  # the test is not trivial
     assert corner_rms_mm(result.model, truth) < 0.1
     assert result.frames_used == 40 and result.converged and result.trusted, result.problems
-    # Unbiased corners: the fitted edge offset is (near) zero.
-    assert abs(result.edge_offset_px) < 0.05 and result.edge_offset_sigma_px < 0.05
+    # Unbiased corners: the fitted edge offset is (near) zero, so the printed side sets the size.
+    assert abs(result.edge_offset_images_px) < 0.05 and result.size_source == "tag side"
+    assert "from the tag side" in result.table()
     # Reprojection rms matches the injected noise (0.15 px per axis = 0.21 px per corner).
     assert result.rms_px == pytest.approx(0.15 * np.sqrt(2.0), rel=0.2)
     # The reported deviations are the true ones.
@@ -299,11 +300,13 @@ def test_biased_corners_do_not_change_the_scale(built, radial_px) -> None:
     assert result.converged and result.trusted, result.problems
     # The nuisance is reported with the bias's sign; for a head-on square a radial offset r is an
     # edge offset r / sqrt(2), foreshortened tags make it somewhat smaller.
+    assert result.size_source == "nominal layout"
     assert np.sign(result.edge_offset_px) == np.sign(radial_px)
     assert 0.4 < result.edge_offset_px / (radial_px / np.sqrt(2.0)) < 1.1
     assert result.size_ratio == pytest.approx(1.0, abs=1e-4)
     assert "edge offset of the detected corners" in result.table()
-    side_only = build_model(biased, CAMERA, config=BuildConfig(fit_edge_offset=False, anchor_size=False))
+    side_only = build_model(biased, CAMERA, config=BuildConfig(fit_edge_offset=False, anchor_size=False,
+                                                               size="fixed"))
     assert rigid_rms_mm(side_only.model, truth) > 2.0 * rigid_rms_mm(result.model, truth) + 0.1
     assert np.sign(side_only.size_ratio - 1.0) == -np.sign(radial_px)  # inward bias grows the cap
     # The replay check sees the side-only model move the cap along the line of sight; ours not.
@@ -368,8 +371,6 @@ def test_unconverged_build_exits_non_zero(tmp_path, capsys) -> None:
     captured = capsys.readouterr()
     assert "warning: the solver stopped at its budget" in captured.err
     assert out.exists() and "partial" in captured.out
-    assert main(["model", "build", str(bag), "--out", str(out), "--edge-offset", "x", "--quiet"]) == 1
-    assert "--edge-offset" in capsys.readouterr().err
 
 
 def test_cli_builds_from_a_synth_drive(tmp_path, capsys) -> None:

@@ -44,13 +44,13 @@ def add_build_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--assembly-sigma-mm", type=float, default=1.0,
                         help="how far a plate may sit from its nominal place by hand, 1 sigma per "
                              "axis (default 1.0)")
-    parser.add_argument("--edge-offset", default="fit", metavar="fit|PX",
-                        help="edge offset of the detected corners: fitted (default), or held at PX "
-                             "(+ outward; 0 makes the printed tag side the only scale reference)")
-    parser.add_argument("--size", choices=("nominal", "images"), default="nominal",
-                        help="the cap's overall size: the nominal layout's (default; hand assembly "
-                             "moves plates, it does not grow the cap) or the images' (only with a "
-                             "corner detector known to be unbiased)")
+    parser.add_argument("--size", choices=("auto", "nominal", "images", "tag-side"), default="auto",
+                        help="where the cap's overall size comes from: the nominal layout with a "
+                             "fitted edge offset absorbing the corner bias (hand assembly moves "
+                             "plates, it does not grow the cap), the printed tag side (corners "
+                             "unbiased), the images with the offset fitted; auto (default): the tag "
+                             "side when the fitted offset changes the size less than hand assembly "
+                             "does, else the nominal layout")
     parser.add_argument("--allow-partial", action="store_true",
                         help="write the model even when the solver did not converge, a tag is "
                              "poorly observed or the model fits the recording worse than nominal "
@@ -81,13 +81,9 @@ def run_build(args: argparse.Namespace) -> int:
 
     if args.every < 1:
         raise ConfigError(f"--every must be >= 1, got {args.every}")
-    if args.edge_offset == "fit":
-        edge = {"fit_edge_offset": True}
-    else:
-        try:
-            edge = {"fit_edge_offset": False, "edge_offset_px": float(args.edge_offset)}
-        except ValueError:
-            raise ConfigError(f"--edge-offset must be 'fit' or a number of px, got {args.edge_offset!r}") from None
+    size = {"auto": {}, "nominal": {"size": "fixed"},
+            "images": {"size": "fixed", "anchor_size": False},
+            "tag-side": {"size": "fixed", "anchor_size": False, "fit_edge_offset": False}}[args.size]
     # Before minutes of detection and adjustment: every output must be writable.
     check_file_target(args.out, "model")
     for extra, what in ((args.report, "report"), (args.plot, "plot")):
@@ -96,8 +92,7 @@ def run_build(args: argparse.Namespace) -> int:
     say = _progress(args.quiet)
     config = BuildConfig(min_tags_per_frame=args.min_tags, min_frames_per_tag=args.min_frames_per_tag,
                          max_frames=args.max_frames, max_nfev=args.max_nfev,
-                         assembly_sigma_mm=args.assembly_sigma_mm, anchor_size=args.size == "nominal",
-                         **edge)
+                         assembly_sigma_mm=args.assembly_sigma_mm, **size)
     start = load_model(args.start_model) if args.start_model else nominal_model()
     detector = TagDetector(DetectorConfig(backend=args.backend, corner_refine=args.refine))
     frames, cameras = [], []
