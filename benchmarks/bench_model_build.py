@@ -48,7 +48,8 @@ from ficap_ros.camera import CameraModel  # noqa: E402
 from ficap_ros.cap_model import CapModel, nominal_model  # noqa: E402
 from ficap_ros.detection import DetectorConfig, TagDetection, TagDetector  # noqa: E402
 from ficap_ros.metrics import corner_errors_px  # noqa: E402
-from ficap_ros.model_build import BuildConfig, align_model, build_model, replay_check, size_ratio  # noqa: E402
+from ficap_ros.model_build import (BuildConfig, align_model, build_model, depth_change_limit,  # noqa: E402
+                                   replay_check, size_ratio)  # noqa: E402
 from ficap_ros.pipeline import FrameProcessor  # noqa: E402
 from ficap_ros.transform import Transform  # noqa: E402
 
@@ -179,7 +180,7 @@ def evaluate(rec: Recording) -> tuple[list[list[object]], list[list[object]], di
     models = {"nominal": nominal}
     for name, config in BUILDERS.items():
         r = build_model(frames, rec.camera, config=config, allow_partial=True)
-        check = replay_check(frames, rec.camera, r.model, nominal, BuildConfig())
+        check = replay_check(frames, rec.camera, r.model, nominal, config, depth_change_limit(r, config))
         models[name] = r.model
         verdict = "writes" if not (check.problems or check.warnings or r.problems) else (
             "refuses (moves the cap)" if check.problems else "refuses: " + "; ".join(r.problems + check.warnings)[:60])

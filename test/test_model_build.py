@@ -17,7 +17,9 @@ from ficap_ros.model_build import (
     BuildConfig,
     CoverageError,
     align_model,
+    assembly_size_sigma,
     build_model,
+    depth_change_limit,
     edge_shift_px,
     replay_check,
     size_ratio,
@@ -118,6 +120,10 @@ def test_recovers_the_perturbed_cap(built) -> None:
     # Unbiased corners: the fitted edge offset is (near) zero, so the printed side sets the size.
     assert abs(result.edge_offset_images_px) < 0.05 and result.size_source == "tag side"
     assert "from the tag side" in result.table()
+    # A measured size may differ from nominal by what hand assembly does: 3 sigma of the replay
+    # check's distance (0.30 % each for 1 mm plates on this cap).
+    assert assembly_size_sigma(nominal, BuildConfig()) == pytest.approx(0.003, abs=0.0003)
+    assert depth_change_limit(result, BuildConfig()) == pytest.approx(3 * assembly_size_sigma(nominal, BuildConfig()))
     # Reprojection rms matches the injected noise (0.15 px per axis = 0.21 px per corner).
     assert result.rms_px == pytest.approx(0.15 * np.sqrt(2.0), rel=0.2)
     # The reported deviations are the true ones.
@@ -301,6 +307,7 @@ def test_biased_corners_do_not_change_the_scale(built, radial_px) -> None:
     # The nuisance is reported with the bias's sign; for a head-on square a radial offset r is an
     # edge offset r / sqrt(2), foreshortened tags make it somewhat smaller.
     assert result.size_source == "nominal layout"
+    assert depth_change_limit(result, BuildConfig()) == BuildConfig().max_depth_change
     assert np.sign(result.edge_offset_px) == np.sign(radial_px)
     assert 0.4 < result.edge_offset_px / (radial_px / np.sqrt(2.0)) < 1.1
     assert result.size_ratio == pytest.approx(1.0, abs=1e-4)

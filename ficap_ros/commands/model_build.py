@@ -75,7 +75,7 @@ def run_build(args: argparse.Namespace) -> int:
     from ficap_ros.cap_model import load_model, nominal_model, write_atomic
     from ficap_ros.detection import DetectorConfig, TagDetector
     from ficap_ros.errors import ConfigError
-    from ficap_ros.model_build import BuildConfig, build_model, replay_check
+    from ficap_ros.model_build import BuildConfig, build_model, depth_change_limit, replay_check
 
     from ficap_ros.files import check_file_target
 
@@ -122,7 +122,7 @@ def run_build(args: argparse.Namespace) -> int:
                          allow_partial=args.allow_partial)
     print(result.table())
     say("posing the recording with the nominal and with the built model")
-    check = replay_check(frames, cameras, result.model, start, config)
+    check = replay_check(frames, cameras, result.model, start, config, depth_change_limit(result, config))
     print(check.table())
     if args.report:
         write_atomic(Path(args.report),
