@@ -210,6 +210,8 @@ def main() -> int:
     ap.add_argument("--synth-seeds", type=int, default=2, help="synth drives to render (default 2)")
     ap.add_argument("--no-blender", action="store_true", help="skip blender_dev")
     ap.add_argument("--record", action="store_true", help="write the tables into docs/benchmarks.md")
+    ap.add_argument("--section", default="As-built model (bench_model_build.py)",
+                    help="name of the docs/benchmarks.md section to write")
     args = ap.parse_args()
     recordings = []
     if not args.no_blender:
@@ -244,7 +246,7 @@ def main() -> int:
             + "\n".join(f"- {n}" for n in notes) + "\n\n" + build_table + "\n\n" + replay_table + "\n")
     print(body)
     if args.record:
-        record_section("As-built model (bench_model_build.py)", body)
+        record_section(args.section, body)
     return 0
 
 
