@@ -18,23 +18,30 @@ intersection of the two shifted lines), the way a border-line detector errs.
 
 Why the size is anchored to the nominal layout. An edge offset and a uniform scale of the cap are
 nearly interchangeable in the images (both change how large a tag looks), and only the spread of
-distances and view angles separates them. Hand assembly moves and turns plates; it does not grow
-the cap. So every tag has a prior toward its nominal place (``assembly_sigma_mm``, about the
-accuracy of gluing a plate by hand) and orientation (``assembly_sigma_deg``). Each plate's own
-deviation is measured by the images (its prior weighs about (0.05 mm / 1 mm)^2 against the data);
-the cap's overall size, which the images barely see once the edge offset is free, stays where 23
-independently placed plates put it: within about ``assembly_sigma_mm / sqrt(23)`` of the nominal
-radius. The priors also fix the gauge (the rigid motion of the whole cap the images cannot see);
-after the solve the model is Kabsch-aligned to the nominal corners, so the as-built cap frame is the
-nominal one in the least-squares sense, and per-tag deviations are relative to it.
+distances and view angles separates them (and a bias that is not exactly an edge offset leaks
+into the size). Hand assembly moves and turns plates; it does not grow the cap. So the RMS radius
+of the tag centres is held at the nominal's (``anchor_size``, a stiff prior), and every tag has a
+prior toward its nominal place (``assembly_sigma_mm``, about the accuracy of gluing a plate by
+hand) and orientation (``assembly_sigma_deg``), which fix the gauge (the rigid motion of the whole
+cap the images cannot see) and hold a tag the images barely see. Each plate's own deviation is
+measured by the images (its prior weighs about (0.05 mm / 1 mm)^2 against the data).
+
+The anchor costs what hand assembly does to the size (``assembly_size_sigma``: about 0.3 % for
+1 mm plates). So with ``size="auto"`` (the default) the edge offset of the same fit with the size
+free decides: when the size change it implies (2 |offset| / median tag side) is below that, the
+corners are unbiased enough for the printed side to be the better scale, and the model is solved
+again with the offset held at 0 and the size free. After the solve the model is Kabsch-aligned
+to the nominal corners, so the as-built cap frame is the nominal one in the least-squares sense,
+and per-tag deviations are relative to it.
 
 Trust. Each tag's deviation comes with a standard deviation from the Gauss-Newton covariance (the
 Schur complement over the camera poses, the whole-cap rigid motion projected out), with its
 observation count and the spread of the directions it was seen from. ``BuildResult.problems`` lists
-every reason not to trust the model (solver budget reached, a tag seen too rarely or from one
-direction only or with a large uncertainty); ``replay_check`` re-estimates every frame's pose with
-the nominal and the built model, the pose code replay uses, and adds a problem when the built model
-fits the recording worse or moves the cap along the line of sight by more than hand assembly can.
+every reason not to trust the model (solver budget reached, a tag seen too rarely or with a large
+uncertainty; optionally from too narrow a spread of directions); ``replay_check`` re-estimates
+every frame's pose with the nominal and the built model, the pose code replay uses, and adds a
+warning when the built model fits the recording worse, a problem when it moves the cap along the
+line of sight by more than hand assembly can (``depth_change_limit``).
 
 Tag frame (local): x along the tag's top edge (TL -> TR), y down (TL -> BL), z = x cross y (into
 the cap); local corners (-16, -16, 0), (16, -16, 0), (16, 16, 0), (-16, 16, 0) mm = TL, TR, BR, BL.
