@@ -105,7 +105,14 @@ class Harness:
         for _ in range(attempts):
             if info is not None:
                 self.pub_info.publish(info)
-                time.sleep(0.005)
+                # The executor has 4 threads: without this the image can overtake its CameraInfo
+                # (seen under load: "no CameraInfo received yet", a frame without a pose).
+                info_ns = ros_msgs.stamp_to_ns(info.header.stamp)
+                try:
+                    self.wait_for(lambda: any(s == info_ns for s, _ in list(self.node._camera_infos)),
+                                  timeout=WAIT_S / attempts, what="camera_info")
+                except AssertionError:
+                    continue  # lost (best effort): send both again
             (self.pub_compressed if isinstance(msg, CompressedImage) else self.pub_image).publish(msg)
             try:
                 self.wait_for(lambda: bool(self.statuses_for(stamp_ns)), timeout=WAIT_S / attempts)
