@@ -100,7 +100,7 @@ LIGHTINGS = ("neutral", "high", "low")
 #: Head ellipsoid (hair/skull) in the cap frame C, metres: centre and semi-axes along x, y, z.
 #: Chosen so every face of the nominal cap lies just outside it (checked in test_synth): the back
 #: of the skull is ~5 mm under the centre tag. Geometry note: with every face outside this convex
-#: head, no front-facing face gets hidden by it over yaw +-80, pitch -20..+10 (faces turn away
+#: head, no front-facing face gets hidden by it over yaw +-80, 20 deg down to 10 up (faces turn away
 #: before the head can cover them); a head that pokes past the cap rim does hide faces.
 HEAD_CENTRE_M = (0.0225, 0.0, 0.0)
 HEAD_SEMI_AXES_M = (0.11, 0.08, 0.10)
@@ -1010,17 +1010,19 @@ def _min_jerk(s: np.ndarray) -> np.ndarray:
     return s ** 3 * (10.0 - 15.0 * s + 6.0 * s * s)
 
 
-# Glance targets: (label, sampler of (yaw, pitch, roll deg, tx, ty, tz m)).
+# Glance targets: (label, sampler of (yaw, pitch, roll deg, tx, ty, tz m)); REP-103 angles: yaw
+# positive to the left, pitch positive nose down (the cluster is below: +20), roll positive to the
+# right shoulder.
 def _glance_target(label: str, rng: np.random.Generator) -> np.ndarray:
     u = rng.uniform
     if label == "left_mirror":
-        return np.array([u(45, 60), u(-8, -2), u(-4, 0), u(0.0, 0.01), u(0.005, 0.02), 0.0])
+        return np.array([u(45, 60), u(2, 8), u(-4, 0), u(0.0, 0.01), u(0.005, 0.02), 0.0])
     if label == "right_mirror":
-        return np.array([u(-60, -45), u(-8, -2), u(0, 4), u(0.0, 0.01), u(-0.02, -0.005), 0.0])
+        return np.array([u(-60, -45), u(2, 8), u(0, 4), u(0.0, 0.01), u(-0.02, -0.005), 0.0])
     if label == "rear_mirror":
-        return np.array([u(-28, -22), u(3, 7), u(-2, 2), u(0.0, 0.01), u(-0.01, 0.0), u(0.0, 0.01)])
+        return np.array([u(-28, -22), u(-7, -3), u(-2, 2), u(0.0, 0.01), u(-0.01, 0.0), u(0.0, 0.01)])
     if label == "cluster":
-        return np.array([u(-4, 4), u(-23, -17), u(-1.5, 1.5), u(0.005, 0.015), 0.0, u(-0.01, 0.0)])
+        return np.array([u(-4, 4), u(17, 23), u(-1.5, 1.5), u(0.005, 0.015), 0.0, u(-0.01, 0.0)])
     raise ConfigError(f"unknown glance target {label!r}")
 
 
@@ -1143,8 +1145,8 @@ def naturalistic_drive(
     The first ``frontal_s`` seconds look straight ahead (natural sway under 1 deg). Then frontal
     driving (a few degrees of wander, 1.5-4 s dwells) alternates with glances in random order, each
     block of four glances visiting the left mirror (yaw +45..+60), the right mirror (-45..-60), the
-    rear-view mirror (about -25 yaw, +5 pitch) and the instrument cluster (-20 pitch), with small
-    roll and 1-2 cm of lean. Transitions follow the minimum-jerk profile 10s^3 - 15s^4 + 6s^5 and
+    rear-view mirror (about -25 yaw, 5 deg up: pitch -5, REP-103) and the instrument cluster (20 deg
+    down: pitch +20), with small roll and 1-2 cm of lean. Transitions follow the minimum-jerk profile 10s^3 - 15s^4 + 6s^5 and
     take 0.35 s + 6 ms per degree; the head turns about the neck pivot of ``scene``. For motion
     blur, render with ``naturalistic_motion(...).around(frame.stamp_ns / 1e9)`` instead of the
     frame's pose (same seed, same motion).
