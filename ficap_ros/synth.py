@@ -30,9 +30,9 @@ formed the way a camera forms an image, in this order (``RenderConfig`` holds ev
    on sRGB) or ``linear`` (an idealised camera), then **8 bit** by a lookup table.
 6. **JPEG** (optional, ``jpeg_quality``; ``ficap synth`` always stores JPEG).
 
-``REALISTIC`` (PSF for the height, sRGB) is what ``ficap synth`` renders. ``RenderConfig()`` stays
-the idealised camera (no PSF, linear tone) until issue 10's unbiased corner estimator lands: today's
-corner estimator is biased on realistic images, which is the point of the chain.
+``RenderConfig()`` is the realistic camera (the PSF for the height, sRGB), which is also what
+``ficap synth`` renders (``REALISTIC`` names it); ``psf_sigma_px=0, tone="linear"`` gives the
+idealised camera.
 
 Distorted cameras: the ideal pinhole with the same K is rendered on a canvas large enough, then
 ``cv2.remap``-ed (still in linear light, before the PSF) into the distorted image, so
@@ -191,8 +191,7 @@ class RenderConfig:
     Attributes:
         lighting: one of ``LIGHTINGS``.
         psf_sigma_px: Gaussian lens PSF sigma, px, applied in linear light; None = the realistic
-            default for the image height (``default_psf_sigma_px``), 0 = none (the default until
-            issue 10's corner estimator lands; then None).
+            default for the image height (``default_psf_sigma_px``, the default), 0 = none.
         defocus_radius_px: radius of a defocus disc (pillbox) PSF, px, convolved with the
             Gaussian; 0 = none.
         exposure_ms: exposure time, ms; None = the lighting's nominal exposure. The collected
@@ -207,8 +206,7 @@ class RenderConfig:
         read_noise_e: read noise, electrons rms.
         tone: tone curve: ``srgb`` (IEC 61966-2-1), ``gamma`` (``value ** (1 / gamma)``),
             ``filmic`` (an S-curve on the sRGB value, ``FILMIC_CONTRAST``) or ``linear`` (none: an
-            idealised camera whose grey levels are proportional to light; the default until issue
-            10's corner estimator lands, then ``srgb``).
+            idealised camera whose grey levels are proportional to light); default ``srgb``.
         gamma: the exponent of the ``gamma`` tone curve (2.2 = ``value ** (1 / 2.2)``).
         motion_subframes: sub-frames averaged over the exposure when rendering motion; 0 = auto
             (odd, enough that no corner moves more than half a pixel between two; at most 31).
@@ -223,16 +221,16 @@ class RenderConfig:
     """
 
     lighting: str = "neutral"
-    # Until the unbiased corner estimator of issue 10 lands, the library's default camera is the
-    # idealised one (no lens blur, linear tone); ``ficap synth`` and ``REALISTIC`` use the real one.
-    psf_sigma_px: float | None = 0.0
+    # The realistic camera by default (lens PSF for the height, sRGB): what real cameras do to
+    # corners. ``psf_sigma_px=0, tone="linear"`` is the idealised camera.
+    psf_sigma_px: float | None = None
     defocus_radius_px: float = 0.0
     exposure_ms: float | None = None
     gain: float | None = None
     noise: bool = True
     full_well_e: float = 8000.0
     read_noise_e: float = 4.0
-    tone: str = "linear"
+    tone: str = "srgb"
     gamma: float = 2.2
     motion_subframes: int = 0
     jpeg_quality: int | None = None
