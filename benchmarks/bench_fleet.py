@@ -46,8 +46,6 @@ from ficap_ros.synth import RenderConfig, default_scene, naturalistic_drive, ren
 
 SWAT = Path("/work/shared/data/real_apriltag/swatbotics_mapping_feb_2014")
 FRAME_NS = 33_333_333
-#: pupil-apriltags detectors stay alive until exit (freeing one segfaulted in earlier runs).
-_KEEP: list[object] = []
 
 
 def _frames(res: str, n: int, step: int, start: int) -> tuple[list[np.ndarray], list, object]:
@@ -103,7 +101,6 @@ def frame_tables(n: int) -> tuple[str, dict]:
             procs["ficap, full-size search, no second reading"] = FrameProcessor(
                 model, DetectorConfig(search_decimate=1, decode_rejected=False))
         procs[AT3] = FrameProcessor(model, at3, tracking=False)
-        _KEEP.append(procs)
         rows = _ratio_rows(jpegs, truth, camera, procs, step * FRAME_NS)
         at3_row = next(r for r in rows if r["name"] == AT3)
         ours = next(r for r in rows if r["name"] == OURS)
@@ -136,7 +133,6 @@ def swat_table() -> str:
     dets = {"ficap search (default)": TagDetector(DetectorConfig()),
             "ficap search before (no second reading)": TagDetector(DetectorConfig(decode_rejected=False)),
             "AprilTag 3 decimate 1": TagDetector(DetectorConfig(backend="apriltag", corner_refine="apriltag"))}
-    _KEEP.append(dets)
     rows = []
     for name, det in dets.items():
         hits = fp = 0
