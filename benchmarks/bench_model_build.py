@@ -129,7 +129,8 @@ def _truth_poses(bag: Path) -> dict[int, Transform]:
     """The synth bag's true cap poses (PoseStamped, camera optical frame) by stamp."""
     from scipy.spatial.transform import Rotation
 
-    from ficap_ros.bag_io import open_bag_reader, stamp_to_ns
+    from ficap_ros.bag_io import open_bag_reader
+    from ficap_ros.stamps import stamp_to_ns
     from ficap_ros.commands.synth import TRUTH_CAP_TOPIC
 
     reader = open_bag_reader(bag)

@@ -29,6 +29,7 @@ import numpy as np
 
 from ficap_ros.camera import CameraModel, camera_from_info, load_camera_yaml
 from ficap_ros.errors import BagError, FicapError, ImageError, OutputError
+from ficap_ros.stamps import stamp_to_ns
 from ficap_ros.image_codec import check_pixel_budget, decode_compressed, decode_image
 
 __all__ = [
@@ -42,7 +43,6 @@ __all__ = [
     "FrameSource",
     "open_frames",
     "decode_raw",
-    "stamp_to_ns",
     "jazzy_typestore",
     "open_bag_reader",
     "BagWriter",
@@ -169,11 +169,6 @@ def decode_raw(raw: RawFrame) -> np.ndarray:
             f"{raw.camera.width_px}x{raw.camera.height_px}"
         )
     return img
-
-
-def stamp_to_ns(stamp: Any) -> int:
-    """``builtin_interfaces/Time`` (sec, nanosec) to ns."""
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
 
 
 _TYPESTORE: Any = None
@@ -402,9 +397,6 @@ class FrameSource:
                                f"({', '.join(images)}); choose one with --image-topic")
             self.image_topic = image_topic
             self._msgtype = topics[image_topic]
-            # Rectified streams carry P as their camera matrix and no distortion.
-            self._rectified = "rect" in image_topic.rsplit("/", 2)[-1] or (
-                image_topic.endswith("/compressed") and "rect" in image_topic.rsplit("/", 3)[-2])
             self.count = sum(c.msgcount for c in reader.connections if c.topic == image_topic)
             self._damage = getattr(reader, "damage", None)
             if self._damage is not None:
@@ -522,6 +514,7 @@ def open_frames(
     camera_info_topic: str | None = None,
     intrinsics: str | Path | CameraModel | None = None,
     fps: float | None = None,
+    rectified: bool = False,
 ) -> FrameSource:
     """Open a recording for reading frames.
 
@@ -532,6 +525,8 @@ def open_frames(
         intrinsics: camera YAML (or a CameraModel) overriding the bag's CameraInfo; required for
             a video.
         fps: video frame rate (default: the container's).
+        rectified: the images are rectified: CameraInfo P is the camera matrix, no distortion
+            (the node's ``image_is_rectified`` parameter; never guessed from the topic name).
 
     Raises:
         BagError: unreadable input, missing topic, no intrinsics.
@@ -539,6 +534,7 @@ def open_frames(
     """
     src = FrameSource()
     src.path = Path(path)
+    src._rectified = bool(rectified)
     if intrinsics is not None:
         src._intrinsics = (intrinsics if isinstance(intrinsics, CameraModel)
                            else load_camera_yaml(intrinsics))

@@ -22,7 +22,9 @@ Pure core: no ROS imports; the live node and ``ficap calibrate`` share it.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+import threading
+from collections import deque
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -34,11 +36,17 @@ from scipy.spatial.transform import Rotation
 from ficap_ros.errors import CalibrationError, OutputError
 from ficap_ros.files import read_text, write_output_file
 from ficap_ros.metrics import angle_deg, robust_mean_rotation
-from ficap_ros.pipeline import HeadCalibration
+from ficap_ros.stamps import pair_by_stamp, window_mask
 from ficap_ros.transform import CAM_FROM_FORWARD, Transform
 
 __all__ = [
+    "HeadCalibration",
     "CalibrationResult",
+    "MIN_RELIABILITY",
+    "frontal_frames",
+    "reference_pairs",
+    "calibrated_frontal",
+    "CalibrationRecorder",
     "calibrate_frontal",
     "calibrate_reference",
     "frontal_from_camera_mount",
@@ -54,6 +62,32 @@ CALIBRATION_FORMAT = "ficap_calibration/1"
 #: their mean, RMS degrees) that makes the reference problem well posed: with the head held still
 #: any rotation about the motion axis can move between X and Y.
 MIN_REFERENCE_EXCITATION_DEG = 2.0
+
+
+@dataclass(frozen=True)
+class HeadCalibration:
+    """How the cap sits on the head, and how the head's zero pose sits in the camera.
+
+    Attributes:
+        R_cap_head: orientation of the head frame H (x forward, y left, z up) in the cap frame C.
+            Identity until calibrated.
+        R_cam_frontal: orientation of the frontal frame F (the head's zero pose: x forward, y left,
+            z up, usually the vehicle's axes) in the camera optical frame. Default: the camera looks
+            straight forward, so F's x is the optical axis.
+        calibrated: whether ``R_cap_head`` came from a calibration.
+    """
+
+    R_cap_head: Rotation = field(default_factory=Rotation.identity)
+    R_cam_frontal: Rotation = field(default_factory=lambda: CAM_FROM_FORWARD)
+    calibrated: bool = False
+
+    def head_in_camera(self, T_cam_cap: Transform) -> Transform:
+        """T_cam_head: the cap pose composed with R_cap_head (head origin = cap origin)."""
+        return Transform(T_cam_cap.rotation * self.R_cap_head, T_cam_cap.translation_m)
+
+    def head_in_frontal(self, T_cam_cap: Transform) -> Rotation:
+        """R_frontal_head: the head orientation in the frontal frame (identity when frontal)."""
+        return self.R_cam_frontal.inv() * T_cam_cap.rotation * self.R_cap_head
 
 
 @dataclass(frozen=True)
@@ -92,6 +126,121 @@ def frontal_from_camera_mount(T_parent_cam: Transform | None) -> Rotation:
     if T_parent_cam is None:
         return CAM_FROM_FORWARD
     return T_parent_cam.rotation.inv()
+
+
+#: Frames less reliable than this are left out of a frontal calibration, live and offline (the
+#: node's ``calibration.min_reliability`` default).
+MIN_RELIABILITY = 0.5
+
+
+def frontal_frames(stamps_ns: np.ndarray, reliability: np.ndarray, window_ns: tuple[int, int],
+                   min_reliability: float = MIN_RELIABILITY) -> np.ndarray:
+    """Indices of the frames a frontal calibration uses: in the window (``ficap_ros.stamps``'
+    ``window_from_start_ns`` offline, ``last_window_ns`` live) and at least ``min_reliability``
+    reliable (NaN reliability counts as reliable: labels of other tools may not carry it)."""
+    rel = np.asarray(reliability, dtype=np.float64)
+    ok = window_mask(stamps_ns, window_ns) & ~(rel < min_reliability)
+    return np.nonzero(ok)[0]
+
+
+def reference_pairs(cap_stamps_ns: np.ndarray, ref_stamps_ns: np.ndarray, max_dt_ns: int,
+                    first: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(i_cap, i_ref) of the cap poses and reference poses a reference calibration pairs: nearest
+    stamps within ``max_dt_ns``, one-to-one (``ficap_ros.stamps.pair_by_stamp``), in cap order;
+    only the first ``first`` pairs when ``first`` > 0. Both stamp arrays must be sorted."""
+    i_cap, i_ref = pair_by_stamp(cap_stamps_ns, ref_stamps_ns, max_dt_ns)
+    if first > 0:
+        i_cap, i_ref = i_cap[:first], i_ref[:first]
+    return i_cap, i_ref
+
+
+def calibrated_frontal(result: CalibrationResult | None, T_parent_cam: Transform | None) -> Rotation:
+    """R_cam_frontal to use with a calibration: the one rule of the node, the CLI and replay.
+
+    A ``camera_mount`` (``T_parent_cam``) fixes the frontal frame to its parent's axes. Without
+    one, a reference calibration makes the reference frame the frontal frame (head angles then
+    read in the reference's axes, comparable with it); otherwise the camera looks straight ahead.
+    """
+    if T_parent_cam is None and result is not None and result.R_cam_reference is not None:
+        return result.R_cam_reference
+    return frontal_from_camera_mount(T_parent_cam)
+
+
+class CalibrationRecorder:
+    """Cap poses and reference head poses by stamp, kept for a calibration (thread-safe: the
+    node's worker adds frames while its service thread calibrates).
+
+    Args:
+        max_frames: most cap poses (and reference poses) kept; the oldest go first.
+    """
+
+    def __init__(self, max_frames: int = 20000) -> None:
+        self._lock = threading.Lock()
+        self._caps: deque[tuple[int, np.ndarray, float]] = deque(maxlen=max_frames)
+        self._refs: deque[tuple[int, np.ndarray]] = deque(maxlen=max_frames)
+
+    def add_cap(self, stamp_ns: int, R_cam_cap: Rotation, reliability: float) -> None:
+        with self._lock:
+            self._caps.append((int(stamp_ns), R_cam_cap.as_quat(), float(reliability)))
+
+    def add_reference(self, stamp_ns: int, q_xyzw: np.ndarray) -> None:
+        with self._lock:
+            self._refs.append((int(stamp_ns), np.asarray(q_xyzw, dtype=np.float64)))
+
+    @property
+    def references(self) -> int:
+        with self._lock:
+            return len(self._refs)
+
+    def _caps_sorted(self) -> list[tuple[int, np.ndarray, float]]:
+        with self._lock:
+            caps = list(self._caps)
+        caps.sort(key=lambda e: e[0])
+        return caps
+
+    def frontal(self, window_s: float, R_cam_frontal: Rotation, min_frames: int,
+                max_spread_deg: float, min_reliability: float = MIN_RELIABILITY) -> CalibrationResult:
+        """``calibrate_frontal`` over the reliable frames of the last ``window_s`` seconds."""
+        from ficap_ros.stamps import last_window_ns
+
+        caps = [c for c in self._caps_sorted() if not c[2] < min_reliability]
+        if not caps:
+            raise CalibrationError("no reliable frames buffered for frontal calibration")
+        stamps = np.array([c[0] for c in caps], dtype=np.int64)
+        sel = frontal_frames(stamps, np.array([c[2] for c in caps]),
+                             last_window_ns(int(stamps[-1]), window_s), min_reliability)
+        if sel.size == 0:
+            raise CalibrationError("no reliable frames in the calibration window")
+        return calibrate_frontal(Rotation.from_quat(np.array([caps[i][1] for i in sel])),
+                                 R_cam_frontal, min_frames=min_frames,
+                                 max_spread_deg=max_spread_deg)
+
+    def pairs(self, max_dt_ns: int, max_pairs: int = 0) -> tuple[np.ndarray, np.ndarray]:
+        """(q_cam_cap, q_ref_head), (N, 4) xyzw each, of the poses ``reference_pairs`` pairs.
+
+        Raises:
+            CalibrationError: no cap pose or no reference pose recorded.
+        """
+        caps = self._caps_sorted()
+        with self._lock:
+            refs = sorted(self._refs, key=lambda e: e[0])
+        if not caps or not refs:
+            raise CalibrationError(
+                f"reference mode has {len(caps)} cap poses and {len(refs)} reference poses")
+        i_cap, i_ref = reference_pairs(np.array([c[0] for c in caps], dtype=np.int64),
+                                       np.array([r[0] for r in refs], dtype=np.int64),
+                                       max_dt_ns, max_pairs)
+        return (np.array([caps[i][1] for i in i_cap]).reshape(-1, 4),
+                np.array([refs[i][1] for i in i_ref]).reshape(-1, 4))
+
+    def reference(self, max_dt_ns: int, min_pairs: int, max_pairs: int = 0) -> CalibrationResult:
+        """``calibrate_reference`` over the cap and reference poses paired by stamp."""
+        q_cap, q_ref = self.pairs(max_dt_ns, max_pairs)
+        if len(q_cap) < min_pairs:
+            raise CalibrationError(
+                f"reference mode matched {len(q_cap)} pairs by stamp, needs {min_pairs}")
+        return calibrate_reference(Rotation.from_quat(q_cap), Rotation.from_quat(q_ref),
+                                   min_pairs=min_pairs)
 
 
 def _count(rotations: Rotation) -> int:

@@ -24,6 +24,7 @@ from scipy.spatial.transform import Rotation
 
 from ficap_ros.errors import BagError
 from ficap_ros.labels import read_labels_text
+from ficap_ros.stamps import pair_by_stamp
 from ficap_ros.metrics import (
     angle_deg,
     phi3_deg,
@@ -38,7 +39,6 @@ __all__ = [
     "load_series",
     "read_series_csv",
     "read_series_bag",
-    "pair_by_stamp",
     "evaluate",
     "write_report",
     "POSE_TYPES",
@@ -138,7 +138,8 @@ def read_series_bag(path: str | Path, topic: str) -> PoseSeries:
     Raises:
         BagError: unreadable bag, missing topic or an unsupported message type.
     """
-    from ficap_ros.bag_io import open_bag_reader, stamp_to_ns
+    from ficap_ros.bag_io import open_bag_reader
+    from ficap_ros.stamps import stamp_to_ns
 
     reader = open_bag_reader(Path(path))
     try:
@@ -187,33 +188,6 @@ def load_series(spec: str) -> PoseSeries:
     if p.is_dir() and not (p / "labels.csv").exists():
         raise BagError(f"{spec} is a folder; give BAG:TOPIC or a CSV file")
     return read_series_csv(spec)
-
-
-def pair_by_stamp(truth_ns: np.ndarray, est_ns: np.ndarray,
-                  max_dt_ns: int) -> tuple[np.ndarray, np.ndarray]:
-    """Indices (i_truth, i_est) of nearest-stamp pairs within ``max_dt_ns``, one-to-one.
-
-    Each truth takes its nearest estimate; when several truths take the same estimate the closest
-    keeps it.
-    """
-    t = np.asarray(truth_ns, dtype=np.int64)
-    e = np.asarray(est_ns, dtype=np.int64)
-    if t.size == 0 or e.size == 0:
-        return np.zeros(0, int), np.zeros(0, int)
-    j = np.clip(np.searchsorted(e, t), 1, e.size - 1) if e.size > 1 else np.zeros(t.size, int)
-    if e.size > 1:
-        left = j - 1
-        j = np.where(np.abs(e[left] - t) <= np.abs(e[j] - t), left, j)
-    dt = np.abs(e[j] - t)
-    ok = dt <= max_dt_ns
-    i_t = np.nonzero(ok)[0]
-    i_e = j[ok]
-    d = dt[ok]
-    order = np.lexsort((d, i_e))  # by estimate, closest first
-    first = np.ones(order.size, dtype=bool)
-    first[1:] = i_e[order][1:] != i_e[order][:-1]
-    keep = np.sort(order[first])
-    return i_t[keep], i_e[keep]
 
 
 def _wrap_deg(a: np.ndarray) -> np.ndarray:

@@ -46,7 +46,7 @@ from ficap_ros import __version__
 from ficap_ros.bag_io import VIDEO_SUFFIXES, FrameSource, RawFrame, write_file_atomic
 from ficap_ros.cap_model import CapModel
 from ficap_ros.errors import BagError, ConfigError, FicapError
-from ficap_ros.pipeline import HeadCalibration
+from ficap_ros.calibration import HeadCalibration
 from ficap_ros.pose import PoseConfig
 
 __all__ = ["Recording", "RecordingResult", "FleetResult", "find_recordings", "read_manifest",
@@ -247,7 +247,7 @@ def label_settings(
     model: CapModel, pose: PoseConfig, calibration: HeadCalibration | None = None,
     calibrate_window_s: tuple[float, float] | None = None, namespace: str = "",
     image_topic: str | None = None, camera_info_topic: str | None = None,
-    intrinsics: str | Path | None = None, fps: float | None = None,
+    intrinsics: str | Path | None = None, fps: float | None = None, rectified: bool = False,
 ) -> dict[str, Any]:
     """Every setting that changes the labels, as plain JSON values (files by content hash).
 
@@ -273,6 +273,8 @@ def label_settings(
         "intrinsics_sha256": _text_sha256(intrinsics),
         "fps": fps,
         "segment_frames": replay.SEGMENT_FRAMES,
+        # Only when set, so fingerprints of earlier runs (raw images) stay current.
+        **({"rectified": True} if rectified else {}),
     }
 
 

@@ -22,8 +22,9 @@ with the image stamp (header and bag receive time), frame = the image's frame_id
     ``head_rpy_deg`` Vector3Stamped: x roll, y pitch, z yaw of H in F, degrees (REP-103).
     ``quality`` JointState: ``name[i]`` labels ``position[i]``: tags_detected, tags_used,
         reliability, rms_px, rot_err95_deg, trans_err95_mm (NaN without a pose); every image.
-    ``status`` DiagnosticArray, one status ``ficap`` per image: OK with a pose, WARN without one,
-        ERROR for an undecodable image; values tags_detected, tags_used, rms_px, reliability,
+    ``status`` DiagnosticArray, one status ``ficap`` per image, level and message as the node's
+        (``ficap_ros.report.frame_status``): OK with a pose, WARN without one or below reliability
+        0.5, ERROR for an undecodable image; values tags_detected, tags_used, rms_px, reliability,
         calibrated and, with a pose, yaw_deg, pitch_deg, roll_deg (R_frontal_head).
     ``/tf`` (never namespaced) tf2_msgs/TFMessage per posed image: ``ficap_frontal`` -> the camera
         frame (R_frontal_cam, the frontal frame's orientation; origin at the camera), camera ->
@@ -46,8 +47,10 @@ from scipy.spatial.transform import Rotation
 
 from ficap_ros.errors import BagError
 from ficap_ros.metrics import yaw_pitch_roll_deg
-from ficap_ros.pipeline import FrameResult, HeadCalibration
+from ficap_ros.calibration import HeadCalibration
+from ficap_ros.pipeline import FrameResult
 from ficap_ros.pose import CapPose
+from ficap_ros.report import frame_status
 from ficap_ros.transform import Transform
 
 __all__ = [
@@ -410,7 +413,8 @@ def _status_msg(rec: LabelRecord) -> object:
     from ficap_ros.bag_io import header, jazzy_typestore
 
     t = jazzy_typestore().types
-    level = 0 if rec.T_cam_cap is not None else (2 if rec.skipped else 1)
+    level, message = frame_status(rec.T_cam_cap is not None, rec.reliability, rec.reason,
+                                  error=rec.reason if rec.skipped else "")
     values = [
         ("tags_detected", str(rec.tags_detected)),
         ("tags_used", str(rec.tags_used)),
@@ -423,8 +427,6 @@ def _status_msg(rec: LabelRecord) -> object:
     if rec.T_frontal_head is not None:
         ypr = yaw_pitch_roll_deg(rec.T_frontal_head.rotation)
         values += [(f"{k}_deg", _f(float(v), 4)) for k, v in zip(("yaw", "pitch", "roll"), ypr)]
-    message = "pose" if rec.T_cam_cap is not None else (
-        rec.reason if rec.skipped else f"no pose: {rec.reason}")
     status = t["diagnostic_msgs/msg/DiagnosticStatus"](
         level=level, name="ficap", message=message, hardware_id=rec.frame_id,
         values=[t["diagnostic_msgs/msg/KeyValue"](key=k, value=v) for k, v in values],

@@ -58,7 +58,10 @@ from visualization_msgs.msg import MarkerArray
 
 from ficap_ros import ros_msgs
 from ficap_ros.calibration import (
+    CalibrationRecorder,
     CalibrationResult,
+    HeadCalibration,
+    calibrated_frontal,
     calibrate_frontal,
     calibrate_reference,
     frontal_from_camera_mount,
@@ -71,8 +74,9 @@ from ficap_ros.detection import DetectorConfig
 from ficap_ros.errors import CalibrationError, ConfigError, FicapError, IntrinsicsError
 from ficap_ros.native_log import ThrottledStderr
 from ficap_ros.metrics import angle_deg, yaw_pitch_roll_deg
-from ficap_ros.pipeline import FrameProcessor, FrameResult, HeadCalibration
+from ficap_ros.pipeline import FrameProcessor, FrameResult
 from ficap_ros.pose import POSE_METHODS, PoseConfig, UncertaintyConfig
+from ficap_ros.report import WARN_RELIABILITY, frame_status
 from ficap_ros.transform import Transform, rotate_covariance
 
 __all__ = ["FicapNode", "ParamSpec", "PARAMETERS", "NodeConfig", "main"]
@@ -168,7 +172,7 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               range=(0.0, 0.5)),
     ParamSpec("publish_min_reliability", 0.0, "Poses less reliable than this are not published "
               "(status still is).", range=(0.0, 1.0)),
-    ParamSpec("warn_reliability", 0.5, "Status level is WARN below this reliability.",
+    ParamSpec("warn_reliability", WARN_RELIABILITY, "Status level is WARN below this reliability.",
               range=(0.0, 1.0)),
     ParamSpec("warn_throttle_s", 5.0, "Least interval between repeated input warnings, s.",
               range=(0.0, 3600.0)),
@@ -270,10 +274,6 @@ def validate_parameter(name: str, value: Any) -> str:
     return ""
 
 
-def _quat(rotation: Rotation) -> np.ndarray:
-    return rotation.as_quat()
-
-
 class FicapNode(Node):
     """Fi-Cap head pose node (see the module docstring for its interface)."""
 
@@ -328,9 +328,7 @@ class FicapNode(Node):
         self._running = True
         self._camera_infos: deque[tuple[int, CameraInfo]] = deque(maxlen=50)
         self._camera_cache: tuple[tuple, CameraModel] | None = None
-        self._frontal_buf: deque[tuple[int, np.ndarray]] = deque(maxlen=3000)
-        self._cap_buf: deque[tuple[int, np.ndarray]] = deque(maxlen=20000)
-        self._ref_buf: deque[tuple[int, np.ndarray]] = deque(maxlen=20000)
+        self._recorder = CalibrationRecorder(max_frames=20000)
         self._last_calibration: CalibrationResult | None = None
         self._received = 0
         self._dropped = 0
@@ -450,8 +448,11 @@ class FicapNode(Node):
     def _after_set_parameters(self, params: list[Parameter]) -> None:
         self._config = cfg = self._read_config()
         self._processor.pose_config = _pose_config(cfg)
-        R_cam_frontal = frontal_from_camera_mount(self._mount)
+        if not any(p.name == "camera_mount" for p in params):
+            return  # the frontal frame (maybe a reference calibration's) stays
         old = self._processor.calibration
+        R_cam_frontal = calibrated_frontal(self._last_calibration if old.calibrated else None,
+                                           self._mount)
         if angle_deg(old.R_cam_frontal, R_cam_frontal) > 1e-9:
             self._processor.calibration = HeadCalibration(old.R_cap_head, R_cam_frontal,
                                                           old.calibrated)
@@ -466,7 +467,9 @@ class FicapNode(Node):
         except CalibrationError as err:
             self.get_logger().error(f"{err}; starting uncalibrated")
             return
-        R_cam_frontal = self._processor.calibration.R_cam_frontal
+        # The file's frontal frame (replay --calibration's), unless camera_mount sets one.
+        R_cam_frontal = loaded.R_cam_frontal if self._mount is None else \
+            frontal_from_camera_mount(self._mount)
         if loaded.calibrated and angle_deg(loaded.R_cam_frontal, R_cam_frontal) > 0.01:
             self.get_logger().warning(
                 f"calibration {path} was made with a frontal frame "
@@ -490,50 +493,17 @@ class FicapNode(Node):
     def _run_calibration(self) -> CalibrationResult:
         cfg = self._config
         mode = self._calibration_mode()
-        R_cam_frontal = self._processor.calibration.R_cam_frontal
+        R_cam_frontal = calibrated_frontal(None, self._mount)  # the frame the result is kept with
         if mode == "frontal":
-            with self._lock:
-                buf = list(self._frontal_buf)
-            if not buf:
-                raise CalibrationError("no reliable frames buffered for frontal calibration")
-            newest = buf[-1][0]
-            start = newest - int(cfg["calibration.window_s"] * 1e9)
-            quats = np.array([q for stamp, q in buf if stamp >= start])
-            if len(quats) == 0:
-                raise CalibrationError("no reliable frames in the calibration window")
-            return calibrate_frontal(Rotation.from_quat(quats), R_cam_frontal,
-                                     min_frames=cfg["calibration.min_frames"],
-                                     max_spread_deg=cfg["calibration.max_spread_deg"])
+            return self._recorder.frontal(cfg["calibration.window_s"], R_cam_frontal,
+                                          min_frames=cfg["calibration.min_frames"],
+                                          max_spread_deg=cfg["calibration.max_spread_deg"],
+                                          min_reliability=cfg["calibration.min_reliability"])
         if not cfg["calibration.reference_topic"]:
             raise CalibrationError("reference mode needs calibration.reference_topic")
-        with self._lock:
-            caps = list(self._cap_buf)
-            refs = list(self._ref_buf)
-        if not caps or not refs:
-            raise CalibrationError(
-                f"reference mode has {len(caps)} cap poses and {len(refs)} reference poses")
-        caps.sort(key=lambda e: e[0])
-        refs.sort(key=lambda e: e[0])
-        cap_stamps = np.array([s for s, _ in caps], dtype=np.int64)
-        tol_ns = int(cfg["calibration.pair_tolerance_ms"] * 1e6)
-        pairs_cap, pairs_ref = [], []
-        for stamp, q_ref in refs:
-            i = int(np.searchsorted(cap_stamps, stamp))
-            best = min((j for j in (i - 1, i) if 0 <= j < len(caps)),
-                       key=lambda j: abs(int(cap_stamps[j]) - stamp))
-            if abs(int(cap_stamps[best]) - stamp) <= tol_ns:
-                pairs_cap.append(caps[best][1])
-                pairs_ref.append(q_ref)
-        if cfg["calibration.max_pairs"] > 0:
-            pairs_cap = pairs_cap[: cfg["calibration.max_pairs"]]
-            pairs_ref = pairs_ref[: cfg["calibration.max_pairs"]]
-        if len(pairs_cap) < cfg["calibration.min_pairs"]:
-            raise CalibrationError(
-                f"reference mode matched {len(pairs_cap)} pairs by stamp, needs "
-                f"{cfg['calibration.min_pairs']}")
-        return calibrate_reference(Rotation.from_quat(np.array(pairs_cap)),
-                                   Rotation.from_quat(np.array(pairs_ref)),
-                                   min_pairs=cfg["calibration.min_pairs"])
+        return self._recorder.reference(int(cfg["calibration.pair_tolerance_ms"] * 1e6),
+                                        min_pairs=cfg["calibration.min_pairs"],
+                                        max_pairs=cfg["calibration.max_pairs"])
 
     def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         try:
@@ -543,8 +513,7 @@ class FicapNode(Node):
             response.message = f"calibration refused: {err}"
             self.get_logger().warning(response.message)
             return response
-        R_cam_frontal = self._processor.calibration.R_cam_frontal
-        calib = HeadCalibration(result.R_cap_head, R_cam_frontal, True)
+        calib = HeadCalibration(result.R_cap_head, calibrated_frontal(result, self._mount), True)
         self._processor.calibration = calib
         self._last_calibration = result
         response.success = True
@@ -609,8 +578,7 @@ class FicapNode(Node):
             self.get_logger().warning("reference pose with an invalid quaternion ignored",
                                       throttle_duration_sec=self._config["warn_throttle_s"])
             return
-        with self._lock:
-            self._ref_buf.append((ros_msgs.stamp_to_ns(msg.header.stamp), q / np.linalg.norm(q)))
+        self._recorder.add_reference(ros_msgs.stamp_to_ns(msg.header.stamp), q / np.linalg.norm(q))
 
     def _camera_for(self, stamp_ns: int) -> CameraModel:
         """Intrinsics for a frame: the CameraInfo with its stamp, else the latest, else the file."""
@@ -672,8 +640,9 @@ class FicapNode(Node):
             self._period["errors"] += 1
             self._last_error = reason
         self.get_logger().warning(reason, throttle_duration_sec=self._config["warn_throttle_s"])
+        level, message = frame_status(False, math.nan, error=reason)
         status = ros_msgs.diagnostic_status(
-            STATUS_NAME, ros_msgs.LEVEL_ERROR, reason, self._status_values(None, float("nan")),
+            STATUS_NAME, bytes([level]), message, self._status_values(None, float("nan")),
             hardware_id=header.frame_id)
         self._pub_status.publish(ros_msgs.diagnostic_array(self._out_header(header), status))
         self._pub_quality.publish(ros_msgs.quality_msg(header, self._quality_values(None, float("nan"))))
@@ -752,13 +721,9 @@ class FicapNode(Node):
         latency_ms = (time.monotonic_ns() - received_ns) / 1e6
         self._pub_quality.publish(ros_msgs.quality_msg(header, self._quality_values(result, latency_ms)))
 
-        if pose is None:
-            level, message = ros_msgs.LEVEL_WARN, f"no pose: {result.reason or 'no tags'}"
-        elif pose.reliability < cfg["warn_reliability"]:
-            level, message = ros_msgs.LEVEL_WARN, f"low reliability {pose.reliability:.2f}"
-        else:
-            level, message = ros_msgs.LEVEL_OK, "pose"
-        status = ros_msgs.diagnostic_status(STATUS_NAME, level, message,
+        level, message = frame_status(pose is not None, pose.reliability if pose else math.nan,
+                                      result.reason, warn_reliability=cfg["warn_reliability"])
+        status = ros_msgs.diagnostic_status(STATUS_NAME, bytes([level]), message,
                                             self._status_values(result, latency_ms),
                                             hardware_id=header.frame_id)
         self._pub_status.publish(ros_msgs.diagnostic_array(out, status))
@@ -776,11 +741,8 @@ class FicapNode(Node):
             self._period["processed"] += 1
             self._period["tags"] += result.tags_detected
             self._period["latency_ms"] += latency_ms
-            if pose is not None:
-                q = _quat(pose.T_cam_cap.rotation)
-                self._cap_buf.append((stamp_ns, q))
-                if pose.reliability >= cfg["calibration.min_reliability"]:
-                    self._frontal_buf.append((stamp_ns, q))
+        if pose is not None:
+            self._recorder.add_cap(stamp_ns, pose.T_cam_cap.rotation, pose.reliability)
 
     # -- diagnostics -----------------------------------------------------------------------------
     def _on_diagnostics_timer(self) -> None:

@@ -11,6 +11,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ficap_ros.calibration import HeadCalibration
 from ficap_ros.camera import CameraModel
 from ficap_ros.cap_model import CapModel, nominal_model
 from ficap_ros.detection import (
@@ -24,35 +25,9 @@ from ficap_ros.detection import (
 )
 from ficap_ros.pose import CapPose, PoseConfig, estimate_cap_pose
 from ficap_ros.tracking import TrackConfig, extrapolate_pose, predict_tags, verify_tags, view_angles_deg
-from ficap_ros.transform import CAM_FROM_FORWARD, Transform
+from ficap_ros.transform import Transform
 
-__all__ = ["HeadCalibration", "FrameResult", "FrameProcessor"]
-
-
-@dataclass(frozen=True)
-class HeadCalibration:
-    """How the cap sits on the head, and how the head's zero pose sits in the camera.
-
-    Attributes:
-        R_cap_head: orientation of the head frame H (x forward, y left, z up) in the cap frame C.
-            Identity until calibrated.
-        R_cam_frontal: orientation of the frontal frame F (the head's zero pose: x forward, y left,
-            z up, usually the vehicle's axes) in the camera optical frame. Default: the camera looks
-            straight forward, so F's x is the optical axis.
-        calibrated: whether ``R_cap_head`` came from a calibration.
-    """
-
-    R_cap_head: Rotation = field(default_factory=Rotation.identity)
-    R_cam_frontal: Rotation = field(default_factory=lambda: CAM_FROM_FORWARD)
-    calibrated: bool = False
-
-    def head_in_camera(self, T_cam_cap: Transform) -> Transform:
-        """T_cam_head: the cap pose composed with R_cap_head (head origin = cap origin)."""
-        return Transform(T_cam_cap.rotation * self.R_cap_head, T_cam_cap.translation_m)
-
-    def head_in_frontal(self, T_cam_cap: Transform) -> Rotation:
-        """R_frontal_head: the head orientation in the frontal frame (identity when frontal)."""
-        return self.R_cam_frontal.inv() * T_cam_cap.rotation * self.R_cap_head
+__all__ = ["FrameResult", "FrameProcessor"]
 
 
 @dataclass(frozen=True)

@@ -28,7 +28,8 @@ from ficap_ros.bag_io import FrameSource, Loss, RawFrame, decode_raw, write_file
 from ficap_ros.cap_model import CapModel
 from ficap_ros.errors import BagError, ImageError
 from ficap_ros.labels import LabelRecord, labels_csv_text, record_from_pose, write_labels_bag
-from ficap_ros.pipeline import FrameProcessor, HeadCalibration
+from ficap_ros.calibration import HeadCalibration
+from ficap_ros.pipeline import FrameProcessor
 from ficap_ros.pose import CapPose, PoseConfig
 
 __all__ = ["Progress", "ProcessedFrame", "process_frames", "frontal_calibration",
@@ -245,13 +246,15 @@ def frontal_calibration(
     """
     from scipy.spatial.transform import Rotation
 
-    from ficap_ros.calibration import calibrate_frontal
+    from ficap_ros.calibration import calibrate_frontal, frontal_frames
     from ficap_ros.errors import CalibrationError
+    from ficap_ros.stamps import window_from_start_ns
 
-    lo = start_ns + int(window_s[0] * 1e9)
-    hi = start_ns + int(window_s[1] * 1e9) if math.isfinite(window_s[1]) else 2**63 - 1
-    rots = [f.pose.T_cam_cap.rotation for f in frames
-            if f.pose is not None and lo <= f.stamp_ns <= hi]
+    posed = [f.pose for f in frames if f.pose is not None]
+    sel = frontal_frames(np.array([f.stamp_ns for f in frames if f.pose is not None], dtype=np.int64),
+                         np.array([p.reliability for p in posed], dtype=np.float64),
+                         window_from_start_ns(start_ns, window_s))
+    rots = [posed[i].T_cam_cap.rotation for i in sel]
     if not rots:
         raise CalibrationError(
             f"no frame with a cap pose between {window_s[0]:g} s and {window_s[1]:g} s")

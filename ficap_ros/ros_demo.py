@@ -25,7 +25,8 @@ from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, CompressedImage
 from std_srvs.srv import Trigger
 
-from ficap_ros.bag_io import open_bag_reader, stamp_to_ns
+from ficap_ros.bag_io import open_bag_reader
+from ficap_ros.stamps import stamp_to_ns
 from ficap_ros.errors import BagError
 from ficap_ros.metrics import angle_deg, phi3_deg, summarize_errors, yaw_pitch_roll_deg
 from ficap_ros.node import FicapNode

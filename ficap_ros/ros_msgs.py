@@ -25,6 +25,7 @@ from ficap_ros.image_codec import decode_compressed, decode_image
 from ficap_ros.metrics import yaw_pitch_roll_deg
 from ficap_ros.errors import ImageError, IntrinsicsError
 from ficap_ros.pipeline import FrameResult
+from ficap_ros.stamps import stamp_to_ns
 from ficap_ros.transform import Transform
 
 __all__ = [
@@ -73,11 +74,6 @@ IMAGE_ENCODINGS: dict[str, tuple[int, int, int | None]] = {
 
 
 # -- time ----------------------------------------------------------------------------------------
-def stamp_to_ns(stamp: Time) -> int:
-    """builtin_interfaces/Time -> integer nanoseconds."""
-    return int(stamp.sec) * 1_000_000_000 + int(stamp.nanosec)
-
-
 def ns_to_stamp(stamp_ns: int) -> Time:
     """Integer nanoseconds -> builtin_interfaces/Time."""
     sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)

@@ -16,7 +16,7 @@ from ficap_ros.calibration import (
 )
 from ficap_ros.errors import CalibrationError
 from ficap_ros.metrics import angle_deg, rotation_from_ypr_deg
-from ficap_ros.pipeline import HeadCalibration
+from ficap_ros.calibration import HeadCalibration
 from ficap_ros.transform import CAM_FROM_FORWARD, Transform
 
 

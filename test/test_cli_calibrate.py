@@ -13,7 +13,7 @@ from ficap_ros.calibration import load_calibration
 from ficap_ros.cli import main
 from ficap_ros.labels import labels_csv_text, record_from_pose
 from ficap_ros.metrics import rotation_from_ypr_deg
-from ficap_ros.pipeline import HeadCalibration
+from ficap_ros.calibration import HeadCalibration
 from ficap_ros.pose import CapPose
 from ficap_ros.transform import CAM_FROM_FORWARD, Transform
 

@@ -12,10 +12,11 @@ from scipy.spatial.transform import Rotation
 
 from ficap_ros.bag_io import BagWriter, pose_stamped_msg
 from ficap_ros.cli import main
-from ficap_ros.evaluation import evaluate, load_series, pair_by_stamp
+from ficap_ros.evaluation import evaluate, load_series
+from ficap_ros.stamps import pair_by_stamp
 from ficap_ros.labels import labels_csv_text, record_from_pose
 from ficap_ros.metrics import rotation_from_ypr_deg
-from ficap_ros.pipeline import HeadCalibration
+from ficap_ros.calibration import HeadCalibration
 from ficap_ros.pose import CapPose
 from ficap_ros.transform import Transform
 

@@ -27,7 +27,7 @@ REPEATS = 5
 LIMITS_DEG = (50.0, 30.0, 20.0)  # yaw, pitch, roll of the look-around session
 
 
-def test_reference_calibration_with_noisy_reference(harness_factory) -> None:  # noqa: F811
+def test_reference_calibration_with_noisy_reference(harness_factory, tmp_path) -> None:  # noqa: F811
     model = nominal_model()
     scene = default_scene("540p")
     rng = np.random.default_rng(21)
@@ -44,6 +44,7 @@ def test_reference_calibration_with_noisy_reference(harness_factory) -> None:  #
     # A face tracker in front of the driver: its frame is far from the camera's.
     R_cam_ref = Rotation.from_euler("ZYX", [170.0, 20.0, -5.0], degrees=True)
     stamp = 10**9
+    refs: list = []
     for rep in range(REPEATS):
         for T_cam_cap, image in shots:
             stamp += 33_333_333
@@ -55,10 +56,11 @@ def test_reference_calibration_with_noisy_reference(harness_factory) -> None:  #
             ref.pose.orientation.x, ref.pose.orientation.y = float(x), float(y)
             ref.pose.orientation.z, ref.pose.orientation.w = float(z), float(w)
             h.pub_ref.publish(ref)
+            refs.append((stamp, ref))
             h.publish_and_wait(ros_msgs.array_to_image(image, "mono8", _header(stamp)),
                                _info(scene.camera, stamp))
     n = N_ORIENTATIONS * REPEATS
-    h.wait_for(lambda: len(h.node._ref_buf) >= n - 5, timeout=5.0, what="references")
+    h.wait_for(lambda: h.node._recorder.references >= n - 5, timeout=5.0, what="references")
     resp = h.call(h.calibrate, Trigger.Request())
     assert resp.success, resp.message
     err = angle_deg(h.node.calibration.R_cap_head, scene.R_cap_head)
@@ -68,3 +70,33 @@ def test_reference_calibration_with_noisy_reference(harness_factory) -> None:  #
     # Stamp pairing used (nearly) every frame.
     used = int(resp.message.split(" from ")[1].split()[0])
     assert used >= 0.9 * n
+
+    # The same poses offline: the node's cap poses as labels.csv, the references as a bag,
+    # `ficap calibrate --reference` with the node's pair tolerance: the same pairs and frames.
+    from ficap_ros.bag_io import BagWriter, pose_stamped_msg
+    from ficap_ros.calibration import load_calibration
+    from ficap_ros.cli import main
+    from ficap_ros.transform import Transform
+
+    with h.lock:
+        caps = list(h.cap)
+    lines = ["stamp_ns,tags_detected,reliability,cap_qw,cap_qx,cap_qy,cap_qz,head_qw,head_qx,head_qy,head_qz"]
+    for c in caps:
+        o = c.pose.orientation
+        q = f"{o.w!r},{o.x!r},{o.y!r},{o.z!r}"
+        lines.append(f"{ros_msgs.stamp_to_ns(c.header.stamp)},10,1.0,{q},{q}")
+    (tmp_path / "labels.csv").write_text("\n".join(lines) + "\n")
+    with BagWriter(tmp_path / "ref", storage="mcap") as w:
+        w.add_topic(topic, "geometry_msgs/msg/PoseStamped")
+        for s, ref in refs:
+            o = ref.pose.orientation
+            T = Transform(Rotation.from_quat([o.x, o.y, o.z, o.w]), np.zeros(3))
+            w.write(topic, s, pose_stamped_msg(s, "face_tracker", T))
+    assert main(["calibrate", str(tmp_path / "labels.csv"), "--reference",
+                 f"{tmp_path / 'ref'}:{topic}", "--max-dt-ms", "5", "--out",
+                 str(tmp_path / "cal.yaml")]) == 0
+    offline = load_calibration(tmp_path / "cal.yaml")
+    assert angle_deg(offline.R_cap_head, h.node.calibration.R_cap_head) < 1e-3
+    # The reference frame is the frontal frame live (no camera_mount) as offline.
+    assert angle_deg(offline.R_cam_frontal, h.node.calibration.R_cam_frontal) < 1e-3
+    assert angle_deg(h.node.calibration.R_cam_frontal, R_cam_ref) < 1.0

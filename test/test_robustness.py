@@ -45,7 +45,7 @@ from ficap_ros.errors import (
     OutputError,
 )
 from ficap_ros.labels import read_labels
-from ficap_ros.pipeline import HeadCalibration
+from ficap_ros.calibration import HeadCalibration
 
 ROOT = Path(__file__).resolve().parents[1]
 FICAP = [sys.executable, "-m", "ficap_ros.cli"]

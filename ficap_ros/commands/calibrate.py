@@ -36,9 +36,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="reference mode: largest stamp difference of a pair, ms (default 20)")
     parser.add_argument("--camera-mount", type=finite_float, nargs=7,
                         metavar=("X", "Y", "Z", "QX", "QY", "QZ", "QW"),
-                        help="frontal mode: the camera's optical frame in the vehicle frame "
+                        help="the camera's optical frame in the vehicle frame "
                              "(static_transform_publisher order, m and quaternion); the frontal "
-                             "frame takes the vehicle's axes (default: camera looks straight ahead)")
+                             "frame takes the vehicle's axes (default: frontal mode: camera looks "
+                             "straight ahead; reference mode: the reference's frame), as the "
+                             "node's camera_mount")
     parser.add_argument("--min-frames", type=positive_int, default=30,
                         help="frontal mode: least frames with a pose in the window (default 30)")
     parser.add_argument("--out", required=True, metavar="FILE", help="calibration YAML to write")
@@ -52,9 +54,13 @@ def run(args: argparse.Namespace) -> int:
     from ficap_ros.calibration import (
         calibrate_frontal,
         calibrate_reference,
-        frontal_from_camera_mount,
+        calibrated_frontal,
+        frontal_frames,
+        reference_pairs,
         save_calibration,
     )
+    from ficap_ros.stamps import window_from_start_ns
+    from ficap_ros.transform import Transform
     from ficap_ros.errors import BagError, CalibrationError, ConfigError
     from ficap_ros.labels import read_labels
     from ficap_ros.files import check_file_target
@@ -66,33 +72,28 @@ def run(args: argparse.Namespace) -> int:
         raise CalibrationError(f"{args.labels} has no frame with a pose")
     R_cam_cap_all = labels.cap_rotations()
     stamps = labels.stamp_ns[pose_rows]
+    mount = (Transform.from_xyz_q_xyzw(args.camera_mount, "--camera-mount")
+             if args.camera_mount else None)
     if args.frontal is not None:
         if args.first or args.random:
             raise ConfigError("--first and --random apply to --reference only")
-        start = int(labels.stamp_ns.min())
-        lo = start + int(args.frontal[0] * 1e9)
-        hi = start + int(args.frontal[1] * 1e9) if np.isfinite(args.frontal[1]) else 2**63 - 1
-        sel = (stamps >= lo) & (stamps <= hi)
-        if not np.any(sel):
+        window = window_from_start_ns(int(labels.stamp_ns.min()), args.frontal)
+        sel = frontal_frames(stamps, labels.reliability[pose_rows], window)
+        if sel.size == 0:
             raise CalibrationError(
                 f"no frame with a pose between {args.frontal[0]:g} s and {args.frontal[1]:g} s")
-        from ficap_ros.transform import Transform
-
-        mount = (Transform.from_xyz_q_xyzw(args.camera_mount, "--camera-mount")
-                 if args.camera_mount else None)
-        R_cam_frontal = frontal_from_camera_mount(mount)
-        result = calibrate_frontal(R_cam_cap_all[np.nonzero(sel)[0]], R_cam_frontal,
-                                   min_frames=args.min_frames)
+        R_cam_frontal = calibrated_frontal(None, mount)
+        result = calibrate_frontal(R_cam_cap_all[sel], R_cam_frontal, min_frames=args.min_frames)
         save_calibration(args.out, result, R_cam_frontal=R_cam_frontal)
         detail = f"frontal window {args.frontal[0]:g}-{args.frontal[1]:g} s"
     else:
-        from ficap_ros.evaluation import load_series, pair_by_stamp
+        from ficap_ros.evaluation import load_series
 
         path, sep, topic = args.reference.rpartition(":")
         if not sep or not topic.startswith("/"):
             raise BagError(f"--reference expects BAG:TOPIC, got {args.reference!r}")
         ref = load_series(args.reference)
-        i_lab, i_ref = pair_by_stamp(stamps, ref.stamp_ns, int(round(args.max_dt_ms * 1e6)))
+        i_lab, i_ref = reference_pairs(stamps, ref.stamp_ns, int(round(args.max_dt_ms * 1e6)))
         if i_lab.size == 0:
             raise CalibrationError(f"no reference pose within {args.max_dt_ms:g} ms of a label")
         if args.first:
@@ -104,8 +105,8 @@ def run(args: argparse.Namespace) -> int:
         else:
             keep = np.arange(i_lab.size)
         result = calibrate_reference(R_cam_cap_all[i_lab[keep]], ref.rotations[i_ref[keep]])
-        # The reference frame becomes the frontal frame: head angles are then in its axes.
-        save_calibration(args.out, result, R_cam_frontal=result.R_cam_reference)
+        # Without --camera-mount the reference frame becomes the frontal frame (as in the node).
+        save_calibration(args.out, result, R_cam_frontal=calibrated_frontal(result, mount))
         how = (f"first {args.first}" if args.first else
                f"random {args.random} (seed {args.seed})" if args.random else "all")
         detail = f"reference {args.reference}, {how} of {i_lab.size} pairs"

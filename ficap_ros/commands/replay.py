@@ -42,6 +42,9 @@ def add_input_arguments(parser: argparse.ArgumentParser, many: bool = False) -> 
                             help="rosbag2 folder (sqlite3 or MCAP), single .mcap/.db3 file, or video")
     parser.add_argument("--image-topic", help="Image or CompressedImage topic (auto when only one)")
     parser.add_argument("--camera-info-topic", help="CameraInfo topic (auto)")
+    parser.add_argument("--rectified", action="store_true",
+                        help="the images are rectified: use CameraInfo P, no distortion (the "
+                             "node's image_is_rectified; default: raw images, K and D)")
     parser.add_argument("--intrinsics", metavar="CAMERA_YAML",
                         help="camera_calibration YAML; required for a video, overrides CameraInfo")
     parser.add_argument("--fps", type=_positive_float,
@@ -87,7 +90,7 @@ def open_source(args: argparse.Namespace, path: object = None):  # noqa: ANN201 
     from ficap_ros.bag_io import open_frames
 
     return open_frames(args.input if path is None else path, args.image_topic,
-                       args.camera_info_topic, args.intrinsics, args.fps)
+                       args.camera_info_topic, args.intrinsics, args.fps, args.rectified)
 
 
 def _is_fleet(args: argparse.Namespace) -> bool:
@@ -170,7 +173,8 @@ def _run_fleet(args: argparse.Namespace, model, calibration) -> int:  # noqa: AN
     recordings = find_recordings(args.input, args.manifest, args.out, videos=args.videos)
     pose = PoseConfig(method=args.method)
     settings = label_settings(model, pose, calibration, args.calibrate_frontal, args.namespace,
-                              args.image_topic, args.camera_info_topic, args.intrinsics, args.fps)
+                              args.image_topic, args.camera_info_topic, args.intrinsics, args.fps,
+                              args.rectified)
     single = len(recordings) == 1 and str(recordings[0].rel) == "."
     fleet = run_fleet(
         recordings, args.out, lambda path: open_source(args, path), model, pose, settings,
