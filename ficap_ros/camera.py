@@ -39,7 +39,7 @@ DISTORTION_MODELS: dict[str, int] = {
 }
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class CameraModel:
     """Intrinsics of one camera.
 
@@ -96,6 +96,20 @@ class CameraModel:
         object.__setattr__(self, "D", d)
         object.__setattr__(self, "width_px", int(self.width_px))
         object.__setattr__(self, "height_px", int(self.height_px))
+
+    # -- identity ---------------------------------------------------------------------------------
+    @property
+    def key(self) -> tuple:
+        """What identifies the intrinsics (size, K, D and lens model; arrays by their bytes, so
+        equal models compare and hash equal and a changed coefficient never does)."""
+        return (self.width_px, self.height_px, self.K.tobytes(), self.D.tobytes(),
+                self.distortion_model)
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, CameraModel) and self.key == other.key
+
+    def __hash__(self) -> int:
+        return hash(self.key)
 
     # -- constructors ----------------------------------------------------------------------------
     @classmethod

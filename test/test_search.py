@@ -133,7 +133,7 @@ def test_searched_1080p_frames_find_at_least_apriltag3s_tags(frames_1080p) -> No
         r = proc.process(gray, camera, 0)
         ours = {d.tag_id for d in r.detections}
         theirs = {d.tag_id for d in at3.detect(gray) if d.tag_id in model}
-        assert r.search == "image" and proc.full_searches == 1
+        assert r.search == "image" and proc.tracker.full_searches == 1
         assert len(ours) >= len(theirs), (sorted(ours), sorted(theirs))
         assert ours <= set(f.corners_px), sorted(ours - set(f.corners_px))
         assert len(ours & set(f.visible_ids(0.999))) >= 0.95 * len(f.visible_ids(0.999))

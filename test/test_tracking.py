@@ -108,8 +108,8 @@ def test_tracked_frames_match_searched_frames() -> None:
             if d.tag_id in by_id and d.tag_id in vis:
                 corner_t.append(np.linalg.norm(d.corners_px - frame.corners_px[d.tag_id], axis=1))
                 corner_s.append(np.linalg.norm(by_id[d.tag_id] - frame.corners_px[d.tag_id], axis=1))
-    assert tracked.tracked_frames >= len(frames) - 2, (tracked.tracked_frames, tracked.full_searches)
-    assert n_tracked == tracked.tracked_frames
+    assert tracked.tracker.tracked_frames >= len(frames) - 2, (tracked.tracker.tracked_frames, tracked.tracker.full_searches)
+    assert n_tracked == tracked.tracker.tracked_frames
     assert found_t >= found_s
     assert np.median(err_t) <= 1.25 * np.median(err_s) + 0.002
     assert np.percentile(err_t, 95) <= 1.25 * np.percentile(err_s, 95) + 0.002
@@ -127,17 +127,17 @@ def test_tracking_recovers_from_a_jump_and_an_empty_frame() -> None:
     proc.process(frames[1].image, scene.camera, 2 * FRAME_NS)
     # A frame where the cap is somewhere else entirely (a cut in the recording): the prediction
     # verifies nothing, so the frame is searched, and the pose is right.
-    searches = proc.roi_searches + proc.full_searches
+    searches = proc.tracker.roi_searches + proc.tracker.full_searches
     r = proc.process(far[0].image, scene.camera, 3 * FRAME_NS)
-    assert proc.roi_searches + proc.full_searches == searches + 1
+    assert proc.tracker.roi_searches + proc.tracker.full_searches == searches + 1
     assert r.pose is not None
     assert angle_deg(r.pose.T_cam_cap.rotation, far[0].T_cam_cap.rotation) < 0.05
     # An empty frame: no tag, no pose, and tracking restarts with a search.
     r = proc.process(np.full_like(frames[0].image, 90), scene.camera, 4 * FRAME_NS)
     assert r.pose is None and not r.detections
-    full = proc.full_searches
+    full = proc.tracker.full_searches
     r = proc.process(frames[2].image, scene.camera, 5 * FRAME_NS)
-    assert proc.full_searches == full + 1
+    assert proc.tracker.full_searches == full + 1
     assert angle_deg(r.pose.T_cam_cap.rotation, frames[2].T_cam_cap.rotation) < 0.05
 
 
@@ -148,3 +148,9 @@ def test_track_config_is_validated() -> None:
         TrackConfig(min_tags=0)
     with pytest.raises(ConfigError):
         TrackConfig(max_cell_errors=9)
+
+
+def test_search_kinds_are_their_strings() -> None:
+    from ficap_ros.tracking import Search
+
+    assert Search.TRACKED == "tracked" and f"{Search.REGION}" == "region" and str(Search.IMAGE) == "image"

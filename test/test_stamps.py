@@ -1,0 +1,40 @@
+"""ficap_ros.stamps: message time, one-to-one nearest-stamp pairing and time windows."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+
+from ficap_ros.stamps import (
+    END_OF_TIME_NS,
+    last_window_ns,
+    pair_by_stamp,
+    stamp_to_ns,
+    window_from_start_ns,
+    window_mask,
+)
+
+
+def test_stamp_to_ns() -> None:
+    assert stamp_to_ns(SimpleNamespace(sec=3, nanosec=7)) == 3_000_000_007
+
+
+def test_pairs_are_one_to_one_and_nearest() -> None:
+    truth = np.array([0, 10, 11, 30, 100])
+    est = np.array([9, 12, 29])
+    i_t, i_e = pair_by_stamp(truth, est, 5)
+    # 10 and 11 both want 9 or 12: 10 -> 9 (1 away), 11 -> 12 (1 away); 0 and 100 too far.
+    assert i_t.tolist() == [1, 2, 3] and i_e.tolist() == [0, 1, 2]
+    # Two truths wanting the same estimate: the closer keeps it.
+    i_t, i_e = pair_by_stamp(np.array([8, 10]), np.array([10]), 5)
+    assert i_t.tolist() == [1] and i_e.tolist() == [0]
+    assert pair_by_stamp(np.zeros(0), est, 5)[0].size == 0
+
+
+def test_windows() -> None:
+    assert window_from_start_ns(1000, (1.0, 2.0)) == (1000 + 10**9, 1000 + 2 * 10**9)
+    assert window_from_start_ns(1000, (0.5, float("inf")))[1] == END_OF_TIME_NS
+    assert last_window_ns(5 * 10**9, 3.0) == (2 * 10**9, 5 * 10**9)
+    s = np.array([1, 2, 3, 4])
+    assert window_mask(s, (2, 3)).tolist() == [False, True, True, False]  # both ends included
