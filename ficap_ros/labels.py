@@ -47,10 +47,15 @@ from scipy.spatial.transform import Rotation
 
 from ficap_ros.errors import BagError
 from ficap_ros.metrics import yaw_pitch_roll_deg
-from ficap_ros.calibration import HeadCalibration
-from ficap_ros.pipeline import FrameResult
-from ficap_ros.pose import CapPose
-from ficap_ros.report import frame_status
+from ficap_ros.report import (
+    DEFAULT_CAMERA_FRAME,
+    LabelRecord,
+    record_status,
+    quality_values,
+    record_from_pose,
+    record_from_result,
+    status_values,
+)
 from ficap_ros.transform import Transform
 
 __all__ = [
@@ -76,102 +81,10 @@ LABEL_COLUMNS: tuple[str, ...] = (
     "calibrated", "method", "detected_ids", "used_ids", "reason",
 )
 DEFAULT_NAMESPACE = ""
-DEFAULT_CAMERA_FRAME = "camera_optical_frame"
 #: TF frame names of labels.mcap (the camera's is the image's frame_id).
 FRONTAL_FRAME = "ficap_frontal"
 CAP_FRAME = "ficap_cap"
 HEAD_FRAME = "ficap_head"
-
-
-@dataclass(frozen=True)
-class LabelRecord:
-    """The label of one image.
-
-    Attributes:
-        frame: image index in the recording.
-        stamp_ns: image stamp, ns.
-        frame_id: the image's optical frame.
-        tags_detected, tags_used: model tags seen / used by the estimator.
-        detected_ids, used_ids: their ids, sorted.
-        rms_px, reliability: estimator quality (NaN without a pose).
-        T_cam_cap: cap pose in the camera optical frame, or None.
-        T_frontal_head: head pose in the frontal frame, or None.
-        covariance_cam: the cap pose's 6x6 covariance (ROS order, camera axes), or None.
-        R_frontal_cam: orientation of the camera in F (to rotate the covariance).
-        calibrated: whether a head calibration was applied.
-        method: pose method name.
-        reason: why there is no pose ("" with a pose); ``undecodable: ...`` for a skipped image.
-        rot_err95_deg, trans_err95_mm: predicted 95 % bounds of the cap pose's rotation error
-            (geodesic, deg) and translation error (mm); NaN without a pose.
-    """
-
-    frame: int
-    stamp_ns: int
-    frame_id: str
-    tags_detected: int
-    tags_used: int
-    detected_ids: tuple[int, ...]
-    used_ids: tuple[int, ...]
-    rms_px: float
-    reliability: float
-    T_cam_cap: Transform | None
-    T_frontal_head: Transform | None
-    covariance_cam: np.ndarray | None
-    R_frontal_cam: Rotation
-    calibrated: bool
-    method: str
-    reason: str
-    rot_err95_deg: float = math.nan
-    trans_err95_mm: float = math.nan
-
-    @property
-    def skipped(self) -> bool:
-        return self.reason.startswith("undecodable")
-
-
-def record_from_pose(
-    frame: int, stamp_ns: int, frame_id: str, pose: CapPose | None,
-    detected_ids: Sequence[int], reason: str, calibration: HeadCalibration, method: str = "",
-) -> LabelRecord:
-    """The label of one processed frame.
-
-    The head pose comes from the cap pose through ``calibration`` (the ``HeadCalibration`` methods
-    the pipeline uses), so a calibration found after processing applies to every frame.
-
-    Args:
-        frame: image index.
-        stamp_ns: image stamp.
-        frame_id: the image's optical frame ("" -> ``camera_optical_frame``).
-        pose: the cap pose, or None.
-        detected_ids: ids of the model tags detected.
-        reason: why there is no pose; ``undecodable: ...`` marks a skipped image.
-        calibration: head calibration to apply.
-        method: pose method name (used when there is no pose).
-    """
-    R_frontal_cam = calibration.R_cam_frontal.inv()
-    frame_id = frame_id or DEFAULT_CAMERA_FRAME
-    detected = tuple(sorted(set(int(i) for i in detected_ids)))
-    if pose is None:
-        return LabelRecord(frame, int(stamp_ns), frame_id, len(detected), 0, detected, (),
-                           math.nan, math.nan, None, None, None, R_frontal_cam,
-                           calibration.calibrated, method, reason or "no pose")
-    T_cam_head = calibration.head_in_camera(pose.T_cam_cap)
-    T_frontal_head = Transform(R_frontal_cam, np.zeros(3)) * T_cam_head
-    return LabelRecord(
-        frame, int(stamp_ns), frame_id, pose.tags_detected, pose.tags_used, detected,
-        tuple(sorted(pose.used_ids)), float(pose.rms_px), float(pose.reliability), pose.T_cam_cap,
-        T_frontal_head, np.asarray(pose.covariance, dtype=np.float64).reshape(6, 6),
-        R_frontal_cam, calibration.calibrated, pose.method or method, "",
-        float(pose.rot_err95_deg), float(pose.trans_err95_mm),
-    )
-
-
-def record_from_result(result: FrameResult, calibration: HeadCalibration, frame: int = 0,
-                       frame_id: str = "") -> LabelRecord:
-    """The label of a ``FrameResult`` (see ``record_from_pose``)."""
-    return record_from_pose(frame, result.stamp_ns, frame_id, result.pose,
-                            [d.tag_id for d in result.detections], result.reason, calibration,
-                            result.pose.method if result.pose is not None else "")
 
 
 def _f(value: float, digits: int) -> str:
@@ -351,22 +264,10 @@ def label_topics(namespace: str = DEFAULT_NAMESPACE) -> dict[str, str]:
     }
 
 
-def _quality_values(rec: LabelRecord) -> dict[str, float]:
-    """The numbers of the ``quality`` topic (the node's, less its latency)."""
-    return {
-        "tags_detected": float(rec.tags_detected),
-        "tags_used": float(rec.tags_used),
-        "reliability": float(rec.reliability) if math.isfinite(rec.reliability) else 0.0,
-        "rms_px": float(rec.rms_px),
-        "rot_err95_deg": float(rec.rot_err95_deg),
-        "trans_err95_mm": float(rec.trans_err95_mm),
-    }
-
-
 def _quality_msg(rec: LabelRecord) -> object:
     from ficap_ros.bag_io import header, jazzy_typestore
 
-    values = _quality_values(rec)
+    values = quality_values(rec)
     return jazzy_typestore().types["sensor_msgs/msg/JointState"](
         header=header(rec.stamp_ns, rec.frame_id), name=list(values),
         position=np.array(list(values.values()), dtype=np.float64),
@@ -409,24 +310,21 @@ def _tf_msg(rec: LabelRecord) -> object:
     ])
 
 
+def _status_text(key: str, value: object) -> str:
+    """labels.mcap's status strings: fixed decimals (3 for mm, else 4), '' for NaN."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    return _f(float(value), 3 if key.endswith("_mm") else 4)
+
+
 def _status_msg(rec: LabelRecord) -> object:
     from ficap_ros.bag_io import header, jazzy_typestore
 
     t = jazzy_typestore().types
-    level, message = frame_status(rec.T_cam_cap is not None, rec.reliability, rec.reason,
-                                  error=rec.reason if rec.skipped else "")
-    values = [
-        ("tags_detected", str(rec.tags_detected)),
-        ("tags_used", str(rec.tags_used)),
-        ("rms_px", _f(rec.rms_px, 4)),
-        ("reliability", _f(rec.reliability, 4)),
-        ("rot_err95_deg", _f(rec.rot_err95_deg, 4)),
-        ("trans_err95_mm", _f(rec.trans_err95_mm, 3)),
-        ("calibrated", "true" if rec.calibrated else "false"),
-    ]
-    if rec.T_frontal_head is not None:
-        ypr = yaw_pitch_roll_deg(rec.T_frontal_head.rotation)
-        values += [(f"{k}_deg", _f(float(v), 4)) for k, v in zip(("yaw", "pitch", "roll"), ypr)]
+    level, message = record_status(rec)
+    values = [(k, _status_text(k, v)) for k, v in status_values(rec).items()]
     status = t["diagnostic_msgs/msg/DiagnosticStatus"](
         level=level, name="ficap", message=message, hardware_id=rec.frame_id,
         values=[t["diagnostic_msgs/msg/KeyValue"](key=k, value=v) for k, v in values],

@@ -76,7 +76,16 @@ from ficap_ros.native_log import ThrottledStderr
 from ficap_ros.metrics import angle_deg, yaw_pitch_roll_deg
 from ficap_ros.pipeline import FrameProcessor, FrameResult
 from ficap_ros.pose import POSE_METHODS, PoseConfig, UncertaintyConfig
-from ficap_ros.report import WARN_RELIABILITY, frame_status
+from ficap_ros.report import (
+    WARN_RELIABILITY,
+    LabelRecord,
+    frame_status,
+    quality_values,
+    record_from_pose,
+    record_from_result,
+    record_status,
+    status_values,
+)
 from ficap_ros.transform import Transform, rotate_covariance
 
 __all__ = ["FicapNode", "ParamSpec", "PARAMETERS", "NodeConfig", "main"]
@@ -628,11 +637,11 @@ class FicapNode(Node):
         frame = self._config["output_frame"] or self._config["frontal_frame"]
         return Header(stamp=header.stamp, frame_id=frame)
 
-    def _T_frontal_cam(self) -> Transform:
+    def _T_frontal_cam(self, calibration: HeadCalibration) -> Transform:
         """The camera in the frontal frame F: the mount, or at F's origin looking forward."""
         if self._mount is not None:
             return self._mount
-        return Transform(self._processor.calibration.R_cam_frontal.inv(), np.zeros(3))
+        return Transform(calibration.R_cam_frontal.inv(), np.zeros(3))
 
     def _report_error(self, header: Header, reason: str) -> None:
         with self._lock:
@@ -640,44 +649,21 @@ class FicapNode(Node):
             self._period["errors"] += 1
             self._last_error = reason
         self.get_logger().warning(reason, throttle_duration_sec=self._config["warn_throttle_s"])
+        rec = record_from_pose(0, ros_msgs.stamp_to_ns(header.stamp), header.frame_id, None, (),
+                               reason, self._processor.calibration)
         level, message = frame_status(False, math.nan, error=reason)
-        status = ros_msgs.diagnostic_status(
-            STATUS_NAME, bytes([level]), message, self._status_values(None, float("nan")),
-            hardware_id=header.frame_id)
+        self._publish_status(header, rec, level, message, "", math.nan)
+
+    def _publish_status(self, header: Header, rec: LabelRecord, level: int, message: str,
+                        search: str, latency_ms: float) -> None:
+        """``quality`` and ``status`` of a frame (``ficap_ros.report``'s values, as labels.mcap)."""
+        self._pub_quality.publish(ros_msgs.quality_msg(
+            header, {**quality_values(rec), "latency_ms": float(latency_ms)}))
+        values = {**status_values(rec), "search": search, "latency_ms": latency_ms,
+                  "dropped_frames": self._dropped}
+        status = ros_msgs.diagnostic_status(STATUS_NAME, bytes([level]), message, values,
+                                            hardware_id=header.frame_id)
         self._pub_status.publish(ros_msgs.diagnostic_array(self._out_header(header), status))
-        self._pub_quality.publish(ros_msgs.quality_msg(header, self._quality_values(None, float("nan"))))
-
-    def _status_values(self, result: FrameResult | None, latency_ms: float) -> dict[str, object]:
-        pose = result.pose if result is not None else None
-        values: dict[str, object] = {
-            "tags_detected": result.tags_detected if result is not None else 0,
-            "tags_used": result.tags_used if result is not None else 0,
-            "rms_px": pose.rms_px if pose is not None else float("nan"),
-            "reliability": pose.reliability if pose is not None else 0.0,
-            "rot_err95_deg": pose.rot_err95_deg if pose is not None else float("nan"),
-            "trans_err95_mm": pose.trans_err95_mm if pose is not None else float("nan"),
-            "calibrated": self._processor.calibration.calibrated,
-            "search": result.search if result is not None else "",
-            "latency_ms": latency_ms,
-            "dropped_frames": self._dropped,
-        }
-        if result is not None and result.R_frontal_head is not None:
-            yaw, pitch, roll = yaw_pitch_roll_deg(result.R_frontal_head)
-            values.update(yaw_deg=float(yaw), pitch_deg=float(pitch), roll_deg=float(roll))
-        return values
-
-    def _quality_values(self, result: FrameResult | None, latency_ms: float) -> dict[str, float]:
-        pose = result.pose if result is not None else None
-        nan = float("nan")
-        return {
-            "tags_detected": float(result.tags_detected if result is not None else 0),
-            "tags_used": float(result.tags_used if result is not None else 0),
-            "reliability": float(pose.reliability) if pose is not None else 0.0,
-            "rms_px": float(pose.rms_px) if pose is not None else nan,
-            "rot_err95_deg": float(pose.rot_err95_deg) if pose is not None else nan,
-            "trans_err95_mm": float(pose.trans_err95_mm) if pose is not None else nan,
-            "latency_ms": float(latency_ms),
-        }
 
     def _process(self, msg: Image | CompressedImage, received_ns: int) -> None:
         cfg = self._config
@@ -694,7 +680,9 @@ class FicapNode(Node):
             if (w, h) != (camera.width_px, camera.height_px):
                 raise IntrinsicsError(f"image {w}x{h} does not match the intrinsics "
                                       f"{camera.width_px}x{camera.height_px}")
-            result = self._processor.process(image, camera, stamp_ns)
+            # One read of the calibration per frame: the service thread swaps the whole object.
+            calibration = self._processor.calibration
+            result = self._processor.process(image, camera, stamp_ns, calibration)
         except FicapError as err:
             self._report_error(header, str(err))
             return
@@ -715,18 +703,13 @@ class FicapNode(Node):
             self._pub_cap.publish(ros_msgs.pose_stamped(out, T_out_cam * pose.T_cam_cap))
             frontal = self._frontal_header(header)
             self._pub_head_frontal.publish(
-                ros_msgs.pose_stamped(frontal, self._T_frontal_cam() * result.T_cam_head))
+                ros_msgs.pose_stamped(frontal, self._T_frontal_cam(calibration) * result.T_cam_head))
             if result.R_frontal_head is not None:
                 self._pub_rpy.publish(ros_msgs.rpy_deg_msg(frontal, result.R_frontal_head))
         latency_ms = (time.monotonic_ns() - received_ns) / 1e6
-        self._pub_quality.publish(ros_msgs.quality_msg(header, self._quality_values(result, latency_ms)))
-
-        level, message = frame_status(pose is not None, pose.reliability if pose else math.nan,
-                                      result.reason, warn_reliability=cfg["warn_reliability"])
-        status = ros_msgs.diagnostic_status(STATUS_NAME, bytes([level]), message,
-                                            self._status_values(result, latency_ms),
-                                            hardware_id=header.frame_id)
-        self._pub_status.publish(ros_msgs.diagnostic_array(out, status))
+        rec = record_from_result(result, calibration, frame_id=header.frame_id)
+        level, message = record_status(rec, cfg["warn_reliability"])
+        self._publish_status(header, rec, level, message, str(result.search), latency_ms)
 
         # Markers and the debug image are drawn in camera coordinates: the camera's frame.
         cam_header = Header(stamp=header.stamp, frame_id=header.frame_id)

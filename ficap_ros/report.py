@@ -1,5 +1,6 @@
-"""What a processed frame reports: its status level and message (the node's ``status``, labels.mcap's
-``status`` and ``/diagnostics`` decide it here, once).
+"""What a processed frame reports, decided once for the node and the bag tools: its label record
+(``LabelRecord`` from a ``FrameResult`` or a cap pose), status level and message, status values
+and quality numbers (the node's ``status`` and ``quality``, labels.mcap's and labels.csv's).
 
 Levels are ``diagnostic_msgs/DiagnosticStatus``'s numbers (OK 0, WARN 1, ERROR 2); this module is
 ROS-free, so the node turns them into its message type.
@@ -8,13 +9,29 @@ ROS-free, so the node turns them into its message type.
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
+from typing import Sequence
 
-__all__ = ["OK", "WARN", "ERROR", "WARN_RELIABILITY", "frame_status"]
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ficap_ros.calibration import HeadCalibration
+from ficap_ros.metrics import yaw_pitch_roll_deg
+from ficap_ros.pipeline import FrameResult
+from ficap_ros.pose import CapPose
+from ficap_ros.transform import Transform
+
+__all__ = ["OK", "WARN", "ERROR", "WARN_RELIABILITY", "DEFAULT_CAMERA_FRAME", "LabelRecord",
+           "record_from_pose", "record_from_result", "frame_status", "record_status", "quality_values",
+           "status_values"]
 
 OK, WARN, ERROR = 0, 1, 2
 
 #: Status level is WARN below this reliability (the node's ``warn_reliability`` default).
 WARN_RELIABILITY = 0.5
+
+#: frame_id of labels whose images carry none.
+DEFAULT_CAMERA_FRAME = "camera_optical_frame"
 
 
 def frame_status(has_pose: bool, reliability: float, reason: str = "", error: str = "",
@@ -35,3 +52,131 @@ def frame_status(has_pose: bool, reliability: float, reason: str = "", error: st
     if math.isfinite(reliability) and reliability < warn_reliability:
         return WARN, f"low reliability {reliability:.2f}"
     return OK, "pose"
+
+
+@dataclass(frozen=True)
+class LabelRecord:
+    """The label of one image.
+
+    Attributes:
+        frame: image index in the recording.
+        stamp_ns: image stamp, ns.
+        frame_id: the image's optical frame.
+        tags_detected, tags_used: model tags seen / used by the estimator.
+        detected_ids, used_ids: their ids, sorted.
+        rms_px, reliability: estimator quality (NaN without a pose).
+        T_cam_cap: cap pose in the camera optical frame, or None.
+        T_frontal_head: head pose in the frontal frame, or None.
+        covariance_cam: the cap pose's 6x6 covariance (ROS order, camera axes), or None.
+        R_frontal_cam: orientation of the camera in F (to rotate the covariance).
+        calibrated: whether a head calibration was applied.
+        method: pose method name.
+        reason: why there is no pose ("" with a pose); ``undecodable: ...`` for a skipped image.
+        rot_err95_deg, trans_err95_mm: predicted 95 % bounds of the cap pose's rotation error
+            (geodesic, deg) and translation error (mm); NaN without a pose.
+    """
+
+    frame: int
+    stamp_ns: int
+    frame_id: str
+    tags_detected: int
+    tags_used: int
+    detected_ids: tuple[int, ...]
+    used_ids: tuple[int, ...]
+    rms_px: float
+    reliability: float
+    T_cam_cap: Transform | None
+    T_frontal_head: Transform | None
+    covariance_cam: np.ndarray | None
+    R_frontal_cam: Rotation
+    calibrated: bool
+    method: str
+    reason: str
+    rot_err95_deg: float = math.nan
+    trans_err95_mm: float = math.nan
+
+    @property
+    def skipped(self) -> bool:
+        return self.reason.startswith("undecodable")
+
+
+def record_from_pose(
+    frame: int, stamp_ns: int, frame_id: str, pose: CapPose | None,
+    detected_ids: Sequence[int], reason: str, calibration: HeadCalibration, method: str = "",
+) -> LabelRecord:
+    """The label of one processed frame.
+
+    The head pose comes from the cap pose through ``calibration`` (the ``HeadCalibration`` methods
+    the pipeline uses), so a calibration found after processing applies to every frame.
+
+    Args:
+        frame: image index.
+        stamp_ns: image stamp.
+        frame_id: the image's optical frame ("" -> ``camera_optical_frame``).
+        pose: the cap pose, or None.
+        detected_ids: ids of the model tags detected.
+        reason: why there is no pose; ``undecodable: ...`` marks a skipped image.
+        calibration: head calibration to apply.
+        method: pose method name (used when there is no pose).
+    """
+    R_frontal_cam = calibration.R_cam_frontal.inv()
+    frame_id = frame_id or DEFAULT_CAMERA_FRAME
+    detected = tuple(sorted(set(int(i) for i in detected_ids)))
+    if pose is None:
+        return LabelRecord(frame, int(stamp_ns), frame_id, len(detected), 0, detected, (),
+                           math.nan, math.nan, None, None, None, R_frontal_cam,
+                           calibration.calibrated, method, reason or "no pose")
+    T_cam_head = calibration.head_in_camera(pose.T_cam_cap)
+    T_frontal_head = Transform(R_frontal_cam, np.zeros(3)) * T_cam_head
+    return LabelRecord(
+        frame, int(stamp_ns), frame_id, pose.tags_detected, pose.tags_used, detected,
+        tuple(sorted(pose.used_ids)), float(pose.rms_px), float(pose.reliability), pose.T_cam_cap,
+        T_frontal_head, np.asarray(pose.covariance, dtype=np.float64).reshape(6, 6),
+        R_frontal_cam, calibration.calibrated, pose.method or method, "",
+        float(pose.rot_err95_deg), float(pose.trans_err95_mm),
+    )
+
+
+def record_from_result(result: FrameResult, calibration: HeadCalibration, frame: int = 0,
+                       frame_id: str = "") -> LabelRecord:
+    """The label of a ``FrameResult`` (see ``record_from_pose``)."""
+    return record_from_pose(frame, result.stamp_ns, frame_id, result.pose,
+                            [d.tag_id for d in result.detections], result.reason, calibration,
+                            result.pose.method if result.pose is not None else "")
+
+
+def quality_values(rec: LabelRecord) -> dict[str, float]:
+    """The numbers of the ``quality`` topic (the node adds its latency): NaN without a pose,
+    reliability 0."""
+    return {
+        "tags_detected": float(rec.tags_detected),
+        "tags_used": float(rec.tags_used),
+        "reliability": float(rec.reliability) if math.isfinite(rec.reliability) else 0.0,
+        "rms_px": float(rec.rms_px),
+        "rot_err95_deg": float(rec.rot_err95_deg),
+        "trans_err95_mm": float(rec.trans_err95_mm),
+    }
+
+
+def status_values(rec: LabelRecord) -> dict[str, float | int | bool]:
+    """The values of a frame's status (labels.mcap's; the node adds search, latency and dropped
+    frames): tags, quality, calibrated and, with a pose, the head angles in the frontal frame."""
+    values: dict[str, float | int | bool] = {
+        "tags_detected": int(rec.tags_detected),
+        "tags_used": int(rec.tags_used),
+        "rms_px": float(rec.rms_px),
+        "reliability": float(rec.reliability),
+        "rot_err95_deg": float(rec.rot_err95_deg),
+        "trans_err95_mm": float(rec.trans_err95_mm),
+        "calibrated": bool(rec.calibrated),
+    }
+    if rec.T_frontal_head is not None:
+        ypr = yaw_pitch_roll_deg(rec.T_frontal_head.rotation)
+        values.update({f"{k}_deg": float(v) for k, v in zip(("yaw", "pitch", "roll"), ypr)})
+    return values
+
+
+def record_status(rec: LabelRecord, warn_reliability: float = WARN_RELIABILITY) -> tuple[int, str]:
+    """(level, message) of a label record (``frame_status``; a skipped image is an ERROR)."""
+    return frame_status(rec.T_cam_cap is not None, rec.reliability, rec.reason,
+                        error=rec.reason if rec.skipped else "", warn_reliability=warn_reliability)

@@ -15,3 +15,20 @@ def test_frame_status_levels() -> None:
         WARN, "no pose: no tag of the model detected")
     assert frame_status(False, math.nan) == (WARN, "no pose: no tags")
     assert frame_status(False, math.nan, error="undecodable: bad JPEG") == (ERROR, "undecodable: bad JPEG")
+
+
+def test_label_record_values_feed_status_and_quality() -> None:
+    """One record per frame gives the status values, quality numbers and level of the node and
+    labels.mcap alike (``record_status`` = ``frame_status`` of its fields)."""
+    from ficap_ros.calibration import HeadCalibration
+    from ficap_ros.report import quality_values, record_from_pose, record_status, status_values
+
+    cal = HeadCalibration()
+    none = record_from_pose(3, 10, "", None, (4, 2), "no tag of the model detected", cal)
+    assert none.frame_id == "camera_optical_frame" and none.detected_ids == (2, 4)
+    assert record_status(none) == (WARN, "no pose: no tag of the model detected")
+    assert quality_values(none)["reliability"] == 0.0 and math.isnan(quality_values(none)["rms_px"])
+    assert list(status_values(none)) == ["tags_detected", "tags_used", "rms_px", "reliability",
+                                         "rot_err95_deg", "trans_err95_mm", "calibrated"]
+    bad = record_from_pose(4, 11, "cam", None, (), "undecodable: bad JPEG", cal)
+    assert record_status(bad) == (ERROR, "undecodable: bad JPEG")
