@@ -27,7 +27,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from ficap_ros.camera import CameraModel, camera_from_info, load_camera_yaml
+from ficap_ros.camera import CameraModel, camera_from_info, camera_info_key, load_camera_yaml
 from ficap_ros.errors import BagError, FicapError, ImageError, OutputError
 from ficap_ros.stamps import stamp_to_ns
 from ficap_ros.image_codec import check_pixel_budget, decode_compressed, decode_image
@@ -239,11 +239,6 @@ def _one_line(err: BaseException) -> str:
     return text[0] if text else type(err).__name__
 
 
-def _camera_from_info(msg: Any, rectified: bool) -> CameraModel:
-    """CameraModel from a deserialized CameraInfo: the node's rule (``camera_from_info``)."""
-    return camera_from_info(msg, rectified)
-
-
 def _pick_camera_info(topics: dict[str, str], image_topic: str) -> str | None:
     """The CameraInfo topic of ``image_topic``: the only one, or the one in its namespace."""
     infos = sorted(t for t, typ in topics.items() if typ == CAMERA_INFO_TYPE)
@@ -431,11 +426,9 @@ class FrameSource:
             for conn, log_ns, raw in reader.messages(connections=conns):
                 try:
                     msg = reader.deserialize(raw, conn.msgtype)
-                    key = (msg.width, msg.height, str(msg.distortion_model),
-                           tuple(np.asarray(msg.k).tolist()), tuple(np.asarray(msg.d).tolist()),
-                           tuple(np.asarray(msg.p).tolist()))
+                    key = camera_info_key(msg)
                     if key != last_key:  # cameras rarely change: keep one model per change
-                        last = _camera_from_info(msg, self._rectified)
+                        last = camera_from_info(msg, self._rectified)
                         last_key = key
                 except FicapError:
                     continue  # an invalid CameraInfo (all zeros before calibration): skip it

@@ -33,7 +33,7 @@ import yaml
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from ficap_ros.errors import CalibrationError, OutputError
+from ficap_ros.errors import CalibrationError, FicapError, OutputError
 from ficap_ros.files import read_text, write_output_file
 from ficap_ros.metrics import angle_deg, robust_mean_rotation
 from ficap_ros.stamps import pair_by_stamp, window_mask
@@ -47,6 +47,7 @@ __all__ = [
     "reference_pairs",
     "calibrated_frontal",
     "CalibrationRecorder",
+    "LiveCalibration",
     "calibrate_frontal",
     "calibrate_reference",
     "frontal_from_camera_mount",
@@ -506,3 +507,82 @@ def _flag(value: Any, name: str) -> bool:
     if text in ("false", "no", "off", "0"):
         return False
     raise CalibrationError(f"{name} must be true or false, got {value!r}")
+
+
+class LiveCalibration:
+    """The calibration a live node uses, swapped whole (``HeadCalibration`` is immutable) under a
+    lock, and the recorder it is computed from. Readers take ``current`` once per frame.
+
+    Args:
+        mount: the ``camera_mount`` transform (T_parent_cam), or None.
+    """
+
+    def __init__(self, mount: Transform | None = None) -> None:
+        self._lock = threading.Lock()
+        self._mount = mount
+        self._current = HeadCalibration(R_cam_frontal=frontal_from_camera_mount(mount))
+        self.last_result: CalibrationResult | None = None
+        self.recorder = CalibrationRecorder()
+
+    @property
+    def current(self) -> HeadCalibration:
+        return self._current
+
+    def load(self, path: str | Path) -> str:
+        """Use a calibration file; returns a warning ('' when none). The file's frontal frame is
+        kept (as ``replay --calibration`` does) unless a mount sets one.
+
+        Raises:
+            CalibrationError: unreadable file.
+        """
+        loaded = load_calibration(path)
+        with self._lock:
+            R_cam_frontal = loaded.R_cam_frontal if self._mount is None else \
+                frontal_from_camera_mount(self._mount)
+            self._current = HeadCalibration(loaded.R_cap_head, R_cam_frontal, loaded.calibrated)
+        off = angle_deg(loaded.R_cam_frontal, R_cam_frontal)
+        if loaded.calibrated and off > 0.01:
+            return (f"calibration {path} was made with a frontal frame {off:.2f} deg from the "
+                    "current camera_mount parameter; head angles keep the current frontal frame")
+        return ""
+
+    def apply(self, result: CalibrationResult) -> HeadCalibration:
+        """Use a computed calibration (frontal frame: ``calibrated_frontal``)."""
+        with self._lock:
+            self._current = HeadCalibration(result.R_cap_head,
+                                            calibrated_frontal(result, self._mount), True)
+            self.last_result = result
+            return self._current
+
+    def clear(self) -> HeadCalibration:
+        with self._lock:
+            self._current = HeadCalibration(R_cam_frontal=frontal_from_camera_mount(self._mount))
+            self.last_result = None
+            return self._current
+
+    def set_mount(self, mount: Transform | None) -> None:
+        """A new ``camera_mount``: the frontal frame follows it (R_cap_head stays)."""
+        with self._lock:
+            self._mount = mount
+            old = self._current
+            R = calibrated_frontal(self.last_result if old.calibrated else None, mount)
+            if angle_deg(old.R_cam_frontal, R) > 1e-9:
+                self._current = HeadCalibration(old.R_cap_head, R, old.calibrated)
+
+    def frontal_frame(self) -> Rotation:
+        """The frontal frame a new calibration is computed in (the mount's)."""
+        return calibrated_frontal(None, self._mount)
+
+    def persist(self, path: str | Path, result: CalibrationResult | None,
+                message: str) -> tuple[bool, str]:
+        """Save the current calibration to ``path`` ('' = not persisted): (success, message). A
+        calibration in use but not saved is a failure (lost at the next start: the caller must
+        know); ``save_calibration`` never replaces a file that is not a calibration."""
+        if not path:
+            return True, message
+        try:
+            save_calibration(path, self._current, result)
+        except (OSError, FicapError) as err:
+            what = "; in use but NOT saved" if result else f" in memory; {path} NOT updated"
+            return False, f"{message}{what}: {err}"
+        return True, message + (f", saved to {path}" if result else "")

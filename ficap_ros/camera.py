@@ -24,7 +24,8 @@ import yaml
 from ficap_ros.errors import IntrinsicsError
 from ficap_ros.files import read_text
 
-__all__ = ["CameraModel", "DISTORTION_MODELS", "load_camera_yaml", "camera_from_info"]
+__all__ = ["CameraModel", "DISTORTION_MODELS", "load_camera_yaml", "camera_from_info", "camera_info_key",
+           "CameraInfoCache"]
 
 #: Largest image side accepted in intrinsics: beyond any camera, so a larger value is a typo or a
 #: hostile file (the pixel budget of ``image_codec`` bounds the images themselves).
@@ -110,6 +111,12 @@ class CameraModel:
 
     def __hash__(self) -> int:
         return hash(self.key)
+
+    def check_image_size(self, width_px: int, height_px: int) -> None:
+        """Raises ``IntrinsicsError`` unless an image of this size fits these intrinsics."""
+        if (width_px, height_px) != (self.width_px, self.height_px):
+            raise IntrinsicsError(f"image {width_px}x{height_px} does not match the intrinsics "
+                                  f"{self.width_px}x{self.height_px}")
 
     # -- constructors ----------------------------------------------------------------------------
     @classmethod
@@ -263,3 +270,80 @@ def camera_from_info(msg: Any, rectified: bool = False) -> CameraModel:
         raise IntrinsicsError("CameraInfo P is all zero but the image is rectified")
     return CameraModel.from_camera_info(width, height, k, d, str(field("distortion_model") or ""),
                                         p, rectified=rectified)
+
+
+def camera_info_key(msg: Any) -> tuple:
+    """What identifies a CameraInfo's intrinsics (size, lens model, K, D, P): messages with equal
+    keys give equal ``CameraModel``s, so the model is built once per change."""
+    def values(name: str) -> tuple[float, ...]:
+        value = getattr(msg, name, None)
+        value = getattr(msg, name.upper(), None) if value is None else value
+        return tuple(np.asarray(value, dtype=np.float64).reshape(-1).tolist())
+
+    return (int(msg.width), int(msg.height), str(getattr(msg, "distortion_model", "") or ""),
+            values("k"), values("d"), values("p"))
+
+
+class CameraInfoCache:
+    """Intrinsics for a live stream's frames: the CameraInfo with the frame's stamp (within a
+    tolerance), else the latest, else static intrinsics (thread-safe: CameraInfo arrives on
+    another thread than the frames).
+
+    Args:
+        static: intrinsics from a file, used while no CameraInfo has been received.
+        static_error: why the file could not be read ('' = no file), the error without one.
+        keep: CameraInfo messages kept.
+    """
+
+    def __init__(self, static: CameraModel | None = None, static_error: str = "",
+                 keep: int = 50) -> None:
+        import threading
+        from collections import deque
+
+        self._lock = threading.Lock()
+        self._infos: deque[tuple[int, Any]] = deque(maxlen=keep)
+        self._static = static
+        self.static_error = static_error
+        self._cache: tuple[tuple, CameraModel] | None = None
+
+    @classmethod
+    def with_file(cls, path: str | Path) -> CameraInfoCache:
+        """A cache with a camera_calibration YAML's intrinsics ('' = none); an unreadable file
+        leaves ``static_error`` (reported for every frame until a CameraInfo comes)."""
+        if not path:
+            return cls()
+        try:
+            return cls(load_camera_yaml(path))
+        except IntrinsicsError as err:
+            return cls(None, str(err))
+
+    def add(self, stamp_ns: int, msg: Any) -> None:
+        with self._lock:
+            self._infos.append((int(stamp_ns), msg))
+
+    def has(self, stamp_ns: int) -> bool:
+        with self._lock:
+            return any(s == stamp_ns for s, _ in self._infos)
+
+    def camera_for(self, stamp_ns: int, max_stamp_diff_ns: int, rectified: bool) -> CameraModel:
+        """The intrinsics of a frame stamped ``stamp_ns`` (``camera_from_info``'s rule).
+
+        Raises:
+            IntrinsicsError: none received and no static intrinsics, or an invalid CameraInfo.
+        """
+        with self._lock:
+            infos = list(self._infos)
+        if not infos:
+            if self._static is not None:
+                return self._static
+            raise IntrinsicsError(self.static_error or "no CameraInfo received yet and no "
+                                  "camera_info_file")
+        info = min(infos, key=lambda e: abs(e[0] - stamp_ns))
+        msg = info[1] if abs(info[0] - stamp_ns) <= max_stamp_diff_ns else infos[-1][1]
+        key = (camera_info_key(msg), rectified)
+        cache = self._cache
+        if cache is not None and cache[0] == key:
+            return cache[1]
+        camera = camera_from_info(msg, rectified=rectified)
+        self._cache = (key, camera)
+        return camera

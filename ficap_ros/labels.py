@@ -48,7 +48,6 @@ from scipy.spatial.transform import Rotation
 from ficap_ros.errors import BagError
 from ficap_ros.metrics import yaw_pitch_roll_deg
 from ficap_ros.report import (
-    DEFAULT_CAMERA_FRAME,
     LabelRecord,
     record_status,
     quality_values,

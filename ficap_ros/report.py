@@ -23,7 +23,7 @@ from ficap_ros.transform import Transform
 
 __all__ = ["OK", "WARN", "ERROR", "WARN_RELIABILITY", "DEFAULT_CAMERA_FRAME", "LabelRecord",
            "record_from_pose", "record_from_result", "frame_status", "record_status", "quality_values",
-           "status_values"]
+           "status_values", "health_status", "health_values", "PeriodStats"]
 
 OK, WARN, ERROR = 0, 1, 2
 
@@ -180,3 +180,64 @@ def record_status(rec: LabelRecord, warn_reliability: float = WARN_RELIABILITY) 
     """(level, message) of a label record (``frame_status``; a skipped image is an ERROR)."""
     return frame_status(rec.T_cam_cap is not None, rec.reliability, rec.reason,
                         error=rec.reason if rec.skipped else "", warn_reliability=warn_reliability)
+
+
+def health_status(received: int, errors: int, last_error: str, calibrated: bool) -> tuple[int, str]:
+    """(level, message) of ``/diagnostics`` over one period: ERROR on input errors, WARN without
+    images, else OK (saying whether the head calibration is in place)."""
+    if errors:
+        return ERROR, f"input errors: {last_error}"
+    if received == 0:
+        return WARN, "no images"
+    return OK, "running" if calibrated else "running, not calibrated"
+
+
+def health_values(period: dict[str, float], dt_s: float, dropped_total: int, calibrated: bool,
+                  mode: str) -> dict[str, object]:
+    """The values of ``/diagnostics`` over one period (counts of received, dropped, processed
+    frames, tags, errors and the summed latency) lasting ``dt_s``."""
+    n = period["processed"]
+    received = period["received"]
+    return {
+        "fps": n / dt_s, "input_fps": received / dt_s,
+        "drop_rate": period["dropped"] / received if received else 0.0,
+        "mean_tags": period["tags"] / n if n else 0.0,
+        "mean_latency_ms": period["latency_ms"] / n if n else float("nan"),
+        "errors": period["errors"], "dropped_frames_total": dropped_total,
+        "calibrated": calibrated, "calibration_mode": mode,
+    }
+
+
+class PeriodStats:
+    """What ``/diagnostics`` reports over one period: frames processed, tags, latency and input
+    errors (thread-safe: the worker counts, the timer takes)."""
+
+    def __init__(self) -> None:
+        import threading
+
+        self._lock = threading.Lock()
+        self._period = {"processed": 0, "tags": 0, "errors": 0, "latency_ms": 0.0}
+        self._counted = (0, 0)  # the input's (received, dropped) at the last take
+        self.last_error = ""
+
+    def frame(self, tags: int, latency_ms: float) -> None:
+        with self._lock:
+            self._period["processed"] += 1
+            self._period["tags"] += tags
+            self._period["latency_ms"] += latency_ms
+
+    def error(self, reason: str) -> None:
+        with self._lock:
+            self._period["errors"] += 1
+            self.last_error = reason
+
+    def take(self, received_dropped: tuple[int, int]) -> tuple[dict[str, float], str]:
+        """The period's counts (with ``received`` and ``dropped`` frames since the last take, from
+        the input's running totals) and the last error; starts the next period."""
+        with self._lock:
+            p, last_error = dict(self._period), self.last_error
+            self._period = {"processed": 0, "tags": 0, "errors": 0, "latency_ms": 0.0}
+            p["received"] = received_dropped[0] - self._counted[0]
+            p["dropped"] = received_dropped[1] - self._counted[1]
+            self._counted = received_dropped
+        return p, last_error

@@ -26,7 +26,7 @@ from ficap_ros.metrics import yaw_pitch_roll_deg
 from ficap_ros.errors import ImageError, IntrinsicsError
 from ficap_ros.pipeline import FrameResult
 from ficap_ros.stamps import stamp_to_ns
-from ficap_ros.transform import Transform
+from ficap_ros.transform import Transform, rotate_covariance
 
 __all__ = [
     "IMAGE_ENCODINGS",
@@ -295,3 +295,29 @@ def debug_image_msg(
                     tip = tuple(int(round(v)) for v in px[axis + 1])
                     cv2.line(bgr, o, tip, colour, 2, cv2.LINE_AA)
     return array_to_image(bgr, "bgr8", header)
+
+
+def pose_outputs(header: Header, result: FrameResult, R_cam_frontal: Rotation, output_frame: str,
+                 frontal_frame: str, mount: Transform | None) -> dict[str, object]:
+    """The node's pose messages of a posed frame, by publisher: ``head``, ``head_cov``, ``cap``
+    (in ``output_frame`` through ``mount``, else the image's frame), ``head_frontal`` and ``rpy``
+    (the head in the frontal frame: ``output_frame``, else ``frontal_frame``)."""
+    pose = result.pose
+    assert pose is not None and result.T_cam_head is not None
+    out = Header(stamp=header.stamp, frame_id=output_frame or header.frame_id)
+    # Into output_frame through the mount (identity when the outputs stay in the camera's).
+    moved = bool(output_frame) and mount is not None
+    T_out_cam = mount if moved and mount is not None else Transform.identity()
+    cov = rotate_covariance(pose.covariance, T_out_cam.rotation) if moved else pose.covariance
+    # The camera in the frontal frame F: the mount, or at F's origin looking forward.
+    T_frontal_cam = mount or Transform(R_cam_frontal.inv(), np.zeros(3))
+    frontal = Header(stamp=header.stamp, frame_id=output_frame or frontal_frame)
+    msgs: dict[str, object] = {
+        "head": pose_stamped(out, T_out_cam * result.T_cam_head),
+        "head_cov": pose_with_covariance_stamped(out, T_out_cam * result.T_cam_head, cov),
+        "cap": pose_stamped(out, T_out_cam * pose.T_cam_cap),
+        "head_frontal": pose_stamped(frontal, T_frontal_cam * result.T_cam_head),
+    }
+    if result.R_frontal_head is not None:
+        msgs["rpy"] = rpy_deg_msg(frontal, result.R_frontal_head)
+    return msgs

@@ -146,3 +146,30 @@ def test_load_refuses_bad_files(tmp_path) -> None:
     bad.write_text("just: text\n")
     with pytest.raises(CalibrationError, match="R_cap_head_q_wxyz"):
         load_calibration(bad)
+
+
+def test_live_calibration_frontal_frame_rule(tmp_path) -> None:
+    """One rule live and offline (``calibrated_frontal``): a reference calibration's frame is the
+    frontal frame without a camera mount; a mount fixes it; clearing returns to the mount's."""
+    from ficap_ros.calibration import CalibrationResult, LiveCalibration, frontal_from_camera_mount
+    from ficap_ros.transform import CAM_FROM_FORWARD, Transform
+
+    R_ref = Rotation.from_euler("ZYX", [170.0, 20.0, -5.0], degrees=True)
+    result = CalibrationResult(Rotation.from_euler("x", 3.0, degrees=True), 50, 0.5, "reference",
+                               R_ref)
+    live = LiveCalibration()
+    before = live.current
+    after = live.apply(result)
+    assert before is not after and not before.calibrated  # swapped whole, never mutated
+    assert angle_deg(live.current.R_cam_frontal, R_ref) < 1e-9
+    mount = Transform(Rotation.from_euler("y", 10.0, degrees=True) * CAM_FROM_FORWARD.inv(),
+                      np.zeros(3))
+    live.set_mount(mount)
+    assert angle_deg(live.current.R_cam_frontal, frontal_from_camera_mount(mount)) < 1e-9
+    assert angle_deg(live.current.R_cap_head, result.R_cap_head) < 1e-9
+    ok, message = live.persist(tmp_path / "cal.yaml", result, "calibrated")
+    assert ok and message.endswith("cal.yaml")
+    cleared = live.clear()
+    assert not cleared.calibrated and angle_deg(cleared.R_cam_frontal,
+                                                frontal_from_camera_mount(mount)) < 1e-9
+    assert LiveCalibration().load(tmp_path / "cal.yaml") == ""  # no mount: the file's frame kept

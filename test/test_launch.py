@@ -12,7 +12,9 @@ import pytest
 import rclpy
 from rclpy.context import Context
 
-from ficap_ros.node import PARAMETERS, FicapNode, _frames_reason, validate_parameter
+from ficap_ros.node import FicapNode
+from ficap_ros.ros_params import PARAMETERS, validate_parameter
+from ficap_ros.ros_params import frames_reason as _frames_reason
 
 ROOT = Path(__file__).resolve().parents[1]
 LAUNCH_FILES = sorted((ROOT / "launch").glob("*.launch.py"))

@@ -73,7 +73,7 @@ class Harness:
         self.executor.add_node(self.peer)
         self.thread = threading.Thread(target=self.executor.spin, daemon=True)
         self.thread.start()
-        image_pub = self.pub_compressed if self.node._config["image_transport"] == "compressed" \
+        image_pub = self.pub_compressed if self.node._config.image_transport == "compressed" \
             else self.pub_image
         self.wait_for(lambda: image_pub.get_subscription_count() > 0
                       and self.pub_info.get_subscription_count() > 0
@@ -109,7 +109,7 @@ class Harness:
                 # (seen under load: "no CameraInfo received yet", a frame without a pose).
                 info_ns = ros_msgs.stamp_to_ns(info.header.stamp)
                 try:
-                    self.wait_for(lambda: any(s == info_ns for s, _ in list(self.node._camera_infos)),
+                    self.wait_for(lambda: self.node._cameras.has(info_ns),
                                   timeout=WAIT_S / attempts, what="camera_info")
                 except AssertionError:
                     continue  # lost (best effort): send both again

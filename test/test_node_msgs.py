@@ -15,7 +15,7 @@ from std_msgs.msg import Header
 from ficap_ros import ros_msgs
 from ficap_ros.camera import CameraModel
 from ficap_ros.errors import ImageError, IntrinsicsError
-from ficap_ros.node import PARAMETERS, validate_parameter
+from ficap_ros.ros_params import PARAMETERS, validate_parameter
 from ficap_ros.transform import Transform
 
 CONFIG = Path(__file__).resolve().parents[1] / "config" / "ficap.yaml"

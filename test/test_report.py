@@ -32,3 +32,22 @@ def test_label_record_values_feed_status_and_quality() -> None:
                                          "rot_err95_deg", "trans_err95_mm", "calibrated"]
     bad = record_from_pose(4, 11, "cam", None, (), "undecodable: bad JPEG", cal)
     assert record_status(bad) == (ERROR, "undecodable: bad JPEG")
+
+
+def test_period_stats_and_health() -> None:
+    from ficap_ros.report import PeriodStats, health_status, health_values
+
+    stats = PeriodStats()
+    stats.frame(10, 20.0)
+    stats.frame(12, 30.0)
+    p, last = stats.take((5, 1))
+    assert (p["processed"], p["tags"], p["received"], p["dropped"], last) == (2, 22, 5, 1, "")
+    v = health_values(p, 2.0, 1, True, "frontal")
+    assert v["fps"] == 1.0 and v["mean_tags"] == 11.0 and v["mean_latency_ms"] == 25.0
+    assert v["drop_rate"] == 0.2
+    stats.error("bad JPEG")
+    p, last = stats.take((6, 1))  # one more frame received since the last take
+    assert p["received"] == 1 and p["errors"] == 1
+    assert health_status(p["received"], p["errors"], last, True) == (ERROR, "input errors: bad JPEG")
+    assert health_status(0, 0, "", True) == (WARN, "no images")
+    assert health_status(3, 0, "", False) == (OK, "running, not calibrated")

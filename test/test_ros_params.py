@@ -1,0 +1,41 @@
+"""ficap_ros.ros_params: the parameter table read into one frozen, typed NodeConfig."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from ficap_ros.errors import ConfigError
+from ficap_ros.ros_params import PARAMETERS, CalibrationMode, NodeConfig
+
+
+def _defaults(**changes: object) -> dict[str, object]:
+    values = {p.name: p.default for p in PARAMETERS}
+    values.update(changes)
+    return values
+
+
+def test_config_is_typed_and_frozen() -> None:
+    cfg = NodeConfig.from_values(_defaults(**{"calibration.window_s": 2, "pose.method": "paper"}))
+    assert cfg.calibration_window_s == 2.0 and isinstance(cfg.calibration_window_s, float)
+    assert cfg.calibration_mode is CalibrationMode.AUTO and cfg.camera_mount == (0.0,) * 7
+    assert cfg.mount is None and cfg.pose_config.method == "paper"
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.tracking = False  # type: ignore[misc]
+
+
+def test_calibration_mode_resolves_auto() -> None:
+    assert NodeConfig.from_values(_defaults()).effective_calibration_mode is CalibrationMode.FRONTAL
+    ref = NodeConfig.from_values(_defaults(**{"calibration.reference_topic": "/ref"}))
+    assert ref.effective_calibration_mode is CalibrationMode.REFERENCE
+    forced = NodeConfig.from_values(_defaults(**{"calibration.reference_topic": "/ref",
+                                                 "calibration.mode": "frontal"}))
+    assert forced.effective_calibration_mode is CalibrationMode.FRONTAL
+
+
+def test_mount_is_a_transform() -> None:
+    cfg = NodeConfig.from_values(_defaults(camera_mount=[0.1, 0.0, 1.2, 0.5, -0.5, 0.5, -0.5]))
+    assert cfg.mount is not None and abs(cfg.mount.translation_m[2] - 1.2) < 1e-12
+    with pytest.raises(ConfigError):
+        NodeConfig.from_values(_defaults(camera_mount=[0.0] * 6 + [2.0])).mount
