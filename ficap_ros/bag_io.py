@@ -19,6 +19,7 @@ from the frame rate, else unknown) and their time range.
 from __future__ import annotations
 
 import math
+import os
 import sqlite3
 from bisect import bisect_right
 from dataclasses import dataclass
@@ -46,7 +47,6 @@ __all__ = [
     "jazzy_typestore",
     "open_bag_reader",
     "BagWriter",
-    "write_file_atomic",
     "header",
     "pose_stamped_msg",
     "pose_with_covariance_stamped_msg",
@@ -652,22 +652,16 @@ class BagWriter:
             inner = self._tmpdir / (self.path.stem if self.layout == "file" else self.path.name)
             try:
                 if self.layout == "file":
-                    os_replace(inner / self.path.name, self.path)
-                    os_replace(inner / "metadata.yaml", self.path.parent / "metadata.yaml")
+                    os.replace(inner / self.path.name, self.path)
+                    os.replace(inner / "metadata.yaml", self.path.parent / "metadata.yaml")
                 else:
                     if self.path.exists():
                         shutil.rmtree(self.path)
-                    os_replace(inner, self.path)
+                    os.replace(inner, self.path)
             except OSError as err:
                 raise OutputError(f"cannot write {self.path}: {err.strerror or err}") from err
         finally:
             shutil.rmtree(self._tmpdir, ignore_errors=True)
-
-
-def os_replace(src: Path, dst: Path) -> None:
-    import os
-
-    os.replace(src, dst)
 
 
 # -- message builders (rosbags message objects; no ROS needed) ------------------------------------
@@ -742,21 +736,3 @@ def image_msg(stamp_ns: int, frame_id: str, image: np.ndarray, encoding: str) ->
         is_bigendian=0, step=step, data=arr.view(np.uint8).reshape(-1).copy())
 
 
-def write_file_atomic(path: str | Path, data: str | bytes) -> None:
-    """``ficap_ros.files.write_output_file``: temp file then rename, one-line errors.
-
-    Raises:
-        OutputError: a folder, or the folder is not writable.
-    """
-    from ficap_ros.files import write_output_file
-
-    write_output_file(path, data)
-
-
-def _unlink(path: str) -> None:
-    import os
-
-    try:
-        os.unlink(path)
-    except FileNotFoundError:
-        pass

@@ -187,10 +187,6 @@ class CameraModel:
     def is_distorted(self) -> bool:
         return self.distortion_model != "none" and bool(np.any(self.D))
 
-    @property
-    def pinhole_K(self) -> np.ndarray:
-        return self.K
-
     def scaled(self, factor: float) -> CameraModel:
         """The same camera seen in an image resized by ``factor`` (pixel-centre convention)."""
         k = self.K.copy()

@@ -70,14 +70,10 @@ def finite_float(text: str) -> float:
 
 
 def _available_verbs() -> dict[str, object]:
-    modules = {}
-    for verb, module_name in VERBS.items():
-        try:
-            modules[verb] = importlib.import_module(f"ficap_ros.commands.{module_name}")
-        except ModuleNotFoundError as err:
-            if err.name != f"ficap_ros.commands.{module_name}":
-                raise
-    return modules
+    """Every verb's module; a missing one is a broken install and fails loudly (ImportError), not
+    a verb silently absent from ``--help``."""
+    return {verb: importlib.import_module(f"ficap_ros.commands.{module_name}")
+            for verb, module_name in VERBS.items()}
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -288,13 +288,13 @@ def _png(fig: Any, path: Path) -> Path:
     """Lay out, write atomically as PNG, close; returns ``path``."""
     import matplotlib.pyplot as plt
 
-    from ficap_ros.bag_io import write_file_atomic
+    from ficap_ros.files import write_output_file
 
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
     plt.close(fig)
-    write_file_atomic(path, buf.getvalue())
+    write_output_file(path, buf.getvalue())
     return path
 
 
@@ -396,7 +396,7 @@ def write_report(result: EvaluationResult, out_dir: str | Path, plots: bool = Tr
     Raises:
         BagError: the folder is not writable.
     """
-    from ficap_ros.bag_io import write_file_atomic
+    from ficap_ros.files import write_output_file
 
     out = Path(out_dir)
     try:
@@ -404,8 +404,8 @@ def write_report(result: EvaluationResult, out_dir: str | Path, plots: bool = Tr
     except OSError as err:
         raise BagError(f"cannot write to {out}: {err.strerror or err}") from err
     paths = plot_report(result, out) if plots else []
-    write_file_atomic(out / "report.json", json.dumps(_finite(result.summary()), indent=2) + "\n")
-    write_file_atomic(out / "report.md", report_markdown(result))
+    write_output_file(out / "report.json", json.dumps(_finite(result.summary()), indent=2) + "\n")
+    write_output_file(out / "report.md", report_markdown(result))
     return [out / "report.md", out / "report.json", *paths]
 
 

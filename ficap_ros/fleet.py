@@ -43,9 +43,10 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Sequence
 
 from ficap_ros import __version__
-from ficap_ros.bag_io import VIDEO_SUFFIXES, FrameSource, RawFrame, write_file_atomic
+from ficap_ros.bag_io import VIDEO_SUFFIXES, FrameSource, RawFrame
 from ficap_ros.cap_model import CapModel
 from ficap_ros.errors import BagError, ConfigError, FicapError
+from ficap_ros.files import write_output_file
 from ficap_ros.calibration import HeadCalibration
 from ficap_ros.pose import PoseConfig
 
@@ -722,9 +723,9 @@ def write_fleet_summary(out: Path, fleet: FleetResult) -> list[Path]:
            "recordings": [{k: (None if isinstance(v, float) and math.isnan(v) else v)
                            for k, v in asdict(r).items()} for r in fleet.results]}
     paths = [out / name for name in FLEET_FILES]
-    write_file_atomic(paths[0], buf.getvalue())
-    write_file_atomic(paths[1], json.dumps(doc, indent=2) + "\n")
-    write_file_atomic(paths[2], _plot(fleet))
+    write_output_file(paths[0], buf.getvalue())
+    write_output_file(paths[1], json.dumps(doc, indent=2) + "\n")
+    write_output_file(paths[2], _plot(fleet))
     return paths
 
 

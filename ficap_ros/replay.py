@@ -24,9 +24,10 @@ from typing import IO, Any, Callable, Iterable, Iterator
 
 import numpy as np
 
-from ficap_ros.bag_io import FrameSource, Loss, RawFrame, decode_raw, write_file_atomic
+from ficap_ros.bag_io import FrameSource, Loss, RawFrame, decode_raw
 from ficap_ros.cap_model import CapModel
 from ficap_ros.errors import BagError, ImageError
+from ficap_ros.files import write_output_file
 from ficap_ros.labels import LabelRecord, labels_csv_text, record_from_pose, write_labels_bag
 from ficap_ros.calibration import HeadCalibration
 from ficap_ros.pipeline import FrameProcessor
@@ -443,14 +444,10 @@ def _replay_into(
         **(summary_extra or {}),
     }
     write_labels_bag(tmp / "labels.mcap", records, namespace)
-    _write(tmp / "labels.csv", labels_csv_text(records))
-    _write(tmp / "summary.json", json.dumps(summary, indent=2) + "\n")
+    write_output_file(tmp / "labels.csv", labels_csv_text(records))
+    write_output_file(tmp / "summary.json", json.dumps(summary, indent=2) + "\n")
     files = [out / "labels.mcap", out / "metadata.yaml", out / "labels.csv", out / "summary.json"]
     return ReplayOutput(records, summary, files, loss)
-
-
-def _write(path: Path, text: str) -> None:
-    write_file_atomic(path, text)
 
 
 def _q_wxyz(rotation: Any) -> list[float]:

@@ -59,3 +59,13 @@ def test_progress_is_per_frame_and_quiet_off_a_terminal() -> None:
     bar.update(5)
     bar.close()
     assert plain.getvalue() == ""
+
+
+def test_a_missing_verb_module_fails_loudly(monkeypatch) -> None:
+    """A verb whose module is missing is a broken install: an ImportError, not a verb silently
+    left out of --help."""
+    from ficap_ros import cli
+
+    monkeypatch.setitem(cli.VERBS, "ghost", "no_such_verb_module")
+    with pytest.raises(ImportError):
+        cli.build_parser()

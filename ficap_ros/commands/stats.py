@@ -30,7 +30,7 @@ def run(args: argparse.Namespace) -> int:
 
     import numpy as np
 
-    from ficap_ros.bag_io import write_file_atomic
+    from ficap_ros.files import write_output_file
     from ficap_ros.cap_model import load_model, nominal_model
     from ficap_ros.evaluation import detection_stats, plot_stats
 
@@ -89,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
     if args.out:
         out = Path(args.out)
         plot_stats(stats, out)
-        write_file_atomic(out / "stats.json", json.dumps(d, indent=2) + "\n")
+        write_output_file(out / "stats.json", json.dumps(d, indent=2) + "\n")
     if lost_line:
         from ficap_ros.cli import EXIT_FRAMES_LOST
 
