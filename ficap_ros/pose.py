@@ -22,18 +22,27 @@ share one pinhole solver, and works in metres (model corners are mm / 1000).
 Duplicated ids (a tag seen twice: a reflection, a second cap, a spurious decode) are resolved after
 a first pose from the unique tags: the copy that agrees with the pose is kept, or both are dropped.
 
+Tag weights (``joint``, ``UncertaintyConfig.weight_tags``): each tag's corner noise is estimated
+from its own residuals with the frame's median as a prior (``tag_noise_px``), and the pose takes one
+weighted Gauss-Newton step from the unweighted optimum (``_reweighted``): oblique, dark or
+second-read tags with worse corners count less. On every ``ficap synth`` condition and blender_dev
+set but the as-built one this lowers the median rotation error (docs/benchmarks.md).
+
 Covariance (``CapPose.covariance``, 6x6, ROS order, camera axes): first-order propagation through
-the least-squares fit (``A = (J^T J)^-1 J^T`` maps corner displacements to pose changes) of
+the weighted least-squares fit (``A = (J^T W J)^-1 J^T W`` maps corner displacements to pose
+changes) of
     the residual-based term: each tag's corner residuals split into orthonormal patterns (shift,
         scale, turn, shears, projective: how misplaced plates, radial corner bias and noise move a
         tag's corners), each pattern group's variance pooled over the frame's tags with the
-        degrees of freedom the fit took from it subtracted (its leverage), plus the tags' common
-        radial offset;
-    scaled by ``UncertaintyConfig.residual_inflation`` for the corner errors neighbouring tags share
-        (the pose absorbs those without residuals);
+        degrees of freedom the fit took from it subtracted (its leverage), shared out among the
+        tags in proportion to their corner noise, plus the tags' common radial offset;
+    the corner errors neighbouring tags share, which the pose absorbs without residuals: uneven
+        light (a spotlight) moves every tag's edges toward its darker side; its measure is how the
+        tags' fitted edge shifts vary across the cap (``light_gradient_px``), scaled into noise the
+        pose absorbs and into a shift of every tag along its foreshortening (the depth's mode);
     the floors of ``UncertaintyConfig`` added to it: independent corner noise, radial corner bias
-        (per tag and common), each plate shifted and turned as a rigid whole against the cap
-        model, the intrinsics (principal point, focal length).
+        (per tag and common), a shift along the foreshortening, each plate shifted and turned as a
+        rigid whole against the cap model, the intrinsics (principal point, focal length).
 Pooling by pattern matters: a tag's corner errors are not independent (a blurred border moves all
 four corners inward), and treating them as such misjudges which pose directions they disturb.
 ``rot_err95_deg`` / ``trans_err95_mm`` are the 95 % quantiles of the rotation angle / translation
@@ -78,16 +87,27 @@ __all__ = [
 
 @dataclass(frozen=True)
 class UncertaintyConfig:
-    """How the pose covariance is built: the residual-based term's inflation and the floors added
-    to it (1-sigma each).
+    """How the pose covariance is built: the residual-based term, the terms for corner errors that
+    neighbouring tags share (which the pose absorbs without residuals), and the floors (1-sigma).
 
     The residual-based term carries what each frame's corners show (noise, per-tag corner bias,
-    misplaced plates: ``uncertainty_terms``). What residuals cannot show is a corner error shared by
-    neighbouring tags (same light, blur and view angle): the pose absorbs it and leaves no residual.
-    ``residual_inflation`` scales the residual-based sigmas for it; it was calibrated on ``ficap
-    synth`` drives (realistic chain, 540p/1080p x neutral/high/low, 40 frames each): the smallest
-    value whose rotation bounds cover at least 90 % in every condition (1.3 left 1080p high at
-    87.5 %, 1.4 gives 92.5 %), then checked, not fitted, on blender_dev (docs/benchmarks.md).
+    misplaced plates: ``uncertainty_terms``), tag by tag in proportion to each tag's own corner
+    noise (``tag_noise_px``). What residuals cannot show is a corner error shared by neighbouring
+    tags: the pose absorbs it and leaves no residual. Its measurable cause on ``ficap synth``
+    frames is uneven light (spotlights, clipping): the tone-curve edge shift that each tag's cell
+    fit measures (``TagDetection.edge_shift_px``) then varies smoothly across the cap, and the
+    edges of each tag move toward its darker side, a field the pose absorbs. Its size is the
+    frame's ``light_gradient_px`` (spread of a plane fitted to the tags' edge shifts over their
+    image positions); ``light_gradient_gain`` turns it into corner noise the pose absorbs, and
+    ``light_gradient_tilt_gain`` into a shift of every tag along its foreshortening (the
+    projected normal, times sin of the view angle), the mode that moves the depth.
+
+    The gains and ``residual_inflation`` were calibrated on ``ficap synth`` drives only (realistic
+    chain, 540p/1080p x neutral/high/low, 60 frames each, seeds 100-122): the combination with the
+    smallest bounds whose rotation and translation bounds cover >= 90 % in every condition; then
+    checked, not fitted, on a second noise realisation of those drives and on blender_dev
+    (docs/benchmarks.md, "Calibrated uncertainty").
+
     The floors guarantee that no pose is ever "exact" and state what residuals cannot estimate.
 
     Attributes:
@@ -104,25 +124,39 @@ class UncertaintyConfig:
             length, relative). 0 by default: CameraInfo says nothing of it, rendered intrinsics
             are exact, and a constant intrinsics error is a constant rotation offset that a
             frontal calibration absorbs in the head angles.
-        residual_inflation: factor (>= 1) on the residual-based sigmas (see above).
+        residual_inflation: factor (>= 1) on the residual-based sigmas.
+        light_gradient_gain: corner noise absorbed by the pose per px of ``light_gradient_px``.
+        light_gradient_tilt_gain: shared shift of the tags along their foreshortening per px of
+            ``light_gradient_px``.
+        tilt_shift_px: floor for that shared shift, px at a tag seen edge-on. 0 by default: on
+            ``ficap synth`` frames under even light it is below 0.002 px; blender_dev's 540p
+            renders show 0.06 px (gamma tone curve, 28 px tags), which no residual reveals and
+            which moves the depth by ~0.4 mm: set it for such a camera (docs/benchmarks.md).
+        weight_tags: weight each tag in the ``joint`` pose by its corner noise
+            (``tag_noise_px``): one weighted Gauss-Newton step from the unweighted optimum.
     """
 
-    corner_noise_px: float = 0.005
-    corner_bias_px: float = 0.005
-    corner_bias_common_px: float = 0.005
+    corner_noise_px: float = 0.002
+    corner_bias_px: float = 0.002
+    corner_bias_common_px: float = 0.002
     model_mm: float = 0.0
     model_deg: float = 0.0
     principal_point_px: float = 0.0
     focal_rel: float = 0.0
-    residual_inflation: float = 1.4
+    residual_inflation: float = 1.0
+    light_gradient_gain: float = 0.5
+    light_gradient_tilt_gain: float = 0.3
+    tilt_shift_px: float = 0.0
+    weight_tags: bool = True
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.residual_inflation) and self.residual_inflation >= 1.0):
             raise ConfigError("residual_inflation must be >= 1")
         values = (self.corner_noise_px, self.corner_bias_px, self.corner_bias_common_px,
-                  self.model_mm, self.model_deg, self.principal_point_px, self.focal_rel)
+                  self.model_mm, self.model_deg, self.principal_point_px, self.focal_rel,
+                  self.light_gradient_gain, self.light_gradient_tilt_gain, self.tilt_shift_px)
         if not all(np.isfinite(v) and v >= 0 for v in values):
-            raise ConfigError("uncertainty sigmas must be finite and >= 0")
+            raise ConfigError("uncertainty sigmas and gains must be finite and >= 0")
         if self.corner_noise_px <= 0:
             raise ConfigError("corner_noise_px must be > 0 (no pose is exact)")
 
@@ -641,13 +675,23 @@ def estimate_cap_pose(
         return PoseResult(None, tags_detected, solution)
     if not _in_front(solution.used, solution.T):
         return PoseResult(None, tags_detected, "pose puts the cap behind the camera")
-    rms = solution.rms_px
     used_n = len(solution.used)
-    terms, seen = uncertainty_terms(solution.used, solution.T)
+    T = solution.T
+    tag_sigma = None
+    if config.method == "joint" and config.uncertainty.weight_tags:
+        T, tag_sigma = _reweighted(solution.used, T)
+    res, _ = _at(T, solution.used)
+    rms = float(np.sqrt(np.mean(res**2) * 2.0))
+    # The cell fit's edge shift of each used tag (NaN: not fitted, or the id was duplicated).
+    shifts: dict[int, float] = {}
+    for det in ours:
+        shifts[det.tag_id] = float("nan") if det.tag_id in shifts else float(det.edge_shift_px)
+    edge_shift = np.array([shifts.get(i, float("nan")) for i in solution.used.ids])
+    terms, seen = uncertainty_terms(solution.used, T, tag_sigma, edge_shift)
     covariance = combine_uncertainty(terms, seen, config.uncertainty)
     rot95, trans95 = error_bound95(covariance)
     pose = CapPose(
-        T_cam_cap=solution.T,
+        T_cam_cap=T,
         tags_detected=tags_detected,
         tags_used=used_n,
         used_ids=solution.used.ids,
@@ -687,32 +731,129 @@ def _tag_basis(corners_px: np.ndarray) -> np.ndarray:
     return Q[:, :, :8]
 
 
+def tag_noise_px(obs: _Observations, T: Transform) -> np.ndarray:
+    """Per-tag corner noise estimate (tags,), px: the tag's own RMS reprojection residual and the
+    frame's median tag RMS added in quadrature.
+
+    What makes one tag's corners worse than another's (oblique view, small size, blur, a dark or
+    clipped plate, no cell-edge fit, a tag added by the search's second reading) shows in its own
+    residuals; a tag's 8 residuals are a noisy estimate of it (and the fit absorbed a share), so
+    the frame's median is added as a prior: a tag with residuals at the median gets sqrt(2) times
+    them, one far above the median its own. On every ``ficap synth`` condition and every
+    blender_dev set but the as-built one, weighting the tags by it lowers the median rotation error
+    (docs/benchmarks.md, "Calibrated uncertainty")."""
+    res, _ = _at(T, obs)
+    rms = np.sqrt(np.mean(res.reshape(len(obs), 8) ** 2, axis=1))
+    floor = max(float(np.median(rms)), 1e-6)
+    return np.sqrt(rms**2 + floor**2)
+
+
+def _reweighted(obs: _Observations, T: Transform) -> tuple[Transform, np.ndarray]:
+    """The pose with each tag weighted by its corner noise (``tag_noise_px``), and that noise.
+
+    One Gauss-Newton step of the weighted reprojection error from the unweighted optimum: the
+    weights change the pose by a few hundredths of a degree, where the problem is linear (a second
+    step moves it by under 1 % of the first). With fewer than four tags the residuals say too
+    little about which tag is worse: equal weights."""
+    n_tags = len(obs)
+    if n_tags < 4:
+        return T, np.ones(n_tags)
+    sigma = tag_noise_px(obs, T)
+    res, J = _at(T, obs)
+    w = np.repeat(1.0 / sigma**2, 8)
+    try:
+        dx = -np.linalg.solve(J.T @ (w[:, None] * J), J.T @ (w * res))
+    except np.linalg.LinAlgError:
+        return T, sigma
+    if not np.all(np.isfinite(dx)):
+        return T, sigma
+    return Transform(Rotation.from_rotvec(dx[:3]) * T.rotation, T.translation_m + dx[3:]), sigma
+
+
+def light_gradient_px(edge_shift_px: np.ndarray, centres_px: np.ndarray) -> float:
+    """How unevenly the light moves the tags' edges across the cap, px: the spread (standard
+    deviation over the tags) of a plane fitted to the tags' measured edge shifts
+    (``TagDetection.edge_shift_px``) over their image positions. The smooth part only: a tag's own
+    edge shift scatters with its noise and view angle, a spotlight's gradient is shared by its
+    neighbours. 0 with fewer than six fitted tags (too few to tell a gradient from scatter)."""
+    es = np.asarray(edge_shift_px, dtype=float)
+    ok = np.isfinite(es)
+    if ok.sum() < 6:
+        return 0.0
+    c = np.asarray(centres_px, dtype=float)[ok]
+    c = (c - c.mean(axis=0)) / max(float(np.ptp(c, axis=0).max()), 1e-9)
+    X = np.column_stack([np.ones(len(c)), c])
+    coef, *_ = np.linalg.lstsq(X, es[ok], rcond=None)
+    return float(np.std(X @ coef))
+
+
+def _tilt_mode(obs: _Observations, T: Transform) -> np.ndarray:
+    """(2n,): each tag's corners shifted by 1 px along the image direction of its outward normal,
+    times the sine of its view angle (0 for a tag seen head-on, 1 edge-on)."""
+    centres = obs.model_m.mean(axis=1)  # (tags, 3) cap frame, m
+    a, b = obs.model_m[:, 1] - obs.model_m[:, 0], obs.model_m[:, 3] - obs.model_m[:, 0]
+    normal = np.cross(a, b)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    c_cam = T.apply(centres)
+    n_cam = normal @ T.rotation_matrix.T
+    K = obs.K
+
+    def project(p: np.ndarray) -> np.ndarray:
+        q = p @ K.T
+        return q[:, :2] / q[:, 2:3]
+
+    d = project(c_cam + 1e-3 * n_cam) - project(c_cam)
+    u = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    cos_view = np.abs(np.einsum("ij,ij->i", n_cam, c_cam)) / np.maximum(np.linalg.norm(c_cam, axis=1), 1e-12)
+    sin_view = np.sqrt(np.clip(1.0 - cos_view**2, 0.0, 1.0))
+    return np.repeat((u * sin_view[:, None])[:, None, :], 4, axis=1).reshape(-1)
+
+
 def uncertainty_terms(
-    obs: _Observations, T: Transform
+    obs: _Observations, T: Transform, tag_sigma_px: np.ndarray | None = None,
+    edge_shift_px: np.ndarray | None = None,
 ) -> tuple[dict[str, np.ndarray], dict[str, float]]:
     """What the covariance is built from.
 
+    Args:
+        obs: the tags the pose used.
+        T: the pose.
+        tag_sigma_px: per-tag corner noise (``tag_noise_px``) when the pose weighted its tags by
+            it (``_reweighted``); None: equal weights. It sets the fit's weights and each tag's
+            share of the residual-based variance (a tag with twice the noise gets four times the
+            variance in every pattern).
+        edge_shift_px: per tag, the edge shift its cell fit measured (NaN: not fitted); None:
+            unknown (``light_gradient`` 0).
+
     Returns:
         terms: per error source, the pose covariance (6x6, ROS order) that one unit of its sigma
-            causes, by first-order propagation through the fit (``A = (J^T J)^-1 J^T``): each
-            residual pattern group of ``_PATTERNS`` (1 px per pattern coordinate, independent per
-            tag), ``noise`` (1 px, every coordinate independent), ``bias`` (1 px radial at every
-            corner, independent per tag), ``bias_common`` (the same for all tags),
-            ``model_t`` / ``model_r`` (each plate shifted 1 mm / turned 1 deg about each cap axis),
-            ``principal_point`` (1 px per axis), ``focal`` (relative 1).
-        seen: what the residuals show: per pattern group the sigma of its coefficients pooled
-            over the tags (less the share the fit absorbed: the hat matrix's leverage of the
-            group), and ``bias_common``, the tags' mean radial offset (px per corner), scaled
-            back by the share of it the fit left in the residuals.
+            causes, by first-order propagation through the (weighted) fit
+            (``A = (J^T W J)^-1 J^T W``): each residual pattern group of ``_PATTERNS`` (1 px per
+            pattern coordinate for a tag of median noise, scaled by the tag's relative noise,
+            independent per tag), ``noise`` (1 px, every coordinate independent), ``bias``
+            (1 px radial at every corner, independent per tag), ``bias_common`` (the same for
+            all tags), ``model_t`` / ``model_r`` (each plate shifted 1 mm / turned 1 deg about
+            each cap axis), ``principal_point`` (1 px per axis), ``focal`` (relative 1),
+            ``tilt`` (every tag shifted along its foreshortening, ``_tilt_mode``, 1 px edge-on).
+        seen: what the residuals show: per pattern group the sigma of its coefficients (each
+            tag's divided by its relative noise) pooled over the tags, less the share the fit
+            absorbed (the weighted hat matrix's leverage of the group), and ``bias_common``, the
+            tags' mean radial offset (px per corner), scaled back by the share of it the fit left
+            in the residuals; and ``light_gradient`` (``light_gradient_px``), px.
     """
     res, J = _at(T, obs)
     n_tags = len(obs)
     n = 4 * n_tags
+    if tag_sigma_px is None:
+        rel = np.ones(n_tags)
+    else:
+        rel = np.asarray(tag_sigma_px, dtype=float) / max(float(np.median(tag_sigma_px)), 1e-12)
+    w = np.repeat(1.0 / rel**2, 8)  # weights per residual coordinate
     try:
-        JtJ_inv = np.linalg.inv(J.T @ J)
+        M = np.linalg.inv(J.T @ (w[:, None] * J))
     except np.linalg.LinAlgError:
-        JtJ_inv = np.full((6, 6), np.inf)  # combine_uncertainty turns this into "unknown"
-    A = JtJ_inv @ J.T  # (6, 2n): pose change per corner coordinate displacement
+        M = np.full((6, 6), np.inf)  # combine_uncertainty turns this into "unknown"
+    A = M @ (J.T * w)  # (6, 2n): pose change per corner coordinate displacement
     A_tag = A.reshape(6, n_tags, 8)
 
     def ros(c: np.ndarray) -> np.ndarray:
@@ -722,8 +863,11 @@ def uncertainty_terms(
         am = A @ modes
         return ros(am @ am.T)
 
-    def per_tag(modes: np.ndarray) -> np.ndarray:  # (tags, 8, k) modes independent per tag
+    def per_tag(modes: np.ndarray, scale: np.ndarray | None = None) -> np.ndarray:
+        # (tags, 8, k) modes independent per tag, each tag's times scale (tags,)
         am = np.einsum("ktj,tjm->tkm", A_tag, modes)
+        if scale is not None:
+            am = am * scale[:, None, None]
         return ros(np.einsum("tkm,tlm->kl", am, am))
 
     K = obs.K
@@ -741,9 +885,10 @@ def uncertainty_terms(
     GR = G @ R  # d(u, v)/d(point in the cap frame)
 
     B = _tag_basis(obs.image_px)
-    terms: dict[str, np.ndarray] = {"noise": ros(JtJ_inv)}
+    terms: dict[str, np.ndarray] = {"noise": ros(A @ A.T)}
+    share = rel / np.sqrt(np.mean(rel**2))  # each tag's sigma over the frame's mean tag's
     for group, idx in _PATTERNS.items():
-        terms[group] = per_tag(B[:, :, idx])
+        terms[group] = per_tag(B[:, :, idx], share)
     radial = 2.0 * B[:, :, 2]  # 1 px radial at each corner (the pattern has norm 1 over 4 corners)
     terms["bias"] = per_tag(radial[:, :, None])
     terms["bias_common"] = together(radial.reshape(-1, 1))
@@ -758,11 +903,15 @@ def uncertainty_terms(
     axes[1::2, 1] = 1.0
     terms["principal_point"] = together(axes)
     terms["focal"] = together((uv - K[:2, 2]).reshape(-1, 1))
+    terms["tilt"] = together(_tilt_mode(obs, T).reshape(-1, 1))
 
     # The residuals in each tag's patterns; per group, the coefficients' variance pooled over the
-    # tags, with the degrees of freedom the fit took from the group (its leverage) subtracted.
+    # tags (the frame's mean tag), with the degrees of freedom the fit took from the group (the
+    # weighted hat matrix's leverage, w_t J_t M J_t^T) subtracted. Pooled with equal weights: the
+    # weights come from the same residuals, and a variance pooled through them would be biased low.
     coef = np.einsum("tjm,tj->tm", B, -res.reshape(n_tags, 8))
-    hat = (J @ A).reshape(n_tags, 8, n_tags, 8)[np.arange(n_tags), :, np.arange(n_tags), :]
+    Jt = J.reshape(n_tags, 8, 6)
+    hat = np.einsum("tja,ab,tkb->tjk", Jt, M, Jt) / rel[:, None, None] ** 2
     leverage = np.einsum("tjm,tjs,tsm->tm", B, hat, B)
     mean_scale = float(coef[:, 2].mean())
     seen: dict[str, float] = {}
@@ -772,24 +921,34 @@ def uncertainty_terms(
         dof -= 1.0 if group == "scale" else 0.0  # the common offset, taken out above
         seen[group] = float(np.sqrt(np.sum(c**2) / dof)) if dof > 0.5 else 0.0
     # The common radial offset the residuals show is what the fit left of it: part of it went into
-    # the depth (that part moved the pose). Scale back to the whole by the share left.
+    # the depth (that part moved the pose). Scale back to the whole by the share left. The mean
+    # carries the tags' scale noise too (its standard error): subtract that in quadrature, or the
+    # noise of a mean amplified up to tenfold would pass for an offset where there is none.
     common = radial.reshape(-1)
-    common_left = 1.0 - float(common @ (J @ (A @ common))) / float(common @ common)
-    seen["bias_common"] = abs(mean_scale) / 2.0 / max(common_left, 0.1)
+    common_left = 1.0 - float(common @ (w * (J @ (A @ common)))) / float(common @ (w * common))
+    mean_se2 = seen["scale"] ** 2 / n_tags
+    seen["bias_common"] = (float(np.sqrt(max(mean_scale**2 - mean_se2, 0.0)))
+                           / 2.0 / max(common_left, 0.1))
+    seen["light_gradient"] = (0.0 if edge_shift_px is None
+                              else light_gradient_px(edge_shift_px, obs.image_px.mean(axis=1)))
     return terms, seen
 
 
 def combine_uncertainty(terms: dict[str, np.ndarray], seen: dict[str, float],
                         config: UncertaintyConfig) -> np.ndarray:
     """The pose covariance (6x6, ROS order, camera axes): the residual-based term (each pattern
-    group's sigma as the residuals show it) plus the floors of ``config``, each source's unit
-    covariance times its variance. Finite and positive definite: a degenerate fit gives a huge
-    diagonal (1 m, 180 deg), never zeros or infinities."""
+    group's sigma as the residuals show it), the shared corner errors uneven light causes (the
+    frame's ``light_gradient`` times the gains of ``config``), plus the floors of ``config``, each
+    source's unit covariance times its variance. Finite and positive definite: a degenerate fit
+    gives a huge diagonal (1 m, 180 deg), never zeros or infinities."""
     c = config
     k2 = c.residual_inflation**2
+    gradient = seen.get("light_gradient", 0.0)
     cov = k2 * sum(seen[g] ** 2 * terms[g] for g in _PATTERNS)
-    cov = cov + (c.corner_noise_px**2 * terms["noise"] + c.corner_bias_px**2 * terms["bias"]
+    cov = cov + ((c.corner_noise_px**2 + (c.light_gradient_gain * gradient) ** 2) * terms["noise"]
+                 + c.corner_bias_px**2 * terms["bias"]
                  + (k2 * seen["bias_common"] ** 2 + c.corner_bias_common_px**2) * terms["bias_common"]
+                 + ((c.light_gradient_tilt_gain * gradient) ** 2 + c.tilt_shift_px**2) * terms["tilt"]
                  + c.model_mm**2 * terms["model_t"] + c.model_deg**2 * terms["model_r"]
                  + c.principal_point_px**2 * terms["principal_point"]
                  + c.focal_rel**2 * terms["focal"])

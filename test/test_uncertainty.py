@@ -161,3 +161,63 @@ def test_bound_quantile_matches_monte_carlo() -> None:
         want = np.quantile(np.linalg.norm(z, axis=1), 0.95)
         rot, trans = error_bound95(cov)
         assert rot == pytest.approx(want, rel=0.03) and trans == pytest.approx(want, rel=0.03)
+
+
+def test_noisy_tags_weighted_down() -> None:
+    """A few tags with ten times the corner noise of the others (oblique, dark, or read a second
+    time): weighting each tag by its own residuals (``tag_noise_px``) lowers the pose error, and
+    the weighted fit's bound still covers it."""
+    T = _truth(15.0)
+    exact = _exact_corners(T)
+    noisy = set(list(exact)[::4])
+    rng = np.random.default_rng(11)
+    equal = PoseConfig(uncertainty=UncertaintyConfig(weight_tags=False))
+    err_w, err_eq, bound_w = [], [], []
+    for _ in range(60):
+        corners = {i: c + rng.normal(0.0, 0.5 if i in noisy else 0.05, (4, 2)) for i, c in exact.items()}
+        weighted, unweighted = _pose(corners), _pose(corners, equal)
+        err_w.append(angle_deg(weighted.T_cam_cap.rotation, T.rotation))
+        err_eq.append(angle_deg(unweighted.T_cam_cap.rotation, T.rotation))
+        bound_w.append(weighted.rot_err95_deg)
+    err_w, err_eq, bound_w = map(np.array, (err_w, err_eq, bound_w))
+    print(f"\n{len(noisy)} noisy of {len(exact)} tags: median rotation error weighted "
+          f"{np.median(err_w):.4f} deg, equal weights {np.median(err_eq):.4f} deg; weighted bound "
+          f"covers {100 * np.mean(err_w <= bound_w):.0f} %")
+    assert np.median(err_w) < 0.7 * np.median(err_eq)
+    assert np.mean(err_w <= bound_w) >= 0.9
+
+
+def test_light_gradient_px() -> None:
+    from ficap_ros.pose import light_gradient_px
+
+    rng = np.random.default_rng(2)
+    centres = rng.uniform(0.0, 400.0, (15, 2))
+    plane = 0.2 + 0.5 * (centres[:, 0] - centres[:, 0].mean()) / np.ptp(centres, axis=0).max()
+    assert light_gradient_px(plane, centres) == pytest.approx(np.std(plane), rel=1e-9)
+    assert light_gradient_px(np.full(15, 0.4), centres) == pytest.approx(0.0, abs=1e-12)
+    few = np.full(15, np.nan)
+    few[:5] = plane[:5]
+    assert light_gradient_px(few, centres) == 0.0  # too few fitted tags to tell a gradient
+
+
+def test_uneven_light_widens_the_bound() -> None:
+    """Edge shifts that vary smoothly across the cap (a spotlight) widen the bounds; the same shift
+    on every tag (even light: the cell fit removed it) or no cell fit leaves them as they were."""
+    T = _truth(10.0)
+    exact = _exact_corners(T)
+    rng = np.random.default_rng(4)
+    corners = {i: c + rng.normal(0.0, 0.05, (4, 2)) for i, c in exact.items()}
+    x = np.array([c[:, 0].mean() for c in corners.values()])
+    ramp = 0.2 + 0.6 * (x - x.min()) / np.ptp(x)
+
+    def bounds(shifts):  # noqa: ANN001, ANN202
+        dets = [TagDetection(i, c, edge_shift_px=s) for (i, c), s in zip(corners.items(), shifts)]
+        p = estimate_cap_pose(dets, MODEL, CAM, PoseConfig()).pose
+        assert p is not None
+        return p.rot_err95_deg, p.trans_err95_mm
+
+    none = bounds([float("nan")] * len(corners))
+    even = bounds([0.4] * len(corners))
+    uneven = bounds(ramp)
+    assert even == pytest.approx(none, rel=1e-9)
+    assert uneven[0] > 1.5 * none[0] and uneven[1] > 1.5 * none[1]
