@@ -29,11 +29,13 @@ from ficap_ros.cap_model import nominal_model  # noqa: E402
 from ficap_ros.detection import DetectorConfig  # noqa: E402
 from ficap_ros.metrics import angle_deg  # noqa: E402
 from ficap_ros.pipeline import FrameProcessor  # noqa: E402
-from ficap_ros.pose import PoseConfig  # noqa: E402
+from ficap_ros.pose import PoseConfig, UncertaintyConfig  # noqa: E402
 
 #: name -> (detector, pose, tracking)
 METHODS = {
     "ficap": (DetectorConfig(), PoseConfig(), True),
+    "ficap, equal tag weights": (DetectorConfig(), PoseConfig(uncertainty=UncertaintyConfig(weight_tags=False)),
+                                 True),
     "ficap, biased corners": (DetectorConfig(edge_unbias=False, edge_fit=False), PoseConfig(), True),
     "naive peer": (DetectorConfig(corner_refine="subpix"), PoseConfig(method="naive"), False),
 }
@@ -100,7 +102,8 @@ def main() -> int:
     if args.record:
         body = (f"Machine: {machine_line()}; {load_avg()}; {time.time() - t0:.0f} s.\n\n"
                 "Each set's frames through `FrameProcessor` in recording order (ours: default settings, "
-                "tracking on, as `ficap replay`; 'biased corners': the line fit alone, as before the "
+                "tracking on, as `ficap replay`; 'equal tag weights': every tag weighted alike in the pose, "
+                "as before the per-tag corner-noise weights; 'biased corners': the line fit alone, as before the "
                 "tone-curve work; naive peer: OpenCV sub-pixel corners + one SQPnP/LM, no tracking). Nominal "
                 "cap model everywhere. Errors of the cap pose against the rendered truth. 'bar' = rotation "
                 "median and p95 and translation median each at most half the peer's.\n\n" + table)
