@@ -742,8 +742,11 @@ def tag_noise_px(obs: _Observations, T: Transform) -> np.ndarray:
     them, one far above the median its own. On every ``ficap synth`` condition and every
     blender_dev set but the as-built one, weighting the tags by it lowers the median rotation error
     (docs/benchmarks.md, "Calibrated uncertainty")."""
-    res, _ = _at(T, obs)
-    rms = np.sqrt(np.mean(res.reshape(len(obs), 8) ** 2, axis=1))
+    return _tag_noise(_at(T, obs)[0], len(obs))
+
+
+def _tag_noise(res: np.ndarray, n_tags: int) -> np.ndarray:
+    rms = np.sqrt(np.mean(res.reshape(n_tags, 8) ** 2, axis=1))
     floor = max(float(np.median(rms)), 1e-6)
     return np.sqrt(rms**2 + floor**2)
 
@@ -758,8 +761,8 @@ def _reweighted(obs: _Observations, T: Transform) -> tuple[Transform, np.ndarray
     n_tags = len(obs)
     if n_tags < 4:
         return T, np.ones(n_tags)
-    sigma = tag_noise_px(obs, T)
     res, J = _at(T, obs)
+    sigma = _tag_noise(res, n_tags)
     w = np.repeat(1.0 / sigma**2, 8)
     try:
         dx = -np.linalg.solve(J.T @ (w[:, None] * J), J.T @ (w * res))
