@@ -11,7 +11,7 @@ random cells), so a verified tag is as trustworthy as a searched one.
 
 This replaces ArUco's search (the costliest step: adaptive thresholds, contours, candidate
 decoding over the whole image) on every tracked frame; the pipeline falls back to the search when
-tracking cannot verify enough tags (``pipeline.FrameProcessor``).
+tracking cannot verify enough tags (``Tracker`` below, which ``pipeline.FrameProcessor`` runs).
 """
 
 from __future__ import annotations
