@@ -264,7 +264,8 @@ def label_topics(namespace: str = DEFAULT_NAMESPACE) -> dict[str, str]:
 
 
 def _quality_msg(rec: LabelRecord) -> object:
-    from ficap_ros.bag_io import header, jazzy_typestore
+    from ficap_ros.bag_io import jazzy_typestore
+    from ficap_ros.bag_writer import header
 
     values = quality_values(rec)
     return jazzy_typestore().types["sensor_msgs/msg/JointState"](
@@ -274,7 +275,8 @@ def _quality_msg(rec: LabelRecord) -> object:
 
 
 def _rpy_msg(rec: LabelRecord) -> object:
-    from ficap_ros.bag_io import header, jazzy_typestore
+    from ficap_ros.bag_io import jazzy_typestore
+    from ficap_ros.bag_writer import header
 
     assert rec.T_frontal_head is not None
     t = jazzy_typestore().types
@@ -286,7 +288,8 @@ def _rpy_msg(rec: LabelRecord) -> object:
 
 def _tf_msg(rec: LabelRecord) -> object:
     """tf2_msgs/TFMessage: frontal -> camera, camera -> cap, cap -> head (stamp = the image's)."""
-    from ficap_ros.bag_io import header, jazzy_typestore
+    from ficap_ros.bag_io import jazzy_typestore
+    from ficap_ros.bag_writer import header
 
     assert rec.T_cam_cap is not None and rec.T_frontal_head is not None
     t = jazzy_typestore().types
@@ -319,7 +322,8 @@ def _status_text(key: str, value: object) -> str:
 
 
 def _status_msg(rec: LabelRecord) -> object:
-    from ficap_ros.bag_io import header, jazzy_typestore
+    from ficap_ros.bag_io import jazzy_typestore
+    from ficap_ros.bag_writer import header
 
     t = jazzy_typestore().types
     level, message = record_status(rec)
@@ -341,11 +345,7 @@ def write_labels_bag(path: str | Path, records: Sequence[LabelRecord],
     Raises:
         BagError: the folder is not writable.
     """
-    from ficap_ros.bag_io import (
-        BagWriter,
-        pose_stamped_msg,
-        pose_with_covariance_stamped_msg,
-    )
+    from ficap_ros.bag_writer import BagWriter, pose_stamped_msg, pose_with_covariance_stamped_msg
 
     topics = label_topics(namespace)
     with BagWriter(path, storage="mcap", layout="file") as bag:

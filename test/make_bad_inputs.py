@@ -19,10 +19,8 @@ import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from ficap_ros.bag_io import (  # noqa: E402
-    CAMERA_INFO_TYPE,
-    COMPRESSED_TYPE,
-    IMAGE_TYPE,
+from ficap_ros.bag_io import CAMERA_INFO_TYPE, COMPRESSED_TYPE, IMAGE_TYPE  # noqa: E402
+from ficap_ros.bag_writer import ( # noqa: E402
     BagWriter,
     camera_info_msg,
     compressed_image_msg,

@@ -8,16 +8,8 @@ import cv2
 import numpy as np
 import pytest
 
-from ficap_ros.bag_io import (
-    CAMERA_INFO_TYPE,
-    COMPRESSED_TYPE,
-    IMAGE_TYPE,
-    BagWriter,
-    camera_info_msg,
-    compressed_image_msg,
-    image_msg,
-    open_frames,
-)
+from ficap_ros.bag_io import CAMERA_INFO_TYPE, COMPRESSED_TYPE, IMAGE_TYPE, open_frames
+from ficap_ros.bag_writer import BagWriter, camera_info_msg, compressed_image_msg, image_msg
 from ficap_ros.camera import CameraModel
 from ficap_ros.errors import BagError, ImageError
 from ficap_ros.image_codec import decode_compressed, decode_image
@@ -211,15 +203,23 @@ def test_video_needs_intrinsics_and_reads_frames(tmp_path: Path) -> None:
         open_frames(bogus, intrinsics=yml)
 
 
-def test_bag_writer_is_atomic(tmp_path: Path) -> None:
-    path = tmp_path / "out"
+def test_sources_are_built_in_one_step(tmp_path: Path) -> None:
+    """``open_frames`` picks ``BagSource`` or ``VideoSource``; each constructor opens completely."""
+    from ficap_ros.bag_io import BagSource, RecordingKind, VideoSource
 
-    class Boom(Exception):
-        pass
-
-    with pytest.raises(Boom):
-        with BagWriter(path) as w:
-            w.add_topic("/cam/image_raw", IMAGE_TYPE)
-            w.write("/cam/image_raw", 1, image_msg(1, "c", _grey(0), "mono8"))
-            raise Boom
-    assert list(tmp_path.iterdir()) == []
+    bag = tmp_path / "bag"
+    _write_bag(bag)
+    src = open_frames(bag)
+    assert isinstance(src, BagSource) and src.kind is RecordingKind.BAG and src.kind == "bag"
+    direct = BagSource(bag)
+    assert (direct.count, direct.start_ns, direct.image_topic) == (src.count, src.start_ns,
+                                                                  src.image_topic) and src.count == 5
+    video = tmp_path / "v.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (W, H))
+    for i in range(2):
+        writer.write(cv2.cvtColor(_grey(i), cv2.COLOR_GRAY2BGR))
+    writer.release()
+    v = open_frames(video, intrinsics=CAM)
+    assert isinstance(v, VideoSource) and v.kind is RecordingKind.VIDEO and len(list(v)) == 2
+    with pytest.raises(BagError, match="--intrinsics"):
+        VideoSource(video, None)

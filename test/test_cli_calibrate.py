@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from ficap_ros.bag_io import BagWriter, pose_stamped_msg
+from ficap_ros.bag_writer import BagWriter, pose_stamped_msg
 from ficap_ros.calibration import load_calibration
 from ficap_ros.cli import main
 from ficap_ros.labels import labels_csv_text, record_from_pose

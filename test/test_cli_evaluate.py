@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from ficap_ros.bag_io import BagWriter, pose_stamped_msg
+from ficap_ros.bag_writer import BagWriter, pose_stamped_msg
 from ficap_ros.cli import main
 from ficap_ros.evaluation import evaluate, load_series
 from ficap_ros.stamps import pair_by_stamp

@@ -11,13 +11,8 @@ import pytest
 import yaml
 
 from ficap_ros import synth
-from ficap_ros.bag_io import (
-    CAMERA_INFO_TYPE,
-    COMPRESSED_TYPE,
-    BagWriter,
-    camera_info_msg,
-    compressed_image_msg,
-)
+from ficap_ros.bag_io import CAMERA_INFO_TYPE, COMPRESSED_TYPE
+from ficap_ros.bag_writer import BagWriter, camera_info_msg, compressed_image_msg
 from ficap_ros.cap_model import nominal_model
 from ficap_ros.cli import main
 from ficap_ros.labels import read_labels

@@ -17,14 +17,8 @@ import yaml
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
-from ficap_ros.bag_io import (
-    CAMERA_INFO_TYPE,
-    IMAGE_TYPE,
-    BagWriter,
-    camera_info_msg,
-    image_msg,
-    open_frames,
-)
+from ficap_ros.bag_io import CAMERA_INFO_TYPE, IMAGE_TYPE, open_frames
+from ficap_ros.bag_writer import BagWriter, camera_info_msg, image_msg
 from ficap_ros.calibration import load_calibration
 from ficap_ros.camera import CameraModel, load_camera_yaml
 from ficap_ros.cap_model import load_model, nominal_model

@@ -17,6 +17,7 @@ LAYERS = [
     ["camera", "cap_model"],
     ["calibration"],
     ["detection", "bag_io"],
+    ["bag_writer"],
     ["pose"],
     ["tracking"],
     ["pipeline"],

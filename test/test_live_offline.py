@@ -14,8 +14,9 @@ from scipy.spatial.transform import Rotation
 from std_srvs.srv import Trigger
 from test_node import _header, harness_factory  # noqa: F401
 
-from ficap_ros import bag_io, ros_msgs, stamps
-from ficap_ros.bag_io import BagWriter, open_frames
+from ficap_ros import bag_io, bag_writer, ros_msgs, stamps
+from ficap_ros.bag_io import open_frames
+from ficap_ros.bag_writer import BagWriter
 from ficap_ros.calibration import CalibrationRecorder, load_calibration, reference_pairs
 from ficap_ros.cap_model import nominal_model
 from ficap_ros.cli import main
@@ -45,11 +46,11 @@ def _write_bag(path: Path, topic: str, images: list[np.ndarray], info_fields: di
         w.add_topic("/camera/camera_info", "sensor_msgs/msg/CameraInfo")
         for i, image in enumerate(images):
             s = T0 + i * DT
-            info = dataclasses.replace(bag_io.camera_info_msg(s, "rear_cam_optical", camera),
+            info = dataclasses.replace(bag_writer.camera_info_msg(s, "rear_cam_optical", camera),
                                        **{k: np.asarray(v, dtype=np.float64)
                                           for k, v in info_fields.items()})
             w.write("/camera/camera_info", s, info)
-            w.write(topic, s, bag_io.image_msg(s, "rear_cam_optical", image, "mono8"))
+            w.write(topic, s, bag_writer.image_msg(s, "rear_cam_optical", image, "mono8"))
 
 
 def _live_info(stamp_ns: int, info_fields: dict):

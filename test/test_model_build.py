@@ -219,7 +219,7 @@ def test_cli_builds_from_a_bag_of_rendered_frames(tmp_path, capsys) -> None:
     adjusts and replays with both models."""
     import json
 
-    from ficap_ros.bag_io import BagWriter, camera_info_msg, image_msg
+    from ficap_ros.bag_writer import BagWriter, camera_info_msg, image_msg
     from ficap_ros.cli import main
     from ficap_ros.synth import REALISTIC, RenderConfig, render
 
@@ -350,7 +350,7 @@ def test_replay_check_compares_with_the_nominal(built) -> None:
 
 def test_unconverged_build_exits_non_zero(tmp_path, capsys) -> None:
     """A solver that runs out of budget is not trusted: exit 1 and no file, unless --allow-partial."""
-    from ficap_ros.bag_io import BagWriter, camera_info_msg, image_msg
+    from ficap_ros.bag_writer import BagWriter, camera_info_msg, image_msg
     from ficap_ros.cli import main
     from ficap_ros.synth import RenderConfig, render
 

@@ -73,7 +73,7 @@ def test_reference_calibration_with_noisy_reference(harness_factory, tmp_path) -
 
     # The same poses offline: the node's cap poses as labels.csv, the references as a bag,
     # `ficap calibrate --reference` with the node's pair tolerance: the same pairs and frames.
-    from ficap_ros.bag_io import BagWriter, pose_stamped_msg
+    from ficap_ros.bag_writer import BagWriter, pose_stamped_msg
     from ficap_ros.calibration import load_calibration
     from ficap_ros.cli import main
     from ficap_ros.transform import Transform

@@ -24,13 +24,10 @@ from ficap_ros.bag_io import (
     CAMERA_INFO_TYPE,
     COMPRESSED_TYPE,
     IMAGE_TYPE,
-    BagWriter,
-    camera_info_msg,
-    compressed_image_msg,
-    image_msg,
     open_bag_reader,
     open_frames,
 )
+from ficap_ros.bag_writer import BagWriter, camera_info_msg, compressed_image_msg, image_msg
 from ficap_ros.calibration import load_calibration, save_calibration
 from ficap_ros.camera import CameraModel, camera_from_info, load_camera_yaml
 from ficap_ros.cap_model import load_model

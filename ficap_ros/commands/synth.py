@@ -156,13 +156,11 @@ def write_synth_bag(
     import numpy as np
 
     from ficap_ros import synth
-    from ficap_ros.bag_io import (
-        CAMERA_INFO_TYPE,
-        COMPRESSED_TYPE,
+    from ficap_ros.bag_io import CAMERA_INFO_TYPE, COMPRESSED_TYPE, jazzy_typestore
+    from ficap_ros.bag_writer import (
         BagWriter,
         camera_info_msg,
         compressed_image_msg,
-        jazzy_typestore,
         pose_stamped_msg,
     )
     from ficap_ros.replay import Progress
