@@ -31,6 +31,7 @@ from ficap_ros.cap_model import (
     nominal_model,
     write_atomic,
 )
+from ficap_ros.detection import TAG_CELLS  # cells across a tag36h11 tag with its black border
 from ficap_ros.errors import ConfigError
 
 __all__ = [
@@ -64,8 +65,6 @@ MM_PER_INCH = 25.4
 PT_PER_MM = 72.0 / MM_PER_INCH
 #: Length of the printed scale bar, mm.
 SCALE_BAR_MM = 100.0
-#: Cells across a tag36h11 tag with its 1-cell black border.
-TAG_CELLS = 8
 CELL_MM = TAG_SIDE_MM / TAG_CELLS
 
 ORIENTATION_NOTE = (

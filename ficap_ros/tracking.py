@@ -26,8 +26,8 @@ from scipy.spatial.transform import Rotation
 
 from ficap_ros.camera import CameraModel
 from ficap_ros.cap_model import CapModel
-from ficap_ros.detection import TAG_CELLS as _CELLS
 from ficap_ros.detection import (
+    TAG_CELLS,
     TagDetection,
     TagDetector,
     refine_corners_edge_ok,
@@ -141,16 +141,16 @@ def predict_tags(
 
 def _cell_grid() -> np.ndarray:
     """Centres (100, 2) of the 10x10 cells (white margin ring + 8x8 tag), in cell units from c0."""
-    c = np.arange(-1, _CELLS + 1) + 0.5
+    c = np.arange(-1, TAG_CELLS + 1) + 0.5
     gx, gy = np.meshgrid(c, c)
     return np.column_stack([gx.ravel(), gy.ravel()])
 
 
 _GRID = _cell_grid()
 _GRID_H = np.concatenate([_GRID, np.ones((len(_GRID), 1))], axis=1)  # homogeneous (100, 3)
-_RING_MARGIN = ((_GRID < 0) | (_GRID > _CELLS)).any(axis=1)  # the white quiet zone
+_RING_MARGIN = ((_GRID < 0) | (_GRID > TAG_CELLS)).any(axis=1)  # the white quiet zone
 _INNER = ~_RING_MARGIN  # the 8x8 tag cells, row-major
-_BORDER = ((_GRID[_INNER] < 1) | (_GRID[_INNER] > _CELLS - 1)).any(axis=1)  # of the 64: the black border
+_BORDER = ((_GRID[_INNER] < 1) | (_GRID[_INNER] > TAG_CELLS - 1)).any(axis=1)  # of the 64: the black border
 
 
 def verify_tags(
@@ -250,7 +250,7 @@ def decode_tags(
     black = inner[:, _BORDER].mean(axis=1)
     read_black = inner < 0.5 * (white + black)[:, None]
     border_errors = (~read_black[:, _BORDER]).sum(axis=1)
-    data = read_black.reshape(-1, _CELLS, _CELLS)[:, 1:-1, 1:-1].reshape(-1, 36)
+    data = read_black.reshape(-1, TAG_CELLS, TAG_CELLS)[:, 1:-1, 1:-1].reshape(-1, 36)
     # Hamming distances to every code as popcounts of 36-bit words: (4K, 587) in one pass.
     dist = np.bitwise_count(_pack36(data)[:, None] ^ _all_words()[None, :])
     best_id, best_err = dist.argmin(axis=1), dist.min(axis=1)
