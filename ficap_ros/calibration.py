@@ -26,7 +26,7 @@ import threading
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 import yaml
@@ -586,3 +586,34 @@ class LiveCalibration:
             what = "; in use but NOT saved" if result else f" in memory; {path} NOT updated"
             return False, f"{message}{what}: {err}"
         return True, message + (f", saved to {path}" if result else "")
+
+    def start(self, path: str | Path) -> list[tuple[str, str]]:
+        """Load ``path`` at start when it exists ('' = none): what to log, (severity, text)."""
+        if not path or not Path(path).exists():
+            return []
+        try:
+            warning = self.load(path)
+        except CalibrationError as err:
+            return [("error", f"{err}; starting uncalibrated")]
+        return ([("warning", warning)] if warning else []) + [
+            ("info", f"loaded calibration {path} (calibrated: {self._current.calibrated})")]
+
+    def calibrate(self, compute: Callable[[], CalibrationResult],
+                  path: str | Path) -> tuple[str, str]:
+        """``~/calibrate``: compute, use, save to ``path``. Returns (outcome, message), outcome
+        ``refused`` (nothing changed), ``unsaved`` (in use, not saved) or ``ok``."""
+        try:
+            result = compute()
+        except CalibrationError as err:
+            return "refused", f"calibration refused: {err}"
+        self.apply(result)
+        ok, message = self.persist(path, result, (
+            f"calibrated ({result.mode}) from {result.frames_used} frames, spread "
+            f"{result.spread_deg:.2f} deg, uncertainty {result.uncertainty_deg:.2f} deg"))
+        return ("ok" if ok else "unsaved"), message
+
+    def clear_and_save(self, path: str | Path) -> tuple[str, str]:
+        """``~/clear_calibration``: (outcome, message) as ``calibrate``'s."""
+        self.clear()
+        ok, message = self.persist(path, None, "calibration cleared")
+        return ("ok" if ok else "unsaved"), message

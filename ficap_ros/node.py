@@ -28,7 +28,6 @@ import math
 import sys
 import threading
 import time
-from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -55,7 +54,7 @@ from ficap_ros.errors import CalibrationError, FicapError
 from ficap_ros.mailbox import Mailbox
 from ficap_ros.native_log import ThrottledStderr
 from ficap_ros.pipeline import FrameProcessor
-from ficap_ros.report import (PeriodStats, frame_status, health_status, health_values, quality_values,
+from ficap_ros.report import (PeriodStats, frame_status, quality_values,
                               record_from_pose, record_from_result, record_status, status_values)
 from ficap_ros.ros_params import CalibrationMode
 
@@ -87,14 +86,8 @@ class FicapNode(Node):
             self.get_logger().error(self._cameras.static_error)
         self._calibration = LiveCalibration(self._mount)
         self._recorder = self._calibration.recorder
-        if cfg.calibration_file and Path(cfg.calibration_file).exists():
-            try:
-                if warning := self._calibration.load(cfg.calibration_file):
-                    self.get_logger().warning(warning)
-                self.get_logger().info(f"loaded calibration {cfg.calibration_file} "
-                                       f"(calibrated: {self.calibration.calibrated})")
-            except CalibrationError as err:
-                self.get_logger().error(f"{err}; starting uncalibrated")
+        for severity, text in self._calibration.start(cfg.calibration_file):
+            getattr(self.get_logger(), severity)(text)
 
         # State shared between callbacks and the worker.
         self._mailbox = Mailbox()
@@ -140,7 +133,6 @@ class FicapNode(Node):
         self.create_service(Trigger, "~/clear_calibration", self._on_clear_calibration,
                             callback_group=services)
         self.create_timer(1.0, self._on_diagnostics_timer, callback_group=timers)
-        self._last_diag = time.monotonic()
 
         self.unknown_parameters = ros_params.unknown_parameters(self)
         if self.unknown_parameters:
@@ -186,30 +178,22 @@ class FicapNode(Node):
                                         max_pairs=cfg.calibration_max_pairs)
 
     def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        try:
-            result = self._run_calibration()
-        except CalibrationError as err:
-            response.success, response.message = False, f"calibration refused: {err}"
-            self.get_logger().warning(response.message)
-            return response
-        self._calibration.apply(result)
-        return self._persist(response, result, (
-            f"calibrated ({result.mode}) from {result.frames_used} frames, spread "
-            f"{result.spread_deg:.2f} deg, uncertainty {result.uncertainty_deg:.2f} deg"))
+        return self._answer(response, *self._calibration.calibrate(
+            self._run_calibration, self._config.calibration_file))
 
     def _on_clear_calibration(self, request: Trigger.Request,
                               response: Trigger.Response) -> Trigger.Response:
-        self._calibration.clear()
-        return self._persist(response, None, "calibration cleared")
+        return self._answer(response, *self._calibration.clear_and_save(self._config.calibration_file))
 
-    def _persist(self, response: Trigger.Response, result: CalibrationResult | None,
-                 message: str) -> Trigger.Response:
-        response.success, response.message = self._calibration.persist(
-            self._config.calibration_file, result, message)
-        if response.success:  # (rclpy refuses two severities from one call site)
-            self.get_logger().info(response.message)
+    def _answer(self, response: Trigger.Response, outcome: str, message: str) -> Trigger.Response:
+        response.success, response.message = outcome == "ok", message
+        # (rclpy refuses two severities from one call site)
+        if outcome == "ok":
+            self.get_logger().info(message)
+        elif outcome == "refused":
+            self.get_logger().warning(message)
         else:
-            self.get_logger().error(response.message)
+            self.get_logger().error(message)
         return response
 
     # -- inputs ----------------------------------------------------------------------------------
@@ -305,14 +289,10 @@ class FicapNode(Node):
 
     # -- diagnostics -----------------------------------------------------------------------------
     def _on_diagnostics_timer(self) -> None:
-        now = time.monotonic()
-        dt = max(now - self._last_diag, 1e-3)
-        self._last_diag = now
-        p, last_error = self._stats.take(self._mailbox.counts())
         calib, last = self.calibration, self._calibration.last_result
-        values = health_values(p, dt, self._mailbox.dropped, calib.calibrated,
-                               last.mode if last else ("loaded" if calib.calibrated else "none"))
-        level, message = health_status(p["received"], p["errors"], last_error, calib.calibrated)
+        level, message, values = self._stats.health(
+            self._mailbox.counts(), calib.calibrated,
+            last.mode if last else ("loaded" if calib.calibrated else "none"))
         status = ros_msgs.diagnostic_status(
             f"{self.get_name()}: pipeline", bytes([level]), message, values,
             hardware_id=self._config.diagnostics_hardware_id or self._camera_frame)

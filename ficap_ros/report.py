@@ -9,6 +9,7 @@ ROS-free, so the node turns them into its message type.
 from __future__ import annotations
 
 import math
+import time
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -218,6 +219,7 @@ class PeriodStats:
         self._lock = threading.Lock()
         self._period = {"processed": 0, "tags": 0, "errors": 0, "latency_ms": 0.0}
         self._counted = (0, 0)  # the input's (received, dropped) at the last take
+        self._since = time.monotonic()
         self.last_error = ""
 
     def frame(self, tags: int, latency_ms: float) -> None:
@@ -241,3 +243,13 @@ class PeriodStats:
             p["dropped"] = received_dropped[1] - self._counted[1]
             self._counted = received_dropped
         return p, last_error
+
+    def health(self, received_dropped: tuple[int, int], calibrated: bool,
+               mode: str) -> tuple[int, str, dict[str, object]]:
+        """(level, message, values) of ``/diagnostics`` for the period since the last call
+        (``take``, ``health_status``, ``health_values``)."""
+        now = time.monotonic()
+        dt_s, self._since = max(now - self._since, 1e-3), now
+        p, last_error = self.take(received_dropped)
+        level, message = health_status(p["received"], p["errors"], last_error, calibrated)
+        return level, message, health_values(p, dt_s, received_dropped[1], calibrated, mode)

@@ -173,3 +173,31 @@ def test_live_calibration_frontal_frame_rule(tmp_path) -> None:
     assert not cleared.calibrated and angle_deg(cleared.R_cam_frontal,
                                                 frontal_from_camera_mount(mount)) < 1e-9
     assert LiveCalibration().load(tmp_path / "cal.yaml") == ""  # no mount: the file's frame kept
+
+
+def test_live_calibration_service_outcomes(tmp_path) -> None:
+    from ficap_ros.calibration import CalibrationResult, LiveCalibration
+
+    live = LiveCalibration()
+    assert live.start("") == [] and live.start(tmp_path / "missing.yaml") == []
+
+    def refuse() -> CalibrationResult:
+        raise CalibrationError("no reliable frames buffered for frontal calibration")
+
+    assert live.calibrate(refuse, "") == ("refused", "calibration refused: no reliable frames "
+                                          "buffered for frontal calibration")
+    R = Rotation.from_euler("xyz", [2.0, -5.0, 1.0], degrees=True)
+    outcome, message = live.calibrate(lambda: CalibrationResult(R, 60, 0.3, "frontal"),
+                                      tmp_path / "cal.yaml")
+    assert outcome == "ok" and message.startswith("calibrated (frontal) from 60 frames")
+    assert live.current.calibrated
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    outcome, message = live.clear_and_save(blocker / "cal.yaml")  # its folder is a file
+    assert outcome == "unsaved" and "NOT updated" in message and not live.current.calibrated
+    other = LiveCalibration()
+    log = other.start(tmp_path / "cal.yaml")
+    assert log[-1][0] == "info" and other.current.calibrated
+    assert angle_deg(other.current.R_cap_head, R) < 1e-6
+    (tmp_path / "bad.yaml").write_text("not: a calibration")
+    assert LiveCalibration().start(tmp_path / "bad.yaml")[0][0] == "error"

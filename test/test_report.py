@@ -51,3 +51,13 @@ def test_period_stats_and_health() -> None:
     assert health_status(p["received"], p["errors"], last, True) == (ERROR, "input errors: bad JPEG")
     assert health_status(0, 0, "", True) == (WARN, "no images")
     assert health_status(3, 0, "", False) == (OK, "running, not calibrated")
+
+
+def test_period_health_in_one_call() -> None:
+    from ficap_ros.report import PeriodStats
+
+    stats = PeriodStats()
+    stats.frame(5, 10.0)
+    level, message, values = stats.health((3, 0), False, "none")
+    assert (level, message) == (OK, "running, not calibrated")
+    assert values["mean_tags"] == 5.0 and values["fps"] > 0 and values["calibration_mode"] == "none"
