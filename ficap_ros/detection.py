@@ -25,6 +25,7 @@ __all__ = [
     "TagDetection",
     "DetectorConfig",
     "TagDetector",
+    "opencv_without_ipp",
     "as_gray",
     "refine_corners_edge",
     "refine_corners_edge_ok",
@@ -214,15 +215,34 @@ class DetectorConfig:
             raise ConfigError(f"edge_fit_iterations must be in [1, 5], got {self.edge_fit_iterations}")
 
 
+def opencv_without_ipp() -> None:
+    """Turn OpenCV's Intel IPP dispatch off for the calling thread (``cv2.ipp.setUseIPP(False)``).
+
+    OpenCV's IPP path runs ``cpuid`` on every call it dispatches, and in a virtual machine every
+    ``cpuid`` traps to the hypervisor: measured on the benchmark VM (Firecracker, AMD EPYC),
+    ``cv2.countNonZero`` of an 8x8 block takes 5.1 us with IPP and 0.6 us without. ArUco reads each
+    candidate's cells with such calls, so IPP made its search 3.6x slower there (9.0 -> 2.5 ms per
+    1080p frame decimated by 2), for bit-identical detections and poses (docs/detection.md, "Speed").
+    The switch is OpenCV's and per thread, so ``TagDetector`` sets it in the thread that detects.
+    """
+    import cv2
+
+    if cv2.ipp.useIPP():
+        cv2.ipp.setUseIPP(False)
+
+
 class TagDetector:
     """Finds every tag36h11 tag in a grey image (not filtered by a cap model).
 
-    The backend's detector objects are built once here and reused for every frame.
+    The backend's detector objects are built once here and reused for every frame. Detecting
+    turns OpenCV's IPP off in the calling thread (``opencv_without_ipp``): same results, faster in a
+    virtual machine.
     """
 
     def __init__(self, config: DetectorConfig | None = None) -> None:
         self.config = config or DetectorConfig()
         cfg = self.config
+        opencv_without_ipp()
         self._search_scale = 1.0
         self._one_window = False
         if cfg.backend == "opencv":
@@ -256,6 +276,7 @@ class TagDetector:
             ImageError: invalid image or ROI.
         """
         full = as_gray(image)
+        opencv_without_ipp()  # per thread: the node and the workers detect in their own threads
         # Auto decimation only where the corners are refined on the full image afterwards (``edge``):
         # ArUco's own refinements (``subpix``, ``apriltag``) would run on the decimated image.
         dec = int(self.config.search_decimate) or (

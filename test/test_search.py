@@ -154,3 +154,28 @@ def test_search_corners_match_a_full_resolution_search(frames_1080p) -> None:
     diff = max(np.abs(a[i] - b[i]).max() for i in common)
     assert diff < 0.05, diff
     assert tag_cells(0).shape == (8, 8)
+
+
+def test_detecting_turns_opencv_ipp_off_in_the_detecting_thread() -> None:
+    """OpenCV's IPP switch is per thread: a detector built in one thread and used in another (the
+    node's worker) turns it off where it detects; the tags are the same."""
+    import threading
+
+    rng = np.random.default_rng(3)
+    img, truth = _tag_image(42, 60.0, 10.0, 0.1, 0.8, rng)
+    det = TagDetector()
+    here = det.detect(img)
+    seen: list[tuple[bool, list]] = []
+
+    def work() -> None:
+        cv2.ipp.setUseIPP(True)
+        found = det.detect(img)
+        seen.append((cv2.ipp.useIPP(), found))
+
+    t = threading.Thread(target=work)
+    t.start()
+    t.join()
+    after, there = seen[0]
+    assert not after
+    assert [d.tag_id for d in there] == [d.tag_id for d in here] == [42]
+    np.testing.assert_array_equal(there[0].corners_px, here[0].corners_px)
