@@ -4,16 +4,19 @@ against AprilTag 3 decimate 1.
 1. Frame ratios (one process, one thread, ``nice``): 1080p rendered drive frames, JPEG q95 as
    ``ficap synth`` writes them. Per frame, ours and AprilTag 3 (pupil-apriltags, decimate 1,
    1 thread, with our joint pose) are timed one after the other on the same JPEG, so the load of
-   a shared machine hits both alike; each is JPEG decode + detection + pose.
+   a shared machine hits both alike; each is JPEG decode + detection + pose, in CPU time
+   (``time.process_time``: what a loaded machine's waiting adds is left out).
    - searched: frames 0.67 s apart, so every one is searched over the whole image, as after
      cuts, gaps or dropped frames; also the search at full size without the second reading of
      rejected quads (the completion at the searched pose stays on in both).
    - continuous: consecutive 30 fps frames with tracking (a mirror glance included).
    Tags per frame = model tags detected; recall against the tags >= 99.9 % visible in the render;
    false = ids detected that are not on a front-facing face.
-2. Real photos: the search on the hand-labelled swatbotics mapping photos (found / 236, false
+2. Where the time goes: each stage's own CPU time per frame (a stage's time without the stages it
+   calls), searched and continuous, from a second pass over the same frames.
+3. Real photos: the search on the hand-labelled swatbotics mapping photos (found / 236, false
    positives), AprilTag 3 decimate 1 beside it.
-3. Fleet: ``ficap replay`` over a fleet of small synth recordings with the process engine
+4. Fleet: ``ficap replay`` over a fleet of small synth recordings with the process engine
    (``--jobs 1``, ``--jobs 2``) and an embedded Ray with 1 and 2 CPUs (loopback), wall time
    including Ray's start; frames/s.
 
@@ -21,7 +24,7 @@ Timings on a loaded shared machine are noisy: the section records the load avera
 absolute numbers are to be re-run on a quiet machine (the ratios, interleaved, hold better).
 
 Usage: nice -n 10 .venv/bin/python benchmarks/bench_fleet.py [--frames 40] [--fleet-frames 60]
-       [--record]
+       [--fleet-recordings 4 (0: skip)] [--record]
 """
 
 from __future__ import annotations
@@ -66,11 +69,11 @@ def _ratio_rows(jpegs, truth, camera, procs: dict[str, FrameProcessor], step_ns:
     stats = {name: {"ms": [], "tags": [], "hits": 0, "n": 0, "fp": 0, "searched": 0} for name in procs}
     for k, (buf, (vis, front)) in enumerate(zip(jpegs, truth)):
         for name, proc in procs.items():
-            t0 = time.perf_counter()
+            t0 = time.process_time()
             gray = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
             r = proc.process(gray, camera, (k + 1) * step_ns)
             s = stats[name]
-            s["ms"].append((time.perf_counter() - t0) * 1e3)
+            s["ms"].append((time.process_time() - t0) * 1e3)
             ids = {d.tag_id for d in r.detections}
             s["tags"].append(len(ids))
             s["hits"] += len(ids & vis)
@@ -84,6 +87,96 @@ def _ratio_rows(jpegs, truth, camera, procs: dict[str, FrameProcessor], step_ns:
             for name, s in stats.items()]
 
 
+#: (module, attribute, stage): the functions whose own time makes each stage (a stage's time
+#: leaves out the listed functions it calls). Names a refactor removed are skipped.
+STAGES = (
+    ("ficap_ros.detection", "TagDetector._search", "search: ArUco on the decimated image"),
+    ("ficap_ros.detection", "TagDetector._refine", "search: edge refinement of the found tags"),
+    ("ficap_ros.detection", "TagDetector._second_chance", "search: second reading of rejected quads"),
+    ("ficap_ros.detection", "TagDetector.detect", "search: decimation and the rest"),
+    ("ficap_ros.detection", "refine_tag_corners", "corner stage (tone-curve unbias, cell-edge fit)"),
+    ("ficap_ros.pipeline", "refine_tag_corners", "corner stage (tone-curve unbias, cell-edge fit)"),
+    ("ficap_ros.pipeline", "refine_corners_edge_ok", "predicted tags: edge refinement"),
+    ("ficap_ros.pipeline", "predict_tags", "predicted tags: prediction and verification"),
+    ("ficap_ros.pipeline", "verify_tags", "predicted tags: prediction and verification"),
+    ("ficap_ros.pose", "_solve_joint", "pose: solver"),
+    ("ficap_ros.pose", "_solve_naive", "pose: solver"),
+    ("ficap_ros.pose", "uncertainty_terms", "pose: uncertainty (terms, covariance, bounds)"),
+    ("ficap_ros.pose", "combine_uncertainty", "pose: uncertainty (terms, covariance, bounds)"),
+    ("ficap_ros.pose", "error_bound95", "pose: uncertainty (terms, covariance, bounds)"),
+    ("ficap_ros.pipeline", "estimate_cap_pose", "pose: the rest (undistortion, set-up)"),
+)
+
+
+def stage_times(jpegs, camera, step_ns: int) -> tuple[dict[str, float], float, float]:
+    """Own CPU ms per frame of each stage of ``FrameProcessor.process`` over the frames, the JPEG
+    decode's and the total (the wrappers cost ~1 us a call)."""
+    import functools
+    import importlib
+
+    own: dict[str, float] = {}
+    stack: list[list[float]] = []  # per active stage: time spent in stages it called
+
+    def wrap(fn, label):
+        @functools.wraps(fn)
+        def timed(*a, **k):
+            stack.append([0.0])
+            t0 = time.process_time()
+            try:
+                return fn(*a, **k)
+            finally:
+                dt = time.process_time() - t0
+                inner = stack.pop()[0]
+                own[label] = own.get(label, 0.0) + dt - inner
+                if stack:
+                    stack[-1][0] += dt
+        return timed
+
+    patched = []
+    for mod_name, attr, label in STAGES:
+        owner = importlib.import_module(mod_name)
+        *path, name = attr.split(".")
+        for part in path:
+            owner = getattr(owner, part, None)
+        fn = getattr(owner, name, None) if owner is not None else None
+        if fn is None:
+            continue
+        patched.append((owner, name, fn))
+        setattr(owner, name, wrap(fn, label))
+    try:
+        proc = FrameProcessor(nominal_model())
+        decode = total = 0.0
+        for k, buf in enumerate(jpegs):
+            t0 = time.process_time()
+            gray = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+            t1 = time.process_time()
+            proc.process(gray, camera, (k + 1) * step_ns)
+            decode += t1 - t0
+            total += time.process_time() - t0
+    finally:
+        for owner, name, fn in reversed(patched):
+            setattr(owner, name, fn)
+    n = len(jpegs)
+    return {k: 1e3 * v / n for k, v in own.items()}, 1e3 * decode / n, 1e3 * total / n
+
+
+def stage_table(times: dict[str, tuple[dict[str, float], float, float]]) -> str:
+    kinds = list(times)
+    labels = ["JPEG decode (cv2.imdecode, grey)"] + list(dict.fromkeys(label for *_m, label in STAGES))
+    rows = []
+    for label in labels + ["pipeline bookkeeping (the rest)", "total"]:
+        row = [label]
+        for kind in kinds:
+            stages, decode, total = times[kind]
+            ms = {"JPEG decode (cv2.imdecode, grey)": decode, "total": total,
+                  "pipeline bookkeeping (the rest)": total - decode - sum(stages.values())}.get(
+                      label, stages.get(label, 0.0))
+            row += [f"{ms:.2f}", f"{100 * ms / total:.0f} %"]
+        rows.append(row)
+    header = ["stage"] + [c for kind in kinds for c in (f"{kind} ms/frame", "share")]
+    return md_table(header, rows)
+
+
 AT3 = "AprilTag 3 decimate 1 + joint pose"
 OURS = "ficap"
 
@@ -91,7 +184,7 @@ OURS = "ficap"
 def frame_tables(n: int) -> tuple[str, dict]:
     model = nominal_model()
     at3 = DetectorConfig(backend="apriltag", corner_refine="apriltag", quad_decimate=1.0)
-    out, headline = [], {}
+    out, headline, stages = [], {}, {}
     # Searched: frames 20 apart (0.67 s, beyond tracking's 0.5 s reach), so the pipeline searches
     # every one, as after a cut; tracking stays on, as in replay and the node.
     for kind, step, start in (("searched", 20, 30), ("continuous", 1, 600)):
@@ -102,6 +195,7 @@ def frame_tables(n: int) -> tuple[str, dict]:
                 model, DetectorConfig(search_decimate=1, decode_rejected=False))
         procs[AT3] = FrameProcessor(model, at3, tracking=False)
         rows = _ratio_rows(jpegs, truth, camera, procs, step * FRAME_NS)
+        stages[kind] = stage_times(jpegs, camera, step * FRAME_NS)
         at3_row = next(r for r in rows if r["name"] == AT3)
         ours = next(r for r in rows if r["name"] == OURS)
         fewer = sum(a < b for a, b in zip(ours["per_frame_tags"], at3_row["per_frame_tags"]))
@@ -117,6 +211,9 @@ def frame_tables(n: int) -> tuple[str, dict]:
         out.append(f"### 1080p, {kind}: {what}, {n} frames\n\n{table}\n\n"
                    f"Frames where ours found fewer tags than AprilTag 3: {fewer} of {n}.")
         print(out[-1], file=sys.stderr)
+    out.append("### Where the time goes (own CPU time of each stage, ms per frame, the same frames)\n\n"
+               + stage_table(stages) + "\n\n'own' = without the time of the listed stages it calls; the "
+               "corner stage runs on searched, completed and tracked tags alike.")
     return "\n\n".join(out), headline
 
 
@@ -171,22 +268,22 @@ def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=40, help="1080p frames per ratio table")
     ap.add_argument("--fleet-frames", type=int, default=60, help="frames per fleet recording")
-    ap.add_argument("--fleet-recordings", type=int, default=4)
+    ap.add_argument("--fleet-recordings", type=int, default=4, help="0: skip the fleet table")
     ap.add_argument("--record", action="store_true", help="write the section into docs/benchmarks.md")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     load_before = load_avg()
     frames_md, headline = frame_tables(args.frames)
     swat_md = swat_table()
-    fleet_md = fleet_table(args.fleet_frames, args.fleet_recordings)
+    fleet_md = fleet_table(args.fleet_frames, args.fleet_recordings) if args.fleet_recordings > 0 else "(skipped)"
     load_after = load_avg()
     s_ratio, s_ours, s_at3, s_fewer = headline["searched"]
     c_ratio, c_ours, c_at3, _ = headline["continuous"]
     body = (
         f"Machine: {machine_line()}, niceness {os.nice(0)}; {load_before} at the start, "
-        f"{load_after} at the end. **The machine was shared and loaded: the absolute numbers are "
-        "to be re-run by the lead on a quiet machine**; the ratios come from timing ours and "
-        "AprilTag 3 one after the other on each frame in the same process.\n\n"
+        f"{load_after} at the end. The machine is shared: frame times are CPU time "
+        "(`time.process_time`), and the ratios come from timing ours and AprilTag 3 one after the "
+        "other on each frame in the same process; the fleet table is wall time.\n\n"
         f"Headline: 1080p searched frames {s_ours['ms']:.1f} ms vs AprilTag 3 decimate 1 "
         f"{s_at3['ms']:.1f} ms = **{s_ratio:.1f}x**, {s_ours['tags']:.2f} vs {s_at3['tags']:.2f} tags "
         f"per frame (fewer on {s_fewer} of {args.frames} frames); continuous 1080p "
