@@ -3,9 +3,10 @@ against AprilTag 3 decimate 1.
 
 1. Frame ratios (one process, one thread, ``nice``): 1080p rendered drive frames, JPEG q95 as
    ``ficap synth`` writes them. Per frame, ours and AprilTag 3 (pupil-apriltags, decimate 1,
-   1 thread, with our joint pose) are timed one after the other on the same JPEG, so the load of
-   a shared machine hits both alike; each is JPEG decode + detection + pose, in CPU time
-   (``time.process_time``: what a loaded machine's waiting adds is left out).
+   1 thread, with our joint pose) run over the same JPEGs in one process, each pipeline over the
+   whole sequence in turn (as a replay runs one: caches warm), ``--rounds`` rounds in alternating
+   order, a frame's time the median of its rounds; each is JPEG decode + detection + pose, in CPU
+   time (``time.process_time``: what a loaded machine's waiting adds is left out).
    - searched: frames 0.67 s apart, so every one is searched over the whole image, as after
      cuts, gaps or dropped frames; also the search at full size without the second reading of
      rejected quads (the completion at the searched pose stays on in both).
@@ -23,7 +24,7 @@ against AprilTag 3 decimate 1.
 Timings on a loaded shared machine are noisy: the section records the load average, and the
 absolute numbers are to be re-run on a quiet machine (the ratios, interleaved, hold better).
 
-Usage: nice -n 10 .venv/bin/python benchmarks/bench_fleet.py [--frames 40] [--fleet-frames 60]
+Usage: nice -n 10 .venv/bin/python benchmarks/bench_fleet.py [--frames 40] [--rounds 3] [--fleet-frames 60]
        [--fleet-recordings 4 (0: skip)] [--record]
 """
 
@@ -34,6 +35,7 @@ import os
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from pathlib import Path
 
 import cv2
@@ -64,27 +66,39 @@ def _frames(res: str, n: int, step: int, start: int) -> tuple[list[np.ndarray], 
     return jpegs, truth, scene.camera
 
 
-def _ratio_rows(jpegs, truth, camera, procs: dict[str, FrameProcessor], step_ns: int) -> list[dict]:
-    """Each pipeline on each frame in turn (interleaved); per pipeline the mean ms and tags."""
-    stats = {name: {"ms": [], "tags": [], "hits": 0, "n": 0, "fp": 0, "searched": 0} for name in procs}
-    for k, (buf, (vis, front)) in enumerate(zip(jpegs, truth)):
-        for name, proc in procs.items():
-            t0 = time.process_time()
-            gray = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
-            r = proc.process(gray, camera, (k + 1) * step_ns)
-            s = stats[name]
-            s["ms"].append((time.process_time() - t0) * 1e3)
-            ids = {d.tag_id for d in r.detections}
-            s["tags"].append(len(ids))
-            s["hits"] += len(ids & vis)
-            s["n"] += len(vis)
-            s["fp"] += len(ids - front)
-            s["searched"] += r.search != "tracked"
-    return [{"name": name, "ms": float(np.mean(s["ms"])), "median_ms": float(np.median(s["ms"])),
-             "tags": float(np.mean(s["tags"])), "min_tags": int(np.min(s["tags"])),
-             "recall": s["hits"] / max(s["n"], 1), "fp": s["fp"], "searched": s["searched"],
-             "per_frame_tags": s["tags"]}
-            for name, s in stats.items()]
+def _ratio_rows(jpegs, truth, camera, procs: dict[str, Callable[[], FrameProcessor]], step_ns: int,
+                rounds: int) -> list[dict]:
+    """Per pipeline the mean ms and tags. Each pipeline runs the whole sequence in turn, a fresh
+    processor per run (as a replay runs one pipeline: its caches stay warm, and another detector
+    does not evict them between frames), for ``rounds`` rounds in alternating order; a frame's
+    time is the median of its rounds (a load spike on the shared machine hits one round)."""
+    ms = {name: np.zeros((rounds, len(jpegs))) for name in procs}
+    stats = {name: {"tags": [], "hits": 0, "n": 0, "fp": 0, "searched": 0} for name in procs}
+    for rnd in range(rounds):
+        order = list(procs) if rnd % 2 == 0 else list(procs)[::-1]
+        for name in order:
+            proc = procs[name]()
+            for k, (buf, (vis, front)) in enumerate(zip(jpegs, truth)):
+                t0 = time.process_time()
+                gray = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+                r = proc.process(gray, camera, (k + 1) * step_ns)
+                ms[name][rnd, k] = (time.process_time() - t0) * 1e3
+                if rnd == 0:
+                    s = stats[name]
+                    ids = {d.tag_id for d in r.detections}
+                    s["tags"].append(len(ids))
+                    s["hits"] += len(ids & vis)
+                    s["n"] += len(vis)
+                    s["fp"] += len(ids - front)
+                    s["searched"] += r.search != "tracked"
+    out = []
+    for name, s in stats.items():
+        per_frame = np.median(ms[name], axis=0)
+        out.append({"name": name, "ms": float(np.mean(per_frame)), "median_ms": float(np.median(per_frame)),
+                    "tags": float(np.mean(s["tags"])), "min_tags": int(np.min(s["tags"])),
+                    "recall": s["hits"] / max(s["n"], 1), "fp": s["fp"], "searched": s["searched"],
+                    "per_frame_tags": s["tags"]})
+    return out
 
 
 #: (module, attribute, stage): the functions whose own time makes each stage (a stage's time
@@ -181,7 +195,7 @@ AT3 = "AprilTag 3 decimate 1 + joint pose"
 OURS = "ficap"
 
 
-def frame_tables(n: int) -> tuple[str, dict]:
+def frame_tables(n: int, rounds: int) -> tuple[str, dict]:
     model = nominal_model()
     at3 = DetectorConfig(backend="apriltag", corner_refine="apriltag", quad_decimate=1.0)
     out, headline, stages = [], {}, {}
@@ -189,12 +203,12 @@ def frame_tables(n: int) -> tuple[str, dict]:
     # every one, as after a cut; tracking stays on, as in replay and the node.
     for kind, step, start in (("searched", 20, 30), ("continuous", 1, 600)):
         jpegs, truth, camera = _frames("1080p", n, step, start)
-        procs = {OURS: FrameProcessor(model)}
+        procs: dict[str, Callable[[], FrameProcessor]] = {OURS: lambda: FrameProcessor(model)}
         if kind == "searched":
-            procs["ficap, full-size search, no second reading"] = FrameProcessor(
+            procs["ficap, full-size search, no second reading"] = lambda: FrameProcessor(
                 model, DetectorConfig(search_decimate=1, decode_rejected=False))
-        procs[AT3] = FrameProcessor(model, at3, tracking=False)
-        rows = _ratio_rows(jpegs, truth, camera, procs, step * FRAME_NS)
+        procs[AT3] = lambda: FrameProcessor(model, at3, tracking=False)
+        rows = _ratio_rows(jpegs, truth, camera, procs, step * FRAME_NS, rounds)
         stages[kind] = stage_times(jpegs, camera, step * FRAME_NS)
         at3_row = next(r for r in rows if r["name"] == AT3)
         ours = next(r for r in rows if r["name"] == OURS)
@@ -267,13 +281,14 @@ def fleet_table(frames: int, recordings: int) -> str:
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--frames", type=int, default=40, help="1080p frames per ratio table")
+    ap.add_argument("--rounds", type=int, default=3, help="runs of each pipeline over the frames")
     ap.add_argument("--fleet-frames", type=int, default=60, help="frames per fleet recording")
     ap.add_argument("--fleet-recordings", type=int, default=4, help="0: skip the fleet table")
     ap.add_argument("--record", action="store_true", help="write the section into docs/benchmarks.md")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     load_before = load_avg()
-    frames_md, headline = frame_tables(args.frames)
+    frames_md, headline = frame_tables(args.frames, args.rounds)
     swat_md = swat_table()
     fleet_md = fleet_table(args.fleet_frames, args.fleet_recordings) if args.fleet_recordings > 0 else "(skipped)"
     load_after = load_avg()
@@ -282,8 +297,9 @@ def main() -> int:
     body = (
         f"Machine: {machine_line()}, niceness {os.nice(0)}; {load_before} at the start, "
         f"{load_after} at the end. The machine is shared: frame times are CPU time "
-        "(`time.process_time`), and the ratios come from timing ours and AprilTag 3 one after the "
-        "other on each frame in the same process; the fleet table is wall time.\n\n"
+        f"(`time.process_time`) in one process, each pipeline over the whole sequence in turn, "
+        f"{args.rounds} rounds in alternating order, per frame the median round; the fleet table is "
+        "wall time.\n\n"
         f"Headline: 1080p searched frames {s_ours['ms']:.1f} ms vs AprilTag 3 decimate 1 "
         f"{s_at3['ms']:.1f} ms = **{s_ratio:.1f}x**, {s_ours['tags']:.2f} vs {s_at3['tags']:.2f} tags "
         f"per frame (fewer on {s_fewer} of {args.frames} frames); continuous 1080p "
