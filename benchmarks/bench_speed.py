@@ -6,7 +6,7 @@ and total ms at 540p and 1080p on consecutive rendered drive frames (a glance in
 and false detections on the same frames, and recall on the real photos of
 ``/work/shared/data/real_apriltag/swatbotics_mapping_feb_2014`` (hand-labelled ids). "raw" = detect +
 pose (an uncompressed image in memory, as the node gets from a raw Image topic). Then where the time
-goes (cProfile of the default pipeline at 1080p, shares of the total), and the wall-clock throughput
+goes (each stage's own CPU time in the default pipeline at 1080p), and the wall-clock throughput
 of ``ficap replay`` with ``--jobs 1`` and ``--jobs 2`` on a ``ficap synth`` bag.
 
 Usage: .venv/bin/python benchmarks/bench_speed.py [--frames 150] [--replay-frames 150] [--record]
@@ -15,9 +15,7 @@ Usage: .venv/bin/python benchmarks/bench_speed.py [--frames 150] [--replay-frame
 from __future__ import annotations
 
 import argparse
-import cProfile
 import os
-import pstats
 import subprocess
 import sys
 import tempfile
@@ -29,6 +27,7 @@ import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import ROOT, Progress, load_avg, machine_line, md_table, record_section  # noqa: E402
+from bench_fleet import FRAME_NS, stage_table, stage_times  # noqa: E402
 
 from ficap_ros.cap_model import nominal_model  # noqa: E402
 from ficap_ros.detection import DetectorConfig, TagDetector  # noqa: E402
@@ -116,39 +115,8 @@ def frame_table(n_frames: int) -> tuple[list[list[object]], dict]:
             headline[(res, name)] = (tot, raw, hits / max(n_true, 1))
             print(f"{res} {name:40} " + " ".join(str(c) for c in rows[-1][2:]), file=sys.stderr)
         if res == "1080p":
-            headline["profile"] = profile_table(jpegs, scene.camera)
+            headline["profile"] = stage_table({"1080p": stage_times(jpegs, scene.camera, FRAME_NS)})
     return rows, headline
-
-
-#: Frame spacing of the 30 fps drive, ns (tracking extrapolates with the stamps).
-FRAME_NS = 33_333_333
-
-#: Stages of the default pipeline, by the function that does each (cumulative time).
-STAGES = (
-    ("predict the tags (extrapolated pose, projection)", "tracking.py", "predict_tags"),
-    ("edge refinement of tracked tags", "pipeline.py", "_refine_predicted"),
-    ("verify tracked tags (read their cells)", "tracking.py", "verify_tags"),
-    ("search (ArUco + edge refinement; first frame, fallbacks)", "detection.py", "detect"),
-    ("pose (joint, incl. the second look's)", "pose.py", "estimate_cap_pose"),
-    ("JPEG decode (replay only)", "~", "<imdecode>"),  # cProfile's name for the built-in
-)
-
-
-def profile_table(jpegs: list[np.ndarray], camera) -> list[list[object]]:
-    """Where the default pipeline's time goes: cProfile cumulative time per stage, as shares."""
-    proc = FrameProcessor(nominal_model())
-    prof = cProfile.Profile()
-    prof.enable()
-    for k, buf in enumerate(jpegs):
-        proc.process(cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE), camera, (k + 1) * FRAME_NS)
-    prof.disable()
-    stats = pstats.Stats(prof).stats  # {(file, line, func): (cc, nc, tt, ct, callers)}
-    total = sum(v[2] for v in stats.values())
-    rows = []
-    for label, file_end, func in STAGES:
-        ct = sum(v[3] for (f, _line, name), v in stats.items() if name == func and f.endswith(file_end))
-        rows.append([label, f"{100 * ct / total:.0f} %"])
-    return rows
 
 
 def swat_table() -> list[list[object]]:
@@ -245,9 +213,8 @@ def main() -> int:
             parts += ["", f"{res}: {name}: raw {raw:.1f} ms/frame ({1000 / raw:.0f} fps), with JPEG decode "
                       f"{tot:.1f} ms/frame = {at3_tot / tot:.1f}x faster than AprilTag 3 decimate 1 (+ the same pose) "
                       f"on the same frames, recall {rec:.3f} vs {at3_rec:.3f}."]
-    parts += ["", "### Where the time goes (cProfile of `ficap (tracking)` over the 1080p frames, decode included; "
-              "shares of the total, profiler overhead included)", "",
-              md_table(["stage", "share"], head["profile"])]
+    parts += ["", "### Where the time goes (`ficap (tracking)` over the 1080p frames again: own CPU time of each "
+              "stage, ms per frame; `bench_fleet.stage_times`)", "", head["profile"]]
     if swat:
         parts += ["", "### Recall on real photos (swatbotics mapping_feb_2014, 72 images, hand-labelled ids)", "",
                   md_table(["detector", "found", "recall", "false", "ms/image (816x612)"], swat)]
