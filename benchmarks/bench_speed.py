@@ -60,17 +60,20 @@ def _time_poses() -> None:
     """Count the CPU time of every pose estimate the pipeline makes (the final pose, and the
     completion's and second look's)."""
     import ficap_ros.pipeline as pipeline_module
+    import ficap_ros.tracking as tracking_module
 
-    estimate = pipeline_module.estimate_cap_pose
+    def timer(estimate):  # noqa: ANN001, ANN202
+        def timed(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+            t0 = time.process_time()
+            try:
+                return estimate(*args, **kwargs)
+            finally:
+                _POSE_CPU_S[0] += time.process_time() - t0
+        return timed
 
-    def timed(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
-        t0 = time.process_time()
-        try:
-            return estimate(*args, **kwargs)
-        finally:
-            _POSE_CPU_S[0] += time.process_time() - t0
-
-    pipeline_module.estimate_cap_pose = timed
+    for module in (pipeline_module, tracking_module):  # the final pose; the completion's, second look's
+        if hasattr(module, "estimate_cap_pose"):
+            module.estimate_cap_pose = timer(module.estimate_cap_pose)
 
 
 def pipelines() -> dict[str, object]:
