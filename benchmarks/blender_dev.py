@@ -28,7 +28,10 @@ from ficap_ros.cap_model import CapModel
 from ficap_ros.transform import Transform
 
 ROOT = Path(__file__).resolve().parents[1]
-BLENDER_DEV = ROOT.parent / "shared" / "data" / "blender_dev"
+#: ../shared next to the clone (or next to its parent: a git worktree one level further down).
+BLENDER_DEV = next((p / "shared" / "data" / "blender_dev" for p in ROOT.parents[:2]
+                    if (p / "shared" / "data" / "blender_dev").is_dir()),
+                   ROOT.parent / "shared" / "data" / "blender_dev")
 #: Every set, in the README's order.
 SETS = (
     "dev_540p_neutral",

@@ -680,23 +680,30 @@ def tag_cells(tag_id: int) -> np.ndarray:
 
 
 def tag_homographies(corners_px: np.ndarray) -> np.ndarray:
-    """(K, 3, 3) maps from tag cell units (c0 at (0, 0), c1 at (8, 0), c2 at (8, 8)) to the image,
-    one linear solve for all tags."""
-    src = np.array([[0, 0], [TAG_CELLS, 0], [TAG_CELLS, TAG_CELLS], [0, TAG_CELLS]], dtype=np.float64)
-    corners_px = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
-    k = len(corners_px)
-    a = np.zeros((k, 8, 8))
-    rhs = corners_px.reshape(k, 8)
-    for i, (x, y) in enumerate(src):
-        u, v = corners_px[:, i, 0], corners_px[:, i, 1]
-        a[:, 2 * i, 0:3] = (x, y, 1.0)
-        a[:, 2 * i, 6] = -x * u
-        a[:, 2 * i, 7] = -y * u
-        a[:, 2 * i + 1, 3:6] = (x, y, 1.0)
-        a[:, 2 * i + 1, 6] = -x * v
-        a[:, 2 * i + 1, 7] = -y * v
-    h = np.linalg.solve(a, rhs[..., None])[..., 0]
-    return np.concatenate([h, np.ones((k, 1))], axis=1).reshape(k, 3, 3)
+    """(K, 3, 3) maps from tag cell units (c0 at (0, 0), c1 at (8, 0), c2 at (8, 8)) to the image.
+
+    The square-to-quadrilateral homography in closed form (Heckbert 1989), vectorised over the
+    tags: no linear solve. Raises ``np.linalg.LinAlgError`` for a degenerate quadrilateral (three
+    corners on a line), as a solve would.
+    """
+    c = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    x0, y0 = c[:, 0, 0], c[:, 0, 1]
+    x1, y1 = c[:, 1, 0], c[:, 1, 1]
+    x2, y2 = c[:, 2, 0], c[:, 2, 1]
+    x3, y3 = c[:, 3, 0], c[:, 3, 1]
+    dx1, dx2, dx3 = x1 - x2, x3 - x2, x0 - x1 + x2 - x3
+    dy1, dy2, dy3 = y1 - y2, y3 - y2, y0 - y1 + y2 - y3
+    den = dx1 * dy2 - dx2 * dy1
+    if not np.all(np.isfinite(den) & (den != 0.0)):
+        raise np.linalg.LinAlgError("degenerate tag quadrilateral")
+    g = (dx3 * dy2 - dx2 * dy3) / den
+    h = (dx1 * dy3 - dx3 * dy1) / den
+    out = np.empty((len(c), 3, 3))
+    inv = 1.0 / TAG_CELLS  # the unit square's homography, scaled to 8 cells
+    out[:, 0, 0], out[:, 0, 1], out[:, 0, 2] = (x1 - x0 + g * x1) * inv, (x3 - x0 + h * x3) * inv, x0
+    out[:, 1, 0], out[:, 1, 1], out[:, 1, 2] = (y1 - y0 + g * y1) * inv, (y3 - y0 + h * y3) * inv, y0
+    out[:, 2, 0], out[:, 2, 1], out[:, 2, 2] = g * inv, h * inv, 1.0
+    return out
 
 
 def _apply_h(hom: np.ndarray, uv: np.ndarray) -> np.ndarray:
@@ -815,6 +822,72 @@ def refine_tag_corners(
     return corners, delta
 
 
+#: A tracked tag's cell-edge fit has converged when one round moves no corner further than this, px.
+_TRACK_FIT_CONVERGED_PX = 0.2
+
+
+def refine_tracked_corners(
+    gray: np.ndarray, predicted_px: np.ndarray, ids: np.ndarray, config: DetectorConfig | None = None,
+    line_refine: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Corners of tags whose place tracking predicted, at the cost of one cell-edge fit round.
+
+    A prediction projects the model at the extrapolated pose: it has the true geometry (no
+    tone-curve shift) and is usually within a tenth of a pixel, which is all ``fit_tag_edges``
+    needs of a start, so those tags skip the line fit and the border unbias
+    (``refine_corners_edge`` then ``unbias_corners_edge`` only bring a start that close). A tag
+    whose round moved a corner by more than ``_TRACK_FIT_CONVERGED_PX`` gets a second round from
+    there; a tag the fit cannot take (cells under 2 px, too few edges, a prediction too far off
+    for the fit to accept) goes the searched tags' way: ``line_refine`` (default
+    ``refine_corners_edge_ok`` with ``config``), then ``refine_tag_corners``.
+
+    Args:
+        gray: (H, W) uint8 image.
+        predicted_px: (N, 4, 2) predicted corners.
+        ids: (N,) their ids.
+        config: detector settings (``edge_*``).
+        line_refine: the edge refinement for the tags the fit cannot take: (gray, corners) ->
+            (corners, ok).
+
+    Returns:
+        (corners (N, 4, 2), edge shift px (N,) as ``refine_tag_corners``, ok (N,): refined).
+    """
+    cfg = config or DetectorConfig()
+    c0 = np.asarray(predicted_px, dtype=np.float64).reshape(-1, 4, 2)
+    ids = np.asarray(ids).reshape(-1)
+    n = len(c0)
+    corners, shift, ok = c0.copy(), np.full(n, np.nan), np.zeros(n, dtype=bool)
+    if n == 0:
+        return corners, shift, ok
+    fit = cfg.corner_refine == "edge" and cfg.edge_fit
+    if fit:
+        nrm, rho = _side_lines(c0)
+        across = rho[:, :, None] - np.einsum("nkd,njd->nkj", nrm, c0)
+        fit_now = np.flatnonzero(across.max(axis=2).min(axis=1) / TAG_CELLS >= _MIN_TAG_CELL_PX)
+    else:
+        fit_now = np.zeros(0, dtype=np.int64)
+    if len(fit_now):
+        c1, d1 = fit_tag_edges(gray, c0[fit_now], ids[fit_now], cfg, 1)
+        moved = np.linalg.norm(c1 - c0[fit_now], axis=2).max(axis=1)
+        again = np.isfinite(d1) & (moved > _TRACK_FIT_CONVERGED_PX)
+        if again.any():
+            c1[again], d1[again] = fit_tag_edges(gray, c1[again], ids[fit_now][again], cfg, 1)
+        corners[fit_now], shift[fit_now] = c1, d1
+        ok[fit_now] = np.isfinite(d1)
+    rest = ~ok
+    if rest.any():
+        if line_refine is None:
+            def line_refine(g: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                return refine_corners_edge_ok(g, c, cfg)
+        c, ok_rest = line_refine(gray, c0[rest])
+        sub = np.flatnonzero(rest)[ok_rest]
+        corners[rest] = c
+        if len(sub):
+            corners[sub], shift[sub] = refine_tag_corners(gray, c[ok_rest], ids[sub], cfg)
+        ok[rest] = ok_rest
+    return corners, shift, ok
+
+
 def with_frame_edge_shift(detections: Sequence[TagDetection]) -> tuple[TagDetection, ...]:
     """The detections of one frame, the unfitted ones (``edge_shift_px`` NaN) moved out by the
     median shift of the fitted ones (unchanged when none was fitted; their ``edge_shift_px``
@@ -895,12 +968,14 @@ def unbias_corners_edge(
     width0 = np.einsum("td,td->t", nk, p_out - p_in)  # px, one cell across
     half = np.clip(np.minimum(cfg.edge_search_px, cfg.edge_window_cells * width0), 0.75, None)
     samples = cfg.edge_profile_samples
-    # The inner edge has its light side inward: offsets along -nk.
-    s1, _ = _step_offset(gray, p_in, -nk, half, samples)
-    s1 = np.clip(s1, -half, half)
+    # The inner edge has its light side inward: offsets along -nk. Its first look and the outer
+    # edge's in one sampling call.
+    t = len(uv)
+    first, first_c = _step_offset(gray, np.concatenate([p_in, p_out]), np.concatenate([-nk, nk]),
+                                  np.concatenate([half, half]), samples)
+    s1, o1, c_outer = np.clip(first[:t], -half, half), first[t:], first_c[t:]
     s2, c_inner = _step_offset(gray, p_in - nk * s1[:, None], -nk, half, samples)
     inner = np.einsum("td,td->t", nk, p_in) - s1 - s2
-    o1, c_outer = _step_offset(gray, p_out, nk, half, samples)
     outer = np.einsum("td,td->t", nk, p_out) + o1
     step = half / ((samples - 1) // 2)
     # A white cell as white as the quiet zone across the border: where its neighbours (or the
@@ -1141,15 +1216,29 @@ def _group_median(x: np.ndarray, mask: np.ndarray, starts: np.ndarray, counts: n
     return _group_quantile(x, mask, starts, counts, 0.5)
 
 
+@lru_cache(maxsize=64)
+def _layout(counts_key: bytes) -> tuple[np.ndarray, np.ndarray, int]:
+    """(group of each entry, its place in the group, largest group) for groups of the sizes in
+    ``counts_key`` (an int64 array's bytes), laid out one after the other; cached (a tracked cap's
+    tags give the same groups frame after frame)."""
+    counts = np.frombuffer(counts_key, dtype=np.int64)
+    group = np.repeat(np.arange(len(counts)), counts)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+    pos = np.arange(int(counts.sum())) - starts[group]
+    for a in (group, pos):
+        a.setflags(write=False)
+    return group, pos, int(counts.max()) if len(counts) else 0
+
+
 def _group_quantile(
     x: np.ndarray, mask: np.ndarray, starts: np.ndarray, counts: np.ndarray, q: float
 ) -> np.ndarray:
     """Quantile ``q`` (nearest rank) of ``x`` over the masked entries of each contiguous group
     (0 where none)."""
     n = len(counts)
-    pad = np.full((n, int(counts.max()) if n else 0), np.inf)
-    group = np.repeat(np.arange(n), counts)
-    pad[group, np.arange(len(x)) - starts[group]] = np.where(mask, x, np.inf)
+    group, pos, lmax = _layout(np.ascontiguousarray(counts, dtype=np.int64).tobytes())
+    pad = np.full((n, lmax), np.inf)
+    pad[group, pos] = np.where(mask, x, np.inf)
     if q == 0.5:
         return _masked_median(pad, np.isfinite(pad))
     srt = np.sort(pad, axis=1)
