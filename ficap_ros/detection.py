@@ -62,8 +62,9 @@ class TagDetection:
         hamming: bit errors corrected while decoding (0 when the backend does not say).
         decision_margin: backend's decoding confidence (NaN when the backend does not say).
         edge_shift_px: how far the camera's tone curve moved this tag's black/white edges toward
-            the black, px, as its cell-edge fit measured and removed (``fit_tag_edges``); NaN
-            when the tag was not fitted (too small or oblique, or another corner refinement).
+            the black, px, as its cell-edge fit measured and removed (``fit_tag_edges``); for a
+            tag too small or oblique to fit, the shift its sides were given
+            (``refine_tag_corners``); NaN when none was applied (another corner refinement).
     """
 
     tag_id: int
@@ -788,10 +789,12 @@ def refine_tag_corners(
     gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray, config: DetectorConfig | None = None
 ) -> tuple[np.ndarray, np.ndarray]:
     """The tag-aware stage after the line fit: ``unbias_corners_edge`` then ``fit_tag_edges``
-    (each as ``config`` enables it) on every tag whose cells span ``_MIN_TAG_CELL_PX`` both ways;
-    a smaller tag keeps its line-fit corners (``shift_tag_edges`` can move them by the frame's
-    shift). A tag's corners depend on its own pixels only (a region search gives the full frame's
-    corners).
+    (each as ``config`` enables it) on every tag whose cells span ``_MIN_TAG_CELL_PX`` both ways.
+    A smaller (or oblique) tag keeps its line-fit corners, each side moved out by the bias the
+    line estimator has with that side's window, measured on the outer edges of the tags fitted in
+    the same call (``_line_bias``); without a fitted tag it is left for ``with_frame_edge_shift``.
+    A fitted tag's corners depend on its own pixels only (a region search gives the full frame's
+    corners); a small tag's also on the fitted tags of the call.
 
     Args:
         gray: (H, W) uint8 image.
@@ -800,7 +803,9 @@ def refine_tag_corners(
         config: detector settings.
 
     Returns:
-        (corners (N, 4, 2), edge shift px (N,): ``fit_tag_edges``'s delta, NaN where not fitted).
+        (corners (N, 4, 2), edge shift px (N,): ``fit_tag_edges``'s delta; for a tag not fitted,
+        the mean shift its sides were given (border unbias, or the line bias above); NaN where
+        nothing was applied).
     """
     cfg = config or DetectorConfig()
     corners = np.array(corners_px, dtype=np.float64).reshape(-1, 4, 2)
@@ -818,8 +823,65 @@ def refine_tag_corners(
             c = unbias_corners_edge(gray, c, ids[good], cfg)
         if cfg.edge_fit:
             c, delta[good] = fit_tag_edges(gray, c, ids[good], cfg, cfg.edge_fit_iterations)
+        # Unbiased but not fitted: the shift the unbias applied (the frame's shift must not be
+        # added on top).
+        moved = good & ~np.isfinite(delta)
+        moved[good] &= np.any(c != corners[good], axis=(1, 2))
+        if moved.any():
+            delta[moved] = (_side_lines(c[moved[good]])[1] - rho[moved]).mean(axis=1)
         corners[good] = c
+    fitted = np.isfinite(delta) & good
+    line_only = ~np.isfinite(delta)
+    if cfg.edge_fit and fitted.any() and line_only.any():
+        # Tags too small (or oblique) to measure their own shift keep line-fit corners, which the
+        # tone curve pulled inward by what the line estimator measures *with their windows*: a
+        # small tag's window is a fraction of a px, and a window that cuts the blurred step's
+        # tails sees less of the shift than the fit's delta on larger tags. Measure exactly that
+        # on the frame's fitted tags, whose outer edges are now known: the line estimator with
+        # each small side's window on those edges; its mean offset is that side's bias.
+        bias = _line_bias(gray, corners[fitted], _line_windows(corners[line_only], cfg), cfg)
+        ok = np.isfinite(bias).all(axis=1)
+        todo = np.flatnonzero(line_only)[ok]
+        if len(todo):
+            corners[todo] = _intersect_sides(nrm[todo], rho[todo] + bias[ok])
+            delta[todo] = bias[ok].mean(axis=1)
     return corners, delta
+
+
+def _line_windows(corners: np.ndarray, cfg: DetectorConfig) -> np.ndarray:
+    """(N, 4) half-length, px, of ``_edge_pass``'s window across each side of these corners."""
+    side_len = np.linalg.norm(corners[:, _NEXT] - corners, axis=2)
+    cell_px = side_len.mean(axis=1, keepdims=True) / TAG_CELLS
+    nrm, rho = _side_lines(corners)
+    width = (rho[:, :, None] - np.einsum("nkd,njd->nkj", nrm, corners)).max(axis=2)
+    cell_side = np.minimum(width / TAG_CELLS, cell_px)
+    return np.clip(np.minimum(cfg.edge_search_px, cfg.edge_window_cells * cell_side), 0.75, None)
+
+
+#: Points per side of a fitted tag where ``_line_bias`` measures its outer edge.
+_BIAS_POINTS = np.linspace(0.2, 0.8, 7)
+
+
+def _line_bias(gray: np.ndarray, fitted_px: np.ndarray, halves: np.ndarray, cfg: DetectorConfig) -> np.ndarray:
+    """How far inside a true black/white edge ``_edge_pass``'s estimator puts it, px, with each
+    window half-length of ``halves`` (any shape): the median over the outer border edges of the
+    tags with fitted (true) corners ``fitted_px`` (NaN where too few edges were clean)."""
+    nrm, _ = _side_lines(fitted_px)
+    a, d = fitted_px, fitted_px[:, _NEXT] - fitted_px
+    pts = (a[:, :, None, :] + d[:, :, None, :] * _BIAS_POINTS[None, None, :, None]).reshape(-1, 2)
+    out_n = np.repeat(nrm.reshape(-1, 2), len(_BIAS_POINTS), axis=0)
+    h = np.asarray(halves, dtype=np.float64).ravel()
+    p_n, h_n = len(pts), len(h)
+    s, contrast = _step_offset(gray, np.tile(pts, (h_n, 1)), np.tile(out_n, (h_n, 1)), np.repeat(h, p_n),
+                               cfg.edge_profile_samples)
+    s, contrast = s.reshape(h_n, p_n), contrast.reshape(h_n, p_n)
+    # As the line pass weighs its samples: weak or inverted profiles and edges at the window's end out.
+    med_c = _masked_median(contrast, contrast > 0)
+    step = h / ((cfg.edge_profile_samples - 1) // 2)
+    use = ((contrast > 0.3 * med_c[:, None]) & (contrast > 8.0)
+           & (np.abs(s) < (h - np.maximum(step, 0.25))[:, None]))
+    bias = -_masked_median(s, use)
+    return np.where(use.sum(axis=1) >= 8, bias, np.nan).reshape(np.shape(halves))
 
 
 #: A tracked tag's cell-edge fit has converged when one round moves no corner further than this, px.
@@ -889,9 +951,9 @@ def refine_tracked_corners(
 
 
 def with_frame_edge_shift(detections: Sequence[TagDetection]) -> tuple[TagDetection, ...]:
-    """The detections of one frame, the unfitted ones (``edge_shift_px`` NaN) moved out by the
-    median shift of the fitted ones (unchanged when none was fitted; their ``edge_shift_px``
-    stays NaN: measured on other tags, not on them)."""
+    """The detections of one frame, those left uncorrected (``edge_shift_px`` NaN: refined where
+    no tag could be fitted, e.g. a second look at small tags only) moved out by the median shift
+    of the others (unchanged when there is none; their ``edge_shift_px`` stays NaN)."""
     shifts = [d.edge_shift_px for d in detections if np.isfinite(d.edge_shift_px)]
     todo = [k for k, d in enumerate(detections) if not np.isfinite(d.edge_shift_px)]
     if not shifts or not todo:
