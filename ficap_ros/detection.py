@@ -1178,13 +1178,15 @@ def fit_tag_edges(
 
     The tag is a known pattern: every boundary between a black and a white cell (its border's
     two edges, the data cells', the quiet zone's) lies where the tag's homography H maps it. A
-    camera's tone curve and clipping move each measured boundary toward its black side by one
-    amount delta (one blur, one contrast, one curve per tag), which we do not know. Boundaries of
-    both orientations and polarities are spread over the tag, so H (8 parameters) and delta are
-    separable: each sample's measured offset s along the image normal (toward the white cell) is
-    modelled as n . J_H dh - delta and one weighted least-squares step per iteration updates H and
-    delta together (re-sampling the image each time); samples beyond 3.5 robust sigmas are
-    dropped. About three times as many edge pixels as the four outer lines see, and no line is
+    camera's tone curve and clipping move each measured boundary toward its black side by an
+    amount delta (one blur, one contrast, one curve per tag), which we do not know; what the
+    estimator sees of it also depends on its window (half a cell across the boundary, narrower
+    along an oblique tag's foreshortened axis), so there is one delta per boundary direction (tag
+    x, tag y). Boundaries of both polarities are spread over the tag in both directions, so H (8
+    parameters) and the deltas are separable: each sample's measured offset s along the image
+    normal (toward the white cell) is modelled as n . J_H dh - delta_dir and one weighted
+    least-squares step per iteration updates H and the deltas together (re-sampling the image each
+    time); samples beyond 3.5 robust sigmas are dropped. About three times as many edge pixels as the four outer lines see, and no line is
     extrapolated to a corner.
 
     Args:
@@ -1197,7 +1199,7 @@ def fit_tag_edges(
     Returns:
         (corners (N, 4, 2), delta_px (N,)): corrected corners (a tag keeps its input corners when
         its cells are too small to resolve or the fit is implausible) and each tag's fitted edge
-        shift toward black, px (NaN where not fitted).
+        shift toward black, px, the mean of its two directions' (NaN where not fitted).
     """
     cfg = config or DetectorConfig()
     c_in = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
@@ -1212,6 +1214,7 @@ def fit_tag_edges(
     except np.linalg.LinAlgError:
         return c_in.copy(), delta
     samples = _FIT_PROFILE_SAMPLES
+    across_x = (np.abs(nu[:, 0]) > 0.5).astype(np.float64)  # boundary normal along tag x
     keep = np.ones(len(uv), dtype=bool)
     fitted = np.zeros(n, dtype=bool)
     for it in range(iterations):
@@ -1240,12 +1243,16 @@ def fit_tag_edges(
         ok = (keep & (cell_px >= _MIN_CELL_PX) & np.isfinite(s) & (np.abs(s) < half - step)
               & (contrast > 8.0) & (contrast >= _MIN_CONTRAST_RATIO * top_c[tag_of]))
         # Rows of the linearised model s = n . J_h dh - delta; columns scaled to unit size.
-        jac = np.zeros((len(uv), 9))
+        jac = np.zeros((len(uv), 10))
         jac[:, 0], jac[:, 1], jac[:, 2] = nx * u / den, nx * v / den, nx / den
         jac[:, 3], jac[:, 4], jac[:, 5] = ny * u / den, ny * v / den, ny / den
         jac[:, 6] = -(nx * px + ny * py) * u / den
         jac[:, 7] = -(nx * px + ny * py) * v / den
-        jac[:, 8] = -1.0
+        # One shift per boundary direction (tag x, tag y): what the estimator sees of the shift
+        # depends on its window, half a cell across the boundary, and on an oblique tag the cells
+        # are narrower along one axis (a window that cuts the blurred step's tails sees less).
+        jac[:, 8] = -across_x
+        jac[:, 9] = -(1.0 - across_x)
         for _round in range(2):
             # Noise-optimal weights: a sample's position noise goes as 1 / its contrast.
             w = np.where(ok, (contrast / np.maximum(top_c[tag_of], 1.0)) ** 2, 0.0)
@@ -1259,7 +1266,7 @@ def fit_tag_edges(
             sig = 1.4826 * _group_median(np.abs(r), ok, starts, counts)
             ok &= np.abs(r) <= np.maximum(3.5 * sig[tag_of], 0.05)
         h = h + np.where(solved[:, None], sol[:, :8], 0.0)
-        delta = np.where(solved, sol[:, 8], np.nan)
+        delta = np.where(solved, sol[:, 8:].mean(axis=1), np.nan)  # the two directions' mean
         fitted = solved
         if it == iterations - 2:
             keep = ok  # the last round samples where the previous one trusted the image
