@@ -42,6 +42,12 @@ METHODS = {
 }
 #: The target of issue 10: synth and blender corner errors agree within this factor.
 AGREE_FACTOR = 1.5
+#: A method whose mean radial offset is within this on both renderers has no bias to compare.
+UNBIASED_PX = 0.05
+
+
+def _span(x: list[float]) -> str:
+    return f"{np.nanmin(x):.2f}-{np.nanmax(x):.2f}" if x else "-"
 MAX_VIEW_DEG = 70.0
 
 
@@ -121,7 +127,7 @@ def main() -> int:
     t0 = time.time()
     rows = []
     worst_ratio = {m: 1.0 for m in names}
-    ratios: dict[str, list[float]] = {"radial": [], "rms": []}
+    ratios: dict[str, list[float]] = {"radial biased": [], "rms biased": [], "rms unbiased": []}
     for set_name in args.sets.split(","):
         ds = blender_dev.load_set(set_name)
         # The consecutive-frame set: every 5th frame, so its poses differ like the other sets'.
@@ -135,10 +141,15 @@ def main() -> int:
             b, s = res_b[m], res_s[m]
             ratio_r = s["radial_mean"] / b["radial_mean"] if b["radial_mean"] else float("nan")
             ratio_rms = s["rms"] / b["rms"] if b["rms"] else float("nan")
-            agree = all(1 / AGREE_FACTOR <= x <= AGREE_FACTOR for x in (ratio_r, ratio_rms))
-            ratios["radial"].append(ratio_r)
-            ratios["rms"].append(ratio_rms)
-            for x in (ratio_r, ratio_rms):
+            # Corners without a bias on either renderer: a ratio of two near-zero offsets means
+            # nothing; they agree when both are within UNBIASED_PX.
+            unbiased = max(abs(b["radial_mean"]), abs(s["radial_mean"])) <= UNBIASED_PX
+            agree = (unbiased or 1 / AGREE_FACTOR <= ratio_r <= AGREE_FACTOR) and (
+                1 / AGREE_FACTOR <= ratio_rms <= AGREE_FACTOR)
+            kind = "unbiased" if unbiased else "biased"
+            ratios.setdefault(f"radial {kind}", []).append(ratio_r)
+            ratios.setdefault(f"rms {kind}", []).append(ratio_rms)
+            for x in (ratio_rms,) if unbiased else (ratio_r, ratio_rms):
                 if np.isfinite(x) and x > 0:
                     worst_ratio[m] = max(worst_ratio[m], x, 1 / x)
             rows.append([set_name, f"{ds.tone} / {ds.psf_sigma_px:.2f}", m,
@@ -173,20 +184,26 @@ def main() -> int:
             "Worst ratio per method (max of ratio and 1/ratio over sets, radial and rms): "
             + ", ".join(f"{m} {v:.2f}" for m, v in worst_ratio.items()) + ".",
             "",
-            f"Reading it: the inward bias (mean radial offset) agrees closely, synth/blender "
-            f"{np.nanmin(ratios['radial']):.2f}-{np.nanmax(ratios['radial']):.2f}, in every set, tone "
-            "curve and lighting: it is the physics of the chain (blur in linear light, then the tone "
-            "curve and clipping), which both renderers share. The rms is lower on synth frames "
-            f"({np.nanmin(ratios['rms']):.2f}-{np.nanmax(ratios['rms']):.2f} of blender's), most for "
-            "OpenCV sub-pixel: the part of the error that is scatter around the bias has sources synth "
-            "does not model: path-tracing noise at 6-8 samples per pixel on top of the sensor noise, "
-            "plates that are real geometry (the cap's surfaces, shading across a tag), and a busier "
-            "scene next to the tags (headrest, ears, seat). The clean-tag corner counts also differ: "
-            "the same detectors find fewer of blender's clean tags at 540p (the `ficap edge` column's "
-            "count against synth's for the same poses), again a scatter/contrast effect rather than a "
-            "bias. Renderer constants are physical choices (black ink 5 % of white paper, full well "
-            "8000 e-, read noise 4 e-, flare 0.4-0.8 % of full well, the paper's three spotlights for "
-            "high light), not fits to these frames.",
+            "Reading it: the inward bias of the grey-midpoint corners (OpenCV sub-pixel, AprilTag 3, "
+            f"and ours where biased) agrees, synth/blender {_span(ratios['radial biased'])}, in every "
+            "set, tone curve and lighting: it is the physics of the chain (blur in linear light, then "
+            "the tone curve and clipping), which both renderers share. Where a method is unbiased on "
+            f"both (|mean radial| <= {UNBIASED_PX} px: `ficap edge`) only the rms is compared, and it "
+            f"is lower on synth ({_span(ratios['rms unbiased'])} of blender's; the biased methods' "
+            f"{_span(ratios['rms biased'])}): with the bias gone, what is left is scatter, and its "
+            "main source differs. Measured on the tags' flat black and white areas (differences of "
+            "neighbouring pixels): blender's white carries grey-level noise of sd ~9-10 at neutral "
+            "light, synth's ~2, which is what a sensor at 55-70 % of an 8000 e- full well gives (shot "
+            "noise ~1.4 %); the rest is path tracing at 6-8 samples per pixel, which no camera adds, "
+            "plus plates that are real geometry and a busier scene next to the tags. At low light "
+            "the two agree (noise-to-contrast 0.11-0.18 on both). Rendering blender's Monte Carlo "
+            "noise into synth would be fitting the renderer to these frames, so the gap is left "
+            "documented: synth frames flatter every method's scatter at neutral and high light (not "
+            "its bias). The clean-tag corner counts also differ: the same detectors find fewer of "
+            "blender's clean tags at 540p, again a scatter/contrast effect. Renderer constants are "
+            "physical choices (black ink 5 % of white paper, full well 8000 e-, read noise 4 e-, "
+            "flare 0.4-0.8 % of full well, the paper's three spotlights for high light), not fits to "
+            "these frames.",
         ])
         record_section("Renderer realism (synth vs blender_dev)", body)
     return 0
