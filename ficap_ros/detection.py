@@ -62,9 +62,9 @@ class TagDetection:
         hamming: bit errors corrected while decoding (0 when the backend does not say).
         decision_margin: backend's decoding confidence (NaN when the backend does not say).
         edge_shift_px: how far the camera's tone curve moved this tag's black/white edges toward
-            the black, px, as its cell-edge fit measured and removed (``fit_tag_edges``); for a
-            tag too small or oblique to fit, the shift its sides were given
-            (``refine_tag_corners``); NaN when none was applied (another corner refinement).
+            the black, px, as its cell-edge fit measured and removed (``fit_tag_edges``); NaN
+            when the tag was not fitted (too small or oblique: ``refine_tag_corners`` corrects it
+            with what the fitted tags measured; or another corner refinement).
     """
 
     tag_id: int
@@ -803,9 +803,8 @@ def refine_tag_corners(
         config: detector settings.
 
     Returns:
-        (corners (N, 4, 2), edge shift px (N,): ``fit_tag_edges``'s delta; for a tag not fitted,
-        the mean shift its sides were given (border unbias, or the line bias above); NaN where
-        nothing was applied).
+        (corners (N, 4, 2), edge shift px (N,): ``fit_tag_edges``'s delta, NaN where not fitted:
+        a small tag's correction was measured on other tags, not on it).
     """
     cfg = config or DetectorConfig()
     corners = np.array(corners_px, dtype=np.float64).reshape(-1, 4, 2)
@@ -823,15 +822,13 @@ def refine_tag_corners(
             c = unbias_corners_edge(gray, c, ids[good], cfg)
         if cfg.edge_fit:
             c, delta[good] = fit_tag_edges(gray, c, ids[good], cfg, cfg.edge_fit_iterations)
-        # Unbiased but not fitted: the shift the unbias applied (the frame's shift must not be
-        # added on top).
-        moved = good & ~np.isfinite(delta)
-        moved[good] &= np.any(c != corners[good], axis=(1, 2))
-        if moved.any():
-            delta[moved] = (_side_lines(c[moved[good]])[1] - rho[moved]).mean(axis=1)
+        corners_in = corners.copy()
         corners[good] = c
-    fitted = np.isfinite(delta) & good
-    line_only = ~np.isfinite(delta)
+    else:
+        corners_in = corners.copy()
+    fitted = np.isfinite(delta)
+    # Line-fit corners only (too small to unbias or fit, or both failed): no tone-curve correction yet.
+    line_only = ~fitted & np.all(corners == corners_in, axis=(1, 2))
     if cfg.edge_fit and fitted.any() and line_only.any():
         # Tags too small (or oblique) to measure their own shift keep line-fit corners, which the
         # tone curve pulled inward by what the line estimator measures *with their windows*: a
@@ -850,7 +847,6 @@ def refine_tag_corners(
         todo = np.flatnonzero(line_only)[ok]
         if len(todo):
             corners[todo] = _intersect_sides(nrm[todo], rho[todo] + bias[ok])
-            delta[todo] = bias[ok].mean(axis=1)
     return corners, delta
 
 
@@ -959,18 +955,14 @@ def refine_tracked_corners(
 
 
 def with_frame_edge_shift(detections: Sequence[TagDetection]) -> tuple[TagDetection, ...]:
-    """The detections of one frame, those left uncorrected (``edge_shift_px`` NaN: refined where
-    no tag could be fitted, e.g. a second look at small tags only) moved out by the median shift
-    of the others (unchanged when there is none; their ``edge_shift_px`` stays NaN)."""
-    shifts = [d.edge_shift_px for d in detections if np.isfinite(d.edge_shift_px)]
-    todo = [k for k, d in enumerate(detections) if not np.isfinite(d.edge_shift_px)]
-    if not shifts or not todo:
-        return tuple(detections)
-    moved = shift_tag_edges(np.array([detections[k].corners_px for k in todo]), float(np.median(shifts)))
-    out = list(detections)
-    for k, c in zip(todo, moved):
-        out[k] = replace(out[k], corners_px=c)
-    return tuple(out)
+    """The detections of one frame, as they are.
+
+    It moved the unfitted tags (``edge_shift_px`` NaN) out by the median shift of the fitted ones;
+    ``refine_tag_corners`` now corrects those tags itself, by the bias the line estimator has with
+    their own windows (measured on the fitted tags of the same call), so shifting them again would
+    count the tone curve twice. Kept for its callers; nothing left to do here.
+    """
+    return tuple(detections)
 
 
 def shift_tag_edges(corners_px: np.ndarray, shift_px: float) -> np.ndarray:
