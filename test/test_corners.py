@@ -80,9 +80,11 @@ def test_corners_in_low_light() -> None:
     of the peer's. Ours lean outward by +0.02-0.06 px at 540p and up to +0.14 px at 1080p with a
     sharp lens (PSF 0.4 px, gamma or filmic): measured and left open, so the bound here is 0.12 px,
     not the 0.05 of the others. The cause is the sensor noise (the same frames without it:
-    -0.001 px), shared by the border unbias and the cell-edge fit, growing with the window (half
-    a cell, up to 4 px at 1080p); it is not the contrast gate, the weights, the per-profile levels
-    or the clipping of the normalised profile (each changed alone: no better)."""
+    -0.001 px), mostly the read noise at the black level (without it alone: 1080p filmic PSF 0.4
+    +0.138 -> +0.004 px, gamma 1.8 +0.099 -> +0.055), shared by the border unbias and the
+    cell-edge fit, growing with the window (half a cell, up to 4 px at 1080p); it is not the
+    contrast gate, the weights, the per-profile levels or the clipping of the normalised profile
+    (each changed alone: no better)."""
     frames = _frames("540p", RenderConfig(lighting="low", tone="srgb", psf_sigma_px=0.7, jpeg_quality=95))
     err, rad, found, clean = _errors(OURS, frames)
     _, peer_rad, _, _ = _errors(PEER, frames)
