@@ -33,7 +33,6 @@ __all__ = [
     "fit_tag_edges",
     "refine_tag_corners",
     "shift_tag_edges",
-    "with_frame_edge_shift",
     "tag_cells",
     "tag_homographies",
     "TAG_CELLS",
@@ -792,7 +791,7 @@ def refine_tag_corners(
     (each as ``config`` enables it) on every tag whose cells span ``_MIN_TAG_CELL_PX`` both ways.
     A smaller (or oblique) tag keeps its line-fit corners, each side moved out by the bias the
     line estimator has with that side's window, measured on the outer edges of the tags fitted in
-    the same call (``_line_bias``); without a fitted tag it is left for ``with_frame_edge_shift``.
+    the same call (``_line_bias``); without a fitted tag they keep their line corners.
     A fitted tag's corners depend on its own pixels only (a region search gives the full frame's
     corners); a small tag's also on the fitted tags of the call.
 
@@ -952,17 +951,6 @@ def refine_tracked_corners(
             corners[sub], shift[sub] = refine_tag_corners(gray, c[ok_rest], ids[sub], cfg)
         ok[rest] = ok_rest
     return corners, shift, ok
-
-
-def with_frame_edge_shift(detections: Sequence[TagDetection]) -> tuple[TagDetection, ...]:
-    """The detections of one frame, as they are.
-
-    It moved the unfitted tags (``edge_shift_px`` NaN) out by the median shift of the fitted ones;
-    ``refine_tag_corners`` now corrects those tags itself, by the bias the line estimator has with
-    their own windows (measured on the fitted tags of the same call), so shifting them again would
-    count the tone curve twice. Kept for its callers; nothing left to do here.
-    """
-    return tuple(detections)
 
 
 def shift_tag_edges(corners_px: np.ndarray, shift_px: float) -> np.ndarray:

@@ -14,7 +14,7 @@ from scipy.spatial.transform import Rotation
 from ficap_ros.calibration import HeadCalibration
 from ficap_ros.camera import CameraModel
 from ficap_ros.cap_model import CapModel, nominal_model
-from ficap_ros.detection import DetectorConfig, TagDetection, TagDetector, as_gray, with_frame_edge_shift
+from ficap_ros.detection import DetectorConfig, TagDetection, TagDetector, as_gray
 from ficap_ros.pose import CapPose, PoseConfig, estimate_cap_pose
 from ficap_ros.tracking import Search, TrackConfig, Tracker
 from ficap_ros.transform import Transform
@@ -110,8 +110,6 @@ class FrameProcessor:
                                                               pose_config)
         else:
             detections = self.detect(image)
-        # Tags too small or oblique to measure their own tone-curve shift take the frame's.
-        detections = with_frame_edge_shift(detections)
         t1 = time.perf_counter()
         used = detections if self.tracker is None else \
             self.tracker.pose_tags(detections, predicted, pose_config)

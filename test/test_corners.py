@@ -131,17 +131,6 @@ def test_fit_recovers_a_known_erosion() -> None:
     assert fitted_delta[0] == pytest.approx(delta, abs=0.03)
 
 
-def test_frame_edge_shift_no_longer_moves_tags() -> None:
-    """``refine_tag_corners`` corrects the tags too small to fit; the pipeline's frame shift must
-    not count the tone curve a second time: detections come back as they are."""
-    from ficap_ros.detection import TagDetection, with_frame_edge_shift
-
-    square = np.array([[10.0, 10.0], [30.0, 10.0], [30.0, 30.0], [10.0, 30.0]])
-    dets = [TagDetection(1, square + 100, edge_shift_px=0.3), TagDetection(4, square, edge_shift_px=float("nan"))]
-    out = with_frame_edge_shift(dets)
-    assert all(a is b for a, b in zip(out, dets))
-
-
 def test_tracked_corners_from_a_prediction() -> None:
     """Tracking predicts a tag's corners with the true geometry, usually within a tenth of a
     pixel: one cell-edge fit round from there (no line fit, no border unbias) gives corners as
