@@ -117,6 +117,19 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("uncertainty.focal_rel", _UNCERTAINTY.focal_rel,
               "Covariance: relative focal length error of the intrinsics (0 = exact).",
               range=(0.0, 0.5)),
+    ParamSpec("uncertainty.light_gradient_gain", _UNCERTAINTY.light_gradient_gain,
+              "Covariance: corner noise the pose absorbs per px of the frame's light gradient "
+              "(spread of the tags' edge shifts; calibrated on ficap synth drives).",
+              range=(0.0, 10.0)),
+    ParamSpec("uncertainty.light_gradient_tilt_gain", _UNCERTAINTY.light_gradient_tilt_gain,
+              "Covariance: shared shift of the tags along their foreshortening per px of the "
+              "frame's light gradient (the mode that moves the depth).", range=(0.0, 10.0)),
+    ParamSpec("uncertainty.tilt_shift_px", _UNCERTAINTY.tilt_shift_px,
+              "Covariance floor: that shared shift, px at a tag seen edge-on (0 = none; ~0.06 for "
+              "a 540p camera with a gamma tone curve, see docs/benchmarks.md).", range=(0.0, 10.0)),
+    ParamSpec("uncertainty.weight_tags", _UNCERTAINTY.weight_tags,
+              "Joint pose: weight each tag by its own corner noise (one weighted Gauss-Newton "
+              "step from the unweighted optimum)."),
     ParamSpec("publish_min_reliability", 0.0, "Poses less reliable than this are not published "
               "(status still is).", range=(0.0, 1.0)),
     ParamSpec("warn_reliability", WARN_RELIABILITY, "Status level is WARN below this reliability.",
@@ -249,6 +262,10 @@ class NodeConfig:
     uncertainty_residual_inflation: float
     uncertainty_principal_point_px: float
     uncertainty_focal_rel: float
+    uncertainty_light_gradient_gain: float
+    uncertainty_light_gradient_tilt_gain: float
+    uncertainty_tilt_shift_px: float
+    uncertainty_weight_tags: bool
     publish_min_reliability: float
     warn_reliability: float
     warn_throttle_s: float

@@ -296,7 +296,9 @@ def test_shipped_params_file_applies_under_a_namespace_and_new_name(tmp_path) ->
     assert list(data) == ["/**"]
     params = data["/**"]["ros__parameters"]
     params.update({"pose.min_tags": 3, "calibration.window_s": 7.5, "warn_reliability": 0.25,
-                   "frontal_frame": "rear_frontal", "pose.min_tag": 2})
+                   "frontal_frame": "rear_frontal", "pose.min_tag": 2,
+                   "uncertainty.tilt_shift_px": 0.06, "uncertainty.light_gradient_gain": 0.75,
+                   "uncertainty.light_gradient_tilt_gain": 0.2, "uncertainty.weight_tags": False})
     path = tmp_path / "rear.yaml"
     path.write_text(yaml.safe_dump(data))
     context, node = _node_with_args(["--ros-args", "-r", "__ns:=/rear", "-r", "__node:=ficap_rear",
@@ -308,6 +310,9 @@ def test_shipped_params_file_applies_under_a_namespace_and_new_name(tmp_path) ->
         assert node.get_parameter("warn_reliability").value == 0.25
         assert node.get_parameter("frontal_frame").value == "rear_frontal"
         assert node._processor.pose_config.min_tags == 3  # and the pipeline uses them
+        u = node._processor.pose_config.uncertainty
+        assert (u.tilt_shift_px, u.light_gradient_gain, u.light_gradient_tilt_gain,
+                u.weight_tags) == (0.06, 0.75, 0.2, False)
         assert node.unknown_parameters == ["pose.min_tag"]  # named in the start-up warning
         assert node._image_sub.topic_name == "/rear/image"
     finally:

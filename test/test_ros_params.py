@@ -39,3 +39,18 @@ def test_mount_is_a_transform() -> None:
     assert cfg.mount is not None and abs(cfg.mount.translation_m[2] - 1.2) < 1e-12
     with pytest.raises(ConfigError):
         NodeConfig.from_values(_defaults(camera_mount=[0.0] * 6 + [2.0])).mount
+
+
+def test_every_uncertainty_setting_is_a_parameter_with_its_default() -> None:
+    from ficap_ros.pose import UncertaintyConfig
+
+    names = {p.name for p in PARAMETERS}
+    for f in dataclasses.fields(UncertaintyConfig):
+        assert f"uncertainty.{f.name}" in names, f.name
+    cfg = NodeConfig.from_values(_defaults(**{"uncertainty.tilt_shift_px": 0.06,
+                                              "uncertainty.weight_tags": False,
+                                              "uncertainty.light_gradient_gain": 1}))
+    u = cfg.pose_config.uncertainty
+    assert (u.tilt_shift_px, u.weight_tags, u.light_gradient_gain) == (0.06, False, 1.0)
+    assert isinstance(u.light_gradient_gain, float)
+    assert NodeConfig.from_values(_defaults()).pose_config.uncertainty == UncertaintyConfig()
