@@ -32,6 +32,7 @@ from ficap_ros.camera import CameraModel, camera_from_info, camera_info_key, loa
 from ficap_ros.errors import BagError, FicapError, ImageError
 from ficap_ros.stamps import stamp_to_ns
 from ficap_ros.image_codec import check_pixel_budget, decode_compressed, decode_image
+from ficap_ros.messages import jazzy_typestore
 
 __all__ = [
     "RecordingKind",
@@ -165,19 +166,6 @@ def decode_raw(raw: RawFrame) -> np.ndarray:
             f"{raw.camera.width_px}x{raw.camera.height_px}"
         )
     return img
-
-
-_TYPESTORE: Any = None
-
-
-def jazzy_typestore() -> Any:
-    """rosbags' ROS 2 Jazzy typestore (cached)."""
-    global _TYPESTORE
-    if _TYPESTORE is None:
-        from rosbags.typesys import Stores, get_typestore
-
-        _TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
-    return _TYPESTORE
 
 
 def _bag_errors() -> tuple[type[BaseException], ...]:

@@ -13,9 +13,11 @@ from typing import Any
 
 import numpy as np
 
-from ficap_ros.bag_io import jazzy_typestore
+from ficap_ros import messages
 from ficap_ros.camera import CameraModel
 from ficap_ros.errors import BagError, OutputError
+from ficap_ros.messages import ROSBAGS, jazzy_typestore
+from ficap_ros.transform import Transform
 
 __all__ = ["BagWriter", "header", "pose_msg", "pose_stamped_msg", "pose_with_covariance_stamped_msg", "camera_info_msg", "compressed_image_msg", "image_msg"]
 
@@ -122,75 +124,40 @@ class BagWriter:
             shutil.rmtree(self._tmpdir, ignore_errors=True)
 
 
-# -- message builders (rosbags message objects; no ROS needed) ------------------------------------
-def _types() -> Any:
-    return jazzy_typestore().types
-
-
+# -- message builders (rosbags message objects; no ROS needed): ficap_ros.messages over ROSBAGS ---
 def header(stamp_ns: int, frame_id: str) -> Any:
     """``std_msgs/Header``."""
-    t = _types()
-    sec, nsec = divmod(int(stamp_ns), 1_000_000_000)
-    return t["std_msgs/msg/Header"](stamp=t["builtin_interfaces/msg/Time"](sec=sec, nanosec=nsec),
-                                    frame_id=frame_id)
+    return messages.header(ROSBAGS, stamp_ns, frame_id)
 
 
-def pose_msg(T: Any) -> Any:
+def pose_msg(T: Transform) -> Any:
     """``geometry_msgs/Pose`` of a ``Transform`` (translation in m)."""
-    t = _types()
-    x, y, z = (float(v) for v in T.translation_m)
-    qx, qy, qz, qw = (float(v) for v in T.q_xyzw)
-    return t["geometry_msgs/msg/Pose"](
-        position=t["geometry_msgs/msg/Point"](x=x, y=y, z=z),
-        orientation=t["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw),
-    )
+    return messages.pose(ROSBAGS, T)
 
 
-def pose_stamped_msg(stamp_ns: int, frame_id: str, T: Any) -> Any:
+def pose_stamped_msg(stamp_ns: int, frame_id: str, T: Transform) -> Any:
     """``geometry_msgs/PoseStamped``."""
-    return _types()["geometry_msgs/msg/PoseStamped"](header=header(stamp_ns, frame_id),
-                                                     pose=pose_msg(T))
+    return messages.pose_stamped(ROSBAGS, header(stamp_ns, frame_id), T)
 
 
-def pose_with_covariance_stamped_msg(stamp_ns: int, frame_id: str, T: Any,
+def pose_with_covariance_stamped_msg(stamp_ns: int, frame_id: str, T: Transform,
                                      covariance: np.ndarray) -> Any:
-    """``geometry_msgs/PoseWithCovarianceStamped`` (covariance 6x6, ROS order)."""
-    t = _types()
-    cov = np.asarray(covariance, dtype=np.float64).reshape(36)
-    return t["geometry_msgs/msg/PoseWithCovarianceStamped"](
-        header=header(stamp_ns, frame_id),
-        pose=t["geometry_msgs/msg/PoseWithCovariance"](pose=pose_msg(T), covariance=cov.copy()),
-    )
+    """``geometry_msgs/PoseWithCovarianceStamped`` (covariance 6x6, ROS order; non-finite: a
+    huge diagonal, as the node publishes it)."""
+    return messages.pose_with_covariance_stamped(ROSBAGS, header(stamp_ns, frame_id), T,
+                                                 covariance)
 
 
 def camera_info_msg(stamp_ns: int, frame_id: str, camera: CameraModel) -> Any:
     """``sensor_msgs/CameraInfo`` of a camera model (P = [K | 0], R = I)."""
-    t = _types()
-    p = np.hstack([camera.K, np.zeros((3, 1))]).reshape(12)
-    model = "plumb_bob" if camera.distortion_model == "none" else camera.distortion_model
-    d = camera.D if camera.D.size else np.zeros(5)
-    return t["sensor_msgs/msg/CameraInfo"](
-        header=header(stamp_ns, frame_id), height=camera.height_px, width=camera.width_px,
-        distortion_model=model, d=np.asarray(d, dtype=np.float64).copy(),
-        k=camera.K.reshape(9).copy(), r=np.eye(3).reshape(9), p=p, binning_x=0, binning_y=0,
-        roi=t["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
-                                                  do_rectify=False),
-    )
+    return messages.camera_info(ROSBAGS, header(stamp_ns, frame_id), camera)
 
 
 def compressed_image_msg(stamp_ns: int, frame_id: str, data: bytes, fmt: str = "jpeg") -> Any:
     """``sensor_msgs/CompressedImage``."""
-    return _types()["sensor_msgs/msg/CompressedImage"](
-        header=header(stamp_ns, frame_id), format=fmt, data=np.frombuffer(data, np.uint8).copy())
+    return messages.compressed_image(ROSBAGS, header(stamp_ns, frame_id), data, fmt)
 
 
 def image_msg(stamp_ns: int, frame_id: str, image: np.ndarray, encoding: str) -> Any:
-    """``sensor_msgs/Image`` of an array already laid out for ``encoding`` (little-endian)."""
-    arr = np.ascontiguousarray(image)
-    height, width = arr.shape[:2]
-    step = arr.strides[0]
-    return _types()["sensor_msgs/msg/Image"](
-        header=header(stamp_ns, frame_id), height=height, width=width, encoding=encoding,
-        is_bigendian=0, step=step, data=arr.view(np.uint8).reshape(-1).copy())
-
-
+    """``sensor_msgs/Image`` of an array already laid out for ``encoding``."""
+    return messages.image(ROSBAGS, header(stamp_ns, frame_id), image, encoding)

@@ -139,6 +139,7 @@ def read_series_bag(path: str | Path, topic: str) -> PoseSeries:
         BagError: unreadable bag, missing topic or an unsupported message type.
     """
     from ficap_ros.bag_io import open_bag_reader
+    from ficap_ros.messages import orientation
     from ficap_ros.stamps import stamp_to_ns
 
     reader = open_bag_reader(Path(path))
@@ -155,7 +156,7 @@ def read_series_bag(path: str | Path, topic: str) -> PoseSeries:
         quats: list[Any] = []
         for conn, log_ns, raw in reader.messages(connections=conns):
             msg = reader.deserialize(raw, conn.msgtype)
-            o = _orientation(msg)
+            o = orientation(msg)
             stamps.append(stamp_to_ns(msg.header.stamp) or int(log_ns))
             quats.append((o.x, o.y, o.z, o.w))
     except BagError:
@@ -165,16 +166,6 @@ def read_series_bag(path: str | Path, topic: str) -> PoseSeries:
     finally:
         reader.close()
     return _series(stamps, quats, f"{path}:{topic}")
-
-
-def _orientation(msg: Any) -> Any:
-    if hasattr(msg, "quaternion"):
-        return msg.quaternion
-    if hasattr(msg, "transform"):
-        return msg.transform.rotation
-    pose = msg.pose
-    pose = pose.pose if hasattr(pose, "pose") else pose  # WithCovariance / Odometry
-    return pose.orientation
 
 
 def load_series(spec: str) -> PoseSeries:

@@ -7,7 +7,8 @@ MarkerArray / a debug Image. Quaternions in messages are the x, y, z, w fields (
 
 from __future__ import annotations
 
-from typing import Mapping
+import importlib
+from typing import Any, Iterator, Mapping
 
 import cv2
 import numpy as np
@@ -15,13 +16,13 @@ from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import Point, Pose, PoseStamped, PoseWithCovarianceStamped, Vector3, Vector3Stamped
 from scipy.spatial.transform import Rotation
-from sensor_msgs.msg import CameraInfo, CompressedImage, Image, JointState
+from sensor_msgs.msg import CameraInfo, Image, JointState
 from std_msgs.msg import Header
 from visualization_msgs.msg import Marker, MarkerArray
 
+from ficap_ros import messages
 from ficap_ros.camera import CameraModel, camera_from_info
 from ficap_ros.cap_model import CapModel
-from ficap_ros.image_codec import decode_compressed, decode_image
 from ficap_ros.metrics import yaw_pitch_roll_deg
 from ficap_ros.errors import ImageError, IntrinsicsError
 from ficap_ros.pipeline import FrameResult
@@ -30,6 +31,7 @@ from ficap_ros.transform import Transform, rotate_covariance
 
 __all__ = [
     "IMAGE_ENCODINGS",
+    "RCLPY",
     "image_to_array",
     "compressed_to_array",
     "array_to_image",
@@ -73,6 +75,29 @@ IMAGE_ENCODINGS: dict[str, tuple[int, int, int | None]] = {
 }
 
 
+class _RclpyTypes(Mapping[str, Any]):
+    """rclpy's generated message classes by ``pkg/msg/Name`` (imported on first use)."""
+
+    def __getitem__(self, name: str) -> Any:
+        pkg, _, cls = name.split("/")
+        return getattr(importlib.import_module(f"{pkg}.msg"), cls)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(())
+
+    def __len__(self) -> int:
+        return 0
+
+
+#: rclpy's classes for ``ficap_ros.messages``: float arrays as lists (what the generated setters
+#: check), byte arrays as bytes.
+RCLPY = messages.MessageClasses(
+    types=_RclpyTypes(),
+    floats=lambda a: [float(v) for v in np.asarray(a, dtype=np.float64).reshape(-1)],
+    octets=lambda a: np.ascontiguousarray(a).tobytes(),
+)
+
+
 # -- time ----------------------------------------------------------------------------------------
 def ns_to_stamp(stamp_ns: int) -> Time:
     """Integer nanoseconds -> builtin_interfaces/Time."""
@@ -80,55 +105,21 @@ def ns_to_stamp(stamp_ns: int) -> Time:
     return Time(sec=sec, nanosec=nanosec)
 
 
-def _as_bytes(data: object) -> np.ndarray:
-    """Message ``uint8[]`` data (array.array, bytes, list) as a uint8 array, without a copy if possible."""
-    try:
-        return np.frombuffer(data, dtype=np.uint8)  # type: ignore[call-overload]
-    except TypeError:
-        return np.asarray(data, dtype=np.uint8).reshape(-1)
-
-
 # -- images --------------------------------------------------------------------------------------
-def image_to_array(msg: Image) -> np.ndarray:
-    """A ``sensor_msgs/Image`` as a grey array: uint8, or uint16 (native order) for mono16.
-
-    The decoding is ``ficap_ros.image_codec.decode_image``, shared with the bag tools; it honours
-    ``step`` (row padding) and ``is_bigendian`` (16-bit data).
-
-    Raises:
-        ImageError: unknown encoding, zero size, a step shorter than a row, or data whose length
-            does not match ``step * height``.
-    """
-    return decode_image(msg.encoding, msg.height, msg.width, msg.step, _as_bytes(msg.data),
-                        msg.is_bigendian)
-
-
-def compressed_to_array(msg: CompressedImage) -> np.ndarray:
-    """A ``sensor_msgs/CompressedImage`` (JPEG, PNG, ...) decoded to grey uint8.
-
-    Raises:
-        ImageError: empty or undecodable data.
-    """
-    return decode_compressed(_as_bytes(msg.data), msg.format)
+image_to_array = messages.image_to_array
+compressed_to_array = messages.compressed_to_array
 
 
 def array_to_image(array: np.ndarray, encoding: str, header: Header | None = None) -> Image:
-    """A numpy image (uint8 mono/bgr/rgb/bgra/rgba/bayer, uint16 mono16) as ``sensor_msgs/Image``."""
+    """A numpy image (uint8 mono/bgr/rgb/bgra/rgba/bayer, uint16 mono16) as ``sensor_msgs/Image``
+    (``messages.image``), checked against ``encoding``."""
     if encoding not in IMAGE_ENCODINGS:
         raise ImageError(f"unsupported image encoding {encoding!r}")
     channels, depth, _ = IMAGE_ENCODINGS[encoding]
     arr = np.ascontiguousarray(array)
     if arr.dtype.itemsize != depth or (arr.shape[2] if arr.ndim == 3 else 1) != channels:
         raise ImageError(f"array {arr.shape} {arr.dtype} does not match encoding {encoding}")
-    msg = Image()
-    if header is not None:
-        msg.header = header
-    msg.height, msg.width = int(arr.shape[0]), int(arr.shape[1])
-    msg.encoding = encoding
-    msg.is_bigendian = int(arr.dtype.byteorder == ">")
-    msg.step = int(arr.shape[1] * channels * depth)
-    msg.data = arr.tobytes()
-    return msg
+    return messages.image(RCLPY, header if header is not None else Header(), arr, encoding)
 
 
 # -- intrinsics ----------------------------------------------------------------------------------
@@ -143,34 +134,20 @@ def camera_info_to_model(msg: CameraInfo, rectified: bool = False) -> CameraMode
 
 
 def camera_model_to_info(camera: CameraModel, header: Header | None = None) -> CameraInfo:
-    """A ``CameraModel`` as ``sensor_msgs/CameraInfo`` (R identity, P = [K | 0])."""
-    msg = CameraInfo()
-    if header is not None:
-        msg.header = header
-    msg.width, msg.height = camera.width_px, camera.height_px
-    msg.distortion_model = "plumb_bob" if camera.distortion_model == "none" else camera.distortion_model
-    msg.d = [float(v) for v in camera.D] or [0.0] * 5
-    msg.k = camera.K.reshape(-1).tolist()
-    msg.r = np.eye(3).reshape(-1).tolist()
-    msg.p = np.hstack([camera.K, np.zeros((3, 1))]).reshape(-1).tolist()
-    return msg
+    """A ``CameraModel`` as ``sensor_msgs/CameraInfo`` (``messages.camera_info``: R identity,
+    P = [K | 0])."""
+    return messages.camera_info(RCLPY, header if header is not None else Header(), camera)
 
 
 # -- poses ---------------------------------------------------------------------------------------
 def pose_msg(T: Transform) -> Pose:
     """A transform (translation in metres) as ``geometry_msgs/Pose``."""
-    pose = Pose()
-    t = T.translation_m
-    pose.position.x, pose.position.y, pose.position.z = float(t[0]), float(t[1]), float(t[2])
-    x, y, z, w = T.q_xyzw
-    pose.orientation.x, pose.orientation.y = float(x), float(y)
-    pose.orientation.z, pose.orientation.w = float(z), float(w)
-    return pose
+    return messages.pose(RCLPY, T)
 
 
 def pose_stamped(header: Header, T: Transform) -> PoseStamped:
     """``geometry_msgs/PoseStamped`` of ``T`` with the given header."""
-    return PoseStamped(header=header, pose=pose_msg(T))
+    return messages.pose_stamped(RCLPY, header, T)
 
 
 def pose_with_covariance_stamped(
@@ -178,14 +155,7 @@ def pose_with_covariance_stamped(
 ) -> PoseWithCovarianceStamped:
     """``PoseWithCovarianceStamped``; ``covariance`` is 6x6 already in ROS order (x y z rx ry rz)
     (non-finite: replaced by a huge diagonal, never by zeros)."""
-    msg = PoseWithCovarianceStamped(header=header)
-    msg.pose.pose = pose_msg(T)
-    cov = np.asarray(covariance, dtype=np.float64).reshape(36)
-    if not np.all(np.isfinite(cov)):
-        # Never "exact": an unknown covariance goes out huge (1 m, 180 deg), not as zeros.
-        cov = np.diag([1.0, 1.0, 1.0, np.pi**2, np.pi**2, np.pi**2]).reshape(36)
-    msg.pose.covariance = [float(v) for v in cov]
-    return msg
+    return messages.pose_with_covariance_stamped(RCLPY, header, T, covariance)
 
 
 def rpy_deg_msg(header: Header, R_frontal_head: Rotation) -> Vector3Stamped:

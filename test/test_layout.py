@@ -15,7 +15,7 @@ LAYERS = [
     ["files", "transform", "metrics"],
     ["image_codec", "bag_salvage"],
     ["camera", "cap_model"],
-    ["calibration"],
+    ["calibration", "messages"],
     ["detection", "bag_io"],
     ["bag_writer"],
     ["pose"],
