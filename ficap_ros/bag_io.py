@@ -20,7 +20,6 @@ from __future__ import annotations
 
 import math
 import sqlite3
-from bisect import bisect_right
 from dataclasses import dataclass
 from enum import Enum
 from pathlib import Path
@@ -28,7 +27,8 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from ficap_ros.camera import CameraModel, camera_from_info, camera_info_key, load_camera_yaml
+from ficap_ros.camera import (CAMERA_INFO_MAX_STAMP_DIFF_NS, CameraModel, camera_from_info,
+                              camera_info_key, load_camera_yaml, pick_camera_info)
 from ficap_ros.errors import BagError, FicapError, ImageError
 from ficap_ros.stamps import stamp_to_ns
 from ficap_ros.image_codec import check_pixel_budget, decode_compressed, decode_image
@@ -314,18 +314,22 @@ class FrameSource:
 
 class BagSource(FrameSource):
     """The images of one topic of a rosbag2 bag (folder, ``.mcap`` or ``.db3``), with the
-    CameraInfo of its namespace (or ``intrinsics``; ``rectified``: P, no distortion)."""
+    CameraInfo of its namespace (or ``intrinsics``; ``rectified``: P, no distortion). Each image
+    takes the CameraInfo ``camera.pick_camera_info`` chooses, as the node does."""
 
     kind = RecordingKind.BAG
 
     def __init__(self, path: str | Path, image_topic: str | None = None,
                  camera_info_topic: str | None = None,
-                 intrinsics: str | Path | CameraModel | None = None, rectified: bool = False) -> None:
+                 intrinsics: str | Path | CameraModel | None = None, rectified: bool = False,
+                 camera_info_max_stamp_diff_ns: int = CAMERA_INFO_MAX_STAMP_DIFF_NS) -> None:
         super().__init__(path, intrinsics)
         self._info: list[tuple[int, CameraModel]] = []
         self._msgtype = ""
         self._rectified = bool(rectified)
+        self._max_stamp_diff_ns = int(camera_info_max_stamp_diff_ns)
         self._load_bag(image_topic, camera_info_topic)
+        self._info_ns = [s for s, _ in self._info]
         self.start_ns = _first_stamp(self)
 
     def raw_frames(self) -> Iterator[RawFrame]:
@@ -336,8 +340,7 @@ class BagSource(FrameSource):
             return self._intrinsics
         if not self._info:
             return None
-        i = bisect_right([s for s, _ in self._info], stamp_ns) - 1
-        return self._info[max(i, 0)][1]  # before the first CameraInfo: use the first one
+        return self._info[pick_camera_info(self._info_ns, stamp_ns, self._max_stamp_diff_ns)][1]
 
     def _bag_frames(self) -> Iterator[RawFrame]:
         reader = open_bag_reader(self.path)

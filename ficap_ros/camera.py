@@ -13,6 +13,7 @@ Lens models, named as in ``sensor_msgs/CameraInfo``:
 from __future__ import annotations
 
 import math
+from bisect import bisect_right
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Sequence
@@ -25,7 +26,11 @@ from ficap_ros.errors import IntrinsicsError
 from ficap_ros.files import read_text
 
 __all__ = ["CameraModel", "DISTORTION_MODELS", "load_camera_yaml", "camera_from_info", "camera_info_key",
-           "CameraInfoCache"]
+           "CameraInfoCache", "pick_camera_info", "CAMERA_INFO_MAX_STAMP_DIFF_NS"]
+
+#: How close a CameraInfo's stamp must be to an image's to count as that image's (the node's
+#: ``camera_info_max_stamp_diff_ms`` default; bags use it as is).
+CAMERA_INFO_MAX_STAMP_DIFF_NS = 1_000_000
 
 #: Largest image side accepted in intrinsics: beyond any camera, so a larger value is a typo or a
 #: hostile file (the pixel budget of ``image_codec`` bounds the images themselves).
@@ -280,9 +285,30 @@ def camera_info_key(msg: Any) -> tuple:
             values("k"), values("d"), values("p"))
 
 
+def pick_camera_info(stamps_ns: Sequence[int], stamp_ns: int,
+                     max_stamp_diff_ns: int = CAMERA_INFO_MAX_STAMP_DIFF_NS) -> int:
+    """Which CameraInfo an image stamped ``stamp_ns`` uses, live and offline (one rule): the
+    nearest in stamp when within ``max_stamp_diff_ns`` (the earlier on a tie), else the last one
+    at or before the image, else the first (an image older than every CameraInfo).
+
+    Args:
+        stamps_ns: the CameraInfo stamps, ascending (equal stamps in arrival order: the last of
+            them counts).
+
+    Returns:
+        An index into ``stamps_ns`` (which must not be empty).
+    """
+    i = bisect_right(stamps_ns, stamp_ns)  # stamps_ns[:i] are at or before the image
+    before = stamp_ns - stamps_ns[i - 1] if i > 0 else None
+    after = stamps_ns[i] - stamp_ns if i < len(stamps_ns) else None
+    if after is not None and after <= max_stamp_diff_ns and (before is None or after < before):
+        return i
+    return i - 1 if i > 0 else 0
+
+
 class CameraInfoCache:
-    """Intrinsics for a live stream's frames: the CameraInfo with the frame's stamp (within a
-    tolerance), else the latest, else static intrinsics (thread-safe: CameraInfo arrives on
+    """Intrinsics for a live stream's frames: the CameraInfo ``pick_camera_info`` chooses among
+    the last ``keep`` received, else static intrinsics (thread-safe: CameraInfo arrives on
     another thread than the frames).
 
     Args:
@@ -322,20 +348,20 @@ class CameraInfoCache:
             return any(s == stamp_ns for s, _ in self._infos)
 
     def camera_for(self, stamp_ns: int, max_stamp_diff_ns: int, rectified: bool) -> CameraModel:
-        """The intrinsics of a frame stamped ``stamp_ns`` (``camera_from_info``'s rule).
+        """The intrinsics of a frame stamped ``stamp_ns`` (``pick_camera_info``'s choice,
+        ``camera_from_info``'s rule).
 
         Raises:
             IntrinsicsError: none received and no static intrinsics, or an invalid CameraInfo.
         """
         with self._lock:
-            infos = list(self._infos)
+            infos = sorted(self._infos, key=lambda e: e[0])  # stable: arrival order kept
         if not infos:
             if self._static is not None:
                 return self._static
             raise IntrinsicsError(self.static_error or "no CameraInfo received yet and no "
                                   "camera_info_file")
-        info = min(infos, key=lambda e: abs(e[0] - stamp_ns))
-        msg = info[1] if abs(info[0] - stamp_ns) <= max_stamp_diff_ns else infos[-1][1]
+        msg = infos[pick_camera_info([s for s, _ in infos], stamp_ns, max_stamp_diff_ns)][1]
         key = (camera_info_key(msg), rectified)
         cache = self._cache
         if cache is not None and cache[0] == key:

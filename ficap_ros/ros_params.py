@@ -12,6 +12,7 @@ from typing import Any
 import numpy as np
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 
+from ficap_ros.camera import CAMERA_INFO_MAX_STAMP_DIFF_NS
 from ficap_ros.errors import ConfigError
 from ficap_ros.pose import POSE_METHODS, PoseConfig, UncertaintyConfig
 from ficap_ros.report import WARN_RELIABILITY
@@ -65,8 +66,9 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               range=(1, 100), read_only=True),
     ParamSpec("camera_info_file", "", "camera_calibration YAML with static intrinsics, used while "
               "no CameraInfo has been received ('' = none).", read_only=True),
-    ParamSpec("camera_info_max_stamp_diff_ms", 1.0, "A CameraInfo whose stamp is this close to the "
-              "image's is used; otherwise the latest one.", range=(0.0, 1000.0)),
+    ParamSpec("camera_info_max_stamp_diff_ms", CAMERA_INFO_MAX_STAMP_DIFF_NS / 1e6, "A CameraInfo "
+              "whose stamp is this close to the image's is used (the nearest); otherwise the last "
+              "one at or before the image (bags: the same rule).", range=(0.0, 1000.0)),
     ParamSpec("image_is_rectified", False, "The image is rectified: use CameraInfo P, no "
               "distortion."),
     ParamSpec("output_frame", "", "frame_id of the pose outputs ('' = the image's frame_id); "

@@ -1,5 +1,5 @@
 """The same input live (ficap_node, real rclpy) and offline (a real bag through ``replay`` and
-``ficap calibrate``) gives the same answer: CameraInfo rules, rectification, frontal window,
+``ficap calibrate``) gives the same answer: CameraInfo rules and choice, rectification, frontal window,
 status levels and the reference calibration's frames (issue 11's disagreements).
 """
 
@@ -108,6 +108,61 @@ def test_camera_info_rules_live_and_offline(harness_factory, tmp_path: Path, cas
     with h.lock:
         live = list(h.cap)
     _assert_same_poses(live, out.records)
+
+
+def test_camera_info_choice_live_and_offline(harness_factory, tmp_path: Path) -> None:  # noqa: F811
+    """CameraInfo stamped around the images, two intrinsics (A true, B 4 % longer focal): the node
+    and a bag pick the same one per image (camera.pick_camera_info: the nearest within 1 ms, else
+    the last at or before the image), so their poses agree. Before, the node took the latest
+    received and bags the last at or before: images 0 and 1 disagreed."""
+    a = default_scene("540p").camera
+    b = dataclasses.replace(a, K=a.K * [[1.04], [1.04], [1.0]])
+    ms = 1_000_000
+    # Per image: (offset from its stamp in ns, camera) of the CameraInfo published before it.
+    infos = [[(-5 * ms, b), (ms // 2, a)],  # the one 0.5 ms after is within the tolerance
+             [(-10 * ms, a), (10 * ms, b)],  # none within: the last before, not the latest
+             [(-800_000, b), (300_000, a)],  # both within: the nearer
+             [(-20 * ms, a), (-200_000, b), (5 * ms, a)]]  # within, before the image
+    want = [a, a, a, b]
+    images = _renders(len(infos))
+    h = harness_factory()
+    statuses = []
+    for i, image in enumerate(images):
+        s = T0 + i * DT
+        for offset_ns, camera in infos[i]:
+            msg = ros_msgs.camera_model_to_info(camera, _header(s + offset_ns))
+            for _ in range(3):  # best effort: re-send a lost one
+                h.pub_info.publish(msg)
+                try:
+                    h.wait_for(lambda: h.node._cameras.has(s + offset_ns), timeout=3.0)
+                    break
+                except AssertionError:
+                    continue
+        statuses.append(h.publish_and_wait(ros_msgs.array_to_image(image, "mono8", _header(s))))
+    assert [st.message for st in statuses] == ["pose"] * len(images)
+    h.wait_for(lambda: len(h.cap) >= len(images), what="cap poses")
+
+    bag = tmp_path / "bag"
+    with BagWriter(bag, storage="mcap") as w:
+        w.add_topic("/camera/image_raw", "sensor_msgs/msg/Image")
+        w.add_topic("/camera/camera_info", "sensor_msgs/msg/CameraInfo")
+        for i, image in enumerate(images):
+            s = T0 + i * DT
+            for offset_ns, camera in infos[i]:
+                w.write("/camera/camera_info", s + offset_ns,
+                        bag_writer.camera_info_msg(s + offset_ns, "rear_cam_optical", camera))
+            w.write("/camera/image_raw", s,
+                    bag_writer.image_msg(s, "rear_cam_optical", image, "mono8"))
+    src = open_frames(bag)
+    assert [raw.camera.K[0, 0] for raw in src.raw_frames()] == [c.K[0, 0] for c in want]
+    out = replay(src, tmp_path / "out", nominal_model(), PoseConfig(), progress=False)
+    with h.lock:
+        live = list(h.cap)
+    _assert_same_poses(live, out.records)
+    # The choice matters: B's poses are centimetres off A's.
+    far = replay(open_frames(bag, intrinsics=b), tmp_path / "out_b", nominal_model(),
+                 PoseConfig(), progress=False).records[0].T_cam_cap
+    assert np.abs(far.translation_m - out.records[0].T_cam_cap.translation_m).max() > 0.01
 
 
 def test_rectification_is_not_guessed_from_the_topic_name(tmp_path: Path) -> None:
