@@ -573,6 +573,13 @@ class LiveCalibration:
         """The frontal frame a new calibration is computed in (the mount's)."""
         return calibrated_frontal(None, self._mount)
 
+    @property
+    def mode(self) -> str:
+        """How the current calibration came: the last computed one's mode (frontal, reference),
+        ``loaded`` (from a file) or ``none`` (/diagnostics says it)."""
+        last = self.last_result
+        return last.mode if last else ("loaded" if self._current.calibrated else "none")
+
     def persist(self, path: str | Path, result: CalibrationResult | None,
                 message: str) -> tuple[bool, str]:
         """Save the current calibration to ``path`` ('' = not persisted): (success, message). A

@@ -4,7 +4,7 @@ replaced items are counted as dropped, and the callback never waits for the work
 from __future__ import annotations
 
 import threading
-from typing import Any
+from typing import Any, Callable
 
 __all__ = ["Mailbox"]
 
@@ -31,6 +31,22 @@ class Mailbox:
             self._cv.wait_for(lambda: self._item is not None or not self._open, timeout=timeout_s)
             item, self._item = self._item, None
             return self._open, item
+
+    def serve(self, handle: Callable[[Any], None],
+              on_error: Callable[[Any, Exception], None]) -> None:
+        """The worker's loop: hand each item taken to ``handle`` until the mailbox is closed; an
+        exception goes to ``on_error`` with its item and the loop goes on (one bad frame must not
+        stop a live node)."""
+        while True:
+            running, item = self.take()
+            if not running:
+                return
+            if item is None:
+                continue
+            try:
+                handle(item)
+            except Exception as err:  # noqa: BLE001 - reported by on_error, the loop goes on
+                on_error(item, err)
 
     def counts(self) -> tuple[int, int]:
         """(received, dropped) so far, read together."""

@@ -19,7 +19,8 @@ Services:
 
 Frames arrive in a one-slot mailbox and are processed by a worker thread: the newest frame wins,
 replaced frames are counted as dropped, and callbacks (services, CameraInfo) never wait for a frame
-to be processed. All detection and pose estimation is ``ficap_ros.pipeline.FrameProcessor``.
+to be processed. What a frame becomes (decoding, intrinsics, pipeline, status) is
+``ficap_ros.live``; all detection and pose estimation is ``ficap_ros.pipeline.FrameProcessor``.
 """
 
 from __future__ import annotations
@@ -30,7 +31,6 @@ import threading
 import time
 from typing import Any
 
-import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, Vector3Stamped
@@ -48,15 +48,11 @@ from visualization_msgs.msg import MarkerArray
 from ficap_ros import ros_msgs, ros_params
 from ficap_ros.calibration import CalibrationResult, HeadCalibration, LiveCalibration
 from ficap_ros.camera import CameraInfoCache
-from ficap_ros.cap_model import load_model, nominal_model
-from ficap_ros.detection import DetectorConfig
-from ficap_ros.errors import CalibrationError, FicapError
+from ficap_ros.errors import FicapError
+from ficap_ros.live import LiveFrame, failed_frame, process_image, reference_q_xyzw
 from ficap_ros.mailbox import Mailbox
 from ficap_ros.native_log import ThrottledStderr
-from ficap_ros.pipeline import FrameProcessor
-from ficap_ros.report import (PeriodStats, frame_status, quality_values,
-                              record_from_pose, record_from_result, record_status, status_values)
-from ficap_ros.ros_params import CalibrationMode
+from ficap_ros.report import PeriodStats
 
 __all__ = ["FicapNode", "main"]
 
@@ -75,12 +71,7 @@ class FicapNode(Node):
         self.add_post_set_parameters_callback(self._after_set_parameters)
 
         # Core objects: the pipeline, the intrinsics, the calibration (swapped whole, under a lock).
-        self._processor = FrameProcessor(
-            model=load_model(cfg.model_file) if cfg.model_file else nominal_model(),
-            detector=DetectorConfig(backend=cfg.detector_backend,
-                                    corner_refine=cfg.detector_corner_refine,
-                                    search_decimate=cfg.detector_search_decimate),
-            pose=cfg.pose_config, tracking=cfg.tracking)
+        self._processor = cfg.frame_processor()
         self._cameras = CameraInfoCache.with_file(cfg.camera_info_file)
         if self._cameras.static_error:
             self.get_logger().error(self._cameras.static_error)
@@ -118,11 +109,12 @@ class FicapNode(Node):
             self.create_subscription(PoseStamped, cfg.calibration_reference_topic,
                                      self._on_reference, ref_qos, callback_group=side)
         pub = self.create_publisher
-        self._pub_head = pub(PoseStamped, "head_pose", 10)
-        self._pub_head_cov = pub(PoseWithCovarianceStamped, "head_pose/with_covariance", 10)
-        self._pub_cap = pub(PoseStamped, "cap_pose", 10)
-        self._pub_head_frontal = pub(PoseStamped, "head_pose/frontal", 10)
-        self._pub_rpy = pub(Vector3Stamped, "head_rpy_deg", 10)
+        # The pose outputs by ros_msgs.pose_outputs' names.
+        self._pubs = {"head": pub(PoseStamped, "head_pose", 10),
+                      "head_cov": pub(PoseWithCovarianceStamped, "head_pose/with_covariance", 10),
+                      "cap": pub(PoseStamped, "cap_pose", 10),
+                      "head_frontal": pub(PoseStamped, "head_pose/frontal", 10),
+                      "rpy": pub(Vector3Stamped, "head_rpy_deg", 10)}
         self._pub_quality = pub(JointState, "quality", 10)
         self._pub_status = pub(DiagnosticArray, "status", 10)
         self._pub_diag = pub(DiagnosticArray, "/diagnostics", 10)
@@ -136,9 +128,7 @@ class FicapNode(Node):
 
         self.unknown_parameters = ros_params.unknown_parameters(self)
         if self.unknown_parameters:
-            self.get_logger().warning(
-                f"unknown parameter(s) ignored: {', '.join(self.unknown_parameters)} (ficap_node "
-                f"declares: {', '.join(p.name for p in ros_params.PARAMETERS)})")
+            self.get_logger().warning(ros_params.unknown_warning(self.unknown_parameters))
         self._worker = threading.Thread(target=self._work, name="ficap_worker", daemon=True)
         self._worker.start()
         self.get_logger().info(
@@ -165,17 +155,7 @@ class FicapNode(Node):
         return self._calibration.current
 
     def _run_calibration(self) -> CalibrationResult:
-        cfg = self._config
-        if cfg.effective_calibration_mode is CalibrationMode.FRONTAL:
-            return self._recorder.frontal(cfg.calibration_window_s, self._calibration.frontal_frame(),
-                                          min_frames=cfg.calibration_min_frames,
-                                          max_spread_deg=cfg.calibration_max_spread_deg,
-                                          min_reliability=cfg.calibration_min_reliability)
-        if not cfg.calibration_reference_topic:
-            raise CalibrationError("reference mode needs calibration.reference_topic")
-        return self._recorder.reference(int(cfg.calibration_pair_tolerance_ms * 1e6),
-                                        min_pairs=cfg.calibration_min_pairs,
-                                        max_pairs=cfg.calibration_max_pairs)
+        return self._config.calibrate(self._recorder, self._calibration.frontal_frame())
 
     def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
         return self._answer(response, *self._calibration.calibrate(
@@ -204,95 +184,70 @@ class FicapNode(Node):
         self._cameras.add(ros_msgs.stamp_to_ns(msg.header.stamp), msg)
 
     def _on_reference(self, msg: PoseStamped) -> None:
-        o = msg.pose.orientation
-        q = np.array([o.x, o.y, o.z, o.w], dtype=np.float64)
-        if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-6:
+        q = reference_q_xyzw(msg)
+        if q is None:
             self.get_logger().warning("reference pose with an invalid quaternion ignored",
                                       throttle_duration_sec=self._config.warn_throttle_s)
-            return
-        self._recorder.add_reference(ros_msgs.stamp_to_ns(msg.header.stamp), q / np.linalg.norm(q))
+        else:
+            self._recorder.add_reference(ros_msgs.stamp_to_ns(msg.header.stamp), q)
 
     # -- processing ------------------------------------------------------------------------------
     def _work(self) -> None:
-        while True:
-            running, item = self._mailbox.take()
-            if not running:
-                return
-            if item is None:
-                continue
-            try:
-                self._process(*item)
-            except Exception as err:  # noqa: BLE001 - keep the node alive; report and go on
-                self._report_error(item[0].header, f"internal error: {type(err).__name__}: {err}")
-                self.get_logger().error(f"processing failed: {err!r}",
-                                        throttle_duration_sec=self._config.warn_throttle_s)
+        self._mailbox.serve(lambda item: self._process(*item), self._on_internal_error)
+
+    def _on_internal_error(self, item: tuple[Any, int], err: Exception) -> None:
+        self._report_error(item[0].header, f"internal error: {type(err).__name__}: {err}")
+        self.get_logger().error(f"processing failed: {err!r}",
+                                throttle_duration_sec=self._config.warn_throttle_s)
 
     def _report_error(self, header: Header, reason: str) -> None:
         self._stats.error(reason)
         self.get_logger().warning(reason, throttle_duration_sec=self._config.warn_throttle_s)
-        rec = record_from_pose(0, ros_msgs.stamp_to_ns(header.stamp), header.frame_id, None, (),
-                               reason, self.calibration)
-        self._publish_status(header, rec, *frame_status(False, math.nan, error=reason), "", math.nan)
+        self._publish_status(header, failed_frame(ros_msgs.stamp_to_ns(header.stamp),
+                                                  header.frame_id, reason, self.calibration),
+                             math.nan)
 
-    def _publish_status(self, header: Header, rec: Any, level: int, message: str, search: str,
-                        latency_ms: float) -> None:
+    def _publish_status(self, header: Header, frame: LiveFrame, latency_ms: float) -> None:
         """``quality`` and ``status`` of a frame (``ficap_ros.report``'s values, as labels.mcap)."""
-        self._pub_quality.publish(ros_msgs.quality_msg(
-            header, {**quality_values(rec), "latency_ms": float(latency_ms)}))
-        values = {**status_values(rec), "search": search, "latency_ms": latency_ms,
-                  "dropped_frames": self._mailbox.dropped}
-        status = ros_msgs.diagnostic_status(STATUS_NAME, bytes([level]), message, values,
-                                            hardware_id=header.frame_id)
-        frame = self._config.output_frame or header.frame_id
-        self._pub_status.publish(ros_msgs.diagnostic_array(Header(stamp=header.stamp,
-                                                                  frame_id=frame), status))
+        self._pub_quality.publish(ros_msgs.quality_msg(header, frame.quality_values(latency_ms)))
+        status = ros_msgs.diagnostic_status(
+            STATUS_NAME, bytes([frame.level]), frame.message,
+            frame.status_values(latency_ms, self._mailbox.dropped), hardware_id=header.frame_id)
+        out = Header(stamp=header.stamp, frame_id=self._config.output_frame or header.frame_id)
+        self._pub_status.publish(ros_msgs.diagnostic_array(out, status))
 
     def _process(self, msg: Image | CompressedImage, received_ns: int) -> None:
-        cfg = self._config
-        header = msg.header
+        cfg, header = self._config, msg.header
         self._camera_frame = header.frame_id
-        stamp_ns = ros_msgs.stamp_to_ns(header.stamp)
         calibration = self.calibration  # one read per frame: the service thread swaps it whole
-        try:
-            image = (ros_msgs.compressed_to_array(msg) if isinstance(msg, CompressedImage)
-                     else ros_msgs.image_to_array(msg))
-            camera = self._cameras.camera_for(stamp_ns, int(cfg.camera_info_max_stamp_diff_ms * 1e6),
-                                              cfg.image_is_rectified)
-            camera.check_image_size(image.shape[1], image.shape[0])
-            result = self._processor.process(image, camera, stamp_ns, calibration)
-        except FicapError as err:
-            self._report_error(header, str(err))
+        frame = process_image(msg, self._processor, self._cameras, calibration, cfg)
+        result = frame.result
+        if result is None:
+            self._report_error(header, frame.message)
             return
-        pose = result.pose
-        if (pose is not None and result.T_cam_head is not None
-                and pose.reliability >= cfg.publish_min_reliability):
-            pubs = {"head": self._pub_head, "head_cov": self._pub_head_cov, "cap": self._pub_cap,
-                    "head_frontal": self._pub_head_frontal, "rpy": self._pub_rpy}
+        if frame.publish_pose:
             for name, out in ros_msgs.pose_outputs(header, result, calibration.R_cam_frontal,
                                                    cfg.output_frame, cfg.frontal_frame,
                                                    self._mount).items():
-                pubs[name].publish(out)
+                self._pubs[name].publish(out)
         latency_ms = (time.monotonic_ns() - received_ns) / 1e6
-        rec = record_from_result(result, calibration, frame_id=header.frame_id)
-        self._publish_status(header, rec, *record_status(rec, cfg.warn_reliability),
-                             str(result.search), latency_ms)
+        self._publish_status(header, frame, latency_ms)
         # Markers and the debug image are drawn in camera coordinates: the camera's frame.
         cam_header = Header(stamp=header.stamp, frame_id=header.frame_id)
         if self._pub_markers.get_subscription_count() > 0:
             self._pub_markers.publish(ros_msgs.markers_msg(cam_header, self._processor.model, result))
-        if self._pub_debug.get_subscription_count() > 0:
-            gray = image if image.ndim == 2 else image[:, :, 0]
-            self._pub_debug.publish(ros_msgs.debug_image_msg(gray, result, camera, cam_header))
+        if self._pub_debug.get_subscription_count() > 0 and frame.image is not None:
+            self._pub_debug.publish(ros_msgs.debug_image_msg(frame.image, result, frame.camera,
+                                                             cam_header))
         self._stats.frame(result.tags_detected, latency_ms)
-        if pose is not None:
-            self._recorder.add_cap(stamp_ns, pose.T_cam_cap.rotation, pose.reliability)
+        if result.pose is not None:
+            self._recorder.add_cap(result.stamp_ns, result.pose.T_cam_cap.rotation,
+                                   result.pose.reliability)
 
     # -- diagnostics -----------------------------------------------------------------------------
     def _on_diagnostics_timer(self) -> None:
-        calib, last = self.calibration, self._calibration.last_result
         level, message, values = self._stats.health(
-            self._mailbox.counts(), calib.calibrated,
-            last.mode if last else ("loaded" if calib.calibrated else "none"))
+            self._mailbox.counts(), self.calibration.calibrated, self._calibration.mode)
         status = ros_msgs.diagnostic_status(
             f"{self.get_name()}: pipeline", bytes([level]), message, values,
             hardware_id=self._config.diagnostics_hardware_id or self._camera_frame)

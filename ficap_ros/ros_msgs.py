@@ -247,7 +247,9 @@ def debug_image_msg(
     gray: np.ndarray, result: FrameResult | None, camera: CameraModel | None, header: Header,
     axis_length_m: float = 0.1,
 ) -> Image:
-    """A bgr8 image: detected corners and ids (OpenCV's drawing) and the head axes."""
+    """A bgr8 image: detected corners and ids (OpenCV's drawing) and the head axes (``gray``:
+    the decoded image, uint8 or uint16; of a multi-channel one the first channel)."""
+    gray = gray if gray.ndim == 2 else gray[:, :, 0]
     img = gray if gray.dtype == np.uint8 else (gray >> 8).astype(np.uint8)
     bgr = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
     if result is not None and result.detections:

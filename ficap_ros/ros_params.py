@@ -10,10 +10,15 @@ from enum import Enum
 from typing import Any
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 
 from ficap_ros.camera import CAMERA_INFO_MAX_STAMP_DIFF_NS
-from ficap_ros.errors import ConfigError
+from ficap_ros.calibration import CalibrationRecorder, CalibrationResult
+from ficap_ros.cap_model import load_model, nominal_model
+from ficap_ros.detection import DetectorConfig
+from ficap_ros.errors import CalibrationError, ConfigError
+from ficap_ros.pipeline import FrameProcessor
 from ficap_ros.pose import POSE_METHODS, PoseConfig, UncertaintyConfig
 from ficap_ros.report import WARN_RELIABILITY
 from ficap_ros.transform import Transform
@@ -309,6 +314,34 @@ class NodeConfig:
                 CalibrationMode.FRONTAL
         return self.calibration_mode
 
+    def frame_processor(self) -> FrameProcessor:
+        """The pipeline these settings describe (cap model, detector, pose, tracking)."""
+        return FrameProcessor(
+            model=load_model(self.model_file) if self.model_file else nominal_model(),
+            detector=DetectorConfig(backend=self.detector_backend,
+                                    corner_refine=self.detector_corner_refine,
+                                    search_decimate=self.detector_search_decimate),
+            pose=self.pose_config, tracking=self.tracking)
+
+    def calibrate(self, recorder: CalibrationRecorder, R_cam_frontal: Rotation) -> CalibrationResult:
+        """What ``~/calibrate`` does under these settings, from ``recorder``'s buffers
+        (``R_cam_frontal``: the frontal frame a frontal calibration keeps).
+
+        Raises:
+            CalibrationError: too few frames or pairs, too much spread, or reference mode
+                without a reference topic.
+        """
+        if self.effective_calibration_mode is CalibrationMode.FRONTAL:
+            return recorder.frontal(self.calibration_window_s, R_cam_frontal,
+                                    min_frames=self.calibration_min_frames,
+                                    max_spread_deg=self.calibration_max_spread_deg,
+                                    min_reliability=self.calibration_min_reliability)
+        if not self.calibration_reference_topic:
+            raise CalibrationError("reference mode needs calibration.reference_topic")
+        return recorder.reference(int(self.calibration_pair_tolerance_ms * 1e6),
+                                  min_pairs=self.calibration_min_pairs,
+                                  max_pairs=self.calibration_max_pairs)
+
     @property
     def pose_config(self) -> PoseConfig:
         """The pose settings (estimator and covariance floors)."""
@@ -371,3 +404,9 @@ def unknown_parameters(node: Any) -> list[str]:
     ignored). rclpy's own (``use_sim_time``, ``qos_overrides.*``) count as known."""
     return sorted(n for n in override_names(node)
                   if not node.has_parameter(n) and not n.startswith("qos_overrides."))
+
+
+def unknown_warning(names: list[str]) -> str:
+    """The start-up warning naming parameters the node does not declare, and those it does."""
+    return (f"unknown parameter(s) ignored: {', '.join(names)} (ficap_node declares: "
+            f"{', '.join(p.name for p in PARAMETERS)})")

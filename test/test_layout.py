@@ -22,6 +22,7 @@ LAYERS = [
     ["tracking"],
     ["pipeline"],
     ["report"],
+    ["live"],
     ["labels", "synth", "model_build", "kit"],
     ["replay", "evaluation"],
     ["fleet"],

@@ -228,7 +228,7 @@ def test_output_frame_through_camera_mount(drive, harness_factory) -> None:
         h.peer.create_subscription(Vector3Stamped, "head_rpy_deg", h._rec(rpy), 50)
         h.peer.create_subscription(JointState, "quality", h._rec(quality), 50)
         h.wait_for(lambda: h.node._pub_quality.get_subscription_count() > 0
-                   and h.node._pub_rpy.get_subscription_count() > 0, what="subscribers")
+                   and h.node._pubs["rpy"].get_subscription_count() > 0, what="subscribers")
         _play(h, scene, few)
         h.wait_for(lambda: len(cov) >= len(few) and len(quality) >= len(few)
                    and len(rpy) >= len(few), timeout=5.0, what="outputs")
