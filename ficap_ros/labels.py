@@ -264,26 +264,18 @@ def label_topics(namespace: str = DEFAULT_NAMESPACE) -> dict[str, str]:
 
 
 def _quality_msg(rec: LabelRecord) -> object:
-    from ficap_ros.bag_io import jazzy_typestore
     from ficap_ros.bag_writer import header
+    from ficap_ros.messages import ROSBAGS, named_values
 
-    values = quality_values(rec)
-    return jazzy_typestore().types["sensor_msgs/msg/JointState"](
-        header=header(rec.stamp_ns, rec.frame_id), name=list(values),
-        position=np.array(list(values.values()), dtype=np.float64),
-        velocity=np.zeros(0, dtype=np.float64), effort=np.zeros(0, dtype=np.float64))
+    return named_values(ROSBAGS, header(rec.stamp_ns, rec.frame_id), quality_values(rec))
 
 
 def _rpy_msg(rec: LabelRecord) -> object:
-    from ficap_ros.bag_io import jazzy_typestore
     from ficap_ros.bag_writer import header
+    from ficap_ros.messages import ROSBAGS, rpy_deg
 
     assert rec.T_frontal_head is not None
-    t = jazzy_typestore().types
-    yaw, pitch, roll = (float(v) for v in yaw_pitch_roll_deg(rec.T_frontal_head.rotation))
-    return t["geometry_msgs/msg/Vector3Stamped"](
-        header=header(rec.stamp_ns, FRONTAL_FRAME),
-        vector=t["geometry_msgs/msg/Vector3"](x=roll, y=pitch, z=yaw))
+    return rpy_deg(ROSBAGS, header(rec.stamp_ns, FRONTAL_FRAME), rec.T_frontal_head.rotation)
 
 
 def _tf_msg(rec: LabelRecord) -> object:

@@ -21,11 +21,13 @@ from scipy.spatial.transform import Rotation
 
 from ficap_ros.camera import CameraModel
 from ficap_ros.image_codec import decode_compressed, decode_image
+from ficap_ros.metrics import yaw_pitch_roll_deg
 from ficap_ros.stamps import stamp_to_ns
 from ficap_ros.transform import Transform
 
 __all__ = ["MessageClasses", "ROSBAGS", "jazzy_typestore", "as_bytes", "header", "pose",
-           "pose_stamped", "pose_with_covariance_stamped", "camera_info", "image",
+           "pose_stamped", "pose_with_covariance_stamped", "rpy_deg", "named_values",
+           "camera_info", "image",
            "compressed_image", "image_to_array", "compressed_to_array", "orientation",
            "pose_to_transform", "UNKNOWN_COVARIANCE"]
 
@@ -123,6 +125,27 @@ def pose_with_covariance_stamped(c: MessageClasses, head: Any, T: Transform,
     return c.types["geometry_msgs/msg/PoseWithCovarianceStamped"](
         header=head, pose=c.types["geometry_msgs/msg/PoseWithCovariance"](
             pose=pose(c, T), covariance=c.floats(cov)))
+
+
+def rpy_deg(c: MessageClasses, head: Any, R_frontal_head: Rotation) -> Any:
+    """``geometry_msgs/Vector3Stamped`` of the head angles in degrees: x roll, y pitch, z yaw
+    (each about its axis, REP-103 right-hand, intrinsic ZYX: tf2's ``getRPY``); pitch positive
+    nose down."""
+    yaw, pitch, roll = (float(v) for v in yaw_pitch_roll_deg(R_frontal_head))
+    return c.types["geometry_msgs/msg/Vector3Stamped"](
+        header=head, vector=c.types["geometry_msgs/msg/Vector3"](x=roll, y=pitch, z=yaw))
+
+
+def named_values(c: MessageClasses, head: Any, values: Mapping[str, float]) -> Any:
+    """Per-frame numbers as a ``sensor_msgs/JointState``: ``name[i]`` labels ``position[i]``.
+
+    JointState is the standard stamped message of named numbers that Foxglove and PlotJuggler
+    plot by name; velocity and effort stay empty. NaN where a value does not exist (no pose).
+    """
+    return c.types["sensor_msgs/msg/JointState"](
+        header=head, name=list(values),
+        position=c.floats(np.array([float(v) for v in values.values()], dtype=np.float64)),
+        velocity=c.floats(np.zeros(0)), effort=c.floats(np.zeros(0)))
 
 
 def camera_info(c: MessageClasses, head: Any, camera: CameraModel) -> Any:

@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Point, Pose, PoseStamped, PoseWithCovarianceStamped, Vector3, Vector3Stamped
+from geometry_msgs.msg import Point, Pose, PoseStamped, PoseWithCovarianceStamped, Vector3Stamped
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, Image, JointState
 from std_msgs.msg import Header
@@ -23,7 +23,6 @@ from visualization_msgs.msg import Marker, MarkerArray
 from ficap_ros import messages
 from ficap_ros.camera import CameraModel, camera_from_info
 from ficap_ros.cap_model import CapModel
-from ficap_ros.metrics import yaw_pitch_roll_deg
 from ficap_ros.errors import ImageError, IntrinsicsError
 from ficap_ros.pipeline import FrameResult
 from ficap_ros.stamps import stamp_to_ns
@@ -159,20 +158,15 @@ def pose_with_covariance_stamped(
 
 
 def rpy_deg_msg(header: Header, R_frontal_head: Rotation) -> Vector3Stamped:
-    """``Vector3Stamped`` of the head angles in degrees: x roll, y pitch, z yaw (each about its
-    axis, REP-103 right-hand, intrinsic ZYX: tf2's ``getRPY``); pitch positive nose down."""
-    yaw, pitch, roll = (float(v) for v in yaw_pitch_roll_deg(R_frontal_head))
-    return Vector3Stamped(header=header, vector=Vector3(x=roll, y=pitch, z=yaw))
+    """``Vector3Stamped`` of the head angles in degrees (``messages.rpy_deg``: x roll, y pitch,
+    z yaw, tf2's ``getRPY``; pitch positive nose down)."""
+    return messages.rpy_deg(RCLPY, header, R_frontal_head)
 
 
 def quality_msg(header: Header, values: Mapping[str, float]) -> JointState:
-    """Per-frame numbers as a ``sensor_msgs/JointState``: ``name[i]`` labels ``position[i]``.
-
-    JointState is the standard stamped message of named numbers that Foxglove and PlotJuggler
-    plot by name; velocity and effort stay empty. NaN where a value does not exist (no pose).
-    """
-    return JointState(header=header, name=list(values),
-                      position=[float(v) for v in values.values()])
+    """Per-frame numbers as a ``sensor_msgs/JointState`` (``messages.named_values``: ``name[i]``
+    labels ``position[i]``)."""
+    return messages.named_values(RCLPY, header, values)
 
 
 # -- diagnostics ---------------------------------------------------------------------------------
