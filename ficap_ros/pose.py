@@ -5,7 +5,7 @@ Three estimators, chosen by name (``PoseConfig.method``):
 ``joint`` (default)
     One PnP over every visible corner. Start: the best-supported of SQPnP over all corners and the
     per-tag IPPE poses (a consensus over tags, so one wrong tag cannot spoil the start); then
-    Gauss-Newton/Levenberg-Marquardt (``_refine``, on the pose itself) of the reprojection error,
+    Gauss-Newton/Levenberg-Marquardt (``scipy.optimize.least_squares``) of the reprojection error,
     with tag-level outlier rejection: a tag whose RMS reprojection error stands far above the
     others' is dropped and the pose re-solved.
 ``paper``
@@ -61,6 +61,7 @@ from typing import Callable, Sequence
 
 import cv2
 import numpy as np
+from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
 from ficap_ros.camera import CameraModel
@@ -339,59 +340,35 @@ def _at(T: Transform, obs: _Observations) -> tuple[np.ndarray, np.ndarray]:
     return _residuals_and_jacobian_at(T.rotation_matrix, T.translation_m, obs.K, obs.model_m, obs.image_px)
 
 
-#: The pose refinement stops at a step that turns the cap by less than ``_LM_STEP_RAD`` and moves
-#: it by less than ``_LM_STEP_M``: ten thousand times below what the results are compared at
-#: (1e-6 deg, 1e-6 mm); the steps after that are rounding noise (they stop lowering the cost).
-_LM_STEP_RAD = 1e-10
-_LM_STEP_M = 1e-10
-_LM_MAX_STEPS = 50
-
-
 def _refine(obs: _Observations, T0: Transform) -> tuple[Transform, np.ndarray, float]:
     """Least-squares reprojection refinement; returns (pose, covariance ROS order, rms_px).
 
-    Levenberg-Marquardt on the pose itself: each step is solved for a left perturbation of the
-    current pose (where ``_residuals_and_jacobian_at``'s Jacobian is exact) and composed into it;
-    Gauss-Newton steps while they lower the cost, Marquardt's damping when one does not. From a
-    start within a few pixels it takes 2-3 steps to the minimum scipy's MINPACK ``lm`` finds
-    (within 2e-8 deg and 1e-8 mm: test/test_pose_solver.py), in about half its time (no per-call
-    set-up; the last step's residuals and Jacobian are the answer's).
+    ``scipy.optimize.least_squares`` (MINPACK Levenberg-Marquardt) over a left perturbation of the
+    start, ``x = (d_theta, t)``, with the analytic Jacobian. The answer's residuals and Jacobian
+    are the ones MINPACK ends with (``sol.fun``, ``sol.jac``): no further evaluation.
     """
-    K, model_m, image_px = obs.K, obs.model_m, obs.image_px
-    R = np.array(T0.rotation_matrix)
-    t = np.array(T0.translation_m)
-    res, J = _residuals_and_jacobian_at(R, t, K, model_m, image_px)
-    cost = float(res @ res)
-    JtJ, g = J.T @ J, J.T @ res
-    damping = 0.0
-    for _ in range(_LM_MAX_STEPS):
-        A = JtJ + damping * np.diag(np.diag(JtJ)) if damping else JtJ
-        try:
-            step = -np.linalg.solve(A, g)
-        except np.linalg.LinAlgError:
-            break
-        if not np.all(np.isfinite(step)):
-            break
-        R1 = cv2.Rodrigues(step[:3])[0] @ R
-        t1 = t + step[3:]
-        if np.linalg.norm(step[:3]) < _LM_STEP_RAD and np.linalg.norm(step[3:]) < _LM_STEP_M:
-            R, t = R1, t1  # converged; residuals this close to the last ones need no new look
-            break
-        res1, J1 = _residuals_and_jacobian_at(R1, t1, K, model_m, image_px)
-        cost1 = float(res1 @ res1)
-        if np.isfinite(cost1) and cost1 <= cost:
-            R, t, res, J, cost = R1, t1, res1, J1, cost1
-            JtJ, g = J.T @ J, J.T @ res
-            damping = 0.0 if damping <= 1e-3 else 0.1 * damping
-        else:  # worse: damp toward gradient descent, or stop where the cost is lowest
-            damping = 1e-3 if not damping else 10.0 * damping
-            if damping > 1e10:
-                break
-    return _refined(R, t, res, J)
+    R0 = T0.rotation_matrix
+    x0 = np.concatenate([np.zeros(3), T0.translation_m])
 
+    # least_squares asks for the residuals and then the Jacobian at the same x: compute both once.
+    cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
 
-def _refined(R: np.ndarray, t: np.ndarray, res: np.ndarray, J: np.ndarray) -> tuple[Transform, np.ndarray, float]:
-    return Transform(Rotation.from_matrix(R), t), _covariance(res, J), float(np.sqrt(np.mean(res**2) * 2.0))
+    def both(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        key = x.tobytes()
+        if key not in cache:
+            cache.clear()
+            cache[key] = _residuals_and_jacobian(x, R0, obs.K, obs.model_m, obs.image_px)
+        return cache[key]
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        return both(x)[0]
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        return both(x)[1]
+
+    sol = least_squares(fun, x0, jac=jac, method="lm", xtol=1e-10, ftol=1e-10, max_nfev=50)
+    T = Transform(Rotation.from_rotvec(sol.x[:3]) * T0.rotation, sol.x[3:])
+    return T, _covariance(sol.fun, sol.jac), float(np.sqrt(np.mean(sol.fun**2) * 2.0))
 
 
 def _covariance(res: np.ndarray, J: np.ndarray) -> np.ndarray:
