@@ -213,7 +213,7 @@ class CapPose:
         covariance: 6x6, ROS order (x, y, z in m; rotation about the camera's x, y, z in rad), of a
             small perturbation ``T = (exp(d_theta) R, t + d_t)`` of ``T_cam_cap``: every error
             source of ``UncertaintyConfig`` propagated through the fit (module docstring); finite
-            and positive definite.
+            and positive definite (NaN only for a pose estimated ``with_uncertainty=False``).
         reliability: score in [0, 1] from ``rot_err95_deg`` (module docstring).
         method: the estimator's name.
         rot_err95_deg: predicted 95 % bound of the geodesic rotation error of ``T_cam_cap``, deg.
@@ -643,6 +643,7 @@ def estimate_cap_pose(
     camera: CameraModel,
     config: PoseConfig | None = None,
     start: Transform | None = None,
+    with_uncertainty: bool = True,
 ) -> PoseResult:
     """Estimate T_cam_cap from detections of the model's tags.
 
@@ -654,6 +655,11 @@ def estimate_cap_pose(
         start: a predicted pose (tracking), ``joint`` only: when every tag agrees with it, it
             replaces the consensus search as the refinement's start. The answer does not depend on
             it beyond the optimiser's tolerance.
+        with_uncertainty: build the covariance and its bounds (``uncertainty_terms``, about
+            0.9 ms a pose). False for a pose only its ``T_cam_cap`` and tags are wanted of (the
+            tracker's intermediate poses): ``T_cam_cap``, the tags and ``rms_px`` are the same,
+            but ``covariance``, ``rot_err95_deg`` and ``trans_err95_mm`` are NaN and
+            ``reliability`` is 0. Never for a pose that is reported.
     Returns:
         A ``PoseResult``: a ``CapPose``, or ``pose=None`` with the reason.
     """
@@ -693,14 +699,18 @@ def estimate_cap_pose(
         T, tag_sigma = _reweighted(solution.used, T)
     res, _ = _at(T, solution.used)
     rms = float(np.sqrt(np.mean(res**2) * 2.0))
-    # The cell fit's edge shift of each used tag (NaN: not fitted, or the id was duplicated).
-    shifts: dict[int, float] = {}
-    for det in ours:
-        shifts[det.tag_id] = float("nan") if det.tag_id in shifts else float(det.edge_shift_px)
-    edge_shift = np.array([shifts.get(i, float("nan")) for i in solution.used.ids])
-    terms, seen = uncertainty_terms(solution.used, T, tag_sigma, edge_shift)
-    covariance = combine_uncertainty(terms, seen, config.uncertainty)
-    rot95, trans95 = error_bound95(covariance)
+    if with_uncertainty:
+        # The cell fit's edge shift of each used tag (NaN: not fitted, or the id was duplicated).
+        shifts: dict[int, float] = {}
+        for det in ours:
+            shifts[det.tag_id] = float("nan") if det.tag_id in shifts else float(det.edge_shift_px)
+        edge_shift = np.array([shifts.get(i, float("nan")) for i in solution.used.ids])
+        terms, seen = uncertainty_terms(solution.used, T, tag_sigma, edge_shift)
+        covariance = combine_uncertainty(terms, seen, config.uncertainty)
+        rot95, trans95 = error_bound95(covariance)
+    else:
+        covariance = np.full((6, 6), np.nan)
+        rot95 = trans95 = float("nan")
     pose = CapPose(
         T_cam_cap=T,
         tags_detected=tags_detected,

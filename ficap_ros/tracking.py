@@ -452,7 +452,8 @@ class Tracker:
             # extrapolation was off; they pin the pose down, and where that pose moves a missing
             # tag's predicted corners, that tag is refined again from there.
             self.second_looks += 1
-            first = estimate_cap_pose(found, self.model, camera, pose, start=predicted)
+            # Only its T_cam_cap is wanted: no uncertainty (the frame's final pose has it).
+            first = estimate_cap_pose(found, self.model, camera, pose, start=predicted, with_uncertainty=False)
             if first.pose is not None:
                 ids2, corners2 = predict_tags(self.model, camera, first.pose.T_cam_cap, cfg)
                 before = dict(zip(ids[missing].tolist(), corners[missing]))
@@ -476,8 +477,9 @@ class Tracker:
         if not self._verify or len({d.tag_id for d in found}) < self.config.min_tags:
             return found, predicted
         # One SQPnP + LM is enough to place the others: a wrong prediction verifies no tag, and
-        # the final pose only starts from it if every tag agrees with it.
-        first = estimate_cap_pose(found, self.model, camera, self._locate_pose)
+        # the final pose only starts from it if every tag agrees with it. Only its T_cam_cap is
+        # wanted: no uncertainty (the frame's final pose has it).
+        first = estimate_cap_pose(found, self.model, camera, self._locate_pose, with_uncertainty=False)
         if first.pose is None:
             return found, predicted
         ids, corners = predict_tags(self.model, camera, first.pose.T_cam_cap, self.config)

@@ -155,3 +155,23 @@ def test_fisheye_camera() -> None:
 def test_unknown_method() -> None:
     with pytest.raises(ConfigError, match="unknown pose method"):
         PoseConfig(method="magic")
+
+
+@pytest.mark.parametrize("method", ["joint", "naive"])
+def test_without_uncertainty_same_pose(method: str) -> None:
+    """``with_uncertainty=False`` (the tracker's intermediate poses) returns the same pose, tags and
+    rms bit for bit, and no covariance or bounds (NaN, reliability 0)."""
+    rng = np.random.default_rng(11)
+    for _ in range(5):
+        T = _pose(rng)
+        dets = _detections(T, rng, 0.3)
+        config = PoseConfig(method=method)
+        full = estimate_cap_pose(dets, MODEL, CAMERA, config).pose
+        lean = estimate_cap_pose(dets, MODEL, CAMERA, config, with_uncertainty=False).pose
+        assert full is not None and lean is not None
+        np.testing.assert_array_equal(lean.T_cam_cap.rotation.as_quat(), full.T_cam_cap.rotation.as_quat())
+        np.testing.assert_array_equal(lean.T_cam_cap.translation_m, full.T_cam_cap.translation_m)
+        assert (lean.used_ids, lean.tags_used, lean.rms_px) == (full.used_ids, full.tags_used, full.rms_px)
+        assert np.isfinite(full.rot_err95_deg) and np.all(np.isfinite(full.covariance))
+        assert np.isnan(lean.rot_err95_deg) and np.isnan(lean.trans_err95_mm)
+        assert np.all(np.isnan(lean.covariance)) and lean.reliability == 0.0
