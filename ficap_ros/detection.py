@@ -12,7 +12,7 @@ against ``cv2.cornerSubPix`` and OpenCV's AprilTag refinement.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Container, Sequence
 from dataclasses import dataclass, replace
 from functools import lru_cache
 from typing import Any
@@ -260,7 +260,8 @@ class TagDetector:
             )
 
     def detect(
-        self, image: np.ndarray, roi: tuple[int, int, int, int] | None = None
+        self, image: np.ndarray, roi: tuple[int, int, int, int] | None = None, *,
+        wanted_ids: Container[int] | None = None, enough_tags: int = 0,
     ) -> list[TagDetection]:
         """Detect every tag36h11 tag.
 
@@ -268,6 +269,13 @@ class TagDetector:
             image: grey or colour image (see ``as_gray``).
             roi: optional (x, y, w, h) in pixels: search only this region (clipped to the
                 image); corners are returned in full-image coordinates.
+            wanted_ids, enough_tags: on a decimated search, skip the second reading of the
+                rejected quads (``decode_rejected``) when the search itself found at least
+                ``enough_tags`` distinct ids of ``wanted_ids``: for a caller that reads the rest
+                of its tags at the pose of those (the tracker's search completion). A
+                full-resolution search always reads them again: there the second reading finds
+                small tags the completion's prediction leaves out (blender_dev 540p: 1-2 frames
+                per set with a tag fewer). None / 0: never skip.
 
         Returns:
             All detections, duplicates included, in the backend's order.
@@ -306,7 +314,9 @@ class TagDetector:
         corners = corners + offset
         if len(ids) and self.config.corner_refine == "edge":
             corners = self._refine(full, corners, dec)
-        if len(rejected) and self.config.corner_refine == "edge" and self.config.decode_rejected:
+        enough = (dec > 1 and wanted_ids is not None and enough_tags > 0
+                  and len({int(i) for i in ids if int(i) in wanted_ids}) >= enough_tags)
+        if len(rejected) and self.config.corner_refine == "edge" and self.config.decode_rejected and not enough:
             ids, corners, hamming, margin = self._second_chance(
                 full, rejected + offset, ids, corners, hamming, margin)
         shift = np.full(len(ids), np.nan)

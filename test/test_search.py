@@ -140,6 +140,32 @@ def test_searched_1080p_frames_find_at_least_apriltag3s_tags(frames_1080p) -> No
         assert r.pose is not None and r.pose.tags_used >= 4
 
 
+def test_searched_frames_skip_the_second_reading_without_losing_tags(frames_1080p, monkeypatch) -> None:
+    """A decimated search that found enough model tags skips the second reading of rejected
+    quads; the completion at their pose reads every tag the second reading would have found."""
+    camera, frames = frames_1080p
+    model = nominal_model()
+    det = TagDetector()
+    calls = []
+    second_chance = TagDetector._second_chance
+    monkeypatch.setattr(TagDetector, "_second_chance", lambda self, *a: calls.append(1) or second_chance(self, *a))
+    for f in frames:
+        gray = f.image if f.image.ndim == 2 else cv2.cvtColor(f.image, cv2.COLOR_BGR2GRAY)
+        plain = {d.tag_id for d in det.detect(gray) if d.tag_id in model}
+        calls.clear()
+        lean = {d.tag_id for d in det.detect(gray, wanted_ids=model, enough_tags=2) if d.tag_id in model}
+        assert not calls and lean <= plain and len(lean) >= 2
+        calls.clear()
+        r = FrameProcessor(model).process(gray, camera, 0)  # searched: no earlier frame
+        assert not calls, "the tracker's search read the rejected quads again"
+        assert {d.tag_id for d in r.detections} >= plain, sorted(plain - {d.tag_id for d in r.detections})
+    # A full-resolution search always reads them again (it finds small tags the completion skips).
+    small = cv2.resize(gray, (960, 540), interpolation=cv2.INTER_AREA)
+    calls.clear()
+    det.detect(small, wanted_ids=model, enough_tags=2)
+    assert calls
+
+
 def test_search_corners_match_a_full_resolution_search(frames_1080p) -> None:
     """Decimation only changes where the refinement starts: a tag gets the same corners."""
     camera, frames = frames_1080p
