@@ -118,7 +118,7 @@ class DetectorConfig:
             search misses at the pose of those it found. 0: the full range.
         decode_rejected, decode_max_bit_errors: the search's second chance (opencv backend with
             ``edge`` refine): the quads ArUco rejected are edge-refined at full size and read
-            again (``tracking.decode_tags``, at most this many of 36 bits corrected). ArUco's
+            again (``decode_tags``, at most this many of 36 bits corrected). ArUco's
             own reading at its polygon corners loses small, blurred or oblique tags.
         edge_search_px: half-length of the search along each side's normal (``edge`` refine);
             capped at 0.8 of a tag cell so the search stays on the black border and white margin.
@@ -366,8 +366,6 @@ class TagDetector:
         hamming: np.ndarray, margin: np.ndarray,
     ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Detections plus the rejected ``quads`` that read as tags of ids not yet found."""
-        from ficap_ros.tracking import decode_tags
-
         # A loose read at the polygon corners first, so only plausible quads pay for the refinement.
         maybe, _, _, _ = decode_tags(full, quads, max_bit_errors=8)
         if not maybe.any():
@@ -720,6 +718,109 @@ def _apply_h(hom: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Points (P, 2) through homographies (P, 3, 3), one per point."""
     p = np.einsum("pij,pj->pi", hom[:, :, :2], uv) + hom[:, :, 2]
     return p[:, :2] / p[:, 2:3]
+
+
+# -- reading a tag's cells (tracking's verification, the search's second chance) ----------------
+def _cell_grid() -> np.ndarray:
+    """Centres (100, 2) of the 10x10 cells (white margin ring + 8x8 tag), in cell units from c0."""
+    c = np.arange(-1, TAG_CELLS + 1) + 0.5
+    gx, gy = np.meshgrid(c, c)
+    return np.column_stack([gx.ravel(), gy.ravel()])
+
+
+_GRID = _cell_grid()
+_GRID_H = np.concatenate([_GRID, np.ones((len(_GRID), 1))], axis=1)  # homogeneous (100, 3)
+_RING_MARGIN = ((_GRID < 0) | (_GRID > TAG_CELLS)).any(axis=1)  # the white quiet zone
+_INNER = ~_RING_MARGIN  # the 8x8 tag cells, row-major
+_BORDER = ((_GRID[_INNER] < 1) | (_GRID[_INNER] > TAG_CELLS - 1)).any(axis=1)  # of the 64: the black border
+
+
+def read_tag_cells(gray: np.ndarray, hom: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Read the 8x8 cells of tags through their homographies (cell units from c0 -> pixels).
+
+    Each cell is sampled at its centre and read against the tag's own levels, taken from the cells
+    every tag shares: its black border and the white quiet zone around it.
+
+    Returns:
+        (read_black (K, 64) bool row-major, white (K,), black (K,) grey levels, finite (K,): every
+        sample point finite, i.e. the homography is usable).
+    """
+    import cv2
+
+    p = np.einsum("kij,gj->kgi", hom, _GRID_H)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        xy = (p[..., :2] / p[..., 2:3]).astype(np.float32)  # (K, 100, 2)
+    finite = np.all(np.isfinite(xy), axis=(1, 2))
+    xy = np.where(np.isfinite(xy), xy, -1.0)
+    vals = cv2.remap(gray, xy[..., 0], xy[..., 1], cv2.INTER_LINEAR,
+                     borderMode=cv2.BORDER_CONSTANT, borderValue=0).astype(np.float64)  # (K, 100)
+    inner = vals[:, _INNER]  # (K, 64)
+    white = vals[:, _RING_MARGIN].mean(axis=1)
+    black = inner[:, _BORDER].mean(axis=1)
+    return inner < 0.5 * (white + black)[:, None], white, black, finite
+
+
+@lru_cache(maxsize=1)
+def _all_codes() -> np.ndarray:
+    """(587, 36) the 6x6 data cells of every tag36h11 id (True = black), OpenCV's drawing."""
+    import cv2
+
+    n = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11).bytesList.shape[0]
+    codes = np.stack([tag_cells(i)[1:-1, 1:-1].ravel() for i in range(n)])
+    codes.setflags(write=False)
+    return codes
+
+
+def _pack36(bits: np.ndarray) -> np.ndarray:
+    """(N, 36) bool -> (N,) uint64 words."""
+    return (bits.astype(np.uint64) << np.arange(36, dtype=np.uint64)).sum(axis=1, dtype=np.uint64)
+
+
+@lru_cache(maxsize=1)
+def _all_words() -> np.ndarray:
+    return _pack36(_all_codes())
+
+
+def decode_tags(
+    gray: np.ndarray, corners_px: np.ndarray, max_bit_errors: int = 2, min_contrast: float = 10.0,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Read quads of unknown id as tag36h11 tags (the search's second chance).
+
+    Each quad's cells are read by ``read_tag_cells`` (as tracking verifies a tag), in its four
+    corner orders; the order and id whose 36 data cells are nearest (Hamming) win. A quad is a tag when at most
+    ``max_bit_errors`` data cells and 2 of the 28 border cells disagree and the border is at
+    least ``min_contrast`` grey levels darker than the white margin. tag36h11 codes are 11 bits
+    apart, so 2 errors are corrected with room to spare (AprilTag 3 corrects 2 by default).
+
+    Args:
+        gray: (H, W) uint8 image.
+        corners_px: (K, 4, 2) quads (any corner order), refined on ``gray``.
+
+    Returns:
+        (ok (K,) bool, ids (K,), bit errors (K,), corners (K, 4, 2) in the id's OpenCV order).
+    """
+    c = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    k = len(c)
+    if k == 0:
+        return np.zeros(0, bool), np.zeros(0, int), np.zeros(0, int), c.copy()
+    rolled = np.stack([np.roll(c, -r, axis=1) for r in range(4)], axis=1).reshape(-1, 4, 2)  # (4K,)
+    try:
+        hom = tag_homographies(rolled)
+    except np.linalg.LinAlgError:
+        return np.zeros(k, bool), np.zeros(k, int), np.full(k, 36), c.copy()
+    read_black, white, black, finite = read_tag_cells(gray, hom)
+    border_errors = (~read_black[:, _BORDER]).sum(axis=1)
+    data = read_black.reshape(-1, TAG_CELLS, TAG_CELLS)[:, 1:-1, 1:-1].reshape(-1, 36)
+    # Hamming distances to every code as popcounts of 36-bit words: (4K, 587) in one pass.
+    dist = np.bitwise_count(_pack36(data)[:, None] ^ _all_words()[None, :])
+    best_id, best_err = dist.argmin(axis=1), dist.min(axis=1)
+    good = finite & (border_errors <= 2) & (white - black >= min_contrast)
+    score = np.where(good, best_err, 99).reshape(k, 4)
+    order = score.argmin(axis=1)
+    rows = np.arange(k) * 4 + order
+    errors = score[np.arange(k), order]
+    ok = errors <= max_bit_errors
+    return ok, best_id[rows].astype(int), errors.astype(int), rolled[rows]
 
 
 #: Where the inner edge of the border is sampled across a white data cell (fractions of the cell

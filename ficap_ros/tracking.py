@@ -18,9 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from enum import Enum
-from functools import lru_cache
 
-import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
@@ -31,6 +29,7 @@ from ficap_ros.detection import (
     TagDetection,
     TagDetector,
     refine_corners_edge_ok,
+    read_tag_cells,
     refine_tag_corners,
     tag_cells,
     tag_homographies,
@@ -139,20 +138,6 @@ def predict_tags(
     return ids[keep], px[keep]
 
 
-def _cell_grid() -> np.ndarray:
-    """Centres (100, 2) of the 10x10 cells (white margin ring + 8x8 tag), in cell units from c0."""
-    c = np.arange(-1, TAG_CELLS + 1) + 0.5
-    gx, gy = np.meshgrid(c, c)
-    return np.column_stack([gx.ravel(), gy.ravel()])
-
-
-_GRID = _cell_grid()
-_GRID_H = np.concatenate([_GRID, np.ones((len(_GRID), 1))], axis=1)  # homogeneous (100, 3)
-_RING_MARGIN = ((_GRID < 0) | (_GRID > TAG_CELLS)).any(axis=1)  # the white quiet zone
-_INNER = ~_RING_MARGIN  # the 8x8 tag cells, row-major
-_BORDER = ((_GRID[_INNER] < 1) | (_GRID[_INNER] > TAG_CELLS - 1)).any(axis=1)  # of the 64: the black border
-
-
 def verify_tags(
     gray: np.ndarray, ids: np.ndarray, corners_px: np.ndarray, config: TrackConfig | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -175,92 +160,12 @@ def verify_tags(
         hom = tag_homographies(np.asarray(corners_px, dtype=np.float64))
     except np.linalg.LinAlgError:
         return np.zeros(k, dtype=bool), np.full(k, 64), np.zeros(k)
-    p = np.einsum("kij,gj->kgi", hom, _GRID_H)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        xy = (p[..., :2] / p[..., 2:3]).astype(np.float32)  # (K, 100, 2)
-    vals = cv2.remap(gray, xy[..., 0], xy[..., 1], cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_CONSTANT, borderValue=0).astype(np.float64)  # (K, 100)
-    inner = vals[:, _INNER]  # (K, 64)
+    read_black, white, black, finite = read_tag_cells(gray, hom)
     expected = np.stack([tag_cells(int(i)).ravel() for i in ids])  # (K, 64) True = black
-    # Levels from the cells every tag shares: its black border and the white margin around it.
-    white = vals[:, _RING_MARGIN].mean(axis=1)
-    black = inner[:, _BORDER].mean(axis=1)
-    read_black = inner < 0.5 * (white + black)[:, None]
     errors = (read_black != expected).sum(axis=1)
     contrast = white - black
-    ok = (errors <= cfg.max_cell_errors) & (contrast >= cfg.min_contrast) & np.all(np.isfinite(xy), axis=(1, 2))
+    ok = (errors <= cfg.max_cell_errors) & (contrast >= cfg.min_contrast) & finite
     return ok, errors, contrast
-
-
-@lru_cache(maxsize=1)
-def _all_codes() -> np.ndarray:
-    """(587, 36) the 6x6 data cells of every tag36h11 id (True = black), OpenCV's drawing."""
-    n = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11).bytesList.shape[0]
-    codes = np.stack([tag_cells(i)[1:-1, 1:-1].ravel() for i in range(n)])
-    codes.setflags(write=False)
-    return codes
-
-
-def _pack36(bits: np.ndarray) -> np.ndarray:
-    """(N, 36) bool -> (N,) uint64 words."""
-    return (bits.astype(np.uint64) << np.arange(36, dtype=np.uint64)).sum(axis=1, dtype=np.uint64)
-
-
-@lru_cache(maxsize=1)
-def _all_words() -> np.ndarray:
-    return _pack36(_all_codes())
-
-
-def decode_tags(
-    gray: np.ndarray, corners_px: np.ndarray, max_bit_errors: int = 2, min_contrast: float = 10.0,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Read quads of unknown id as tag36h11 tags (the search's second chance).
-
-    Each quad's cells are read as ``verify_tags`` reads them, in its four corner orders; the
-    order and id whose 36 data cells are nearest (Hamming) win. A quad is a tag when at most
-    ``max_bit_errors`` data cells and 2 of the 28 border cells disagree and the border is at
-    least ``min_contrast`` grey levels darker than the white margin. tag36h11 codes are 11 bits
-    apart, so 2 errors are corrected with room to spare (AprilTag 3 corrects 2 by default).
-
-    Args:
-        gray: (H, W) uint8 image.
-        corners_px: (K, 4, 2) quads (any corner order), refined on ``gray``.
-
-    Returns:
-        (ok (K,) bool, ids (K,), bit errors (K,), corners (K, 4, 2) in the id's OpenCV order).
-    """
-    c = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
-    k = len(c)
-    if k == 0:
-        return np.zeros(0, bool), np.zeros(0, int), np.zeros(0, int), c.copy()
-    rolled = np.stack([np.roll(c, -r, axis=1) for r in range(4)], axis=1).reshape(-1, 4, 2)  # (4K,)
-    try:
-        hom = tag_homographies(rolled)
-    except np.linalg.LinAlgError:
-        return np.zeros(k, bool), np.zeros(k, int), np.full(k, 36), c.copy()
-    p = np.einsum("kij,gj->kgi", hom, _GRID_H)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        xy = (p[..., :2] / p[..., 2:3]).astype(np.float32)
-    finite = np.all(np.isfinite(xy), axis=(1, 2))
-    xy = np.where(np.isfinite(xy), xy, -1.0)
-    vals = cv2.remap(gray, xy[..., 0], xy[..., 1], cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_CONSTANT, borderValue=0).astype(np.float64)
-    inner = vals[:, _INNER]
-    white = vals[:, _RING_MARGIN].mean(axis=1)
-    black = inner[:, _BORDER].mean(axis=1)
-    read_black = inner < 0.5 * (white + black)[:, None]
-    border_errors = (~read_black[:, _BORDER]).sum(axis=1)
-    data = read_black.reshape(-1, TAG_CELLS, TAG_CELLS)[:, 1:-1, 1:-1].reshape(-1, 36)
-    # Hamming distances to every code as popcounts of 36-bit words: (4K, 587) in one pass.
-    dist = np.bitwise_count(_pack36(data)[:, None] ^ _all_words()[None, :])
-    best_id, best_err = dist.argmin(axis=1), dist.min(axis=1)
-    good = finite & (border_errors <= 2) & (white - black >= min_contrast)
-    score = np.where(good, best_err, 99).reshape(k, 4)
-    order = score.argmin(axis=1)
-    rows = np.arange(k) * 4 + order
-    errors = score[np.arange(k), order]
-    ok = errors <= max_bit_errors
-    return ok, best_id[rows].astype(int), errors.astype(int), rolled[rows]
 
 
 # -- the tracker ----------------------------------------------------------------------------------

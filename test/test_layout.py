@@ -31,8 +31,8 @@ LAYERS = [
     ["ros_demo"],
     ["cli", "commands"],
 ]
-#: (importer, imported): detection's second chance reads cells with tracking.decode_tags.
-EXCEPTIONS = {("detection", "tracking")}
+#: (importer, imported) pairs allowed to break the layering: none.
+EXCEPTIONS: set[tuple[str, str]] = set()
 
 
 def _imports(path: Path) -> set[str]:

@@ -12,7 +12,7 @@ from ficap_ros.detection import DetectorConfig, TagDetector, _auto_decimate
 from ficap_ros.errors import ConfigError
 from ficap_ros.pipeline import FrameProcessor
 from ficap_ros.synth import RenderConfig, default_scene, naturalistic_drive, render
-from ficap_ros.tracking import decode_tags, tag_cells
+from ficap_ros.detection import decode_tags, tag_cells
 
 DICT = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11)
 
