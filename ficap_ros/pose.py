@@ -700,7 +700,7 @@ def estimate_cap_pose(
     tag_sigma = None
     if config.method == "joint" and config.uncertainty.weight_tags:
         T, tag_sigma = _reweighted(solution.used, T)
-    res, _ = _at(T, solution.used)
+    res, J = _at(T, solution.used)
     rms = float(np.sqrt(np.mean(res**2) * 2.0))
     if with_uncertainty:
         # The cell fit's edge shift of each used tag (NaN: not fitted, or the id was duplicated).
@@ -708,7 +708,7 @@ def estimate_cap_pose(
         for det in ours:
             shifts[det.tag_id] = float("nan") if det.tag_id in shifts else float(det.edge_shift_px)
         edge_shift = np.array([shifts.get(i, float("nan")) for i in solution.used.ids])
-        terms, seen = uncertainty_terms(solution.used, T, tag_sigma, edge_shift)
+        terms, seen = uncertainty_terms(solution.used, T, tag_sigma, edge_shift, at=(res, J))
         covariance = combine_uncertainty(terms, seen, config.uncertainty)
         rot95, trans95 = error_bound95(covariance)
     else:
@@ -735,6 +735,8 @@ def estimate_cap_pose(
 #: Per-tag corner patterns (columns of ``_tag_basis``) grouped as the residuals are pooled.
 _PATTERNS = {"shift": [0, 1], "scale": [2], "turn": [3], "shear": [4, 5], "projective": [6, 7]}
 _ROS_ORDER = np.array([3, 4, 5, 0, 1, 2])
+#: ``np.ix_(_ROS_ORDER, _ROS_ORDER)`` built once: the uncertainty reorders 14 matrices a pose.
+_ROS_IX = np.ix_(_ROS_ORDER, _ROS_ORDER)
 
 
 def _tag_basis(corners_px: np.ndarray) -> np.ndarray:
@@ -839,6 +841,7 @@ def _tilt_mode(obs: _Observations, T: Transform) -> np.ndarray:
 def uncertainty_terms(
     obs: _Observations, T: Transform, tag_sigma_px: np.ndarray | None = None,
     edge_shift_px: np.ndarray | None = None,
+    at: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> tuple[dict[str, np.ndarray], dict[str, float]]:
     """What the covariance is built from.
 
@@ -851,6 +854,8 @@ def uncertainty_terms(
             variance in every pattern).
         edge_shift_px: per tag, the edge shift its cell fit measured (NaN: not fitted); None:
             unknown (``light_gradient`` 0).
+        at: ``_at(T, obs)`` when the caller has it already (``estimate_cap_pose`` computes it
+            for ``rms_px``): the same residuals and Jacobian, not computed twice.
 
     Returns:
         terms: per error source, the pose covariance (6x6, ROS order) that one unit of its sigma
@@ -868,7 +873,7 @@ def uncertainty_terms(
             tags' mean radial offset (px per corner), scaled back by the share of it the fit left
             in the residuals; and ``light_gradient`` (``light_gradient_px``), px.
     """
-    res, J = _at(T, obs)
+    res, J = _at(T, obs) if at is None else at
     n_tags = len(obs)
     n = 4 * n_tags
     if tag_sigma_px is None:
@@ -884,7 +889,7 @@ def uncertainty_terms(
     A_tag = A.reshape(6, n_tags, 8)
 
     def ros(c: np.ndarray) -> np.ndarray:
-        return c[np.ix_(_ROS_ORDER, _ROS_ORDER)]
+        return c[_ROS_IX]
 
     def together(modes: np.ndarray) -> np.ndarray:  # (2n, k) modes shared by all tags
         am = A @ modes
