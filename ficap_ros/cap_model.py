@@ -17,6 +17,7 @@ import json
 import math
 import os
 from dataclasses import dataclass, field
+from functools import cached_property
 from pathlib import Path
 from typing import Any
 
@@ -130,16 +131,27 @@ class CapModel:
 
     @property
     def centres_mm(self) -> np.ndarray:
-        """Tag centres (N, 3), cap frame, mm."""
+        """Tag centres (N, 3), cap frame, mm (a copy of the ones computed once: the tracker asks
+        for them several times a frame; a copy, as scipy's Rotation.apply refuses read-only
+        arrays and a caller may write to it)."""
+        return self._centres_mm.copy()
+
+    @cached_property
+    def _centres_mm(self) -> np.ndarray:
         return self.corners_mm.mean(axis=1)
 
     @property
     def normals(self) -> np.ndarray:
-        """Outward unit normals (N, 3) of the tag planes, cap frame.
+        """Outward unit normals (N, 3) of the tag planes, cap frame (a copy of the ones computed
+        once: the tracker's view angles ask for them every frame, ~0.05 ms each to compute).
 
         From the corner order (TL, TR, BR, BL seen from outside): right x down = inward, so the
         outward normal is down x right.
         """
+        return self._normals.copy()
+
+    @cached_property
+    def _normals(self) -> np.ndarray:
         c = self.corners_mm
         right = (c[:, 1] - c[:, 0]) + (c[:, 2] - c[:, 3])
         down = (c[:, 3] - c[:, 0]) + (c[:, 2] - c[:, 1])

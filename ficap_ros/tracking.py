@@ -113,15 +113,19 @@ def view_angles_deg(model: CapModel, T_cam_cap: Transform) -> np.ndarray:
 
 
 def predict_tags(
-    model: CapModel, camera: CameraModel, T_cam_cap: Transform, config: TrackConfig | None = None
+    model: CapModel, camera: CameraModel, T_cam_cap: Transform, config: TrackConfig | None = None,
+    angles_deg: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Ids (K,) and distorted-image corners (K, 4, 2) of the tags worth looking for at a pose.
 
     A tag is worth it when it faces the camera within ``max_view_angle_deg``, lies in front of it,
     has every corner inside the image (``border_px`` in) and a shortest side of ``min_side_px``.
+    ``angles_deg``: ``view_angles_deg(model, T_cam_cap)`` when the caller has it already.
     """
     cfg = config or TrackConfig()
-    facing = (view_angles_deg(model, T_cam_cap) < cfg.max_view_angle_deg) & (
+    if angles_deg is None:
+        angles_deg = view_angles_deg(model, T_cam_cap)
+    facing = (angles_deg < cfg.max_view_angle_deg) & (
         T_cam_cap.apply(model.centres_mm / 1000.0)[:, 2] > 0.05)
     if not facing.any():
         return np.zeros(0, dtype=int), np.zeros((0, 4, 2))
@@ -245,6 +249,10 @@ class Tracker:
         self._verify = base.corner_refine == "edge"
         self._locate_pose = replace(pose, method="naive")
         self._track: _TrackState | None = None
+        # The view angles at the last pose asked for (``_view_angles``): a tracked frame's
+        # prediction and its pose's choice of tags both want them at the predicted pose.
+        self._angles_at: Transform | None = None
+        self._angles_deg = np.zeros(0)
         self.tracked_frames = 0  # frames whose tags were verified where the cap was predicted
         self.second_looks = 0  # tracked frames that looked again at the verified tags' pose
         self.roi_searches = 0  # frames searched in the predicted region only
@@ -341,12 +349,18 @@ class Tracker:
                                           shift[ok][ver])],
                 float(moved.max()) if moved.size else 0.0)
 
+    def _view_angles(self, T_cam_cap: Transform) -> np.ndarray:
+        """``view_angles_deg(self.model, T_cam_cap)``, remembered for the last pose object."""
+        if self._angles_at is not T_cam_cap:
+            self._angles_at, self._angles_deg = T_cam_cap, view_angles_deg(self.model, T_cam_cap)
+        return self._angles_deg
+
     def _track_tags(
         self, gray: np.ndarray, camera: CameraModel, predicted: Transform, pose: PoseConfig
     ) -> tuple[TagDetection, ...] | None:
         """The model's tags verified where ``predicted`` puts them; None when too few verify."""
         cfg = self.config
-        ids, corners = predict_tags(self.model, camera, predicted, cfg)
+        ids, corners = predict_tags(self.model, camera, predicted, cfg, self._view_angles(predicted))
         found, moved_px = self._verified(gray, ids, corners)
         if len(found) < cfg.min_tags:
             return None
@@ -451,7 +465,7 @@ class Tracker:
         limit = self.config.pose_max_view_angle_deg
         if predicted is None or limit >= 90.0 or not self._verify:
             return detections
-        angles = dict(zip(self.model.ids, view_angles_deg(self.model, predicted)))
+        angles = dict(zip(self.model.ids, self._view_angles(predicted)))
         kept = tuple(d for d in detections if angles[d.tag_id] <= limit)
         if len({d.tag_id for d in kept}) < max(self.config.min_tags, pose.min_tags):
             return detections
