@@ -14,9 +14,7 @@ Each frame is searched independently (``TagDetector``, the detector replay start
 
 ``--cost``: what the corner stage costs per tracked frame (40 consecutive 1080p ``ficap synth``
 frames at 30 fps, ~21 tags, through ``FrameProcessor`` as replay runs them; process time, 3 passes,
-medians): the line pass, the border unbias, the cell-edge fit, the small tags' line bias; and the
-same frames with tracked tags refined by ``refine_tracked_corners`` (``tracking.Tracker._verified``
-replaced in this process only: the pipeline change proposed for issue 10's speed target).
+medians): the line pass, the border unbias, the cell-edge fit, the small tags' line bias.
 
 Usage: .venv/bin/python benchmarks/bench_corners.py [--sets all|none|a,b] [--cost] [--record]
 """
@@ -100,20 +98,6 @@ STAGE_FUNCS = {
 }
 
 
-def _proposed_verified(self, gray, ids, corners):  # noqa: ANN001, ANN202 - tracking.Tracker._verified
-    """``Tracker._verified`` with the tracked tags refined by ``refine_tracked_corners``."""
-    from ficap_ros.detection import TagDetection, refine_tracked_corners
-    from ficap_ros.tracking import verify_tags
-
-    refined, shift, ok = refine_tracked_corners(gray, corners, ids, self._tracked_corners,
-                                                line_refine=self._refine_predicted)
-    ver, errors, contrast = verify_tags(gray, ids[ok], refined[ok], self.config)
-    moved = np.linalg.norm(refined[ok][ver] - corners[ok][ver], axis=2)
-    return ([TagDetection(int(i), c, int(e), float(m), float(x))
-             for i, c, e, m, x in zip(ids[ok][ver], refined[ok][ver], errors[ver], contrast[ver], shift[ok][ver])],
-            float(moved.max()) if moved.size else 0.0)
-
-
 def cost_table(n_frames: int = 40, passes: int = 3) -> tuple[list[list[str]], str]:
     """Per-frame process time of the corner stage on consecutive tracked 1080p frames."""
     import ficap_ros.detection as det
@@ -137,14 +121,9 @@ def cost_table(n_frames: int = 40, passes: int = 3) -> tuple[list[list[str]], st
                 spent[name] += time.process_time() - t0
         return wrapper
 
-    variants = [("as committed", None)]
-    if hasattr(det, "refine_tracked_corners"):
-        variants.append(("tracked tags by refine_tracked_corners (proposal)", _proposed_verified))
     rows, tags = [], 0
     import ficap_ros.pipeline as pipe
     import ficap_ros.tracking as trk
-
-    original_verified = trk.Tracker._verified
 
     imported = [(mod, name, getattr(mod, name)) for mod in (pipe, trk) for name in originals if hasattr(mod, name)]
     try:
@@ -152,28 +131,25 @@ def cost_table(n_frames: int = 40, passes: int = 3) -> tuple[list[list[str]], st
             setattr(det, name, timed(name, fn))
         for mod, name, fn in imported:  # the names the pipeline and the tracker imported
             setattr(mod, name, timed(name, fn))
-        for label, verified in variants:
-            trk.Tracker._verified = verified or original_verified
-            per_pass = []
-            for k in range(passes + 1):  # the first pass warms the caches
-                for name in spent:
-                    spent[name] = 0.0
-                proc = FrameProcessor(model)
-                t0 = time.process_time()
-                for d, image in zip(drive, images):
-                    r = proc.process(image, scene.camera, d.stamp_ns)
-                    tags += len(r.detections) if k == 1 else 0
-                total = time.process_time() - t0
-                if k:
-                    per_pass.append([spent[n] for n in STAGE_FUNCS.values()] + [total])
-            ms = np.median(np.array(per_pass), axis=0) * 1e3 / len(images)
-            # The unbias and the line bias run inside refine_tag_corners, the line pass also in
-            # refine_tracked_corners' fallback: the stage is the sum of the leaf functions.
-            rows.append([label] + [f"{v:.2f}" for v in ms[:-1]] + [f"{ms[:-1].sum():.2f}", f"{ms[-1]:.2f}",
-                                                                 f"{proc.tracker.tracked_frames}/{len(images)}"])
-            print(" | ".join(rows[-1]), flush=True)
+        per_pass = []
+        for k in range(passes + 1):  # the first pass warms the caches
+            for name in spent:
+                spent[name] = 0.0
+            proc = FrameProcessor(model)
+            t0 = time.process_time()
+            for d, image in zip(drive, images):
+                r = proc.process(image, scene.camera, d.stamp_ns)
+                tags += len(r.detections) if k == 1 else 0
+            total = time.process_time() - t0
+            if k:
+                per_pass.append([spent[n] for n in STAGE_FUNCS.values()] + [total])
+        ms = np.median(np.array(per_pass), axis=0) * 1e3 / len(images)
+        # The unbias and the line bias run inside refine_tag_corners: the stage is the sum of
+        # the leaf functions.
+        rows.append(["as committed"] + [f"{v:.2f}" for v in ms[:-1]] + [f"{ms[:-1].sum():.2f}", f"{ms[-1]:.2f}",
+                                                             f"{proc.tracker.tracked_frames}/{len(images)}"])
+        print(" | ".join(rows[-1]), flush=True)
     finally:
-        trk.Tracker._verified = original_verified
         for name, fn in originals.items():
             setattr(det, name, fn)
         for mod, name, fn in imported:
@@ -206,16 +182,18 @@ corner stage 4.05 ms, whole frame 8.79 ms, 39/40 tracked.
 Reading it: the corner stage of a tracked frame costs about 4.0 ms before and after the changes
 that keep it identical (closed-form tag homographies, a cached group layout, one sampling call for
 the unbias's first look: -0.2 ms); the small tags' line bias, new, adds 0.2 ms (0.15 ms on a frame
-with one small tag). The structural saving needs the pipeline: a tracked tag's prediction already
-has the true geometry, so one cell-edge fit round from it (`refine_tracked_corners`; a second
-round where it moved > 0.2 px; the line pass + unbias only for tags the fit cannot take) replaces
-the line pass and the unbias: 4.0 -> 3.0-3.2 ms (two runs), with the tracked corners as accurate (blender_dev
+with one small tag). A structural saving was measured and not kept: a tracked tag's prediction
+already has the true geometry, so one cell-edge fit round from it (a second round where it moved
+> 0.2 px; the line pass + unbias only for tags the fit cannot take; commit 9f23cef) replaces the
+line pass and the unbias: 4.0 -> 3.0-3.2 ms (two runs), with the tracked corners as accurate (blender_dev
 drive30 through `FrameProcessor`, tags <= 70 deg: median 0.112 -> 0.107 px, p95 0.348 -> 0.370,
 radial -0.011 -> -0.004; 60-frame 30 fps synth drives, median / p95: 540p low light sRGB PSF 0.4
 0.110 / 0.285 -> 0.107 / 0.291, 1080p high light PSF 1.0 0.100 / 0.354 -> 0.100 / 0.354, 540p
 neutral gamma 1.8 0.033 / 0.121 -> 0.028 / 0.109). Most of what remains is the fit's per-tag normal equations (about 40 %) and its
-profile sampling (about 25 %). The whole-frame column moves with the machine's load between the
-passes (the variants run one after the other); the corner stage is what the change touches."""
+profile sampling (about 25 %). It was reverted (e7792d2): corners started at the model's
+projection keep a pull toward it, the residuals shrink, and the 95 % rotation bound covered 53 % of
+`test_bag_replay`'s synth drive instead of >= 85 %. The whole-frame column moves with the machine's load between the
+passes; the corner stage is what the changes touch."""
 
 HEADER = ["set", "PSF px", "tone", "lighting", "method", "tags found", "median px", "p95 px",
           "mean radial px", "rms px"]

@@ -12,7 +12,7 @@ against ``cv2.cornerSubPix`` and OpenCV's AprilTag refinement.
 
 from __future__ import annotations
 
-from collections.abc import Callable, Container, Sequence
+from collections.abc import Callable, Container
 from dataclasses import dataclass, replace
 from functools import lru_cache
 from typing import Any
@@ -351,8 +351,6 @@ class TagDetector:
         polygon corners up to ``dec`` times further off) gets a wide coarse pass, then the fine one."""
         refined, ok = refine_corners_edge_ok(full, corners, self.config)
         if dec > 1 and not ok.all():
-            from dataclasses import replace
-
             coarse = replace(self.config, edge_search_px=8.0, edge_max_shift_px=8.0, edge_iterations=1,
                              edge_samples_per_side=12, edge_profile_samples=9)
             lost = ~ok
@@ -996,72 +994,6 @@ def _line_bias(gray: np.ndarray, fitted_px: np.ndarray, halves: np.ndarray, cfg:
            & (np.abs(s) < (h - np.maximum(step, 0.25))[:, None]))
     bias = -_masked_median(s, use)
     return np.where(use.sum(axis=1) >= 8, bias, np.nan).reshape(np.shape(halves))
-
-
-#: A tracked tag's cell-edge fit has converged when one round moves no corner further than this, px.
-_TRACK_FIT_CONVERGED_PX = 0.2
-
-
-def refine_tracked_corners(
-    gray: np.ndarray, predicted_px: np.ndarray, ids: np.ndarray, config: DetectorConfig | None = None,
-    line_refine: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Corners of tags whose place tracking predicted, at the cost of one cell-edge fit round.
-
-    A prediction projects the model at the extrapolated pose: it has the true geometry (no
-    tone-curve shift) and is usually within a tenth of a pixel, which is all ``fit_tag_edges``
-    needs of a start, so those tags skip the line fit and the border unbias
-    (``refine_corners_edge`` then ``unbias_corners_edge`` only bring a start that close). A tag
-    whose round moved a corner by more than ``_TRACK_FIT_CONVERGED_PX`` gets a second round from
-    there; a tag the fit cannot take (cells under 2 px, too few edges, a prediction too far off
-    for the fit to accept) goes the searched tags' way: ``line_refine`` (default
-    ``refine_corners_edge_ok`` with ``config``), then ``refine_tag_corners``.
-
-    Args:
-        gray: (H, W) uint8 image.
-        predicted_px: (N, 4, 2) predicted corners.
-        ids: (N,) their ids.
-        config: detector settings (``edge_*``).
-        line_refine: the edge refinement for the tags the fit cannot take: (gray, corners) ->
-            (corners, ok).
-
-    Returns:
-        (corners (N, 4, 2), edge shift px (N,) as ``refine_tag_corners``, ok (N,): refined).
-    """
-    cfg = config or DetectorConfig()
-    c0 = np.asarray(predicted_px, dtype=np.float64).reshape(-1, 4, 2)
-    ids = np.asarray(ids).reshape(-1)
-    n = len(c0)
-    corners, shift, ok = c0.copy(), np.full(n, np.nan), np.zeros(n, dtype=bool)
-    if n == 0:
-        return corners, shift, ok
-    fit = cfg.corner_refine == "edge" and cfg.edge_fit
-    if fit:
-        nrm, rho = _side_lines(c0)
-        across = rho[:, :, None] - np.einsum("nkd,njd->nkj", nrm, c0)
-        fit_now = np.flatnonzero(across.max(axis=2).min(axis=1) / TAG_CELLS >= _MIN_TAG_CELL_PX)
-    else:
-        fit_now = np.zeros(0, dtype=np.int64)
-    if len(fit_now):
-        c1, d1 = fit_tag_edges(gray, c0[fit_now], ids[fit_now], cfg, 1)
-        moved = np.linalg.norm(c1 - c0[fit_now], axis=2).max(axis=1)
-        again = np.isfinite(d1) & (moved > _TRACK_FIT_CONVERGED_PX)
-        if again.any():
-            c1[again], d1[again] = fit_tag_edges(gray, c1[again], ids[fit_now][again], cfg, 1)
-        corners[fit_now], shift[fit_now] = c1, d1
-        ok[fit_now] = np.isfinite(d1)
-    rest = ~ok
-    if rest.any():
-        if line_refine is None:
-            def line_refine(g: np.ndarray, c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-                return refine_corners_edge_ok(g, c, cfg)
-        c, ok_rest = line_refine(gray, c0[rest])
-        sub = np.flatnonzero(rest)[ok_rest]
-        corners[rest] = c
-        if len(sub):
-            corners[sub], shift[sub] = refine_tag_corners(gray, c[ok_rest], ids[sub], cfg)
-        ok[rest] = ok_rest
-    return corners, shift, ok
 
 
 def shift_tag_edges(corners_px: np.ndarray, shift_px: float) -> np.ndarray:

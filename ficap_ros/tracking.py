@@ -25,7 +25,6 @@ from scipy.spatial.transform import Rotation
 from ficap_ros.camera import CameraModel
 from ficap_ros.cap_model import CapModel
 from ficap_ros.detection import (
-    TAG_CELLS,
     TagDetection,
     TagDetector,
     refine_corners_edge_ok,
@@ -38,7 +37,7 @@ from ficap_ros.errors import ConfigError
 from ficap_ros.pose import PoseConfig, estimate_cap_pose
 from ficap_ros.transform import Transform
 
-__all__ = ["TrackConfig", "Tracker", "Search", "extrapolate_pose", "predict_tags", "verify_tags", "decode_tags", "tag_cells",
+__all__ = ["TrackConfig", "Tracker", "Search", "extrapolate_pose", "predict_tags", "verify_tags", "tag_cells",
            "view_angles_deg"]
 
 @dataclass(frozen=True)
@@ -336,10 +335,10 @@ class Tracker:
         largest distance, px, a verified tag's corner moved from its prediction."""
         refined, ok = self._refine_predicted(gray, corners)
         # The tone-curve bias and the cell-edge fit, as on searched tags (one corner estimator).
-        # Not detection.refine_tracked_corners (one fit round straight from the prediction,
-        # ~1 ms cheaper per 1080p frame): corners started at the model's projection keep a pull
-        # toward it, the residuals shrink and the 95 % rotation bound then covered 53 % of a synth
-        # drive's frames (test_bag_replay) instead of >= 85 %.
+        # Not one fit round straight from the prediction (tried in 9f23cef, ~1 ms cheaper per
+        # 1080p frame): corners started at the model's projection keep a pull toward it, the
+        # residuals shrink and the 95 % rotation bound then covered 53 % of a synth drive's frames
+        # (test_bag_replay) instead of >= 85 %.
         shift = np.full(len(ids), np.nan)
         refined[ok], shift[ok] = refine_tag_corners(gray, refined[ok], ids[ok], self._tracked_corners)
         ver, errors, contrast = verify_tags(gray, ids[ok], refined[ok], self.config)

@@ -21,8 +21,6 @@ from ficap_ros.tracking import view_angles_deg
 MODEL = nominal_model()
 OURS = TagDetector(DetectorConfig())
 PEER = TagDetector(DetectorConfig(corner_refine="subpix"))
-COARSE = DetectorConfig(edge_search_px=8.0, edge_max_shift_px=8.0, edge_iterations=1, edge_samples_per_side=12,
-                        edge_profile_samples=9)
 
 
 def _errors(detector: TagDetector, frames) -> tuple[np.ndarray, np.ndarray, int, int]:
@@ -129,46 +127,6 @@ def test_fit_recovers_a_known_erosion() -> None:
     err, _ = corner_errors_px(fitted, true[None])
     assert err.max() <= 0.05  # from 0.57 px radial; what is left is the sampling of unblurred edges
     assert fitted_delta[0] == pytest.approx(delta, abs=0.03)
-
-
-def test_tracked_corners_from_a_prediction() -> None:
-    """Tracking predicts a tag's corners with the true geometry, usually within a tenth of a
-    pixel: one cell-edge fit round from there (no line fit, no border unbias) gives corners as
-    good as the searched tags' full stage; a prediction a pixel off takes a second round, and
-    one the fit cannot take goes the searched way (line fit, unbias, fit)."""
-    from ficap_ros.detection import refine_tracked_corners
-
-    frames = _frames("1080p", RenderConfig(lighting="high", tone="srgb", psf_sigma_px=0.8, jpeg_quality=95), n=2)
-    rng = np.random.default_rng(3)
-    errs, rads, calls = [], [], []
-    for fr in frames:
-        angles = dict(zip(MODEL.ids, view_angles_deg(MODEL, fr.T_cam_cap)))
-        # Most frontal first: the two predictions put off below are of tags any refinement can take.
-        ids = np.array(sorted((t for t in fr.visible_ids(0.999) if angles[t] <= 70.0), key=angles.get))
-        true = np.array([fr.corners_px[t] for t in ids])
-        predicted = true + rng.normal(0.0, 0.1, true.shape)
-        predicted[0] += 1.0  # a prediction a pixel off: a second round
-        predicted[1, :, 0] += 4.0  # beyond what one fit round may move a corner: the line fit
-
-        def line_refine(gray, c):  # as the pipeline's: a coarse pass with a wide reach, then fine
-            calls.append(len(c))
-            coarse, ok1 = refine_corners_edge_ok(gray, c, COARSE)
-            fine, ok2 = refine_corners_edge_ok(gray, coarse)
-            return fine, ok1 & ok2
-
-        corners, shift, ok = refine_tracked_corners(fr.image, predicted, ids, line_refine=line_refine)
-        assert ok.all()
-        assert np.isfinite(shift).all()
-        e, r = corner_errors_px(corners, true)
-        errs.append(e.ravel())
-        rads.append(r.ravel())
-    err, rad = np.concatenate(errs), np.concatenate(rads)
-    print(f"tracked: median {np.median(err):.3f} p95 {np.percentile(err, 95):.3f} radial {rad.mean():+.3f}; "
-          f"line-refined {calls}")
-    assert calls == [1, 1]  # only the tag 4 px off went the line fit's way
-    assert np.median(err) <= 0.12
-    assert np.percentile(err, 95) <= 0.4
-    assert abs(rad.mean()) <= 0.05
 
 
 def test_small_tags_take_the_line_estimators_bias_measured_on_the_fitted_tags() -> None:
