@@ -48,6 +48,7 @@ from scipy.spatial.transform import Rotation
 from ficap_ros.errors import BagError
 from ficap_ros.metrics import yaw_pitch_roll_deg
 from ficap_ros.report import (
+    is_skipped,
     LabelRecord,
     record_status,
     quality_values,
@@ -154,7 +155,7 @@ class Labels:
 
     @property
     def skipped(self) -> np.ndarray:
-        return np.array([r.startswith("undecodable") for r in self.reasons], dtype=bool)
+        return np.array([is_skipped(r) for r in self.reasons], dtype=bool)
 
     def cap_rotations(self) -> Rotation:
         """R_cam_cap of the rows with a pose."""

@@ -22,7 +22,6 @@ from scipy.spatial.transform import Rotation
 from ficap_ros.camera import CameraModel
 from ficap_ros.image_codec import decode_compressed, decode_image
 from ficap_ros.metrics import yaw_pitch_roll_deg
-from ficap_ros.stamps import stamp_to_ns
 from ficap_ros.transform import Transform
 
 __all__ = ["MessageClasses", "ROSBAGS", "jazzy_typestore", "as_bytes", "header", "pose",

@@ -32,6 +32,7 @@ from ficap_ros.labels import LabelRecord, labels_csv_text, record_from_pose, wri
 from ficap_ros.calibration import HeadCalibration
 from ficap_ros.pipeline import FrameProcessor
 from ficap_ros.pose import CapPose, PoseConfig
+from ficap_ros.report import SKIPPED_PREFIX, is_skipped, skipped_reason
 
 __all__ = ["Progress", "ProcessedFrame", "process_frames", "frontal_calibration",
            "ReplayOutput", "replay", "check_output_dir", "available_cores", "capped_jobs"]
@@ -71,7 +72,7 @@ class ProcessedFrame:
 
     @property
     def skipped(self) -> bool:
-        return self.reason.startswith("undecodable")
+        return is_skipped(self.reason)
 
 
 # -- worker side ---------------------------------------------------------------------------------
@@ -103,7 +104,7 @@ def _process_one(raw: RawFrame) -> ProcessedFrame:
         result = _PROCESSOR.process(image, raw.camera, raw.stamp_ns)
     except ImageError as err:
         return ProcessedFrame(raw.index, raw.stamp_ns, raw.frame_id, None, (),
-                              f"undecodable: {err}")
+                              skipped_reason(err))
     return ProcessedFrame(
         raw.index, raw.stamp_ns, raw.frame_id, result.pose,
         tuple(sorted({d.tag_id for d in result.detections})), result.reason,
@@ -303,7 +304,7 @@ def _summary(records: list[LabelRecord], frames: list[ProcessedFrame], elapsed_s
     with_pose = sum(r.T_cam_cap is not None for r in records)
     ge1 = sum(r.tags_detected >= 1 for r in records if not r.skipped)
     ge4 = sum(r.tags_detected >= 4 for r in records if not r.skipped)
-    reasons = Counter(r.reason[len("undecodable: "):] for r in skipped)
+    reasons = Counter(r.reason[len(SKIPPED_PREFIX):] for r in skipped)
     no_pose = Counter(r.reason for r in records if r.T_cam_cap is None and not r.skipped)
     detect_ms = [f.detect_ms for f in frames if not f.skipped]
     pose_ms = [f.pose_ms for f in frames if not f.skipped]

@@ -24,7 +24,8 @@ from ficap_ros.transform import Transform
 
 __all__ = ["OK", "WARN", "ERROR", "WARN_RELIABILITY", "DEFAULT_CAMERA_FRAME", "LabelRecord",
            "record_from_pose", "record_from_result", "frame_status", "record_status", "quality_values",
-           "status_values", "health_status", "health_values", "PeriodStats"]
+           "status_values", "health_status", "health_values", "PeriodStats", "SKIPPED_PREFIX",
+           "skipped_reason", "is_skipped"]
 
 OK, WARN, ERROR = 0, 1, 2
 
@@ -53,6 +54,20 @@ def frame_status(has_pose: bool, reliability: float, reason: str = "", error: st
     if math.isfinite(reliability) and reliability < warn_reliability:
         return WARN, f"low reliability {reliability:.2f}"
     return OK, "pose"
+
+
+#: The reason of a frame that could not be decoded (it is counted, labelled and reported as lost).
+SKIPPED_PREFIX = "undecodable: "
+
+
+def skipped_reason(error: object) -> str:
+    """The reason recorded for an image that could not be decoded."""
+    return f"{SKIPPED_PREFIX}{error}"
+
+
+def is_skipped(reason: str) -> bool:
+    """Whether a frame's reason says its image could not be decoded."""
+    return reason.startswith(SKIPPED_PREFIX.rstrip(": "))
 
 
 @dataclass(frozen=True)
@@ -98,7 +113,7 @@ class LabelRecord:
 
     @property
     def skipped(self) -> bool:
-        return self.reason.startswith("undecodable")
+        return is_skipped(self.reason)
 
 
 def record_from_pose(
