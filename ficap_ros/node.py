@@ -36,6 +36,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, Vector3Stamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.context import Context
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -54,7 +55,7 @@ from ficap_ros.mailbox import Mailbox
 from ficap_ros.native_log import ThrottledStderr
 from ficap_ros.report import PeriodStats
 
-__all__ = ["FicapNode", "main"]
+__all__ = ["FicapNode", "main", "make_executor"]
 
 NODE_NAME = "ficap_node"
 STATUS_NAME = "ficap"
@@ -85,7 +86,9 @@ class FicapNode(Node):
         self._stats = PeriodStats()
         self._camera_frame = ""  # the frame_id of the last image (the default hardware_id)
 
-        # Callback groups: frames, side inputs, services and timers never wait on each other.
+        # Callback groups: frames, side inputs, services and timers never wait on each other when
+        # the node is composed into a multi-threaded executor; ficap_node itself spins one thread
+        # (make_executor), where every callback is short and the worker does the processing.
         inputs, side = MutuallyExclusiveCallbackGroup(), ReentrantCallbackGroup()
         services, timers = MutuallyExclusiveCallbackGroup(), MutuallyExclusiveCallbackGroup()
         sensor_qos = QoSProfile(
@@ -267,6 +270,19 @@ class FicapNode(Node):
         super().destroy_node()
 
 
+def make_executor(context: Context | None = None) -> SingleThreadedExecutor:
+    """The executor ficap_node spins in (``main``, and the demo's node and player).
+
+    Callbacks only fill the mailbox, publish or answer services (the worker thread does the
+    processing), so one executor thread suffices. rclpy's MultiThreadedExecutor (Jazzy 7.1) must
+    not be used: while a callback waits in its thread pool, its spin loop yields the queued task
+    again without waiting and re-submits it (ros2/rclpy#1452, fixed upstream by #1547), a busy loop
+    that holds the GIL the pool thread and the worker need. Measured in ``make demo``: 25-60 pool
+    submissions per callback and the spin thread taking 8-16 s of CPU in a 240-frame play.
+    """
+    return SingleThreadedExecutor(context=context)
+
+
 def main(args: list[str] | None = None) -> int:
     """Run ``ficap_node`` (Jazzy's idiom: spin until Ctrl-C or external shutdown)."""
     rclpy.init(args=args)
@@ -274,13 +290,10 @@ def main(args: list[str] | None = None) -> int:
     code = 0
     try:
         node = FicapNode()
-        # Callbacks only fill the mailbox, publish or answer services (the worker thread does the
-        # processing), so one executor thread suffices; rclpy's MultiThreadedExecutor spent more
-        # of the GIL polling its futures than the callbacks needed (measured: cProfile, 30 Hz).
         log = node.get_logger()
         # libjpeg/FFmpeg print per damaged frame on fd 2: through the logger, throttled.
         with ThrottledStderr(lambda text: log.warning(text)):
-            rclpy.spin(node, SingleThreadedExecutor())
+            rclpy.spin(node, make_executor())
     except (KeyboardInterrupt, ExternalShutdownException):
         pass
     except FicapError as err:

@@ -1,8 +1,8 @@
 """The demo: the sample drive recording played into a live ``ficap_node`` over real ROS topics.
 
 A player node publishes the recording's CompressedImage and CameraInfo messages to the node (one
-frame at a time: the next frame goes out when the node's status for the previous one came back, so
-every frame is processed), calls ``~/calibrate`` at the end of the recording's frontal segment, and
+frame at a time: the next frame goes out when the node's status and head pose for the previous one
+came back, so every frame is processed), calls ``~/calibrate`` at the end of the recording's frontal segment, and
 compares the published ``head_pose`` with the recording's ground truth.
 """
 
@@ -17,7 +17,6 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
-from rclpy.executors import MultiThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy
@@ -29,7 +28,7 @@ from ficap_ros.bag_io import open_bag_reader
 from ficap_ros.stamps import stamp_to_ns
 from ficap_ros.errors import BagError
 from ficap_ros.metrics import angle_deg, phi3_deg, summarize_errors, yaw_pitch_roll_deg
-from ficap_ros.node import FicapNode
+from ficap_ros.node import FicapNode, make_executor
 from ficap_ros.transform import CAM_FROM_FORWARD
 
 IMAGE_TOPIC = "/camera/image_raw/compressed"
@@ -91,8 +90,10 @@ class _Player(Node):
         self.head: dict[int, Rotation] = {}
         self.received_ns: dict[int, int] = {}
         self.event = threading.Event()
-        self.create_subscription(DiagnosticArray, "status", self._on_status, 50)
+        # head_pose first: the node publishes it just before the frame's status, and one executor
+        # thread takes the ready subscriptions in this order.
         self.create_subscription(PoseStamped, "head_pose", self._on_head, 50)
+        self.create_subscription(DiagnosticArray, "status", self._on_status, 50)
 
     def _on_status(self, msg: DiagnosticArray) -> None:
         stamp = stamp_to_ns(msg.header.stamp)
@@ -107,6 +108,15 @@ class _Player(Node):
             stamp = stamp_to_ns(msg.header.stamp)
             self.head[stamp] = Rotation.from_quat([o.x, o.y, o.z, o.w])
             self.received_ns[stamp] = time.monotonic_ns()
+        self.event.set()
+
+    def answered(self, stamp_ns: int) -> bool:
+        """The node's status for this frame came, and its head pose if the status has head angles
+        (report.status_values: the frame has a head pose, published at the demo's default
+        publish_min_reliability 0)."""
+        with self.lock:
+            values = self.status.get(stamp_ns)
+            return values is not None and (stamp_ns in self.head or "yaw_deg" not in values)
 
     def publish(self, rec: _Recorded) -> None:
         stamp = rclpy.time.Time(nanoseconds=rec.stamp_ns).to_msg()
@@ -135,7 +145,8 @@ def run_demo(bag: Path, frontal_s: float, every: int, method: str = "joint") -> 
         Parameter("calibration.window_s", value=float(frontal_s) - 0.2),
     ])
     player = _Player()
-    executor = MultiThreadedExecutor(num_threads=4)
+    # One spin thread for both nodes, as ficap_node spins (node.make_executor says why not more).
+    executor = make_executor()
     executor.add_node(node)
     executor.add_node(player)
     spinner = threading.Thread(target=executor.spin, daemon=True)
@@ -180,12 +191,9 @@ def _play(player: _Player, recording: list[_Recorded], frontal_s: float, every: 
         sent_ns[rec.stamp_ns] = time.monotonic_ns()
         player.publish(rec)
         deadline = time.monotonic() + 10.0
-        while time.monotonic() < deadline:
-            with player.lock:
-                if rec.stamp_ns in player.status:
-                    break
+        while time.monotonic() < deadline and not player.answered(rec.stamp_ns):
             player.event.wait(0.05)
-        time.sleep(0.002)  # head_pose is published just before status; let it land
+            player.event.clear()
         with player.lock:
             values = player.status.get(rec.stamp_ns)
             head_cam = player.head.get(rec.stamp_ns)
