@@ -25,7 +25,7 @@ from _common import DOC, ROOT, Progress, load_avg, machine_line, md_table, recor
 
 from ficap_ros.cap_model import nominal_model  # noqa: E402
 from ficap_ros.detection import DetectorConfig  # noqa: E402
-from ficap_ros.metrics import angle_deg, phi3_deg  # noqa: E402
+from ficap_ros.metrics import angle_deg  # noqa: E402
 from ficap_ros.pipeline import FrameProcessor  # noqa: E402
 from ficap_ros.pose import PoseConfig  # noqa: E402
 from ficap_ros.synth import RenderConfig, default_scene, naturalistic_drive, render  # noqa: E402
@@ -124,8 +124,8 @@ def main() -> int:
     ]
     if args.stride > 1:
         body.append("")
-        body.append(f"Fewer frames than the paper's 1800 per condition because rendering takes 0.1-0.5 s "
-                    f"per frame on this machine; run with `--stride 1` for the full sequence.")
+        body.append("Fewer frames than the paper's 1800 per condition because rendering takes 0.1-0.5 s "
+                    "per frame on this machine; run with `--stride 1` for the full sequence.")
     text = "\n".join(body)
     print(text)
     png = ROOT / "docs" / "bench_accuracy.png"

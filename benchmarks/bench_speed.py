@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import ROOT, Progress, load_avg, machine_line, md_table, record_section  # noqa: E402
+from _common import Progress, load_avg, machine_line, md_table, record_section  # noqa: E402
 from bench_fleet import FRAME_NS, stage_table, stage_times  # noqa: E402
 
 from ficap_ros.cap_model import nominal_model  # noqa: E402

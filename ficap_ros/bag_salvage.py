@@ -187,7 +187,9 @@ class _McapFile:
                 cid, sid, topic = c.u16(), c.u16(), c.string()
                 self.channels[cid] = (topic, sid)
             elif op == _OP_MESSAGE:
-                cid, _seq, log_ns = c.u16(), c.u32(), c.u64()
+                cid = c.u16()
+                c.u32()  # sequence
+                log_ns = c.u64()
                 c.u64()  # publish time
                 yield cid, log_ns, bytes(body[c.pos:])
         except EOFError:

@@ -18,13 +18,12 @@ import math
 import os
 from dataclasses import dataclass, field
 from functools import cached_property
-from pathlib import Path
 from typing import Any
 
 import numpy as np
 import yaml
 
-from ficap_ros.errors import ModelError, OutputError
+from ficap_ros.errors import ModelError
 from ficap_ros.files import read_text, write_atomic, write_output_file
 
 __all__ = [

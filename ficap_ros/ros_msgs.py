@@ -23,7 +23,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from ficap_ros import messages
 from ficap_ros.camera import CameraModel, camera_from_info
 from ficap_ros.cap_model import CapModel
-from ficap_ros.errors import ImageError, IntrinsicsError
+from ficap_ros.errors import ImageError
 from ficap_ros.pipeline import FrameResult
 from ficap_ros.stamps import stamp_to_ns
 from ficap_ros.transform import Transform, rotate_covariance

@@ -67,7 +67,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ficap_ros.camera import CameraModel
-from ficap_ros.cap_model import FACE_SIDE_MM, TAG_SIDE_MM, CapModel
+from ficap_ros.cap_model import CapModel
 from ficap_ros.errors import ConfigError
 from ficap_ros.metrics import rotation_from_ypr_deg
 from ficap_ros.transform import CAM_FROM_FORWARD, Transform

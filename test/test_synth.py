@@ -350,7 +350,6 @@ def test_naive_peer_is_biased_inward_on_default_synth_frames(tmp_path) -> None:
     peer's (OpenCV sub-pixel) corners sit >= 0.2 px toward the tag centre."""
     from ficap_ros.bag_io import decode_raw, open_frames
     from ficap_ros.cli import main
-    from ficap_ros.commands.synth import START_NS
     from ficap_ros.detection import DetectorConfig, TagDetector
     from ficap_ros.metrics import corner_errors_px
     from ficap_ros.tracking import view_angles_deg

@@ -82,7 +82,6 @@ def run_offline(args: argparse.Namespace) -> int:
     import numpy as np
 
     from ficap_ros.cap_model import nominal_model
-    from ficap_ros.errors import ConfigError
     from ficap_ros.metrics import angle_deg, phi3_deg, summarize_errors, yaw_pitch_roll_deg
     from ficap_ros.pipeline import FrameProcessor
     from ficap_ros.pose import PoseConfig
