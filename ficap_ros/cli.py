@@ -69,6 +69,24 @@ def finite_float(text: str) -> float:
     return value
 
 
+def positive_float(text: str) -> float:
+    """argparse type for a rate or a size: a finite number > 0."""
+    value = finite_float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {value}")
+    return value
+
+
+def time_window(text: str) -> tuple[float, float]:
+    """argparse type for ``START:END`` seconds (``replay.parse_window``)."""
+    from ficap_ros.replay import parse_window
+
+    try:
+        return parse_window(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+
+
 def _available_verbs() -> dict[str, object]:
     """Every verb's module; a missing one is a broken install and fails loudly (ImportError), not
     a verb silently absent from ``--help``."""

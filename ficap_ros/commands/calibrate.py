@@ -4,25 +4,16 @@ from __future__ import annotations
 
 import argparse
 
-from ficap_ros.cli import finite_float, positive_int
+from ficap_ros.cli import finite_float, positive_int, time_window
 
 HELP = ("compute R_cap_head from labels: a frontal window (--frontal START:END) or a reference "
         "head-pose topic (--reference BAG:TOPIC with --first N or --random N)")
 
 
-def _window(text: str) -> tuple[float, float]:
-    from ficap_ros.replay import parse_window
-
-    try:
-        return parse_window(text)
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(str(err)) from None
-
-
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("labels", metavar="LABELS", help="labels.csv or a replay output folder")
     mode = parser.add_mutually_exclusive_group(required=True)
-    mode.add_argument("--frontal", type=_window, metavar="START:END",
+    mode.add_argument("--frontal", type=time_window, metavar="START:END",
                       help="seconds from the first label in which the wearer looks straight ahead")
     mode.add_argument("--reference", metavar="BAG:TOPIC",
                       help="reference head pose (PoseStamped ...) paired with the labels by stamp")

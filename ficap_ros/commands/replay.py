@@ -4,30 +4,11 @@ from __future__ import annotations
 
 import argparse
 
-from ficap_ros.cli import positive_int
+from ficap_ros.cli import positive_float, positive_int, time_window
 
 HELP = ("replay rosbag2 bags, .mcap files or videos (or folder trees of them, or a manifest) "
         "through the pipeline; write labels.mcap, labels.csv and summary.json per recording, "
         "optionally on Ray")
-
-
-def _window(text: str) -> tuple[float, float]:
-    from ficap_ros.replay import parse_window
-
-    try:
-        return parse_window(text)
-    except ValueError as err:
-        raise argparse.ArgumentTypeError(str(err)) from None
-
-
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not value > 0:
-        raise argparse.ArgumentTypeError(f"expected a positive number, got {value}")
-    return value
 
 
 def add_input_arguments(parser: argparse.ArgumentParser, many: bool = False) -> None:
@@ -47,7 +28,7 @@ def add_input_arguments(parser: argparse.ArgumentParser, many: bool = False) -> 
                              "node's image_is_rectified; default: raw images, K and D)")
     parser.add_argument("--intrinsics", metavar="CAMERA_YAML",
                         help="camera_calibration YAML; required for a video, overrides CameraInfo")
-    parser.add_argument("--fps", type=_positive_float,
+    parser.add_argument("--fps", type=positive_float,
                         help="video frame rate (default: the container's)")
     parser.add_argument("--model", help="as-built cap model YAML (default: nominal)")
     parser.add_argument("--method", choices=("joint", "paper"), default="joint",
@@ -62,7 +43,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     parser.add_argument("--calibration", metavar="FILE",
                         help="head calibration YAML (ficap calibrate / the node's service)")
-    parser.add_argument("--calibrate-frontal", type=_window, metavar="START:END",
+    parser.add_argument("--calibrate-frontal", type=time_window, metavar="START:END",
                         help="seconds from the start in which the wearer looks straight ahead: "
                              "calibrate R_cap_head from them and apply it to every frame")
     parser.add_argument("--namespace", default="",
