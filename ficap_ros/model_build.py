@@ -581,19 +581,25 @@ def _jacobian(x: np.ndarray, p: _Problem, priors: _Priors, config: BuildConfig) 
     obs_rows = np.arange(m8).reshape(-1, 8)
     rows, cols, vals = [], [], []
 
-    def step_of(idx: np.ndarray) -> np.ndarray:
-        return 1.49e-8 * np.maximum(1.0, np.abs(x[idx]))
+    def stepped(idx: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(h, change of the residuals) with the parameters ``idx`` stepped by h together."""
+        h = 1.49e-8 * np.maximum(1.0, np.abs(x[idx]))
+        xs = x.copy()
+        xs[idx] += h
+        return h, _residuals(xs, p, priors, config) - f0
+
+    def add_observation_rows(idx: np.ndarray, owner: np.ndarray, h: np.ndarray,
+                             df: np.ndarray) -> None:
+        # ``owner``: the tag (or frame) of each observation, whose ``idx`` parameter moves its rows.
+        rows.append(obs_rows.reshape(-1))
+        cols.append(np.repeat(idx[owner], 8))
+        vals.append((df[:m8].reshape(-1, 8) / h[owner, None]).reshape(-1))
 
     for k in range(6):
         # Every tag's k-th parameter: observation rows and the tag's own prior rows.
         idx = 6 * np.arange(p.n_tags) + k
-        h = step_of(idx)
-        xs = x.copy()
-        xs[idx] += h
-        df = _residuals(xs, p, priors, config) - f0
-        rows.append(obs_rows.reshape(-1))
-        cols.append(np.repeat(idx[p.obs_tag], 8))
-        vals.append((df[:m8].reshape(-1, 8) / h[p.obs_tag, None]).reshape(-1))
+        h, df = stepped(idx)
+        add_observation_rows(idx, p.obs_tag, h, df)
         prior_rows = m8 + (3 * np.arange(p.n_tags)[:, None] + np.arange(3)[None, :])
         if k >= 3:  # a centre: its own translation-prior row
             pr = m8 + 3 * np.arange(p.n_tags) + (k - 3)
@@ -607,21 +613,13 @@ def _jacobian(x: np.ndarray, p: _Problem, priors: _Priors, config: BuildConfig) 
             vals.append(df[pr] / np.repeat(h, 3))
         # Every frame's k-th parameter: observation rows only.
         idx = frame_base + 6 * np.arange(p.n_frames) + k
-        h = step_of(idx)
-        xs = x.copy()
-        xs[idx] += h
-        df = _residuals(xs, p, priors, config) - f0
-        rows.append(obs_rows.reshape(-1))
-        cols.append(np.repeat(idx[p.obs_frame], 8))
-        vals.append((df[:m8].reshape(-1, 8) / h[p.obs_frame, None]).reshape(-1))
+        h, df = stepped(idx)
+        add_observation_rows(idx, p.obs_frame, h, df)
     if config.fit_edge_offset:
-        h = float(step_of(np.array([n_tag6]))[0])
-        xs = x.copy()
-        xs[n_tag6] += h
-        df = _residuals(xs, p, priors, config) - f0
+        h, df = stepped(np.array([n_tag6]))
         rows.append(np.arange(m8))
         cols.append(np.full(m8, n_tag6))
-        vals.append(df[:m8] / h)
+        vals.append(df[:m8] / h[0])
     n_rows = len(f0)
     if config.anchor_size:
         t = x[:n_tag6].reshape(-1, 6)[:, 3:]
