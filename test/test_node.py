@@ -18,7 +18,6 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped
 from rcl_interfaces.srv import SetParameters
 from rclpy.context import Context
-from rclpy.executors import MultiThreadedExecutor
 from rclpy.parameter import Parameter
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
@@ -29,7 +28,7 @@ from ficap_ros import ros_msgs
 from ficap_ros.camera import CameraModel
 from ficap_ros.errors import ConfigError
 from ficap_ros.metrics import angle_deg
-from ficap_ros.node import FicapNode
+from ficap_ros.node import FicapNode, make_executor
 
 CONFIG = Path(__file__).resolve().parents[1] / "config" / "ficap.yaml"
 WAIT_S = 10.0
@@ -68,7 +67,8 @@ class Harness:
         self.calibrate = self.peer.create_client(Trigger, "/ficap_node/calibrate")
         self.clear = self.peer.create_client(Trigger, "/ficap_node/clear_calibration")
         self.set_params = self.peer.create_client(SetParameters, "/ficap_node/set_parameters")
-        self.executor = MultiThreadedExecutor(num_threads=4, context=self.context)
+        # One spin thread for node and peer, as ficap_node spins (node.make_executor says why).
+        self.executor = make_executor(context=self.context)
         self.executor.add_node(self.node)
         self.executor.add_node(self.peer)
         self.thread = threading.Thread(target=self.executor.spin, daemon=True)
@@ -105,8 +105,8 @@ class Harness:
         for _ in range(attempts):
             if info is not None:
                 self.pub_info.publish(info)
-                # The executor has 4 threads: without this the image can overtake its CameraInfo
-                # (seen under load: "no CameraInfo received yet", a frame without a pose).
+                # Two topics: without this the image can overtake its CameraInfo (seen under
+                # load: "no CameraInfo received yet", a frame without a pose).
                 info_ns = ros_msgs.stamp_to_ns(info.header.stamp)
                 try:
                     self.wait_for(lambda: self.node._cameras.has(info_ns),
