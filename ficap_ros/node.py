@@ -96,6 +96,10 @@ class FicapNode(Node):
             reliability=(ReliabilityPolicy.BEST_EFFORT if cfg.qos_reliability == "best_effort"
                          else ReliabilityPolicy.RELIABLE),
             durability=qos_profile_sensor_data.durability)
+        # CameraInfo before the image: one executor thread takes the ready subscriptions in the order
+        # they were created, so a frame's CameraInfo that came with it is in place for the worker.
+        self.create_subscription(CameraInfo, "camera_info", self._on_camera_info, sensor_qos,
+                                 callback_group=side)
         if cfg.image_transport == "compressed":
             # image_transport's naming: <base topic>/compressed, so remapping `image` moves both.
             self._image_sub = self.create_subscription(
@@ -104,8 +108,6 @@ class FicapNode(Node):
         else:
             self._image_sub = self.create_subscription(Image, "image", self._on_image, sensor_qos,
                                                        callback_group=inputs)
-        self.create_subscription(CameraInfo, "camera_info", self._on_camera_info, sensor_qos,
-                                 callback_group=side)
         if cfg.calibration_reference_topic:
             ref_qos = QoSProfile(history=HistoryPolicy.KEEP_LAST, depth=100,
                                  reliability=ReliabilityPolicy.BEST_EFFORT)
