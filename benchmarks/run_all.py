@@ -24,6 +24,7 @@ RUNS = {
     "speed": ["bench_speed.py", "--frames", "150", "--replay-frames", "300"],
     "accuracy": ["bench_accuracy.py", "--frames", "1800", "--stride", "18"],
     "node": ["bench_node.py", "--rates", "10,15,30,60", "--seconds", "4"],
+    "demo": ["bench_demo.py", "--runs", "5"],
     "pipeline": ["bench_pipeline.py", "--frames", "20"],
     # Issue 13's soak is long by definition (10 min at 30 Hz): skip it with --only when in a hurry.
     "soak": ["bench_soak.py", "--minutes", "10"],
