@@ -312,6 +312,7 @@ class TagDetector:
         if dec > 1:
             corners, rejected = corners * dec + 0.5 * (dec - 1), rejected * dec + 0.5 * (dec - 1)
         corners = corners + offset
+        searched = corners  # the search's own corners: a second start for the cell-edge fit
         if len(ids) and self.config.corner_refine == "edge":
             corners = self._refine(full, corners, dec)
         enough = (dec > 1 and wanted_ids is not None and enough_tags > 0
@@ -321,8 +322,13 @@ class TagDetector:
                 full, rejected + offset, ids, corners, hamming, margin)
         shift = np.full(len(ids), np.nan)
         if len(ids) and self.config.corner_refine == "edge":
-            # Free of the tone-curve bias, every tag found (searched or read again).
-            corners, shift = refine_tag_corners(full, corners, ids, self.config)
+            # Free of the tone-curve bias, every tag found (searched or read again). A tag whose
+            # fit failed or reads its own cells wrong (a corner a cell off: at low light a search
+            # polygon or a line side latches onto a neighbouring edge) is fitted again from the
+            # search's corners and from each corner rebuilt from the other three.
+            starts = np.full((len(ids), 4, 2), np.nan)
+            starts[:len(searched)] = searched
+            corners, shift = refine_tag_corners(full, corners, ids, self.config, retry_px=starts)
         elif len(ids) and self.config.corner_refine == "subpix" and self._apriltag is not None:
             corners = _subpix(full, corners)
         return [
@@ -351,12 +357,8 @@ class TagDetector:
         polygon corners up to ``dec`` times further off) gets a wide coarse pass, then the fine one."""
         refined, ok = refine_corners_edge_ok(full, corners, self.config)
         if dec > 1 and not ok.all():
-            coarse = replace(self.config, edge_search_px=8.0, edge_max_shift_px=8.0, edge_iterations=1,
-                             edge_samples_per_side=12, edge_profile_samples=9)
             lost = ~ok
-            c, ok1 = refine_corners_edge_ok(full, corners[lost], coarse)
-            c, ok2 = refine_corners_edge_ok(full, c, self.config)
-            refined[lost] = np.where((ok1 & ok2)[:, None, None], c, refined[lost])
+            refined[lost] = _coarse_then_fine(full, corners[lost], self.config)
         return refined
 
     def _second_chance(
@@ -893,8 +895,41 @@ def _intersect_sides(nrm: np.ndarray, rho: np.ndarray) -> np.ndarray:
     return np.stack([x, y], axis=-1)
 
 
+#: Cells of its own code (of 64) a fitted tag may read wrong at its fitted corners (noise at
+#: low light); more, and a corner is off by about a cell.
+_MAX_FIT_CELL_ERRORS = 1
+
+
+def _cell_errors(gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """(N,) how many of each tag's 64 cells, read at ``corners_px`` (``read_tag_cells``), differ
+    from its id's code (64 where the corners give no usable homography)."""
+    c = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    if len(c) == 0:
+        return np.zeros(0, dtype=int)
+    try:
+        hom = tag_homographies(c)
+    except np.linalg.LinAlgError:
+        return np.full(len(c), 64)
+    read_black, _, _, finite = read_tag_cells(gray, hom)
+    expected = np.stack([tag_cells(int(i)).ravel() for i in ids])
+    return np.where(finite, (read_black != expected).sum(axis=1), 64)
+
+
+def _fittable(corners_px: np.ndarray) -> np.ndarray:
+    """(N,) which tags' cells span ``_MIN_TAG_CELL_PX`` both ways (those ``refine_tag_corners``
+    unbiases and fits with their own cells)."""
+    corners = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    if len(corners) == 0:
+        return np.zeros(0, dtype=bool)
+    nrm, rho = _side_lines(corners)
+    # Width of the tag across each side (opposite corners from the side's line), in cells.
+    across = rho[:, :, None] - np.einsum("nkd,njd->nkj", nrm, corners)
+    return across.max(axis=2).min(axis=1) / TAG_CELLS >= _MIN_TAG_CELL_PX
+
+
 def refine_tag_corners(
-    gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray, config: DetectorConfig | None = None
+    gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray, config: DetectorConfig | None = None,
+    retry_px: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The tag-aware stage after the line fit: ``unbias_corners_edge`` then ``fit_tag_edges``
     (each as ``config`` enables it) on every tag whose cells span ``_MIN_TAG_CELL_PX`` both ways.
@@ -903,12 +938,18 @@ def refine_tag_corners(
     the same call (``_line_bias``); without a fitted tag they keep their line corners.
     A fitted tag's corners depend on its own pixels only (a region search gives the full frame's
     corners); a small tag's also on the fitted tags of the call.
+    With ``retry_px``, a fittable tag the fit refused, or whose 64 cells read at its fitted
+    corners disagree with its code in more than ``_MAX_FIT_CELL_ERRORS`` (a corner about a cell
+    off, which the fit, moving at most a third of a cell, cannot undo), is fitted again from other
+    starts (``_refit``); where none reads right it keeps its corners with a NaN shift.
 
     Args:
         gray: (H, W) uint8 image.
         corners_px: (N, 4, 2) corners from ``refine_corners_edge``.
         ids: (N,) their ids.
         config: detector settings.
+        retry_px: (N, 4, 2) other starting corners (the search's; rows of NaN = none), or None:
+            no second look (the tracker, whose tags are verified by their cells afterwards).
 
     Returns:
         (corners (N, 4, 2), edge shift px (N,): ``fit_tag_edges``'s delta, NaN where not fitted:
@@ -921,19 +962,28 @@ def refine_tag_corners(
         return corners, delta
     ids = np.asarray(ids).reshape(-1)
     nrm, rho = _side_lines(corners)
-    # Width of the tag across each side (opposite corners from the side's line), in cells.
-    across = rho[:, :, None] - np.einsum("nkd,njd->nkj", nrm, corners)
-    good = across.max(axis=2).min(axis=1) / TAG_CELLS >= _MIN_TAG_CELL_PX
+    good = _fittable(corners)
+    corners_in = corners.copy()
     if good.any():
         c = corners[good]
         if cfg.edge_unbias:
             c = unbias_corners_edge(gray, c, ids[good], cfg)
         if cfg.edge_fit:
             c, delta[good] = fit_tag_edges(gray, c, ids[good], cfg, cfg.edge_fit_iterations)
-        corners_in = corners.copy()
         corners[good] = c
-    else:
-        corners_in = corners.copy()
+    if cfg.edge_fit and retry_px is not None:
+        # Fittable tags the fit refused (it would move a corner beyond a third of a cell: the
+        # start was off), fitted again from other starts: the given corners, and each corner
+        # replaced by the parallelogram of the other three (one corner led astray is how a
+        # search or a line pass fails: a side pulled onto a neighbouring edge in a dark corner).
+        # A fit that converged from a corner a cell off (it moves at most a third of a cell) reads
+        # the tag's own cells wrong next to that corner: those are fitted again too.
+        done = np.flatnonzero(np.isfinite(delta))
+        wrong = np.zeros(len(corners), dtype=bool)
+        wrong[done] = _cell_errors(gray, corners[done], ids[done]) > _MAX_FIT_CELL_ERRORS
+        again = np.flatnonzero(good & (~np.isfinite(delta) | wrong))
+        if len(again):
+            corners[again], delta[again] = _refit(gray, corners[again], retry_px[again], ids[again], cfg)
     fitted = np.isfinite(delta)
     # Line-fit corners only (too small to unbias or fit, or both failed): no tone-curve correction yet.
     line_only = ~fitted & np.all(corners == corners_in, axis=(1, 2))
@@ -956,6 +1006,55 @@ def refine_tag_corners(
         if len(todo):
             corners[todo] = _intersect_sides(nrm[todo], rho[todo] + bias[ok])
     return corners, delta
+
+
+def _coarse_then_fine(gray: np.ndarray, corners: np.ndarray, cfg: DetectorConfig) -> np.ndarray:
+    """Corners up to ~8 px off (a decimated search's polygon, a corner guessed from the other
+    three): a wide coarse line pass, then the fine one; a tag either pass fails keeps its input."""
+    coarse = replace(cfg, edge_search_px=8.0, edge_max_shift_px=8.0, edge_iterations=1,
+                     edge_samples_per_side=12, edge_profile_samples=9)
+    c, ok1 = refine_corners_edge_ok(gray, corners, coarse)
+    c, ok2 = refine_corners_edge_ok(gray, c, cfg)
+    return np.where((ok1 & ok2)[:, None, None], c, corners)
+
+
+def _refit(
+    gray: np.ndarray, corners: np.ndarray, other: np.ndarray, ids: np.ndarray, cfg: DetectorConfig
+) -> tuple[np.ndarray, np.ndarray]:
+    """Tags whose cell-edge fit failed from ``corners`` (M, 4, 2), fitted from other starts: ``other``
+    (M, 4, 2, rows of NaN = none) and ``corners`` and ``other`` with each corner k replaced by the
+    parallelogram c[k-1] + c[k+1] - c[k+2]; each start line-refined, unbiased and fitted. A tag
+    takes the start whose fit succeeds and moves least (its corners and delta, NaN where none did;
+    such tags keep ``corners``)."""
+    m = len(corners)
+    bases = [corners, np.asarray(other, dtype=np.float64).reshape(m, 4, 2)]
+    starts = [bases[1]]
+    for base in bases:
+        for k in range(4):
+            c = base.copy()
+            c[:, k] = base[:, _PREV[k]] + base[:, _NEXT[k]] - base[:, _OPPOSITE[0][k]]
+            starts.append(c)
+    cand = np.concatenate(starts)  # (S * M, 4, 2), start after start
+    tag = np.tile(np.arange(m), len(starts))
+    usable = np.isfinite(cand).all(axis=(1, 2))
+    best_c, best_d = corners.copy(), np.full(m, np.nan)
+    if not usable.any():
+        return best_c, best_d
+    cand, tag = cand[usable], tag[usable]
+    lines, ok = refine_corners_edge_ok(gray, cand, cfg)
+    if not ok.all():
+        lines[~ok] = _coarse_then_fine(gray, cand[~ok], cfg)
+    c = unbias_corners_edge(gray, lines, ids[tag], cfg) if cfg.edge_unbias else lines
+    fitted, d = fit_tag_edges(gray, c, ids[tag], cfg, cfg.edge_fit_iterations + 1)
+    right = np.isfinite(d)
+    right[right] = _cell_errors(gray, fitted[right], ids[tag][right]) <= _MAX_FIT_CELL_ERRORS
+    moved = np.where(right, np.linalg.norm(fitted - c, axis=2).max(axis=1), np.inf)
+    for j in range(m):
+        mine = np.flatnonzero((tag == j) & np.isfinite(moved))
+        if len(mine):
+            k = mine[np.argmin(moved[mine])]
+            best_c[j], best_d[j] = fitted[k], d[k]
+    return best_c, best_d
 
 
 def _line_windows(corners: np.ndarray, cfg: DetectorConfig) -> np.ndarray:

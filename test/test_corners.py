@@ -73,23 +73,29 @@ def test_corners_unbiased_under_each_tone_curve(resolution, tone, gamma, psf_sig
     assert np.median(err) <= 0.5 * np.median(peer_err)
 
 
-def test_corners_in_low_light() -> None:
-    """Low light (one side lamp, gain 2.5, noisy): errors stay small and the bias is a fraction
-    of the peer's. Ours lean outward by +0.02-0.06 px at 540p and up to +0.14 px at 1080p with a
-    sharp lens (PSF 0.4 px, gamma or filmic): measured and left open, so the bound here is 0.12 px,
-    not the 0.05 of the others. The cause is the sensor noise (the same frames without it:
-    -0.001 px), mostly the read noise at the black level (without it alone: 1080p filmic PSF 0.4
-    +0.138 -> +0.004 px, gamma 1.8 +0.099 -> +0.055), shared by the border unbias and the
-    cell-edge fit, growing with the window (half a cell, up to 4 px at 1080p); it is not the
-    contrast gate, the weights, the per-profile levels or the clipping of the normalised profile
-    (each changed alone: no better)."""
-    frames = _frames("540p", RenderConfig(lighting="low", tone="srgb", psf_sigma_px=0.7, jpeg_quality=95))
+@pytest.mark.parametrize(
+    "resolution, tone, gamma, psf_sigma_px",
+    [("540p", "srgb", 2.2, 0.7), ("1080p", "filmic", 2.2, 0.4), ("1080p", "gamma", 1.8, 0.4)],
+)
+def test_corners_in_low_light(resolution, tone, gamma, psf_sigma_px) -> None:
+    """Low light (one side lamp, gain 2.5, noisy): the issue's targets hold there too. What used
+    to break the mean radial offset (+0.10 / +0.14 px at 1080p with a sharp lens) was no bias
+    (median radial +0.007 px) but one tag in 47 with a corner 12-20 px off: at low light a
+    search polygon's corner, or a line side, latches onto a neighbouring tag's edge; the fit
+    (which moves at most a third of a cell) refused it or settled a cell off. Such tags are now
+    fitted again from corners rebuilt from the other three (measured before: +0.138 / +0.099 /
+    +0.044 px; after: +0.001 / -0.000 / +0.012)."""
+    frames = _frames(resolution, RenderConfig(lighting="low", tone=tone, gamma=gamma, psf_sigma_px=psf_sigma_px,
+                                              jpeg_quality=95))
     err, rad, found, clean = _errors(OURS, frames)
     _, peer_rad, _, _ = _errors(PEER, frames)
+    print(f"ours median {np.median(err):.3f} p95 {np.percentile(err, 95):.3f} radial {rad.mean():+.3f} "
+          f"max {err.max():.2f} ({found}/{clean} tags); peer radial {peer_rad.mean():+.3f}")
     assert found >= 0.8 * clean
-    assert np.median(err) <= 0.2
-    assert np.percentile(err, 95) <= 0.6
-    assert abs(rad.mean()) <= 0.12
+    assert np.median(err) <= 0.15
+    assert np.percentile(err, 95) <= 0.5
+    assert err.max() <= 1.5  # no corner led astray by a cell or more
+    assert abs(rad.mean()) <= 0.05
     assert abs(rad.mean()) <= 0.5 * abs(peer_rad.mean())
 
 
