@@ -255,7 +255,14 @@ frame's fitted tags with their own windows."""
 
 #: Written under the --cost table: the run of the code before the corner-stage work, and what
 #: the table shows (measured on 2026-11-23).
-COST_READING = """Before this branch (0650613's `ficap_ros`, the same script and frames, run at 19:31 just before
+COST_READING = """After the second start for the cell-edge fit (c3c713e, issue 10): tracked tags do not take it
+(the tracker calls `refine_tag_corners` without `retry_px`), and the 40 frames' corners are bit-identical
+before and after. Runs of the two `ficap_ros` alternated at 21:40 (load average 3.0-3.3 (1 min), so all
+inflated against the 4.09 ms of the quiet run at 20:47, load 0.2): corner stage before 4.59 / 5.48 ms, after 4.79 / 5.00 ms, i.e.
+within the load's spread. Searched frames pay the cell check of the fitted tags (~0.2 ms per 1080p
+frame of 21 tags) and the refits where they happen.
+
+Before this branch (0650613's `ficap_ros`, the same script and frames, run at 19:31 just before
 the table above; load average 4.4 (1 min)): line pass 1.57, border unbias 1.02, cell-edge fit 1.46,
 corner stage 4.05 ms, whole frame 8.79 ms, 39/40 tracked.
 
