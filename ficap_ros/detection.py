@@ -941,7 +941,7 @@ def refine_tag_corners(
     With ``retry_px``, a fittable tag the fit refused, or whose 64 cells read at its fitted
     corners disagree with its code in more than ``_MAX_FIT_CELL_ERRORS`` (a corner about a cell
     off, which the fit, moving at most a third of a cell, cannot undo), is fitted again from other
-    starts (``_refit``); where none reads right it keeps its corners with a NaN shift.
+    starts (``_refit``); where none reads right it keeps its corners (and its fit's shift).
 
     Args:
         gray: (H, W) uint8 image.
@@ -983,7 +983,10 @@ def refine_tag_corners(
         wrong[done] = _cell_errors(gray, corners[done], ids[done]) > _MAX_FIT_CELL_ERRORS
         again = np.flatnonzero(good & (~np.isfinite(delta) | wrong))
         if len(again):
-            corners[again], delta[again] = _refit(gray, corners[again], retry_px[again], ids[again], cfg)
+            c, d = _refit(gray, corners[again], retry_px[again], ids[again], cfg)
+            # Where no other start reads right either, a fitted tag keeps its fit (its cells may
+            # just read badly: small cells under glare read 2-3 wrong at the right corners).
+            corners[again], delta[again] = c, np.where(np.isfinite(d), d, delta[again])
     fitted = np.isfinite(delta)
     # Line-fit corners only (too small to unbias or fit, or both failed): no tone-curve correction yet.
     line_only = ~fitted & np.all(corners == corners_in, axis=(1, 2))
