@@ -306,7 +306,11 @@ tag's); (b) each profile the mean of two lines +-0.07 / 0.1 cell along the bound
 pixels): synth low light medians 0.13 -> 0.09-0.11 px, blender_dev 540p low 0.170 -> 0.163-0.166,
 1080p high 0.143 -> 0.130-0.134, but replay's rms_px on 1080p high 0.237 -> 0.246 (12 frames),
 540p low's p95 0.488 -> 0.493-0.506, and +6 % on the fit's CPU time; (c) an image pre-blurred
-(Gaussian 0.7-1.0 px) for tags with cells >= 6 px: nothing on blender_dev 1080p (0.130 -> 0.131-0.134)."""
+(Gaussian 0.7-1.0 px) for tags with cells >= 6 px: nothing on blender_dev 1080p (0.130 -> 0.131-0.134);
+(d) equal weights for the samples the contrast gate keeps, instead of (contrast / tag's)^2 (a noisy
+contrast makes a noisy weight): blender_dev 540p low 0.170 -> 0.161 px median, 1080p high p95 0.351
+-> 0.331, but 540p high p95 0.429 -> 0.447 and synth neutral p95 0.057-0.072 -> 0.065-0.084 (the
+weights rightly discount samples a neighbouring cell darkens); no target newly met."""
 
 HEADER = ["set", "PSF px", "tone", "lighting", "method", "tags found", "median px", "p95 px",
           "mean radial px", "rms px"]
