@@ -248,7 +248,7 @@ where their 64 cells then read right (`detection._refit`): dev_540p_low rms 0.50
 drive30 0.206 -> 0.156, 540p neutral 0.190 -> 0.184; the 1080p sets unchanged. dev_540p_low's median
 is mostly noise: its frames carry grey-level noise of sd ~10 on the white and ~5 on the black against
 ~75 levels of contrast, and its tags are small (cells of 2-4 px); 'Corner noise' below splits the
-fitted tags' error (median 0.158 px) into noise (0.125 px) and the rest (0.097 px, about what
+fitted tags' error (median 0.159 px) into noise (0.126 px) and the rest (0.097 px, about what
 540p neutral shows without the noise, 0.083). Tags too small or oblique to fit (cells under 2 px
 across one axis, 2-6 % of clean tags at 540p) carry the line estimator's bias measured on the
 frame's fitted tags with their own windows."""
