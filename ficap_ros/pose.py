@@ -46,7 +46,12 @@ changes) of
 Pooling by pattern matters: a tag's corner errors are not independent (a blurred border moves all
 four corners inward), and treating them as such misjudges which pose directions they disturb.
 ``rot_err95_deg`` / ``trans_err95_mm`` are the 95 % quantiles of the rotation angle / translation
-length under the covariance (``error_bound95``).
+length under the covariance (``error_bound95``), with two things the covariance alone does not say
+(``uncertainty_bounds``): the tags' common radial offset is measured (its sign and size, from the
+residuals), so its effect on the pose is a mean error, not a spread (the covariance holds its square,
+as a mean squared error must); and the residual-based sigmas are estimates pooled from a few dozen
+coefficients, so the bound is the predictive (F, Welch-Satterthwaite degrees of freedom) quantile,
+not the Gaussian one.
 
 Reliability (``CapPose.reliability``, in [0, 1]) is derived from the rotation bound alone, so it
 ranks frames as the bound does: ``0.5 ** (rot_err95_deg / RELIABILITY_HALF_DEG)`` (one half at a
@@ -80,6 +85,7 @@ __all__ = [
     "UncertaintyConfig",
     "uncertainty_terms",
     "combine_uncertainty",
+    "uncertainty_bounds",
     "error_bound95",
     "reprojection_errors_px",
 ]
@@ -132,9 +138,13 @@ class UncertaintyConfig:
         light_gradient_tilt_gain: shared shift of the tags along their foreshortening per px of
             ``light_gradient_px``.
         tilt_shift_px: floor for that shared shift, px at a tag seen edge-on. 0 by default: on
-            ``ficap synth`` frames under even light it is below 0.002 px; blender_dev's 540p
-            renders show 0.06 px (gamma tone curve, 28 px tags), which no residual reveals and
-            which moves the depth by ~0.4 mm: set it for such a camera (docs/benchmarks.md).
+            ``ficap synth`` frames under even light it is below 0.003 px; blender_dev's neutral
+            renders show +0.02 to +0.06 px, which no residual reveals and which moves the depth
+            by up to ~0.45 mm. Its measured cause there: each oblique face is lit unevenly along
+            its foreshortening (the quiet zone's contrast 4-9 % higher on one side; a light at the
+            camera, inverse square, gives 10 %), and the edges move toward the darker side;
+            ``ficap synth`` lights a face evenly. Set it for a camera with a light beside the
+            lens (docs/benchmarks.md, "Calibrated uncertainty").
         weight_tags: weight each tag in the ``joint`` pose by its corner noise
             (``tag_noise_px``): one weighted Gauss-Newton step from the unweighted optimum.
     """
@@ -710,7 +720,8 @@ def estimate_cap_pose(
         edge_shift = np.array([shifts.get(i, float("nan")) for i in solution.used.ids])
         terms, seen = uncertainty_terms(solution.used, T, tag_sigma, edge_shift, at=(res, J))
         covariance = combine_uncertainty(terms, seen, config.uncertainty)
-        rot95, trans95 = error_bound95(covariance)
+        rot95, trans95 = error_bound95(covariance, *uncertainty_bounds(terms, seen, config.uncertainty,
+                                                                       covariance))
     else:
         covariance = np.full((6, 6), np.nan)
         rot95 = trans95 = float("nan")
@@ -871,7 +882,9 @@ def uncertainty_terms(
             tag's divided by its relative noise) pooled over the tags, less the share the fit
             absorbed (the weighted hat matrix's leverage of the group), and ``bias_common``, the
             tags' mean radial offset (px per corner), scaled back by the share of it the fit left
-            in the residuals; and ``light_gradient`` (``light_gradient_px``), px.
+            in the residuals; and ``light_gradient`` (``light_gradient_px``), px; per pattern
+            group also ``<group>_dof``, the degrees of freedom its sigma was pooled from (the
+            bounds widen for a sigma estimated from few, ``uncertainty_bounds``).
     """
     res, J = _at(T, obs) if at is None else at
     n_tags = len(obs)
@@ -952,6 +965,7 @@ def uncertainty_terms(
         dof = len(idx) * n_tags - float(np.sum(leverage[:, idx]))
         dof -= 1.0 if group == "scale" else 0.0  # the common offset, taken out above
         seen[group] = float(np.sqrt(np.sum(c**2) / dof)) if dof > 0.5 else 0.0
+        seen[group + "_dof"] = max(dof, 0.0)  # how well the residuals know it (error_bound95)
     # The common radial offset the residuals show is what the fit left of it: part of it went into
     # the depth (that part moved the pose). Scale back to the whole by the share left. The mean
     # carries the tags' scale noise too (its standard error): subtract that in quadrature, or the
@@ -1012,14 +1026,111 @@ def _norm_quantile95(lam: np.ndarray) -> float:
     return float(np.sqrt(sq / total) * np.interp(nu, _NU, _SQRT_Q95))
 
 
-def error_bound95(covariance: np.ndarray) -> tuple[float, float]:
+#: The 95 % quantile of F(nu, nu_e) over a grid of log(nu) (the error's effective dimensions: 1-3
+#: for a zero-mean error, up to ~1e6 when a measured offset dominates) and 1 / nu_e (the degrees
+#: of freedom its variance was estimated from; 0: known). F(nu, inf) = chi2(nu) / nu.
+_F_LOG_NU = np.linspace(np.log(0.5), np.log(1e6), 90)
+_F_INV_DOF = np.linspace(0.0, 0.5, 26)
+
+
+def _f_quantile_table() -> np.ndarray:
+    from scipy.stats import chi2, f
+
+    nu = np.exp(_F_LOG_NU)[:, None]
+    inv = _F_INV_DOF[None, :]
+    with np.errstate(divide="ignore"):
+        dof = np.where(inv > 0, 1.0 / np.where(inv > 0, inv, 1.0), np.inf)
+    return np.where(np.isinf(dof), chi2.ppf(0.95, nu) / nu, f.ppf(0.95, nu, np.where(np.isinf(dof), 1.0, dof)))
+
+
+_F_Q95 = _f_quantile_table()
+
+
+def _f_quantile95(nu: float, dof: float) -> float:
+    """Bilinear lookup of the 95 % quantile of F(nu, dof) (dof >= 2; inf: chi2(nu) / nu)."""
+    x = (np.log(min(max(nu, 0.5), 1e6)) - _F_LOG_NU[0]) / (_F_LOG_NU[1] - _F_LOG_NU[0])
+    y = min(1.0 / max(dof, 2.0), 0.5) / (_F_INV_DOF[1] - _F_INV_DOF[0])
+    i = min(int(x), len(_F_LOG_NU) - 2)
+    j = min(int(y), len(_F_INV_DOF) - 2)
+    fx, fy = x - i, y - j
+    q = _F_Q95
+    return float((q[i, j] * (1 - fx) + q[i + 1, j] * fx) * (1 - fy)
+                 + (q[i, j + 1] * (1 - fx) + q[i + 1, j + 1] * fx) * fy)
+
+
+def _bound95(block: np.ndarray, offset: np.ndarray, dof: float) -> float:
+    """95 % quantile of |m + e|, e ~ N(0, S) with ``block`` = S + m m^T: |m + e|^2 matched in mean
+    and variance by a scaled chi-square (Welch-Satterthwaite; for m = 0 the quantile of old).
+    When S is known only to ``dof`` degrees of freedom, S is first widened to its predictive size
+    (by the ratio of the F to the chi-square quantile of its own effective dimensions: for m = 0
+    exactly the predictive F quantile); the offset is a measurement, not widened."""
+    S = 0.5 * (block + block.T) - np.outer(offset, offset)
+    lam = np.clip(np.linalg.eigvalsh(S), 0.0, None)
+    total = float(np.sum(lam))
+    if np.isfinite(dof) and total > 0.0:
+        nu_s = total * total / float(np.sum(lam**2))
+        widen = _f_quantile95(nu_s, dof) / _f_quantile95(nu_s, np.inf)
+        lam = lam * widen
+        S = S * widen
+    mean = float(np.sum(lam) + offset @ offset)
+    if mean <= 0.0:
+        return 0.0
+    var = float(2.0 * np.sum(lam**2) + 4.0 * offset @ S @ offset)
+    nu = 2.0 * mean * mean / var if var > 1e-12 * mean * mean else 1e6
+    return float(np.sqrt(mean * _f_quantile95(nu, np.inf)))
+
+
+def uncertainty_bounds(terms: dict[str, np.ndarray], seen: dict[str, float],
+                       config: UncertaintyConfig,
+                       covariance: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
+    """What ``error_bound95`` needs beyond the covariance: the measured offset and how well the
+    random part is known.
+
+    offset (6,), ROS order: the pose error that the tags' common radial offset the residuals
+        show (``seen["bias_common"]``) causes. The covariance (``combine_uncertainty``) carries
+        it as its square (the frame's mean squared error: a consumer does not know its sign);
+        for the bounds it is a mean, not a spread: a measured offset moves the pose by its
+        effect, not by 1.96 times it. Its sign is immaterial to a bound on the error's length.
+    dof (rotation, translation): effective degrees of freedom (Welch-Satterthwaite) of the
+        random part's variance in each block: each residual pattern group's sigma was pooled
+        from ``<group>_dof`` coefficients; the floors and light terms count as known."""
+    k = config.residual_inflation
+    unit = terms["bias_common"]
+    lam, vec = np.linalg.eigh(0.5 * (unit + unit.T))
+    offset = vec[:, -1] * np.sqrt(max(float(lam[-1]), 0.0)) * k * seen.get("bias_common", 0.0)
+    if not np.all(np.isfinite(offset)):
+        offset = np.zeros(6)
+    dofs = []
+    for rows in (slice(3, 6), slice(0, 3)):
+        total = float(np.trace(covariance[rows, rows])) - float(offset[rows] @ offset[rows])
+        den = 0.0
+        for group in _PATTERNS:
+            dof = seen.get(group + "_dof", np.inf)
+            part = k * k * seen.get(group, 0.0) ** 2 * float(np.trace(terms[group][rows, rows]))
+            if np.isfinite(dof) and dof > 0.0 and part > 0.0:
+                den += part * part / dof
+        dofs.append(total * total / den if den > 0.0 and total > 0.0 else float("inf"))
+    return offset, (dofs[0], dofs[1])
+
+
+def error_bound95(covariance: np.ndarray, offset: np.ndarray | None = None,
+                  dof: tuple[float, float] = (float("inf"), float("inf"))) -> tuple[float, float]:
     """(rotation deg, translation mm): 95 % quantiles of the geodesic rotation error and of the
-    translation error's length under the covariance (Gaussian, first order)."""
+    translation error's length under the covariance (first order).
+
+    Args:
+        covariance: 6x6, ROS order: the error's second moment (``combine_uncertainty``).
+        offset: (6,) the part of it that is a measured mean error (``uncertainty_bounds``):
+            the covariance holds ``S + offset offset^T`` with ``S`` the random part. None: 0.
+        dof: (rotation, translation) degrees of freedom the random part is known to; inf: known
+            (Gaussian), finite: the predictive (F) quantile.
+    """
+    m = np.zeros(6) if offset is None else np.asarray(offset, dtype=float)
     out = []
-    for block, scale in ((covariance[3:, 3:], np.degrees(1.0)), (covariance[:3, :3], 1e3)):
+    for rows, scale, nu_e in ((slice(3, 6), np.degrees(1.0), dof[0]), (slice(0, 3), 1e3, dof[1])):
+        block = covariance[rows, rows]
         if not np.all(np.isfinite(block)):
             out.append(float("inf"))
             continue
-        lam = np.clip(np.linalg.eigvalsh(0.5 * (block + block.T)), 0.0, None)
-        out.append(_norm_quantile95(lam) * scale)
+        out.append(_bound95(block, m[rows], nu_e) * scale)
     return out[0], out[1]
