@@ -28,7 +28,7 @@ synth rows are what ``UncertaintyConfig`` was calibrated on; ``--seed-offset`` r
 noise realisation of them (a held-out check).
 
 Usage: .venv/bin/python benchmarks/bench_uncertainty.py [--frames 60] [--record] [--dump FILE]
-       [--blender-dev PATH] [--seed-offset N] [--no-ceiling]
+       [--blender-dev PATH] [--seed-offset N] [--no-ceiling] [--tilt-shift-px PX]
 """
 
 from __future__ import annotations
@@ -217,7 +217,15 @@ def main() -> int:
     ap.add_argument("--blender-dev", type=Path, default=None, help="blender_dev folder")
     ap.add_argument("--record", action="store_true", help="write the table into docs/benchmarks.md")
     ap.add_argument("--dump", type=Path, help="per-frame numbers as JSON")
+    ap.add_argument("--tilt-shift-px", type=float, default=None,
+                    help="ours with this UncertaintyConfig.tilt_shift_px (what a floor for the shift "
+                         "along the foreshortening costs; not recorded)")
     args = ap.parse_args()
+    if args.tilt_shift_px is not None:
+        if args.record:
+            ap.error("--tilt-shift-px is a what-if: not recorded")
+        METHODS["ficap joint"] = (DetectorConfig(), PoseConfig(
+            method="joint", uncertainty=UncertaintyConfig(tilt_shift_px=args.tilt_shift_px)))
     cv2.setNumThreads(1)
     model = nominal_model()
     t0 = time.time()
