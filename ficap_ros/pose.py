@@ -1095,21 +1095,20 @@ def uncertainty_bounds(terms: dict[str, np.ndarray], seen: dict[str, float],
         random part's variance in each block: each residual pattern group's sigma was pooled
         from ``<group>_dof`` coefficients; the floors and light terms count as known."""
     k = config.residual_inflation
-    unit = terms["bias_common"]
-    lam, vec = np.linalg.eigh(0.5 * (unit + unit.T))
-    offset = vec[:, -1] * np.sqrt(max(float(lam[-1]), 0.0)) * k * seen.get("bias_common", 0.0)
+    unit = terms["bias_common"]  # a a^T (one mode shared by all tags): a from its largest column
+    j = int(np.argmax(np.diagonal(unit)))
+    offset = unit[:, j] / np.sqrt(max(float(unit[j, j]), 1e-300)) * k * seen.get("bias_common", 0.0)
     if not np.all(np.isfinite(offset)):
         offset = np.zeros(6)
-    dofs = []
-    for rows in (slice(3, 6), slice(0, 3)):
-        total = float(np.trace(covariance[rows, rows])) - float(offset[rows] @ offset[rows])
-        den = 0.0
-        for group in _PATTERNS:
-            dof = seen.get(group + "_dof", np.inf)
-            part = k * k * seen.get(group, 0.0) ** 2 * float(np.trace(terms[group][rows, rows]))
-            if np.isfinite(dof) and dof > 0.0 and part > 0.0:
-                den += part * part / dof
-        dofs.append(total * total / den if den > 0.0 and total > 0.0 else float("inf"))
+    diag = np.diagonal(covariance) - offset * offset
+    den = np.zeros(2)  # rotation, translation: sum of (part's trace)^2 / its dof
+    for group in _PATTERNS:
+        dof = seen.get(group + "_dof", np.inf)
+        if np.isfinite(dof) and dof > 0.0:
+            d = np.diagonal(terms[group]) * (k * seen.get(group, 0.0)) ** 2
+            den += np.array([d[3:].sum(), d[:3].sum()]) ** 2 / dof
+    total = np.array([diag[3:].sum(), diag[:3].sum()])
+    dofs = [float(t * t / e) if e > 0.0 and t > 0.0 else float("inf") for t, e in zip(total, den)]
     return offset, (dofs[0], dofs[1])
 
 
