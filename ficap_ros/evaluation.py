@@ -382,18 +382,15 @@ def report_markdown(result: EvaluationResult) -> str:
 
 
 def write_report(result: EvaluationResult, out_dir: str | Path, plots: bool = True) -> list[Path]:
-    """Write report.md, report.json and the PNG plots into ``out_dir`` (created), atomically.
+    """Write report.md, report.json and the PNG plots into ``out_dir`` (created), each atomically.
 
     Raises:
-        BagError: the folder is not writable.
+        OutputError: the folder is a recording or holds files ficap did not write
+            (``files.prepare_output_folder``), or is not writable.
     """
-    from ficap_ros.files import write_output_file
+    from ficap_ros.files import prepare_output_folder, write_output_file
 
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise BagError(f"cannot write to {out}: {err.strerror or err}") from err
+    out = prepare_output_folder(out_dir)
     paths = plot_report(result, out) if plots else []
     write_output_file(out / "report.json", json.dumps(_finite(result.summary()), indent=2) + "\n")
     write_output_file(out / "report.md", report_markdown(result))

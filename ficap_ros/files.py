@@ -18,6 +18,7 @@ Every failure is an ``OutputError`` whose message is one line.
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import tempfile
 from pathlib import Path
@@ -27,14 +28,24 @@ from ficap_ros.errors import FicapError, OutputError
 
 __all__ = ["read_text", "write_atomic", "write_output_file", "check_file_target",
            "check_not_input", "check_replaceable", "check_output_folder", "OutputFolder",
-           "FICAP_OUTPUT_FILES"]
+           "FICAP_OUTPUT_FILES", "is_ficap_output", "prepare_output_folder"]
 
-#: Files ficap writes into an output folder (replay, stats, evaluate): an existing folder holding
-#: only these (and ficap's own hidden temporaries) may be replaced.
+#: Files ficap writes into an output folder (replay, stats, evaluate, a fleet's summary): an
+#: existing folder holding only these (and ficap's own hidden temporaries) may be replaced.
 FICAP_OUTPUT_FILES = frozenset({
     "labels.mcap", "metadata.yaml", "labels.csv", "summary.json", "stats.json",
     "reliability_histogram.png", "tag_detection_rate.png", "report.md", "report.json",
+    "error_histogram.png", "timeseries.png", "error_vs_yaw.png",
+    "fleet_summary.csv", "fleet_summary.json", "fleet_summary.png",
 })
+#: The kit's files, whose names carry the paper size and the sheet's page (``ficap_ros.kit``).
+_KIT_FILE = re.compile(r"ficap_tags_(a4|letter)(_p\d+\.svg|\.pdf)|ficap_assembly\.(png|pdf)"
+                       r"|ficap_shell\.stl")
+
+
+def is_ficap_output(name: str) -> bool:
+    """``name`` is a file ficap writes into an output folder (or one of its hidden temporaries)."""
+    return name in FICAP_OUTPUT_FILES or name.startswith(".ficap") or bool(_KIT_FILE.fullmatch(name))
 
 
 def _reason(err: OSError) -> str:
@@ -136,13 +147,18 @@ def check_not_input(out: str | os.PathLike[str], inputs: Iterable[str | os.PathL
                               "choose another output")
 
 
-def check_replaceable(out: str | os.PathLike[str]) -> None:
-    """Refuse to replace an existing folder that ficap did not write.
+def check_replaceable(out: str | os.PathLike[str], subfolders: bool = False) -> None:
+    """Refuse to replace (or add files to) an existing folder that ficap did not write.
 
     An existing ``out`` may be replaced when it is an empty folder or holds only files ficap
-    writes (``FICAP_OUTPUT_FILES``), and when its ``metadata.yaml``, if any, describes a rosbag2
+    writes (``is_ficap_output``), and when its ``metadata.yaml``, if any, describes a rosbag2
     whose only file is ficap's ``labels.mcap``. Anything else (a recording, a folder of the
     user's files) is refused.
+
+    Args:
+        out: the folder.
+        subfolders: the folder may hold folders (a fleet's ``--out``: one per recording); then
+            every file under it is checked the same way, at any depth.
 
     Raises:
         OutputError: ``out`` is a file, or a folder ficap did not write.
@@ -152,25 +168,50 @@ def check_replaceable(out: str | os.PathLike[str]) -> None:
         return
     if not p.is_dir():
         raise OutputError(f"output {p} exists and is not a folder")
-    foreign = sorted(c.name for c in p.iterdir()
-                     if c.name not in FICAP_OUTPUT_FILES and not c.name.startswith(".ficap"))
-    if foreign:
-        listed = ", ".join(foreign[:3]) + (" ..." if len(foreign) > 3 else "")
-        raise OutputError(f"output folder {p} holds files ficap did not write ({listed}); "
-                          "choose a new or empty folder")
-    meta = p / "metadata.yaml"
-    if meta.exists():
-        import yaml
-
-        try:
-            info = yaml.safe_load(read_text(meta, "metadata", OutputError))
-            files = info["rosbag2_bagfile_information"]["relative_file_paths"]
-        except (FicapError, yaml.YAMLError, KeyError, TypeError) as err:
-            raise OutputError(f"output folder {p} holds a metadata.yaml ficap did not write; "
-                              "choose a new or empty folder") from err
-        if list(files) != ["labels.mcap"]:
-            raise OutputError(f"output folder {p} is a rosbag2 recording ficap did not write; "
+    folders = [p]
+    for folder in folders:
+        if subfolders:  # breadth first; ficap's hidden temporaries are not looked into
+            folders += sorted(c for c in folder.iterdir()
+                              if c.is_dir() and not c.is_symlink() and not c.name.startswith(".ficap"))
+        foreign = sorted(str(c.relative_to(p)) + ("/" if c.is_dir() else "") for c in folder.iterdir()
+                         if not is_ficap_output(c.name) and not (subfolders and c.is_dir()))
+        if foreign:
+            listed = ", ".join(foreign[:3]) + (" ..." if len(foreign) > 3 else "")
+            raise OutputError(f"output folder {p} holds files ficap did not write ({listed}); "
                               "choose a new or empty folder")
+        meta = folder / "metadata.yaml"
+        if meta.exists():
+            import yaml
+
+            try:
+                info = yaml.safe_load(read_text(meta, "metadata", OutputError))
+                files = info["rosbag2_bagfile_information"]["relative_file_paths"]
+            except (FicapError, yaml.YAMLError, KeyError, TypeError) as err:
+                raise OutputError(f"output folder {folder} holds a metadata.yaml ficap did not "
+                                  "write; choose a new or empty folder") from err
+            if list(files) != ["labels.mcap"]:
+                raise OutputError(f"output folder {folder} is a rosbag2 recording ficap did not "
+                                  "write; choose a new or empty folder")
+
+
+def prepare_output_folder(out: str | os.PathLike[str]) -> Path:
+    """The folder ``stats --out``, ``evaluate --out`` and ``kit --out`` add their files to.
+
+    It must be new, empty or one ficap wrote (``check_replaceable``: never a recording or a
+    folder of the user's files); it is created, and each file is then written atomically into it.
+
+    Raises:
+        OutputError: with one line.
+    """
+    p = Path(out)
+    check_replaceable(p)
+    try:
+        p.mkdir(parents=True, exist_ok=True)
+    except OSError as err:
+        raise OutputError(f"cannot write output folder {p}: {_reason(err)}") from err
+    if not os.access(p, os.W_OK | os.X_OK):
+        raise OutputError(f"cannot write output folder {p}: not writable")
+    return p
 
 
 def check_output_folder(out: str | os.PathLike[str],

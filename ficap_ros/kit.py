@@ -33,6 +33,7 @@ from ficap_ros.cap_model import (
 )
 from ficap_ros.detection import TAG_CELLS  # cells across a tag36h11 tag with its black border
 from ficap_ros.errors import ConfigError
+from ficap_ros.files import prepare_output_folder
 
 __all__ = [
     "PAPER_SIZES_MM",
@@ -571,16 +572,13 @@ def make_kit(
     stl: bool = True,
     shell_thickness_mm: float = 2.0,
 ) -> KitResult:
-    """Write the whole kit into ``out_dir`` (created if missing).
+    """Write the whole kit into ``out_dir`` (created if missing; an existing folder must be empty
+    or ficap's, ``files.prepare_output_folder``).
 
     Files: ``ficap_tags_<paper>.pdf``, ``ficap_tags_<paper>_p<k>.svg`` (one per page),
     ``ficap_assembly.png``/``.pdf``, and ``ficap_shell.stl`` when ``stl``.
     """
-    out = Path(out_dir)
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-    except OSError as err:
-        raise ConfigError(f"cannot create output folder {out}: {err.strerror or err}") from err
+    out = prepare_output_folder(out_dir)  # new, empty or ficap's: never a recording
     model = model or nominal_model()
     pages = layout_tag_sheets(model.ids, paper)
     files: list[Path] = []

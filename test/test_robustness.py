@@ -268,6 +268,41 @@ def test_replay_replaces_its_own_output(drive: Path, replayed: Path, tmp_path: P
     assert (out / "labels.csv").read_text() == (replayed / "labels.csv").read_text()
 
 
+def test_stats_evaluate_kit_and_fleet_never_write_into_a_recording_or_foreign_folder(
+        drive: Path, replayed: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    # They add files to --out rather than replace it, but under the same rule: a rosbag2
+    # recording or a folder of the user's files is refused before anything is written.
+    before = _digest(drive)
+    foreign = tmp_path / "mine"
+    foreign.mkdir()
+    (foreign / "notes.txt").write_text("keep me")
+    tree = tmp_path / "tree"  # a fleet's --out that holds a recording deeper down
+    shutil.copytree(drive, tree / "alice" / "d1")
+    truth = f"{drive}:/ficap/truth/head_pose"
+    for out in (drive, foreign, tree):
+        for argv in (["stats", str(replayed), "--out", str(out)],
+                     ["evaluate", "--truth", truth, "--estimate", str(replayed / "labels.csv"),
+                      "--out", str(out)],
+                     ["kit", "--out", str(out), "--no-stl"],
+                     ["replay", str(drive), str(replayed.parent), "--out", str(out), "--quiet"]):
+            assert main(argv) == 1, (argv, capsys.readouterr())
+            line = _one_error_line(capsys)
+            assert "did not write" in line and str(out) in line, line
+    assert _digest(drive) == before and _digest(tree / "alice" / "d1") == before
+    assert sorted(p.name for p in foreign.iterdir()) == ["notes.txt"]
+    # A folder ficap wrote takes them all, and stays one ficap may replace.
+    mine = tmp_path / "labels"
+    shutil.copytree(replayed, mine)
+    assert main(["stats", str(mine), "--out", str(mine)]) == 0
+    assert main(["evaluate", "--truth", truth, "--estimate", str(mine / "labels.csv"),
+                 "--out", str(mine)]) == 0
+    assert main(["kit", "--out", str(mine), "--paper", "letter", "--no-stl"]) == 0
+    assert {"stats.json", "report.md", "timeseries.png", "ficap_tags_letter.pdf"} <= {
+        p.name for p in mine.iterdir()}
+    assert main(["replay", str(drive), "--out", str(mine), "--quiet"]) == 0
+    assert sorted(p.name for p in mine.iterdir()) == sorted(p.name for p in replayed.iterdir())
+
+
 # -- 4/5. calibration files -----------------------------------------------------------------------
 def test_calibrated_no_loads_as_uncalibrated(tmp_path: Path) -> None:
     path = tmp_path / "cal.yaml"

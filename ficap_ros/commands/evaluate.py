@@ -26,9 +26,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from ficap_ros.errors import ConfigError
     from ficap_ros.evaluation import evaluate, load_series, write_report
+    from ficap_ros.files import check_replaceable
 
     if not args.max_dt_ms > 0:
         raise ConfigError(f"--max-dt-ms must be positive, got {args.max_dt_ms}")
+    check_replaceable(args.out)  # never into a recording or a folder of the user's files
     truth = load_series(args.truth)
     estimate = load_series(args.estimate)
     result = evaluate(truth, estimate, args.max_dt_ms)

@@ -8,7 +8,7 @@ HELP = "write the printable cap kit: 1:1 tag sheets (PDF, SVG), assembly sheet, 
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--out", required=True, help="output folder (created if missing)")
+    parser.add_argument("--out", required=True, help="output folder (created if missing; an existing one must be empty or ficap's)")
     parser.add_argument("--paper", choices=("a4", "letter"), default="a4",
                         help="paper size of the tag sheets (default a4)")
     parser.add_argument("--model", help="cap model YAML whose ids to print (default: nominal)")

@@ -102,7 +102,7 @@ def run(args: argparse.Namespace) -> int:
     from ficap_ros.cap_model import load_model, nominal_model
     from ficap_ros.cli import EXIT_FRAMES_LOST
     from ficap_ros.errors import BagError
-    from ficap_ros.files import check_output_folder
+    from ficap_ros.files import check_output_folder, check_replaceable
     from ficap_ros.pose import PoseConfig
     from ficap_ros.replay import check_output_dir, replay
 
@@ -117,6 +117,8 @@ def run(args: argparse.Namespace) -> int:
 
         raise ConfigError("give at least one INPUT or --manifest FILE")
     if _is_fleet(args):
+        # The fleet's --out holds a folder per recording: every file in it must be ficap's.
+        check_replaceable(args.out, subfolders=True)
         check_output_dir(Path(args.out))
         return _run_fleet(args, model, calibration)
     args.input = args.input[0]

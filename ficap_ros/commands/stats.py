@@ -36,10 +36,10 @@ def run(args: argparse.Namespace) -> int:
 
     model = load_model(args.model) if args.model else nominal_model()
     lost_line, lost_info = "", None
-    if args.out:
-        from ficap_ros.replay import check_output_dir
+    if args.out:  # before any processing: never into a recording or a folder of the user's
+        from ficap_ros.files import prepare_output_folder
 
-        check_output_dir(Path(args.out))
+        prepare_output_folder(args.out)
     if _is_labels(args.input):
         from ficap_ros.labels import read_labels
 
