@@ -194,3 +194,20 @@ def test_node_starts_or_refuses_in_one_line_on_every_bad_file() -> None:
     finally:
         rclpy.try_shutdown(context=context)
     assert np.isfinite(0.0)
+
+
+def test_missing_paths_are_one_line_on_the_real_stderr(tmp_path: Path) -> None:
+    """In a real process (file descriptor 2, where OpenCV prints its own WARN lines, not
+    capsys): a path that does not exist is exactly one ``ficap: error:`` line and exit 1."""
+    import subprocess
+    import sys
+
+    missing = str(tmp_path / "nope.png")
+    for argv in (["detect", missing], ["detect", str(tmp_path)],
+                 ["stats", str(tmp_path / "nope.mcap")],
+                 ["replay", str(tmp_path / "nope.mp4"), "--out", str(tmp_path / "o")]):
+        run = subprocess.run([sys.executable, "-m", "ficap_ros.cli", *argv], capture_output=True,
+                             text=True, timeout=120)
+        lines = run.stderr.strip().splitlines()
+        assert run.returncode == 1 and len(lines) == 1, (argv, run.stderr)
+        assert lines[0].startswith("ficap: error:") and argv[1] in lines[0], lines

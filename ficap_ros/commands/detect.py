@@ -18,6 +18,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import json
+    import os
     import sys
 
     import cv2
@@ -33,6 +34,8 @@ def run(args: argparse.Namespace) -> int:
     # not the results of the others.
     for path in args.images:
         try:
+            if not os.path.isfile(path):  # before OpenCV, which prints its own WARN line for it
+                raise ImageError(f"cannot read image {path!r} (no such file)")
             image = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
             if image is None:
                 raise ImageError(f"cannot read image {path!r} (missing, unreadable or not an image)")
