@@ -227,11 +227,18 @@ def process_frames(
 
 # -- calibration ---------------------------------------------------------------------------------
 def parse_window(text: str) -> tuple[float, float]:
-    """``START:END`` in seconds -> (start_s, end_s). Raises ``ValueError``."""
+    """``START:END`` in seconds -> (start_s, end_s); an empty START is 0, an empty END the end of
+    the recording (``math.inf``). Raises ``ValueError`` with a one-line message."""
     start, sep, end = text.partition(":")
-    if not sep:
-        raise ValueError(f"expected START:END in seconds, got {text!r}")
-    s, e = float(start or 0.0), float(end) if end else math.inf
+    usage = f"expected START:END in seconds (e.g. 0:3, or 2: to the end), got {text!r}"
+    if not sep or not (start.strip() or end.strip()):
+        raise ValueError(usage)
+    try:
+        s, e = float(start or 0.0), float(end) if end.strip() else math.inf
+    except ValueError:
+        raise ValueError(usage) from None
+    if not math.isfinite(s) or (end.strip() and not math.isfinite(e)):
+        raise ValueError(f"window {text!r}: START and END must be finite numbers of seconds")
     if not (s >= 0 and e > s):
         raise ValueError(f"window {text!r} must have 0 <= START < END")
     return s, e

@@ -91,3 +91,26 @@ def test_bad_inputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("ficap: error:"), err
     assert not (tmp_path / "c.yaml").exists()
+
+
+def test_time_windows_and_counts_are_checked_with_one_clear_line(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Bad START:END windows and --retries are exit 2 with a message that says what is wanted
+    (not Python's 'could not convert string to float'); an open END is the end of the recording."""
+    from ficap_ros.replay import parse_window
+
+    assert parse_window("2:") == (2.0, float("inf")) and parse_window(":3") == (0.0, 3.0)
+    for bad, says in (("a:b", "expected START:END in seconds"), ("1:2:3", "expected START:END"),
+                      (":", "expected START:END"), ("3", "expected START:END"),
+                      ("nan:1", "finite"), ("0:inf", "finite"), ("0:nan", "finite"),
+                      ("2:1", "0 <= START < END")):
+        for argv in (["calibrate", "labels.csv", "--frontal", bad, "--out", "c.yaml"],
+                     ["replay", "in", "--out", "o", "--calibrate-frontal", bad]):
+            with pytest.raises(SystemExit) as exc:
+                main(argv)
+            assert exc.value.code == 2, (argv, bad)
+            err = capsys.readouterr().err.strip().splitlines()[-1]
+            assert says in err and "could not convert" not in err, (bad, err)
+    with pytest.raises(SystemExit) as exc:
+        main(["replay", "in", "--out", str(tmp_path / "o"), "--retries", "-1"])
+    assert exc.value.code == 2 and "--retries" in capsys.readouterr().err

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from ficap_ros.cli import positive_float, positive_int, time_window
+from ficap_ros.cli import non_negative_int, positive_float, positive_int, time_window
 
 HELP = ("replay rosbag2 bags, .mcap files or videos (or folder trees of them, or a manifest) "
         "through the pipeline; write labels.mcap, labels.csv and summary.json per recording, "
@@ -59,7 +59,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help="run on an embedded local Ray (loopback only; --jobs CPUs)")
     fleet.add_argument("--ray-address", metavar="ADDR",
                        help="run on an existing Ray cluster (e.g. auto, HEAD:6379)")
-    fleet.add_argument("--retries", type=int, default=2, metavar="N",
+    fleet.add_argument("--retries", type=non_negative_int, default=2, metavar="N",
                        help="Ray: re-runs of a segment whose worker died (default 2)")
     fleet.add_argument("--force", action="store_true",
                        help="redo recordings whose outputs are already current")
@@ -147,12 +147,9 @@ def run(args: argparse.Namespace) -> int:
 def _run_fleet(args: argparse.Namespace, model, calibration) -> int:  # noqa: ANN001
     from pathlib import Path
 
-    from ficap_ros.errors import ConfigError
     from ficap_ros.fleet import find_recordings, label_settings, run_fleet
     from ficap_ros.pose import PoseConfig
 
-    if args.retries < 0:
-        raise ConfigError(f"--retries must be >= 0, got {args.retries}")
     recordings = find_recordings(args.input, args.manifest, args.out, videos=args.videos)
     pose = PoseConfig(method=args.method)
     settings = label_settings(model, pose, calibration, args.calibrate_frontal, args.namespace,
