@@ -285,9 +285,23 @@ def make_executor(context: Context | None = None) -> SingleThreadedExecutor:
     return SingleThreadedExecutor(context=context)
 
 
+def _rcl_message(err: BaseException) -> str:
+    """rcl's error as one line, without the C source locations it appends (``, at file.c:N``)."""
+    import re
+
+    text = " ".join(str(err).split())
+    return re.sub(r",? at /\S+:\d+", "", text).strip()
+
+
 def main(args: list[str] | None = None) -> int:
     """Run ``ficap_node`` (Jazzy's idiom: spin until Ctrl-C or external shutdown)."""
-    rclpy.init(args=args)
+    from rclpy.impl.implementation_singleton import rclpy_implementation
+
+    try:
+        rclpy.init(args=args)
+    except rclpy_implementation.RCLError as err:  # bad --ros-args: a params file, a remap
+        print(f"ficap_node: {_rcl_message(err)}", file=sys.stderr)
+        return 1
     node: FicapNode | None = None
     code = 0
     try:

@@ -279,6 +279,26 @@ def test_params_file_loads_and_bad_overrides_refuse_to_start(tmp_path) -> None:
         Harness(overrides={"frontal.mount_pitch_deg": -10.0})
 
 
+def test_unparsable_ros_args_are_one_line_not_a_traceback(tmp_path) -> None:
+    """rcl refuses a missing or malformed params file, or a bad remap, in rclpy.init: the node
+    says so in one line of its own (rcl logs one more) and exits 1."""
+    import os
+    import subprocess
+    import sys
+
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("garbage: [\n")
+    for ros_args, says in ((["--params-file", str(tmp_path / "none.yaml")], "Error opening YAML"),
+                           (["--params-file", str(bad)], "params file"),
+                           (["-r", "badremap"], "remap rule")):
+        run = subprocess.run([sys.executable, "-m", "ficap_ros.node", "--ros-args", *ros_args],
+                             capture_output=True, text=True, timeout=120, env=dict(os.environ))
+        assert run.returncode == 1, run.stderr
+        assert "Traceback" not in run.stderr, run.stderr
+        ours = [ln for ln in run.stderr.splitlines() if ln.startswith("ficap_node:")]
+        assert len(ours) == 1 and says in ours[0] and "parser.c" not in ours[0], run.stderr
+
+
 def _node_with_args(cli_args: list[str]) -> tuple[Context, FicapNode]:
     context = Context()
     rclpy.init(context=context)
