@@ -509,11 +509,18 @@ def plot_stats(stats: DetectionStats, out_dir: Path) -> list[Path]:
     fig, ax = plt.subplots(figsize=(6.4, 4.0))
     e = stats.reliability_edges
     # Counts per unit of reliability (frames / bin width): bins of different widths compare.
-    ax.bar(e[:-1], stats.reliability_counts / np.diff(e), width=np.diff(e), align="edge",
+    density = stats.reliability_counts / np.diff(e)
+    ax.bar(e[:-1], density, width=np.diff(e), align="edge",
            color="tab:green", edgecolor="white", linewidth=0.5)
+    # A density's axis reads 1500 for 30 frames in one 0.02 bin: each bar says its frame count.
+    for left, width, height, count in zip(e[:-1], np.diff(e), density, stats.reliability_counts):
+        if count:
+            ax.annotate(f"{int(count)}", (left + width / 2, height), xytext=(0, 2),
+                        textcoords="offset points", ha="center", va="bottom", fontsize=7)
     ax.set_xlabel("pose reliability (bins 0.1 wide below 0.8, 0.02 above)")
-    ax.set_ylabel("frames per 1.0 of reliability")
+    ax.set_ylabel("frames per 1.0 of reliability (bar labels: frames)")
     ax.set_xlim(0.0, 1.0)
+    ax.set_ylim(0.0, 1.12 * max(float(density.max(initial=0.0)), 1.0))
     ax.set_title(f"Reliability ({stats.frames_with_pose} frames with a pose of {stats.frames})")
     paths.append(_png(fig, out_dir / "reliability_histogram.png"))
 
