@@ -97,3 +97,28 @@ def test_fleet_progress_off_a_terminal_is_plain_lines() -> None:
     list(bar.counted([None] * 60))
     bar.close()
     assert "\r" in tty.getvalue() and "60/60" in tty.getvalue()
+
+
+def test_every_option_has_help_that_states_its_default() -> None:
+    """`ficap VERB --help`: no option without a help text, and every option with a default says
+    which (a user should not have to read the code for it)."""
+    import argparse
+
+    from ficap_ros.cli import build_parser
+
+    missing = []
+
+    def walk(parser: argparse.ArgumentParser, name: str) -> None:
+        for action in parser._actions:
+            if isinstance(action, argparse._SubParsersAction):
+                for verb, sub in action.choices.items():
+                    walk(sub, f"{name} {verb}")
+            elif action.dest in ("help", "version"):
+                continue
+            elif not action.help:
+                missing.append((name, action.dest, "no help"))
+            elif action.default not in (None, False) and "default" not in action.help:
+                missing.append((name, action.dest, f"default {action.default!r} not stated"))
+
+    walk(build_parser(), "ficap")
+    assert missing == []

@@ -54,11 +54,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "ahead that the calibration uses")
     parser.add_argument("--resolution", type=_resolution, default=SAMPLE["resolution"],
                         help="360p, 540p, 720p, 1080p or WxH (default %(default)s)")
-    parser.add_argument("--lighting", default=SAMPLE["lighting"], choices=("neutral", "high", "low"))
+    parser.add_argument("--lighting", default=SAMPLE["lighting"], choices=("neutral", "high", "low"),
+                        help="the paper's illumination conditions (default %(default)s)")
     parser.add_argument("--method", default="joint", choices=("joint", "paper", "naive"),
-                        help="cap pose estimator (live: the node's pose.method)")
-    parser.add_argument("--seed", type=int, default=SAMPLE["seed"], help="drive and noise seed")
-    parser.add_argument("--every", type=positive_int, default=6, help="print every Nth frame")
+                        help="cap pose estimator (live: the node's pose.method; default %(default)s)")
+    parser.add_argument("--seed", type=int, default=SAMPLE["seed"],
+                        help="drive and noise seed (default %(default)s)")
+    parser.add_argument("--every", type=positive_int, default=6,
+                        help="print every Nth frame (default %(default)s)")
 
 
 def run(args: argparse.Namespace) -> int:

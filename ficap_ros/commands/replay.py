@@ -20,7 +20,9 @@ def add_input_arguments(parser: argparse.ArgumentParser, many: bool = False) -> 
                                  "folders searched for them (outputs mirror the inputs under --out)")
     else:
         parser.add_argument("input", metavar="INPUT",
-                            help="rosbag2 folder (sqlite3 or MCAP), single .mcap/.db3 file, or video")
+                            help="labels.csv or a replay output folder (counted as they are), or a "
+                                 "rosbag2 folder (sqlite3 or MCAP), single .mcap/.db3 file or video "
+                                 "(the pipeline runs)")
     parser.add_argument("--image-topic", help="Image or CompressedImage topic (auto when only one)")
     parser.add_argument("--camera-info-topic", help="CameraInfo topic (auto)")
     parser.add_argument("--rectified", action="store_true",
@@ -34,7 +36,8 @@ def add_input_arguments(parser: argparse.ArgumentParser, many: bool = False) -> 
     parser.add_argument("--method", choices=("joint", "paper"), default="joint",
                         help="cap pose estimator (default: joint)")
     parser.add_argument("--jobs", type=positive_int, default=1,
-                        help="worker processes (output identical to --jobs 1)")
+                        help="worker processes, capped at the cores available (default 1; "
+                             "output identical to --jobs 1)")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
 
 
