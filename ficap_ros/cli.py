@@ -88,6 +88,14 @@ def positive_float(text: str) -> float:
     return value
 
 
+def non_negative_float(text: str) -> float:
+    """argparse type for a size or a duration that may be 0: a finite number >= 0."""
+    value = finite_float(text)
+    if not value >= 0:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {value}")
+    return value
+
+
 def time_window(text: str) -> tuple[float, float]:
     """argparse type for ``START:END`` seconds (``replay.parse_window``)."""
     from ficap_ros.replay import parse_window

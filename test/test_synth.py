@@ -337,11 +337,16 @@ def test_render_config_rejects_bad_knobs() -> None:
 def test_cli_rejects_bad_camera_knobs(tmp_path, capsys) -> None:
     from ficap_ros.cli import main
 
+    # Bad arguments: exit 2 with argparse's line naming the flag, as for every verb's numbers.
     for flag, value in (("--psf-sigma-px", "nan"), ("--psf-sigma-px", "-1"), ("--exposure-ms", "inf"),
-                        ("--exposure-ms", "0"), ("--gamma", "-2"), ("--gain", "nan"), ("--defocus-px", "-0.5")):
-        assert main(["synth", "--out", str(tmp_path / "bag"), "--frames", "1", flag, value, "--quiet"]) == 1
-        err = capsys.readouterr().err.strip()
-        assert err.startswith("ficap: error: " + flag) and "\n" not in err
+                        ("--exposure-ms", "0"), ("--gamma", "-2"), ("--gain", "nan"), ("--defocus-px", "-0.5"),
+                        ("--fps", "0"), ("--fps", "nan"), ("--frontal-s", "-1"), ("--jpeg-quality", "101"),
+                        ("--jpeg-quality", "x")):
+        with pytest.raises(SystemExit) as exc:
+            main(["synth", "--out", str(tmp_path / "bag"), "--frames", "1", flag, value, "--quiet"])
+        assert exc.value.code == 2, (flag, value)
+        err = capsys.readouterr().err.strip().splitlines()[-1]
+        assert err.startswith(f"ficap synth: error: argument {flag}:"), err
         assert not (tmp_path / "bag").exists()
 
 

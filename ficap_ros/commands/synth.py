@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import argparse
-import math
 
-from ficap_ros.cli import finite_float, positive_int
+from ficap_ros.cli import non_negative_float, positive_float, positive_int
 
 HELP = ("render a naturalistic drive of the cap into a rosbag2 MCAP bag: CompressedImage (JPEG), "
         "CameraInfo and ground-truth cap and head poses")
@@ -44,14 +43,15 @@ def _resolution(text: str) -> str | tuple[int, int]:
     return text
 
 
-def _check_knob(flag: str, value: float | None, positive: bool) -> None:
-    """One-line ConfigError for a NaN, infinite, negative (or, if ``positive``, zero) knob."""
-    from ficap_ros.errors import ConfigError
-
-    if value is None:
-        return
-    if not math.isfinite(value) or value < 0 or (positive and value == 0):
-        raise ConfigError(f"{flag} must be a finite number {'> 0' if positive else '>= 0'}, got {value}")
+def _jpeg_quality(text: str) -> int:
+    """argparse type for a JPEG quality: an integer in 1..100."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer in 1..100, got {text!r}") from None
+    if not 1 <= value <= 100:
+        raise argparse.ArgumentTypeError(f"expected an integer in 1..100, got {value}")
+    return value
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
@@ -61,27 +61,29 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--lighting", choices=("neutral", "high", "low"), default="neutral",
                         help="the paper's illumination conditions (default neutral)")
     parser.add_argument("--frames", type=positive_int, default=300, help="frames (default 300)")
-    parser.add_argument("--fps", type=finite_float, default=30.0, help="frame rate (default 30)")
+    parser.add_argument("--fps", type=positive_float, default=30.0,
+                        help="frame rate, Hz (default 30)")
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    parser.add_argument("--frontal-s", type=finite_float, default=3.0,
+    parser.add_argument("--frontal-s", type=non_negative_float, default=3.0,
                         help="initial looking-straight-ahead segment, s (default 3)")
-    parser.add_argument("--jpeg-quality", type=int, default=95, help="JPEG quality (default 95)")
+    parser.add_argument("--jpeg-quality", type=_jpeg_quality, default=95,
+                        help="JPEG quality, 1..100 (default 95)")
     cam = parser.add_argument_group(
         "camera", "the image formation chain (linear light -> lens PSF -> motion blur -> sensor -> "
         "tone curve -> 8 bit -> JPEG; see ficap_ros.synth)")
-    cam.add_argument("--psf-sigma-px", type=float, default=None,
+    cam.add_argument("--psf-sigma-px", type=non_negative_float, default=None,
                      help="Gaussian lens PSF sigma, px, in linear light (default 0.7 px at 1080p, "
                      "times sqrt(height/1080); 0 = none)")
-    cam.add_argument("--defocus-px", type=float, default=0.0,
+    cam.add_argument("--defocus-px", type=non_negative_float, default=0.0,
                      help="radius of a defocus disc PSF, px (default 0 = in focus)")
     cam.add_argument("--tone", choices=("srgb", "gamma", "filmic", "linear"), default="srgb",
                      help="the camera's tone curve (default srgb; linear = an idealised camera)")
-    cam.add_argument("--gamma", type=float, default=2.2,
+    cam.add_argument("--gamma", type=positive_float, default=2.2,
                      help="exponent of --tone gamma: value ** (1/GAMMA) (default 2.2)")
-    cam.add_argument("--exposure-ms", type=float, default=None,
+    cam.add_argument("--exposure-ms", type=positive_float, default=None,
                      help="exposure time, ms (default: the lighting's auto-exposure: neutral 8, high 4, "
                      "low 20); the gain follows unless --gain is given")
-    cam.add_argument("--gain", type=float, default=None,
+    cam.add_argument("--gain", type=positive_float, default=None,
                      help="sensor gain (default auto: keeps the lighting's brightness)")
     cam.add_argument("--motion-blur", action="store_true",
                      help="integrate the head motion over the exposure (truth = mid-exposure pose)")
@@ -94,22 +96,13 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from ficap_ros.cap_model import load_model, nominal_model
-    from ficap_ros.errors import BagError, ConfigError
+    from ficap_ros.errors import BagError
     from ficap_ros.synth import RenderConfig
 
-    if not 1 <= args.jpeg_quality <= 100:
-        raise ConfigError(f"--jpeg-quality must be in 1..100, got {args.jpeg_quality}")
-    if not args.frontal_s >= 0:
-        raise ConfigError(f"--frontal-s must be >= 0, got {args.frontal_s}")
-    if not args.fps > 0:
-        raise ConfigError(f"--fps must be positive, got {args.fps}")
+    # NaN, infinite, negative or zero knobs are argparse's (exit 2, as every verb's numbers).
     out = Path(args.out)
     if out.exists():
         raise BagError(f"{out} exists already; choose a new --out")
-    for flag, value, positive in (("--psf-sigma-px", args.psf_sigma_px, False),
-                                  ("--defocus-px", args.defocus_px, False), ("--gamma", args.gamma, True),
-                                  ("--exposure-ms", args.exposure_ms, True), ("--gain", args.gain, True)):
-        _check_knob(flag, value, positive)
     # Built here so a bad knob fails before anything is written.
     config = RenderConfig(lighting=args.lighting, background_seed=args.seed, psf_sigma_px=args.psf_sigma_px,
                           defocus_radius_px=args.defocus_px, tone=args.tone, gamma=args.gamma,
