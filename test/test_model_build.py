@@ -412,3 +412,19 @@ def test_cli_builds_from_a_synth_drive(tmp_path, capsys) -> None:
     assert abs(data["edge_offset_px"]) < 0.6
     print(f"synth drive: built {rigid_rms_mm(built_model, truth):.3f} mm rigid rms from the truth, "
           f"edge offset {data['edge_offset_px']:+.3f} px")
+
+
+def test_cli_bad_numbers_are_argparse_errors_naming_the_flag(tmp_path, capsys) -> None:  # noqa: ANN001
+    """Exit 2 with the flag named (they were exit 1 naming BuildConfig's fields, and --fps nan
+    was taken), before any input is read."""
+    from ficap_ros.cli import main
+
+    for flag, value in (("--every", "0"), ("--max-frames", "1"), ("--min-tags", "0"),
+                        ("--min-frames-per-tag", "-1"), ("--max-nfev", "0"),
+                        ("--assembly-sigma-mm", "nan"), ("--assembly-sigma-mm", "-1"), ("--fps", "nan")):
+        with pytest.raises(SystemExit) as exc:
+            main(["model", "build", str(tmp_path / "none.mcap"), "--out", str(tmp_path / "m.yaml"),
+                  flag, value])
+        assert exc.value.code == 2, (flag, value)
+        err = capsys.readouterr().err.strip().splitlines()[-1]
+        assert f"argument {flag}:" in err, err

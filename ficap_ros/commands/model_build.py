@@ -17,7 +17,20 @@ import sys
 HELP = "build the as-built cap model from recordings (rosbag2/MCAP, or video with --intrinsics)"
 
 
+def _at_least_two(text: str) -> int:
+    """argparse type for --max-frames and --min-tags: the adjustment needs two of each."""
+    from ficap_ros.cli import positive_int
+
+    value = positive_int(text)
+    if value < 2:
+        raise argparse.ArgumentTypeError(f"expected at least 2, got {value}")
+    return value
+
+
 def add_build_arguments(parser: argparse.ArgumentParser) -> None:
+    # Bad numbers are argparse's (exit 2, naming the flag), as in every verb.
+    from ficap_ros.cli import positive_float, positive_int
+
     parser.add_argument("inputs", nargs="+", metavar="INPUT",
                         help="rosbag2 folders, .mcap/.db3 files or videos (need --intrinsics)")
     parser.add_argument("--out", required=True, help="as-built model YAML to write")
@@ -26,22 +39,23 @@ def add_build_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--intrinsics", help="camera YAML (required for videos; overrides CameraInfo)")
     parser.add_argument("--image-topic", help="image topic (default: the bag's only image topic)")
     parser.add_argument("--camera-info-topic", help="CameraInfo topic (default: auto)")
-    parser.add_argument("--fps", type=float, help="video frame rate (default: the container's)")
-    parser.add_argument("--every", type=int, default=1, metavar="N",
+    parser.add_argument("--fps", type=positive_float,
+                        help="video frame rate, Hz (default: the container's)")
+    parser.add_argument("--every", type=positive_int, default=1, metavar="N",
                         help="use every N-th frame of each input (default 1)")
-    parser.add_argument("--max-frames", type=int, default=400,
+    parser.add_argument("--max-frames", type=_at_least_two, default=400,
                         help="at most this many frames in the adjustment (default 400)")
-    parser.add_argument("--min-tags", type=int, default=4,
+    parser.add_argument("--min-tags", type=_at_least_two, default=4,
                         help="frames with fewer tags are not used (default 4)")
-    parser.add_argument("--min-frames-per-tag", type=int, default=3,
+    parser.add_argument("--min-frames-per-tag", type=positive_int, default=3,
                         help="every tag must be seen in this many used frames (default 3)")
     parser.add_argument("--backend", choices=("opencv", "apriltag"), default="opencv",
                         help="detector backend (default opencv)")
     parser.add_argument("--refine", choices=("edge", "subpix", "apriltag", "none"), default="edge",
                         help="corner refinement (default edge)")
-    parser.add_argument("--max-nfev", type=int, default=100, metavar="N",
+    parser.add_argument("--max-nfev", type=positive_int, default=100, metavar="N",
                         help="solver budget in function evaluations (default 100)")
-    parser.add_argument("--assembly-sigma-mm", type=float, default=1.0,
+    parser.add_argument("--assembly-sigma-mm", type=positive_float, default=1.0,
                         help="how far a plate may sit from its nominal place by hand, 1 sigma per "
                              "axis (default 1.0)")
     parser.add_argument("--size", choices=("auto", "nominal", "images", "tag-side"), default="auto",
@@ -74,13 +88,10 @@ def run_build(args: argparse.Namespace) -> int:
     from ficap_ros.bag_io import open_frames
     from ficap_ros.cap_model import load_model, nominal_model, write_atomic
     from ficap_ros.detection import DetectorConfig, TagDetector
-    from ficap_ros.errors import ConfigError
     from ficap_ros.model_build import BuildConfig, build_model, depth_change_limit, replay_check
 
     from ficap_ros.files import check_file_target
 
-    if args.every < 1:
-        raise ConfigError(f"--every must be >= 1, got {args.every}")
     size = {"auto": {}, "nominal": {"size": "fixed"},
             "images": {"size": "fixed", "anchor_size": False},
             "tag-side": {"size": "fixed", "anchor_size": False, "fit_edge_offset": False}}[args.size]
