@@ -122,3 +122,20 @@ def test_every_option_has_help_that_states_its_default() -> None:
 
     walk(build_parser(), "ficap")
     assert missing == []
+
+
+@pytest.mark.parametrize("argv", [
+    ["evaluate", "--truth", "t.csv", "--estimate", "e.csv", "--max-dt-ms", "-5"],
+    ["evaluate", "--truth", "t.csv", "--estimate", "e.csv", "--max-dt-ms", "0"],
+    ["calibrate", "l.csv", "--reference", "b:/t", "--out", "c.yaml", "--max-dt-ms", "-5"],
+    ["kit", "--out", "k", "--shell-thickness-mm", "nan"],
+    ["kit", "--out", "k", "--shell-thickness-mm", "-1"],
+])
+def test_negative_or_zero_tolerances_are_bad_arguments(argv: list[str],
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    """Exit 2 naming the flag, like NaN (calibrate took -5 ms and said 'no reference pose within
+    -5 ms'; evaluate and kit exited 1)."""
+    with pytest.raises(SystemExit) as exc:
+        main(argv)
+    assert exc.value.code == 2
+    assert f"argument {argv[-2]}:" in capsys.readouterr().err

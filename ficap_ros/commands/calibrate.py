@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from ficap_ros.cli import finite_float, positive_int, time_window
+from ficap_ros.cli import finite_float, positive_float, positive_int, time_window
 
 HELP = ("compute R_cap_head from labels: a frontal window (--frontal START:END) or a reference "
         "head-pose topic (--reference BAG:TOPIC with --first N or --random N)")
@@ -23,7 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     pick.add_argument("--random", type=positive_int, metavar="N",
                       help="reference mode: use N random pairs (the paper's Random 100)")
     parser.add_argument("--seed", type=int, default=0, help="seed of --random (default 0)")
-    parser.add_argument("--max-dt-ms", type=finite_float, default=20.0,
+    parser.add_argument("--max-dt-ms", type=positive_float, default=20.0,
                         help="reference mode: largest stamp difference of a pair, ms (default 20)")
     parser.add_argument("--camera-mount", type=finite_float, nargs=7,
                         metavar=("X", "Y", "Z", "QX", "QY", "QZ", "QW"),

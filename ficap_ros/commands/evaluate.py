@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from ficap_ros.cli import finite_float
+from ficap_ros.cli import positive_float
 
 HELP = ("compare a head-pose estimate (BAG:TOPIC or CSV) with Fi-Cap labels: geodesic and Phi3 "
         "errors, per-axis errors, report.md/json and plots")
@@ -16,7 +16,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--estimate", required=True, metavar="BAG:TOPIC|CSV",
                         help="estimator output: a pose topic of a bag, or a CSV with stamp_ns and "
                              "qw,qx,qy,qz or yaw_deg,pitch_deg,roll_deg (head in the frontal frame)")
-    parser.add_argument("--max-dt-ms", type=finite_float, default=20.0,
+    parser.add_argument("--max-dt-ms", type=positive_float, default=20.0,
                         help="largest stamp difference of a pair, ms (default 20)")
     parser.add_argument("--out", default="evaluation", metavar="DIR",
                         help="report folder (default: ./evaluation)")
@@ -24,12 +24,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ficap_ros.errors import ConfigError
     from ficap_ros.evaluation import evaluate, load_series, write_report
     from ficap_ros.files import check_replaceable
 
-    if not args.max_dt_ms > 0:
-        raise ConfigError(f"--max-dt-ms must be positive, got {args.max_dt_ms}")
     check_replaceable(args.out)  # never into a recording or a folder of the user's files
     truth = load_series(args.truth)
     estimate = load_series(args.estimate)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from ficap_ros.cli import positive_float
+
 HELP = "write the printable cap kit: 1:1 tag sheets (PDF, SVG), assembly sheet, shell STL"
 
 
@@ -13,7 +15,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="paper size of the tag sheets (default a4)")
     parser.add_argument("--model", help="cap model YAML whose ids to print (default: nominal)")
     parser.add_argument("--no-stl", action="store_true", help="do not write the cap-shell STL")
-    parser.add_argument("--shell-thickness-mm", type=float, default=2.0,
+    parser.add_argument("--shell-thickness-mm", type=positive_float, default=2.0,
                         help="face plate thickness of the STL shell, mm (default 2)")
 
 
