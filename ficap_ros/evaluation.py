@@ -128,7 +128,9 @@ def read_series_csv(path: str | Path) -> PoseSeries:
                 quats.append(rotation_from_ypr_deg(*(float(v) for v in vals)).as_quat())
             stamps.append(int(row["stamp_ns"]))
     except ValueError as err:
-        raise BagError(f"{path}: malformed row: {err}") from err
+        # reader.line_num: the file's line the bad row ends on (header = line 1).
+        detail = str(err).replace("could not convert string to float: ", "not a number: ")
+        raise BagError(f"{path} line {reader.line_num}: malformed row ({detail})") from err
     return _series(stamps, quats, str(path))
 
 

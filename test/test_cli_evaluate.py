@@ -132,3 +132,14 @@ def test_evaluate_bad_inputs(tmp_path: Path, capsys: pytest.CaptureFixture[str])
         assert main(["evaluate", *args, "--out", str(tmp_path / "r")]) == 1
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("ficap: error:")
+
+
+def test_a_malformed_estimate_row_is_named_by_its_line(tmp_path: Path,
+                                                       capsys: pytest.CaptureFixture[str]) -> None:
+    truth_csv, _, _ = _truth(tmp_path)
+    est = tmp_path / "est.csv"
+    est.write_text("stamp_ns,yaw_deg,pitch_deg,roll_deg\n1,0,0,0\n2,unknown,0,0\n")
+    assert main(["evaluate", "--truth", str(truth_csv), "--estimate", str(est),
+                 "--out", str(tmp_path / "r")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == [f"ficap: error: {est} line 3: malformed row (not a number: 'unknown')"]
