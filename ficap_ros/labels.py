@@ -245,7 +245,25 @@ def read_labels(path: str | Path) -> Labels:
             trans_err95_mm=col("trans_err95_mm"),
         )
     except (ValueError, KeyError, TypeError) as err:
-        raise BagError(f"{path}: malformed labels row: {err}") from err
+        raise BagError(f"{path}: malformed labels row: {_first_bad_field(rows) or err}") from err
+
+
+def _first_bad_field(rows: list[dict[str, str]]) -> str:
+    """Where the columns failed to parse, for the error: ``row N, column: 'value'`` (N counts
+    the header as row 1, as the field-count check does), or '' when no field is to blame."""
+    numbers = {"tags_detected", "tags_used", "rms_px", "reliability", "rot_err95_deg",
+               "trans_err95_mm", *(f"{p}_q{a}" for p in ("cap", "head") for a in "wxyz"),
+               *(f"cap_{a}_m" for a in "xyz"), *(f"head_{a}_deg" for a in ("yaw", "pitch", "roll"))}
+    for n, r in enumerate(rows):
+        for name, value in r.items():
+            try:
+                if name in ("stamp_ns", "detected_ids"):
+                    [int(v) for v in (value or "").split()]
+                elif name in numbers:
+                    _num(value or "")
+            except ValueError:
+                return f"row {n + 2}, {name}: not a number: {value!r}"
+    return ""
 
 
 def label_topics(namespace: str = DEFAULT_NAMESPACE) -> dict[str, str]:

@@ -211,3 +211,17 @@ def test_missing_paths_are_one_line_on_the_real_stderr(tmp_path: Path) -> None:
         lines = run.stderr.strip().splitlines()
         assert run.returncode == 1 and len(lines) == 1, (argv, run.stderr)
         assert lines[0].startswith("ficap: error:") and argv[1] in lines[0], lines
+
+
+def test_a_bad_number_in_labels_is_named_by_row_and_column(tmp_path: Path) -> None:
+    """Not Python's 'invalid literal for int() with base 10': the row and the column."""
+    with pytest.raises(FicapError, match=r"row 2, stamp_ns: not a number: 'soon'"):
+        read_labels(CORPUS / "labels_bad_numbers.csv")
+    good = (CORPUS / "labels_bad_numbers.csv").read_text().splitlines()
+    header = good[0].split(",")
+    row = ["1"] * len(header)
+    row[header.index("reliability")] = "high"
+    path = tmp_path / "labels.csv"
+    path.write_text("\n".join([good[0], ",".join(row)]) + "\n")
+    with pytest.raises(FicapError, match=r"row 2, reliability: not a number: 'high'"):
+        read_labels(path)
