@@ -92,8 +92,9 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               choices=("opencv", "apriltag"), read_only=True),
     ParamSpec("detector.corner_refine", "edge", "Corner refinement.",
               choices=("edge", "subpix", "apriltag", "none"), read_only=True),
-    ParamSpec("detector.search_decimate", 1, "Search an image this many times smaller (corners "
-              "are refined at full size); 2 pays off at 1080p and above.", range=(1, 4),
+    ParamSpec("detector.search_decimate", 0, "Search an image this many times smaller (corners "
+              "are refined at full size); 0 = auto, as ficap replay: 2 from 1920 px wide up, else 1.",
+              range=(0, 4),
               read_only=True),
     ParamSpec("tracking", True, "Follow the cap from frame to frame: verify its tags where the "
               "last poses predict them, search only when that fails.", read_only=True),

@@ -54,3 +54,22 @@ def test_every_uncertainty_setting_is_a_parameter_with_its_default() -> None:
     assert (u.tilt_shift_px, u.weight_tags, u.light_gradient_gain) == (0.06, False, 1.0)
     assert isinstance(u.light_gradient_gain, float)
     assert NodeConfig.from_values(_defaults()).pose_config.uncertainty == UncertaintyConfig()
+
+
+def test_node_defaults_are_the_offline_pipeline_and_the_shipped_file() -> None:
+    """The node's defaults are replay's (README: one pipeline live and offline) and
+    config/ficap.yaml ships exactly the declared defaults; the node's search_decimate was 1, so a
+    1080p camera was searched at full size live and at half size by ficap replay."""
+    from pathlib import Path
+
+    import yaml
+
+    from ficap_ros.detection import DetectorConfig
+
+    cfg = NodeConfig.from_values(_defaults())
+    assert cfg.detector_search_decimate == DetectorConfig().search_decimate == 0
+    assert (cfg.detector_backend, cfg.detector_corner_refine) == (
+        DetectorConfig().backend, DetectorConfig().corner_refine)
+    shipped = yaml.safe_load((Path(__file__).resolve().parents[1] / "config" / "ficap.yaml")
+                             .read_text())["/**"]["ros__parameters"]
+    assert shipped == {p.name: p.default for p in PARAMETERS}
