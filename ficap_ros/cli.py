@@ -33,26 +33,25 @@ VERBS: dict[str, str] = {
 }
 
 
-def positive_int(text: str) -> int:
-    """argparse type for counts (frames, pairs): an integer >= 1."""
+def int_at_least(text: str, least: int) -> int:
+    """An integer >= ``least`` for argparse (``ArgumentTypeError`` with one line otherwise)."""
     try:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected at least 1, got {value}")
+    if value < least:
+        raise argparse.ArgumentTypeError(f"expected at least {least}, got {value}")
     return value
+
+
+def positive_int(text: str) -> int:
+    """argparse type for counts (frames, pairs): an integer >= 1."""
+    return int_at_least(text, 1)
 
 
 def non_negative_int(text: str) -> int:
     """argparse type for a count that may be 0 (retries): an integer >= 0."""
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected 0 or more, got {value}")
-    return value
+    return int_at_least(text, 0)
 
 
 def _version() -> str:

@@ -19,12 +19,9 @@ HELP = "build the as-built cap model from recordings (rosbag2/MCAP, or video wit
 
 def _at_least_two(text: str) -> int:
     """argparse type for --max-frames and --min-tags: the adjustment needs two of each."""
-    from ficap_ros.cli import positive_int
+    from ficap_ros.cli import int_at_least
 
-    value = positive_int(text)
-    if value < 2:
-        raise argparse.ArgumentTypeError(f"expected at least 2, got {value}")
-    return value
+    return int_at_least(text, 2)
 
 
 def add_build_arguments(parser: argparse.ArgumentParser) -> None:
