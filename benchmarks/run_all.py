@@ -1,4 +1,4 @@
-"""Run every benchmark with modest sizes (about 15-20 min on 2 idle cores, plus the 10 min soak) and
+"""Run every benchmark with modest sizes (about 20-25 min on 2 idle cores, plus the 10 min soak) and
 record the tables.
 
 Each script writes its section of docs/benchmarks.md (replacing the section of the same name) with
@@ -26,6 +26,7 @@ RUNS = {
     "node": ["bench_node.py", "--rates", "10,15,30,60", "--seconds", "4"],
     "demo": ["bench_demo.py", "--runs", "5"],
     "pipeline": ["bench_pipeline.py", "--frames", "20"],
+    "replay_command": ["bench_replay_command.py", "--seconds", "20"],
     # Issue 13's soak is long by definition (10 min at 30 Hz): skip it with --only when in a hurry.
     "soak": ["bench_soak.py", "--minutes", "10"],
 }

@@ -1,0 +1,334 @@
+"""The whole ``ficap replay`` command on a continuous 1080p drive against AprilTag 3 decimate 1,
+one core, and where the command's time goes.
+
+1. ``ficap synth`` renders a continuous 1080p 30 fps drive (``--seconds``, default 20 s, the
+   issue's reference length; JPEG q95 CompressedImage in an MCAP bag).
+2. Ours: the real command, ``python -m ficap_ros.cli replay BAG --out DIR --jobs 1 --quiet``, in
+   a child process pinned to one core (this process's affinity, inherited), ``--rounds`` times;
+   its CPU time (user + sys, from ``os.wait4``'s rusage of that child: start-up, imports, bag
+   reading, decode, pipeline, label writing, everything) and wall time. Per frame = CPU / frames;
+   the median round counts.
+3. AprilTag 3 decimate 1 (pupil-apriltags, 1 thread, with our joint pose, as bench_fleet) on the
+   same JPEG payloads, decode included (``cv2.imdecode`` grey), in this process on the same core,
+   ``--at3-rounds`` rounds, CPU time (``time.process_time``), per frame the median of its rounds.
+   Its start-up (imports, reading the bag) is not counted: the ratio favours AprilTag 3.
+4. Where the time goes: the command again in a child pinned to the same core, instrumented: the
+   interpreter's start, the imports of every module the command loads (the list from an earlier
+   child's ``sys.modules``, imported first so no stage pays for a lazy import), then each stage's
+   own CPU time (without the stages it calls; bench_fleet's pipeline stages plus the command's).
+
+The machine is shared: CPU times (what waiting adds is left out), medians, load average stated.
+
+Usage: .venv/bin/python benchmarks/bench_replay_command.py [--seconds 20] [--rounds 3]
+       [--at3-rounds 3] [--core 0] [--bag EXISTING_SYNTH_BAG] [--record]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+HERE = Path(__file__).resolve().parent
+FPS = 30
+
+
+def _replay_args(bag: Path, out: Path) -> list[str]:
+    return ["replay", str(bag), "--out", str(out), "--jobs", "1", "--quiet"]
+
+
+# -- child: the instrumented command ------------------------------------------------------------
+#: (module, attribute, stage) of the command around the pipeline; a generator function's time is
+#: that of its steps. Attributes a refactor removed are skipped.
+COMMAND_STAGES = (
+    ("ficap_ros.cli", "build_parser", "arguments (every verb's parser)"),
+    ("ficap_ros.cap_model", "nominal_model", "cap model (nominal)"),
+    ("ficap_ros.files", "check_output_folder", "output folder (checks, temporary folder, commit)"),
+    ("ficap_ros.files", "OutputFolder.__init__", "output folder (checks, temporary folder, commit)"),
+    ("ficap_ros.files", "OutputFolder.commit", "output folder (checks, temporary folder, commit)"),
+    ("ficap_ros.bag_io", "open_frames", "open the bag (topics, CameraInfo, first stamp)"),
+    ("ficap_ros.bag_io", "BagSource._bag_frames", "bag reading (MCAP chunks, CDR, RawFrame)"),
+    ("ficap_ros.replay", "process_frames", "replay loop (segments, ProcessedFrame)"),
+    ("ficap_ros.replay", "_process_one", "replay loop (segments, ProcessedFrame)"),
+    ("ficap_ros.replay", "decode_raw", "JPEG decode (cv2.imdecode, grey)"),
+    ("ficap_ros.pipeline", "FrameProcessor.process", "pipeline: bookkeeping (FrameProcessor.process)"),
+    ("ficap_ros.replay", "record_from_pose", "labels: records (head pose, angles)"),
+    ("ficap_ros.replay", "_summary", "labels: summary statistics"),
+    ("ficap_ros.replay", "write_labels_bag", "labels.mcap (messages, CDR, MCAP)"),
+    ("ficap_ros.replay", "labels_csv_text", "labels.csv and summary.json (text, write)"),
+    ("ficap_ros.replay", "write_output_file", "labels.csv and summary.json (text, write)"),
+)
+
+
+def _patch_own_time(stages, own: dict[str, float]):  # noqa: ANN001, ANN202
+    """Wrap each stage's function so ``own[stage]`` collects its CPU time without the time of
+    the wrapped stages it calls; returns the undo list."""
+    import functools
+    import importlib
+    import inspect
+
+    stack: list[list[float]] = []
+
+    def enter() -> float:
+        stack.append([0.0])
+        return time.process_time()
+
+    def leave(t0: float, label: str) -> None:
+        dt = time.process_time() - t0
+        inner = stack.pop()[0]
+        own[label] = own.get(label, 0.0) + dt - inner
+        if stack:
+            stack[-1][0] += dt
+
+    def wrap(fn, label):  # noqa: ANN001, ANN202
+        if inspect.isgeneratorfunction(fn):
+            @functools.wraps(fn)
+            def timed_gen(*a, **k):  # noqa: ANN002, ANN003, ANN202
+                gen = fn(*a, **k)
+                while True:
+                    t0 = enter()
+                    try:
+                        item = next(gen)
+                    except StopIteration:
+                        return
+                    finally:
+                        leave(t0, label)
+                    yield item
+            return timed_gen
+
+        @functools.wraps(fn)
+        def timed(*a, **k):  # noqa: ANN002, ANN003, ANN202
+            t0 = enter()
+            try:
+                return fn(*a, **k)
+            finally:
+                leave(t0, label)
+        return timed
+
+    patched = []
+    for mod_name, attr, label in stages:
+        owner = importlib.import_module(mod_name)
+        *path, name = attr.split(".")
+        for part in path:
+            owner = getattr(owner, part, None)
+        fn = owner.__dict__.get(name) if owner is not None else None
+        if fn is None or not callable(fn):
+            continue
+        patched.append((owner, name, fn))
+        setattr(owner, name, wrap(fn, label))
+    return patched
+
+
+def _child(mode: str, bag: Path, out: Path, modules_file: Path) -> None:
+    """``modules``: run the command, write the modules it loaded (in load order) to
+    ``modules_file``. ``breakdown``: import those, then run the command instrumented; JSON on
+    stdout."""
+    import resource
+
+    def cpu() -> float:
+        r = resource.getrusage(resource.RUSAGE_SELF)
+        return r.ru_utime + r.ru_stime
+
+    interp = cpu()
+    before = set(sys.modules)
+    if mode == "modules":
+        from ficap_ros.cli import main
+
+        main(_replay_args(bag, out))
+        modules_file.write_text("\n".join(m for m in sys.modules if m not in before) + "\n")
+        return
+    import importlib
+
+    t0 = cpu()
+    for name in modules_file.read_text().split():
+        if name.startswith(("bench_", "_common")):
+            continue
+        try:
+            importlib.import_module(name)
+        except Exception:  # noqa: BLE001 - a module only its parent can import: the parent did
+            pass
+    imports = cpu() - t0
+    sys.path.insert(0, str(HERE))
+    from bench_fleet import STAGES  # noqa: PLC0415 - after the timed imports
+
+    from ficap_ros.cli import main
+
+    own: dict[str, float] = {}
+    patched = _patch_own_time(COMMAND_STAGES + STAGES, own)
+    t0 = time.process_time()
+    try:
+        main(_replay_args(bag, out))
+    finally:
+        for owner, name, fn in reversed(patched):
+            setattr(owner, name, fn)
+    run = time.process_time() - t0
+    print(json.dumps({"interp": interp, "imports": imports, "run": run, "own": own}))
+
+
+# -- parent -------------------------------------------------------------------------------------
+def run_command(bag: Path, out: Path, extra: list[str] | None = None) -> tuple[float, float, str]:
+    """(CPU s of the child, wall s, stdout) of ``ficap replay`` (or ``extra``) in a child."""
+    import shutil
+
+    shutil.rmtree(out, ignore_errors=True)
+    cmd = [sys.executable, *(extra or ["-m", "ficap_ros.cli", *_replay_args(bag, out)])]
+    t0 = time.perf_counter()
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, text=True)
+    stdout = proc.stdout.read() if proc.stdout else ""
+    _pid, status, usage = os.wait4(proc.pid, 0)
+    wall = time.perf_counter() - t0
+    proc.returncode = os.waitstatus_to_exitcode(status)
+    if proc.returncode not in (0, 3):
+        raise RuntimeError(f"{' '.join(cmd)} exited {proc.returncode}")
+    return usage.ru_utime + usage.ru_stime, wall, stdout
+
+
+def at3_times(bag: Path, rounds: int) -> tuple[float, float, int]:
+    """AprilTag 3 decimate 1 + joint pose on the bag's JPEGs, decode included: (mean ms per
+    frame of the per-frame medians, tags per frame, frames)."""
+    import cv2
+    import numpy as np
+
+    from ficap_ros.bag_io import open_frames
+    from ficap_ros.cap_model import nominal_model
+    from ficap_ros.detection import DetectorConfig
+    from ficap_ros.pipeline import FrameProcessor
+
+    raws = list(open_frames(bag).raw_frames())
+    bufs = [np.frombuffer(r.payload, np.uint8) for r in raws]
+    model = nominal_model()
+    at3 = DetectorConfig(backend="apriltag", corner_refine="apriltag", quad_decimate=1.0)
+    ms = np.zeros((rounds, len(raws)))
+    tags: list[int] = []
+    for rnd in range(rounds):
+        proc = FrameProcessor(model, at3, tracking=False)
+        for k, (raw, buf) in enumerate(zip(raws, bufs)):
+            t0 = time.process_time()
+            gray = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+            r = proc.process(gray, raw.camera, raw.stamp_ns)
+            ms[rnd, k] = (time.process_time() - t0) * 1e3
+            if rnd == 0:
+                tags.append(len({d.tag_id for d in r.detections}))
+        print(f"  AprilTag 3 round {rnd + 1}: {ms[rnd].mean():.1f} ms/frame", file=sys.stderr)
+    return float(np.mean(np.median(ms, axis=0))), float(np.mean(tags)), len(raws)
+
+
+def breakdown(bag: Path, tmp: Path) -> dict:
+    modules = tmp / "modules.txt"
+    script = [str(Path(__file__).resolve())]
+    run_command(bag, tmp / "out_modules",
+                [*script, "--child", "modules", "--bag", str(bag), "--out", str(tmp / "out_modules"),
+                 "--modules-file", str(modules)])
+    cpu, _wall, stdout = run_command(
+        bag, tmp / "out_breakdown",
+        [*script, "--child", "breakdown", "--bag", str(bag), "--out", str(tmp / "out_breakdown"),
+         "--modules-file", str(modules)])
+    data = json.loads(stdout.strip().splitlines()[-1])
+    data["child_cpu"] = cpu
+    return data
+
+
+def breakdown_table(data: dict, frames: int) -> str:
+    from _common import md_table
+    from bench_fleet import STAGES
+
+    own = dict(data["own"])
+    rows = [("start-up: interpreter", data["interp"]), ("start-up: imports (every module the command loads)",
+                                                        data["imports"])]
+    command = [label for *_m, label in COMMAND_STAGES]
+    for label in dict.fromkeys(command + [label for *_m, label in STAGES]):
+        if label in own:
+            rows.append((label if label in command else f"pipeline: {label}", own.pop(label)))
+    rows += [(f"other: {k}", v) for k, v in own.items()]
+    rows.append(("the rest (main's own code, tqdm, argparse run, ...)",
+                 data["run"] - sum(data["own"].values())))
+    total = data["interp"] + data["imports"] + data["run"]
+    out = [[name, f"{s:.3f}", f"{1e3 * s / frames:.2f}", f"{100 * s / total:.1f} %"] for name, s in rows]
+    out.append(["total (instrumented run)", f"{total:.3f}", f"{1e3 * total / frames:.2f}", "100 %"])
+    return md_table(["stage", "CPU s", "ms/frame", "share"], out)
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=20.0, help="length of the rendered drive, s")
+    ap.add_argument("--rounds", type=int, default=3, help="runs of the command")
+    ap.add_argument("--at3-rounds", type=int, default=3, help="runs of AprilTag 3 over the frames")
+    ap.add_argument("--core", type=int, default=0, help="the one core everything runs on")
+    ap.add_argument("--bag", type=Path, help="an existing ficap synth bag (skips rendering)")
+    ap.add_argument("--record", action="store_true", help="write the section into docs/benchmarks.md")
+    ap.add_argument("--child", choices=("modules", "breakdown"), help=argparse.SUPPRESS)
+    ap.add_argument("--out", type=Path, help=argparse.SUPPRESS)
+    ap.add_argument("--modules-file", type=Path, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        _child(args.child, args.bag, args.out, args.modules_file)
+        return 0
+    sys.path.insert(0, str(HERE))
+    import cv2
+    import numpy as np
+    from _common import load_avg, machine_line, md_table, record_section
+
+    os.sched_setaffinity(0, {args.core})  # children inherit it: everything on one core
+    cv2.setNumThreads(1)
+    load_before = load_avg()
+    with tempfile.TemporaryDirectory(prefix="bench_replay_command.") as tmp_name:
+        tmp = Path(tmp_name)
+        frames = int(round(args.seconds * FPS))
+        bag = args.bag
+        if bag is None:
+            bag = tmp / "drive"
+            subprocess.run([sys.executable, "-m", "ficap_ros.cli", "synth", "--out", str(bag),
+                            "--resolution", "1080p", "--frames", str(frames), "--fps", str(FPS),
+                            "--seed", "0", "--quiet"], check=True)
+        runs = []
+        for rnd in range(args.rounds):
+            cpu, wall, stdout = run_command(bag, tmp / "out")
+            runs.append((cpu, wall))
+            print(f"  ficap replay round {rnd + 1}: CPU {cpu:.2f} s, wall {wall:.2f} s; {stdout.strip()}",
+                  file=sys.stderr)
+        summary = json.loads((tmp / "out" / "summary.json").read_text())
+        frames = int(summary["frames"])
+        at3_ms, at3_tags, at3_frames = at3_times(bag, args.at3_rounds)
+        assert at3_frames == frames, (at3_frames, frames)
+        data = breakdown(bag, tmp)
+    cpu_s = float(np.median([c for c, _ in runs]))
+    wall_s = float(np.median([w for _, w in runs]))
+    ours_ms = 1e3 * cpu_s / frames
+    ratio = at3_ms / ours_ms
+    start_ms = 1e3 * (data["interp"] + data["imports"]) / frames
+    load_after = load_avg()
+    table = md_table(
+        ["", "CPU s (median)", "wall s (median)", "CPU ms/frame", "x AprilTag 3"],
+        [[f"`ficap replay --jobs 1`, whole command ({args.rounds} run{'s' if args.rounds > 1 else ''})", f"{cpu_s:.2f}", f"{wall_s:.2f}",
+          f"{ours_ms:.2f}", f"**{ratio:.1f}**"],
+         [f"AprilTag 3 decimate 1 + joint pose, decode included ({args.at3_rounds} round{'s' if args.at3_rounds > 1 else ''})",
+          f"{at3_ms * frames / 1e3:.1f}", "", f"{at3_ms:.1f}", "1.0"]])
+    body = (
+        f"Machine: {machine_line()}; {load_before} at the start, {load_after} at the end. One core "
+        f"(affinity {{{args.core}}} for this process and its children). A continuous 1080p 30 fps "
+        f"`ficap synth` drive of {frames} frames ({frames / FPS:.0f} s, seed 0, JPEG q95), "
+        f"{summary['pct_with_pose']:.1f} % of frames with a pose, {summary['frames_ge4_tags']} with "
+        f">= 4 tags; AprilTag 3 found {at3_tags:.2f} tags per frame. Ours: the whole command's CPU "
+        "time (user + sys of the child: start-up, imports, bag reading, decode, pipeline, label "
+        "writing), median of the runs; AprilTag 3: decode + detect + pose per frame in CPU time "
+        "(its start-up and bag reading not counted).\n\n"
+        f"Headline: whole `ficap replay` {ours_ms:.2f} ms per frame vs AprilTag 3 decimate 1 "
+        f"{at3_ms:.1f} ms = **{ratio:.1f}x** (start-up {start_ms:.2f} ms of it per frame at this "
+        f"length).\n\n{table}\n\n"
+        "### Where the whole command's time goes (one instrumented run, own CPU time per stage)\n\n"
+        f"{breakdown_table(data, frames)}\n\n"
+        f"The instrumented child took {data['child_cpu']:.2f} s CPU in all (the wrappers, ~1 us a "
+        "call, and importing the benchmark's own modules add to the command's).\n")
+    print(body)
+    if args.record:
+        record_section("Whole replay command vs AprilTag 3 (bench_replay_command.py)", body)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
