@@ -11,6 +11,7 @@ one core, and where the command's time goes.
 3. AprilTag 3 decimate 1 (pupil-apriltags, 1 thread, with our joint pose, as bench_fleet) on the
    same JPEG payloads, decode included (``cv2.imdecode`` grey), in this process on the same core,
    ``--at3-rounds`` rounds, CPU time (``time.process_time``), per frame the median of its rounds.
+   The command's runs and AprilTag 3's rounds alternate, so a change of load falls on both.
    Its start-up (imports, reading the bag) is not counted: the ratio favours AprilTag 3.
 4. Where the time goes: the command again in a child pinned to the same core, instrumented: the
    interpreter's start, the imports of every module the command loads (the list from an earlier
@@ -188,34 +189,47 @@ def run_command(bag: Path, out: Path, extra: list[str] | None = None) -> tuple[f
     return usage.ru_utime + usage.ru_stime, wall, stdout
 
 
-def at3_times(bag: Path, rounds: int) -> tuple[float, float, int]:
-    """AprilTag 3 decimate 1 + joint pose on the bag's JPEGs, decode included: (mean ms per
-    frame of the per-frame medians, tags per frame, frames)."""
-    import cv2
-    import numpy as np
+class AprilTag3:
+    """AprilTag 3 decimate 1 + joint pose on the bag's JPEGs, decode included, one round at a time."""
 
-    from ficap_ros.bag_io import open_frames
-    from ficap_ros.cap_model import nominal_model
-    from ficap_ros.detection import DetectorConfig
-    from ficap_ros.pipeline import FrameProcessor
+    def __init__(self, bag: Path) -> None:
+        import numpy as np
 
-    raws = list(open_frames(bag).raw_frames())
-    bufs = [np.frombuffer(r.payload, np.uint8) for r in raws]
-    model = nominal_model()
-    at3 = DetectorConfig(backend="apriltag", corner_refine="apriltag", quad_decimate=1.0)
-    ms = np.zeros((rounds, len(raws)))
-    tags: list[int] = []
-    for rnd in range(rounds):
-        proc = FrameProcessor(model, at3, tracking=False)
-        for k, (raw, buf) in enumerate(zip(raws, bufs)):
+        from ficap_ros.bag_io import open_frames
+        from ficap_ros.cap_model import nominal_model
+        from ficap_ros.detection import DetectorConfig
+
+        self.raws = list(open_frames(bag).raw_frames())
+        self.bufs = [np.frombuffer(r.payload, np.uint8) for r in self.raws]
+        self.model = nominal_model()
+        self.config = DetectorConfig(backend="apriltag", corner_refine="apriltag", quad_decimate=1.0)
+        self.ms: list = []  # per round, per frame
+        self.tags: list[int] = []
+
+    def round(self) -> float:
+        """One pass over the frames (a fresh processor); its mean ms per frame."""
+        import cv2
+        import numpy as np
+
+        from ficap_ros.pipeline import FrameProcessor
+
+        proc = FrameProcessor(self.model, self.config, tracking=False)
+        ms = np.zeros(len(self.raws))
+        for k, (raw, buf) in enumerate(zip(self.raws, self.bufs)):
             t0 = time.process_time()
             gray = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
             r = proc.process(gray, raw.camera, raw.stamp_ns)
-            ms[rnd, k] = (time.process_time() - t0) * 1e3
-            if rnd == 0:
-                tags.append(len({d.tag_id for d in r.detections}))
-        print(f"  AprilTag 3 round {rnd + 1}: {ms[rnd].mean():.1f} ms/frame", file=sys.stderr)
-    return float(np.mean(np.median(ms, axis=0))), float(np.mean(tags)), len(raws)
+            ms[k] = (time.process_time() - t0) * 1e3
+            if not self.ms:
+                self.tags.append(len({d.tag_id for d in r.detections}))
+        self.ms.append(ms)
+        return float(ms.mean())
+
+    def per_frame_ms(self) -> float:
+        """Mean over the frames of each frame's median round."""
+        import numpy as np
+
+        return float(np.mean(np.median(np.array(self.ms), axis=0)))
 
 
 def breakdown(bag: Path, tmp: Path) -> dict:
@@ -285,16 +299,22 @@ def main() -> int:
             subprocess.run([sys.executable, "-m", "ficap_ros.cli", "synth", "--out", str(bag),
                             "--resolution", "1080p", "--frames", str(frames), "--fps", str(FPS),
                             "--seed", "0", "--quiet"], check=True)
+        # Ours and AprilTag 3 alternate, round by round, so a change of the shared machine's load
+        # falls on both.
+        at3 = AprilTag3(bag)
         runs = []
-        for rnd in range(args.rounds):
-            cpu, wall, stdout = run_command(bag, tmp / "out")
-            runs.append((cpu, wall))
-            print(f"  ficap replay round {rnd + 1}: CPU {cpu:.2f} s, wall {wall:.2f} s; {stdout.strip()}",
-                  file=sys.stderr)
+        for rnd in range(max(args.rounds, args.at3_rounds)):
+            if rnd < args.rounds:
+                cpu, wall, stdout = run_command(bag, tmp / "out")
+                runs.append((cpu, wall))
+                print(f"  ficap replay round {rnd + 1}: CPU {cpu:.2f} s, wall {wall:.2f} s; "
+                      f"{stdout.strip()}", file=sys.stderr)
+            if rnd < args.at3_rounds:
+                print(f"  AprilTag 3 round {rnd + 1}: {at3.round():.1f} ms/frame", file=sys.stderr)
         summary = json.loads((tmp / "out" / "summary.json").read_text())
         frames = int(summary["frames"])
-        at3_ms, at3_tags, at3_frames = at3_times(bag, args.at3_rounds)
-        assert at3_frames == frames, (at3_frames, frames)
+        assert len(at3.raws) == frames, (len(at3.raws), frames)
+        at3_ms, at3_tags = at3.per_frame_ms(), float(np.mean(at3.tags))
         data = breakdown(bag, tmp)
     cpu_s = float(np.median([c for c, _ in runs]))
     wall_s = float(np.median([w for _, w in runs]))
