@@ -1037,13 +1037,16 @@ _F_INV_DOF = np.linspace(0.0, 0.5, 26)
 
 
 def _f_quantile_table() -> np.ndarray:
-    from scipy.stats import chi2, f
+    # scipy.stats' f.ppf(q, a, b) is fdtri(a, b, q) and chi2.ppf(q, nu) 2 * gammaincinv(nu / 2, q)
+    # (bit-identical): not importing scipy.stats keeps its start-up cost off every command.
+    from scipy.special import fdtri, gammaincinv
 
     nu = np.exp(_F_LOG_NU)[:, None]
     inv = _F_INV_DOF[None, :]
     with np.errstate(divide="ignore"):
         dof = np.where(inv > 0, 1.0 / np.where(inv > 0, inv, 1.0), np.inf)
-    return np.where(np.isinf(dof), chi2.ppf(0.95, nu) / nu, f.ppf(0.95, nu, np.where(np.isinf(dof), 1.0, dof)))
+    return np.where(np.isinf(dof), 2.0 * gammaincinv(nu / 2, 0.95) / nu,
+                    fdtri(nu, np.where(np.isinf(dof), 1.0, dof), 0.95))
 
 
 _F_Q95 = _f_quantile_table()

@@ -293,3 +293,26 @@ def test_uneven_light_widens_the_bound() -> None:
     stronger = bounds(ramp, PoseConfig(uncertainty=UncertaintyConfig(light_gradient_gain=0.6,
                                                                      light_gradient_tilt_gain=0.7)))
     assert stronger[0] > uneven[0] and stronger[1] > uneven[1]
+
+
+def test_quantile_tables_without_scipy_stats() -> None:
+    """The bounds' chi and F tables are scipy.stats' own quantiles (chi2.ppf, f.ppf) taken from
+    scipy.special, bit for bit: importing scipy.stats costs every command ~0.2-0.3 s CPU of
+    start-up, and the pose module (every replay, stats, the node) must not bring it in."""
+    import subprocess
+    import sys
+
+    from scipy.stats import chi2, f
+
+    from ficap_ros import pose
+
+    nu = np.exp(pose._F_LOG_NU)[:, None]
+    dof = 1.0 / pose._F_INV_DOF[None, 1:]
+    assert np.array_equal(pose._F_Q95[:, :1], chi2.ppf(0.95, nu) / nu)
+    assert np.array_equal(pose._F_Q95[:, 1:], f.ppf(0.95, nu, dof))
+    assert np.array_equal(pose._SQRT_Q95, np.sqrt(chi2.ppf(0.95, pose._NU)))
+    run = subprocess.run([sys.executable, "-c", "import sys, ficap_ros.pose, ficap_ros.replay; "
+                          "print('scipy.stats' in sys.modules)"],
+                         capture_output=True, text=True, timeout=120)
+    assert run.returncode == 0, run.stderr
+    assert run.stdout.strip() == "False", "scipy.stats imported by ficap_ros.pose / replay"
