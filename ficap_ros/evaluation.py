@@ -126,7 +126,10 @@ def read_series_csv(path: str | Path) -> PoseSeries:
                 if not all(v.strip() for v in vals):
                     continue
                 quats.append(rotation_from_ypr_deg(*(float(v) for v in vals)).as_quat())
-            stamps.append(int(row["stamp_ns"]))
+            stamp = row.get("stamp_ns") or ""  # None: the row is cut short before it
+            if not stamp.strip():
+                raise ValueError("no stamp_ns")
+            stamps.append(int(stamp))
     except ValueError as err:
         # reader.line_num: the file's line the bad row ends on (header = line 1).
         detail = str(err).replace("could not convert string to float: ", "not a number: ")

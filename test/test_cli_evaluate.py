@@ -143,3 +143,17 @@ def test_a_malformed_estimate_row_is_named_by_its_line(tmp_path: Path,
                  "--out", str(tmp_path / "r")]) == 1
     err = capsys.readouterr().err.strip().splitlines()
     assert err == [f"ficap: error: {est} line 3: malformed row (not a number: 'unknown')"]
+
+
+def test_a_row_cut_short_is_named_by_its_line_not_a_traceback(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """A row without its stamp (the stamp column last, the row one field short) is a malformed
+    row too, one line naming it; it was a TypeError traceback from int(None)."""
+    truth_csv, _, _ = _truth(tmp_path)
+    est = tmp_path / "est.csv"
+    est.write_text("qw,qx,qy,qz,stamp_ns\n1,0,0,0,1\n1,0,0,0\n")
+    assert main(["evaluate", "--truth", str(truth_csv), "--estimate", str(est),
+                 "--out", str(tmp_path / "r")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"ficap: error: {est} line 3: malformed row"), err
+    assert "stamp_ns" in err[0], err
