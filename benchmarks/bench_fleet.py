@@ -122,6 +122,7 @@ STAGES = (
     ("ficap_ros.pose", "_reweighted", "pose: tag-noise weights (one weighted step)"),
     ("ficap_ros.pose", "uncertainty_terms", "pose: uncertainty (terms, covariance, bounds)"),
     ("ficap_ros.pose", "combine_uncertainty", "pose: uncertainty (terms, covariance, bounds)"),
+    ("ficap_ros.pose", "uncertainty_bounds", "pose: uncertainty (terms, covariance, bounds)"),
     ("ficap_ros.pose", "error_bound95", "pose: uncertainty (terms, covariance, bounds)"),
     ("ficap_ros.tracking", "estimate_cap_pose", "pose: the rest (undistortion, set-up)"),
     ("ficap_ros.pipeline", "estimate_cap_pose", "pose: the rest (undistortion, set-up)"),
