@@ -134,32 +134,42 @@ def aligned(box: tuple[float, float, float, float], width: int, height: int, mcu
     return x0, y0, x1 - x0, y1 - y0
 
 
+def tags_region(tracker, camera, stamp_ns: int, margin_px: float,  # noqa: ANN001
+                info: dict) -> tuple[int, int, int, int] | None:
+    """The region of the tags ``predict_tags`` puts in the frame at the tracker's extrapolated pose,
+    + ``margin_px``, on the iMCU grid (what a tracked frame refines and verifies), or None."""
+    from ficap_ros.tracking import predict_tags
+
+    predicted = tracker._predict_pose(camera, stamp_ns)
+    if predicted is None:
+        return None
+    _, corners = predict_tags(tracker.model, camera, predicted, tracker.config)
+    if not len(corners):
+        return None
+    lo, hi = corners.reshape(-1, 2).min(axis=0), corners.reshape(-1, 2).max(axis=0)
+    return aligned((lo[0] - margin_px, lo[1] - margin_px, hi[0] + margin_px, hi[1] + margin_px),
+                   info["width"], info["height"], *info["mcu"])
+
+
 def regions(bag: Path, tj: TurboGray, tag_margin_px: float) -> tuple[list, list, dict]:
     """Replay the drive (tracking on) and collect, per frame, the regions a cropped decode would
     ask for before it, and how the frame was then found."""
     from ficap_ros.bag_io import open_frames
     from ficap_ros.cap_model import nominal_model
     from ficap_ros.pipeline import FrameProcessor
-    from ficap_ros.tracking import predict_tags
 
     raws = list(open_frames(bag).raw_frames())
     bufs = [np.frombuffer(r.payload, np.uint8) for r in raws]
     width, height, samp = tj.header(bufs[0])
     mcu_w, mcu_h = _MCU_W[samp], _MCU_H[samp]
+    info = {"width": width, "height": height, "samp": samp, "mcu": (mcu_w, mcu_h)}
     proc = FrameProcessor(nominal_model(), tracking=True)
     tracker = proc.tracker
     rows = []
     for raw, buf in zip(raws, bufs):
         gray = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
         cam, stamp = raw.camera, raw.stamp_ns
-        tags = region = None
-        predicted = tracker._predict_pose(cam, stamp)
-        if predicted is not None:
-            _, corners = predict_tags(tracker.model, cam, predicted, tracker.config)
-            if len(corners):
-                lo, hi = corners.reshape(-1, 2).min(axis=0), corners.reshape(-1, 2).max(axis=0)
-                tags = aligned((lo[0] - tag_margin_px, lo[1] - tag_margin_px, hi[0] + tag_margin_px,
-                                hi[1] + tag_margin_px), width, height, mcu_w, mcu_h)
+        tags, region = tags_region(tracker, cam, stamp, tag_margin_px, info), None
         roi = tracker._predict_roi(cam, stamp, gray.shape)
         if roi is not None:
             x, y, w, h = roi
@@ -176,7 +186,7 @@ def regions(bag: Path, tj: TurboGray, tag_margin_px: float) -> tuple[list, list,
 
         rows.append({"tags": tags, "region": region, "search": r.search.name,
                      "tags_in": holds(tags), "region_in": holds(region), "n": len(r.detections)})
-    return raws, bufs, rows, {"width": width, "height": height, "samp": samp, "mcu": (mcu_w, mcu_h)}
+    return raws, bufs, rows, info
 
 
 def _fingerprint(r) -> bytes:  # noqa: ANN001
@@ -198,10 +208,8 @@ def pipeline_check(bufs: list, raws: list, tj: TurboGray, info: dict, tag_margin
     prediction). Are the results identical, and what does each decode cost inside the loop?"""
     from ficap_ros.cap_model import nominal_model
     from ficap_ros.pipeline import FrameProcessor
-    from ficap_ros.tracking import predict_tags
 
     width, height = info["width"], info["height"]
-    mcu_w, mcu_h = info["mcu"]
     ref, roi = FrameProcessor(nominal_model(), tracking=True), FrameProcessor(nominal_model(), tracking=True)
     pt = time.process_time
     same, cropped, ms_ref, ms_roi = 0, 0, [], []
@@ -212,14 +220,7 @@ def pipeline_check(bufs: list, raws: list, tj: TurboGray, info: dict, tag_margin
         ms_ref.append((pt() - t0) * 1e3)
         r_ref = ref.process(gray, cam, stamp)
         t0 = pt()
-        box = None
-        predicted = roi.tracker._predict_pose(cam, stamp)
-        if predicted is not None:
-            _, corners = predict_tags(roi.tracker.model, cam, predicted, roi.tracker.config)
-            if len(corners):
-                lo, hi = corners.reshape(-1, 2).min(axis=0), corners.reshape(-1, 2).max(axis=0)
-                box = aligned((lo[0] - tag_margin_px, lo[1] - tag_margin_px, hi[0] + tag_margin_px,
-                               hi[1] + tag_margin_px), width, height, mcu_w, mcu_h)
+        box = tags_region(roi.tracker, cam, stamp, tag_margin_px, info)
         if box is None:
             img = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
         else:
