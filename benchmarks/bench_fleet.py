@@ -42,7 +42,7 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import load_avg, machine_line, md_table, record_section  # noqa: E402
+from _common import load_avg, machine_line, md_table, patch_own_time, record_section  # noqa: E402
 
 from ficap_ros.cap_model import nominal_model  # noqa: E402
 from ficap_ros.detection import DetectorConfig, TagDetector  # noqa: E402
@@ -132,38 +132,8 @@ STAGES = (
 def stage_times(jpegs, camera, step_ns: int) -> tuple[dict[str, float], float, float]:
     """Own CPU ms per frame of each stage of ``FrameProcessor.process`` over the frames, the JPEG
     decode's and the total (the wrappers cost ~1 us a call)."""
-    import functools
-    import importlib
-
     own: dict[str, float] = {}
-    stack: list[list[float]] = []  # per active stage: time spent in stages it called
-
-    def wrap(fn, label):
-        @functools.wraps(fn)
-        def timed(*a, **k):
-            stack.append([0.0])
-            t0 = time.process_time()
-            try:
-                return fn(*a, **k)
-            finally:
-                dt = time.process_time() - t0
-                inner = stack.pop()[0]
-                own[label] = own.get(label, 0.0) + dt - inner
-                if stack:
-                    stack[-1][0] += dt
-        return timed
-
-    patched = []
-    for mod_name, attr, label in STAGES:
-        owner = importlib.import_module(mod_name)
-        *path, name = attr.split(".")
-        for part in path:
-            owner = getattr(owner, part, None)
-        fn = getattr(owner, name, None) if owner is not None else None
-        if fn is None:
-            continue
-        patched.append((owner, name, fn))
-        setattr(owner, name, wrap(fn, label))
+    patched = patch_own_time(STAGES, own)
     try:
         proc = FrameProcessor(nominal_model())
         decode = total = 0.0

@@ -66,65 +66,6 @@ COMMAND_STAGES = (
 )
 
 
-def _patch_own_time(stages, own: dict[str, float]):  # noqa: ANN001, ANN202
-    """Wrap each stage's function so ``own[stage]`` collects its CPU time without the time of
-    the wrapped stages it calls; returns the undo list."""
-    import functools
-    import importlib
-    import inspect
-
-    stack: list[list[float]] = []
-
-    def enter() -> float:
-        stack.append([0.0])
-        return time.process_time()
-
-    def leave(t0: float, label: str) -> None:
-        dt = time.process_time() - t0
-        inner = stack.pop()[0]
-        own[label] = own.get(label, 0.0) + dt - inner
-        if stack:
-            stack[-1][0] += dt
-
-    def wrap(fn, label):  # noqa: ANN001, ANN202
-        if inspect.isgeneratorfunction(fn):
-            @functools.wraps(fn)
-            def timed_gen(*a, **k):  # noqa: ANN002, ANN003, ANN202
-                gen = fn(*a, **k)
-                while True:
-                    t0 = enter()
-                    try:
-                        item = next(gen)
-                    except StopIteration:
-                        return
-                    finally:
-                        leave(t0, label)
-                    yield item
-            return timed_gen
-
-        @functools.wraps(fn)
-        def timed(*a, **k):  # noqa: ANN002, ANN003, ANN202
-            t0 = enter()
-            try:
-                return fn(*a, **k)
-            finally:
-                leave(t0, label)
-        return timed
-
-    patched = []
-    for mod_name, attr, label in stages:
-        owner = importlib.import_module(mod_name)
-        *path, name = attr.split(".")
-        for part in path:
-            owner = getattr(owner, part, None)
-        fn = owner.__dict__.get(name) if owner is not None else None
-        if fn is None or not callable(fn):
-            continue
-        patched.append((owner, name, fn))
-        setattr(owner, name, wrap(fn, label))
-    return patched
-
-
 def _child(mode: str, bag: Path, out: Path, modules_file: Path) -> None:
     """``modules``: run the command, write the modules it loaded (in load order) to
     ``modules_file``. ``breakdown``: import those, then run the command instrumented; JSON on
@@ -155,12 +96,13 @@ def _child(mode: str, bag: Path, out: Path, modules_file: Path) -> None:
             pass
     imports = cpu() - t0
     sys.path.insert(0, str(HERE))
-    from bench_fleet import STAGES  # noqa: PLC0415 - after the timed imports
+    from _common import patch_own_time  # noqa: PLC0415 - after the timed imports
+    from bench_fleet import STAGES  # noqa: PLC0415
 
     from ficap_ros.cli import main
 
     own: dict[str, float] = {}
-    patched = _patch_own_time(COMMAND_STAGES + STAGES, own)
+    patched = patch_own_time(COMMAND_STAGES + STAGES, own)
     t0 = time.process_time()
     try:
         main(_replay_args(bag, out))
