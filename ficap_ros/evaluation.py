@@ -182,7 +182,9 @@ def load_series(spec: str) -> PoseSeries:
         raise BagError(f"{spec} does not exist (expected BAG:TOPIC or a CSV file)")
     p = Path(spec)
     if p.is_dir() and not (p / "labels.csv").exists():
-        raise BagError(f"{spec} is a folder; give BAG:TOPIC or a CSV file")
+        # A folder here is most likely a replay output whose labels.csv is gone or not written yet.
+        raise BagError(f"{spec} is a folder without labels.csv; give a replay output folder "
+                       f"(holding labels.csv), a CSV file, or BAG:TOPIC")
     return read_series_csv(spec)
 
 

@@ -157,3 +157,16 @@ def test_a_row_cut_short_is_named_by_its_line_not_a_traceback(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(f"ficap: error: {est} line 3: malformed row"), err
     assert "stamp_ns" in err[0], err
+
+
+def test_a_folder_without_labels_csv_names_replay_output_folders(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The user most likely meant a replay output folder: say that and that labels.csv is missing."""
+    truth_csv, _, _ = _truth(tmp_path)
+    folder = tmp_path / "run"
+    folder.mkdir()
+    assert main(["evaluate", "--truth", str(folder), "--estimate", str(truth_csv),
+                 "--out", str(tmp_path / "r")]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("ficap: error:"), err
+    assert "replay output folder" in err[0] and "without labels.csv" in err[0], err
