@@ -267,6 +267,12 @@ def frontal_calibration(
     if not rots:
         raise CalibrationError(
             f"no frame with a cap pose between {window_s[0]:g} s and {window_s[1]:g} s")
+    if len(rots) < 5:
+        # replay asks for min(30, frames in the window) but never fewer than 5; no --min-frames here.
+        raise CalibrationError(
+            f"frontal calibration needs 5 frames with a cap pose, the window {window_s[0]:g}-"
+            f"{window_s[1]:g} s has {len(rots)}: widen --calibrate-frontal "
+            f"(or run `ficap calibrate --frontal ... --min-frames N` on the labels)")
     result = calibrate_frontal(Rotation.concatenate(rots), base.R_cam_frontal,
                                min_frames=min(30, max(len(rots), 5)))
     cal = HeadCalibration(R_cap_head=result.R_cap_head, R_cam_frontal=base.R_cam_frontal,

@@ -114,3 +114,40 @@ def test_time_windows_and_counts_are_checked_with_one_clear_line(
     with pytest.raises(SystemExit) as exc:
         main(["replay", "in", "--out", str(tmp_path / "o"), "--retries", "-1"])
     assert exc.value.code == 2 and "--retries" in capsys.readouterr().err
+
+
+def test_a_short_frontal_window_points_at_min_frames(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """16 frames in 0-0.5 s (both ends in) are fewer than the default 30: the one line says how to get past it,
+    and --min-frames 10 then calibrates from those same frames."""
+    labels, _, _ = _drive(tmp_path)
+    out = tmp_path / "cal.yaml"
+    assert main(["calibrate", str(labels), "--frontal", "0:0.5", "--out", str(out)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("ficap: error:"), err
+    assert "needs 30 frames" in err[0] and "has 16" in err[0] and "--min-frames" in err[0], err
+    assert not out.exists()
+    assert main(["calibrate", str(labels), "--frontal", "0:0.5", "--min-frames", "10",
+                 "--out", str(out)]) == 0
+    err_deg = np.degrees((load_calibration(out).R_cap_head.inv() * R_CAP_HEAD).magnitude())
+    assert err_deg < 0.3  # 16 frames of 0.2 deg/axis noise
+
+
+def test_replay_frontal_window_too_short_says_what_to_do() -> None:
+    """replay's --calibrate-frontal needs 5 posed frames; with 3 the message names the option to
+    widen and the calibrate command that has --min-frames."""
+    from types import SimpleNamespace
+
+    from ficap_ros.errors import CalibrationError
+    from ficap_ros.replay import frontal_calibration
+
+    frames = []
+    for i in range(3):
+        pose = CapPose(Transform(CAM_FROM_FORWARD * R_CAP_HEAD.inv(), [0.0, 0.06, 0.54]), 8, 8,
+                       tuple(range(8)), 0.2, np.eye(6) * 1e-6, 0.95, "joint")
+        frames.append(SimpleNamespace(pose=pose, stamp_ns=T0 + i * 33_000_000))
+    with pytest.raises(CalibrationError) as exc:
+        frontal_calibration(frames, T0, (0.0, 1.0), HeadCalibration())
+    msg = str(exc.value)
+    assert "\n" not in msg and "has 3" in msg and "--calibrate-frontal" in msg, msg
+    assert "--min-frames" in msg, msg

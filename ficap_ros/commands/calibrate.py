@@ -71,6 +71,11 @@ def run(args: argparse.Namespace) -> int:
         if sel.size == 0:
             raise CalibrationError(
                 f"no frame with a pose between {args.frontal[0]:g} s and {args.frontal[1]:g} s")
+        if sel.size < args.min_frames:
+            raise CalibrationError(
+                f"frontal calibration needs {args.min_frames} frames with a pose, the window "
+                f"{args.frontal[0]:g}-{args.frontal[1]:g} s has {sel.size}: widen --frontal "
+                f"or lower --min-frames")
         R_cam_frontal = calibrated_frontal(None, mount)
         result = calibrate_frontal(R_cam_cap_all[sel], R_cam_frontal, min_frames=args.min_frames)
         save_calibration(args.out, result, R_cam_frontal=R_cam_frontal)
