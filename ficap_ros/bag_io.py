@@ -196,7 +196,7 @@ def open_bag_reader(path: Path, salvage: bool = True) -> Any:
     """
     from rosbags.highlevel import AnyReader
 
-    from ficap_ros.bag_salvage import SalvageReader, storage_files
+    from ficap_ros.bag_salvage import NothingSalvaged, SalvageReader, storage_files
 
     path = Path(path)
     if not path.exists():
@@ -212,6 +212,14 @@ def open_bag_reader(path: Path, salvage: bool = True) -> Any:
         if salvage and (path.is_dir() or path.suffix.lower() in (".mcap", ".db3")):
             try:
                 return SalvageReader(path, jazzy_typestore())
+            except NothingSalvaged as lost:
+                # rosbags' reason ("File end magic is invalid.") names no file and does not say
+                # the file was cut short; the salvage walked it and knows where it ends.
+                if path.is_file() and path.suffix.lower() == ".mcap":
+                    raise BagError(
+                        f"{path} is truncated or damaged, not a complete MCAP file: "
+                        f"{lost.detail}; no complete message before the damage to salvage "
+                        f"(docs/bag_tools.md)") from err
             except BagError:
                 pass  # not even a damaged bag: report rosbags' reason
         raise BagError(f"cannot read bag {path}: {_one_line(err)}") from err

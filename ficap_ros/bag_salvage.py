@@ -34,6 +34,15 @@ from ficap_ros.errors import BagError
 __all__ = ["SalvageConnection", "Damage", "SalvageReader", "storage_files"]
 
 _MAGIC = b"\x89MCAP0\r\n"
+
+
+class NothingSalvaged(BagError):
+    """A bag file that is damaged (cut short, a malformed record) and holds no complete message
+    before the damage; ``detail`` says where its bytes end (for the caller's one-line error)."""
+
+    def __init__(self, message: str, detail: str) -> None:
+        super().__init__(message)
+        self.detail = detail
 _OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK, _OP_FOOTER = 0x03, 0x04, 0x05, 0x06, 0x02
 
 
@@ -368,7 +377,7 @@ class SalvageReader:
         self.connections = sorted(merged.values(), key=lambda c: c.id)
         if not any(c.msgcount for c in self.connections):
             detail = "; ".join(f.damage for f in self._files if f.damage) or "no messages"
-            raise BagError(f"nothing readable in {self.path}: {detail}")
+            raise NothingSalvaged(f"nothing readable in {self.path}: {detail}", detail)
         expected, end_ns = _metadata(self.path)
         # Until when messages were lost: the latest the files or the metadata say (chunks after
         # the cut one may be lost whole; only metadata.yaml knows about them).

@@ -225,3 +225,18 @@ def test_a_bad_number_in_labels_is_named_by_row_and_column(tmp_path: Path) -> No
     path.write_text("\n".join([good[0], ",".join(row)]) + "\n")
     with pytest.raises(FicapError, match=r"row 2, reliability: not a number: 'high'"):
         read_labels(path)
+
+
+def test_a_100_byte_mcap_is_named_truncated_in_one_line(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """The first 100 bytes of a real MCAP: not rosbags' 'File end magic is invalid.' but one line
+    naming the file, saying it is cut short, and exit 1 (bad input) from replay and stats."""
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes((CORPUS / "mcap_truncated.mcap").read_bytes()[:100])
+    for argv in (["replay", str(cut), "--out", str(tmp_path / "o"), "--quiet"],
+                 ["stats", str(cut), "--quiet"]):
+        assert main(argv) == 1, argv
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("ficap: error:"), err
+        assert str(cut) in err[0] and "truncated" in err[0], err
+        assert "not a complete MCAP file" in err[0] and "magic" not in err[0], err
