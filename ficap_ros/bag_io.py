@@ -478,12 +478,14 @@ class VideoSource(FrameSource):
     def __init__(self, path: str | Path, intrinsics: str | Path | CameraModel | None,
                  fps: float | None = None) -> None:
         super().__init__(path, intrinsics)
-        if self._intrinsics is None:
-            raise BagError(f"video {self.path} needs --intrinsics camera.yaml")
         import cv2
 
+        # Opened before asking for intrinsics: a file that is no video at all (notes.txt) must not
+        # be called a video that lacks --intrinsics.
         cap = self._open_video()
         try:
+            if self._intrinsics is None:
+                raise BagError(f"video {self.path} needs --intrinsics camera.yaml")
             container_fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
             self.count = max(int(cap.get(cv2.CAP_PROP_FRAME_COUNT) or 0), 0)
         finally:
@@ -501,7 +503,8 @@ class VideoSource(FrameSource):
 
         cap = cv2.VideoCapture(str(self.path))
         if not cap.isOpened():
-            raise BagError(f"cannot open {self.path} as a bag or a video")
+            raise BagError(f"{self.path} is neither a bag (rosbag2 folder, .mcap, .db3) nor a "
+                           f"video OpenCV can open")
         return cap
 
     def _video_frames(self) -> Iterator[RawFrame]:

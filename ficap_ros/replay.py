@@ -268,7 +268,7 @@ def frontal_calibration(
         raise CalibrationError(
             f"no frame with a cap pose between {window_s[0]:g} s and {window_s[1]:g} s")
     if len(rots) < 5:
-        # replay asks for min(30, frames in the window) but never fewer than 5; no --min-frames here.
+        # replay asks for min(30, frames in the window), never fewer than 5; it has no --min-frames.
         raise CalibrationError(
             f"frontal calibration needs 5 frames with a cap pose, the window {window_s[0]:g}-"
             f"{window_s[1]:g} s has {len(rots)}: widen --calibrate-frontal "

@@ -118,8 +118,8 @@ def test_time_windows_and_counts_are_checked_with_one_clear_line(
 
 def test_a_short_frontal_window_points_at_min_frames(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """16 frames in 0-0.5 s (both ends in) are fewer than the default 30: the one line says how to get past it,
-    and --min-frames 10 then calibrates from those same frames."""
+    """16 frames in 0-0.5 s (both ends in) are fewer than the default 30: the one line says how
+    to get past it, and --min-frames 10 then calibrates from those same frames."""
     labels, _, _ = _drive(tmp_path)
     out = tmp_path / "cal.yaml"
     assert main(["calibrate", str(labels), "--frontal", "0:0.5", "--out", str(out)]) == 1

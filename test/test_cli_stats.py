@@ -111,3 +111,22 @@ def test_reliability_histogram_labels_each_bar_with_its_frames(
     assert sorted(t.get_text() for t in ax.texts) == ["3", "30"]
     assert "33 frames with a pose of 35" in ax.get_title()
     assert "35 frames" in figures["tag_detection_rate.png"].axes[0].get_title()
+
+
+def test_a_text_file_is_called_neither_a_bag_nor_a_video(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`ficap stats notes.txt` was 'video notes.txt needs --intrinsics': it is no video. A real
+    video without --intrinsics still asks for them."""
+    notes = tmp_path / "notes.txt"
+    notes.write_text("not a recording\n")
+    video = tmp_path / "v.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 30.0, (64, 48))
+    for _ in range(3):
+        writer.write(np.zeros((48, 64, 3), np.uint8))
+    writer.release()
+    for path, says in ((notes, f"{notes} is neither a bag"),
+                       (video, f"video {video} needs --intrinsics")):
+        assert main(["stats", str(path), "--quiet"]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and err[0].startswith("ficap: error:"), err
+        assert says in err[0] and "needs --intrinsics" not in err[0].replace(says, ""), err
