@@ -17,6 +17,8 @@ Every failure is an ``OutputError`` whose message is one line.
 
 from __future__ import annotations
 
+import fcntl
+import glob
 import os
 import re
 import shutil
@@ -28,7 +30,8 @@ from ficap_ros.errors import FicapError, OutputError
 
 __all__ = ["read_text", "write_atomic", "write_output_file", "check_file_target",
            "check_not_input", "check_replaceable", "check_output_folder", "OutputFolder",
-           "FICAP_OUTPUT_FILES", "is_ficap_output", "prepare_output_folder"]
+           "FICAP_OUTPUT_FILES", "is_ficap_output", "prepare_output_folder",
+           "remove_stale_temporaries"]
 
 #: Files ficap writes into an output folder (replay, stats, evaluate, a fleet's summary): an
 #: existing folder holding only these (and ficap's own hidden temporaries) may be replaced.
@@ -229,6 +232,52 @@ def check_output_folder(out: str | os.PathLike[str],
         raise OutputError(f"cannot write output folder {p}: {parent} is not writable")
 
 
+_LOCK = ".lock"
+
+
+def remove_stale_temporaries(out: str | os.PathLike[str]) -> list[Path]:
+    """Remove the temporary folders of ``out`` left by runs that were killed outright (SIGKILL).
+
+    Each run's ``.ficap-NAME.XXXX`` folder has a ``.ficap-NAME.XXXX.lock`` file beside it that the
+    run holds an exclusive ``flock`` on while it lives; the kernel lets go of it when the process
+    (and any worker forked with it) is gone, however it died. A lock this function can take, on a
+    file still linked under its name, is therefore a dead run's: its folder goes, then the lock
+    file. A live run's lock cannot be taken, and a folder without a lock file (an older ficap's, or
+    one whose lock file is being created) is left alone, so another live run's temporary is never
+    deleted. The previous outputs renamed aside during a commit (``.old-PID``) are not touched.
+
+    Returns:
+        The folders removed.
+    """
+    out = Path(out)
+    parent = out.parent if str(out.parent) else Path(".")
+    removed = []
+    for lock in parent.glob(f"{glob.escape(f'.ficap-{out.name}.')}*{_LOCK}"):
+        try:
+            fd = os.open(lock, os.O_RDWR)
+        except OSError:
+            continue  # gone meanwhile (its run finished) or not ours to open
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except OSError:
+                continue  # a live run holds it
+            # The same file still under that name: not one unlinked by a run that finished and a
+            # new file that happens to reuse the name.
+            here, held = os.stat(lock), os.fstat(fd)
+            if (here.st_dev, here.st_ino) != (held.st_dev, held.st_ino):
+                continue
+            folder = lock.with_name(lock.name[: -len(_LOCK)])
+            shutil.rmtree(folder, ignore_errors=True)
+            lock.unlink()
+            removed.append(folder)
+        except OSError:
+            continue
+        finally:
+            os.close(fd)
+    return removed
+
+
 class OutputFolder:
     """An output folder built beside its target and swapped in as a unit.
 
@@ -249,17 +298,39 @@ class OutputFolder:
         self.out = Path(out)
         check_output_folder(self.out, inputs)
         parent = self.out.parent if str(self.out.parent) else Path(".")
+        self._lock_fd: int | None = None
         try:
             parent.mkdir(parents=True, exist_ok=True)
-            self.tmp = Path(tempfile.mkdtemp(prefix=f".ficap-{self.out.name}.", dir=parent))
+            remove_stale_temporaries(self.out)
+            # The lock file comes first and names the folder: a folder without a locked lock file
+            # beside it is never taken for stale (it may be one being created right now).
+            fd, lock = tempfile.mkstemp(prefix=f".ficap-{self.out.name}.", suffix=_LOCK,
+                                        dir=parent)
+            self._lock_fd, self._lock = fd, Path(lock)
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            self.tmp = Path(lock[: -len(_LOCK)])
+            self.tmp.mkdir()
         except OSError as err:
+            self._release()
             raise OutputError(f"cannot write output folder {self.out}: {_reason(err)}") from err
 
     def __enter__(self) -> Path:
         return self.tmp
 
+    def _release(self) -> None:
+        """Unlink the lock file, then let go of it (in that order: see remove_stale_temporaries)."""
+        if self._lock_fd is None:
+            return
+        try:
+            self._lock.unlink()
+        except OSError:
+            pass
+        os.close(self._lock_fd)
+        self._lock_fd = None
+
     def discard(self) -> None:
         shutil.rmtree(self.tmp, ignore_errors=True)
+        self._release()
 
     def commit(self) -> None:
         """Swap the finished temporary folder in for ``out``."""
@@ -279,6 +350,7 @@ class OutputFolder:
             raise OutputError(f"cannot write output folder {self.out}: {_reason(err)}") from err
         if old is not None:
             shutil.rmtree(old, ignore_errors=True)
+        self._release()
 
     def __exit__(self, exc_type: object, exc: object, tb: object) -> None:
         if exc_type is None:

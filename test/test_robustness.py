@@ -268,6 +268,38 @@ def test_replay_replaces_its_own_output(drive: Path, replayed: Path, tmp_path: P
     assert (out / "labels.csv").read_text() == (replayed / "labels.csv").read_text()
 
 
+def test_replay_removes_temporaries_of_killed_runs_only(drive: Path, tmp_path: Path) -> None:
+    """A run killed outright (SIGKILL) leaves its .ficap-NAME.* folder; the next replay into the
+    same output removes it, but never a live run's (its lock is held) nor a folder it cannot
+    prove dead (no lock file: an older ficap's)."""
+    out = tmp_path / "out"
+    start = ("import os, signal, sys; from ficap_ros.files import OutputFolder; "
+             f"f = OutputFolder({str(out)!r}); (f.tmp / 'labels.csv').write_text('half'); "
+             "print(f.tmp, flush=True); ")
+    # The live run starts first: a run removes dead runs' temporaries when it starts.
+    live = subprocess.Popen([sys.executable, "-c", start + "sys.stdin.read()"],
+                            stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        alive = Path(live.stdout.readline().strip())
+        killed = subprocess.run(
+            [sys.executable, "-c", start + "os.kill(os.getpid(), signal.SIGKILL)"],
+            capture_output=True, text=True, timeout=60)
+        assert killed.returncode == -signal.SIGKILL
+        dead = Path(killed.stdout.strip())
+        legacy = tmp_path / ".ficap-out.abcd1234"
+        legacy.mkdir()
+        assert dead.is_dir() and alive.is_dir() and dead != alive
+        assert main(["replay", str(drive), "--out", str(out), "--quiet"]) == 0
+        assert not dead.exists() and not Path(f"{dead}.lock").exists()
+        assert alive.is_dir() and Path(f"{alive}.lock").exists() and legacy.is_dir()
+        assert (out / "labels.csv").read_text().startswith("frame,")
+        left = sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".ficap-out."))
+        assert left == sorted([alive.name, f"{alive.name}.lock", legacy.name]), left
+    finally:
+        live.communicate("", timeout=60)
+    assert live.returncode == 0  # it ends without committing: its own exit leaves its folder
+
+
 def test_stats_evaluate_kit_and_fleet_never_write_into_a_recording_or_foreign_folder(
         drive: Path, replayed: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     # They add files to --out rather than replace it, but under the same rule: a rosbag2
