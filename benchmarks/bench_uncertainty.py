@@ -37,7 +37,6 @@ import argparse
 import json
 import sys
 import time
-from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -88,9 +87,8 @@ def ideal_ratio(covs: list[np.ndarray], rows: slice, scale: float, rng: np.rando
     bounds, norms = [], []
     for cov in covs:
         block = cov[rows, rows] * scale**2
-        lam, vec = np.linalg.eigh(0.5 * (block + block.T))
-        lam = np.clip(lam, 0.0, None)
-        bounds.append(pose_mod._norm_quantile95(lam))
+        lam = np.clip(np.linalg.eigvalsh(0.5 * (block + block.T)), 0.0, None)
+        bounds.append(pose_mod._bound95(block, np.zeros(3), float("inf")))
         norms.append(np.linalg.norm(rng.standard_normal((200, 3)) * np.sqrt(lam), axis=1))
     return float(np.median(bounds) / np.median(np.concatenate(norms)))
 

@@ -1004,31 +1004,6 @@ def combine_uncertainty(terms: dict[str, np.ndarray], seen: dict[str, float],
     return cov
 
 
-def _chi_quantile_table() -> tuple[np.ndarray, np.ndarray]:
-    # chi2.ppf(q, nu) is 2 * gammaincinv(nu / 2, q) (scipy.stats' own chi2._ppf; the table is
-    # bit-identical). scipy.special comes with scipy.optimize; scipy.stats would add ~0.2 s CPU
-    # to every command's start-up (0.3 ms a frame of a 20 s replay).
-    from scipy.special import gammaincinv
-
-    nu = np.linspace(0.5, 3.0, 251)
-    return nu, np.sqrt(2.0 * gammaincinv(nu / 2, 0.95))
-
-
-_NU, _SQRT_Q95 = _chi_quantile_table()
-
-
-def _norm_quantile95(lam: np.ndarray) -> float:
-    """95 % quantile of sqrt(sum lam_i z_i^2), z standard normal: Welch-Satterthwaite's scaled
-    chi-square (scale sum lam^2 / sum lam, nu = (sum lam)^2 / sum lam^2 degrees of freedom;
-    exact for equal eigenvalues, within 3 % otherwise)."""
-    total = float(np.sum(lam))
-    if total <= 0.0:
-        return 0.0
-    sq = float(np.sum(lam**2))
-    nu = total * total / sq
-    return float(np.sqrt(sq / total) * np.interp(nu, _NU, _SQRT_Q95))
-
-
 #: The 95 % quantile of F(nu, nu_e) over a grid of log(nu) (the error's effective dimensions: 1-3
 #: for a zero-mean error, up to ~1e6 when a measured offset dominates) and 1 / nu_e (the degrees
 #: of freedom its variance was estimated from; 0: known). F(nu, inf) = chi2(nu) / nu.
