@@ -162,14 +162,16 @@ class KitResult:
 
 # -- tags ---------------------------------------------------------------------------------------
 def tag_cells(tag_id: int) -> np.ndarray:
-    """The 8x8 cells of a tag36h11 tag as OpenCV draws it, True = black, row 0 at the top."""
+    """The 8x8 cells of a tag36h11 tag as OpenCV draws it, True = black, row 0 at the top
+    (``detection.tag_cells``, read-only), after checking the id is one of the family's."""
     import cv2
 
-    dictionary = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11)
-    if not 0 <= tag_id < dictionary.bytesList.shape[0]:
-        raise ConfigError(f"tag id {tag_id} is not a tag36h11 id (0..{dictionary.bytesList.shape[0] - 1})")
-    image = cv2.aruco.generateImageMarker(dictionary, int(tag_id), TAG_CELLS, borderBits=1)
-    return image < 128
+    from .detection import tag_cells as detected_tag_cells
+
+    count = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11).bytesList.shape[0]
+    if not 0 <= tag_id < count:
+        raise ConfigError(f"tag id {tag_id} is not a tag36h11 id (0..{count - 1})")
+    return detected_tag_cells(int(tag_id))
 
 
 def tag_black_rects_mm(tag_id: int, x_mm: float, y_mm: float, group: str = "") -> list[Rect]:
