@@ -176,8 +176,10 @@ def check_replaceable(out: str | os.PathLike[str], subfolders: bool = False) -> 
         if subfolders:  # breadth first; ficap's hidden temporaries are not looked into
             folders += sorted(c for c in folder.iterdir()
                               if c.is_dir() and not c.is_symlink() and not c.name.startswith(".ficap"))
+        # ficap never writes a symlink: one (to a folder or a file) is the user's, and a fleet
+        # writing through it would land outside --out.
         foreign = sorted(str(c.relative_to(p)) + ("/" if c.is_dir() else "") for c in folder.iterdir()
-                         if not is_ficap_output(c.name) and not (subfolders and c.is_dir()))
+                         if c.is_symlink() or not (is_ficap_output(c.name) or (subfolders and c.is_dir())))
         if foreign:
             listed = ", ".join(foreign[:3]) + (" ..." if len(foreign) > 3 else "")
             raise OutputError(f"output folder {p} holds files ficap did not write ({listed}); "

@@ -41,6 +41,7 @@ from ficap_ros.errors import (
     ModelError,
     OutputError,
 )
+from ficap_ros.files import check_replaceable
 from ficap_ros.labels import read_labels
 from ficap_ros.calibration import HeadCalibration
 
@@ -333,6 +334,30 @@ def test_stats_evaluate_kit_and_fleet_never_write_into_a_recording_or_foreign_fo
         p.name for p in mine.iterdir()}
     assert main(["replay", str(drive), "--out", str(mine), "--quiet"]) == 0
     assert sorted(p.name for p in mine.iterdir()) == sorted(p.name for p in replayed.iterdir())
+
+
+def test_a_symlink_in_an_output_folder_is_the_users(tmp_path: Path) -> None:
+    # ficap never writes a symlink, so one inside --out (to a folder or a file) points at the
+    # user's data: a run that replaced or wrote through it would land outside --out.
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    (elsewhere / "labels.csv").write_text("not ficap's")
+    single, fleet = tmp_path / "single", tmp_path / "fleet"
+    single.mkdir()
+    (single / "labels.csv").write_text("t\n")
+    (fleet / "d1").mkdir(parents=True)
+    (fleet / "d1" / "labels.csv").write_text("t\n")
+    check_replaceable(single)  # ficap's own outputs: replaceable
+    check_replaceable(fleet, subfolders=True)
+    for out, subfolders in ((single, False), (fleet, True)):
+        (out / "link").symlink_to(elsewhere, target_is_directory=True)
+        with pytest.raises(OutputError, match="link/"):
+            check_replaceable(out, subfolders=subfolders)
+        (out / "link").unlink()
+    (fleet / "d1" / "summary.json").symlink_to(elsewhere / "labels.csv")  # a file, deeper down
+    with pytest.raises(OutputError, match="summary.json"):
+        check_replaceable(fleet, subfolders=True)
+    assert (elsewhere / "labels.csv").read_text() == "not ficap's"
 
 
 # -- 4/5. calibration files -----------------------------------------------------------------------
