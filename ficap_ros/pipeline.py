@@ -14,12 +14,12 @@ from scipy.spatial.transform import Rotation
 from ficap_ros.calibration import HeadCalibration
 from ficap_ros.camera import CameraModel
 from ficap_ros.cap_model import CapModel, nominal_model
-from ficap_ros.detection import DetectorConfig, TagDetection, TagDetector, as_gray
+from ficap_ros.detection import DetectorConfig, TagDetection, TagDetector, as_gray, partly_hidden
 from ficap_ros.pose import CapPose, PoseConfig, estimate_cap_pose
 from ficap_ros.tracking import Search, TrackConfig, Tracker
 from ficap_ros.transform import Transform
 
-__all__ = ["FrameResult", "FrameProcessor"]
+__all__ = ["FrameResult", "FrameProcessor", "hidden_tag_ids"]
 
 
 @dataclass(frozen=True)
@@ -56,6 +56,16 @@ class FrameResult:
     @property
     def tags_used(self) -> int:
         return self.pose.tags_used if self.pose is not None else 0
+
+
+def hidden_tag_ids(gray: np.ndarray, detections: tuple[TagDetection, ...]) -> frozenset[int]:
+    """Ids of the detections something partly covers (``detection.partly_hidden``): the pose
+    drops them at a lower residual than other tags (``PoseConfig.hidden_ratio``)."""
+    if not detections:
+        return frozenset()
+    hidden = partly_hidden(gray, np.stack([d.corners_px for d in detections]),
+                           np.array([d.tag_id for d in detections]))
+    return frozenset(d.tag_id for d, h in zip(detections, hidden) if h)
 
 
 class FrameProcessor:
@@ -105,15 +115,17 @@ class FrameProcessor:
         pose_config = self.pose_config
         t0 = time.perf_counter()
         predicted, search = None, Search.IMAGE
+        gray = as_gray(image)
         if self.tracker is not None:
-            detections, predicted, search = self.tracker.find(as_gray(image), camera, int(stamp_ns),
-                                                              pose_config)
+            detections, predicted, search = self.tracker.find(gray, camera, int(stamp_ns), pose_config)
         else:
-            detections = self.detect(image)
+            detections = self.detect(gray)
         t1 = time.perf_counter()
         used = detections if self.tracker is None else \
             self.tracker.pose_tags(detections, predicted, pose_config)
-        result = estimate_cap_pose(used, self.model, camera, pose_config, start=predicted)
+        cfg = self.detector.config
+        hidden = hidden_tag_ids(gray, used) if cfg.hidden_check and cfg.corner_refine == "edge" else ()
+        result = estimate_cap_pose(used, self.model, camera, pose_config, start=predicted, hidden_ids=hidden)
         t2 = time.perf_counter()
         pose = result.pose
         if pose is not None and pose.tags_detected != len({d.tag_id for d in detections}):
