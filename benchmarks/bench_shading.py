@@ -13,9 +13,12 @@ Per set, over the tags the pose used (``ficap joint``, default settings) whose v
         every tag along its foreshortening times the sine of its view angle
         (``pose._tilt_mode``, px at a tag seen edge-on) and the tags' common radial offset,
         per frame; the depth error the tilt share causes through the fit (``A d``, mm).
-Synth rows: ``ficap synth``'s realistic chain, one frame a second of a naturalistic drive.
+Synth rows: ``ficap synth``'s realistic chain, one frame a second of a naturalistic drive; and
+"synth as <set>": ``synth.render`` at each blender_dev set's true poses, camera K, lighting preset,
+PSF and tone curve (as in bench_realism.py), the direct renderer-to-renderer check.
 
 Usage: .venv/bin/python benchmarks/bench_shading.py [--frames 25] [--blender-dev PATH] [--record]
+       [--sets dev_540p_neutral,...] [--no-synth-drives]
 """
 
 from __future__ import annotations
@@ -129,11 +132,33 @@ def measure(frames, camera, label: str) -> dict:  # noqa: ANN001
     return row
 
 
+def synth_as(name: str, root: Path | None) -> tuple:
+    """``synth.render`` frames at a blender_dev set's true poses, camera and render chain."""
+    import blender_dev
+    from bench_realism import tone_of
+
+    from ficap_ros.synth import RenderConfig, render
+
+    ds = blender_dev.load_set(name, root or blender_dev.BLENDER_DEV)
+    tone, gamma = tone_of(ds.tone)
+    cfg = RenderConfig(lighting=ds.lighting, tone=tone, gamma=gamma, psf_sigma_px=ds.psf_sigma_px,
+                       jpeg_quality=95)
+
+    def frames():  # noqa: ANN202
+        for f in ds.frames:
+            yield render(ds.true_model, ds.camera, f.T_cam_cap, cfg, seed=f.index + 1).image, \
+                f.T_cam_cap, f.stamp_ns
+
+    return frames, ds.camera
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--frames", type=int, default=25, help="synth frames per condition (default 25)")
     ap.add_argument("--blender-dev", type=Path, default=None)
     ap.add_argument("--record", action="store_true")
+    ap.add_argument("--sets", default=None, help="blender_dev sets (default: all but the as-built one)")
+    ap.add_argument("--no-synth-drives", action="store_true")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     import bench_uncertainty as bu
@@ -142,7 +167,12 @@ def main() -> int:
     load_before = load_avg()
     sets = bu.blender_sets(args.blender_dev)
     sets.pop("blender dev_1080p_neutral_asbuilt", None)  # its plates are off by ~1 mm: not a corner shift
-    sets.update(bu.synth_sets(args.frames, ["540p", "1080p"], ["neutral", "high", "low"]))
+    if args.sets:
+        sets = {k: v for k, v in sets.items() if k.split(" ", 1)[1] in args.sets.split(",")}
+    for name in list(sets):
+        sets["synth as " + name.split(" ", 1)[1]] = synth_as(name.split(" ", 1)[1], args.blender_dev)
+    if not args.no_synth_drives:
+        sets.update(bu.synth_sets(args.frames, ["540p", "1080p"], ["neutral", "high", "low"]))
     rows = []
     for name, (frames, camera) in sets.items():
         m = measure(frames() if callable(frames) else frames, camera, name)

@@ -140,8 +140,12 @@ _CODE_MAX = 65535
 class _Light:
     """Per-mode light, linear, in units of the sensor's full well at the mode's nominal exposure.
 
-    Irradiance on a face with outward normal n is ``ambient + diffuse * max(0, n . l)``; a white
-    face at that irradiance collects that share of the full well. ``flare`` is veiling glare (lens
+    Irradiance on a face with outward normal n is ``ambient + diffuse * max(0, n . l)`` plus, from a
+    lamp beside the lens, ``camera_lamp * cos(incidence) * (r_cap / r)^2`` at each point of the face
+    (r: its distance from the camera, r_cap: the cap's; the auto-exposure meters on the cap, so the
+    lamp's level at the cap's distance is fixed); a white face at that irradiance collects that
+    share of the full well. The lamp lights each oblique face unevenly: its near side (nearer the
+    camera, met less obliquely) is brighter, ~1.1x across a face seen at 60 deg at 0.6 m. ``flare`` is veiling glare (lens
     and windscreen scatter) added to every pixel; ``background`` scales the car interior.
     ``exposure_ms`` and ``gain`` are what an auto-exposure settles on in that light.
     """
@@ -153,17 +157,23 @@ class _Light:
     background: float
     exposure_ms: float
     gain: float
+    camera_lamp: float = 0.0
 
 
 # Directions in the camera optical frame (x right, y down, z forward; the camera looks forward at
 # the back of the head): neutral light comes from behind the camera, slightly above; the low-light
 # source is outside at the driver's front-right, so faces turned away from it are in shadow.
-# Levels: neutral puts white paper at 55-70 % of full well (an auto-exposure's usual headroom);
+# Neutral: most of the light on the back of the head comes from a lamp beside the camera (a cabin
+# light over the rear camera, or the IR illuminator of a driver camera): it falls off with
+# distance and incidence across each face, as blender_dev's neutral renders show
+# (docs/benchmarks.md, "Uneven light across a face"); the rest is the cabin's diffuse light.
+# Levels: neutral puts white paper at 45-70 % of full well (an auto-exposure's usual headroom;
+# oblique faces get less of the lamp);
 # high is brighter still, and its spotlights (``_spotlights``) push whites well past full well;
 # low (night, one street lamp) collects 1-10 % and the camera answers with gain 2.5 and a long
 # exposure, so the image is dark and noisy.
 _LIGHTS: dict[str, _Light] = {
-    "neutral": _Light((0.25, -0.45, -0.86), 0.56, 0.12, 0.004, 0.75, 8.0, 1.0),
+    "neutral": _Light((0.25, -0.45, -0.86), 0.15, 0.05, 0.004, 0.75, 8.0, 1.0, camera_lamp=0.5),
     "high": _Light((0.3, -0.5, -0.81), 0.62, 0.18, 0.008, 1.1, 4.0, 1.0),
     "low": _Light((0.85, -0.15, 0.5), 0.008, 0.09, 0.0015, 0.05, 20.0, 2.5),
 }
@@ -547,7 +557,19 @@ def _render_head(
     tex = np.zeros_like(a)
     for kv, ph_ in zip(waves, phases):
         tex += np.sin(float(kv[0]) * xs[0] + float(kv[1]) * xs[1] + float(kv[2]) * xs[2] + float(ph_))
-    rad = (albedo * (1.0 + 0.1 * tex)) * (light.ambient + light.diffuse * lam)
+    irradiance = light.ambient + light.diffuse * lam
+    if light.camera_lamp > 0.0:
+        # The lamp at the camera (``_Light``), metered at the head centre's distance: cos(incidence)
+        # = -n . q / (|n| |q|) with q = R^T K^-1 [u v 1] the pixel's ray in the cap frame.
+        q = [sum(float((r.T @ np.linalg.inv(k))[i, j]) * c for j, c in enumerate((u, v, 1.0)))
+             for i in range(3)]
+        qn = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2])
+        cos_cam = -(ne[0] * q[0] + ne[1] * q[1] + ne[2] * q[2]) / (
+            np.sqrt(ne[0] * ne[0] + ne[1] * ne[1] + ne[2] * ne[2]) * qn + 1e-12)
+        r_head = float(np.linalg.norm(centre_cam))
+        irradiance = irradiance + light.camera_lamp * np.maximum(cos_cam, 0.0) * (
+            r_head / np.maximum(t * qn, 1e-3)) ** 2
+    rad = (albedo * (1.0 + 0.1 * tex)) * irradiance
     valid = (t > 0) & (b < 0)
     dist = np.where(valid, dist, -10.0)
     t = np.where(valid, t, 1e3)  # 1e3 m: "far", never in front of a face
@@ -598,6 +620,8 @@ def _render_scene(
     )
     order = sorted(np.flatnonzero(front), key=lambda i: -np.linalg.norm(centres_cam[i]))
     irr = _irradiance(light, normals_cam)
+    # The lamp at the camera is metered on the cap: its irradiance at the cap's distance is fixed.
+    r_cap = float(np.linalg.norm(centres_cam.mean(axis=0)))
     k_inv = np.linalg.inv(k)
     s_max = int(cfg.supersample)
     id_buf = np.full((height, width), -1, np.int16)
@@ -642,7 +666,8 @@ def _render_scene(
         small = cv2.resize(big, (w, h), interpolation=cv2.INTER_AREA).astype(np.float32) * (1 / 255)
         cov, tsq, blk = small[..., 0], small[..., 1], small[..., 2]
         occl = np.zeros_like(cov)
-        if occluders:
+        lamp = light.camera_lamp > 0.0
+        if occluders or lamp:
             # Depth of the face plane along each pixel's ray (t with K^-1 [u v 1], z = 1).
             n = normals_cam[i]
             d0 = float(n @ faces_cam[i][0])
@@ -653,6 +678,15 @@ def _render_scene(
             with np.errstate(divide="ignore", invalid="ignore"):
                 z_face = d0 / denom
             z_face = np.where(z_face > 0, z_face, np.inf)
+        irr_i: float | np.ndarray = irr[i]
+        if lamp:
+            # The lamp at the camera centre, at each pixel's point P of the face plane:
+            # cos(incidence) / |P|^2 = |d0| / |P|^3 (d0 = n . P, the plane's distance).
+            ray = [k_inv[j, 0] * uu + k_inv[j, 1] * vv + k_inv[j, 2] for j in range(3)]
+            norm = np.sqrt(ray[0] ** 2 + ray[1] ** 2 + ray[2] ** 2)
+            dist = np.where(np.isfinite(z_face), z_face * norm, np.inf)
+            irr_i = (irr[i] + light.camera_lamp * abs(d0) * r_cap**2 / dist**3).astype(np.float32)
+        if occluders:
             for occluder in occluders:
                 h_alpha, h_depth = occluder.crop(x0, y0, x1, y1)
                 occl = np.maximum(occl, h_alpha * (h_depth < z_face))
@@ -660,7 +694,7 @@ def _render_scene(
         eff = cov * keep
         # Coverage-weighted (premultiplied) radiance: the box filter of the supersampled texture
         # integrates linear light over each pixel, as a sensor pixel does.
-        premult = irr[i] * (_WHITE_ALBEDO * cov - (_WHITE_ALBEDO - _BLACK_ALBEDO) * blk) * keep
+        premult = irr_i * (_WHITE_ALBEDO * cov - (_WHITE_ALBEDO - _BLACK_ALBEDO) * blk) * keep
         roi = img[y0:y1, x0:x1]
         roi *= (1.0 - eff)[..., None]
         roi += premult[..., None]
