@@ -193,7 +193,7 @@ def main() -> int:
             f"{_span(ratios['rms biased'])}): with the bias gone, what is left is scatter, and its "
             "main source differs. Measured on the tags' flat black and white areas (differences of "
             "neighbouring pixels): blender's white carries grey-level noise of sd ~9-10 at neutral "
-            "light, synth's ~2, which is what a sensor at 55-70 % of an 8000 e- full well gives (shot "
+            "light, synth's ~2, which is what a sensor at 45-70 % of an 8000 e- full well gives (shot "
             "noise ~1.4 %); the rest is path tracing at 6-8 samples per pixel, which no camera adds, "
             "plus plates that are real geometry and a busier scene next to the tags. At low light "
             "the two agree (noise-to-contrast 0.11-0.18 on both). Rendering blender's Monte Carlo "

@@ -1,5 +1,8 @@
-"""Why blender_dev's neutral sets carry a depth error no residual shows: each oblique face is lit
-unevenly along its foreshortening, and the corners shift toward its darker side.
+"""Why blender_dev's neutral sets carry a depth error no residual shows: the corners of each oblique
+tag shift along its foreshortening (toward its nearer side), a shift the pose takes into the depth.
+Measured here: how unevenly each face is lit (a lamp at the camera makes the nearer side brighter),
+how large the shift is, and (``--mechanism``) what makes it: the lens blur on small foreshortened
+cells first, the uneven light on top.
 
 Per set, over the tags the pose used (``ficap joint``, default settings) whose view angle is over
 24 deg (sin > 0.4):
@@ -17,8 +20,15 @@ Synth rows: ``ficap synth``'s realistic chain, one frame a second of a naturalis
 "synth as <set>": ``synth.render`` at each blender_dev set's true poses, camera K, lighting preset,
 PSF and tone curve (as in bench_realism.py), the direct renderer-to-renderer check.
 
+What makes the shift (``--mechanism``): noise-free ``synth.render`` frames (no JPEG) at the true
+poses of every 2nd of blender_dev 540p neutral's first 20 frames, each detected whole-image
+(``TagDetector``, default ``edge`` corners), the true corner errors of the clean tags (view < 75
+deg) fitted as above at the true pose: with the neutral light as ``ficap synth`` renders it (a lamp
+at the camera) and with the lamp's light spread evenly (flat: the same mean level, no fall-off
+across a face), over tone curves and lens PSFs.
+
 Usage: .venv/bin/python benchmarks/bench_shading.py [--frames 25] [--blender-dev PATH] [--record]
-       [--sets dev_540p_neutral,...] [--no-synth-drives]
+       [--sets dev_540p_neutral,...] [--no-synth-drives] [--mechanism]
 """
 
 from __future__ import annotations
@@ -144,12 +154,61 @@ def synth_as(name: str, root: Path | None) -> tuple:
     cfg = RenderConfig(lighting=ds.lighting, tone=tone, gamma=gamma, psf_sigma_px=ds.psf_sigma_px,
                        jpeg_quality=95)
 
-    def frames():  # noqa: ANN202
+    def frames(offset: int = 0):  # noqa: ANN202
         for f in ds.frames:
-            yield render(ds.true_model, ds.camera, f.T_cam_cap, cfg, seed=f.index + 1).image, \
+            yield render(ds.true_model, ds.camera, f.T_cam_cap, cfg, seed=f.index + 1 + offset).image, \
                 f.T_cam_cap, f.stamp_ns
 
     return frames, ds.camera
+
+
+def mechanism(root: Path | None) -> str:
+    """The ``--mechanism`` table (module docstring)."""
+    import dataclasses
+
+    import blender_dev
+
+    from ficap_ros import synth
+    from ficap_ros.detection import TagDetector
+    from ficap_ros.synth import RenderConfig, render
+    from ficap_ros.tracking import view_angles_deg
+
+    ds = blender_dev.load_set("dev_540p_neutral", root or blender_dev.BLENDER_DEV)
+    model, K = ds.true_model, ds.camera.K
+    lamp = synth._LIGHTS["neutral"]
+    # Flat: the lamp's light at a face seen at ~40 deg, spread evenly (one level per face).
+    flat = dataclasses.replace(lamp, ambient=lamp.ambient + 0.75 * lamp.camera_lamp, camera_lamp=0.0)
+    detector = TagDetector()
+    rows = []
+    for tone, gamma, psf in (("linear", 2.2, 0.0), ("linear", 2.2, 0.6), ("gamma", 1.8, 0.0),
+                             ("gamma", 1.8, 0.6), ("gamma", 1.8, 1.0)):
+        row = [f"{tone}{'' if tone == 'linear' else ' ' + str(gamma)}", f"{psf:.1f}"]
+        for light in (flat, lamp):
+            synth._LIGHTS["neutral"] = light
+            try:
+                cfg = RenderConfig(lighting="neutral", tone=tone, gamma=gamma, psf_sigma_px=psf, noise=False)
+                coefs = []
+                for f in ds.frames[:20:2]:
+                    frame = render(model, ds.camera, f.T_cam_cap, cfg, seed=f.index + 1)
+                    angles = dict(zip(model.ids, view_angles_deg(model, f.T_cam_cap)))
+                    got = {d.tag_id: d.corners_px for d in detector.detect(frame.image)}
+                    ids = [t for t in frame.visible_ids(0.999) if t in got and angles[t] < 75.0]
+                    if len(ids) < 4:
+                        continue
+                    obs = pose_mod._make_obs({t: got[t] for t in ids}, model, K)
+                    d = (obs.image_px - pose_mod._project(K, f.T_cam_cap, obs.model_m)).reshape(-1)
+                    tilt = pose_mod._tilt_mode(obs, f.T_cam_cap)
+                    radial = (2.0 * pose_mod._tag_basis(obs.image_px)[:, :, 2]).reshape(-1)
+                    coef, *_ = np.linalg.lstsq(np.stack([tilt, radial], 1), d, rcond=None)
+                    coefs.append(coef)
+            finally:
+                synth._LIGHTS["neutral"] = lamp
+            c = np.mean(coefs, axis=0)
+            row += [f"{c[0]:+.3f}", f"{c[1]:+.3f}"]
+        print(row, file=sys.stderr, flush=True)
+        rows.append(row)
+    return md_table(["tone", "PSF sigma px", "tilt shift px, flat light", "common radial px, flat light",
+                     "tilt shift px, lamp at the camera", "common radial px, lamp at the camera"], rows)
 
 
 def main() -> int:
@@ -159,6 +218,7 @@ def main() -> int:
     ap.add_argument("--record", action="store_true")
     ap.add_argument("--sets", default=None, help="blender_dev sets (default: all but the as-built one)")
     ap.add_argument("--no-synth-drives", action="store_true")
+    ap.add_argument("--mechanism", action="store_true", help="also the noise-free what-makes-the-shift table")
     args = ap.parse_args()
     cv2.setNumThreads(1)
     import bench_uncertainty as bu
@@ -181,10 +241,14 @@ def main() -> int:
     table = md_table(["set", "frames", "tags (view > 24 deg)", "contrast ratio, foreshortened side / opposite",
                       "point light at the camera", "tilt shift px (mean ± sd over frames)",
                       "depth error it causes, median mm", "common radial px"], rows)
+    if args.mechanism:
+        table += ("\n\nWhat makes the shift (noise-free synth at 540p neutral's poses, `--mechanism`):\n\n"
+                  + mechanism(args.blender_dev))
     print(table)
     if args.record:
         body = (f"Machine: {machine_line()}; {load_avg()} ({load_before} at the start); "
-                f"{(time.time() - t0) / 60:.1f} min. `benchmarks/bench_shading.py --frames {args.frames}`.\n\n"
+                f"{(time.time() - t0) / 60:.1f} min. `benchmarks/bench_shading.py --frames {args.frames}"
+                f"{' --mechanism' if args.mechanism else ''}`.\n\n"
                 + (__doc__ or "").split("\n\nUsage:")[0] + "\n\n" + table)
         record_section("Uneven light across a face (bench_shading.py)", body)
     return 0

@@ -21,6 +21,12 @@ error of ``T_cam_cap``: the geodesic rotation angle and the translation length. 
 Rows: ours (``joint``, tags weighted by their corner noise), ours with equal tag weights (the pose
 before the weights: accuracy beside it), and the naive peer (OpenCV sub-pixel corners + SQPnP/LM),
 whose worse corners the bounds must follow too.
+Second table: what the translation bound is made of (``pose.uncertainty_sources``, grouped): per
+source, the median over frames of its share of the translation variance.
+What-ifs (not recorded): ``--tilt-shift-px`` (a floor for the shift along the foreshortening),
+``--per-tag-offset`` (the measured radial offset's pose error taken tag by tag instead of as the
+tags' mean, ``per_tag_offset_terms``); ``--synth-as`` adds ``synth.render`` at every blender_dev
+set's poses and chain (``bench_shading.synth_as``).
 Sets: every ``../shared/data/blender_dev`` set (independent renders; a check, nothing is tuned to
 them) and ``ficap synth`` drives (540p/1080p x neutral/high/low, one frame a second of a
 naturalistic drive, seed per condition, the realistic image chain ``ficap synth`` renders). The
@@ -28,7 +34,8 @@ synth rows are what ``UncertaintyConfig`` was calibrated on; ``--seed-offset`` r
 noise realisation of them (a held-out check).
 
 Usage: .venv/bin/python benchmarks/bench_uncertainty.py [--frames 60] [--record] [--dump FILE]
-       [--blender-dev PATH] [--seed-offset N] [--no-ceiling] [--tilt-shift-px PX]
+       [--blender-dev PATH] [--seed-offset N] [--no-ceiling] [--tilt-shift-px PX] [--synth-as]
+       [--per-tag-offset]
 """
 
 from __future__ import annotations
@@ -93,7 +100,67 @@ def ideal_ratio(covs: list[np.ndarray], rows: slice, scale: float, rng: np.rando
     return float(np.median(bounds) / np.median(np.concatenate(norms)))
 
 
-KEYS = ("rot_err", "trans_err", "rot95", "trans95", "rel", "rot95_res", "tags", "cov", "key")
+KEYS = ("rot_err", "trans_err", "rot95", "trans95", "rel", "rot95_res", "tags", "cov", "key", "sources")
+#: What the translation bound is made of: groups of ``pose.uncertainty_sources``.
+SOURCE_GROUPS = {
+    "residuals: per-tag shift": ("residual_shift",),
+    "residuals: per-tag scale": ("residual_scale",),
+    "residuals: turn, shear, projective": ("residual_turn", "residual_shear", "residual_projective"),
+    "light gradient: tilt": ("light_tilt",),
+    "light gradient: noise": ("light_noise",),
+    "measured common offset": ("common_offset",),
+    "floors": ("floor_noise", "floor_bias", "floor_tilt", "floor_model", "floor_intrinsics"),
+}
+_CAPTURED: dict = {}
+_TERMS = pose_mod.uncertainty_terms
+
+
+def _capture(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+    """Keep the last pose's terms (wraps ``pose.uncertainty_terms``)."""
+    out = _TERMS_IMPL[0](*args, **kwargs)
+    _CAPTURED["terms"] = out
+    return out
+
+
+def per_tag_offset_terms(obs, T, tag_sigma_px=None, edge_shift_px=None, at=None):  # noqa: ANN001, ANN201
+    """What-if (``--per-tag-offset``): the measured radial offset's pose error from each tag's own
+    radial residual instead of the tags' mean (the special case of one offset shared by all).
+    Each tag's radial coefficient of the residuals, through the fit, scaled back by the share the
+    fit leaves of a common radial offset; per block (translation, rotation) shrunk by what the
+    tags' random scale noise alone gives (the ``scale`` term carries that as a spread). Passed
+    on as the ``bias_common`` mode (unit 1: its floor then adds 0.002^2 of it, negligible)."""
+    terms, seen = _TERMS(obs, T, tag_sigma_px, edge_shift_px, at=at)
+    res, J = pose_mod._at(T, obs) if at is None else at
+    n = len(obs)
+    rel = (np.ones(n) if tag_sigma_px is None
+           else np.asarray(tag_sigma_px, float) / max(float(np.median(tag_sigma_px)), 1e-12))
+    w = np.repeat(1.0 / rel**2, 8)
+    try:
+        A = np.linalg.solve(J.T @ (w[:, None] * J), J.T * w)
+    except np.linalg.LinAlgError:
+        return terms, seen
+    B = pose_mod._tag_basis(obs.image_px)[:, :, 2]
+    coef = np.einsum("tj,tj->t", B, -res.reshape(n, 8))
+    radial = 2.0 * B.reshape(-1)
+    left = max(1.0 - float(radial @ (w * (J @ (A @ radial)))) / float(radial @ (w * radial)), 0.1)
+    o = (A @ (B * coef[:, None]).reshape(-1))[pose_mod._ROS_ORDER] / left
+    for rows in (slice(0, 3), slice(3, 6)):
+        noise = float(np.trace(terms["scale"][rows, rows])) * seen["scale"] ** 2 / left**2
+        size = float(o[rows] @ o[rows])
+        o[rows] *= np.sqrt(max(1.0 - noise / size, 0.0)) if size > 0.0 else 0.0
+    return {**terms, "bias_common": np.outer(o, o)}, {**seen, "bias_common": 1.0}
+
+
+_TERMS_IMPL = [_TERMS]
+
+
+def translation_shares(config: UncertaintyConfig) -> list[float]:
+    """Share of the last pose's translation variance (trace) per ``SOURCE_GROUPS`` entry."""
+    terms, seen = _CAPTURED["terms"]
+    parts = pose_mod.uncertainty_sources(terms, seen, config)
+    tr = {k: float(np.trace(v[:3, :3])) for k, v in parts.items()}
+    total = max(sum(tr.values()), 1e-300)
+    return [sum(tr[k] for k in keys) / total for keys in SOURCE_GROUPS.values()]
 
 
 def run_frames(frames, camera, model, label: str, methods=METHODS) -> dict[str, dict[str, list]]:  # noqa: ANN001
@@ -104,7 +171,12 @@ def run_frames(frames, camera, model, label: str, methods=METHODS) -> dict[str, 
     prog = Progress(len(frames), label)
     for image, truth, stamp in frames:
         for name, proc in procs.items():
-            r = proc.process(image, camera, stamp)
+            _CAPTURED.clear()
+            pose_mod.uncertainty_terms = _capture
+            try:
+                r = proc.process(image, camera, stamp)
+            finally:
+                pose_mod.uncertainty_terms = _TERMS
             if r.pose is None:
                 continue
             p = r.pose
@@ -118,6 +190,8 @@ def run_frames(frames, camera, model, label: str, methods=METHODS) -> dict[str, 
             o["tags"].append(p.tags_used)
             o["cov"].append(p.covariance.tolist())
             o["key"].append(int(stamp))
+            o["sources"].append(translation_shares(methods[name][1].uncertainty) if "terms" in _CAPTURED
+                                else [float("nan")] * len(SOURCE_GROUPS))
         prog.update()
     prog.close()
     return out
@@ -146,6 +220,7 @@ def summarize(o: dict[str, list], twin: dict[str, list] | None = None) -> dict[s
         "spearman_trans": float(spearmanr(-bt, -et).correlation),
         "res_only_coverage": float(np.mean(e <= br) * 100),
         "res_only_sharpness": float(np.median(br) / np.median(e)),
+        "sources": np.nanmedian(np.asarray(o["sources"], dtype=float), axis=0).tolist(),
         "ceiling_rot": float("nan"),
         "ceiling_trans": float("nan"),
     }
@@ -218,7 +293,15 @@ def main() -> int:
     ap.add_argument("--tilt-shift-px", type=float, default=None,
                     help="ours with this UncertaintyConfig.tilt_shift_px (what a floor for the shift "
                          "along the foreshortening costs; not recorded)")
+    ap.add_argument("--synth-as", action="store_true",
+                    help="also synth.render at every blender_dev set's poses and chain (bench_shading.synth_as)")
+    ap.add_argument("--per-tag-offset", action="store_true",
+                    help="what-if: per_tag_offset_terms (each tag's radial offset measured; not recorded)")
     args = ap.parse_args()
+    if args.per_tag_offset:
+        if args.record:
+            ap.error("--per-tag-offset is a what-if: not recorded")
+        _TERMS_IMPL[0] = per_tag_offset_terms
     if args.tilt_shift_px is not None:
         if args.record:
             ap.error("--tilt-shift-px is a what-if: not recorded")
@@ -231,6 +314,11 @@ def main() -> int:
     sets: dict[str, tuple] = {}
     if not args.no_blender:
         sets.update(blender_sets(args.blender_dev))
+    if args.synth_as:
+        from bench_shading import synth_as
+
+        for name in [n for n in sets if n.startswith("blender ")]:
+            sets["synth as " + name[len("blender "):]] = synth_as(name[len("blender "):], args.blender_dev)
     if not args.no_synth:
         sets.update(synth_sets(args.frames, args.resolutions.split(","), args.lightings.split(","),
                                args.seed_offset))
@@ -244,7 +332,7 @@ def main() -> int:
         for method, o in per.items():
             s = summarize(o, twin[method] if twin is not None and method in twin else None)
             results.append((name, method, s))
-            dump[f"{name} | {method}"] = {k: v for k, v in o.items() if k != "cov"}
+            dump[f"{name} | {method}"] = {k: v for k, v in o.items() if k not in ("cov", "sources")}
             if s["n"] >= 3:
                 print(f"{name:34} {method:20} n {s['n']:3d} rot err {s['rot_median_err']:.4f} cover "
                       f"{s['rot_coverage']:5.1f}% sharp {s['rot_sharpness']:5.2f} (ideal {s['rot_ideal']:.2f}) "
@@ -267,12 +355,20 @@ def main() -> int:
                       "sharpness (ideal)", "Spearman", "translation: median error / bound (mm)",
                       "coverage", "sharpness (ideal)", "Spearman", "ceiling rot / trans",
                       "residual-only rotation bound: coverage / sharpness"], rows)
+    src_rows = [[name, f"{s['trans_sharpness']:.2f}"] + [f"{v:.2f}" for v in s["sources"]]
+                for name, method, s in results if s["n"] >= 3 and method == "ficap joint"]
+    src_table = md_table(["set (ours)", "translation sharpness"] + list(SOURCE_GROUPS), src_rows)
+    table += ("\n\nWhat the translation bound is made of (ours): per source, the median over frames of "
+              "its share of the translation variance (trace of the translation block of "
+              "`pose.uncertainty_sources`; shares of a frame sum to 1, their medians need not).\n\n"
+              + src_table)
     print(table)
     if args.record:
         u = PoseConfig().uncertainty
         body = (f"Machine: {machine_line()}; {load_avg()} ({load_before} at the start); "
                 f"{(time.time() - t0) / 60:.1f} min. `benchmarks/bench_uncertainty.py --frames "
                 f"{args.frames}" + (f" --seed-offset {args.seed_offset}" if args.seed_offset else "")
+                + (" --synth-as" if args.synth_as else "")
                 + "`.\n\n"
                 "Per frame with a pose: the true error of T_cam_cap (geodesic rotation angle, "
                 "translation length) against its predicted 95 % bound (`rot_err95_deg`, "
@@ -292,7 +388,9 @@ def main() -> int:
                 f"intrinsics {u.principal_point_px} px / {u.focal_rel}; tags weighted by their "
                 "corner noise. Calibrated on the synth rows (seeds 100-122); blender_dev is a check: "
                 "nothing is tuned to it. Synth: one frame a second of a naturalistic drive per "
-                "condition.\n\n" + table)
+                "condition; 'synth as <set>': `synth.render` at that blender_dev set's true poses, "
+                "camera, lighting preset, PSF and tone curve (bench_shading.synth_as), a check of "
+                "how much of blender_dev's behaviour synth reproduces, not calibration data.\n\n" + table)
         record_section("Calibrated uncertainty (bench_uncertainty.py)", body)
     return 0
 

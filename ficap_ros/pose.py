@@ -86,6 +86,7 @@ __all__ = [
     "UncertaintyConfig",
     "uncertainty_terms",
     "combine_uncertainty",
+    "uncertainty_sources",
     "uncertainty_bounds",
     "error_bound95",
     "reprojection_errors_px",
@@ -139,13 +140,15 @@ class UncertaintyConfig:
         light_gradient_tilt_gain: shared shift of the tags along their foreshortening per px of
             ``light_gradient_px``.
         tilt_shift_px: floor for that shared shift, px at a tag seen edge-on. 0 by default: on
-            ``ficap synth`` frames under even light it is below 0.003 px; blender_dev's neutral
-            renders show +0.02 to +0.06 px, which no residual reveals and which moves the depth
-            by up to ~0.45 mm. Its measured cause there: each oblique face is lit unevenly along
-            its foreshortening (the quiet zone's contrast 4-9 % higher on one side; a light at the
-            camera, inverse square, gives 10 %), and the edges move toward the darker side;
-            ``ficap synth`` lights a face evenly. Set it for a camera with a light beside the
-            lens (docs/benchmarks.md, "Calibrated uncertainty").
+            ``ficap synth`` drives it is -0.003 to +0.006 px outside the spotlights;
+            blender_dev's neutral renders show +0.02 to +0.06 px, which no residual reveals and
+            which moves the depth by up to ~0.45 mm. Its measured cause: the corner fit's bias
+            under the lens blur on small foreshortened cells (2-3 px at 540p), about doubled by a
+            lamp at the camera lighting each oblique face unevenly; ``ficap synth`` at
+            blender_dev's poses and chains shows about half of it, so no synth-calibrated value
+            covers it without widening 1080p's bounds past 3x (docs/benchmarks.md, "Calibrated
+            uncertainty" and "Uneven light across a face"). Set it for a camera whose tags are
+            small and blurred under a light beside the lens.
         weight_tags: weight each tag in the ``joint`` pose by its corner noise
             (``tag_noise_px``): one weighted Gauss-Newton step from the unweighted optimum.
     """
@@ -1013,24 +1016,40 @@ def uncertainty_terms(
     return terms, seen
 
 
+def uncertainty_sources(terms: dict[str, np.ndarray], seen: dict[str, float],
+                        config: UncertaintyConfig) -> dict[str, np.ndarray]:
+    """The pose covariance's parts (6x6 each, ROS order), by source: ``residual_<group>`` (each
+    pattern group of ``_PATTERNS`` at the sigma the residuals show), ``light_noise`` and
+    ``light_tilt`` (the frame's ``light_gradient`` times the gains), ``common_offset`` (the
+    measured common radial offset, a mean error: ``uncertainty_bounds``) and the floors
+    (``floor_noise``, ``floor_bias``, ``floor_tilt``, ``floor_model``, ``floor_intrinsics``).
+    ``combine_uncertainty`` is their sum; benchmarks/bench_uncertainty.py reports what each
+    contributes to the bounds."""
+    c = config
+    k2 = c.residual_inflation**2
+    gradient = seen.get("light_gradient", 0.0)
+    parts = {f"residual_{g}": k2 * seen[g] ** 2 * terms[g] for g in _PATTERNS}
+    parts.update(
+        floor_noise=c.corner_noise_px**2 * terms["noise"],
+        light_noise=(c.light_gradient_gain * gradient) ** 2 * terms["noise"],
+        floor_bias=c.corner_bias_px**2 * terms["bias"] + c.corner_bias_common_px**2 * terms["bias_common"],
+        common_offset=k2 * seen["bias_common"] ** 2 * terms["bias_common"],
+        light_tilt=(c.light_gradient_tilt_gain * gradient) ** 2 * terms["tilt"],
+        floor_tilt=c.tilt_shift_px**2 * terms["tilt"],
+        floor_model=c.model_mm**2 * terms["model_t"] + c.model_deg**2 * terms["model_r"],
+        floor_intrinsics=c.principal_point_px**2 * terms["principal_point"] + c.focal_rel**2 * terms["focal"],
+    )
+    return parts
+
+
 def combine_uncertainty(terms: dict[str, np.ndarray], seen: dict[str, float],
                         config: UncertaintyConfig) -> np.ndarray:
     """The pose covariance (6x6, ROS order, camera axes): the residual-based term (each pattern
     group's sigma as the residuals show it), the shared corner errors uneven light causes (the
     frame's ``light_gradient`` times the gains of ``config``), plus the floors of ``config``, each
-    source's unit covariance times its variance. Finite and positive definite: a degenerate fit
-    gives a huge diagonal (1 m, 180 deg), never zeros or infinities."""
-    c = config
-    k2 = c.residual_inflation**2
-    gradient = seen.get("light_gradient", 0.0)
-    cov = k2 * sum(seen[g] ** 2 * terms[g] for g in _PATTERNS)
-    cov = cov + ((c.corner_noise_px**2 + (c.light_gradient_gain * gradient) ** 2) * terms["noise"]
-                 + c.corner_bias_px**2 * terms["bias"]
-                 + (k2 * seen["bias_common"] ** 2 + c.corner_bias_common_px**2) * terms["bias_common"]
-                 + ((c.light_gradient_tilt_gain * gradient) ** 2 + c.tilt_shift_px**2) * terms["tilt"]
-                 + c.model_mm**2 * terms["model_t"] + c.model_deg**2 * terms["model_r"]
-                 + c.principal_point_px**2 * terms["principal_point"]
-                 + c.focal_rel**2 * terms["focal"])
+    source's unit covariance times its variance (``uncertainty_sources``). Finite and positive
+    definite: a degenerate fit gives a huge diagonal (1 m, 180 deg), never zeros or infinities."""
+    cov = sum(uncertainty_sources(terms, seen, config).values())
     cov = 0.5 * (cov + cov.T)
     if not np.all(np.isfinite(cov)):
         cov = np.diag([1.0, 1.0, 1.0, np.pi**2, np.pi**2, np.pi**2])

@@ -13,8 +13,9 @@ formed the way a camera forms an image, in this order (``RenderConfig`` holds ev
    White paper reflects 1, black ink 0.05 of it. Back faces are culled; front faces are painted
    far to near. A dark, hair-textured head ellipsoid (and neck) fixed in the cap frame hides faces
    behind it with a per-pixel depth test; a static seeded car interior behind
-   (``RenderConfig.background_seed``). Lighting ``neutral`` (three lamps: white paper at 55-70 %
-   of full well), ``high`` (the paper's three spotlights on the cap: whites far past full well,
+   (``RenderConfig.background_seed``). Lighting ``neutral`` (mostly a lamp beside the camera, lighting
+   each point of a face by cos(incidence) / distance^2, so an oblique face's near side is ~1.1x
+   brighter; plus the cabin's diffuse light: white paper at 45-70 % of full well), ``high`` (the paper's three spotlights on the cap: whites far past full well,
    glare lifts blacks) or ``low`` (one source at the driver's front-right, 1-10 % of full well,
    shadows); every preset adds veiling flare and goes through the whole chain.
 2. **Lens PSF**, in linear light: a Gaussian (``psf_sigma_px``; realistic: 0.7 px at 1080p times
