@@ -431,3 +431,49 @@ def test_default_scene_tag_size() -> None:
     c = frame.corners_px[11]
     side = np.mean(np.linalg.norm(c - np.roll(c, -1, axis=0), axis=1))
     assert 55.0 <= side <= 65.0
+
+
+@pytest.mark.parametrize("lighting", ["neutral", "low"])
+def test_lamp_at_the_camera_lights_an_oblique_face_unevenly(lighting: str) -> None:
+    """Neutral light is mostly a lamp beside the camera: each point of a face gets
+    cos(incidence) / r^2 of it (metered at the cap's distance), so a face seen at 60 deg is
+    brighter on its nearer side. Measured in linear light (no PSF, no noise) in the middle of the
+    white quiet zone on both sides, against the geometry computed here; ``low`` light (one distant
+    source) lights a face evenly."""
+    from ficap_ros.synth import _LIGHTS
+
+    h = TAG_SIDE_MM / 2
+    corners = np.array([[[-h, -h, 0.0], [h, -h, 0.0], [h, h, 0.0], [-h, h, 0.0]]])
+    model = CapModel((0,), corners)
+    # Facing the camera (the model's outward normal is -z), turned 60 deg about the camera's y axis.
+    T = Transform(Rotation.from_euler("y", 60.0, degrees=True), np.array([0.0, 0.0, 0.6]))
+    camera = default_scene("1080p").camera
+    gain = 1.0 if lighting == "neutral" else 40.0  # low light's white paper at ~40 % (8 bits)
+    cfg = RenderConfig(lighting=lighting, psf_sigma_px=0.0, tone="linear", noise=False, head=False,
+                       background=False, gain=gain)
+    frame = render(model, camera, T, cfg)
+    assert frame.visible_ids() == [0]
+    light = _LIGHTS[lighting]
+    normal = T.rotation.apply(model.normals[0])
+    assert normal[2] < 0.0  # facing the camera
+    to_light = np.asarray(light.toward_light_cam) / np.linalg.norm(light.toward_light_cam)
+    r_cap = float(np.linalg.norm(T.translation_m))
+    levels, expected = [], []
+    for x_mm in (-18.0, 18.0):  # the middle of the quiet zone (16-20 mm from the centre), both sides
+        pts_mm = np.array([[x_mm, y, 0.0] for y in np.linspace(-6.0, 6.0, 7)])
+        P = T.apply(pts_mm / 1000.0)
+        uv = camera.project(P).astype(np.float32)
+        got = cv2.remap(frame.image.astype(np.float32), uv[:, 0:1], uv[:, 1:2], cv2.INTER_LINEAR)
+        levels.append(float(np.mean(got)) / 255.0)
+        dist = np.linalg.norm(P, axis=1)
+        cos_inc = np.abs(P @ normal) / dist
+        irradiance = (light.ambient + light.diffuse * max(0.0, float(normal @ to_light))
+                      + light.camera_lamp * cos_inc * (r_cap / dist) ** 2)
+        expected.append(gain * (float(np.mean(irradiance)) + light.flare))
+    near, far = (0, 1) if np.linalg.norm(T.apply(np.array([-0.018, 0, 0]))) < 0.6 else (1, 0)
+    assert np.allclose(levels, expected, rtol=0.01, atol=1.5 / 255), (levels, expected)
+    ratio = levels[near] / levels[far]
+    if lighting == "neutral":
+        assert 1.05 < ratio < 1.2, ratio  # ~1.1: 30 mm nearer at 0.6 m, met less obliquely
+    else:
+        assert abs(ratio - 1.0) < 0.02, ratio
