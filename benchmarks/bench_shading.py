@@ -15,7 +15,10 @@ Per set, over the tags the pose used (``ficap joint``, default settings) whose v
     tilt shift: the true corner errors (detected minus projected truth) fitted by the shift of
         every tag along its foreshortening times the sine of its view angle
         (``pose._tilt_mode``, px at a tag seen edge-on) and the tags' common radial offset,
-        per frame; the depth error the tilt share causes through the fit (``A d``, mm).
+        per frame; the depth error the tilt share causes through the fit (``A d``, mm);
+    tag by tag: the same shift fitted to each tag alone (its 8 corner errors on its own tilt
+        mode), averaged over the tags whose corners the cell-edge fit made and over those left
+        with their outer-line corners (``edge_shift_px`` NaN: cells too small or the fit refused).
 Synth rows: ``ficap synth``'s realistic chain, one frame a second of a naturalistic drive; and
 "synth as <set>": ``synth.render`` at each blender_dev set's true poses, camera K, lighting preset,
 PSF and tone curve (as in bench_realism.py), the direct renderer-to-renderer check.
@@ -55,7 +58,8 @@ _TERMS = pose_mod.uncertainty_terms
 
 def _capture(obs, T, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
     """The pose's own observations and weights at its final pose (wraps ``uncertainty_terms``)."""
-    _CAPTURED.update(obs=obs, T=T, sigma=args[0] if args else kwargs.get("tag_sigma_px"))
+    _CAPTURED.update(obs=obs, T=T, sigma=args[0] if args else kwargs.get("tag_sigma_px"),
+                     edge_shift=args[1] if len(args) > 1 else kwargs.get("edge_shift_px"))
     return _TERMS(obs, T, *args, **kwargs)
 
 
@@ -105,6 +109,7 @@ def measure(frames, camera, label: str) -> dict:  # noqa: ANN001
     proc = FrameProcessor(MODEL)
     K = camera.K
     ratios, light, tilts, radials, depth = [], [], [], [], []
+    by_fit: dict[bool, list[float]] = {True: [], False: []}  # per-tag shift: cell-fitted or not
     pose_mod.uncertainty_terms = _capture
     try:
         for image, truth, stamp in frames:
@@ -123,6 +128,11 @@ def measure(frames, camera, label: str) -> dict:  # noqa: ANN001
             w = np.repeat(1.0 / rel**2, 8)
             A = np.linalg.solve(J.T @ (w[:, None] * J), J.T * w)
             tz = (A @ (coef[0] * tilt))[5]  # x = (d_theta, t): t_z
+            es = _CAPTURED["edge_shift"]
+            fitted = np.ones(len(obs), bool) if es is None else np.isfinite(np.asarray(es, float))
+            for k, (d_t, t_t) in enumerate(zip(d.reshape(-1, 8), tilt.reshape(-1, 8))):
+                if t_t @ t_t > 4 * 0.4**2:  # sin view > 0.4 (4 corners)
+                    by_fit[bool(fitted[k])].append(float(d_t @ t_t / (t_t @ t_t)))
             tilts.append(coef[0])
             radials.append(coef[1])
             depth.append(1e3 * tz)
@@ -137,7 +147,9 @@ def measure(frames, camera, label: str) -> dict:  # noqa: ANN001
         pose_mod.uncertainty_terms = _TERMS
     row = {"frames": len(tilts), "tags": len(ratios), "ratio": float(np.median(ratios)),
            "light": float(np.median(light)), "tilt": float(np.mean(tilts)), "tilt_sd": float(np.std(tilts)),
-           "depth": float(np.median(depth)), "radial": float(np.mean(radials))}
+           "depth": float(np.median(depth)), "radial": float(np.mean(radials)),
+           "fitted": (len(by_fit[True]), float(np.mean(by_fit[True])) if by_fit[True] else float("nan")),
+           "line": (len(by_fit[False]), float(np.mean(by_fit[False])) if by_fit[False] else float("nan"))}
     print(f"{label:30s} {row}", file=sys.stderr, flush=True)
     return row
 
@@ -237,10 +249,12 @@ def main() -> int:
     for name, (frames, camera) in sets.items():
         m = measure(frames() if callable(frames) else frames, camera, name)
         rows.append([name, m["frames"], m["tags"], f"{m['ratio']:.3f}", f"{m['light']:.3f}",
-                     f"{m['tilt']:+.3f} ± {m['tilt_sd']:.3f}", f"{m['depth']:+.2f}", f"{m['radial']:+.3f}"])
+                     f"{m['tilt']:+.3f} ± {m['tilt_sd']:.3f}", f"{m['depth']:+.2f}", f"{m['radial']:+.3f}",
+                     f"{m['fitted'][1]:+.3f} ({m['fitted'][0]}) / {m['line'][1]:+.3f} ({m['line'][0]})"])
     table = md_table(["set", "frames", "tags (view > 24 deg)", "contrast ratio, foreshortened side / opposite",
                       "point light at the camera", "tilt shift px (mean ± sd over frames)",
-                      "depth error it causes, median mm", "common radial px"], rows)
+                      "depth error it causes, median mm", "common radial px",
+                      "tag by tag: shift of cell-fitted / line-only tags px (tags)"], rows)
     if args.mechanism:
         table += ("\n\nWhat makes the shift (noise-free synth at 540p neutral's poses, `--mechanism`):\n\n"
                   + mechanism(args.blender_dev))
