@@ -562,8 +562,8 @@ def _render_head(
     if light.camera_lamp > 0.0:
         # The lamp at the camera (``_Light``), metered at the head centre's distance: cos(incidence)
         # = -n . q / (|n| |q|) with q = R^T K^-1 [u v 1] the pixel's ray in the cap frame.
-        q = [sum(float((r.T @ np.linalg.inv(k))[i, j]) * c for j, c in enumerate((u, v, 1.0)))
-             for i in range(3)]
+        rk = r.T @ np.linalg.inv(k)
+        q = [float(rk[i, 0]) * u + float(rk[i, 1]) * v + float(rk[i, 2]) for i in range(3)]
         qn = np.sqrt(q[0] * q[0] + q[1] * q[1] + q[2] * q[2])
         cos_cam = -(ne[0] * q[0] + ne[1] * q[1] + ne[2] * q[2]) / (
             np.sqrt(ne[0] * ne[0] + ne[1] * ne[1] + ne[2] * ne[2]) * qn + 1e-12)
