@@ -1032,12 +1032,14 @@ def uncertainty_sources(terms: dict[str, np.ndarray], seen: dict[str, float],
     parts.update(
         floor_noise=c.corner_noise_px**2 * terms["noise"],
         light_noise=(c.light_gradient_gain * gradient) ** 2 * terms["noise"],
-        floor_bias=c.corner_bias_px**2 * terms["bias"] + c.corner_bias_common_px**2 * terms["bias_common"],
+        floor_bias=(c.corner_bias_px**2 * terms["bias"]
+                    + c.corner_bias_common_px**2 * terms["bias_common"]),
         common_offset=k2 * seen["bias_common"] ** 2 * terms["bias_common"],
         light_tilt=(c.light_gradient_tilt_gain * gradient) ** 2 * terms["tilt"],
         floor_tilt=c.tilt_shift_px**2 * terms["tilt"],
         floor_model=c.model_mm**2 * terms["model_t"] + c.model_deg**2 * terms["model_r"],
-        floor_intrinsics=c.principal_point_px**2 * terms["principal_point"] + c.focal_rel**2 * terms["focal"],
+        floor_intrinsics=(c.principal_point_px**2 * terms["principal_point"]
+                          + c.focal_rel**2 * terms["focal"]),
     )
     return parts
 

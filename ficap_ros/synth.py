@@ -13,11 +13,11 @@ formed the way a camera forms an image, in this order (``RenderConfig`` holds ev
    White paper reflects 1, black ink 0.05 of it. Back faces are culled; front faces are painted
    far to near. A dark, hair-textured head ellipsoid (and neck) fixed in the cap frame hides faces
    behind it with a per-pixel depth test; a static seeded car interior behind
-   (``RenderConfig.background_seed``). Lighting ``neutral`` (mostly a lamp beside the camera, lighting
-   each point of a face by cos(incidence) / distance^2, so an oblique face's near side is ~1.1x
-   brighter; plus the cabin's diffuse light: white paper at 45-70 % of full well), ``high`` (the paper's three spotlights on the cap: whites far past full well,
-   glare lifts blacks) or ``low`` (one source at the driver's front-right, 1-10 % of full well,
-   shadows); every preset adds veiling flare and goes through the whole chain.
+   (``RenderConfig.background_seed``). Lighting ``neutral`` (mostly a lamp beside the camera,
+   lighting each point of a face by cos(incidence) / distance^2, so an oblique face's near side is
+   ~1.1x brighter; plus the cabin's diffuse light: white paper at 45-70 % of full well), ``high``
+   (the paper's three spotlights on the cap: whites far past full well, glare lifts blacks) or
+   ``low`` (one source at the driver's front-right, 1-10 % of full well, shadows); every preset adds veiling flare and goes through the whole chain.
 2. **Lens PSF**, in linear light: a Gaussian (``psf_sigma_px``; realistic: 0.7 px at 1080p times
    sqrt(height/1080), 0.49 px at 540p) and optionally a defocus disc (``defocus_radius_px``).
 3. **Motion blur** (optional): given a pose *function* of time instead of a pose, the frame
@@ -146,8 +146,9 @@ class _Light:
     (r: its distance from the camera, r_cap: the cap's; the auto-exposure meters on the cap, so the
     lamp's level at the cap's distance is fixed); a white face at that irradiance collects that
     share of the full well. The lamp lights each oblique face unevenly: its near side (nearer the
-    camera, met less obliquely) is brighter, ~1.1x across a face seen at 60 deg at 0.6 m. ``flare`` is veiling glare (lens
-    and windscreen scatter) added to every pixel; ``background`` scales the car interior.
+    camera, met less obliquely) is brighter, ~1.1x across a face seen at 60 deg at 0.6 m.
+    ``flare`` is veiling glare (lens and windscreen scatter) added to every pixel; ``background``
+    scales the car interior.
     ``exposure_ms`` and ``gain`` are what an auto-exposure settles on in that light.
     """
 
