@@ -139,6 +139,11 @@ class DetectorConfig:
             the head, a headrest, the image border over their white quiet zone), which it drops
             at a lower residual (``PoseConfig.hidden_ratio``); ``edge`` refine only. The tags are
             still detected and reported.
+        edge_photometric: then fit each fitted tag once more, as a whole, to its pixels near the
+            cell boundaries: the printed pattern blurred in linear light (blur fitted per tag)
+            through an sRGB tone curve (``ficap_ros.photometric.fit_tags_photometric``); more
+            accurate on noisy frames (issue 10), at several ms per frame (docs/detection.md
+            "A tag-level photometric fit"); ``edge`` refine with ``edge_fit`` only. Off by default.
     """
 
     backend: str = "opencv"
@@ -183,6 +188,7 @@ class DetectorConfig:
     edge_fit_iterations: int = 2
     # Pose input: name the partly hidden tags (pipeline.FrameProcessor).
     hidden_check: bool = True
+    edge_photometric: bool = False
 
     def __post_init__(self) -> None:
         if self.backend not in BACKENDS:
@@ -1085,6 +1091,11 @@ def refine_tag_corners(
             # Where no other start reads right either, a fitted tag keeps its fit (its cells may
             # just read badly: small cells under glare read 2-3 wrong at the right corners).
             corners[again], delta[again] = c, np.where(np.isfinite(d), d, delta[again])
+    if cfg.edge_fit and cfg.edge_photometric and np.isfinite(delta).any():
+        from ficap_ros.photometric import fit_tags_photometric  # imports this module
+
+        done = np.flatnonzero(np.isfinite(delta))
+        corners[done] = fit_tags_photometric(gray, corners[done], ids[done])[0]
     fitted = np.isfinite(delta)
     # Line-fit corners only (too small to unbias or fit, or both failed): no tone-curve correction yet.
     line_only = ~fitted & np.all(corners == corners_in, axis=(1, 2))

@@ -26,6 +26,7 @@ import numpy as np
 
 from ficap_ros.bag_io import FrameSource, Loss, RawFrame, decode_raw
 from ficap_ros.cap_model import CapModel
+from ficap_ros.detection import DetectorConfig
 from ficap_ros.errors import BagError, ImageError
 from ficap_ros.files import write_output_file
 from ficap_ros.labels import LabelRecord, labels_csv_text, record_from_pose, write_labels_bag
@@ -80,7 +81,8 @@ _PROCESSOR: FrameProcessor | None = None
 _DONE: Any = None  # frames finished in this pool (a shared counter), for the progress bar
 
 
-def _init_worker(model: CapModel, pose: PoseConfig, single_thread: bool, done: Any = None) -> None:
+def _init_worker(model: CapModel, pose: PoseConfig, single_thread: bool, done: Any = None,
+                 detector: DetectorConfig | None = None) -> None:
     global _PROCESSOR, _DONE
     _DONE = done
     if single_thread:
@@ -92,7 +94,7 @@ def _init_worker(model: CapModel, pose: PoseConfig, single_thread: bool, done: A
         import cv2
 
         cv2.setNumThreads(1)  # N processes already use the cores; avoid oversubscription
-    _PROCESSOR = FrameProcessor(model=model, pose=pose)
+    _PROCESSOR = FrameProcessor(model=model, detector=detector, pose=pose)
 
 
 def _process_one(raw: RawFrame) -> ProcessedFrame:
@@ -171,7 +173,7 @@ def _quiet_pool(ctx: Any, jobs: int, initargs: tuple) -> Any:
 
 def process_frames(
     raws: Iterable[RawFrame], model: CapModel, pose: PoseConfig, jobs: int = 1,
-    on_progress: Callable[[int], None] | None = None,
+    on_progress: Callable[[int], None] | None = None, detector: DetectorConfig | None = None,
 ) -> Iterator[ProcessedFrame]:
     """Run the pipeline over raw frames, in order, in ``jobs`` processes (at most one per core).
 
@@ -183,7 +185,7 @@ def process_frames(
     jobs = capped_jobs(jobs)[0]
     it = iter(raws)
     if jobs <= 1:
-        _init_worker(model, pose, single_thread=False)
+        _init_worker(model, pose, single_thread=False, detector=detector)
         done = 0
         while segment := list(islice(it, SEGMENT_FRAMES)):
             assert _PROCESSOR is not None
@@ -198,7 +200,7 @@ def process_frames(
 
     ctx = multiprocessing.get_context("spawn")
     counter = ctx.Value("q", 0)
-    pool = _quiet_pool(ctx, jobs, (model, pose, True, counter))
+    pool = _quiet_pool(ctx, jobs, (model, pose, True, counter, detector))
     try:
         # Bounded look-ahead: Pool.imap would read the whole bag into memory ahead of the
         # workers, so keep one segment per worker in flight plus one, in order.
@@ -361,6 +363,7 @@ def replay(
     progress_stream: IO[str] | None = None,
     engine: Callable[[Iterable[RawFrame]], Iterable[ProcessedFrame]] | None = None,
     summary_extra: dict[str, Any] | None = None,
+    detector: DetectorConfig | None = None,
 ) -> ReplayOutput:
     """Process every frame of ``source`` and write labels.mcap, labels.csv and summary.json.
 
@@ -383,6 +386,8 @@ def replay(
         engine: what turns the raw frames into processed ones, in order (default:
             ``process_frames`` with ``jobs`` processes; ``ficap_ros.fleet`` passes a Ray one).
         summary_extra: more fields for summary.json (the fleet's fingerprint).
+        detector: detector settings (default ``DetectorConfig()``; ``process_frames`` only, not
+            an ``engine``).
 
     Raises:
         BagError: unreadable input. OutputError: an output that is or holds the input, a folder
@@ -395,7 +400,7 @@ def replay(
     try:
         output = _replay_into(folder.tmp, out, source, model, pose, calibration,
                               calibrate_window_s, jobs, namespace, progress, progress_stream,
-                              engine, summary_extra)
+                              engine, summary_extra, detector)
     except BaseException:
         folder.discard()
         raise
@@ -408,7 +413,7 @@ def _replay_into(
     calibration: HeadCalibration | None, calibrate_window_s: tuple[float, float] | None,
     jobs: int, namespace: str, progress: bool, progress_stream: IO[str] | None,
     engine: Callable[[Iterable[RawFrame]], Iterable[ProcessedFrame]] | None,
-    summary_extra: dict[str, Any] | None,
+    summary_extra: dict[str, Any] | None, detector: DetectorConfig | None = None,
 ) -> ReplayOutput:
     base = calibration or HeadCalibration()
     jobs = capped_jobs(jobs)[0]
@@ -423,7 +428,7 @@ def _replay_into(
                 bar.update()
         else:
             frames.extend(process_frames(raws, model, pose, jobs,
-                                         on_progress=lambda n: bar.update(n - bar.n)))
+                                         on_progress=lambda n: bar.update(n - bar.n), detector=detector))
     finally:
         bar.close()
     elapsed = time.perf_counter() - t0

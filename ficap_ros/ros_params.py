@@ -92,6 +92,9 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               choices=("opencv", "apriltag"), read_only=True),
     ParamSpec("detector.corner_refine", "edge", "Corner refinement.",
               choices=("edge", "subpix", "apriltag", "none"), read_only=True),
+    ParamSpec("detector.photometric", False, "Corners' last step: fit each tag's pattern, blurred in "
+              "linear light and through a tone curve, to its pixels (more accurate on noisy frames, "
+              "several ms per frame; docs/detection.md).", read_only=True),
     ParamSpec("detector.search_decimate", 0, "Search an image this many times smaller (corners "
               "are refined at full size); 0 = auto, as ficap replay: 2 from 1920 px wide up, else 1.",
               range=(0, 4),
@@ -259,6 +262,7 @@ class NodeConfig:
     detector_backend: str
     detector_corner_refine: str
     detector_search_decimate: int
+    detector_photometric: bool
     tracking: bool
     pose_method: str
     pose_min_tags: int
@@ -321,7 +325,8 @@ class NodeConfig:
             model=load_model(self.model_file) if self.model_file else nominal_model(),
             detector=DetectorConfig(backend=self.detector_backend,
                                     corner_refine=self.detector_corner_refine,
-                                    search_decimate=self.detector_search_decimate),
+                                    search_decimate=self.detector_search_decimate,
+                                    edge_photometric=self.detector_photometric),
             pose=self.pose_config, tracking=self.tracking)
 
     def calibrate(self, recorder: CalibrationRecorder, R_cam_frontal: Rotation) -> CalibrationResult:

@@ -14,6 +14,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="detector backend (default: opencv)")
     parser.add_argument("--refine", choices=("edge", "subpix", "apriltag", "none"), default="edge",
                         help="corner refinement (default: edge)")
+    parser.add_argument("--photometric", action="store_true",
+                        help="with edge refinement: fit each tag's pattern, blurred in linear light and "
+                             "through a tone curve, to its pixels (more accurate on noisy frames, "
+                             "~ms per tag; docs/detection.md)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -27,7 +31,8 @@ def run(args: argparse.Namespace) -> int:
     from ficap_ros.errors import FicapError, ImageError
     from ficap_ros.image_codec import check_pixel_budget
 
-    detector = TagDetector(DetectorConfig(backend=args.backend, corner_refine=args.refine))
+    detector = TagDetector(DetectorConfig(backend=args.backend, corner_refine=args.refine,
+                                          edge_photometric=args.photometric))
     results = []
     failed = 0
     # Each image is reported as soon as it is done: one bad file among many costs its own line,

@@ -1,0 +1,113 @@
+"""The tag-level photometric corner fit (``DetectorConfig(edge_photometric=True)``, issue 10).
+
+On ``ficap synth`` frames rendered through the realistic chain (lens PSF in linear light, shot and
+read noise, clipping, a tone curve, JPEG) with exact truth: the fit, run as the corner stage's last
+step, must beat the cell-edge fit it starts from where noise limits it (low light) and keep the
+issue's targets (median <= 0.15 px, p95 <= 0.5 px, mean radial within +-0.05 px) where it does not
+(a sharp lens under an S-curve, a soft lens with clipped highlights), on fully visible tags within
+70 deg of head-on. The numbers beside each bound are the ones measured when it was written.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from ficap_ros.cap_model import nominal_model
+from ficap_ros.detection import DetectorConfig, TagDetector
+from ficap_ros.metrics import corner_errors_px
+from ficap_ros.photometric import fit_tags_photometric
+from ficap_ros.synth import RenderConfig, default_scene, naturalistic_drive, render
+from ficap_ros.tracking import view_angles_deg
+
+MODEL = nominal_model()
+EDGE = TagDetector(DetectorConfig())
+PHOTO = TagDetector(DetectorConfig(edge_photometric=True))
+
+
+def _frames(resolution: str, config: RenderConfig, n: int = 3):
+    scene = default_scene(resolution)
+    drive = naturalistic_drive(n, fps=1.0, seed=5, scene=scene, frontal_s=0.0)
+    return [render(MODEL, scene.camera, d.T_cam_cap, config, seed=d.index) for d in drive]
+
+
+def _errors(detector: TagDetector, frames) -> tuple[np.ndarray, np.ndarray, int]:
+    err, rad, n = [], [], 0
+    for fr in frames:
+        angles = dict(zip(MODEL.ids, view_angles_deg(MODEL, fr.T_cam_cap)))
+        clean = [t for t in fr.visible_ids(0.999) if angles[t] <= 70.0]
+        found = {d.tag_id: d.corners_px for d in detector.detect(fr.image)}
+        ids = [t for t in clean if t in found]
+        e, r = corner_errors_px(np.array([found[t] for t in ids]), np.array([fr.corners_px[t] for t in ids]))
+        err.append(e.ravel())
+        rad.append(r.ravel())
+        n += len(ids)
+    return np.concatenate(err), np.concatenate(rad), n
+
+
+@pytest.mark.parametrize(
+    "resolution, tone, gamma, psf_sigma_px, lighting, max_median_px",
+    [
+        ("540p", "srgb", 2.2, 0.7, "low", 0.10),
+        ("1080p", "filmic", 2.2, 0.4, "low", 0.08),
+    ],
+)
+def test_photometric_fit_beats_the_cell_edge_fit_in_low_light(
+    resolution, tone, gamma, psf_sigma_px, lighting, max_median_px,
+) -> None:
+    """Low light (noise-limited): the cell-edge fit's median 0.135 / 0.114 px (6 frames), the
+    photometric fit's 0.077 / 0.058 px on the same frames; unbiased (|mean radial| <= 0.05 px)."""
+    frames = _frames(resolution, RenderConfig(lighting=lighting, tone=tone, gamma=gamma,
+                                              psf_sigma_px=psf_sigma_px, jpeg_quality=95))
+    e0, _, n0 = _errors(EDGE, frames)
+    e1, r1, n1 = _errors(PHOTO, frames)
+    print(f"edge median {np.median(e0):.3f}; photometric median {np.median(e1):.3f} "
+          f"p95 {np.percentile(e1, 95):.3f} radial {r1.mean():+.3f} ({n1} tags)")
+    assert n1 == n0  # the same tags: the fit only moves corners
+    assert np.median(e1) <= max_median_px
+    assert np.median(e1) <= 0.75 * np.median(e0)
+    assert np.percentile(e1, 95) <= 0.3
+    assert abs(r1.mean()) <= 0.05
+
+
+@pytest.mark.parametrize(
+    "resolution, tone, gamma, psf_sigma_px, lighting",
+    [("540p", "filmic", 2.2, 0.4, "neutral"), ("540p", "gamma", 1.8, 1.0, "high")],
+)
+def test_photometric_fit_keeps_the_targets_without_noise(resolution, tone, gamma, psf_sigma_px, lighting) -> None:
+    """A sharp lens under an S-curve (edge 0.023 px median, photometric 0.013) and a soft lens with
+    clipped highlights (0.116 -> 0.089): not worse than the cell-edge fit, within the targets."""
+    frames = _frames(resolution, RenderConfig(lighting=lighting, tone=tone, gamma=gamma,
+                                              psf_sigma_px=psf_sigma_px, jpeg_quality=95))
+    e0, _, _ = _errors(EDGE, frames)
+    e1, r1, _ = _errors(PHOTO, frames)
+    print(f"edge median {np.median(e0):.3f}; photometric median {np.median(e1):.3f} "
+          f"p95 {np.percentile(e1, 95):.3f} radial {r1.mean():+.3f}")
+    assert np.median(e1) <= np.median(e0) + 0.005
+    assert np.median(e1) <= 0.15
+    assert np.percentile(e1, 95) <= 0.5
+    assert abs(r1.mean()) <= 0.05
+
+
+def test_photometric_fit_converges_from_displaced_corners_and_leaves_a_bad_start_alone() -> None:
+    """From the true corners moved 0.3 px (a cell-edge fit's error on a noisy frame) the fit
+    returns to within 0.1 px median; a start two cells off, where the fit settles in a false
+    minimum (its residual a third or more of the tag's contrast), is not fitted (kept as given)."""
+    fr = _frames("1080p", RenderConfig(lighting="neutral", tone="srgb", psf_sigma_px=0.7, jpeg_quality=95), n=1)[0]
+    angles = dict(zip(MODEL.ids, view_angles_deg(MODEL, fr.T_cam_cap)))
+    ids = np.array([t for t in fr.visible_ids(0.999) if angles[t] <= 60.0])
+    truth = np.array([fr.corners_px[t] for t in ids])
+    rng = np.random.default_rng(1)
+    start = truth + rng.normal(scale=0.3 / np.sqrt(2.0), size=truth.shape)
+    fitted, ok = fit_tags_photometric(fr.image, start, ids)
+    e_start, _ = corner_errors_px(start, truth)
+    e, _ = corner_errors_px(fitted, truth)
+    print(f"start median {np.median(e_start):.3f} -> {np.median(e):.3f} px, {ok.sum()}/{len(ids)} fitted")
+    assert ok.all()
+    assert np.median(e) <= 0.1
+    bad = truth.copy()
+    side = np.linalg.norm(truth[:, 1] - truth[:, 0], axis=1)
+    bad[:, :, 0] += (2.0 * side / 8.0)[:, None]  # two cells to the right
+    out, ok_bad = fit_tags_photometric(fr.image, bad, ids)
+    assert not ok_bad.any()
+    np.testing.assert_array_equal(out, bad)
