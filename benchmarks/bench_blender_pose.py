@@ -15,7 +15,7 @@ renderer's ray cast; fully visible by view angle), with its error against the pr
 the share of the frame's sum of squares; with the partly-hidden check (``DetectorConfig.hidden_check``)
 off and on.
 
-Usage: .venv/bin/python benchmarks/bench_blender_pose.py [--sets all|a,b] [--record] [--rms-sources]
+Usage: .venv/bin/python benchmarks/bench_blender_pose.py [--sets all|a,b] [--methods 'a;b'] [--record] [--rms-sources]
 """
 
 from __future__ import annotations
@@ -46,7 +46,12 @@ METHODS = {
     "ficap, biased corners": (DetectorConfig(edge_unbias=False, edge_fit=False), PoseConfig(), True),
     "ficap, no hidden check": (DetectorConfig(hidden_check=False), PoseConfig(), True),
     "naive peer": (DetectorConfig(corner_refine="subpix"), PoseConfig(method="naive"), False),
+    # Opt-in (issue 10): the tag-level photometric fit as the corner stage's last step.
+    "ficap + photometric corners": (DetectorConfig(edge_photometric=True), PoseConfig(), True),
 }
+#: Run unless --methods says otherwise (the table recorded in docs/benchmarks.md).
+DEFAULT_METHODS = ("ficap", "ficap, equal tag weights", "ficap, biased corners", "ficap, no hidden check",
+                   "naive peer")
 
 
 def _residuals_px(pose, detections, camera, model) -> dict[int, np.ndarray]:
@@ -214,6 +219,9 @@ tag and two sorts; synth drive, load 2-4.6), about 2 % of the frame's 8 ms after
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--sets", default="all")
+    ap.add_argument("--methods", default=";".join(DEFAULT_METHODS),
+                    help=f"';'-separated list of {'; '.join(METHODS)} (must include 'naive peer'; "
+                         "default: all but the photometric corners)")
     ap.add_argument("--record", action="store_true")
     ap.add_argument("--rms-sources", action="store_true", help="what makes rms_px (default sets: the 1080p ones)")
     args = ap.parse_args()
@@ -244,7 +252,7 @@ def main() -> int:
         return 0
     rows = []
     for name in sets:
-        res = run_set(name, list(METHODS))
+        res = run_set(name, [m.strip() for m in args.methods.split(";")])
         peer = res["naive peer"]
         for m, r in res.items():
             bar = ""
@@ -260,7 +268,9 @@ def main() -> int:
             print(" | ".join(rows[-1]), flush=True)
     table = md_table(HEADER, rows)
     print(table)
-    if args.record:
+    if args.record and args.methods != ";".join(DEFAULT_METHODS):
+        print("--record writes the default methods' table only", file=sys.stderr)
+    elif args.record:
         body = (f"Machine: {machine_line()}; {load_avg()}; {time.time() - t0:.0f} s.\n\n"
                 "Each set's frames through `FrameProcessor` in recording order (ours: default settings, "
                 "tracking on, as `ficap replay`; 'equal tag weights': every tag weighted alike in the pose, "

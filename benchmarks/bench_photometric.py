@@ -41,6 +41,25 @@ METHODS = {
 }
 
 
+#: Written under the accuracy table (measured 2026-11-23 23:38).
+READING = """Reading it: as the corner stage's last step, the photometric fit lowers the median corner
+error on every blender_dev set and every synth condition, keeps every mean radial offset within
++-0.025 px, and meets issue 10's corner targets on all of them, dev_540p_low included (0.170 / 0.488
+-> 0.140 / 0.387 px, target 0.15 / 0.5). The gain is largest where noise limits the cell-edge fit
+(synth low light 0.098-0.147 -> 0.051-0.088 px) and smallest on blender_dev 540p high (0.147 ->
+0.134, p95 0.429 -> 0.436: a filmic curve with clipped whites, which an sRGB curve to a free power
+describes least well). Its constants were set on synth frames (blur and tone exponent fitted per
+tag, the sRGB family assumed); blender_dev was the check. Not the default: it costs ~3 ms a tag
+(next section)."""
+COST_READING = """Reading it: ~3 ms of CPU per tag (1500 pixels at most per tag, 3 Gauss-Newton steps of a
+16-parameter model per tag), about 15x the corner stage it follows (~4.4 ms) and 130x the ~0.5 ms a tracked
+1080p frame could spare: hence opt-in (`ficap detect/replay --photometric`, the node's
+`detector.photometric`). Fewer pixels per tag cost accuracy at once (dev_1080p_high median 0.125 px
+at 1500 pixels, 0.137 at 600, 0.162 at 300, 4 steps; a narrower band around the boundaries instead loses the
+levels and the fit fails), so the way to the tracked path's budget is compiled code, not a smaller
+problem."""
+
+
 def cost(n_frames: int = 40, passes: int = 3) -> list[list[str]]:
     """ms of process time per tracked 1080p frame, without and with the photometric fit."""
     from ficap_ros.cap_model import nominal_model
@@ -87,7 +106,7 @@ def main() -> int:
                 f"Machine: {machine_line()}; {load_before} at the start, {load_avg()} at the end. "
                 "`benchmarks/bench_photometric.py --cost --record`: 40 consecutive 30 fps `ficap synth` "
                 "1080p frames through `FrameProcessor` (tracking on), the two settings alternated, "
-                "3 passes each; process time per frame, medians.\n\n" + text))
+                "3 passes each; process time per frame, medians.\n\n" + text + "\n\n" + COST_READING))
         return 0
     detectors = {n: TagDetector(c) for n, c in METHODS.items()}
     header = ["frames", "method", "tags found", "median px", "p95 px", "mean radial px", "rms px"]
@@ -112,7 +131,7 @@ def main() -> int:
             f"Machine: {machine_line()}; {load_avg()}; {time.time() - t0:.0f} s. "
             "`benchmarks/bench_photometric.py --record` (see its docstring): every frame searched "
             "(`TagDetector`, as `ficap detect --json`); tags fully visible, facing, within 70 deg "
-            "of head-on; radial: negative = inside the tag.\n\n" + text))
+            "of head-on; radial: negative = inside the tag.\n\n" + text + "\n\n" + READING))
     return 0
 
 

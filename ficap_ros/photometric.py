@@ -20,15 +20,20 @@ The blurred pattern is evaluated analytically, no rendering: under the local aff
 of H at a pixel, an isotropic image Gaussian of sigma s is a Gaussian in tag units whose marginal
 sd along u is s |grad u| (and along v, s |grad v|); a blurred cell is then the product of two
 differences of normal CDFs (exact along a straight edge, approximate within a blur radius of a cell
-corner, where the Gaussian's u-v correlation under shear is dropped). Only the 5 x 5 cells around
-the pixel matter (the blur is at most half a cell at the smallest cells fitted).
+corner, where the Gaussian's u-v correlation under shear is dropped). Only the 4 x 4 cells around
+the nearest boundary crossing matter (the blur is at most half a cell at the smallest cells fitted).
+The blur's scale is fitted per tag (``psf_sigma_px`` only starts it: a wrong fixed blur moves the
+corners by about a fifth of its error, outward for a blur assumed too wide).
 
-Pixels: those within ``reach_px`` of a black/white cell boundary (the rest are flat and say
-nothing about H), on the tag's 10 x 10-cell face, chosen once at the start corners. Gauss-Newton
-(Levenberg-damped) over H and the levels of every tag at once (per-tag 14 x 14 normal equations),
+Pixels: those within ``reach_px`` plus 1.5 blur sds of a black/white cell boundary (the rest are
+flat and say nothing about H), on the tag's 10 x 10-cell face, chosen once at the start corners;
+a large tag's thinned evenly to ``max_pixels``. Gauss-Newton (Levenberg-damped) over H, the
+levels, a blur scale and the exponent of every tag at once (per-tag 16 x 16 normal equations),
 pixels more than 4 robust sds off dropped after the first step (glare specks, a neighbour's edge).
-A tag whose fit fails, or that would move a corner more than ``max_move_cells`` of a cell, keeps
-its input corners.
+A tag whose fit fails, that would move a corner more than ``max_move_cells`` of a cell, or whose
+residual sd exceeds ``_MAX_MISFIT`` of its contrast keeps its input corners.
+
+Cost: ~3 ms of CPU a tag (docs/benchmarks.md), hence opt-in (``DetectorConfig.edge_photometric``).
 """
 
 from __future__ import annotations
@@ -128,7 +133,7 @@ def _select_pixels(shape: tuple[int, int], hom: np.ndarray, tables: list[np.ndar
 
 def fit_tags_photometric(
     gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray, psf_sigma_px: float = PSF_SIGMA_PX,
-    iterations: int = 4, reach_px: float = 1.0, free_tone: bool = True, max_move_cells: float = 0.35,
+    iterations: int = 3, reach_px: float = 1.0, free_tone: bool = True, max_move_cells: float = 0.35,
     max_pixels: int = 1500,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Fit each tag's homography and levels to its pixels (module docstring).
@@ -137,7 +142,7 @@ def fit_tags_photometric(
         gray: (H, W) uint8 image.
         corners_px: (N, 4, 2) starting corners (the cell-edge fit's; within a few tenths of a px).
         ids: (N,) tag ids.
-        psf_sigma_px: assumed lens PSF sigma, px (linear light).
+        psf_sigma_px: lens PSF sigma, px (linear light), where the per-tag blur scale starts.
         iterations: Gauss-Newton steps.
         reach_px: pixels used lie within this (plus two blur sigmas) of a black/white boundary.
         free_tone: also fit an exponent on the sRGB curve.
