@@ -1,7 +1,7 @@
 """The tag-level photometric corner fit (``DetectorConfig(edge_photometric=True)``): accuracy and cost.
 
 Issue 10's last open corner target (blender_dev dev_540p_low median <= 0.15 px) is missed by the
-cell-edge fit (``ficap edge``); ``ficap_ros.photometric.fit_tags_photometric`` fits each tag's
+cell-edge fit (``ficap edge``); ``detection.fit_tags_photometric`` (``ficap_ros.photometric``) fits each tag's
 printed pattern, blurred in linear light and put through an sRGB curve, to its pixels near the
 cell boundaries, as the corner stage's last step. This measures, with the same detector
 otherwise (``TagDetector``, every frame searched, as ``ficap detect --json``):

@@ -20,6 +20,7 @@ from typing import Any
 import numpy as np
 
 from ficap_ros.errors import ConfigError, ImageError
+from ficap_ros.photometric import fit_tags
 
 __all__ = [
     "TagDetection",
@@ -31,6 +32,7 @@ __all__ = [
     "refine_corners_edge_ok",
     "unbias_corners_edge",
     "fit_tag_edges",
+    "fit_tags_photometric",
     "refine_tag_corners",
     "shift_tag_edges",
     "tag_cells",
@@ -141,7 +143,7 @@ class DetectorConfig:
             still detected and reported.
         edge_photometric: then fit each fitted tag once more, as a whole, to its pixels near the
             cell boundaries: the printed pattern blurred in linear light (blur fitted per tag)
-            through an sRGB tone curve (``ficap_ros.photometric.fit_tags_photometric``); more
+            through an sRGB tone curve (``fit_tags_photometric``, ``ficap_ros.photometric``); more
             accurate on noisy frames (issue 10), at several ms per frame (docs/detection.md
             "A tag-level photometric fit"); ``edge`` refine with ``edge_fit`` only. Off by default.
     """
@@ -1092,8 +1094,6 @@ def refine_tag_corners(
             # just read badly: small cells under glare read 2-3 wrong at the right corners).
             corners[again], delta[again] = c, np.where(np.isfinite(d), d, delta[again])
     if cfg.edge_fit and cfg.edge_photometric and np.isfinite(delta).any():
-        from ficap_ros.photometric import fit_tags_photometric  # imports this module
-
         done = np.flatnonzero(np.isfinite(delta))
         corners[done] = fit_tags_photometric(gray, corners[done], ids[done])[0]
     fitted = np.isfinite(delta)
@@ -1520,6 +1520,23 @@ def fit_tag_edges(
     moved = np.linalg.norm(corners - c_in, axis=2).max(axis=1)
     good = fitted & np.isfinite(corners).all(axis=(1, 2)) & (moved <= np.minimum(0.35 * cell, 2.5))
     return np.where(good[:, None, None], corners, c_in), np.where(good, delta, np.nan)
+
+
+def fit_tags_photometric(
+    gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray, **kwargs: Any,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The tag-level photometric fit (``ficap_ros.photometric.fit_tags``, keyword arguments as
+    there) of tags given by their corners and ids: (corners (N, 4, 2), fitted (N,) bool; a tag not
+    fitted keeps its corners)."""
+    c = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    if len(c) == 0:
+        return c.copy(), np.zeros(0, dtype=bool)
+    try:
+        hom = tag_homographies(c)
+    except np.linalg.LinAlgError:
+        return c.copy(), np.zeros(len(c), dtype=bool)
+    cells = np.stack([tag_cells(int(i)) for i in np.asarray(ids).reshape(-1)])
+    return fit_tags(gray, c, hom, cells, **kwargs)
 
 
 def _group_median(x: np.ndarray, mask: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.ndarray:

@@ -38,14 +38,14 @@ Cost: ~3 ms of CPU a tag (docs/benchmarks.md), hence opt-in (``DetectorConfig.ed
 
 from __future__ import annotations
 
-from functools import lru_cache
-
 import numpy as np
 from scipy.special import ndtr
 
-from ficap_ros.detection import TAG_CELLS, tag_cells, tag_homographies
+__all__ = ["fit_tags", "PSF_SIGMA_PX"]
 
-__all__ = ["fit_tags_photometric", "PSF_SIGMA_PX"]
+#: A tag36h11 tag's cells across (border included), as ``detection.TAG_CELLS``: this module sits
+#: below detection (which calls it) and takes the tags' cells and homographies from it.
+TAG_CELLS = 8
 
 #: Default lens PSF sigma, px, assumed when the recording's is unknown: the middle of issue 10's
 #: realistic range (0.4-1.0 px); the fit is insensitive to it within that range (docs/detection.md).
@@ -57,12 +57,12 @@ _PAD = 3
 _MAX_MISFIT = 0.3
 
 
-@lru_cache(maxsize=1024)
-def _black_table(tag_id: int) -> np.ndarray:
-    """(8 + 2 _PAD)^2 table of the tag's black cells (float 0/1), cell (i, j) at [j + _PAD, i + _PAD]."""
-    t = np.zeros((TAG_CELLS + 2 * _PAD, TAG_CELLS + 2 * _PAD))
-    t[_PAD:_PAD + TAG_CELLS, _PAD:_PAD + TAG_CELLS] = tag_cells(int(tag_id))
-    t.setflags(write=False)
+def _black_tables(cells: np.ndarray) -> np.ndarray:
+    """(N, 8 + 2 _PAD, 8 + 2 _PAD) tables of the tags' black cells (float 0/1), cell (i, j) of tag
+    t at [t, j + _PAD, i + _PAD]; white (quiet zone and beyond) around them."""
+    cells = np.asarray(cells, dtype=bool).reshape(-1, TAG_CELLS, TAG_CELLS)
+    t = np.zeros((len(cells), TAG_CELLS + 2 * _PAD, TAG_CELLS + 2 * _PAD))
+    t[:, _PAD:_PAD + TAG_CELLS, _PAD:_PAD + TAG_CELLS] = cells
     return t
 
 
@@ -81,7 +81,7 @@ def _srgb_inv(enc: np.ndarray) -> np.ndarray:
     return np.where(y <= 0.04045, y / 12.92, ((y + 0.055) / 1.055) ** 2.4)
 
 
-def _select_pixels(shape: tuple[int, int], hom: np.ndarray, tables: list[np.ndarray], sd_px: float,
+def _select_pixels(shape: tuple[int, int], hom: np.ndarray, tables: np.ndarray, sd_px: float,
                    reach_px: float, max_pixels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pixels (x, y) within ``reach_px`` of a black/white boundary of each tag's face: (tag of each,
     x, y) as int arrays, tag after tag."""
@@ -131,8 +131,9 @@ def _select_pixels(shape: tuple[int, int], hom: np.ndarray, tables: list[np.ndar
     return np.concatenate(tags), np.concatenate(xs), np.concatenate(ys)
 
 
-def fit_tags_photometric(
-    gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray, psf_sigma_px: float = PSF_SIGMA_PX,
+def fit_tags(
+    gray: np.ndarray, corners_px: np.ndarray, hom: np.ndarray, cells: np.ndarray,
+    psf_sigma_px: float = PSF_SIGMA_PX,
     iterations: int = 3, reach_px: float = 1.0, free_tone: bool = True, max_move_cells: float = 0.35,
     max_pixels: int = 1500,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -141,7 +142,8 @@ def fit_tags_photometric(
     Args:
         gray: (H, W) uint8 image.
         corners_px: (N, 4, 2) starting corners (the cell-edge fit's; within a few tenths of a px).
-        ids: (N,) tag ids.
+        hom: (N, 3, 3) their homographies from tag cell units (``detection.tag_homographies``).
+        cells: (N, 8, 8) each tag's cells, True = black (``detection.tag_cells``).
         psf_sigma_px: lens PSF sigma, px (linear light), where the per-tag blur scale starts.
         iterations: Gauss-Newton steps.
         reach_px: pixels used lie within this (plus two blur sigmas) of a black/white boundary.
@@ -156,22 +158,17 @@ def fit_tags_photometric(
     fitted = np.zeros(n, dtype=bool)
     if n == 0:
         return c_in.copy(), fitted
-    try:
-        hom = tag_homographies(c_in)
-    except np.linalg.LinAlgError:
-        return c_in.copy(), fitted
+    hom = np.asarray(hom, dtype=np.float64).reshape(n, 3, 3)
     hom = hom / hom[:, 2:3, 2:3]
-    ids = np.asarray(ids).reshape(-1)
-    tables = [_black_table(int(i)) for i in ids]
+    tab = _black_tables(cells)  # (N, S, S)
     sd_px = float(np.sqrt(psf_sigma_px ** 2 + 1.0 / 12.0))  # the PSF and the pixel's area
-    tag, xi, yi = _select_pixels(gray.shape[:2], hom, tables, sd_px, reach_px, max_pixels)
+    tag, xi, yi = _select_pixels(gray.shape[:2], hom, tab, sd_px, reach_px, max_pixels)
     if len(tag) == 0:
         return c_in.copy(), fitted
     obs = gray[yi, xi].astype(np.float64)
     px, py = xi.astype(np.float64), yi.astype(np.float64)
     counts = np.bincount(tag, minlength=n)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    tab = np.stack(tables)  # (N, S, S)
     h = hom.reshape(n, 9)[:, :8].copy()
     n_par = 8 + 7 + (1 if free_tone else 0)
     theta = np.zeros((n, n_par - 8))  # Lb0, Lb_u, Lb_v, Lw0, Lw_u, Lw_v, log blur scale, [log kappa]

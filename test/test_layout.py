@@ -16,6 +16,7 @@ LAYERS = [
     ["image_codec", "bag_salvage"],
     ["camera", "cap_model"],
     ["calibration", "messages"],
+    ["photometric"],
     ["detection", "bag_io"],
     ["bag_writer"],
     ["pose"],

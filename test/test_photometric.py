@@ -14,9 +14,8 @@ import numpy as np
 import pytest
 
 from ficap_ros.cap_model import nominal_model
-from ficap_ros.detection import DetectorConfig, TagDetector
+from ficap_ros.detection import DetectorConfig, TagDetector, fit_tags_photometric
 from ficap_ros.metrics import corner_errors_px
-from ficap_ros.photometric import fit_tags_photometric
 from ficap_ros.synth import RenderConfig, default_scene, naturalistic_drive, render
 from ficap_ros.tracking import view_angles_deg
 
