@@ -48,6 +48,7 @@ from ficap_ros.cap_model import CapModel
 from ficap_ros.errors import BagError, ConfigError, FicapError
 from ficap_ros.files import write_output_file
 from ficap_ros.calibration import HeadCalibration
+from ficap_ros.detection import DetectorConfig
 from ficap_ros.pose import PoseConfig
 
 __all__ = ["Recording", "RecordingResult", "FleetResult", "find_recordings", "read_manifest",
@@ -249,6 +250,7 @@ def label_settings(
     calibrate_window_s: tuple[float, float] | None = None, namespace: str = "",
     image_topic: str | None = None, camera_info_topic: str | None = None,
     intrinsics: str | Path | None = None, fps: float | None = None, rectified: bool = False,
+    detector: DetectorConfig | None = None,
 ) -> dict[str, Any]:
     """Every setting that changes the labels, as plain JSON values (files by content hash).
 
@@ -276,6 +278,8 @@ def label_settings(
         "segment_frames": replay.SEGMENT_FRAMES,
         # Only when set, so fingerprints of earlier runs (raw images) stay current.
         **({"rectified": True} if rectified else {}),
+        # Likewise only when not the default (``--photometric``).
+        **({"detector": repr(detector)} if detector is not None and detector != DetectorConfig() else {}),
     }
 
 
@@ -302,15 +306,16 @@ def current_outputs(out_dir: Path, digest: str) -> dict[str, Any] | None:
 _WORKER_KEY: Any = None
 
 
-def _ray_segment(config: tuple[CapModel, PoseConfig], raws: list[RawFrame]) -> list[Any]:
+def _ray_segment(config: tuple[CapModel, PoseConfig, DetectorConfig | None],
+                 raws: list[RawFrame]) -> list[Any]:
     """A Ray task: one segment through the pipeline (the worker keeps its FrameProcessor)."""
     global _WORKER_KEY
     from ficap_ros import replay
 
-    model, pose = config
-    key = (hash(model), repr(pose))
+    model, pose, detector = config
+    key = (hash(model), repr(pose), repr(detector))
     if key != _WORKER_KEY:
-        replay._init_worker(model, pose, single_thread=True)
+        replay._init_worker(model, pose, single_thread=True, detector=detector)
         _WORKER_KEY = key
     return replay._process_segment(raws)
 
@@ -324,13 +329,15 @@ class RayEngine:
         num_cpus: CPUs of the embedded Ray (default: the machine's).
         retries: times a segment is re-run when its worker or node dies.
         model, pose: what every task processes with (shipped once through the object store).
-        segment_fn: the task, ``fn((model, pose), raws) -> processed frames`` (default: the
-            pipeline; tests pass one that fails).
+        segment_fn: the task, ``fn((model, pose, detector), raws) -> processed frames``
+            (default: the pipeline; tests pass one that fails).
+        detector: detector settings of every task (default ``DetectorConfig()``).
     """
 
     def __init__(self, model: CapModel, pose: PoseConfig, address: str | None = None,
                  num_cpus: int | None = None, retries: int = 2,
-                 segment_fn: Callable[..., list[Any]] | None = None) -> None:
+                 segment_fn: Callable[..., list[Any]] | None = None,
+                 detector: DetectorConfig | None = None) -> None:
         # Never phone home (usage statistics), and keep an embedded Ray on loopback: Ray replaces
         # 127.0.0.1 by the machine's outward address unless it believes clusters are off.
         # The variable is read when ray is imported (here, and by the worker processes, which
@@ -376,7 +383,7 @@ class RayEngine:
         # pipeline would only repeat, so it fails its recording at once.
         self._task = ray.remote(num_cpus=1, max_retries=int(retries), retry_exceptions=False)(
             segment_fn or _ray_segment)
-        self._config = ray.put((model, pose))
+        self._config = ray.put((model, pose, detector))
 
     def process(self, raws: Iterable[RawFrame]) -> Iterator[Any]:
         """``replay``'s engine: processed frames of ``raws``, in order (thread-safe)."""
@@ -541,6 +548,7 @@ def run_fleet(
     progress: bool = True,
     summary_files: bool = True,
     ray_engine: RayEngine | None = None,
+    detector: DetectorConfig | None = None,
 ) -> FleetResult:
     """Replay every recording into ``out / rec.rel`` (see the module docstring).
 
@@ -552,7 +560,10 @@ def run_fleet(
         retries: Ray task retries when a worker dies.
         force: redo recordings whose outputs are current.
         summary_files: write fleet_summary.csv/.json/.png at the top of ``out``.
-        ray_engine: a Ray engine to use (not closed here) instead of starting one.
+        ray_engine: a Ray engine to use (not closed here) instead of starting one; it carries
+            its own ``detector``.
+        detector: detector settings (default ``DetectorConfig()``); give the same to
+            ``label_settings`` so the fingerprint holds them.
 
     Returns:
         One result per recording, in the given order. A failing recording does not stop the others.
@@ -587,7 +598,8 @@ def run_fleet(
             engine = ray_engine
             fleet.engine, fleet.workers = "ray", engine.cpus
         elif todo and (use_ray or ray_address):
-            engine = RayEngine(model, pose, ray_address, jobs if ray_address is None else None, retries)
+            engine = RayEngine(model, pose, ray_address, jobs if ray_address is None else None, retries,
+                               detector=detector)
             fleet.engine, fleet.workers = ("ray" if ray_address is None else f"ray {ray_address}",
                                            engine.cpus)
 
@@ -595,7 +607,7 @@ def run_fleet(
             i, rec, source, fp = item
             t = time.perf_counter()
             process = engine.process if engine is not None else (
-                lambda raws: replay_mod.process_frames(raws, model, pose, jobs))
+                lambda raws: replay_mod.process_frames(raws, model, pose, jobs, detector=detector))
             try:
                 output = replay_mod.replay(
                     source, out / rec.rel, model, pose, calibration, calibrate_window_s, jobs,

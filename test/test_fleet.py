@@ -184,6 +184,26 @@ def test_changed_settings_redo_a_recording(fleet_in: Path, tmp_path: Path) -> No
     assert summary["method"] == "paper" and summary["fingerprint"]["settings"]["pose"].count("paper")
 
 
+def test_photometric_fleet_matches_a_single_photometric_replay(fleet_in: Path, tmp_path: Path) -> None:
+    """--photometric reaches every recording of a fleet and its fingerprint: the default run's
+    outputs are redone, and each recording's labels are the single-recording --photometric ones."""
+    out = tmp_path / "out"
+    recs = [str(fleet_in / "alice/d1"), str(fleet_in / "bob/d2")]
+    assert main(["replay", *recs, "--out", str(out), "--quiet"]) == 0
+    default = (out / "d1" / "labels.csv").read_text()
+    assert main(["replay", *recs, "--out", str(out), "--quiet", "--photometric"]) == 0
+    doc = json.loads((out / "fleet_summary.json").read_text())
+    assert [r["status"] for r in doc["recordings"]] == ["done", "done"]
+    settings = json.loads((out / "d1" / "summary.json").read_text())["fingerprint"]["settings"]
+    assert "edge_photometric=True" in settings["detector"]
+    single = tmp_path / "single"
+    assert main(["replay", recs[0], "--out", str(single), "--quiet", "--photometric"]) == 0
+    assert (out / "d1" / "labels.csv").read_text() == (single / "labels.csv").read_text() != default
+    assert main(["replay", *recs, "--out", str(out), "--quiet", "--photometric"]) == 0
+    doc = json.loads((out / "fleet_summary.json").read_text())
+    assert [r["status"] for r in doc["recordings"]] == ["skipped", "skipped"]
+
+
 def test_interrupted_recording_is_redone(fleet_in: Path, tmp_path: Path) -> None:
     """Outputs without their summary.json (a run killed while writing) are not current."""
     out = tmp_path / "out"

@@ -124,10 +124,6 @@ def run(args: argparse.Namespace) -> int:
 
         raise ConfigError("give at least one INPUT or --manifest FILE")
     if _is_fleet(args):
-        if args.photometric:
-            from ficap_ros.errors import ConfigError
-
-            raise ConfigError("--photometric replays one recording at a time (not a fleet yet)")
         # The fleet's --out holds a folder per recording: every file in it must be ficap's.
         check_replaceable(args.out, subfolders=True)
         check_output_dir(Path(args.out))
@@ -166,14 +162,18 @@ def _run_fleet(args: argparse.Namespace, model, calibration) -> int:  # noqa: AN
 
     recordings = find_recordings(args.input, args.manifest, args.out, videos=args.videos)
     pose = PoseConfig(method=args.method)
+    from ficap_ros.detection import DetectorConfig
+
+    detector = DetectorConfig(edge_photometric=args.photometric)
     settings = label_settings(model, pose, calibration, args.calibrate_frontal, args.namespace,
                               args.image_topic, args.camera_info_topic, args.intrinsics, args.fps,
-                              args.rectified)
+                              args.rectified, detector)
     single = len(recordings) == 1 and str(recordings[0].rel) == "."
     fleet = run_fleet(
         recordings, args.out, lambda path: open_source(args, path), model, pose, settings,
         calibration, args.calibrate_frontal, args.namespace, args.jobs, args.ray_address,
-        args.ray, args.retries, args.force, progress=not args.quiet, summary_files=not single)
+        args.ray, args.retries, args.force, progress=not args.quiet, summary_files=not single,
+        detector=detector)
     for r in fleet.results:
         if r.status == "failed":
             print(f"{r.rel}: failed: {r.error}")
