@@ -12,37 +12,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ficap_ros.cap_model import nominal_model
 from ficap_ros.detection import DetectorConfig, TagDetector, fit_tag_edges, refine_corners_edge_ok
 from ficap_ros.metrics import corner_errors_px
-from ficap_ros.synth import RenderConfig, default_scene, naturalistic_drive, render
+from ficap_ros.synth import RenderConfig
 from ficap_ros.tracking import view_angles_deg
 
-MODEL = nominal_model()
+from corner_eval import MODEL, clean_corner_errors, drive_frames
+
 OURS = TagDetector(DetectorConfig())
 PEER = TagDetector(DetectorConfig(corner_refine="subpix"))
-
-
-def _errors(detector: TagDetector, frames) -> tuple[np.ndarray, np.ndarray, int, int]:
-    """(corner errors, radial offsets, clean tags found, clean tags) over the frames."""
-    err, rad, found_n, clean_n = [], [], 0, 0
-    for fr in frames:
-        angles = dict(zip(MODEL.ids, view_angles_deg(MODEL, fr.T_cam_cap)))
-        clean = [t for t in fr.visible_ids(0.999) if angles[t] <= 70.0]
-        found = {d.tag_id: d.corners_px for d in detector.detect(fr.image)}
-        ids = [t for t in clean if t in found]
-        e, r = corner_errors_px(np.array([found[t] for t in ids]), np.array([fr.corners_px[t] for t in ids]))
-        err.append(e.ravel())
-        rad.append(r.ravel())
-        found_n += len(ids)
-        clean_n += len(clean)
-    return np.concatenate(err), np.concatenate(rad), found_n, clean_n
-
-
-def _frames(resolution: str, config: RenderConfig, n: int = 3):
-    scene = default_scene(resolution)
-    drive = naturalistic_drive(n, fps=1.0, seed=5, scene=scene, frontal_s=0.0)
-    return [render(MODEL, scene.camera, d.T_cam_cap, config, seed=d.index) for d in drive]
 
 
 @pytest.mark.parametrize(
@@ -59,10 +37,10 @@ def _frames(resolution: str, config: RenderConfig, n: int = 3):
 def test_corners_unbiased_under_each_tone_curve(resolution, tone, gamma, psf_sigma_px, lighting) -> None:
     """The issue's targets: median <= 0.15 px, p95 <= 0.5 px, mean radial offset within
     +-0.05 px, where the naive peer on the same frames is >= 0.2 px inward."""
-    frames = _frames(resolution, RenderConfig(lighting=lighting, tone=tone, gamma=gamma,
+    frames = drive_frames(resolution, RenderConfig(lighting=lighting, tone=tone, gamma=gamma,
                                               psf_sigma_px=psf_sigma_px, jpeg_quality=95))
-    err, rad, found, clean = _errors(OURS, frames)
-    peer_err, peer_rad, _, _ = _errors(PEER, frames)
+    err, rad, found, clean = clean_corner_errors(OURS, frames)
+    peer_err, peer_rad, _, _ = clean_corner_errors(PEER, frames)
     print(f"ours median {np.median(err):.3f} p95 {np.percentile(err, 95):.3f} radial {rad.mean():+.3f} "
           f"({found}/{clean} tags); peer radial {peer_rad.mean():+.3f}")
     assert found >= 0.85 * clean
@@ -85,10 +63,10 @@ def test_corners_in_low_light(resolution, tone, gamma, psf_sigma_px) -> None:
     (which moves at most a third of a cell) refused it or settled a cell off. Such tags are now
     fitted again from corners rebuilt from the other three (measured before: +0.138 / +0.099 /
     +0.044 px; after: +0.001 / -0.000 / +0.012)."""
-    frames = _frames(resolution, RenderConfig(lighting="low", tone=tone, gamma=gamma, psf_sigma_px=psf_sigma_px,
+    frames = drive_frames(resolution, RenderConfig(lighting="low", tone=tone, gamma=gamma, psf_sigma_px=psf_sigma_px,
                                               jpeg_quality=95))
-    err, rad, found, clean = _errors(OURS, frames)
-    _, peer_rad, _, _ = _errors(PEER, frames)
+    err, rad, found, clean = clean_corner_errors(OURS, frames)
+    _, peer_rad, _, _ = clean_corner_errors(PEER, frames)
     print(f"ours median {np.median(err):.3f} p95 {np.percentile(err, 95):.3f} radial {rad.mean():+.3f} "
           f"max {err.max():.2f} ({found}/{clean} tags); peer radial {peer_rad.mean():+.3f}")
     assert found >= 0.8 * clean
@@ -142,7 +120,7 @@ def test_small_tags_take_the_line_estimators_bias_measured_on_the_fitted_tags() 
     and removed: the small tags' radial offset drops to a fraction of the line fit's."""
     from ficap_ros.detection import _side_lines
 
-    frames = _frames("360p", RenderConfig(lighting="high", tone="srgb", jpeg_quality=95), n=8)
+    frames = drive_frames("360p", RenderConfig(lighting="high", tone="srgb", jpeg_quality=95), n=8)
     lines = TagDetector(DetectorConfig(edge_unbias=False, edge_fit=False))
     rad_line, rad_ours, err_line, err_ours = [], [], [], []
     for fr in frames:

@@ -13,35 +13,15 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from ficap_ros.cap_model import nominal_model
 from ficap_ros.detection import DetectorConfig, TagDetector, fit_tags_photometric
 from ficap_ros.metrics import corner_errors_px
-from ficap_ros.synth import RenderConfig, default_scene, naturalistic_drive, render
+from ficap_ros.synth import RenderConfig
 from ficap_ros.tracking import view_angles_deg
 
-MODEL = nominal_model()
+from corner_eval import MODEL, clean_corner_errors, drive_frames
+
 EDGE = TagDetector(DetectorConfig())
 PHOTO = TagDetector(DetectorConfig(edge_photometric=True))
-
-
-def _frames(resolution: str, config: RenderConfig, n: int = 3):
-    scene = default_scene(resolution)
-    drive = naturalistic_drive(n, fps=1.0, seed=5, scene=scene, frontal_s=0.0)
-    return [render(MODEL, scene.camera, d.T_cam_cap, config, seed=d.index) for d in drive]
-
-
-def _errors(detector: TagDetector, frames) -> tuple[np.ndarray, np.ndarray, int]:
-    err, rad, n = [], [], 0
-    for fr in frames:
-        angles = dict(zip(MODEL.ids, view_angles_deg(MODEL, fr.T_cam_cap)))
-        clean = [t for t in fr.visible_ids(0.999) if angles[t] <= 70.0]
-        found = {d.tag_id: d.corners_px for d in detector.detect(fr.image)}
-        ids = [t for t in clean if t in found]
-        e, r = corner_errors_px(np.array([found[t] for t in ids]), np.array([fr.corners_px[t] for t in ids]))
-        err.append(e.ravel())
-        rad.append(r.ravel())
-        n += len(ids)
-    return np.concatenate(err), np.concatenate(rad), n
 
 
 @pytest.mark.parametrize(
@@ -56,10 +36,10 @@ def test_photometric_fit_beats_the_cell_edge_fit_in_low_light(
 ) -> None:
     """Low light (noise-limited): the cell-edge fit's median 0.135 / 0.114 px (6 frames), the
     photometric fit's 0.077 / 0.058 px on the same frames; unbiased (|mean radial| <= 0.05 px)."""
-    frames = _frames(resolution, RenderConfig(lighting=lighting, tone=tone, gamma=gamma,
+    frames = drive_frames(resolution, RenderConfig(lighting=lighting, tone=tone, gamma=gamma,
                                               psf_sigma_px=psf_sigma_px, jpeg_quality=95))
-    e0, _, n0 = _errors(EDGE, frames)
-    e1, r1, n1 = _errors(PHOTO, frames)
+    e0, _, n0, _ = clean_corner_errors(EDGE, frames)
+    e1, r1, n1, _ = clean_corner_errors(PHOTO, frames)
     print(f"edge median {np.median(e0):.3f}; photometric median {np.median(e1):.3f} "
           f"p95 {np.percentile(e1, 95):.3f} radial {r1.mean():+.3f} ({n1} tags)")
     assert n1 == n0  # the same tags: the fit only moves corners
@@ -76,10 +56,10 @@ def test_photometric_fit_beats_the_cell_edge_fit_in_low_light(
 def test_photometric_fit_keeps_the_targets_without_noise(resolution, tone, gamma, psf_sigma_px, lighting) -> None:
     """A sharp lens under an S-curve (edge 0.023 px median, photometric 0.013) and a soft lens with
     clipped highlights (0.116 -> 0.089): not worse than the cell-edge fit, within the targets."""
-    frames = _frames(resolution, RenderConfig(lighting=lighting, tone=tone, gamma=gamma,
+    frames = drive_frames(resolution, RenderConfig(lighting=lighting, tone=tone, gamma=gamma,
                                               psf_sigma_px=psf_sigma_px, jpeg_quality=95))
-    e0, _, _ = _errors(EDGE, frames)
-    e1, r1, _ = _errors(PHOTO, frames)
+    e0, _, _, _ = clean_corner_errors(EDGE, frames)
+    e1, r1, _, _ = clean_corner_errors(PHOTO, frames)
     print(f"edge median {np.median(e0):.3f}; photometric median {np.median(e1):.3f} "
           f"p95 {np.percentile(e1, 95):.3f} radial {r1.mean():+.3f}")
     assert np.median(e1) <= np.median(e0) + 0.005
@@ -92,7 +72,7 @@ def test_photometric_fit_converges_from_displaced_corners_and_leaves_a_bad_start
     """From the true corners moved 0.3 px (a cell-edge fit's error on a noisy frame) the fit
     returns to within 0.1 px median; a start two cells off, where the fit settles in a false
     minimum (its residual a third or more of the tag's contrast), is not fitted (kept as given)."""
-    fr = _frames("1080p", RenderConfig(lighting="neutral", tone="srgb", psf_sigma_px=0.7, jpeg_quality=95), n=1)[0]
+    fr = drive_frames("1080p", RenderConfig(lighting="neutral", tone="srgb", psf_sigma_px=0.7, jpeg_quality=95), n=1)[0]
     angles = dict(zip(MODEL.ids, view_angles_deg(MODEL, fr.T_cam_cap)))
     ids = np.array([t for t in fr.visible_ids(0.999) if angles[t] <= 60.0])
     truth = np.array([fr.corners_px[t] for t in ids])
