@@ -1593,7 +1593,10 @@ def _solve_grouped(
     # Column scaling: the parameters differ in size by orders of magnitude.
     d = np.sqrt(np.maximum(np.einsum("nii->ni", ata), 1e-30))
     a_s = ata / d[:, :, None] / d[:, None, :]
-    solved = rows >= min_rows
+    # A parameter no weighted row touches (an exactly zero diagonal: e.g. no boundary of one
+    # direction left) makes the system exactly singular; such a group is unsolved, as the one by
+    # one fallback below would find, without a batch that raises and is redone group by group.
+    solved = (rows >= min_rows) & np.all(np.einsum("nii->ni", ata) > 0.0, axis=1)
     sol = np.zeros((n, p))
     if solved.any():
         try:
