@@ -63,6 +63,7 @@ little, and one tag has a mirror solution a first-order covariance does not see)
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 from typing import Callable, Container, Sequence
 
 import cv2
@@ -363,13 +364,12 @@ def _at(T: Transform, obs: _Observations) -> tuple[np.ndarray, np.ndarray]:
     return _residuals_and_jacobian_at(T.rotation_matrix, T.translation_m, obs.K, obs.model_m, obs.image_px)
 
 
-def _refine(obs: _Observations, T0: Transform) -> tuple[Transform, np.ndarray, float]:
-    """Least-squares reprojection refinement; returns (pose, covariance ROS order, rms_px).
+def _refine(obs: _Observations, T0: Transform) -> tuple[Transform, None, float]:
+    """Least-squares reprojection refinement; returns (pose, None, rms_px) (see ``_Solution``).
 
     MINPACK Levenberg-Marquardt (``lmder``, as ``scipy.optimize.least_squares(method="lm")`` runs
     it) over a left perturbation of the start, ``x = (d_theta, t)``, with the analytic Jacobian.
-    The answer's residuals are the ones MINPACK ends with; its Jacobian is the one at the answer
-    (cached: no further evaluation when MINPACK's last call was there).
+    The answer's residuals are the ones MINPACK ends with (no further evaluation).
     """
     R0 = T0.rotation_matrix
     x0 = np.concatenate([np.zeros(3), T0.translation_m])
@@ -395,9 +395,9 @@ def _refine(obs: _Observations, T0: Transform) -> tuple[Transform, np.ndarray, f
     # default x_scale 'jac'), without that wrapper's checks and memoising layers: the same
     # iterates and answer, ~0.25 ms less a pose (a tracked frame solves once or twice).
     x, info, _status = _lmder(fun, jac, x0.copy(), (), True, False, 1e-10, 1e-10, 1e-8, 50, 100.0, None)
-    res, J = info["fvec"], jac(x)
+    res = info["fvec"]
     T = Transform(Rotation.from_rotvec(x[:3]) * T0.rotation, x[3:])
-    return T, _covariance(res, J), float(np.sqrt(np.mean(res**2) * 2.0))
+    return T, None, float(np.sqrt(np.mean(res**2) * 2.0))
 
 
 def _covariance(res: np.ndarray, J: np.ndarray) -> np.ndarray:
@@ -523,7 +523,9 @@ def _consensus_start(obs: _Observations, config: PoseConfig) -> tuple[Transform,
 class _Solution:
     T: Transform
     used: _Observations
-    covariance: np.ndarray
+    #: The fit's own covariance (None from ``_refine``: no caller reads it, ``estimate_cap_pose``
+    #: builds the pose's covariance from ``uncertainty_terms``; an inverse saved per solve).
+    covariance: np.ndarray | None
     rms_px: float
 
 
@@ -869,13 +871,31 @@ def light_gradient_px(edge_shift_px: np.ndarray, centres_px: np.ndarray) -> floa
     return float(np.std(X @ coef))
 
 
+def _model_geometry(obs: _Observations) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Of the used tags' model corners: centres (tags, 3), unit outward normals (tags, 3) and, per
+    corner, the cross products e_k x (corner - its tag's centre) (4 tags, 3, 3): cached on the
+    corners' bytes (a tracked cap's frames use the same tags frame after frame)."""
+    return _model_geometry_of(obs.model_m.tobytes(), len(obs))
+
+
+@lru_cache(maxsize=64)
+def _model_geometry_of(model_key: bytes, n_tags: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    model_m = np.frombuffer(model_key, dtype=np.float64).reshape(n_tags, 4, 3)
+    centres = model_m.mean(axis=1)  # (tags, 3) cap frame, m
+    a, b = model_m[:, 1] - model_m[:, 0], model_m[:, 3] - model_m[:, 0]
+    normal = np.cross(a, b)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    lever = model_m.reshape(-1, 3) - np.repeat(model_m.mean(axis=1), 4, axis=0)
+    cross = np.cross(np.eye(3)[None], lever[:, None])
+    for x in (centres, normal, cross):
+        x.setflags(write=False)
+    return centres, normal, cross
+
+
 def _tilt_mode(obs: _Observations, T: Transform) -> np.ndarray:
     """(2n,): each tag's corners shifted by 1 px along the image direction of its outward normal,
     times the sine of its view angle (0 for a tag seen head-on, 1 edge-on)."""
-    centres = obs.model_m.mean(axis=1)  # (tags, 3) cap frame, m
-    a, b = obs.model_m[:, 1] - obs.model_m[:, 0], obs.model_m[:, 3] - obs.model_m[:, 0]
-    normal = np.cross(a, b)
-    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    centres, normal, _ = _model_geometry(obs)
     c_cam = T.apply(centres)
     n_cam = normal @ T.rotation_matrix.T
     K = obs.K
@@ -979,10 +999,10 @@ def uncertainty_terms(
     radial = 2.0 * B[:, :, 2]  # 1 px radial at each corner (the pattern has norm 1 over 4 corners)
     terms["bias"] = per_tag(radial[:, :, None])
     terms["bias_common"] = together(radial.reshape(-1, 1))
-    lever = obs.model_m.reshape(-1, 3) - np.repeat(obs.model_m.mean(axis=1), 4, axis=0)
     eye = np.eye(3)
     shift = np.einsum("nij,kj->nik", GR, eye * 1e-3)  # (n, 2, 3): 1 mm along each cap axis
-    turn = np.einsum("nij,nkj->nik", GR, np.cross(eye[None], lever[:, None]) * np.radians(1.0))
+    # e_k x (corner - tag centre), the corner's move when its plate turns about cap axis k.
+    turn = np.einsum("nij,nkj->nik", GR, _model_geometry(obs)[2] * np.radians(1.0))
     terms["model_t"] = per_tag(shift.reshape(n_tags, 8, 3))
     terms["model_r"] = per_tag(turn.reshape(n_tags, 8, 3))
     axes = np.zeros((2 * n, 2))
