@@ -18,6 +18,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from enum import Enum
+from functools import lru_cache
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -164,11 +165,20 @@ def verify_tags(
     except np.linalg.LinAlgError:
         return np.zeros(k, dtype=bool), np.full(k, 64), np.zeros(k)
     read_black, white, black, finite = read_tag_cells(gray, hom)
-    expected = np.stack([tag_cells(int(i)).ravel() for i in ids])  # (K, 64) True = black
+    expected = _expected_cells(tuple(int(i) for i in ids))  # (K, 64) True = black
     errors = (read_black != expected).sum(axis=1)
     contrast = white - black
     ok = (errors <= cfg.max_cell_errors) & (contrast >= cfg.min_contrast) & finite
     return ok, errors, contrast
+
+
+@lru_cache(maxsize=256)
+def _expected_cells(ids: tuple[int, ...]) -> np.ndarray:
+    """(K, 64) the cells of each id (True = black), stacked; cached: a tracked cap shows the same
+    ids frame after frame."""
+    out = np.stack([tag_cells(i).ravel() for i in ids]) if ids else np.zeros((0, 64), dtype=bool)
+    out.setflags(write=False)
+    return out
 
 
 # -- the tracker ----------------------------------------------------------------------------------
