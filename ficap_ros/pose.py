@@ -392,8 +392,14 @@ def _refine(obs: _Observations, T0: Transform) -> tuple[Transform, None, float]:
 
     # MINPACK's lmder called as ``least_squares(fun, x0, jac=jac, method="lm", xtol=1e-10,
     # ftol=1e-10, max_nfev=50)`` calls it (scipy 1.17: gtol 1e-8, factor 100, diag None for its
-    # default x_scale 'jac'), without that wrapper's checks and memoising layers: the same
-    # iterates and answer, ~0.25 ms less a pose (a tracked frame solves once or twice).
+    # default x_scale 'jac'), without that wrapper's argument handling and memoising layers: the
+    # same iterates and answer, ~0.25 ms less a pose (a tracked frame solves once or twice). Its
+    # two checks of the start are kept: the same errors for a start it would refuse.
+    if not np.all(np.isfinite(fun(x0))):
+        raise ValueError("Residuals are not finite in the initial point.")
+    if len(fun(x0)) < len(x0):
+        raise ValueError("Method 'lm' doesn't work when the number of residuals is less than "
+                         "the number of variables.")
     x, info, _status = _lmder(fun, jac, x0.copy(), (), True, False, 1e-10, 1e-10, 1e-8, 50, 100.0, None)
     res = info["fvec"]
     T = Transform(Rotation.from_rotvec(x[:3]) * T0.rotation, x[3:])
