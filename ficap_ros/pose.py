@@ -5,7 +5,7 @@ Three estimators, chosen by name (``PoseConfig.method``):
 ``joint`` (default)
     One PnP over every visible corner. Start: the best-supported of SQPnP over all corners and the
     per-tag IPPE poses (a consensus over tags, so one wrong tag cannot spoil the start); then
-    Gauss-Newton/Levenberg-Marquardt (``scipy.optimize.least_squares``) of the reprojection error,
+    Levenberg-Marquardt (MINPACK's, as ``scipy.optimize.least_squares`` runs it) of the reprojection error,
     with tag-level outlier rejection: a tag whose RMS reprojection error stands far above the
     others' is dropped and the pose re-solved; a tag the image shows partly hidden
     (``hidden_ids``: ``detection.partly_hidden``) already at twice the median tag's.

@@ -48,3 +48,34 @@ def test_refine_reaches_the_least_squares_minimum() -> None:
         assert 0.3 < rms < 0.55  # 0.3 px per coordinate: 0.42 px per corner
         assert float(angle_deg(ours.rotation, T.rotation)) < 0.2  # the minimum near the truth, not the start
     assert worst_deg < 1e-6 and worst_mm < 1e-6, (worst_deg, worst_mm)
+
+
+def test_refine_is_least_squares_lm_bit_for_bit() -> None:
+    """``_refine`` calls MINPACK's lmder as ``least_squares(method="lm")`` does (without that
+    wrapper's per-call cost): the same pose and rms to the last bit, from near and far starts, so
+    labels do not move; a scipy upgrade that makes the two differ shows here."""
+    from scipy.optimize import least_squares
+
+    from ficap_ros.pose import _residuals_and_jacobian
+
+    rng = np.random.default_rng(11)
+    for k in range(12):
+        T = Transform(CAM_FROM_FORWARD * Rotation.from_euler("ZYX", rng.uniform(-1, 1, 3) * [40.0, 20.0, 10.0],
+                                                             degrees=True),
+                      [rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05), rng.uniform(0.4, 0.7)])
+        corners = {int(i): CAMERA.project(T.apply(MODEL.corners_of(int(i)) / 1000.0)) + rng.normal(0.0, 0.3, (4, 2))
+                   for i in MODEL.ids[:6 + k]}
+        obs = _make_obs(corners, MODEL, CAMERA.K)
+        # Near starts (tracking) and far ones, where LM's step bound and damping shape the path.
+        off_deg, off_m = (0.5, 0.003) if k % 2 else (10.0, 0.05)
+        start = Transform(Rotation.from_rotvec(rng.normal(0, 1, 3) * np.radians(off_deg)) * T.rotation,
+                          T.translation_m + rng.normal(0, off_m, 3))
+        ours, _none, rms = _refine(obs, start)
+        R0, x0 = start.rotation_matrix, np.concatenate([np.zeros(3), start.translation_m])
+        sol = least_squares(lambda x: _residuals_and_jacobian(x, R0, obs.K, obs.model_m, obs.image_px)[0], x0,
+                            jac=lambda x: _residuals_and_jacobian(x, R0, obs.K, obs.model_m, obs.image_px)[1],
+                            method="lm", xtol=1e-10, ftol=1e-10, max_nfev=50)
+        ref = Rotation.from_rotvec(sol.x[:3]) * start.rotation
+        assert np.array_equal(ours.rotation.as_quat(), ref.as_quat())
+        assert np.array_equal(ours.translation_m, sol.x[3:])
+        assert rms == float(np.sqrt(np.mean(sol.fun**2) * 2.0))
