@@ -879,7 +879,7 @@ def light_gradient_px(edge_shift_px: np.ndarray, centres_px: np.ndarray) -> floa
 
 def _model_geometry(obs: _Observations) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Of the used tags' model corners: centres (tags, 3), unit outward normals (tags, 3) and, per
-    corner, the cross products e_k x (corner - its tag's centre) (4 tags, 3, 3): cached on the
+    corner, the cross products e_k x (corner - its tag's centre) (4 * tags, 3, 3): cached on the
     corners' bytes (a tracked cap's frames use the same tags frame after frame)."""
     return _model_geometry_of(obs.model_m.tobytes(), len(obs))
 
