@@ -68,7 +68,12 @@ from typing import Callable, Container, Sequence
 
 import cv2
 import numpy as np
-from scipy.optimize._minpack import _lmder  # least_squares' MINPACK LM (see _refine)
+from scipy.optimize import least_squares
+
+try:  # least_squares' own MINPACK LM, called directly (see _refine); private, so optional
+    from scipy.optimize._minpack import _lmder
+except ImportError:  # another scipy (e.g. a distribution's in an apt + colcon install)
+    _lmder = None
 from scipy.spatial.transform import Rotation
 
 from ficap_ros.camera import CameraModel
@@ -400,10 +405,27 @@ def _refine(obs: _Observations, T0: Transform) -> tuple[Transform, None, float]:
     if len(fun(x0)) < len(x0):
         raise ValueError("Method 'lm' doesn't work when the number of residuals is less than "
                          "the number of variables.")
-    x, info, _status = _lmder(fun, jac, x0.copy(), (), True, False, 1e-10, 1e-10, 1e-8, 50, 100.0, None)
-    res = info["fvec"]
+    x, res = _minimise(fun, jac, x0)
     T = Transform(Rotation.from_rotvec(x[:3]) * T0.rotation, x[3:])
     return T, None, float(np.sqrt(np.mean(res**2) * 2.0))
+
+
+def _minimise(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[np.ndarray], np.ndarray],
+              x0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(x, residuals at x) of ``least_squares(fun, x0, jac=jac, method="lm", xtol=1e-10,
+    ftol=1e-10, max_nfev=50)``: through MINPACK's lmder directly where this scipy has it with the
+    signature scipy 1.17 gives it (``test_pose_solver`` checks the two agree bit for bit), else
+    through ``least_squares`` itself."""
+    global _lmder
+    if _lmder is not None:
+        try:
+            x, info, _status = _lmder(fun, jac, x0.copy(), (), True, False, 1e-10, 1e-10, 1e-8, 50,
+                                      100.0, None)
+            return x, info["fvec"]
+        except TypeError:  # a scipy whose private lmder takes other arguments: never again
+            _lmder = None
+    sol = least_squares(fun, x0, jac=jac, method="lm", xtol=1e-10, ftol=1e-10, max_nfev=50)
+    return sol.x, sol.fun
 
 
 def _covariance(res: np.ndarray, J: np.ndarray) -> np.ndarray:

@@ -4,6 +4,7 @@ reaches the reprojection minimum from near and from far starts."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from ficap_ros.camera import CameraModel
@@ -50,13 +51,21 @@ def test_refine_reaches_the_least_squares_minimum() -> None:
     assert worst_deg < 1e-6 and worst_mm < 1e-6, (worst_deg, worst_mm)
 
 
-def test_refine_is_least_squares_lm_bit_for_bit() -> None:
+@pytest.mark.parametrize("direct", [True, False])
+def test_refine_is_least_squares_lm_bit_for_bit(direct: bool, monkeypatch: pytest.MonkeyPatch) -> None:
     """``_refine`` calls MINPACK's lmder as ``least_squares(method="lm")`` does (without that
     wrapper's per-call cost): the same pose and rms to the last bit, from near and far starts, so
-    labels do not move; a scipy upgrade that makes the two differ shows here."""
+    labels do not move; a scipy upgrade that makes the two differ shows here. Without the private
+    lmder (another scipy) it goes through least_squares itself: the same answers."""
     from scipy.optimize import least_squares
 
+    from ficap_ros import pose
     from ficap_ros.pose import _residuals_and_jacobian
+
+    if direct:
+        assert pose._lmder is not None  # the pinned scipy has it: the fast path is the one tested
+    else:
+        monkeypatch.setattr(pose, "_lmder", None)
 
     rng = np.random.default_rng(11)
     for k in range(12):
