@@ -228,6 +228,11 @@ class DetectorConfig:
             raise ConfigError("edge_max_shift_px must be > 0")
         if not 1 <= self.edge_fit_iterations <= 5:
             raise ConfigError(f"edge_fit_iterations must be in [1, 5], got {self.edge_fit_iterations}")
+        if self.edge_photometric and not (self.corner_refine == "edge" and self.edge_fit):
+            # It refines the cell-edge fit's corners: without that fit it would do nothing.
+            raise ConfigError("the photometric corner fit (edge_photometric, --photometric, "
+                              "detector.photometric) needs corner_refine 'edge' with edge_fit, "
+                              f"got corner_refine {self.corner_refine!r}, edge_fit {self.edge_fit}")
 
 
 def opencv_without_ipp() -> None:

@@ -189,6 +189,21 @@ def test_bad_config_and_roi():
         TagDetector().detect(np.zeros((50, 50), np.uint8), roi=(100, 100, 10, 10))
 
 
+@pytest.mark.parametrize("settings", [dict(corner_refine="subpix"), dict(corner_refine="apriltag"),
+                                      dict(corner_refine="none"), dict(edge_fit=False)])
+def test_photometric_without_the_cell_edge_fit_is_refused(settings, real_apriltag_dir, capsys):
+    # The photometric fit runs only after the cell-edge fit (edge refine): asked for without it,
+    # it would silently do nothing (ficap detect --refine subpix --photometric, the node's
+    # detector.corner_refine: subpix with detector.photometric: true).
+    with pytest.raises(ConfigError, match="photometric"):
+        DetectorConfig(edge_photometric=True, **settings)
+    DetectorConfig(**settings)  # fine without it
+    if "corner_refine" in settings:
+        path = str(real_apriltag_dir / "apriltags_jl" / "tagtest.jpg")
+        assert cli_main(["detect", "--refine", settings["corner_refine"], "--photometric", path]) == 1
+        assert "photometric" in capsys.readouterr().err
+
+
 def test_cli_json(real_apriltag_dir, capsys):
     path = str(real_apriltag_dir / "apriltags_jl" / "tagtest.jpg")
     assert cli_main(["detect", "--json", path]) == 0
