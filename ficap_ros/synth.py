@@ -74,6 +74,7 @@ from ficap_ros.metrics import rotation_from_ypr_deg
 from ficap_ros.transform import CAM_FROM_FORWARD, Transform
 
 __all__ = [
+    "RENDER_VERSION",
     "LIGHTINGS",
     "HEAD_CENTRE_M",
     "HEAD_SEMI_AXES_M",
@@ -96,6 +97,10 @@ __all__ = [
     "RESOLUTIONS",
 ]
 
+#: Raise it with every change that moves rendered pixels for the same options: ``ficap demo``'s
+#: cached sample drive is keyed on it (2: the physically ordered camera chain; 3: the neutral
+#: light mostly a lamp beside the camera).
+RENDER_VERSION = 3
 #: Illumination modes of ``RenderConfig.lighting``.
 LIGHTINGS = ("neutral", "high", "low")
 #: Head ellipsoid (hair/skull) in the cap frame C, metres: centre and semi-axes along x, y, z.

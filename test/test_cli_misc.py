@@ -139,3 +139,26 @@ def test_negative_or_zero_tolerances_are_bad_arguments(argv: list[str],
         main(argv)
     assert exc.value.code == 2
     assert f"argument {argv[-2]}:" in capsys.readouterr().err
+
+
+def test_demo_does_not_reuse_a_sample_drive_of_an_earlier_renderer(tmp_path, monkeypatch) -> None:
+    # The sample drive is rendered once per set of options and cached; a renderer that draws
+    # other pixels (the neutral light became mostly a lamp at the camera) needs its own key, or
+    # `make demo` keeps playing the drive an earlier renderer left in the cache.
+    from ficap_ros.commands import demo, synth
+
+    monkeypatch.setenv("FICAP_CACHE", str(tmp_path))
+    old = tmp_path / "sample_drive_540p_neutral_240_30.0_1_90_3.0_chain2"  # before the lamp
+    old.mkdir()
+    (old / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+    rendered = []
+
+    def fake_write(bag, model, progress=True, **sample):  # noqa: ANN001, ANN003 - records the call
+        rendered.append(bag)
+        bag.mkdir()
+        (bag / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
+
+    monkeypatch.setattr(synth, "write_synth_bag", fake_write)
+    bag = demo.sample_recording(progress=False)
+    assert rendered == [bag] and bag != old and bag.parent == tmp_path
+    assert demo.sample_recording(progress=False) == bag and rendered == [bag]  # cached from now on

@@ -29,11 +29,13 @@ def sample_recording(progress: bool = True, **options: object) -> Path:
     """
     from ficap_ros.cap_model import nominal_model
     from ficap_ros.commands.synth import write_synth_bag
+    from ficap_ros.synth import RENDER_VERSION
 
     sample = {**SAMPLE, **options}
     cache = Path(os.environ.get("FICAP_CACHE", Path.home() / ".cache" / "ficap_ros"))
-    # "chain2": frames from synth's camera chain (PSF, sensor, tone curve); a new renderer, a new key.
-    key = "_".join(str(v).replace(" ", "").replace(",", "x").strip("()") for v in sample.values()) + "_chain2"
+    # A new renderer, a new key ("chain2": synth's camera chain; 3: the neutral lamp).
+    key = ("_".join(str(v).replace(" ", "").replace(",", "x").strip("()") for v in sample.values())
+           + f"_chain{RENDER_VERSION}")
     bag = cache / f"sample_drive_{key}"
     if not (bag / "metadata.yaml").exists():
         cache.mkdir(parents=True, exist_ok=True)
