@@ -612,7 +612,7 @@ def run_fleet(
                 output = replay_mod.replay(
                     source, out / rec.rel, model, pose, calibration, calibrate_window_s, jobs,
                     namespace, progress=False, engine=lambda raws: bar.counted(process(raws)),
-                    summary_extra={"fingerprint": fp})
+                    summary_extra={"fingerprint": fp}, detector=detector)
                 results[i] = _result(rec, "done", output.summary,
                                      [r.reliability for r in output.records if r.T_cam_cap is not None],
                                      time.perf_counter() - t)

@@ -386,8 +386,9 @@ def replay(
         engine: what turns the raw frames into processed ones, in order (default:
             ``process_frames`` with ``jobs`` processes; ``ficap_ros.fleet`` passes a Ray one).
         summary_extra: more fields for summary.json (the fleet's fingerprint).
-        detector: detector settings (default ``DetectorConfig()``; ``process_frames`` only, not
-            an ``engine``).
+        detector: detector settings (default ``DetectorConfig()``): ``process_frames``'s; an
+            ``engine`` carries its own, and this only records them (summary.json's
+            ``photometric``).
 
     Raises:
         BagError: unreadable input. OutputError: an output that is or holds the input, a folder
@@ -448,6 +449,8 @@ def _replay_into(
         "image_topic": source.image_topic,
         "camera_info_topic": source.camera_info_topic,
         "method": pose.method,
+        # Only when on, so summaries of default runs read as before.
+        **({"photometric": True} if detector is not None and detector.edge_photometric else {}),
         "jobs": jobs,
         **_summary(records, frames, elapsed),
         # A damaged input: frames_lost is None when the container cannot say how many.

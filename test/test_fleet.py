@@ -191,6 +191,7 @@ def test_photometric_fleet_matches_a_single_photometric_replay(fleet_in: Path, t
     recs = [str(fleet_in / "alice/d1"), str(fleet_in / "bob/d2")]
     assert main(["replay", *recs, "--out", str(out), "--quiet"]) == 0
     default = (out / "d1" / "labels.csv").read_text()
+    assert "photometric" not in json.loads((out / "d1" / "summary.json").read_text())  # as before
     assert main(["replay", *recs, "--out", str(out), "--quiet", "--photometric"]) == 0
     doc = json.loads((out / "fleet_summary.json").read_text())
     assert [r["status"] for r in doc["recordings"]] == ["done", "done"]
@@ -199,6 +200,9 @@ def test_photometric_fleet_matches_a_single_photometric_replay(fleet_in: Path, t
     single = tmp_path / "single"
     assert main(["replay", recs[0], "--out", str(single), "--quiet", "--photometric"]) == 0
     assert (out / "d1" / "labels.csv").read_text() == (single / "labels.csv").read_text() != default
+    # summary.json says how the labels were made: the single replay's too (it has no fingerprint).
+    assert json.loads((single / "summary.json").read_text())["photometric"] is True
+    assert json.loads((out / "d1" / "summary.json").read_text())["photometric"] is True
     assert main(["replay", *recs, "--out", str(out), "--quiet", "--photometric"]) == 0
     doc = json.loads((out / "fleet_summary.json").read_text())
     assert [r["status"] for r in doc["recordings"]] == ["skipped", "skipped"]
