@@ -144,8 +144,9 @@ class DetectorConfig:
         edge_photometric: then fit each fitted tag once more, as a whole, to its pixels near the
             cell boundaries: the printed pattern blurred in linear light (blur fitted per tag)
             through an sRGB tone curve (``fit_tags_photometric``, ``ficap_ros.photometric``); more
-            accurate on noisy frames (issue 10), at several ms per frame (docs/detection.md
-            "A tag-level photometric fit"); ``edge`` refine with ``edge_fit`` only. Off by default.
+            accurate on noisy frames (issue 10), at ~3 ms of CPU a tag, ~65 ms a 1080p frame
+            (docs/detection.md "A tag-level photometric fit", docs/benchmarks.md); ``edge`` refine
+            with ``edge_fit`` only (else ``ConfigError``). Off by default.
     """
 
     backend: str = "opencv"
