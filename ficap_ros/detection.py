@@ -982,12 +982,16 @@ def partly_hidden(gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray) -> 
 
     c = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
     k = len(c)
+    usable = _usable_quads(c)
+    ids = np.asarray(ids).reshape(-1)
+    if not usable.all():  # each tag is read alone: one bad quadrilateral flags itself only
+        out = np.ones(k, dtype=bool)
+        if usable.any():
+            out[usable] = partly_hidden(gray, c[usable], ids[usable])
+        return out
     if k == 0:
         return np.zeros(0, dtype=bool)
-    try:
-        hom = tag_homographies(c)
-    except np.linalg.LinAlgError:
-        return np.ones(k, dtype=bool)
+    hom = tag_homographies(c)
     p = hom @ _GRID_H.T  # (K, 3, 100); a matmul, not einsum: a tenth of the time
     with np.errstate(divide="ignore", invalid="ignore"):
         x = (p[:, 0] / p[:, 2]).astype(np.float32)
@@ -997,7 +1001,7 @@ def partly_hidden(gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray) -> 
     y = np.where(np.isfinite(y), y, -1.0).astype(np.float32)
     vals = cv2.remap(gray, x, y, cv2.INTER_LINEAR,
                      borderMode=cv2.BORDER_CONSTANT, borderValue=0).astype(np.float64)  # (K, 100)
-    black = np.stack([_black_samples(int(i)) for i in np.asarray(ids).reshape(-1)])
+    black = np.stack([_black_samples(int(i)) for i in ids])
     white_level = _masked_lower_median(vals, ~black)
     black_level = _masked_lower_median(vals, black)
     contrast = np.maximum(white_level - black_level, 1.0)
@@ -1535,14 +1539,27 @@ def fit_tags_photometric(
     there) of tags given by their corners and ids: (corners (N, 4, 2), fitted (N,) bool; a tag not
     fitted keeps its corners)."""
     c = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    ids = np.asarray(ids).reshape(-1)
+    usable = _usable_quads(c)
+    if not usable.all():  # a tag's fit is its own: one bad quadrilateral stays unfitted alone
+        out, fitted = c.copy(), np.zeros(len(c), dtype=bool)
+        if usable.any():
+            out[usable], fitted[usable] = fit_tags_photometric(gray, c[usable], ids[usable], **kwargs)
+        return out, fitted
     if len(c) == 0:
         return c.copy(), np.zeros(0, dtype=bool)
-    try:
-        hom = tag_homographies(c)
-    except np.linalg.LinAlgError:
-        return c.copy(), np.zeros(len(c), dtype=bool)
-    cells = np.stack([tag_cells(int(i)) for i in np.asarray(ids).reshape(-1)])
-    return fit_tags(gray, c, hom, cells, **kwargs)
+    cells = np.stack([tag_cells(int(i)) for i in ids])
+    return fit_tags(gray, c, tag_homographies(c), cells, **kwargs)
+
+
+def _usable_quads(corners_px: np.ndarray) -> np.ndarray:
+    """(K,) which quadrilaterals (K, 4, 2) give a homography (``tag_homographies`` raises for the
+    batch if one does not): finite corners, c1, c2 and c3 not on a line."""
+    c = corners_px
+    d1, d2 = c[:, 1] - c[:, 2], c[:, 3] - c[:, 2]
+    with np.errstate(invalid="ignore", over="ignore"):
+        den = d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1]
+    return np.isfinite(c).all(axis=(1, 2)) & np.isfinite(den) & (den != 0.0)
 
 
 def _group_median(x: np.ndarray, mask: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.ndarray:

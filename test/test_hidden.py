@@ -116,3 +116,26 @@ def test_replay_leaves_out_the_hidden_tag_with_a_bad_corner() -> None:
     assert out[True].pose.rms_px < out[False].pose.rms_px
     err = {k: angle_deg(v.pose.T_cam_cap.rotation, frame.T_cam_cap.rotation) for k, v in out.items()}
     assert err[True] < err[False] + 0.002
+
+
+def test_one_degenerate_quadrilateral_does_not_flag_or_unfit_the_others() -> None:
+    # The frame's tags are read together; a tag whose corners give no homography (three on a
+    # line, NaN) is flagged (or left unfitted) alone: the others' answers are the ones they get
+    # without it (it used to flag every tag of the frame hidden, and leave every tag unfitted).
+    from ficap_ros.detection import fit_tags_photometric
+
+    dets, rf = _detections("540p", "neutral", HEAD_CENTRE_M)
+    c = np.stack([d.corners_px for d in dets])
+    ids = np.array([d.tag_id for d in dets])
+    alone = partly_hidden(rf.image, c, ids)
+    fit_alone, ok_alone = fit_tags_photometric(rf.image, c, ids)
+    assert ok_alone.sum() >= len(ids) - 2 and not alone.all()
+    for bad in (np.array([[10.0, 10.0], [20.0, 10.0], [30.0, 10.0], [10.0, 40.0]]), np.full((4, 2), np.nan)):
+        with_bad = np.concatenate([c[:2], bad[None], c[2:]])
+        ids_bad = np.concatenate([ids[:2], [ids[0]], ids[2:]])
+        flags = partly_hidden(rf.image, with_bad, ids_bad)
+        assert flags[2] and np.array_equal(np.delete(flags, 2), alone)
+        fit, ok = fit_tags_photometric(rf.image, with_bad, ids_bad)
+        assert not ok[2] and np.array_equal(np.delete(ok, 2), ok_alone)
+        np.testing.assert_array_equal(np.delete(fit, 2, axis=0), fit_alone)
+        np.testing.assert_array_equal(fit[2], bad)
