@@ -73,3 +73,14 @@ def test_node_defaults_are_the_offline_pipeline_and_the_shipped_file() -> None:
     shipped = yaml.safe_load((Path(__file__).resolve().parents[1] / "config" / "ficap.yaml")
                              .read_text())["/**"]["ros__parameters"]
     assert shipped == {p.name: p.default for p in PARAMETERS}
+
+
+def test_detector_photometric_reaches_the_detector() -> None:
+    # The node's detector.photometric is the CLI's --photometric: DetectorConfig.edge_photometric
+    # of the pipeline it builds; with another corner refinement the node refuses to start.
+    on = NodeConfig.from_values(_defaults(**{"detector.photometric": True}))
+    assert on.frame_processor().detector.config.edge_photometric is True
+    assert NodeConfig.from_values(_defaults()).frame_processor().detector.config.edge_photometric is False
+    off = NodeConfig.from_values(_defaults(**{"detector.photometric": True, "detector.corner_refine": "subpix"}))
+    with pytest.raises(ConfigError, match="photometric"):
+        off.frame_processor()
