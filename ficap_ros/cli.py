@@ -55,15 +55,11 @@ def non_negative_int(text: str) -> int:
 
 
 def _version() -> str:
-    """The installed package's version (the package metadata), else the source's."""
-    from importlib.metadata import PackageNotFoundError, version
+    """The running source's version (``ficap_ros.__version__``, which package.xml and setup.py
+    repeat): not the installed metadata, which an editable install leaves stale after a pull."""
+    from ficap_ros import __version__
 
-    try:
-        return version("ficap_ros")
-    except PackageNotFoundError:
-        from ficap_ros import __version__
-
-        return __version__
+    return __version__
 
 
 def finite_float(text: str) -> float:

@@ -18,6 +18,20 @@ def test_version(capsys: pytest.CaptureFixture[str]) -> None:
     assert capsys.readouterr().out.strip() == f"ficap {__version__}"
 
 
+def test_version_is_one_number_everywhere() -> None:
+    # The fleet's fingerprint holds __version__ (outputs of another version are redone): it must be
+    # the version colcon and pip install, bumped whenever labels change.
+    import re
+    from pathlib import Path
+
+    from ficap_ros import __version__
+
+    root = Path(__file__).resolve().parents[1]
+    xml = re.search(r"<version>([^<]+)</version>", (root / "package.xml").read_text()).group(1)
+    setup = re.search(r'version="([^"]+)"', (root / "setup.py").read_text()).group(1)
+    assert xml == setup == __version__
+
+
 def test_demo_rejects_what_it_cannot_honour(capsys: pytest.CaptureFixture[str]) -> None:
     # Live: a drive no longer than the 3 s frontal segment cannot be calibrated: one line, exit 1
     # (before anything is rendered or ROS started).
