@@ -410,20 +410,34 @@ def _refine(obs: _Observations, T0: Transform) -> tuple[Transform, None, float]:
     return T, None, float(np.sqrt(np.mean(res**2) * 2.0))
 
 
+def _direct_lmder_works() -> bool:
+    """This scipy's private lmder takes scipy 1.17's arguments: tried once on a line fit, so a
+    TypeError raised later by our own residuals is never taken for a changed signature."""
+    try:
+        x, info, _status = _lmder(lambda x: x - 1.0, lambda x: np.eye(2), np.zeros(2), (), True, False,
+                                  1e-10, 1e-10, 1e-8, 50, 100.0, None)
+        return bool(np.allclose(x, 1.0)) and "fvec" in info
+    except (TypeError, ValueError):
+        return False
+
+
+#: Whether ``_minimise`` calls lmder directly; None until its first call decides.
+_DIRECT_LMDER: bool | None = None
+
+
 def _minimise(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[np.ndarray], np.ndarray],
               x0: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(x, residuals at x) of ``least_squares(fun, x0, jac=jac, method="lm", xtol=1e-10,
     ftol=1e-10, max_nfev=50)``: through MINPACK's lmder directly where this scipy has it with the
     signature scipy 1.17 gives it (``test_pose_solver`` checks the two agree bit for bit), else
     through ``least_squares`` itself."""
-    global _lmder
-    if _lmder is not None:
-        try:
-            x, info, _status = _lmder(fun, jac, x0.copy(), (), True, False, 1e-10, 1e-10, 1e-8, 50,
-                                      100.0, None)
-            return x, info["fvec"]
-        except TypeError:  # a scipy whose private lmder takes other arguments: never again
-            _lmder = None
+    global _DIRECT_LMDER
+    if _DIRECT_LMDER is None:
+        _DIRECT_LMDER = _lmder is not None and _direct_lmder_works()
+    if _DIRECT_LMDER:
+        x, info, _status = _lmder(fun, jac, x0.copy(), (), True, False, 1e-10, 1e-10, 1e-8, 50,
+                                  100.0, None)
+        return x, info["fvec"]
     sol = least_squares(fun, x0, jac=jac, method="lm", xtol=1e-10, ftol=1e-10, max_nfev=50)
     return sol.x, sol.fun
 

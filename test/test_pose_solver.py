@@ -62,10 +62,9 @@ def test_refine_is_least_squares_lm_bit_for_bit(direct: bool, monkeypatch: pytes
     from ficap_ros import pose
     from ficap_ros.pose import _residuals_and_jacobian
 
-    if direct:
-        assert pose._lmder is not None  # the pinned scipy has it: the fast path is the one tested
-    else:
-        monkeypatch.setattr(pose, "_lmder", None)
+    if direct:  # the pinned scipy has it: the fast path is the one tested
+        assert pose._lmder is not None and pose._direct_lmder_works()
+    monkeypatch.setattr(pose, "_DIRECT_LMDER", direct)
 
     rng = np.random.default_rng(11)
     for k in range(12):
