@@ -124,7 +124,9 @@ class FrameProcessor:
         used = detections if self.tracker is None else \
             self.tracker.pose_tags(detections, predicted, pose_config)
         cfg = self.detector.config
-        hidden = hidden_tag_ids(gray, used) if cfg.hidden_check and cfg.corner_refine == "edge" else ()
+        # Only the joint solver reads it (``paper`` and ``naive`` have no tag-level outlier step).
+        hidden = hidden_tag_ids(gray, used) if (cfg.hidden_check and cfg.corner_refine == "edge"
+                                                and pose_config.method == "joint") else ()
         result = estimate_cap_pose(used, self.model, camera, pose_config, start=predicted, hidden_ids=hidden)
         t2 = time.perf_counter()
         pose = result.pose
