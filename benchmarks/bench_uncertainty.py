@@ -25,7 +25,14 @@ Second table: what the translation bound is made of (``pose.uncertainty_sources`
 source, the median over frames of its share of the translation variance.
 What-ifs (not recorded): ``--tilt-shift-px`` (a floor for the shift along the foreshortening),
 ``--per-tag-offset`` (the measured radial offset's pose error taken tag by tag instead of as the
-tags' mean, ``per_tag_offset_terms``); ``--synth-as`` adds ``synth.render`` at every blender_dev
+tags' mean, ``per_tag_offset_terms``); ``--photometric`` (ours also with the tag-level photometric
+corner fit, ``DetectorConfig(edge_photometric=True)``, beside the default corners; the equal-weights
+row left out; docs/benchmarks.md "Calibrated uncertainty with photometric corners"); ``--grid``
+(the synth calibration again, from each frame's kept uncertainty terms, no re-fit: every
+``GRID`` combination of the light-gradient gains and the residual inflation; the pick is the one
+with the smallest bounds, mean log sharpness over rotation and translation of the synth rows,
+whose rotation and translation bounds cover >= 90 % on every synth row; blender rows shown at
+it, a check); ``--synth-as`` adds ``synth.render`` at every blender_dev
 set's poses and chain (``bench_shading.synth_as``).
 Sets: every ``../shared/data/blender_dev`` set (independent renders; a check, nothing is tuned to
 them) and ``ficap synth`` drives (540p/1080p x neutral/high/low, one frame a second of a
@@ -35,7 +42,7 @@ noise realisation of them (a held-out check).
 
 Usage: .venv/bin/python benchmarks/bench_uncertainty.py [--frames 60] [--record] [--dump FILE]
        [--blender-dev PATH] [--seed-offset N] [--no-ceiling] [--tilt-shift-px PX] [--synth-as]
-       [--per-tag-offset]
+       [--per-tag-offset] [--photometric] [--grid]
 """
 
 from __future__ import annotations
@@ -44,6 +51,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -65,6 +73,15 @@ METHODS = {
     "ficap, equal weights": (DetectorConfig(),
                              PoseConfig(method="joint", uncertainty=UncertaintyConfig(weight_tags=False))),
     "naive peer": (DetectorConfig(corner_refine="subpix"), PoseConfig(method="naive")),
+}
+#: ``--photometric``: ours with the tag-level photometric corner fit.
+PHOTOMETRIC = "ficap joint, photometric"
+#: ``--grid``: the UncertaintyConfig values searched (light_gradient_gain, light_gradient_tilt_gain,
+#: residual_inflation), as the defaults were calibrated.
+GRID = {
+    "light_gradient_gain": (0.0, 0.1, 0.2, 0.3, 0.5, 0.7, 1.0),
+    "light_gradient_tilt_gain": (0.0, 0.1, 0.2, 0.35, 0.5, 0.7, 1.0),
+    "residual_inflation": (1.0, 1.1, 1.25, 1.5),
 }
 #: Second-realisation render seeds: seed * 10_000 + frame index + this (frame indices stay < 5000).
 CEILING_SEED_OFFSET = 5000
@@ -100,7 +117,8 @@ def ideal_ratio(covs: list[np.ndarray], rows: slice, scale: float, rng: np.rando
     return float(np.median(bounds) / np.median(np.concatenate(norms)))
 
 
-KEYS = ("rot_err", "trans_err", "rot95", "trans95", "rel", "rot95_res", "tags", "cov", "key", "sources")
+KEYS = ("rot_err", "trans_err", "rot95", "trans95", "rel", "rot95_res", "tags", "cov", "key", "sources",
+        "terms")
 #: What the translation bound is made of: groups of ``pose.uncertainty_sources``.
 SOURCE_GROUPS = {
     "residuals: per-tag shift": ("residual_shift",),
@@ -192,6 +210,7 @@ def run_frames(frames, camera, model, label: str, methods=METHODS) -> dict[str, 
             o["key"].append(int(stamp))
             o["sources"].append(translation_shares(methods[name][1].uncertainty) if "terms" in _CAPTURED
                                 else [float("nan")] * len(SOURCE_GROUPS))
+            o["terms"].append(_CAPTURED.get("terms"))
         prog.update()
     prog.close()
     return out
@@ -231,6 +250,55 @@ def summarize(o: dict[str, list], twin: dict[str, list] | None = None) -> dict[s
             s["ceiling_rot"] = float(spearmanr([p[0] for p in pairs], [p[2][0] for p in pairs]).correlation)
             s["ceiling_trans"] = float(spearmanr([p[1] for p in pairs], [p[2][1] for p in pairs]).correlation)
     return s
+
+
+def bounds_at(o: dict[str, list], config: UncertaintyConfig) -> tuple[np.ndarray, np.ndarray]:
+    """Every frame's (rotation deg, translation mm) bounds again under ``config``, from its kept
+    terms (``pose.combine_uncertainty`` / ``uncertainty_bounds`` / ``error_bound95``, as
+    ``pose.estimate`` does; the pose itself does not depend on these settings)."""
+    rot, trans = [], []
+    for t in o["terms"]:
+        if t is None:
+            rot.append(float("nan"))
+            trans.append(float("nan"))
+            continue
+        terms, seen = t
+        cov = pose_mod.combine_uncertainty(terms, seen, config)
+        r, tr = pose_mod.error_bound95(cov, *pose_mod.uncertainty_bounds(terms, seen, config, cov))
+        rot.append(r)
+        trans.append(tr)
+    return np.asarray(rot), np.asarray(trans)
+
+
+def grid_search(per_set: dict[str, dict[str, list]], base: UncertaintyConfig) -> tuple[dict, list]:
+    """``--grid``: (pick, rows). The ``GRID`` combination with the smallest mean log sharpness
+    (rotation and translation) over the ``synth`` sets among those covering >= 90 % in both on
+    every synth set (none: the one with the largest worst coverage); rows: per set, coverage and
+    sharpness at the pick."""
+    import itertools
+
+    keys = list(GRID)
+    synth = [n for n in per_set if n.startswith("synth ") and not n.startswith("synth as ")]
+    errs = {n: (np.asarray(o["rot_err"], float), np.asarray(o["trans_err"], float))
+            for n, o in per_set.items()}
+    best, best_key = None, None
+    for values in itertools.product(*(GRID[k] for k in keys)):
+        cfg = replace(base, **dict(zip(keys, values)))
+        worst, cost = 100.0, 0.0
+        for n in synth:
+            b = bounds_at(per_set[n], cfg)
+            for e, bb in zip(errs[n], b):
+                worst = min(worst, float(np.mean(e <= bb) * 100))
+                cost += float(np.log(np.median(bb) / np.median(e)))
+        key = (worst < 90.0, -worst if worst < 90.0 else cost)
+        if best_key is None or key < best_key:
+            best, best_key = cfg, key
+    rows = []
+    for n, o in per_set.items():
+        b = bounds_at(o, best)
+        rows.append([n] + [f"{np.mean(e <= bb) * 100:.0f} % / {np.median(bb) / np.median(e):.2f}"
+                           for e, bb in zip(errs[n], b)])
+    return {k: getattr(best, k) for k in keys}, rows
 
 
 def blender_sets(root: Path | None) -> dict[str, tuple]:
@@ -297,7 +365,21 @@ def main() -> int:
                     help="also synth.render at every blender_dev set's poses and chain (bench_shading.synth_as)")
     ap.add_argument("--per-tag-offset", action="store_true",
                     help="what-if: per_tag_offset_terms (each tag's radial offset measured; not recorded)")
+    ap.add_argument("--photometric", action="store_true",
+                    help="ours also with DetectorConfig(edge_photometric=True), beside the default "
+                         "corners (not recorded: docs/benchmarks.md has its own section)")
+    ap.add_argument("--grid", action="store_true",
+                    help="what-if: the synth calibration grid (GRID) again for each of ours (not recorded)")
     args = ap.parse_args()
+    if args.record and (args.photometric or args.grid):
+        ap.error("--photometric and --grid are not recorded (the section's text is by hand)")
+    if args.photometric:
+        det, pose = METHODS.pop("ficap joint")
+        METHODS.pop("ficap, equal weights")
+        naive = METHODS.pop("naive peer")
+        METHODS.update({"ficap joint": (det, pose),
+                        PHOTOMETRIC: (replace(det, edge_photometric=True), pose),
+                        "naive peer": naive})
     if args.per_tag_offset:
         if args.record:
             ap.error("--per-tag-offset is a what-if: not recorded")
@@ -323,16 +405,19 @@ def main() -> int:
         sets.update(synth_sets(args.frames, args.resolutions.split(","), args.lightings.split(","),
                                args.seed_offset))
     results, dump = [], {}
-    ours = {"ficap joint": METHODS["ficap joint"]}
+    ours = {k: v for k, v in METHODS.items() if k.startswith("ficap joint")}
+    grids: dict[str, dict[str, dict[str, list]]] = {k: {} for k in ours}
     for name, (frames, camera) in sets.items():
         per = run_frames(frames() if callable(frames) else frames, camera, model, name)
         twin = None
         if callable(frames) and not args.no_ceiling:
             twin = run_frames(frames(CEILING_SEED_OFFSET), camera, model, name + " (2nd noise)", ours)
         for method, o in per.items():
+            if method in grids:
+                grids[method][name] = o
             s = summarize(o, twin[method] if twin is not None and method in twin else None)
             results.append((name, method, s))
-            dump[f"{name} | {method}"] = {k: v for k, v in o.items() if k not in ("cov", "sources")}
+            dump[f"{name} | {method}"] = {k: v for k, v in o.items() if k not in ("cov", "sources", "terms")}
             if s["n"] >= 3:
                 print(f"{name:34} {method:20} n {s['n']:3d} rot err {s['rot_median_err']:.4f} cover "
                       f"{s['rot_coverage']:5.1f}% sharp {s['rot_sharpness']:5.2f} (ideal {s['rot_ideal']:.2f}) "
@@ -363,6 +448,13 @@ def main() -> int:
               "`pose.uncertainty_sources`; shares of a frame sum to 1, their medians need not).\n\n"
               + src_table)
     print(table)
+    if args.grid:
+        for method, per_set in grids.items():
+            pick, grid_rows = grid_search(per_set, METHODS[method][1].uncertainty)
+            print(f"\n{method}: the synth grid picks {pick}\n")
+            print(md_table(["set", "rotation coverage / sharpness", "translation coverage / sharpness"],
+                           grid_rows))
+    print(f"\n{(time.time() - t0) / 60:.1f} min; {load_avg()} ({load_before} at the start)", file=sys.stderr)
     if args.record:
         u = PoseConfig().uncertainty
         body = (f"Machine: {machine_line()}; {load_avg()} ({load_before} at the start); "
