@@ -27,7 +27,8 @@ What-ifs (not recorded): ``--tilt-shift-px`` (a floor for the shift along the fo
 ``--per-tag-offset`` (the measured radial offset's pose error taken tag by tag instead of as the
 tags' mean, ``per_tag_offset_terms``); ``--photometric`` (ours also with the tag-level photometric
 corner fit, ``DetectorConfig(edge_photometric=True)``, beside the default corners; the equal-weights
-row left out; docs/benchmarks.md "Calibrated uncertainty with photometric corners"); ``--grid``
+row left out; docs/benchmarks.md "Calibrated uncertainty with photometric corners"); ``--at KEY=VALUE,...`` (ours' coverage
+and sharpness with other ``UncertaintyConfig`` values, from the same kept terms); ``--grid``
 (the synth calibration again, from each frame's kept uncertainty terms, no re-fit: every
 ``GRID`` combination of the light-gradient gains and the residual inflation; the pick is the one
 with the smallest bounds, mean log sharpness over rotation and translation of the synth rows,
@@ -42,7 +43,7 @@ noise realisation of them (a held-out check).
 
 Usage: .venv/bin/python benchmarks/bench_uncertainty.py [--frames 60] [--record] [--dump FILE]
        [--blender-dev PATH] [--seed-offset N] [--no-ceiling] [--tilt-shift-px PX] [--synth-as]
-       [--per-tag-offset] [--photometric] [--grid]
+       [--per-tag-offset] [--photometric] [--grid] [--at KEY=VALUE,...]
 """
 
 from __future__ import annotations
@@ -293,12 +294,18 @@ def grid_search(per_set: dict[str, dict[str, list]], base: UncertaintyConfig) ->
         key = (worst < 90.0, -worst if worst < 90.0 else cost)
         if best_key is None or key < best_key:
             best, best_key = cfg, key
+    return {k: getattr(best, k) for k in keys}, coverage_rows(per_set, best)
+
+
+def coverage_rows(per_set: dict[str, dict[str, list]], config: UncertaintyConfig) -> list[list[str]]:
+    """Per set: rotation and translation coverage / sharpness with the bounds under ``config``."""
     rows = []
     for n, o in per_set.items():
-        b = bounds_at(o, best)
-        rows.append([n] + [f"{np.mean(e <= bb) * 100:.0f} % / {np.median(bb) / np.median(e):.2f}"
-                           for e, bb in zip(errs[n], b)])
-    return {k: getattr(best, k) for k in keys}, rows
+        b = bounds_at(o, config)
+        e = (np.asarray(o["rot_err"], float), np.asarray(o["trans_err"], float))
+        rows.append([n] + [f"{np.mean(ee <= bb) * 100:.0f} % / {np.median(bb) / np.median(ee):.2f}"
+                           for ee, bb in zip(e, b)])
+    return rows
 
 
 def blender_sets(root: Path | None) -> dict[str, tuple]:
@@ -370,9 +377,13 @@ def main() -> int:
                          "corners (not recorded: docs/benchmarks.md has its own section)")
     ap.add_argument("--grid", action="store_true",
                     help="what-if: the synth calibration grid (GRID) again for each of ours (not recorded)")
+    ap.add_argument("--at", type=lambda t: {k: float(v) for k, v in (kv.split("=") for kv in t.split(","))},
+                    default=None, metavar="KEY=VALUE,...",
+                    help="what-if: also every set's coverage / sharpness for ours with these "
+                         "UncertaintyConfig values (e.g. light_gradient_tilt_gain=0.1; not recorded)")
     args = ap.parse_args()
-    if args.record and (args.photometric or args.grid):
-        ap.error("--photometric and --grid are not recorded (the section's text is by hand)")
+    if args.record and (args.photometric or args.grid or args.at):
+        ap.error("--photometric, --grid and --at are not recorded (the section's text is by hand)")
     if args.photometric:
         det, pose = METHODS.pop("ficap joint")
         METHODS.pop("ficap, equal weights")
@@ -440,14 +451,22 @@ def main() -> int:
                       "sharpness (ideal)", "Spearman", "translation: median error / bound (mm)",
                       "coverage", "sharpness (ideal)", "Spearman", "ceiling rot / trans",
                       "residual-only rotation bound: coverage / sharpness"], rows)
-    src_rows = [[name, f"{s['trans_sharpness']:.2f}"] + [f"{v:.2f}" for v in s["sources"]]
-                for name, method, s in results if s["n"] >= 3 and method == "ficap joint"]
-    src_table = md_table(["set (ours)", "translation sharpness"] + list(SOURCE_GROUPS), src_rows)
+    src_rows = [[name] + ([method] if args.photometric else []) + [f"{s['trans_sharpness']:.2f}"]
+                + [f"{v:.2f}" for v in s["sources"]]
+                for name, method, s in results if s["n"] >= 3 and method in ours]
+    src_table = md_table(["set (ours)"] + (["method"] if args.photometric else [])
+                         + ["translation sharpness"] + list(SOURCE_GROUPS), src_rows)
     table += ("\n\nWhat the translation bound is made of (ours): per source, the median over frames of "
               "its share of the translation variance (trace of the translation block of "
               "`pose.uncertainty_sources`; shares of a frame sum to 1, their medians need not).\n\n"
               + src_table)
     print(table)
+    if args.at:
+        for method, per_set in grids.items():
+            cfg = replace(METHODS[method][1].uncertainty, **args.at)
+            print(f"\n{method} at {args.at}\n")
+            print(md_table(["set", "rotation coverage / sharpness", "translation coverage / sharpness"],
+                           coverage_rows(per_set, cfg)))
     if args.grid:
         for method, per_set in grids.items():
             pick, grid_rows = grid_search(per_set, METHODS[method][1].uncertainty)
