@@ -173,7 +173,7 @@ def fit_tags(
     n_par = 8 + 7 + (1 if free_tone else 0)
     theta = np.zeros((n, n_par - 8))  # Lb0, Lb_u, Lb_v, Lw0, Lw_u, Lw_v, log blur scale, [log kappa]
     keep = np.ones(len(tag), dtype=bool)
-    ks = np.arange(-2, 3, dtype=np.float64)  # cell boundaries b + k, k = -2..2
+    ks = np.arange(-2, 3, dtype=np.float64)[:, None]  # cell boundaries b + k, k = -2..2
     size = tab.shape[1]
     flat = tab.ravel()
     off = np.arange(-2, 2)
@@ -181,10 +181,13 @@ def fit_tags(
     ok_tag = counts >= 40
     lam = 1e-3
     misfit = np.full(n, np.inf)
+    # Per-pixel arrays are laid out (quantity, pixel): rows are contiguous, which keeps numpy's
+    # broadcasting and the normal equations' products cheap (the fit's cost is all elementwise).
+    J = np.empty((n_par, len(tag)))
     for it in range(iterations):
-        ht = h[tag]
+        # Each tag's parameters, repeated over its pixels (pixels come tag after tag).
+        a11, a12, a13, a21, a22, a23, a31, a32 = np.repeat(h.T, counts, axis=1)
         # Tag coordinates of each pixel: the inverse of H (per pixel: H differs per tag).
-        a11, a12, a13, a21, a22, a23, a31, a32 = (ht[:, k] for k in range(8))
         # Solve [a11 - a31 x, a12 - a32 x; a21 - a31 y, a22 - a32 y] (u, v) = (x - a13, y - a23).
         m11, m12, m21, m22 = a11 - a31 * px, a12 - a32 * px, a21 - a31 * py, a22 - a32 * py
         det = m11 * m22 - m12 * m21
@@ -196,7 +199,8 @@ def fit_tags(
         j11, j12, j21, j22 = m11 / den, m12 / den, m21 / den, m22 / den
         jdet = j11 * j22 - j12 * j21
         # grad u = (j22, -j12) / jdet, grad v = (-j21, j11) / jdet (rows of J^-1).
-        scale = sd_px * np.exp(theta[tag, 6])
+        th = np.repeat(theta.T, counts, axis=1)
+        scale = sd_px * np.exp(th[6])
         su = scale * np.hypot(j22, j12) / np.abs(jdet)
         sv = scale * np.hypot(j21, j11) / np.abs(jdet)
         if it == 0:
@@ -206,22 +210,32 @@ def fit_tags(
             bu, bv = np.round(u), np.round(v)
             ci = np.clip(bu.astype(np.intp) + _PAD, 2, size - 2)
             cj = np.clip(bv.astype(np.intp) + _PAD, 2, size - 2)
-            patch = flat[((tag * size + cj) * size + ci)[:, None] + nb].reshape(-1, 4, 4)  # [p, v, u]
-        zu = (bu[:, None] + ks - u[:, None]) / su[:, None]  # (P, 5)
-        zv = (bv[:, None] + ks - v[:, None]) / sv[:, None]
-        eu, ev = ndtr(zu), ndtr(zv)
-        gu = np.exp(-0.5 * zu * zu) * (0.3989422804014327 / su[:, None])  # d ndtr(z) / d(boundary - u)
-        gv = np.exp(-0.5 * zv * zv) * (0.3989422804014327 / sv[:, None])
-        au, av = eu[:, 1:] - eu[:, :-1], ev[:, 1:] - ev[:, :-1]  # (P, 4): each cell's share along u / v
-        dau, dav = gu[:, :-1] - gu[:, 1:], gv[:, :-1] - gv[:, 1:]  # d share / du, / dv
-        # d share / d log(blur scale): d ndtr(z) / d log s = -phi(z) z.
-        hu, hv = gu * zu * su[:, None], gv * zv * sv[:, None]
-        sau, sav = hu[:, :-1] - hu[:, 1:], hv[:, :-1] - hv[:, 1:]
-        pa = np.einsum("pjk,pk->pj", patch, au)  # (P, 4): each row's share
-        black = np.einsum("pj,pj->p", pa, av)
-        dbu = np.einsum("pj,pj->p", np.einsum("pjk,pk->pj", patch, dau), av)
-        dbv = np.einsum("pj,pj->p", pa, dav)
-        dbs = np.einsum("pj,pj->p", np.einsum("pjk,pk->pj", patch, sau), av) + np.einsum("pj,pj->p", pa, sav)
+            patch = flat[nb[:, None] + ((tag * size + cj) * size + ci)].reshape(4, 4, -1)  # [v, u, p]
+        # u and v stacked: rows 0-4 the boundaries along u, 5-9 along v (one ufunc call each).
+        isd = 1.0 / np.concatenate([su, sv])  # (2P,)
+        z = (np.concatenate([bu - u, bv - v]) + ks) * isd  # (5, 2P)
+        # Boundaries further than 9 sds count as fully on one side (ndtr(-9) = 1e-19, phi(9) = 1e-18):
+        # unclipped, a large tag's far boundaries (tens of sds) make exp() return subnormals, whose
+        # arithmetic is ~100x slower, in every product after it.
+        np.clip(z, -9.0, 9.0, out=z)
+        e = ndtr(z)
+        phi = np.exp(-0.5 * z * z) * 0.3989422804014327
+        g = phi * isd  # d ndtr(z) / d(boundary - u)
+        hh = phi * z  # d ndtr(z) / d log(blur scale) = -phi(z) z
+        a = e[1:] - e[:-1]  # (4, 2P): each cell's share along u / v
+        da = g[:-1] - g[1:]  # d share / du, / dv
+        sa = hh[:-1] - hh[1:]
+        npx = len(tag)
+        au, av = a[:, :npx], a[:, npx:]
+        dau, dav = da[:, :npx], da[:, npx:]
+        sau, sav = sa[:, :npx], sa[:, npx:]
+        # Each row's share along u (and its derivatives), then summed over rows against v's.
+        rows = np.einsum("jkp,ikp->ijp", patch, np.stack([au, dau, sau]))  # (3, 4, P)
+        pa = rows[0]
+        black = np.einsum("jp,jp->p", pa, av)
+        dbu = np.einsum("jp,jp->p", rows[1], av)
+        dbv = np.einsum("jp,jp->p", pa, dav)
+        dbs = np.einsum("jp,jp->p", rows[2], av) + np.einsum("jp,jp->p", pa, sav)
         C = 1.0 - black
         # Image gradient of the black coverage: J^-T (d/du, d/dv).
         gxb = (j22 * dbu - j21 * dbv) / jdet
@@ -239,13 +253,13 @@ def fit_tags(
                 mw = np.median(gw)
                 theta[t, 0] = _srgb_inv(np.median(gb) / 255.0)
                 theta[t, 3] = _srgb_inv(mw / 255.0) if mw < 250 else 1.1
-        th = theta[tag]
-        lb = th[:, 0] + th[:, 1] * uc + th[:, 2] * vc
-        lw = th[:, 3] + th[:, 4] * uc + th[:, 5] * vc
+            th = np.repeat(theta.T, counts, axis=1)
+        lb = th[0] + th[1] * uc + th[2] * vc
+        lw = th[3] + th[4] * uc + th[5] * vc
         L = lb + (lw - lb) * C
         enc, slope = _srgb(L)
         if free_tone:
-            kap = np.exp(th[:, 7])
+            kap = np.exp(th[7])
             encp = np.maximum(enc, 1e-4)
             model = 255.0 * encp ** kap
             fp = 255.0 * kap * encp ** (kap - 1.0) * slope
@@ -263,32 +277,51 @@ def fit_tags(
                                  for t in range(n)])
             misfit = 1.4826 * mad / np.maximum(contrast, 1.0)
         dC = (lw - lb) * fp  # d grey / d C
-        J = np.empty((len(tag), n_par))
+        # The Jacobian's rows, zero at dropped pixels (keep is 0/1, so J_k^T J_k = J_k^T J).
         # d C / d h = g . d(x, y)/d h, g the image gradient of the black coverage: a pattern moved
         # by +dx shows each pixel what lay dx to its left (C(x - dx): -dC/dx = +d black/dx).
-        gx, gy = gxb * dC / den, gyb * dC / den
-        J[:, 0], J[:, 1], J[:, 2] = gx * u, gx * v, gx
-        J[:, 3], J[:, 4], J[:, 5] = gy * u, gy * v, gy
-        J[:, 6] = -(gx * px + gy * py) * u
-        J[:, 7] = -(gx * px + gy * py) * v
-        fb, fw = fp * (1.0 - C), fp * C
-        J[:, 8], J[:, 9], J[:, 10] = fb, fb * uc, fb * vc
-        J[:, 11], J[:, 12], J[:, 13] = fw, fw * uc, fw * vc
-        J[:, 14] = -dbs * dC
+        w = keep / den
+        gx, gy = gxb * dC * w, gyb * dC * w
+        np.multiply(gx, u, out=J[0])
+        np.multiply(gx, v, out=J[1])
+        J[2] = gx
+        np.multiply(gy, u, out=J[3])
+        np.multiply(gy, v, out=J[4])
+        J[5] = gy
+        gp = gx * px + gy * py
+        np.multiply(gp, -u, out=J[6])
+        np.multiply(gp, -v, out=J[7])
+        fk = fp * keep
+        fw = fk * C
+        fb = fk - fw
+        J[8] = fb
+        np.multiply(fb, uc, out=J[9])
+        np.multiply(fb, vc, out=J[10])
+        J[11] = fw
+        np.multiply(fw, uc, out=J[12])
+        np.multiply(fw, vc, out=J[13])
+        np.multiply(dbs * dC, keep, out=J[14])
+        np.negative(J[14], out=J[14])
         if free_tone:
-            J[:, 15] = model * np.log(np.maximum(enc, 1e-4)) * kap
-        Jk = J * keep[:, None]
-        step = np.zeros((n, n_par))
+            J[15] = model * np.log(encp) * kap * keep
+        rk = r * keep
+        A = np.tile(np.eye(n_par), (n, 1, 1))
+        b = np.zeros((n, n_par))
         for t in np.flatnonzero(ok_tag):
-            s = slice(starts[t], starts[t] + counts[t])
-            A = Jk[s].T @ J[s]
-            b = Jk[s].T @ r[s]
-            d = np.sqrt(np.maximum(np.diag(A), 1e-30))
-            As = A / d[:, None] / d[None, :] + lam * np.eye(n_par)
-            try:
-                step[t] = np.linalg.solve(As, b / d) / d
-            except np.linalg.LinAlgError:
-                ok_tag[t] = False
+            Js = J[:, starts[t]:starts[t] + counts[t]]
+            A[t] = Js @ Js.T
+            b[t] = Js @ rk[starts[t]:starts[t] + counts[t]]
+        d = np.sqrt(np.maximum(np.diagonal(A, axis1=1, axis2=2), 1e-30))  # (n, n_par)
+        As = A / d[:, :, None] / d[:, None, :] + lam * np.eye(n_par)
+        step = np.zeros((n, n_par))
+        try:
+            step = np.linalg.solve(As, (b / d)[..., None])[..., 0] / d
+        except np.linalg.LinAlgError:  # one singular tag: solve them one by one
+            for t in np.flatnonzero(ok_tag):
+                try:
+                    step[t] = np.linalg.solve(As[t], b[t] / d[t]) / d[t]
+                except np.linalg.LinAlgError:
+                    ok_tag[t] = False
         step[~np.isfinite(step).all(axis=1)] = 0.0
         h = h + np.where(ok_tag[:, None], step[:, :8], 0.0)
         theta = theta + np.where(ok_tag[:, None], step[:, 8:], 0.0)
