@@ -211,26 +211,28 @@ def fit_tags(
             ci = np.clip(bu.astype(np.intp) + _PAD, 2, size - 2)
             cj = np.clip(bv.astype(np.intp) + _PAD, 2, size - 2)
             patch = flat[nb[:, None] + ((tag * size + cj) * size + ci)].reshape(4, 4, -1)  # [v, u, p]
-        # u and v stacked: rows 0-4 the boundaries along u, 5-9 along v (one ufunc call each).
-        isd = 1.0 / np.concatenate([su, sv])  # (2P,)
-        z = (np.concatenate([bu - u, bv - v]) + ks) * isd  # (5, 2P)
-        # Boundaries further than 9 sds count as fully on one side (ndtr(-9) = 1e-19, phi(9) = 1e-18):
-        # unclipped, a large tag's far boundaries (tens of sds) make exp() return subnormals, whose
-        # arithmetic is ~100x slower, in every product after it.
-        np.clip(z, -9.0, 9.0, out=z)
-        e = ndtr(z)
-        phi = np.exp(-0.5 * z * z) * 0.3989422804014327
+        # u and v stacked: [0] the boundaries along u, [1] along v (one ufunc call each).
+        isd = 1.0 / np.stack([su, sv])[:, None, :]  # (2, 1, P)
+        z = (np.stack([bu - u, bv - v])[:, None, :] + ks) * isd  # (2, 5, P)
+        # Only boundaries within 9 sds are evaluated; the rest count as fully on one side (ndtr(-9) =
+        # 1e-19, phi(9) = 1e-18). On a large tag most are tens of sds away: evaluated, they cost
+        # ndtr's time for nothing and make exp() return subnormals, ~100x slower in every product.
+        inner = np.abs(z) < 9.0
+        zi = z[inner]
+        e = (z > 0.0).astype(np.float64)
+        e[inner] = ndtr(zi)
+        phi = np.zeros_like(z)
+        phi[inner] = np.exp(-0.5 * zi * zi) * 0.3989422804014327
         g = phi * isd  # d ndtr(z) / d(boundary - u)
         hh = phi * z  # d ndtr(z) / d log(blur scale) = -phi(z) z
-        a = e[1:] - e[:-1]  # (4, 2P): each cell's share along u / v
-        da = g[:-1] - g[1:]  # d share / du, / dv
-        sa = hh[:-1] - hh[1:]
-        npx = len(tag)
-        au, av = a[:, :npx], a[:, npx:]
-        dau, dav = da[:, :npx], da[:, npx:]
-        sau, sav = sa[:, :npx], sa[:, npx:]
+        # [u / v][share, d share / du (dv), d share / d log(blur scale)][cell][pixel]
+        X = np.empty((2, 3, 4, len(tag)))
+        np.subtract(e[:, 1:], e[:, :-1], out=X[:, 0])  # each cell's share along u / v
+        np.subtract(g[:, :-1], g[:, 1:], out=X[:, 1])
+        np.subtract(hh[:, :-1], hh[:, 1:], out=X[:, 2])
+        av, dav, sav = X[1]
         # Each row's share along u (and its derivatives), then summed over rows against v's.
-        rows = np.einsum("jkp,ikp->ijp", patch, np.stack([au, dau, sau]))  # (3, 4, P)
+        rows = np.einsum("jkp,ikp->ijp", patch, X[0])  # (3, 4, P)
         pa = rows[0]
         black = np.einsum("jp,jp->p", pa, av)
         dbu = np.einsum("jp,jp->p", rows[1], av)
