@@ -87,7 +87,7 @@ def _select_pixels(shape: tuple[int, int], hom: np.ndarray, tables: np.ndarray, 
     x, y) as int arrays, tag after tag."""
     h_img, w_img = shape
     face = np.array([[-1, -1, 1], [9, -1, 1], [9, 9, 1], [-1, 9, 1]], float)
-    tags, xs, ys = [], [], []
+    tags, cols, rows = [], [], []
     for t in range(len(hom)):
         H = hom[t]
         q = face @ H.T
@@ -97,14 +97,20 @@ def _select_pixels(shape: tuple[int, int], hom: np.ndarray, tables: np.ndarray, 
         x0, y0, x1, y1 = max(x0, 1), max(y0, 1), min(x1, w_img - 2), min(y1, h_img - 2)
         if x1 - x0 < 3 or y1 - y0 < 3:
             continue
-        gy, gx = np.mgrid[y0:y1 + 1, x0:x1 + 1]
-        gx, gy = gx.ravel().astype(np.float64), gy.ravel().astype(np.float64)
+        # Tag coordinates of the box's pixels: numerators and denominator as outer sums of a
+        # row term and a column term (the same sums, in the same order, as per pixel).
+        xs, ys = np.arange(x0, x1 + 1, dtype=np.float64), np.arange(y0, y1 + 1, dtype=np.float64)
         Hi = np.linalg.inv(H)
-        p = Hi[0, 0] * gx + Hi[0, 1] * gy + Hi[0, 2], Hi[1, 0] * gx + Hi[1, 1] * gy + Hi[1, 2]
-        den = Hi[2, 0] * gx + Hi[2, 1] * gy + Hi[2, 2]
-        u, v = p[0] / den, p[1] / den
-        on = (u > -0.9) & (u < TAG_CELLS + 0.9) & (v > -0.9) & (v < TAG_CELLS + 0.9)
-        gx, gy, u, v = gx[on], gy[on], u[on], v[on]
+        u = np.add.outer(Hi[0, 1] * ys, Hi[0, 0] * xs).ravel() + Hi[0, 2]
+        v = np.add.outer(Hi[1, 1] * ys, Hi[1, 0] * xs).ravel() + Hi[1, 2]
+        den = np.add.outer(Hi[2, 1] * ys, Hi[2, 0] * xs).ravel() + Hi[2, 2]
+        u /= den
+        v /= den
+        on = np.flatnonzero((u > -0.9) & (u < TAG_CELLS + 0.9) & (v > -0.9) & (v < TAG_CELLS + 0.9))
+        gy, gx = np.divmod(on, len(xs))
+        gx += x0
+        gy += y0
+        u, v = u[on], v[on]
         # Reach in cell units from the face's mean px per cell (a selection, not the model: an
         # approximation is fine).
         side = np.linalg.norm(xy[[1, 2, 3, 0]] - xy, axis=1).mean() / 10.0  # px per cell (face = 10 cells)
@@ -114,21 +120,31 @@ def _select_pixels(shape: tuple[int, int], hom: np.ndarray, tables: np.ndarray, 
         # near a boundary when the box holds both colours.
         sat = np.zeros((tab.shape[0] + 1, tab.shape[1] + 1))
         sat[1:, 1:] = tab.cumsum(0).cumsum(1)
-        lo_u = np.clip(np.floor(u - r).astype(int) + _PAD, 0, tab.shape[1] - 1)
-        hi_u = np.clip(np.floor(u + r).astype(int) + _PAD, 0, tab.shape[1] - 1) + 1
-        lo_v = np.clip(np.floor(v - r).astype(int) + _PAD, 0, tab.shape[0] - 1)
-        hi_v = np.clip(np.floor(v + r).astype(int) + _PAD, 0, tab.shape[0] - 1) + 1
-        black = sat[hi_v, hi_u] - sat[lo_v, hi_u] - sat[hi_v, lo_u] + sat[lo_v, lo_u]
+        # Box edges as rows / columns of the padded table (floors taken as floats, then one cast),
+        # looked up in the flattened table (np.take: cheaper than 2-D fancy indexing).
+        last = tab.shape[1] - 1
+        lo_u = np.clip(np.floor(u - r) + _PAD, 0, last).astype(np.intp)
+        hi_u = np.clip(np.floor(u + r) + _PAD, 0, last).astype(np.intp) + 1
+        lo_v = np.clip(np.floor(v - r) + _PAD, 0, last).astype(np.intp)
+        hi_v = np.clip(np.floor(v + r) + _PAD, 0, last).astype(np.intp) + 1
+        flat = sat.ravel()
+        stride = sat.shape[1]
+        lo_v *= stride
+        hi_v *= stride
+        black = (flat.take(hi_v + hi_u) - flat.take(lo_v + hi_u) - flat.take(hi_v + lo_u)
+                 + flat.take(lo_v + lo_u))
+        lo_v //= stride
+        hi_v //= stride
         near = np.flatnonzero((black > 0) & (black < (hi_u - lo_u) * (hi_v - lo_v)))
         if len(near) > max_pixels:  # a large tag: every k-th pixel (a narrower band loses the levels)
             near = near[np.linspace(0, len(near) - 1, max_pixels).astype(np.intp)]
         tags.append(np.full(len(near), t))
-        xs.append(gx[near].astype(np.intp))
-        ys.append(gy[near].astype(np.intp))
+        cols.append(gx[near])
+        rows.append(gy[near])
     if not tags:
         z = np.zeros(0, dtype=np.intp)
         return z, z, z
-    return np.concatenate(tags), np.concatenate(xs), np.concatenate(ys)
+    return np.concatenate(tags), np.concatenate(cols), np.concatenate(rows)
 
 
 def fit_tags(
