@@ -226,10 +226,11 @@ def fit_tags(
             bu, bv = np.round(u), np.round(v)
             ci = np.clip(bu.astype(np.intp) + _PAD, 2, size - 2)
             cj = np.clip(bv.astype(np.intp) + _PAD, 2, size - 2)
-            patch = flat[nb[:, None] + ((tag * size + cj) * size + ci)].reshape(4, 4, -1)  # [v, u, p]
+            patch = flat.take(nb[:, None] + ((tag * size + cj) * size + ci)).reshape(4, 4, -1)  # [v, u, p]
         # u and v stacked: [0] the boundaries along u, [1] along v (one ufunc call each).
         isd = 1.0 / np.stack([su, sv])[:, None, :]  # (2, 1, P)
-        z = (np.stack([bu - u, bv - v])[:, None, :] + ks) * isd  # (2, 5, P)
+        z = np.stack([bu - u, bv - v])[:, None, :] + ks  # (2, 5, P)
+        z *= isd
         # Only boundaries within 9 sds are evaluated; the rest count as fully on one side (ndtr(-9) =
         # 1e-19, phi(9) = 1e-18). On a large tag most are tens of sds away: evaluated, they cost
         # ndtr's time for nothing and make exp() return subnormals, ~100x slower in every product.
