@@ -39,6 +39,7 @@ Cost: ~3 ms of CPU a tag (docs/benchmarks.md), hence opt-in (``DetectorConfig.ed
 from __future__ import annotations
 
 import numpy as np
+from numpy.lib.stride_tricks import sliding_window_view
 from scipy.special import ndtr
 
 __all__ = ["fit_tags", "PSF_SIGMA_PX"]
@@ -191,9 +192,11 @@ def fit_tags(
     keep = np.ones(len(tag), dtype=bool)
     ks32 = np.arange(-2, 3, dtype=np.float32)[:, None]  # cell boundaries b + k, k = -2..2
     size = tab.shape[1]
-    flat = tab.ravel()
-    off = np.arange(-2, 2)
-    nb = (off[:, None] * size + off[None, :]).ravel()  # the 4 x 4 cells b-2..b+1, row-major
+    # Every 4 x 4 block of each tag's table, row-major ([v, u]): block (r, c) holds cells r..r+3,
+    # c..c+3; a pixel's block is one row of this (a 16-value gather instead of 16 gathers).
+    win = sliding_window_view(tab, (4, 4), axis=(1, 2))  # (N, S - 3, S - 3, 4, 4)
+    nwin = win.shape[1]
+    blocks = win.reshape(-1, 16).astype(np.float32)
     ok_tag = counts >= 40
     lam = 1e-3
     misfit = np.full(n, np.inf)
@@ -226,7 +229,9 @@ def fit_tags(
             bu, bv = np.round(u), np.round(v)
             ci = np.clip(bu.astype(np.intp) + _PAD, 2, size - 2)
             cj = np.clip(bv.astype(np.intp) + _PAD, 2, size - 2)
-            patch = flat.take(nb[:, None] + ((tag * size + cj) * size + ci)).reshape(4, 4, -1).astype(np.float32)  # [v, u, p]
+            # [v, u, p]: the cells b - 2 .. b + 1 along each axis.
+            block = blocks.take((tag * nwin + cj - 2) * nwin + ci - 2, axis=0)  # (P, 16)
+            patch = np.ascontiguousarray(block.T).reshape(4, 4, -1)
         # u and v stacked: [0] the boundaries along u, [1] along v (one ufunc call each).
         # In float32 (half the memory traffic of this, the fit's bulk): a share's rounding, 6e-8,
         # is 1e-5 of a grey level; the corners moved by at most 7e-6 px against float64 on every
