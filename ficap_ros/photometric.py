@@ -214,14 +214,13 @@ def fit_tags(
         u = (m22 * bx - m12 * by) / det
         v = (-m21 * bx + m11 * by) / det
         den = a31 * u + a32 * v + 1.0
-        # Jacobian of H at (u, v): d(x, y)/d(u, v) = M / den; its inverse gives grad u, grad v.
-        j11, j12, j21, j22 = m11 / den, m12 / den, m21 / den, m22 / den
-        jdet = j11 * j22 - j12 * j21
-        # grad u = (j22, -j12) / jdet, grad v = (-j21, j11) / jdet (rows of J^-1).
+        # Jacobian of H at (u, v): d(x, y)/d(u, v) = M / den; its inverse, (den / det) adj(M), has
+        # rows grad u = (m22, -m12) den / det and grad v = (-m21, m11) den / det.
         th = np.repeat(theta.T, counts, axis=1)
         scale = sd_px * np.exp(th[6])
-        su = scale * np.hypot(j22, j12) / np.abs(jdet)
-        sv = scale * np.hypot(j21, j11) / np.abs(jdet)
+        gd = scale * np.abs(den / det)
+        su = np.hypot(m22, m12) * gd
+        sv = np.hypot(m21, m11) * gd
         if it == 0:
             # The 4 x 4 cells around the boundary crossing nearest the pixel: boundaries b - 2 .. b + 2
             # (b = round(u)) are at least 1.5 cells away on either side, 3 blur sds at half a cell.
@@ -264,9 +263,6 @@ def fit_tags(
         dbv = np.einsum("jp,jp->p", pa, dav).astype(np.float64)
         dbs = (np.einsum("jp,jp->p", rows[2], av) + np.einsum("jp,jp->p", pa, sav)).astype(np.float64)
         C = 1.0 - black
-        # Image gradient of the black coverage: J^-T (d/du, d/dv).
-        gxb = (j22 * dbu - j21 * dbv) / jdet
-        gyb = (-j12 * dbu + j11 * dbv) / jdet
         uc, vc = (u - 4.0) / 4.0, (v - 4.0) / 4.0
         if it == 0:
             # Levels from the pixels the model calls flat black / flat white.
@@ -307,8 +303,11 @@ def fit_tags(
         # The Jacobian's rows, zero at dropped pixels (keep is 0/1, so J_k^T J_k = J_k^T J).
         # d C / d h = g . d(x, y)/d h, g the image gradient of the black coverage: a pattern moved
         # by +dx shows each pixel what lay dx to its left (C(x - dx): -dC/dx = +d black/dx).
-        w = keep / den
-        gx, gy = gxb * dC * w, gyb * dC * w
+        # The image gradient of the black coverage is J^-T (d/du, d/dv) = adj(M)^T (dbu, dbv) den / det;
+        # d(x, y)/d h carries a 1 / den.
+        w = dC * keep / det
+        gx = (m22 * dbu - m21 * dbv) * w
+        gy = (m11 * dbv - m12 * dbu) * w
         np.multiply(gx, u, out=J[0])
         np.multiply(gx, v, out=J[1])
         J[2] = gx
