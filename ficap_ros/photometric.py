@@ -218,7 +218,7 @@ def fit_tags(
         # Jacobian of H at (u, v): d(x, y)/d(u, v) = M / den; its inverse, (den / det) adj(M), has
         # rows grad u = (m22, -m12) den / det and grad v = (-m21, m11) den / det.
         th = np.repeat(theta.T, counts, axis=1)
-        scale = sd_px * np.exp(th[6])
+        scale = np.repeat(sd_px * np.exp(theta[:, 6]), counts)  # exp per tag, not per pixel
         gd = scale * np.abs(den / det)
         su = np.hypot(m22, m12) * gd
         sv = np.hypot(m21, m11) * gd
@@ -283,7 +283,7 @@ def fit_tags(
         L = lb + (lw - lb) * C
         enc, slope = _srgb(L)
         if free_tone:
-            kap = np.exp(th[7])
+            kap = np.repeat(np.exp(theta[:, 7]), counts)
             encp = np.maximum(enc, 1e-4)
             model = 255.0 * encp ** kap
             fp = 255.0 * kap * encp ** (kap - 1.0) * slope
