@@ -149,6 +149,17 @@ def _select_pixels(shape: tuple[int, int], hom: np.ndarray, tables: np.ndarray, 
     return np.concatenate(tags), np.concatenate(cols), np.concatenate(rows)
 
 
+def _ndtr32(z: np.ndarray, gauss: np.ndarray) -> np.ndarray:
+    """The normal CDF of float32 ``z`` given ``gauss`` = exp(-z^2 / 2): Abramowitz & Stegun 7.1.26
+    (erfc to 1.5e-7, i.e. the CDF to 7.5e-8, about float32's rounding of it), reusing the Gaussian
+    the fit needs anyway: a third of scipy's ndtr's time here."""
+    t = np.float32(1.0) / (np.float32(1.0) + np.float32(0.3275911 / np.sqrt(2.0)) * np.abs(z))
+    tail = t * (np.float32(0.5 * 0.254829592) + t * (np.float32(0.5 * -0.284496736) + t * (
+        np.float32(0.5 * 1.421413741) + t * (np.float32(0.5 * -1.453152027) + t * np.float32(0.5 * 1.061405429)))))
+    tail *= gauss  # ndtr(-|z|)
+    return np.where(z > 0.0, np.float32(1.0) - tail, tail)
+
+
 def fit_tags(
     gray: np.ndarray, corners_px: np.ndarray, hom: np.ndarray, cells: np.ndarray,
     psf_sigma_px: float = PSF_SIGMA_PX,
@@ -234,8 +245,8 @@ def fit_tags(
             patch = np.ascontiguousarray(block.T).reshape(4, 4, -1)
         # u and v stacked: [0] the boundaries along u, [1] along v (one ufunc call each).
         # In float32 (half the memory traffic of this, the fit's bulk): a share's rounding, 6e-8,
-        # is 1e-5 of a grey level; the corners moved by at most 7e-6 px against float64 on every
-        # blender_dev set.
+        # is 1e-5 of a grey level; with ``_ndtr32``, the corners moved by at most 1.3e-5 px against
+        # the float64 version on every blender_dev set.
         isd = (1.0 / np.stack([su, sv])).astype(np.float32)[:, None, :]  # (2, 1, P)
         z = np.stack([bu - u, bv - v]).astype(np.float32)[:, None, :] + ks32  # (2, 5, P)
         z *= isd
@@ -244,10 +255,11 @@ def fit_tags(
         # ndtr's time for nothing and make exp() return subnormals, ~100x slower in every product.
         inner = np.abs(z) < 9.0
         zi = z[inner]
+        gauss = np.exp(np.float32(-0.5) * zi * zi)
         e = (z > 0.0).astype(np.float32)
-        e[inner] = ndtr(zi.astype(np.float64))
+        e[inner] = _ndtr32(zi, gauss)
         phi = np.zeros_like(z)
-        phi[inner] = np.exp(np.float32(-0.5) * zi * zi) * np.float32(0.3989422804014327)
+        phi[inner] = gauss * np.float32(0.3989422804014327)
         g = phi * isd  # d ndtr(z) / d(boundary - u)
         hh = phi * z  # d ndtr(z) / d log(blur scale) = -phi(z) z
         # [u / v][share, d share / du (dv), d share / d log(blur scale)][cell][pixel]
