@@ -49,11 +49,11 @@ error on every blender_dev set and every synth condition, keeps every mean radia
 (synth low light 0.098-0.147 -> 0.051-0.088 px) and smallest on blender_dev 540p high (0.147 ->
 0.134, p95 0.429 -> 0.436: a filmic curve with clipped whites, which an sRGB curve to a free power
 describes least well). Its constants were set on synth frames (blur and tone exponent fitted per
-tag, the sRGB family assumed); blender_dev was the check. Not the default: it costs ~1.4 ms a tag
+tag, the sRGB family assumed); blender_dev was the check. Not the default: it costs ~1.3 ms a tag
 (next section)."""
-COST_READING = """Reading it: ~1.4 ms of CPU per tag (1500 pixels at most per tag, 3 Gauss-Newton steps of a
+COST_READING = """Reading it: ~1.3 ms of CPU per tag (1500 pixels at most per tag, 3 Gauss-Newton steps of a
 16-parameter model per tag; 2.98 ms in the first version, 2026-11-23 23:39, 65.5 ms a frame; run back to back
-with it, 67.2 / 68.7 -> 32.5 / 29.4 ms a frame, docs/detection.md), about 7x the corner stage it follows
+with it, 66.9 / 67.7 -> 27.3 / 28.7 ms a frame, docs/detection.md), about 7x the corner stage it follows
 (~4.4 ms) and 60x the ~0.5 ms a tracked 1080p frame could spare: hence opt-in (`ficap detect/replay --photometric`, the node's
 `detector.photometric`). Fewer pixels per tag cost accuracy at once (dev_1080p_high median 0.125 px
 at 1500 pixels, 0.137 at 600, 0.162 at 300, 4 steps; a narrower band around the boundaries instead loses the
