@@ -1537,7 +1537,8 @@ def fit_tags_photometric(
 ) -> tuple[np.ndarray, np.ndarray]:
     """The tag-level photometric fit (``ficap_ros.photometric.fit_tags``, keyword arguments as
     there) of tags given by their corners and ids: (corners (N, 4, 2), fitted (N,) bool; a tag not
-    fitted keeps its corners)."""
+    fitted keeps its corners). ``gray`` may be any image ``as_gray`` takes (else ImageError)."""
+    gray = as_gray(gray)  # no copy for the pipeline's uint8 grey frames
     c = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
     ids = np.asarray(ids).reshape(-1)
     usable = _usable_quads(c)

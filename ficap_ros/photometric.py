@@ -174,7 +174,8 @@ def fit_tags(
         hom: (N, 3, 3) their homographies from tag cell units (``detection.tag_homographies``).
         cells: (N, 8, 8) each tag's cells, True = black (``detection.tag_cells``).
         psf_sigma_px: lens PSF sigma, px (linear light), where the per-tag blur scale starts.
-        iterations: Gauss-Newton steps.
+        iterations: Gauss-Newton steps, at least 2 (a tag's misfit, which decides whether it is
+            fitted, is measured from the second step on).
         reach_px: pixels used lie within this (plus two blur sigmas) of a black/white boundary.
         free_tone: also fit an exponent on the sRGB curve.
         max_move_cells: a tag moving any corner further than this (cells) keeps its input.
@@ -182,6 +183,8 @@ def fit_tags(
     Returns:
         (corners (N, 4, 2), fitted (N,) bool): a tag not fitted keeps its input corners.
     """
+    if iterations < 2:
+        raise ValueError(f"iterations must be >= 2, got {iterations}")
     c_in = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
     n = len(c_in)
     fitted = np.zeros(n, dtype=bool)

@@ -90,3 +90,24 @@ def test_photometric_fit_converges_from_displaced_corners_and_leaves_a_bad_start
     out, ok_bad = fit_tags_photometric(fr.image, bad, ids)
     assert not ok_bad.any()
     np.testing.assert_array_equal(out, bad)
+
+
+def test_photometric_fit_takes_colour_frames_and_refuses_what_it_cannot_do() -> None:
+    """A BGR frame gives the grey frame's answer (``as_gray``), a frame of the wrong dtype is an
+    ImageError (one readable line, not numpy's), and one Gauss-Newton step, where no misfit is
+    ever measured, is refused rather than leaving every tag unfitted."""
+    import cv2
+
+    from ficap_ros.errors import ImageError
+
+    fr = drive_frames("540p", RenderConfig(lighting="neutral", jpeg_quality=95), n=1)[0]
+    ids = np.array(fr.visible_ids(0.999)[:3])
+    start = np.array([fr.corners_px[t] for t in ids]) + 0.1
+    grey = fit_tags_photometric(fr.image, start, ids)
+    colour = fit_tags_photometric(cv2.cvtColor(fr.image, cv2.COLOR_GRAY2BGR), start, ids)
+    assert grey[1].all()
+    np.testing.assert_array_equal(grey[0], colour[0])
+    with pytest.raises(ImageError, match="dtype"):
+        fit_tags_photometric(fr.image.astype(np.float32), start, ids)
+    with pytest.raises(ValueError, match="iterations"):
+        fit_tags_photometric(fr.image, start, ids, iterations=1)
