@@ -65,7 +65,7 @@ from _common import Progress, load_avg, machine_line, md_table, record_section  
 from ficap_ros.cap_model import nominal_model  # noqa: E402
 from ficap_ros.detection import DetectorConfig  # noqa: E402
 from ficap_ros.metrics import angle_deg  # noqa: E402
-from ficap_ros.pipeline import FrameProcessor  # noqa: E402
+from ficap_ros.pipeline import FrameProcessor, pose_config_for  # noqa: E402
 from ficap_ros import pose as pose_mod  # noqa: E402
 from ficap_ros.pose import PoseConfig, UncertaintyConfig  # noqa: E402
 
@@ -389,7 +389,10 @@ def main() -> int:
         METHODS.pop("ficap, equal weights")
         naive = METHODS.pop("naive peer")
         METHODS.update({"ficap joint": (det, pose),
-                        PHOTOMETRIC: (replace(det, edge_photometric=True), pose),
+                        # The pose settings the pipeline applies to photometric corners (their
+                        # uncertainty profile), so the sources, --at and --grid start from them.
+                        PHOTOMETRIC: (replace(det, edge_photometric=True),
+                                      pose_config_for(pose, replace(det, edge_photometric=True))),
                         "naive peer": naive})
     if args.per_tag_offset:
         if args.record:

@@ -49,6 +49,7 @@ from ficap_ros.errors import BagError, ConfigError, FicapError
 from ficap_ros.files import write_output_file
 from ficap_ros.calibration import HeadCalibration
 from ficap_ros.detection import DetectorConfig
+from ficap_ros.pipeline import pose_config_for
 from ficap_ros.pose import PoseConfig
 
 __all__ = ["Recording", "RecordingResult", "FleetResult", "find_recordings", "read_manifest",
@@ -263,7 +264,10 @@ def label_settings(
     return {
         "model_sha256": hashlib.sha256(
             repr(model.ids).encode() + model.corners_mm.astype("<f8").tobytes()).hexdigest(),
-        "pose": repr(pose),
+        # As the pipeline applies it: with photometric corners the default uncertainty is their
+        # profile (``pipeline.pose_config_for``), so runs made before that profile existed are not
+        # taken as current; with the default corners this is ``repr(pose)`` as it always was.
+        "pose": repr(pose_config_for(pose, detector or DetectorConfig())),
         "calibration": None if calibration is None else {
             "R_cap_head_q_xyzw": [round(float(v), 12) for v in cal.R_cap_head.as_quat(canonical=True)],
             "R_cam_frontal_q_xyzw": [round(float(v), 12) for v in cal.R_cam_frontal.as_quat(canonical=True)],

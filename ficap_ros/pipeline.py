@@ -15,11 +15,11 @@ from ficap_ros.calibration import HeadCalibration
 from ficap_ros.camera import CameraModel
 from ficap_ros.cap_model import CapModel, nominal_model
 from ficap_ros.detection import DetectorConfig, TagDetection, TagDetector, as_gray, partly_hidden
-from ficap_ros.pose import CapPose, PoseConfig, estimate_cap_pose
+from ficap_ros.pose import CapPose, PoseConfig, UncertaintyConfig, estimate_cap_pose
 from ficap_ros.tracking import Search, TrackConfig, Tracker
 from ficap_ros.transform import Transform
 
-__all__ = ["FrameResult", "FrameProcessor", "hidden_tag_ids"]
+__all__ = ["FrameResult", "FrameProcessor", "hidden_tag_ids", "corner_estimator", "pose_config_for"]
 
 
 @dataclass(frozen=True)
@@ -56,6 +56,29 @@ class FrameResult:
     @property
     def tags_used(self) -> int:
         return self.pose.tags_used if self.pose is not None else 0
+
+
+def corner_estimator(detector: DetectorConfig) -> str:
+    """The corner estimator a detector setting uses, as ``UncertaintyConfig.for_corners`` names
+    it: ``photometric`` (``edge_photometric``) or ``edge`` (the cell-edge fit; also every other
+    ``corner_refine``, whose bounds have no profile of their own)."""
+    return "photometric" if detector.edge_photometric else "edge"
+
+
+def pose_config_for(pose: PoseConfig, detector: DetectorConfig) -> PoseConfig:
+    """``pose`` as ``FrameProcessor`` applies it to ``detector``'s corners: when its uncertainty is
+    the default ``UncertaintyConfig()``, the synth-calibrated profile of the corner estimator in
+    use (``UncertaintyConfig.for_corners``); an uncertainty set to anything else is kept as set.
+
+    The default corners' profile is the default, so with them this is ``pose`` itself (labels and
+    fleet fingerprints as before). "Not set" is equality with the defaults, not a sentinel field
+    (which would change ``repr(PoseConfig)`` and so every fleet fingerprint): a photometric run
+    that passes exactly the defaults gets the photometric profile too.
+    """
+    if pose.uncertainty != UncertaintyConfig():
+        return pose
+    profile = UncertaintyConfig.for_corners(corner_estimator(detector))
+    return pose if profile == pose.uncertainty else replace(pose, uncertainty=profile)
 
 
 def hidden_tag_ids(gray: np.ndarray, detections: tuple[TagDetection, ...]) -> frozenset[int]:
@@ -95,6 +118,16 @@ class FrameProcessor:
         #: once per frame, so a frame never mixes two calibrations.
         self.calibration = calibration or HeadCalibration()
         self.tracker = Tracker(self.model, self.detector, self.pose_config, track) if tracking else None
+        self._effective: tuple[PoseConfig | None, PoseConfig] = (None, self.pose_config)
+
+    @property
+    def effective_pose_config(self) -> PoseConfig:
+        """``pose_config`` with the uncertainty profile of the detector's corners
+        (``pose_config_for``); re-derived when ``pose_config`` is replaced (the node does)."""
+        pose = self.pose_config
+        if self._effective[0] is not pose:
+            self._effective = (pose, pose_config_for(pose, self.detector.config))
+        return self._effective[1]
 
     def detect(self, image: np.ndarray) -> tuple[TagDetection, ...]:
         """Detections of the model's tags in the whole image (stateless; raises ``ImageError``)."""
@@ -112,7 +145,7 @@ class FrameProcessor:
         (or a whole-image search without tracking) -> cap pose -> head pose through
         ``calibration`` (default: ``self.calibration``, read once)."""
         calibration = calibration or self.calibration
-        pose_config = self.pose_config
+        pose_config = self.effective_pose_config
         t0 = time.perf_counter()
         predicted, search = None, Search.IMAGE
         gray = as_gray(image)

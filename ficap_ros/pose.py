@@ -90,6 +90,7 @@ __all__ = [
     "estimate_cap_pose",
     "reliability_score",
     "UncertaintyConfig",
+    "CORNER_ESTIMATORS",
     "uncertainty_terms",
     "combine_uncertainty",
     "uncertainty_sources",
@@ -126,6 +127,15 @@ class UncertaintyConfig:
     the lower noise gain sharpens the rotation bounds under spotlights).
 
     The floors guarantee that no pose is ever "exact" and state what residuals cannot estimate.
+
+    Profiles per corner estimator (``for_corners``): the defaults are the profile of the default
+    cell-edge corners (``edge``). The tag-level photometric corner fit (``photometric``:
+    ``DetectorConfig(edge_photometric=True)``, ``--photometric``, node ``detector.photometric``)
+    leaves much less of the shift along the foreshortening under uneven light, and the same synth
+    calibration grid picks ``light_gradient_tilt_gain`` 0.1 for it (0.3 / 1.0 for the others, as
+    the defaults; held-out noise seeds agree). ``pipeline.FrameProcessor`` uses the profile of its
+    detector's corner estimator when the pose's uncertainty is the default ``UncertaintyConfig()``
+    (docs/benchmarks.md, "Calibrated uncertainty with photometric corners").
 
     Attributes:
         corner_noise_px: independent corner noise, px (an edge fit over many 8-bit samples is
@@ -182,6 +192,28 @@ class UncertaintyConfig:
             raise ConfigError("uncertainty sigmas and gains must be finite and >= 0")
         if self.corner_noise_px <= 0:
             raise ConfigError("corner_noise_px must be > 0 (no pose is exact)")
+
+    @classmethod
+    def for_corners(cls, corners: str = "edge") -> UncertaintyConfig:
+        """The synth-calibrated profile for a corner estimator (``CORNER_ESTIMATORS``): ``edge``
+        (the cell-edge fit and every other ``corner_refine``: the defaults) or ``photometric``.
+
+        Raises:
+            ConfigError: unknown corner estimator.
+        """
+        if corners not in _CORNER_PROFILES:
+            raise ConfigError(f"unknown corner estimator {corners!r}; expected one of "
+                              f"{', '.join(CORNER_ESTIMATORS)}")
+        return cls(**_CORNER_PROFILES[corners])
+
+
+#: ``UncertaintyConfig.for_corners``: the fields each corner estimator's profile changes from the
+#: defaults (the ``edge`` profile), from ``bench_uncertainty.py --photometric --grid``.
+_CORNER_PROFILES: dict[str, dict[str, float]] = {
+    "edge": {},
+    "photometric": {"light_gradient_tilt_gain": 0.1},
+}
+CORNER_ESTIMATORS = tuple(_CORNER_PROFILES)
 
 
 @dataclass(frozen=True)

@@ -111,3 +111,43 @@ def test_photometric_fit_takes_colour_frames_and_refuses_what_it_cannot_do() -> 
         fit_tags_photometric(fr.image.astype(np.float32), start, ids)
     with pytest.raises(ValueError, match="iterations"):
         fit_tags_photometric(fr.image, start, ids, iterations=1)
+
+
+def test_pipeline_takes_the_uncertainty_profile_of_its_corners() -> None:
+    """The default uncertainty means the synth-calibrated profile of the corner estimator in use
+    (``UncertaintyConfig.for_corners``): with photometric corners the pipeline's bounds are those of
+    ``estimate_cap_pose`` with the photometric profile on the same detections (tilt gain 0.1, so a
+    narrower translation bound under spotlights than the default corners' profile would give), with
+    the default corners those of ``PoseConfig()``; an uncertainty set by the user is kept; and the
+    fleet fingerprint's pose is the one applied (the default corners' as it always was)."""
+    from ficap_ros.detection import as_gray
+    from ficap_ros.fleet import label_settings
+    from ficap_ros.pipeline import FrameProcessor, hidden_tag_ids, pose_config_for
+    from ficap_ros.pose import PoseConfig, UncertaintyConfig, estimate_cap_pose
+
+    photo_u = UncertaintyConfig.for_corners("photometric")
+    assert UncertaintyConfig.for_corners("edge") == UncertaintyConfig()
+    assert photo_u == UncertaintyConfig(light_gradient_tilt_gain=0.1)
+    fr = drive_frames("540p", RenderConfig(lighting="high"), n=1)[0]
+    for det, profile in ((DetectorConfig(edge_photometric=True), photo_u),
+                         (DetectorConfig(), UncertaintyConfig())):
+        r = FrameProcessor(MODEL, det, PoseConfig(), tracking=False).process(fr.image, fr.camera)
+        assert r.pose is not None, r.reason
+        hidden = hidden_tag_ids(as_gray(fr.image), r.detections)
+        bounds = {}
+        for name, u in (("applied", profile), ("edge", UncertaintyConfig()), ("photometric", photo_u)):
+            p = estimate_cap_pose(r.detections, MODEL, fr.camera, PoseConfig(uncertainty=u), hidden_ids=hidden).pose
+            bounds[name] = (p.trans_err95_mm, p.rot_err95_deg)
+        print(det.edge_photometric, r.pose.trans_err95_mm, bounds)
+        assert (r.pose.trans_err95_mm, r.pose.rot_err95_deg) == pytest.approx(bounds["applied"], rel=1e-12)
+        # Spotlights: the light-gradient tilt term is in play, so the two profiles differ here.
+        assert bounds["photometric"][0] < 0.9 * bounds["edge"][0]
+        err_mm = 1e3 * np.linalg.norm(r.pose.T_cam_cap.translation_m - fr.T_cam_cap.translation_m)
+        assert err_mm <= r.pose.trans_err95_mm
+    # A set uncertainty is the user's, whatever the corners; the default corners' pose is the pose.
+    mine = PoseConfig(uncertainty=UncertaintyConfig(light_gradient_tilt_gain=0.2))
+    assert pose_config_for(mine, DetectorConfig(edge_photometric=True)) is mine
+    assert pose_config_for(PoseConfig(), DetectorConfig()) == PoseConfig()
+    assert label_settings(MODEL, PoseConfig())["pose"] == repr(PoseConfig())
+    photo = label_settings(MODEL, PoseConfig(), detector=DetectorConfig(edge_photometric=True))["pose"]
+    assert photo == repr(PoseConfig(uncertainty=photo_u)) and "light_gradient_tilt_gain=0.1," in photo
