@@ -388,6 +388,8 @@ class RayEngine:
         self._task = ray.remote(num_cpus=1, max_retries=int(retries), retry_exceptions=False)(
             segment_fn or _ray_segment)
         self._config = ray.put((model, pose, detector))
+        #: What its tasks label with: ``run_fleet`` refuses an engine started with other settings.
+        self.settings_key = (hash(model), repr(pose), repr(detector or DetectorConfig()))
 
     def process(self, raws: Iterable[RawFrame]) -> Iterator[Any]:
         """``replay``'s engine: processed frames of ``raws``, in order (thread-safe)."""
@@ -599,6 +601,10 @@ def run_fleet(
     fleet = FleetResult(engine="processes", workers=jobs)
     try:
         if todo and ray_engine is not None:
+            if ray_engine.settings_key != (hash(model), repr(pose), repr(detector or DetectorConfig())):
+                raise ConfigError("the Ray engine given was started with another model, pose or "
+                                  "detector setting than this fleet's (its labels would not match "
+                                  "the fingerprints)")
             engine = ray_engine
             fleet.engine, fleet.workers = "ray", engine.cpus
         elif todo and (use_ray or ray_address):

@@ -337,6 +337,17 @@ def test_ray_retries_a_dead_worker_and_fails_only_the_broken_recording(
     assert (tmp_path / "isolated/d1/labels.csv").read_bytes() == (ref / "labels.csv").read_bytes()
     assert not (tmp_path / "isolated/d2/summary.json").exists()
 
+    # An engine started with other settings than the fleet's would write labels its fingerprints
+    # do not describe: refused before anything is written.
+    from ficap_ros.detection import DetectorConfig
+    from ficap_ros.errors import ConfigError
+
+    for other in ({"pose": PoseConfig(method="paper")}, {"detector": DetectorConfig(edge_photometric=True)}):
+        with pytest.raises(ConfigError, match="another model, pose or detector"):
+            run_fleet(recs[:1], tmp_path / "mismatch", open_frames, model, other.get("pose", pose),
+                      settings, progress=False, ray_engine=engine, detector=other.get("detector"))
+    assert not (tmp_path / "mismatch" / "d1").exists()
+
 
 def test_unreachable_cluster_is_one_line(fleet_in: Path, tmp_path: Path, capsys) -> None:
     """--ray-address that nothing answers: a one-line error at once (ray.init would retry for
