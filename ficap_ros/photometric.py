@@ -55,6 +55,8 @@ PSF_SIGMA_PX = 0.6
 #: Cells padded around the 8 x 8 tag (white: quiet zone and beyond) so a 5 x 5 neighbourhood of any
 #: face pixel stays inside the table.
 _PAD = 3
+#: Least grey-level range of a fitted tag's model: below it there is no pattern to fit.
+_MIN_CONTRAST = 10.0
 #: Largest robust residual sd of a fitted tag, as a fraction of its model's contrast.
 _MAX_MISFIT = 0.3
 
@@ -215,6 +217,7 @@ def fit_tags(
     ok_tag = counts >= 40
     lam = 1e-3
     misfit = np.full(n, np.inf)
+    contrast = np.zeros(n)
     # Per-pixel arrays are laid out (quantity, pixel): rows are contiguous, which keeps numpy's
     # broadcasting and the normal equations' products cheap (the fit's cost is all elementwise).
     J = np.empty((n_par, len(tag)))
@@ -379,6 +382,8 @@ def fit_tags(
     # A fit whose residual sd is a large part of the tag's contrast is not this pattern where it was
     # placed (a start a cell or more off settles in a false minimum: 0.35-0.6 on synth and
     # blender_dev, against at most 0.25 for right tags at low light, 0.02 in clean frames).
+    # A tag whose model shows no contrast (a flat region, a blown-out tag) has no pattern to fit:
+    # its zero misfit says nothing (the 10 grey levels ``decode_tags`` asks of a border).
     fitted = (ok_tag & np.isfinite(corners).all(axis=(1, 2)) & (moved <= max_move_cells * cell)
-              & (misfit <= _MAX_MISFIT))
+              & (misfit <= _MAX_MISFIT) & (contrast >= _MIN_CONTRAST))
     return np.where(fitted[:, None, None], corners, c_in), fitted

@@ -151,3 +151,20 @@ def test_pipeline_takes_the_uncertainty_profile_of_its_corners() -> None:
     assert label_settings(MODEL, PoseConfig())["pose"] == repr(PoseConfig())
     photo = label_settings(MODEL, PoseConfig(), detector=DetectorConfig(edge_photometric=True))["pose"]
     assert photo == repr(PoseConfig(uncertainty=photo_u)) and "light_gradient_tilt_gain=0.1," in photo
+
+
+def test_photometric_fit_leaves_a_tag_without_contrast_unfitted() -> None:
+    """A tag region painted flat (nothing to fit: its misfit is zero) is reported not fitted and
+    keeps its corners, while the other tags of the frame are fitted as before."""
+    fr = drive_frames("540p", RenderConfig(lighting="neutral", jpeg_quality=95), n=1)[0]
+    ids = np.array(fr.visible_ids(0.999)[:3])
+    start = np.array([fr.corners_px[t] for t in ids]) + 0.1
+    before, ok_before = fit_tags_photometric(fr.image, start, ids)
+    flat = fr.image.copy()
+    x0, y0 = np.floor(start[0].min(axis=0) - 6).astype(int)
+    x1, y1 = np.ceil(start[0].max(axis=0) + 6).astype(int)
+    flat[max(y0, 0):y1, max(x0, 0):x1] = 128
+    out, ok = fit_tags_photometric(flat, start, ids)
+    assert ok_before.all() and not ok[0]
+    np.testing.assert_array_equal(out[0], start[0])
+    np.testing.assert_array_equal(ok[1:], ok_before[1:])
