@@ -33,8 +33,9 @@ and sharpness with other ``UncertaintyConfig`` values, from the same kept terms)
 ``GRID`` combination of the light-gradient gains and the residual inflation; the pick is the one
 with the smallest bounds, mean log sharpness over rotation and translation of the synth rows,
 whose rotation and translation bounds cover >= 90 % on every synth row; blender rows shown at
-it, a check); ``--synth-as`` adds ``synth.render`` at every blender_dev
-set's poses and chain (``bench_shading.synth_as``).
+it, a check); ``--offset-gain-grid`` (``--grid`` also over a gain on the measured common radial
+offset, ``OFFSET_GAINS``: is that offset, counted as a known mean, overstated?); ``--synth-as``
+adds ``synth.render`` at every blender_dev set's poses and chain (``bench_shading.synth_as``).
 Sets: every ``../shared/data/blender_dev`` set (independent renders; a check, nothing is tuned to
 them) and ``ficap synth`` drives (540p/1080p x neutral/high/low, one frame a second of a
 naturalistic drive, seed per condition, the realistic image chain ``ficap synth`` renders). The
@@ -43,7 +44,7 @@ noise realisation of them (a held-out check).
 
 Usage: .venv/bin/python benchmarks/bench_uncertainty.py [--frames 60] [--record] [--dump FILE]
        [--blender-dev PATH] [--seed-offset N] [--no-ceiling] [--tilt-shift-px PX] [--synth-as]
-       [--per-tag-offset] [--photometric] [--grid] [--at KEY=VALUE,...]
+       [--per-tag-offset] [--photometric] [--grid] [--offset-gain-grid] [--at KEY=VALUE,...]
 """
 
 from __future__ import annotations
@@ -84,6 +85,9 @@ GRID = {
     "light_gradient_tilt_gain": (0.0, 0.1, 0.2, 0.35, 0.5, 0.7, 1.0),
     "residual_inflation": (1.0, 1.1, 1.25, 1.5),
 }
+#: ``--offset-gain-grid``: what-if gains on the measured common radial offset (``seen["bias_common"]``,
+#: as a mean in the bounds and as its square in the covariance), searched with ``GRID``; 1 is ours.
+OFFSET_GAINS = (0.0, 0.25, 0.5, 0.75, 1.0)
 #: Second-realisation render seeds: seed * 10_000 + frame index + this (frame indices stay < 5000).
 CEILING_SEED_OFFSET = 5000
 
@@ -253,10 +257,12 @@ def summarize(o: dict[str, list], twin: dict[str, list] | None = None) -> dict[s
     return s
 
 
-def bounds_at(o: dict[str, list], config: UncertaintyConfig) -> tuple[np.ndarray, np.ndarray]:
+def bounds_at(o: dict[str, list], config: UncertaintyConfig,
+              offset_gain: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
     """Every frame's (rotation deg, translation mm) bounds again under ``config``, from its kept
     terms (``pose.combine_uncertainty`` / ``uncertainty_bounds`` / ``error_bound95``, as
-    ``pose.estimate`` does; the pose itself does not depend on these settings)."""
+    ``pose.estimate`` does; the pose itself does not depend on these settings); ``offset_gain``
+    (what-if, ``--offset-gain-grid``) scales the measured common radial offset."""
     rot, trans = [], []
     for t in o["terms"]:
         if t is None:
@@ -264,6 +270,8 @@ def bounds_at(o: dict[str, list], config: UncertaintyConfig) -> tuple[np.ndarray
             trans.append(float("nan"))
             continue
         terms, seen = t
+        if offset_gain != 1.0:
+            seen = {**seen, "bias_common": offset_gain * seen["bias_common"]}
         cov = pose_mod.combine_uncertainty(terms, seen, config)
         r, tr = pose_mod.error_bound95(cov, *pose_mod.uncertainty_bounds(terms, seen, config, cov))
         rot.append(r)
@@ -271,37 +279,43 @@ def bounds_at(o: dict[str, list], config: UncertaintyConfig) -> tuple[np.ndarray
     return np.asarray(rot), np.asarray(trans)
 
 
-def grid_search(per_set: dict[str, dict[str, list]], base: UncertaintyConfig) -> tuple[dict, list]:
-    """``--grid``: (pick, rows). The ``GRID`` combination with the smallest mean log sharpness
-    (rotation and translation) over the ``synth`` sets among those covering >= 90 % in both on
-    every synth set (none: the one with the largest worst coverage); rows: per set, coverage and
-    sharpness at the pick."""
+def grid_search(per_set: dict[str, dict[str, list]], base: UncertaintyConfig,
+                offset_gains: tuple[float, ...] = (1.0,)) -> tuple[dict, list]:
+    """``--grid``: (pick, rows). The ``GRID`` combination (times ``offset_gains``, ``bounds_at``)
+    with the smallest mean log sharpness (rotation and translation) over the ``synth`` sets among
+    those covering >= 90 % in both on every synth set (none: the one with the largest worst
+    coverage); rows: per set, coverage and sharpness at the pick."""
     import itertools
 
     keys = list(GRID)
     synth = [n for n in per_set if n.startswith("synth ") and not n.startswith("synth as ")]
     errs = {n: (np.asarray(o["rot_err"], float), np.asarray(o["trans_err"], float))
             for n, o in per_set.items()}
-    best, best_key = None, None
-    for values in itertools.product(*(GRID[k] for k in keys)):
+    best, best_key, best_gain = None, None, 1.0
+    for values, gain in itertools.product(itertools.product(*(GRID[k] for k in keys)), offset_gains):
         cfg = replace(base, **dict(zip(keys, values)))
         worst, cost = 100.0, 0.0
         for n in synth:
-            b = bounds_at(per_set[n], cfg)
+            b = bounds_at(per_set[n], cfg, gain)
             for e, bb in zip(errs[n], b):
                 worst = min(worst, float(np.mean(e <= bb) * 100))
                 cost += float(np.log(np.median(bb) / np.median(e)))
         key = (worst < 90.0, -worst if worst < 90.0 else cost)
         if best_key is None or key < best_key:
-            best, best_key = cfg, key
-    return {k: getattr(best, k) for k in keys}, coverage_rows(per_set, best)
+            best, best_key, best_gain = cfg, key, gain
+    pick = {k: getattr(best, k) for k in keys}
+    if offset_gains != (1.0,):
+        pick["common_offset_gain"] = best_gain
+    return pick, coverage_rows(per_set, best, best_gain)
 
 
-def coverage_rows(per_set: dict[str, dict[str, list]], config: UncertaintyConfig) -> list[list[str]]:
-    """Per set: rotation and translation coverage / sharpness with the bounds under ``config``."""
+def coverage_rows(per_set: dict[str, dict[str, list]], config: UncertaintyConfig,
+                  offset_gain: float = 1.0) -> list[list[str]]:
+    """Per set: rotation and translation coverage / sharpness with the bounds under ``config``
+    (and ``offset_gain``: ``bounds_at``)."""
     rows = []
     for n, o in per_set.items():
-        b = bounds_at(o, config)
+        b = bounds_at(o, config, offset_gain)
         e = (np.asarray(o["rot_err"], float), np.asarray(o["trans_err"], float))
         rows.append([n] + [f"{np.mean(ee <= bb) * 100:.0f} % / {np.median(bb) / np.median(ee):.2f}"
                            for ee, bb in zip(e, b)])
@@ -377,13 +391,17 @@ def main() -> int:
                          "corners (not recorded: docs/benchmarks.md has its own section)")
     ap.add_argument("--grid", action="store_true",
                     help="what-if: the synth calibration grid (GRID) again for each of ours (not recorded)")
+    ap.add_argument("--offset-gain-grid", action="store_true",
+                    help="what-if: --grid also searches a gain on the measured common radial offset "
+                         "(OFFSET_GAINS; --at takes it as common_offset_gain=G)")
     ap.add_argument("--at", type=lambda t: {k: float(v) for k, v in (kv.split("=") for kv in t.split(","))},
                     default=None, metavar="KEY=VALUE,...",
                     help="what-if: also every set's coverage / sharpness for ours with these "
                          "UncertaintyConfig values (e.g. light_gradient_tilt_gain=0.1; not recorded)")
     args = ap.parse_args()
-    if args.record and (args.photometric or args.grid or args.at):
-        ap.error("--photometric, --grid and --at are not recorded (the section's text is by hand)")
+    if args.record and (args.photometric or args.grid or args.at or args.offset_gain_grid):
+        ap.error("--photometric, --grid, --offset-gain-grid and --at are not recorded (the section's "
+                 "text is by hand)")
     if args.photometric:
         det, pose = METHODS.pop("ficap joint")
         METHODS.pop("ficap, equal weights")
@@ -466,13 +484,16 @@ def main() -> int:
     print(table)
     if args.at:
         for method, per_set in grids.items():
-            cfg = replace(METHODS[method][1].uncertainty, **args.at)
+            at = dict(args.at)
+            gain = at.pop("common_offset_gain", 1.0)
+            cfg = replace(METHODS[method][1].uncertainty, **at)
             print(f"\n{method} at {args.at}\n")
             print(md_table(["set", "rotation coverage / sharpness", "translation coverage / sharpness"],
-                           coverage_rows(per_set, cfg)))
+                           coverage_rows(per_set, cfg, gain)))
     if args.grid:
         for method, per_set in grids.items():
-            pick, grid_rows = grid_search(per_set, METHODS[method][1].uncertainty)
+            pick, grid_rows = grid_search(per_set, METHODS[method][1].uncertainty,
+                                          OFFSET_GAINS if args.offset_gain_grid else (1.0,))
             print(f"\n{method}: the synth grid picks {pick}\n")
             print(md_table(["set", "rotation coverage / sharpness", "translation coverage / sharpness"],
                            grid_rows))
