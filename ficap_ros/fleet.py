@@ -310,6 +310,12 @@ def current_outputs(out_dir: Path, digest: str) -> dict[str, Any] | None:
 _WORKER_KEY: Any = None
 
 
+def _settings_key(model: CapModel, pose: PoseConfig, detector: DetectorConfig | None) -> tuple[int, str, str]:
+    """What a task labels with: a worker re-initialises when it changes, and ``run_fleet``
+    refuses a given engine started with another."""
+    return hash(model), repr(pose), repr(detector or DetectorConfig())
+
+
 def _ray_segment(config: tuple[CapModel, PoseConfig, DetectorConfig | None],
                  raws: list[RawFrame]) -> list[Any]:
     """A Ray task: one segment through the pipeline (the worker keeps its FrameProcessor)."""
@@ -317,7 +323,7 @@ def _ray_segment(config: tuple[CapModel, PoseConfig, DetectorConfig | None],
     from ficap_ros import replay
 
     model, pose, detector = config
-    key = (hash(model), repr(pose), repr(detector))
+    key = _settings_key(model, pose, detector)
     if key != _WORKER_KEY:
         replay._init_worker(model, pose, single_thread=True, detector=detector)
         _WORKER_KEY = key
@@ -388,8 +394,8 @@ class RayEngine:
         self._task = ray.remote(num_cpus=1, max_retries=int(retries), retry_exceptions=False)(
             segment_fn or _ray_segment)
         self._config = ray.put((model, pose, detector))
-        #: What its tasks label with: ``run_fleet`` refuses an engine started with other settings.
-        self.settings_key = (hash(model), repr(pose), repr(detector or DetectorConfig()))
+        #: What its tasks label with (``_settings_key``).
+        self.settings_key = _settings_key(model, pose, detector)
 
     def process(self, raws: Iterable[RawFrame]) -> Iterator[Any]:
         """``replay``'s engine: processed frames of ``raws``, in order (thread-safe)."""
@@ -601,7 +607,7 @@ def run_fleet(
     fleet = FleetResult(engine="processes", workers=jobs)
     try:
         if todo and ray_engine is not None:
-            if ray_engine.settings_key != (hash(model), repr(pose), repr(detector or DetectorConfig())):
+            if ray_engine.settings_key != _settings_key(model, pose, detector):
                 raise ConfigError("the Ray engine given was started with another model, pose or "
                                   "detector setting than this fleet's (its labels would not match "
                                   "the fingerprints)")

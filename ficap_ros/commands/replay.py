@@ -108,12 +108,14 @@ def run(args: argparse.Namespace) -> int:
 
     from ficap_ros.cap_model import load_model, nominal_model
     from ficap_ros.cli import EXIT_FRAMES_LOST
+    from ficap_ros.detection import DetectorConfig
     from ficap_ros.errors import BagError
     from ficap_ros.files import check_output_folder, check_replaceable
     from ficap_ros.pose import PoseConfig
     from ficap_ros.replay import check_output_dir, replay
 
     model = load_model(args.model) if args.model else nominal_model()
+    detector = DetectorConfig(edge_photometric=args.photometric)
     calibration = None
     if args.calibration:
         from ficap_ros.calibration import load_calibration
@@ -127,16 +129,14 @@ def run(args: argparse.Namespace) -> int:
         # The fleet's --out holds a folder per recording: every file in it must be ficap's.
         check_replaceable(args.out, subfolders=True)
         check_output_dir(Path(args.out))
-        return _run_fleet(args, model, calibration)
+        return _run_fleet(args, model, calibration, detector)
     args.input = args.input[0]
     check_output_folder(Path(args.out), [args.input])  # before any processing
     jobs = cap_jobs(args)
     source = open_source(args)
-    from ficap_ros.detection import DetectorConfig
-
     out = replay(source, args.out, model, PoseConfig(method=args.method), calibration,
                  args.calibrate_frontal, jobs, args.namespace, progress=not args.quiet,
-                 detector=DetectorConfig(edge_photometric=args.photometric))
+                 detector=detector)
     s = out.summary
     line = (f"{s['frames']} frames, {s['frames_with_pose']} with a pose "
             f"({s['pct_with_pose']:.1f} %), >=1 tag {s['pct_ge1_tag']:.1f} %, >=4 tags "
@@ -154,7 +154,7 @@ def run(args: argparse.Namespace) -> int:
     return EXIT_FRAMES_LOST if out.loss is not None else 0
 
 
-def _run_fleet(args: argparse.Namespace, model, calibration) -> int:  # noqa: ANN001
+def _run_fleet(args: argparse.Namespace, model, calibration, detector) -> int:  # noqa: ANN001
     from pathlib import Path
 
     from ficap_ros.fleet import find_recordings, label_settings, run_fleet
@@ -162,9 +162,6 @@ def _run_fleet(args: argparse.Namespace, model, calibration) -> int:  # noqa: AN
 
     recordings = find_recordings(args.input, args.manifest, args.out, videos=args.videos)
     pose = PoseConfig(method=args.method)
-    from ficap_ros.detection import DetectorConfig
-
-    detector = DetectorConfig(edge_photometric=args.photometric)
     settings = label_settings(model, pose, calibration, args.calibrate_frontal, args.namespace,
                               args.image_topic, args.camera_info_topic, args.intrinsics, args.fps,
                               args.rectified, detector)
