@@ -34,7 +34,9 @@ and sharpness with other ``UncertaintyConfig`` values, from the same kept terms)
 with the smallest bounds, mean log sharpness over rotation and translation of the synth rows,
 whose rotation and translation bounds cover >= 90 % on every synth row; blender rows shown at
 it, a check); ``--offset-gain-grid`` (``--grid`` also over a gain on the measured common radial
-offset, ``OFFSET_GAINS``: is that offset, counted as a known mean, overstated?); ``--synth-as``
+offset, ``OFFSET_GAINS``: is that offset, counted as a known mean, overstated?); ``--scale-shape`` (per set, the factor on the
+bounds that covers exactly 90 % and the sharpness at it: is a set's miss the bounds' overall scale
+or their frame-to-frame shape?); ``--synth-as``
 adds ``synth.render`` at every blender_dev set's poses and chain (``bench_shading.synth_as``).
 Sets: every ``../shared/data/blender_dev`` set (independent renders; a check, nothing is tuned to
 them) and ``ficap synth`` drives (540p/1080p x neutral/high/low, one frame a second of a
@@ -45,6 +47,7 @@ noise realisation of them (a held-out check).
 Usage: .venv/bin/python benchmarks/bench_uncertainty.py [--frames 60] [--record] [--dump FILE]
        [--blender-dev PATH] [--seed-offset N] [--no-ceiling] [--tilt-shift-px PX] [--synth-as]
        [--per-tag-offset] [--photometric] [--grid] [--offset-gain-grid] [--at KEY=VALUE,...]
+       [--scale-shape]
 """
 
 from __future__ import annotations
@@ -322,6 +325,28 @@ def coverage_rows(per_set: dict[str, dict[str, list]], config: UncertaintyConfig
     return rows
 
 
+def scale_shape_rows(per_set: dict[str, dict[str, list]]) -> list[list[str]]:
+    """``--scale-shape``: per set, the factor on the bounds that covers exactly 90 % of the frames
+    (the 90 % quantile of error / bound: below 1, the bounds are larger than they need to be there)
+    and the sharpness the bounds would have at it (that factor x median bound / median error). A
+    sharpness <= 3 at the factor says each frame's bound has the right shape and size relative to
+    the set's other frames, and only the set's overall scale is off: what would be missing is a
+    term whose size changes between conditions as the error does."""
+    rows = []
+    for n, o in per_set.items():
+        cells = []
+        for e, b in ((o["rot_err"], o["rot95"]), (o["trans_err"], o["trans95"])):
+            e, b = np.asarray(e, float), np.asarray(b, float)
+            ok = np.isfinite(e) & np.isfinite(b) & (b > 0)
+            if ok.sum() < 3:
+                cells += ["-", "-"]
+                continue
+            s90 = float(np.quantile(e[ok] / b[ok], 0.9))
+            cells += [f"{s90:.2f}", f"{s90 * np.median(b[ok]) / np.median(e[ok]):.2f}"]
+        rows.append([n] + cells)
+    return rows
+
+
 def blender_sets(root: Path | None) -> dict[str, tuple]:
     import blender_dev
     from blender_dev import SETS, load_set
@@ -389,6 +414,8 @@ def main() -> int:
     ap.add_argument("--photometric", action="store_true",
                     help="ours also with DetectorConfig(edge_photometric=True), beside the default "
                          "corners (not recorded: docs/benchmarks.md has its own section)")
+    ap.add_argument("--scale-shape", action="store_true",
+                    help="per set: the factor on the bounds for exactly 90 %% coverage and the sharpness at it")
     ap.add_argument("--grid", action="store_true",
                     help="what-if: the synth calibration grid (GRID) again for each of ours (not recorded)")
     ap.add_argument("--offset-gain-grid", action="store_true",
@@ -399,7 +426,8 @@ def main() -> int:
                     help="what-if: also every set's coverage / sharpness for ours with these "
                          "UncertaintyConfig values (e.g. light_gradient_tilt_gain=0.1; not recorded)")
     args = ap.parse_args()
-    if args.record and (args.photometric or args.grid or args.at or args.offset_gain_grid):
+    if args.record and (args.photometric or args.grid or args.at or args.offset_gain_grid
+                        or args.scale_shape):
         ap.error("--photometric, --grid, --offset-gain-grid and --at are not recorded (the section's "
                  "text is by hand)")
     if args.photometric:
@@ -490,6 +518,11 @@ def main() -> int:
             print(f"\n{method} at {args.at}\n")
             print(md_table(["set", "rotation coverage / sharpness", "translation coverage / sharpness"],
                            coverage_rows(per_set, cfg, gain)))
+    if args.scale_shape:
+        for method, per_set in grids.items():
+            print(f"\n{method}: scale and shape of the bounds\n")
+            print(md_table(["set", "rotation: factor for 90 %", "sharpness at it",
+                            "translation: factor for 90 %", "sharpness at it"], scale_shape_rows(per_set)))
     if args.grid:
         for method, per_set in grids.items():
             pick, grid_rows = grid_search(per_set, METHODS[method][1].uncertainty,
