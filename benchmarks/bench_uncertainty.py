@@ -428,7 +428,7 @@ def main() -> int:
     args = ap.parse_args()
     if args.record and (args.photometric or args.grid or args.at or args.offset_gain_grid
                         or args.scale_shape):
-        ap.error("--photometric, --grid, --offset-gain-grid and --at are not recorded (the section's "
+        ap.error("--photometric, --grid, --offset-gain-grid, --scale-shape and --at are not recorded (the section's "
                  "text is by hand)")
     if args.photometric:
         det, pose = METHODS.pop("ficap joint")
