@@ -37,7 +37,7 @@ from ficap_ros.errors import CalibrationError, FicapError, OutputError
 from ficap_ros.files import read_text, write_output_file
 from ficap_ros.metrics import angle_deg, robust_mean_rotation
 from ficap_ros.stamps import pair_by_stamp, window_mask
-from ficap_ros.transform import CAM_FROM_FORWARD, Transform
+from ficap_ros.transform import CAM_FROM_FORWARD, Transform, compose, inverse
 
 __all__ = [
     "HeadCalibration",
@@ -84,11 +84,11 @@ class HeadCalibration:
 
     def head_in_camera(self, T_cam_cap: Transform) -> Transform:
         """T_cam_head: the cap pose composed with R_cap_head (head origin = cap origin)."""
-        return Transform(T_cam_cap.rotation * self.R_cap_head, T_cam_cap.translation_m)
+        return Transform(compose(T_cam_cap.rotation, self.R_cap_head), T_cam_cap.translation_m)
 
     def head_in_frontal(self, T_cam_cap: Transform) -> Rotation:
         """R_frontal_head: the head orientation in the frontal frame (identity when frontal)."""
-        return self.R_cam_frontal.inv() * T_cam_cap.rotation * self.R_cap_head
+        return compose(compose(inverse(self.R_cam_frontal), T_cam_cap.rotation), self.R_cap_head)
 
 
 @dataclass(frozen=True)

@@ -56,7 +56,7 @@ from ficap_ros.report import (
     record_from_result,
     status_values,
 )
-from ficap_ros.transform import Transform
+from ficap_ros.transform import Transform, inverse
 
 __all__ = [
     "LABEL_COLUMNS",
@@ -372,7 +372,7 @@ def write_labels_bag(path: str | Path, records: Sequence[LabelRecord],
             if rec.T_cam_cap is not None and rec.T_frontal_head is not None:
                 bag.write(topics["cap_pose"], rec.stamp_ns,
                           pose_stamped_msg(rec.stamp_ns, rec.frame_id, rec.T_cam_cap))
-                T_cam_head = Transform(rec.R_frontal_cam.inv(), np.zeros(3)) * rec.T_frontal_head
+                T_cam_head = Transform(inverse(rec.R_frontal_cam), np.zeros(3)) * rec.T_frontal_head
                 bag.write(topics["head_pose"], rec.stamp_ns,
                           pose_stamped_msg(rec.stamp_ns, rec.frame_id, T_cam_head))
                 assert rec.covariance_cam is not None  # finite and positive: pose.py's guarantee

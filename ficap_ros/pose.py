@@ -80,7 +80,7 @@ from ficap_ros.camera import CameraModel
 from ficap_ros.cap_model import TAG_SIDE_MM, CapModel
 from ficap_ros.detection import TagDetection
 from ficap_ros.errors import ConfigError
-from ficap_ros.transform import Transform
+from ficap_ros.transform import Transform, compose, from_rotvec
 
 __all__ = [
     "POSE_METHODS",
@@ -438,7 +438,7 @@ def _refine(obs: _Observations, T0: Transform) -> tuple[Transform, None, float]:
         raise ValueError("Method 'lm' doesn't work when the number of residuals is less than "
                          "the number of variables.")
     x, res = _minimise(fun, jac, x0)
-    T = Transform(Rotation.from_rotvec(x[:3]) * T0.rotation, x[3:])
+    T = Transform(compose(from_rotvec(x[:3]), T0.rotation), x[3:])
     return T, None, float(np.sqrt(np.mean(res**2) * 2.0))
 
 
@@ -925,7 +925,7 @@ def _reweighted(obs: _Observations, T: Transform) -> tuple[Transform, np.ndarray
         return T, sigma
     if not np.all(np.isfinite(dx)):
         return T, sigma
-    return Transform(Rotation.from_rotvec(dx[:3]) * T.rotation, T.translation_m + dx[3:]), sigma
+    return Transform(compose(from_rotvec(dx[:3]), T.rotation), T.translation_m + dx[3:]), sigma
 
 
 def light_gradient_px(edge_shift_px: np.ndarray, centres_px: np.ndarray) -> float:

@@ -21,7 +21,6 @@ from enum import Enum
 from functools import lru_cache
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from ficap_ros.camera import CameraModel
 from ficap_ros.cap_model import CapModel
@@ -36,7 +35,7 @@ from ficap_ros.detection import (
 )
 from ficap_ros.errors import ConfigError
 from ficap_ros.pose import PoseConfig, estimate_cap_pose
-from ficap_ros.transform import Transform
+from ficap_ros.transform import Transform, compose, from_rotvec, inverse
 
 __all__ = ["TrackConfig", "Tracker", "Search", "extrapolate_pose", "predict_tags", "verify_tags", "tag_cells",
            "view_angles_deg"]
@@ -98,9 +97,9 @@ def extrapolate_pose(
     """
     if T_prev2 is None:
         return T_prev
-    step = (T_prev.rotation * T_prev2.rotation.inv()).as_rotvec() * dt_ratio
+    step = compose(T_prev.rotation, inverse(T_prev2.rotation)).as_rotvec() * dt_ratio
     t = T_prev.translation_m + (T_prev.translation_m - T_prev2.translation_m) * dt_ratio
-    return Transform(Rotation.from_rotvec(step) * T_prev.rotation, t)
+    return Transform(compose(from_rotvec(step), T_prev.rotation), t)
 
 
 def view_angles_deg(model: CapModel, T_cam_cap: Transform) -> np.ndarray:

@@ -16,7 +16,65 @@ from scipy.spatial.transform import Rotation
 
 from ficap_ros.errors import ConfigError
 
-__all__ = ["Transform", "CAM_FROM_FORWARD", "rotate_covariance"]
+__all__ = ["Transform", "CAM_FROM_FORWARD", "rotate_covariance", "compose", "inverse", "from_rotvec"]
+
+# Rotation's own Cython kernels (scipy 1.17, pinned): ``compose``, ``inverse`` and ``from_rotvec``
+# call the functions ``Rotation``'s operators call, on the same numbers, without its array-API
+# dispatch and argument promotion (~7 of a composition's ~9 us; a tracked frame and its labels
+# compose ~20 rotations). Bit-identical quaternions (test_transform checks them against the
+# operators); private, so optional: without it, or for anything but single numpy rotations, the
+# operators themselves.
+try:
+    from scipy.spatial.transform import _rotation_cy as _KERNELS
+
+    _IDENTITY = Rotation.identity()
+    _XP = _IDENTITY._xp
+    _FAST = _IDENTITY._backend is _KERNELS and _IDENTITY._single
+except (ImportError, AttributeError):  # pragma: no cover - another scipy
+    _FAST = False
+
+
+def _single(quat: np.ndarray) -> Rotation:
+    """A single Rotation holding ``quat`` (1, 4), as ``Rotation._from_raw_quat`` builds one (its
+    own ``atleast_nd`` is a third of an inversion's time)."""
+    rot = Rotation.__new__(Rotation)
+    rot._single, rot._quat, rot._xp, rot._backend = True, quat, _XP, _KERNELS
+    return rot
+
+
+def _fast(*rotations: Rotation) -> bool:
+    return _FAST and all(type(r) is Rotation and r._single and r._backend is _KERNELS for r in rotations)
+
+
+def compose(a: Rotation, b: Rotation) -> Rotation:
+    """``a * b`` (apply b, then a) of single rotations: the same quaternion as the operator."""
+    if not _fast(a, b):
+        return a * b
+    q = _KERNELS.from_quat(_KERNELS.compose_quat(a._quat, b._quat), normalize=True, copy=False,
+                           scalar_first=False)
+    return _single(q)
+
+
+def inverse(a: Rotation) -> Rotation:
+    """``a.inv()`` of a single rotation: the same quaternion."""
+    if not _fast(a):
+        return a.inv()
+    return _single(_KERNELS.inv(a._quat))
+
+
+def from_rotvec(rotvec_rad: np.ndarray) -> Rotation:
+    """``Rotation.from_rotvec`` of one rotation vector (3,), rad: the same quaternion."""
+    rv = np.asarray(rotvec_rad, dtype=np.float64)
+    if not _FAST or rv.shape != (3,):
+        return Rotation.from_rotvec(rv)
+    return _single(_KERNELS.from_rotvec(rv[None], degrees=False))
+
+
+def _apply(a: Rotation, vector: np.ndarray) -> np.ndarray:
+    """``a.apply(vector)`` of one vector (3,) by a single rotation: the same numbers."""
+    if not _fast(a):
+        return a.apply(vector)
+    return _KERNELS.apply(a._quat, np.asarray(vector, dtype=np.float64).reshape(1, 3), inverse=False)[0]
 
 
 @dataclass(frozen=True)
@@ -92,13 +150,13 @@ class Transform:
     def __mul__(self, other: Transform) -> Transform:
         """Compose: ``T_a_b * T_b_c = T_a_c``."""
         return Transform(
-            self.rotation * other.rotation,
-            self.rotation.apply(np.array(other.translation_m)) + self.translation_m,
+            compose(self.rotation, other.rotation),
+            _apply(self.rotation, np.array(other.translation_m)) + self.translation_m,
         )
 
     def inv(self) -> Transform:
-        r_inv = self.rotation.inv()
-        return Transform(r_inv, -r_inv.apply(np.array(self.translation_m)))
+        r_inv = inverse(self.rotation)
+        return Transform(r_inv, -_apply(r_inv, np.array(self.translation_m)))
 
     @cached_property
     def rotation_matrix(self) -> np.ndarray:
