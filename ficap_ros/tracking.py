@@ -351,10 +351,13 @@ class Tracker:
         shift = np.full(len(ids), np.nan)
         refined[ok], shift[ok] = refine_tag_corners(gray, refined[ok], ids[ok], self._tracked_corners)
         ver, errors, contrast = verify_tags(gray, ids[ok], refined[ok], self.config)
-        moved = np.linalg.norm(refined[ok][ver] - corners[ok][ver], axis=2)
-        return ([TagDetection(int(i), c, int(e), float(m), float(x))
-                 for i, c, e, m, x in zip(ids[ok][ver], refined[ok][ver], errors[ver], contrast[ver],
-                                          shift[ok][ver])],
+        kept = np.flatnonzero(ok)[ver]
+        moved = np.linalg.norm(refined[kept] - corners[kept], axis=2)
+        # Python numbers (tolist) for the per-tag fields: converting numpy scalars one by one
+        # cost ~5 us a tag.
+        return ([TagDetection(i, c, e, m, x)
+                 for i, c, e, m, x in zip(ids[kept].tolist(), refined[kept], errors[ver].tolist(),
+                                          contrast[ver].tolist(), shift[kept].tolist())],
                 float(moved.max()) if moved.size else 0.0)
 
     def _view_angles(self, T_cam_cap: Transform) -> np.ndarray:
