@@ -271,3 +271,15 @@ def test_replay_bad_inputs(drive: Path, tmp_path: Path, capsys: pytest.CaptureFi
         assert main(["replay", *args, "--quiet"]) == 1
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("ficap: error:"), err
+
+
+def test_keep_freed_memory_takes_on_glibc() -> None:
+    """The replay's allocator setting (replay.keep_freed_memory): glibc takes it (this project's
+    platform); elsewhere it says it did nothing, and the labels never depend on it."""
+    import platform
+    import sys
+
+    from ficap_ros.replay import keep_freed_memory
+
+    expected = sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc"
+    assert keep_freed_memory() is expected

@@ -112,8 +112,9 @@ def run(args: argparse.Namespace) -> int:
     from ficap_ros.errors import BagError
     from ficap_ros.files import check_output_folder, check_replaceable
     from ficap_ros.pose import PoseConfig
-    from ficap_ros.replay import check_output_dir, replay
+    from ficap_ros.replay import check_output_dir, keep_freed_memory, replay
 
+    keep_freed_memory()  # this process decodes and processes the frames (--jobs 1)
     model = load_model(args.model) if args.model else nominal_model()
     detector = DetectorConfig(edge_photometric=args.photometric)
     calibration = None
