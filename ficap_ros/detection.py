@@ -605,10 +605,10 @@ def _edge_pass(
     k = (cfg.edge_profile_samples - 1) // 2
     step = half / k  # (R,)
     j, t, trap = _edge_pass_grid(k, cfg.edge_corner_skip, m)
-    base = (a[:, None, :] + d[:, None, :] * t[None, :, None]).astype(np.float32)  # (R,M,2)
     dn = (nrm * step[:, None]).astype(np.float32)  # (R,2) one sample step along the normal
-    map_x = base[..., 0, None] + dn[:, None, 0:1] * j  # (R,M,S)
-    map_y = base[..., 1, None] + dn[:, None, 1:2] * j
+    # Sample grid (R,M,S): the side's points (float64, then float32) plus the steps along the normal.
+    map_x = (a[:, 0:1] + d[:, 0:1] * t).astype(np.float32)[..., None] + dn[:, None, 0:1] * j
+    map_y = (a[:, 1:2] + d[:, 1:2] * t).astype(np.float32)[..., None] + dn[:, None, 1:2] * j
     s_len = len(j)
     # cv2.remap: bilinear in C++ (positions to 1/32 px, values to 1 grey level; both average out
     # over a profile and a side: measured 0.001 px on the median corner error).
@@ -661,14 +661,22 @@ def _edge_pass(
 
 
 @lru_cache(maxsize=8)
+def _sample_index(k: int) -> np.ndarray:
+    """(2k + 1,) float32 -k..k: a profile's sample index along its normal (built once per size)."""
+    j = np.arange(-k, k + 1, dtype=np.float32)
+    j.setflags(write=False)
+    return j
+
+
+@lru_cache(maxsize=8)
 def _edge_pass_grid(k: int, corner_skip: float, m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``_edge_pass``'s constants, built once per setting: the sample index along the normal (S,),
     the positions along a side (M,) and the trapezoid rule's weights (S,)."""
-    j = np.arange(-k, k + 1, dtype=np.float32)
+    j = _sample_index(k)
     t = np.linspace(corner_skip, 1.0 - corner_skip, m)
     trap = np.ones(len(j), dtype=np.float32)
     trap[[0, -1]] = 0.5
-    for a in (j, t, trap):
+    for a in (t, trap):
         a.setflags(write=False)
     return j, t, trap
 
@@ -1432,7 +1440,7 @@ def _step_offset(
     import cv2
 
     k = (samples - 1) // 2
-    j = np.arange(-k, k + 1, dtype=np.float32)
+    j = _sample_index(k)
     step = half / k
     d = (to_light * step[:, None]).astype(np.float32)
     c = centre.astype(np.float32)
@@ -1440,7 +1448,8 @@ def _step_offset(
                      borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
     dark = 0.5 * (vals[:, 0] + vals[:, 1])
     contrast = 0.5 * (vals[:, -1] + vals[:, -2]) - dark
-    frac = (vals - dark[:, None]) / np.where(contrast > 0, contrast, 1.0)[:, None]
+    frac = np.subtract(vals, dark[:, None], out=vals)  # in place, as _edge_pass
+    frac /= np.where(contrast > 0, contrast, 1.0)[:, None]
     np.clip(frac, 0.0, 1.0, out=frac)
     area = frac.sum(axis=1) - 0.5 * (frac[:, 0] + frac[:, -1])  # trapezoid rule
     return half - area.astype(np.float64) * step, contrast.astype(np.float64)

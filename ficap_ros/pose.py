@@ -875,15 +875,30 @@ def _tag_basis(corners_px: np.ndarray) -> np.ndarray:
     n_tags = corners_px.shape[0]
     p = corners_px - corners_px.mean(axis=1, keepdims=True)
     p = p / np.maximum(np.linalg.norm(p.reshape(n_tags, -1), axis=1), 1e-9)[:, None, None]
-    zero = np.zeros((n_tags, 4))
-    one = np.ones((n_tags, 4))
-    patterns = [np.stack([one, zero], 2), np.stack([zero, one], 2), p,
-                np.stack([-p[..., 1], p[..., 0]], 2), np.stack([p[..., 0], -p[..., 1]], 2),
-                np.stack([p[..., 1], p[..., 0]], 2)]
-    M = np.concatenate([np.stack([c.reshape(n_tags, 8) for c in patterns], 2),
-                        np.broadcast_to(np.eye(8), (n_tags, 8, 8))], 2)
+    px, py = p[..., 0], p[..., 1]
+    # Columns (x0 y0 ... x3 y3 down each): the six patterns, then the identity's eight; the shift
+    # columns and the identity are the same for every tag (copied from one template).
+    M = np.repeat(_BASIS_TEMPLATE, n_tags, axis=0)
+    M[:, 0::2, 2], M[:, 1::2, 2] = px, py  # scale (radial)
+    M[:, 0::2, 3], M[:, 1::2, 3] = -py, px  # turn
+    M[:, 0::2, 4], M[:, 1::2, 4] = px, -py  # shear
+    M[:, 0::2, 5], M[:, 1::2, 5] = py, px  # shear
     Q, _ = np.linalg.qr(M)
     return Q[:, :, :8]
+
+
+def _basis_template() -> np.ndarray:
+    """(1, 8, 14): ``_tag_basis``'s columns that do not depend on the tag: shift x, shift y
+    (0 and 1), the identity (6..13); the tag's four patterns (2..5) are filled in."""
+    t = np.zeros((1, 8, 14))
+    t[0, 0::2, 0] = 1.0
+    t[0, 1::2, 1] = 1.0
+    t[0, :, 6:] = np.eye(8)
+    t.setflags(write=False)
+    return t
+
+
+_BASIS_TEMPLATE = _basis_template()
 
 
 def tag_noise_px(obs: _Observations, T: Transform) -> np.ndarray:
