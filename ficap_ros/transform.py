@@ -77,6 +77,23 @@ def _apply(a: Rotation, vector: np.ndarray) -> np.ndarray:
     return _KERNELS.apply(a._quat, np.asarray(vector, dtype=np.float64).reshape(1, 3), inverse=False)[0]
 
 
+def _kernels_agree() -> bool:
+    """The kernels take these arguments and give the operators' numbers (checked once, at
+    import: a scipy whose private kernels changed falls back to the operators, not to errors)."""
+    try:
+        a, b = Rotation.from_rotvec([0.1, -0.2, 0.3]), Rotation.from_rotvec([-0.3, 0.1, 0.2])
+        v = np.array([0.5, -1.0, 2.0])
+        return bool(np.array_equal(compose(a, b).as_quat(), (a * b).as_quat())
+                    and np.array_equal(inverse(a).as_quat(), a.inv().as_quat())
+                    and np.array_equal(from_rotvec([0.1, -0.2, 0.3]).as_quat(), a.as_quat())
+                    and np.array_equal(_apply(a, v), a.apply(v)))
+    except (TypeError, ValueError, AttributeError):  # pragma: no cover - another scipy
+        return False
+
+
+_FAST = _FAST and _kernels_agree()
+
+
 @dataclass(frozen=True)
 class Transform:
     """A rigid transform ``T_a_b``: rotation and translation in metres."""
