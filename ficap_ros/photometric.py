@@ -80,9 +80,11 @@ def _srgb(lin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return enc, np.where(lin >= 1.0, 0.0, slope)
 
 
-def _srgb_inv(enc: np.ndarray) -> np.ndarray:
-    y = np.clip(enc, 0.0, 1.0)
-    return np.where(y <= 0.04045, y / 12.92, ((y + 0.055) / 1.055) ** 2.4)
+def _srgb_inv(enc: float) -> float:
+    """The linear value of an sRGB-encoded one (clipped to [0, 1]); Python floats: libm's pow, as
+    numpy's scalars use (numpy's array pow can round apart)."""
+    y = min(max(enc, 0.0), 1.0)
+    return y / 12.92 if y <= 0.04045 else ((y + 0.055) / 1.055) ** 2.4
 
 
 def _select_pixels(shape: tuple[int, int], hom: np.ndarray, tables: np.ndarray, sd_px: float,
@@ -151,6 +153,31 @@ def _select_pixels(shape: tuple[int, int], hom: np.ndarray, tables: np.ndarray, 
     return np.concatenate(tags), np.concatenate(cols), np.concatenate(rows)
 
 
+def _group_median(x: np.ndarray, group: np.ndarray, pos: np.ndarray, n: int, width: int,
+                  mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """np.median of each group's (masked) entries, all groups at once: ((n,) medians, 0 for a group
+    with none; (n,) entries counted). ``group``: each entry's group (0..n-1, entries group after
+    group); ``pos``: its place in the group's run; ``width``: the longest run. Equal to np.median
+    per group bit for bit: the middle one of a sorted run, or the mean of the middle two, (a + b) / 2
+    (a run with a NaN: NaN)."""
+    pad = np.full((n, width), np.inf)  # runs padded with +inf, sorted to each row's end
+    if mask is None:
+        pad[group, pos] = x
+        cnt = np.bincount(group, minlength=n)
+        nan = np.isnan(x)
+    else:
+        pad[group, pos] = np.where(mask, x, np.inf)
+        cnt = np.bincount(group, weights=mask, minlength=n).astype(np.intp)
+        nan = np.isnan(x) & mask
+    pad.sort(axis=1)
+    rows = np.arange(n)
+    lo, hi = np.maximum(cnt - 1, 0) // 2, np.minimum(cnt // 2, width - 1)
+    med = (pad[rows, lo] + pad[rows, hi]) / 2.0
+    if nan.any():  # np.median's answer for a run with a NaN
+        med[np.bincount(group[nan], minlength=n) > 0] = np.nan
+    return np.where(cnt > 0, med, 0.0), cnt
+
+
 def _ndtr32(z: np.ndarray, gauss: np.ndarray) -> np.ndarray:
     """The normal CDF of float32 ``z`` given ``gauss`` = exp(-z^2 / 2): Abramowitz & Stegun 7.1.26
     (erfc to 1.5e-7, i.e. the CDF to 7.5e-8, about float32's rounding of it), reusing the Gaussian
@@ -203,6 +230,8 @@ def fit_tags(
     px, py = xi.astype(np.float64), yi.astype(np.float64)
     counts = np.bincount(tag, minlength=n)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    pos = np.arange(len(tag)) - starts[tag]  # each pixel's place in its tag's run
+    lmax = int(counts.max())
     h = hom.reshape(n, 9)[:, :8].copy()
     n_par = 8 + 7 + (1 if free_tone else 0)
     theta = np.zeros((n, n_par - 8))  # Lb0, Lb_u, Lb_v, Lw0, Lw_u, Lw_v, log blur scale, [log kappa]
@@ -234,7 +263,6 @@ def fit_tags(
         den = a31 * u + a32 * v + 1.0
         # Jacobian of H at (u, v): d(x, y)/d(u, v) = M / den; its inverse, (den / det) adj(M), has
         # rows grad u = (m22, -m12) den / det and grad v = (-m21, m11) den / det.
-        th = np.repeat(theta.T, counts, axis=1)
         scale = np.repeat(sd_px * np.exp(theta[:, 6]), counts)  # exp per tag, not per pixel
         gd = scale * np.abs(den / det)
         su = np.hypot(m22, m12) * gd
@@ -285,17 +313,13 @@ def fit_tags(
         uc, vc = (u - 4.0) / 4.0, (v - 4.0) / 4.0
         if it == 0:
             # Levels from the pixels the model calls flat black / flat white.
+            mb, nb = _group_median(obs, tag, pos, n, lmax, C < 0.05)
+            mw, nw = _group_median(obs, tag, pos, n, lmax, C > 0.95)
+            ok_tag &= (nb >= 5) & (nw >= 5)
             for t in np.flatnonzero(ok_tag):
-                s = slice(starts[t], starts[t] + counts[t])
-                gb = obs[s][C[s] < 0.05]
-                gw = obs[s][C[s] > 0.95]
-                if len(gb) < 5 or len(gw) < 5:
-                    ok_tag[t] = False
-                    continue
-                mw = np.median(gw)
-                theta[t, 0] = _srgb_inv(np.median(gb) / 255.0)
-                theta[t, 3] = _srgb_inv(mw / 255.0) if mw < 250 else 1.1
-            th = np.repeat(theta.T, counts, axis=1)
+                theta[t, 0] = _srgb_inv(float(mb[t]) / 255.0)
+                theta[t, 3] = _srgb_inv(float(mw[t]) / 255.0) if mw[t] < 250 else 1.1
+        th = np.repeat(theta[:, :6].T, counts, axis=1)
         lb = th[0] + th[1] * uc + th[2] * vc
         lw = th[3] + th[4] * uc + th[5] * vc
         L = lb + (lw - lb) * C
@@ -312,11 +336,13 @@ def fit_tags(
         if it >= 1:
             # Robust: pixels more than 4 robust sds off this tag's model (glare, a neighbour's edge).
             ab = np.abs(r)
-            mad = np.array([np.median(ab[starts[t]:starts[t] + counts[t]]) if counts[t] else 0.0
-                            for t in range(n)])
+            mad = _group_median(ab, tag, pos, n, lmax)[0]
             keep = ab <= np.maximum(4.0 * 1.4826 * mad[tag], 3.0)
-            contrast = np.array([np.ptp(model[starts[t]:starts[t] + counts[t]]) if counts[t] else 0.0
-                                 for t in range(n)])
+            # Each tag's model range (np.ptp per tag); a tag with no pixels has none.
+            some = np.flatnonzero(counts)
+            contrast = np.zeros(n)
+            contrast[some] = (np.maximum.reduceat(model, starts[some])
+                              - np.minimum.reduceat(model, starts[some]))
             misfit = 1.4826 * mad / np.maximum(contrast, 1.0)
         dC = (lw - lb) * fp  # d grey / d C
         # The Jacobian's rows, zero at dropped pixels (keep is 0/1, so J_k^T J_k = J_k^T J).

@@ -168,3 +168,28 @@ def test_photometric_fit_leaves_a_tag_without_contrast_unfitted() -> None:
     assert ok_before.all() and not ok[0]
     np.testing.assert_array_equal(out[0], start[0])
     np.testing.assert_array_equal(ok[1:], ok_before[1:])
+
+
+def test_group_median_is_np_median_per_group() -> None:
+    """The fit's all-tags-at-once median (levels, robust sd) equals np.median tag by tag, bit for
+    bit: odd and even runs, masked entries, a run with nothing left, a NaN, empty groups at the end,
+    integer grey levels (halves) and continuous residuals."""
+    from ficap_ros.photometric import _group_median
+
+    rng = np.random.default_rng(7)
+    counts = np.array([1, 2, 7, 8, 1500, 1499, 3, 0, 0])
+    n = len(counts)
+    group = np.repeat(np.arange(n), counts)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    pos = np.arange(len(group)) - starts[group]
+    for x in (rng.integers(0, 256, len(group)).astype(np.float64), rng.normal(0.0, 3.0, len(group)) ** 2):
+        x[starts[2] + 3] = np.nan  # group 2's median is NaN, as np.median's
+        for mask in (None, x > np.nanmedian(x), np.zeros(len(x), dtype=bool)):
+            med, cnt = _group_median(x, group, pos, n, int(counts.max()), mask)
+            for g in range(n):
+                run = x[starts[g]:starts[g] + counts[g]]
+                if mask is not None:
+                    run = run[mask[starts[g]:starts[g] + counts[g]]]
+                assert cnt[g] == len(run)
+                want = np.median(run) if len(run) else 0.0
+                assert (np.isnan(want) and np.isnan(med[g])) or med[g] == want, (g, med[g], want)
