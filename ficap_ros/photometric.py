@@ -242,7 +242,7 @@ def fit_tags(
     # c..c+3; a pixel's block is one row of this (a 16-value gather instead of 16 gathers).
     win = sliding_window_view(tab, (4, 4), axis=(1, 2))  # (N, S - 3, S - 3, 4, 4)
     nwin = win.shape[1]
-    blocks = win.reshape(-1, 16).astype(np.float32)
+    blocks_t = np.ascontiguousarray(win.reshape(-1, 16).T, dtype=np.float32)  # (16, blocks)
     ok_tag = counts >= 40
     lam = 1e-3
     misfit = np.full(n, np.inf)
@@ -250,6 +250,7 @@ def fit_tags(
     # Per-pixel arrays are laid out (quantity, pixel): rows are contiguous, which keeps numpy's
     # broadcasting and the normal equations' products cheap (the fit's cost is all elementwise).
     J = np.empty((n_par, len(tag)))
+    X = np.empty((2, 3, 4, len(tag)), dtype=np.float32)  # filled anew at each step
     for it in range(iterations):
         # Each tag's parameters, repeated over its pixels (pixels come tag after tag).
         a11, a12, a13, a21, a22, a23, a31, a32 = np.repeat(h.T, counts, axis=1)
@@ -258,6 +259,7 @@ def fit_tags(
         m11, m12, m21, m22 = a11 - a31 * px, a12 - a32 * px, a21 - a31 * py, a22 - a32 * py
         det = m11 * m22 - m12 * m21
         bx, by = px - a13, py - a23
+        del a11, a12, a13, a21, a22, a23
         u = (m22 * bx - m12 * by) / det
         v = (-m21 * bx + m11 * by) / det
         den = a31 * u + a32 * v + 1.0
@@ -275,8 +277,8 @@ def fit_tags(
             ci = np.clip(bu.astype(np.intp) + _PAD, 2, size - 2)
             cj = np.clip(bv.astype(np.intp) + _PAD, 2, size - 2)
             # [v, u, p]: the cells b - 2 .. b + 1 along each axis.
-            block = blocks.take((tag * nwin + cj - 2) * nwin + ci - 2, axis=0)  # (P, 16)
-            patch = np.ascontiguousarray(block.T).reshape(4, 4, -1)
+            patch = blocks_t.take((tag * nwin + cj - 2) * nwin + ci - 2, axis=1).reshape(4, 4, -1)
+            del ci, cj
         # u and v stacked: [0] the boundaries along u, [1] along v (one ufunc call each).
         # In float32 (half the memory traffic of this, the fit's bulk): a share's rounding, 6e-8,
         # is 1e-5 of a grey level; with ``_ndtr32``, the corners moved by at most 1.3e-5 px against
@@ -294,13 +296,16 @@ def fit_tags(
         e[inner] = _ndtr32(zi, gauss)
         phi = np.zeros_like(z)
         phi[inner] = gauss * np.float32(0.3989422804014327)
-        g = phi * isd  # d ndtr(z) / d(boundary - u)
-        hh = phi * z  # d ndtr(z) / d log(blur scale) = -phi(z) z
+        del inner, zi, gauss, su, sv, gd, scale, den
         # [u / v][share, d share / du (dv), d share / d log(blur scale)][cell][pixel]
-        X = np.empty((2, 3, 4, len(tag)), dtype=np.float32)
         np.subtract(e[:, 1:], e[:, :-1], out=X[:, 0])  # each cell's share along u / v
+        del e
+        g = phi * isd  # d ndtr(z) / d(boundary - u)
         np.subtract(g[:, :-1], g[:, 1:], out=X[:, 1])
+        del g, isd
+        hh = np.multiply(phi, z, out=z)  # d ndtr(z) / d log(blur scale) = -phi(z) z
         np.subtract(hh[:, :-1], hh[:, 1:], out=X[:, 2])
+        del z, hh, phi
         av, dav, sav = X[1]
         # Each row's share along u (and its derivatives), then summed over rows against v's.
         rows = np.einsum("jkp,ikp->ijp", patch, X[0])  # (3, 4, P)
@@ -309,6 +314,7 @@ def fit_tags(
         dbu = np.einsum("jp,jp->p", rows[1], av).astype(np.float64)
         dbv = np.einsum("jp,jp->p", pa, dav).astype(np.float64)
         dbs = (np.einsum("jp,jp->p", rows[2], av) + np.einsum("jp,jp->p", pa, sav)).astype(np.float64)
+        del rows, pa, av, dav, sav
         C = 1.0 - black
         uc, vc = (u - 4.0) / 4.0, (v - 4.0) / 4.0
         if it == 0:
@@ -322,8 +328,10 @@ def fit_tags(
         th = np.repeat(theta[:, :6].T, counts, axis=1)
         lb = th[0] + th[1] * uc + th[2] * vc
         lw = th[3] + th[4] * uc + th[5] * vc
+        del th
         L = lb + (lw - lb) * C
         enc, slope = _srgb(L)
+        del L
         if free_tone:
             kap = np.repeat(np.exp(theta[:, 7]), counts)
             encp = np.maximum(enc, 1e-4)
@@ -338,6 +346,7 @@ def fit_tags(
             ab = np.abs(r)
             mad = _group_median(ab, tag, pos, n, lmax)[0]
             keep = ab <= np.maximum(4.0 * 1.4826 * mad[tag], 3.0)
+            del ab
             # Each tag's model range (np.ptp per tag); a tag with no pixels has none.
             some = np.flatnonzero(counts)
             contrast = np.zeros(n)
@@ -376,6 +385,12 @@ def fit_tags(
         if free_tone:
             J[15] = model * np.log(encp) * kap * keep
         rk = r * keep
+        # The step's pixel arrays go before the next step makes its own (each call's fresh pages
+        # are a third of its time at 540p: its peak memory is its cost).
+        del a31, a32, m11, m12, m21, m22, det, bx, by, u, v, black, dbu, dbv, dbs, C, uc, vc, lb, lw
+        del enc, slope, model, fp, r, dC, w, gx, gy, gp, fk, fw, fb
+        if free_tone:
+            del kap, encp
         A = np.tile(np.eye(n_par), (n, 1, 1))
         b = np.zeros((n, n_par))
         for t in np.flatnonzero(ok_tag):
