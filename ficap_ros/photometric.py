@@ -92,64 +92,82 @@ def _select_pixels(shape: tuple[int, int], hom: np.ndarray, tables: np.ndarray, 
     """Pixels (x, y) within ``reach_px`` of a black/white boundary of each tag's face: (tag of each,
     x, y) as int arrays, tag after tag."""
     h_img, w_img = shape
+    n = len(hom)
+    z = np.zeros(0, dtype=np.intp)
+    if n == 0:
+        return z, z, z
+    # Each tag's face box, inverse homography and reach, all tags at once (the same values as
+    # tag by tag: a stacked matmul, inv and norm run the same loops per tag).
     face = np.array([[-1, -1, 1], [9, -1, 1], [9, 9, 1], [-1, 9, 1]], float)
+    q = face @ hom.transpose(0, 2, 1)  # (N, 4, 3)
+    xy = q[..., :2] / q[..., 2:]
+    lo, hi = np.floor(xy.min(axis=1)).astype(int), np.ceil(xy.max(axis=1)).astype(int)
+    x0, y0 = np.maximum(lo[:, 0], 1), np.maximum(lo[:, 1], 1)
+    x1, y1 = np.minimum(hi[:, 0], w_img - 2), np.minimum(hi[:, 1], h_img - 2)
+    use = np.flatnonzero((x1 - x0 >= 3) & (y1 - y0 >= 3))
+    if len(use) == 0:
+        return z, z, z
+    Hi = np.zeros((n, 3, 3))
+    Hi[use] = np.linalg.inv(hom[use])
+    # Reach in cell units from the face's mean px per cell (a selection, not the model: an
+    # approximation is fine).
+    side = np.linalg.norm(xy[:, [1, 2, 3, 0]] - xy, axis=2).mean(axis=1) / 10.0  # px per cell (face = 10 cells)
+    r = (reach_px + 1.5 * sd_px) / np.maximum(side, 1e-6)
+    # Black cells in the box [u - r, u + r] x [v - r, v + r] by a summed-area table: a pixel is
+    # near a boundary when the box holds both colours.
+    size = tables.shape[1]
+    last = size - 1
+    stride = size + 1
+    sat = np.zeros((n, stride, stride), dtype=np.int32)  # counts: exact
+    sat[:, 1:, 1:] = tables.cumsum(1).cumsum(2)
     tags, cols, rows = [], [], []
-    for t in range(len(hom)):
-        H = hom[t]
-        q = face @ H.T
-        xy = q[:, :2] / q[:, 2:]
-        x0, y0 = np.floor(xy.min(axis=0)).astype(int)
-        x1, y1 = np.ceil(xy.max(axis=0)).astype(int)
-        x0, y0, x1, y1 = max(x0, 1), max(y0, 1), min(x1, w_img - 2), min(y1, h_img - 2)
-        if x1 - x0 < 3 or y1 - y0 < 3:
-            continue
+    for t in use:
         # Tag coordinates of the box's pixels: numerators and denominator as outer sums of a
         # row term and a column term (the same sums, in the same order, as per pixel).
-        xs, ys = np.arange(x0, x1 + 1, dtype=np.float64), np.arange(y0, y1 + 1, dtype=np.float64)
-        Hi = np.linalg.inv(H)
-        u = np.add.outer(Hi[0, 1] * ys, Hi[0, 0] * xs).ravel() + Hi[0, 2]
-        v = np.add.outer(Hi[1, 1] * ys, Hi[1, 0] * xs).ravel() + Hi[1, 2]
-        den = np.add.outer(Hi[2, 1] * ys, Hi[2, 0] * xs).ravel() + Hi[2, 2]
+        xs, ys = np.arange(x0[t], x1[t] + 1, dtype=np.float64), np.arange(y0[t], y1[t] + 1, dtype=np.float64)
+        H = Hi[t]
+        u = np.add.outer(H[0, 1] * ys, H[0, 0] * xs).ravel() + H[0, 2]
+        v = np.add.outer(H[1, 1] * ys, H[1, 0] * xs).ravel() + H[1, 2]
+        den = np.add.outer(H[2, 1] * ys, H[2, 0] * xs).ravel() + H[2, 2]
         u /= den
         v /= den
         on = np.flatnonzero((u > -0.9) & (u < TAG_CELLS + 0.9) & (v > -0.9) & (v < TAG_CELLS + 0.9))
-        gy, gx = np.divmod(on, len(xs))
-        gx += x0
-        gy += y0
-        u, v = u[on], v[on]
-        # Reach in cell units from the face's mean px per cell (a selection, not the model: an
-        # approximation is fine).
-        side = np.linalg.norm(xy[[1, 2, 3, 0]] - xy, axis=1).mean() / 10.0  # px per cell (face = 10 cells)
-        r = (reach_px + 1.5 * sd_px) / max(side, 1e-6)
-        tab = tables[t]
-        # Black cells in the box [u - r, u + r] x [v - r, v + r] by a summed-area table: a pixel is
-        # near a boundary when the box holds both colours.
-        sat = np.zeros((tab.shape[0] + 1, tab.shape[1] + 1))
-        sat[1:, 1:] = tab.cumsum(0).cumsum(1)
+        u, v = u.take(on), v.take(on)
+        rt = r[t]
+        flat = sat[t].ravel()
         # Box edges as rows / columns of the padded table (floors taken as floats, then one cast),
         # looked up in the flattened table (np.take: cheaper than 2-D fancy indexing).
-        last = tab.shape[1] - 1
-        lo_u = np.clip(np.floor(u - r) + _PAD, 0, last).astype(np.intp)
-        hi_u = np.clip(np.floor(u + r) + _PAD, 0, last).astype(np.intp) + 1
-        lo_v = np.clip(np.floor(v - r) + _PAD, 0, last).astype(np.intp)
-        hi_v = np.clip(np.floor(v + r) + _PAD, 0, last).astype(np.intp) + 1
-        flat = sat.ravel()
-        stride = sat.shape[1]
-        lo_v *= stride
-        hi_v *= stride
+        if rt < 2.0:  # on the face, such a box stays inside the padded table: no clipping
+            edges = []
+            for c, sgn in ((u, -rt), (u, rt), (v, -rt), (v, rt)):
+                e = c + sgn
+                np.floor(e, out=e)
+                edges.append(e.astype(np.intp))
+            lo_u, hi_u, lo_v, hi_v = edges
+            lo_u += _PAD
+            hi_u += _PAD + 1
+            lo_v *= stride
+            lo_v += _PAD * stride
+            hi_v *= stride
+            hi_v += (_PAD + 1) * stride
+        else:
+            lo_u = np.clip(np.floor(u - rt) + _PAD, 0, last).astype(np.intp)
+            hi_u = np.clip(np.floor(u + rt) + _PAD, 0, last).astype(np.intp) + 1
+            lo_v = np.clip(np.floor(v - rt) + _PAD, 0, last).astype(np.intp) * stride
+            hi_v = (np.clip(np.floor(v + rt) + _PAD, 0, last).astype(np.intp) + 1) * stride
         black = (flat.take(hi_v + hi_u) - flat.take(lo_v + hi_u) - flat.take(hi_v + lo_u)
                  + flat.take(lo_v + lo_u))
-        lo_v //= stride
+        hi_u -= lo_u
+        hi_v -= lo_v
         hi_v //= stride
-        near = np.flatnonzero((black > 0) & (black < (hi_u - lo_u) * (hi_v - lo_v)))
+        hi_u *= hi_v  # the box's cells
+        near = np.flatnonzero((black > 0) & (black < hi_u))
         if len(near) > max_pixels:  # a large tag: every k-th pixel (a narrower band loses the levels)
             near = near[np.linspace(0, len(near) - 1, max_pixels).astype(np.intp)]
+        gy, gx = np.divmod(on.take(near), len(xs))
         tags.append(np.full(len(near), t))
-        cols.append(gx[near])
-        rows.append(gy[near])
-    if not tags:
-        z = np.zeros(0, dtype=np.intp)
-        return z, z, z
+        cols.append(gx + x0[t])
+        rows.append(gy + y0[t])
     return np.concatenate(tags), np.concatenate(cols), np.concatenate(rows)
 
 
