@@ -10,9 +10,10 @@ otherwise (``TagDetector``, every frame searched, as ``ficap detect --json``):
   70 deg of head-on; tags as in bench_corners.py), ``ficap edge`` and ``+ photometric`` and the
   naive peer (OpenCV sub-pixel) on the same frames;
 * the same on ``ficap synth`` conditions (``bench_corners.SYNTH_CONDITIONS``, 6 frames each);
-* ``--cost``: process time per tracked 1080p frame (40 consecutive 30 fps synth frames through
+* ``--cost``: process time per tracked frame (40 consecutive 30 fps synth frames through
   ``FrameProcessor``, as replay runs them; the two settings alternated, 3 passes each, medians),
-  and per tag.
+  and per tag: 1080p in neutral light, and 540p in low light (the fit's other end: small tags,
+  a wide blur in cell units, every pixel of a tag kept).
 
 Usage: .venv/bin/python benchmarks/bench_photometric.py [--sets all|none|a,b] [--no-synth] [--cost] [--record]
 """
@@ -61,16 +62,17 @@ levels and the fit fails), so the way to the tracked path's budget is compiled c
 problem."""
 
 
-def cost(n_frames: int = 40, passes: int = 3) -> list[list[str]]:
-    """ms of process time per tracked 1080p frame, without and with the photometric fit."""
+def cost(n_frames: int = 40, passes: int = 3, resolution: str = "1080p",
+         lighting: str = "neutral") -> list[list[str]]:
+    """ms of process time per tracked frame, without and with the photometric fit."""
     from ficap_ros.cap_model import nominal_model
     from ficap_ros.pipeline import FrameProcessor
     from ficap_ros.synth import RenderConfig, default_scene, naturalistic_drive, render
 
-    model, scene = nominal_model(), default_scene("1080p")
+    model, scene = nominal_model(), default_scene(resolution)
     drive = naturalistic_drive(n_frames, fps=30.0, seed=3, scene=scene, frontal_s=0.0)
-    images = [render(model, scene.camera, d.T_cam_cap, RenderConfig(jpeg_quality=95), seed=d.index).image
-              for d in drive]
+    images = [render(model, scene.camera, d.T_cam_cap, RenderConfig(jpeg_quality=95, lighting=lighting),
+                     seed=d.index).image for d in drive]
     spent: dict[str, list[float]] = {"ficap edge": [], "ficap edge + photometric": []}
     tags = 0
     for k in range(passes + 1):  # the first pass warms the caches
@@ -84,7 +86,8 @@ def cost(n_frames: int = 40, passes: int = 3) -> list[list[str]]:
                 spent[name].append(1000.0 * (time.process_time() - t0) / n_frames)
     base, photo = (float(np.median(v)) for v in spent.values())
     per_tag = (photo - base) / (tags / n_frames)
-    return [[f"{base:.1f}", f"{photo:.1f}", f"{photo - base:.1f}", f"{tags / n_frames:.1f}", f"{per_tag:.2f}"]]
+    return [[f"{resolution} {lighting}", f"{base:.1f}", f"{photo:.1f}", f"{photo - base:.1f}",
+             f"{tags / n_frames:.1f}", f"{per_tag:.2f}"]]
 
 
 def main() -> int:
@@ -98,16 +101,16 @@ def main() -> int:
     t0 = time.time()
     if args.cost:
         load_before = load_avg()
-        rows = cost()
-        text = md_table(["ficap edge ms/frame", "+ photometric ms/frame", "photometric fit ms/frame",
+        rows = cost() + cost(resolution="540p", lighting="low")
+        text = md_table(["frames", "ficap edge ms/frame", "+ photometric ms/frame", "photometric fit ms/frame",
                          "tags/frame", "ms/tag"], rows)
         print(text)
         if args.record:
-            record_section("Photometric corner fit: cost per tracked 1080p frame", (
+            record_section("Photometric corner fit: cost per tracked frame", (
                 f"Machine: {machine_line()}; {load_before} at the start, {load_avg()} at the end. "
                 "`benchmarks/bench_photometric.py --cost --record`: 40 consecutive 30 fps `ficap synth` "
-                "1080p frames through `FrameProcessor` (tracking on), the two settings alternated, "
-                "3 passes each; process time per frame, medians.\n\n" + text + "\n\n" + COST_READING))
+                "frames (1080p neutral light, 540p low light) through `FrameProcessor` (tracking on), the two "
+                "settings alternated, 3 passes each; process time per frame, medians.\n\n" + text + "\n\n" + COST_READING))
         return 0
     detectors = {n: TagDetector(c) for n, c in METHODS.items()}
     header = ["frames", "method", "tags found", "median px", "p95 px", "mean radial px", "rms px"]
