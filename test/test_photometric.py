@@ -270,3 +270,18 @@ def test_pixel_selection_is_the_per_box_one() -> None:
         for g, w in zip(got, want):
             np.testing.assert_array_equal(g, w)
     assert len(_select_pixels(shape, hom[:0], tables[:0], 0.66, 1.0, 1500)[0]) == 0
+
+
+def test_photometric_fit_of_a_tag_does_not_depend_on_the_others() -> None:
+    """Each tag's fit is its own, which lets ``fit_tags`` fit a frame's tags a few at a time: all
+    of a frame's tags at once (more than a chunk) give, bit for bit, what each tag fitted alone does."""
+    fr = drive_frames("540p", RenderConfig(lighting="low", jpeg_quality=95), n=1)[0]
+    ids = np.array(fr.visible_ids(0.999))
+    start = np.array([fr.corners_px[t] for t in ids]) + 0.1
+    assert len(ids) > 12
+    together, ok = fit_tags_photometric(fr.image, start, ids)
+    for k in range(len(ids)):
+        alone, ok1 = fit_tags_photometric(fr.image, start[k:k + 1], ids[k:k + 1])
+        np.testing.assert_array_equal(alone[0], together[k])
+        assert ok1[0] == ok[k]
+    assert ok.sum() >= len(ids) - 2
