@@ -28,13 +28,13 @@ corners by about a fifth of its error, outward for a blur assumed too wide).
 Pixels: those within ``reach_px`` plus 1.5 blur sds of a black/white cell boundary (the rest are
 flat and say nothing about H), on the tag's 10 x 10-cell face, chosen once at the start corners;
 a large tag's thinned evenly to ``max_pixels``. Gauss-Newton (Levenberg-damped) over H, the
-levels, a blur scale and the exponent of every tag at once (per-tag 16 x 16 normal equations),
+levels, a blur scale and the exponent of up to 12 tags at once (per-tag 16 x 16 normal equations),
 pixels more than 4 robust sds off dropped after the first step (glare specks, a neighbour's edge).
 A tag whose fit fails, that would move a corner more than ``max_move_cells`` of a cell, or whose
 residual sd exceeds ``_MAX_MISFIT`` of its contrast keeps its input corners.
 
-Cost: ~1.3 ms of CPU a tag on a tracked 1080p frame (docs/benchmarks.md), hence opt-in
-(``DetectorConfig.edge_photometric``).
+Cost: ~1 ms of CPU a tag on a tracked 1080p frame, ~0.8 ms at 540p in low light (docs/benchmarks.md),
+hence opt-in (``DetectorConfig.edge_photometric``).
 """
 
 from __future__ import annotations
