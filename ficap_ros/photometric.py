@@ -122,6 +122,18 @@ def _select_pixels(shape: tuple[int, int], hom: np.ndarray, tables: np.ndarray, 
     stride = size + 1
     sat = np.zeros((n, stride, stride), dtype=np.int32)  # counts: exact
     sat[:, 1:, 1:] = tables.cumsum(1).cumsum(2)
+    # Where the reach is under a cell, a box spans at most 4 cells a side (floor(u + r) - floor(u - r)
+    # <= floor(2 r) + 1, one more from rounding), so whether each box (first cell, cells - 1) of each
+    # tag holds both colours is a table: one lookup a pixel instead of four.
+    runs = 4
+    first = np.arange(size)
+    end = np.minimum(first[:, None] + np.arange(runs), last) + 1  # (first cell, cells - 1) -> end
+    black = (sat[:, end[:, :, None, None], end[None, None]] - sat[:, first[:, None, None, None], end[None, None]]
+             - sat[:, end[:, :, None, None], first[None, None, :, None]]
+             + sat[:, first[:, None, None, None], first[None, None, :, None]])  # (N, v0, dv, u0, du)
+    span = end - first[:, None]
+    mixed = ((black > 0) & (black < span[:, :, None, None] * span[None, None])).ravel()
+    per_tag = size * runs * size * runs
     tags, cols, rows = [], [], []
     for t in use:
         # Tag coordinates of the box's pixels: numerators and denominator as outer sums of a
@@ -136,34 +148,33 @@ def _select_pixels(shape: tuple[int, int], hom: np.ndarray, tables: np.ndarray, 
         on = np.flatnonzero((u > -0.9) & (u < TAG_CELLS + 0.9) & (v > -0.9) & (v < TAG_CELLS + 0.9))
         u, v = u.take(on), v.take(on)
         rt = r[t]
-        flat = sat[t].ravel()
-        # Box edges as rows / columns of the padded table (floors taken as floats, then one cast),
-        # looked up in the flattened table (np.take: cheaper than 2-D fancy indexing).
-        if rt < 2.0:  # on the face, such a box stays inside the padded table: no clipping
+        # Box edges as rows / columns of the padded table (floors taken as floats, then one cast).
+        if rt < 1.0:  # on the face such a box stays inside the padded table (no clipping): the table
             edges = []
             for c, sgn in ((u, -rt), (u, rt), (v, -rt), (v, rt)):
                 e = c + sgn
                 np.floor(e, out=e)
                 edges.append(e.astype(np.intp))
             lo_u, hi_u, lo_v, hi_v = edges
-            lo_u += _PAD
-            hi_u += _PAD + 1
-            lo_v *= stride
-            lo_v += _PAD * stride
-            hi_v *= stride
-            hi_v += (_PAD + 1) * stride
-        else:
+            hi_u -= lo_u
+            hi_v -= lo_v
+            lo_v *= runs  # ((v0 runs + dv) size + u0) runs + du, cells counted from the table's
+            lo_v += hi_v
+            lo_v *= size
+            lo_v += lo_u
+            lo_v *= runs
+            lo_v += hi_u
+            lo_v += t * per_tag + ((_PAD * runs) * size + _PAD) * runs
+            near = np.flatnonzero(mixed.take(lo_v))
+        else:  # a tag of a few px: clipped, by the summed-area table (np.take: cheaper than 2-D fancy indexing)
+            flat = sat[t].ravel()
             lo_u = np.clip(np.floor(u - rt) + _PAD, 0, last).astype(np.intp)
             hi_u = np.clip(np.floor(u + rt) + _PAD, 0, last).astype(np.intp) + 1
             lo_v = np.clip(np.floor(v - rt) + _PAD, 0, last).astype(np.intp) * stride
             hi_v = (np.clip(np.floor(v + rt) + _PAD, 0, last).astype(np.intp) + 1) * stride
-        black = (flat.take(hi_v + hi_u) - flat.take(lo_v + hi_u) - flat.take(hi_v + lo_u)
-                 + flat.take(lo_v + lo_u))
-        hi_u -= lo_u
-        hi_v -= lo_v
-        hi_v //= stride
-        hi_u *= hi_v  # the box's cells
-        near = np.flatnonzero((black > 0) & (black < hi_u))
+            count = (flat.take(hi_v + hi_u) - flat.take(lo_v + hi_u) - flat.take(hi_v + lo_u)
+                     + flat.take(lo_v + lo_u))
+            near = np.flatnonzero((count > 0) & (count < (hi_u - lo_u) * ((hi_v - lo_v) // stride)))
         if len(near) > max_pixels:  # a large tag: every k-th pixel (a narrower band loses the levels)
             near = near[np.linspace(0, len(near) - 1, max_pixels).astype(np.intp)]
         gy, gx = np.divmod(on.take(near), len(xs))

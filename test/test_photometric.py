@@ -243,10 +243,11 @@ def _select_pixels_per_box(shape, hom, tables, sd_px, reach_px, max_pixels):  # 
 
 
 def test_pixel_selection_is_the_per_box_one() -> None:
-    """``_select_pixels`` (tags' boxes, inverses and reaches at once, no clipping where the reach
-    cannot leave the table) picks the same pixels, in the same order, as the selection first
-    written: tags from 0.8 to 25 px a cell (reach beyond 2 cells on the smallest), strong
-    perspective, cut by the image border, thinned and not."""
+    """``_select_pixels`` (tags' boxes, inverses and reaches at once; where the reach is under a
+    cell, one lookup a pixel in a table of every box's colours) picks the same pixels, in the same
+    order, as the selection first written: tags from 0.8 to 25 px a cell (reach 0.1 to 2.5 cells:
+    boxes of 1 to 3 cells a side, and the clipped path), strong perspective, cut by the image
+    border, thinned and not."""
     from ficap_ros.photometric import _black_tables, _select_pixels
 
     rng = np.random.default_rng(3)
