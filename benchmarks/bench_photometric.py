@@ -55,18 +55,19 @@ tag, the sRGB family assumed); blender_dev was the check. Not the default: it co
 COST_READING = """Reading it: ~1 ms of CPU per tag at 1080p, ~0.8 ms at 540p in low light (1500 pixels at most
 per tag, 3 Gauss-Newton steps of a 16-parameter model per tag). Earlier: 2.98 ms a tag in the first
 version (2026-11-23 23:39, 65.5 ms a 1080p frame), 1.31 ms (2026-11-24 00:27, 28.9 ms). Run interleaved
-with that version (main at 2fb5529, its own `--cost`, 3 rounds each, load 1.9-2.0): 1080p 27.1 / 34.3 /
-35.2 -> 21.3 / 21.2 / 21.1 ms a frame; 540p low light (the same 40-frame drive through `FrameProcessor`,
-a script outside the repo) 33.8 / 32.0 / 34.7 -> 17.0 / 16.8 / 16.9 ms. The old version's spread is
-fresh memory: it needed 35-41 MB a call and, whenever the allocator had handed the last call's pages back,
-paid 4-11 k page faults a frame (up to a third of its time); fitting at most 12 tags at once and
-dropping each step's arrays keeps the fit's peak at 11-12 MB, and these runs saw no faults. Same corners as
-that version, bit for bit (docs/detection.md). Still about 5x the corner stage it follows (~4.4 ms)
-and 40x the ~0.5 ms a tracked 1080p frame could spare: hence opt-in (`ficap detect/replay
---photometric`, the node's `detector.photometric`). Fewer pixels per tag cost accuracy at once
-(dev_1080p_high median 0.125 px at 1500 pixels, 0.137 at 600, 0.162 at 300, 4 steps; a narrower band
-around the boundaries instead loses the levels and the fit fails), so the way to the tracked path's
-budget is compiled code, not a smaller problem."""
+with that version (main at 2fb5529, its own `--cost`, 3 rounds each, load 2.1-3.6): 1080p 27.2 / 33.2 /
+34.0 -> 21.5 / 21.1 / 21.1 ms a frame; 540p low light (the same 40-frame drive through `FrameProcessor`,
+a script outside the repo, 2 rounds) 34.1 / 35.5 -> 16.6 / 16.5 ms. The old version's spread is fresh
+memory: it needed 35-41 MB a call and, whenever the allocator had handed the last call's pages back,
+paid 2-8 k page faults a frame (a third of its time at 540p); fitting at most 12 tags at once and
+dropping each step's arrays keeps the fit's peak at 11-12 MB, and these runs saw no faults. User time
+alone, 1080p ~27 -> ~20 ms, 540p ~22 -> ~16.5 ms. Same corners as that version, bit for bit
+(docs/detection.md). Still about 5x the corner stage it follows (~4.4 ms) and 40x the ~0.5 ms a
+tracked 1080p frame could spare: hence opt-in (`ficap detect/replay --photometric`, the node's
+`detector.photometric`). Fewer pixels per tag cost accuracy at once (dev_1080p_high median 0.125 px at
+1500 pixels, 0.137 at 600, 0.162 at 300, 4 steps; a narrower band around the boundaries instead loses
+the levels and the fit fails), so the way to the tracked path's budget is compiled code, not a smaller
+problem."""
 
 
 def cost(n_frames: int = 40, passes: int = 3, resolution: str = "1080p",
