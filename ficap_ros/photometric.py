@@ -33,7 +33,7 @@ pixels more than 4 robust sds off dropped after the first step (glare specks, a 
 A tag whose fit fails, that would move a corner more than ``max_move_cells`` of a cell, or whose
 residual sd exceeds ``_MAX_MISFIT`` of its contrast keeps its input corners.
 
-Cost: ~1 ms of CPU a tag on a tracked 1080p frame, ~0.8 ms at 540p in low light (docs/benchmarks.md),
+Cost: ~0.9 ms of CPU a tag on a tracked 1080p frame, ~0.8 ms at 540p in low light (docs/benchmarks.md),
 hence opt-in (``DetectorConfig.edge_photometric``).
 """
 
