@@ -10,9 +10,10 @@ otherwise (``TagDetector``, every frame searched, as ``ficap detect --json``):
   70 deg of head-on; tags as in bench_corners.py), ``ficap edge`` and ``+ photometric`` and the
   naive peer (OpenCV sub-pixel) on the same frames;
 * the same on ``ficap synth`` conditions (``bench_corners.SYNTH_CONDITIONS``, 6 frames each);
-* ``--cost``: process time per tracked 1080p frame (40 consecutive 30 fps synth frames through
+* ``--cost``: process time per tracked frame (40 consecutive 30 fps synth frames through
   ``FrameProcessor``, as replay runs them; the two settings alternated, 3 passes each, medians),
-  and per tag.
+  and per tag: 1080p in neutral light, and 540p in low light (the fit's other end: small tags,
+  a wide blur in cell units, every pixel of a tag kept).
 
 Usage: .venv/bin/python benchmarks/bench_photometric.py [--sets all|none|a,b] [--no-synth] [--cost] [--record]
 """
@@ -49,28 +50,37 @@ error on every blender_dev set and every synth condition, keeps every mean radia
 (synth low light 0.098-0.147 -> 0.051-0.088 px) and smallest on blender_dev 540p high (0.147 ->
 0.134, p95 0.429 -> 0.436: a filmic curve with clipped whites, which an sRGB curve to a free power
 describes least well). Its constants were set on synth frames (blur and tone exponent fitted per
-tag, the sRGB family assumed); blender_dev was the check. Not the default: it costs ~1.3 ms a tag
+tag, the sRGB family assumed); blender_dev was the check. Not the default: it costs ~1 ms a tag
 (next section)."""
-COST_READING = """Reading it: ~1.3 ms of CPU per tag (1500 pixels at most per tag, 3 Gauss-Newton steps of a
-16-parameter model per tag; 2.98 ms in the first version, 2026-11-23 23:39, 65.5 ms a frame; run back to back
-with it, 66.9 / 67.7 -> 27.3 / 28.7 ms a frame, docs/detection.md), about 7x the corner stage it follows
-(~4.4 ms) and 60x the ~0.5 ms a tracked 1080p frame could spare: hence opt-in (`ficap detect/replay --photometric`, the node's
-`detector.photometric`). Fewer pixels per tag cost accuracy at once (dev_1080p_high median 0.125 px
-at 1500 pixels, 0.137 at 600, 0.162 at 300, 4 steps; a narrower band around the boundaries instead loses the
-levels and the fit fails), so the way to the tracked path's budget is compiled code, not a smaller
+COST_READING = """Reading it: ~1 ms of CPU per tag at 1080p, ~0.8 ms at 540p in low light (1500 pixels at most
+per tag, 3 Gauss-Newton steps of a 16-parameter model per tag). Earlier: 2.98 ms a tag in the first
+version (2026-11-23 23:39, 65.5 ms a 1080p frame), 1.31 ms (2026-11-24 00:27, 28.9 ms). Run interleaved
+with that version (main at 2fb5529, its own `--cost`, 3 rounds each, load 2.1-3.6): 1080p 27.2 / 33.2 /
+34.0 -> 21.5 / 21.1 / 21.1 ms a frame; 540p low light (the same 40-frame drive through `FrameProcessor`,
+a script outside the repo, 2 rounds) 34.1 / 35.5 -> 16.6 / 16.5 ms. The old version's spread is fresh
+memory: it needed 35-41 MB a call and, whenever the allocator had handed the last call's pages back,
+paid 2-8 k page faults a frame (a third of its time at 540p); fitting at most 12 tags at once and
+dropping each step's arrays keeps the fit's peak at 11-12 MB, and these runs saw no faults. User time
+alone, 1080p ~27 -> ~20 ms, 540p ~22 -> ~16.5 ms. Same corners as that version, bit for bit
+(docs/detection.md). Still about 5x the corner stage it follows (~4.4 ms) and 40x the ~0.5 ms a
+tracked 1080p frame could spare: hence opt-in (`ficap detect/replay --photometric`, the node's
+`detector.photometric`). Fewer pixels per tag cost accuracy at once (dev_1080p_high median 0.125 px at
+1500 pixels, 0.137 at 600, 0.162 at 300, 4 steps; a narrower band around the boundaries instead loses
+the levels and the fit fails), so the way to the tracked path's budget is compiled code, not a smaller
 problem."""
 
 
-def cost(n_frames: int = 40, passes: int = 3) -> list[list[str]]:
-    """ms of process time per tracked 1080p frame, without and with the photometric fit."""
+def cost(n_frames: int = 40, passes: int = 3, resolution: str = "1080p",
+         lighting: str = "neutral") -> list[list[str]]:
+    """ms of process time per tracked frame, without and with the photometric fit."""
     from ficap_ros.cap_model import nominal_model
     from ficap_ros.pipeline import FrameProcessor
     from ficap_ros.synth import RenderConfig, default_scene, naturalistic_drive, render
 
-    model, scene = nominal_model(), default_scene("1080p")
+    model, scene = nominal_model(), default_scene(resolution)
     drive = naturalistic_drive(n_frames, fps=30.0, seed=3, scene=scene, frontal_s=0.0)
-    images = [render(model, scene.camera, d.T_cam_cap, RenderConfig(jpeg_quality=95), seed=d.index).image
-              for d in drive]
+    images = [render(model, scene.camera, d.T_cam_cap, RenderConfig(jpeg_quality=95, lighting=lighting),
+                     seed=d.index).image for d in drive]
     spent: dict[str, list[float]] = {"ficap edge": [], "ficap edge + photometric": []}
     tags = 0
     for k in range(passes + 1):  # the first pass warms the caches
@@ -84,7 +94,8 @@ def cost(n_frames: int = 40, passes: int = 3) -> list[list[str]]:
                 spent[name].append(1000.0 * (time.process_time() - t0) / n_frames)
     base, photo = (float(np.median(v)) for v in spent.values())
     per_tag = (photo - base) / (tags / n_frames)
-    return [[f"{base:.1f}", f"{photo:.1f}", f"{photo - base:.1f}", f"{tags / n_frames:.1f}", f"{per_tag:.2f}"]]
+    return [[f"{resolution} {lighting}", f"{base:.1f}", f"{photo:.1f}", f"{photo - base:.1f}",
+             f"{tags / n_frames:.1f}", f"{per_tag:.2f}"]]
 
 
 def main() -> int:
@@ -98,16 +109,16 @@ def main() -> int:
     t0 = time.time()
     if args.cost:
         load_before = load_avg()
-        rows = cost()
-        text = md_table(["ficap edge ms/frame", "+ photometric ms/frame", "photometric fit ms/frame",
+        rows = cost() + cost(resolution="540p", lighting="low")
+        text = md_table(["frames", "ficap edge ms/frame", "+ photometric ms/frame", "photometric fit ms/frame",
                          "tags/frame", "ms/tag"], rows)
         print(text)
         if args.record:
-            record_section("Photometric corner fit: cost per tracked 1080p frame", (
+            record_section("Photometric corner fit: cost per tracked frame", (
                 f"Machine: {machine_line()}; {load_before} at the start, {load_avg()} at the end. "
                 "`benchmarks/bench_photometric.py --cost --record`: 40 consecutive 30 fps `ficap synth` "
-                "1080p frames through `FrameProcessor` (tracking on), the two settings alternated, "
-                "3 passes each; process time per frame, medians.\n\n" + text + "\n\n" + COST_READING))
+                "frames (1080p neutral light, 540p low light) through `FrameProcessor` (tracking on), the two "
+                "settings alternated, 3 passes each; process time per frame, medians.\n\n" + text + "\n\n" + COST_READING))
         return 0
     detectors = {n: TagDetector(c) for n, c in METHODS.items()}
     header = ["frames", "method", "tags found", "median px", "p95 px", "mean radial px", "rms px"]

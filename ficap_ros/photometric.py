@@ -28,13 +28,13 @@ corners by about a fifth of its error, outward for a blur assumed too wide).
 Pixels: those within ``reach_px`` plus 1.5 blur sds of a black/white cell boundary (the rest are
 flat and say nothing about H), on the tag's 10 x 10-cell face, chosen once at the start corners;
 a large tag's thinned evenly to ``max_pixels``. Gauss-Newton (Levenberg-damped) over H, the
-levels, a blur scale and the exponent of every tag at once (per-tag 16 x 16 normal equations),
+levels, a blur scale and the exponent of up to 12 tags at once (per-tag 16 x 16 normal equations),
 pixels more than 4 robust sds off dropped after the first step (glare specks, a neighbour's edge).
 A tag whose fit fails, that would move a corner more than ``max_move_cells`` of a cell, or whose
 residual sd exceeds ``_MAX_MISFIT`` of its contrast keeps its input corners.
 
-Cost: ~1.3 ms of CPU a tag on a tracked 1080p frame (docs/benchmarks.md), hence opt-in
-(``DetectorConfig.edge_photometric``).
+Cost: ~0.9 ms of CPU a tag on a tracked 1080p frame, ~0.8 ms at 540p in low light (docs/benchmarks.md),
+hence opt-in (``DetectorConfig.edge_photometric``).
 """
 
 from __future__ import annotations
@@ -57,6 +57,8 @@ PSF_SIGMA_PX = 0.6
 _PAD = 3
 #: Least grey-level range of a fitted tag's model: below it there is no pattern to fit.
 _MIN_CONTRAST = 10.0
+#: Most tags fitted at once (``fit_tags``: a chunk's pixel arrays stay in cache).
+_CHUNK_TAGS = 12
 #: Largest robust residual sd of a fitted tag, as a fraction of its model's contrast.
 _MAX_MISFIT = 0.3
 
@@ -80,9 +82,11 @@ def _srgb(lin: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return enc, np.where(lin >= 1.0, 0.0, slope)
 
 
-def _srgb_inv(enc: np.ndarray) -> np.ndarray:
-    y = np.clip(enc, 0.0, 1.0)
-    return np.where(y <= 0.04045, y / 12.92, ((y + 0.055) / 1.055) ** 2.4)
+def _srgb_inv(enc: float) -> float:
+    """The linear value of an sRGB-encoded one (clipped to [0, 1]); Python floats: libm's pow, as
+    numpy's scalars use (numpy's array pow can round apart)."""
+    y = min(max(enc, 0.0), 1.0)
+    return y / 12.92 if y <= 0.04045 else ((y + 0.055) / 1.055) ** 2.4
 
 
 def _select_pixels(shape: tuple[int, int], hom: np.ndarray, tables: np.ndarray, sd_px: float,
@@ -90,76 +94,137 @@ def _select_pixels(shape: tuple[int, int], hom: np.ndarray, tables: np.ndarray, 
     """Pixels (x, y) within ``reach_px`` of a black/white boundary of each tag's face: (tag of each,
     x, y) as int arrays, tag after tag."""
     h_img, w_img = shape
+    n = len(hom)
+    z = np.zeros(0, dtype=np.intp)
+    if n == 0:
+        return z, z, z
+    # Each tag's face box, inverse homography and reach, all tags at once (the same values as
+    # tag by tag: a stacked matmul, inv and norm run the same loops per tag).
     face = np.array([[-1, -1, 1], [9, -1, 1], [9, 9, 1], [-1, 9, 1]], float)
+    q = face @ hom.transpose(0, 2, 1)  # (N, 4, 3)
+    xy = q[..., :2] / q[..., 2:]
+    lo, hi = np.floor(xy.min(axis=1)).astype(int), np.ceil(xy.max(axis=1)).astype(int)
+    x0, y0 = np.maximum(lo[:, 0], 1), np.maximum(lo[:, 1], 1)
+    x1, y1 = np.minimum(hi[:, 0], w_img - 2), np.minimum(hi[:, 1], h_img - 2)
+    use = np.flatnonzero((x1 - x0 >= 3) & (y1 - y0 >= 3))
+    if len(use) == 0:
+        return z, z, z
+    Hi = np.zeros((n, 3, 3))
+    Hi[use] = np.linalg.inv(hom[use])
+    # Reach in cell units from the face's mean px per cell (a selection, not the model: an
+    # approximation is fine).
+    side = np.linalg.norm(xy[:, [1, 2, 3, 0]] - xy, axis=2).mean(axis=1) / 10.0  # px per cell (face = 10 cells)
+    r = (reach_px + 1.5 * sd_px) / np.maximum(side, 1e-6)
+    # Black cells in the box [u - r, u + r] x [v - r, v + r] by a summed-area table: a pixel is
+    # near a boundary when the box holds both colours.
+    size = tables.shape[1]
+    last = size - 1
+    stride = size + 1
+    sat = np.zeros((n, stride, stride), dtype=np.int32)  # counts: exact
+    sat[:, 1:, 1:] = tables.cumsum(1).cumsum(2)
+    # Where the reach is under a cell, a box spans at most 4 cells a side (floor(u + r) - floor(u - r)
+    # <= floor(2 r) + 1, one more from rounding), so whether each box (first cell, cells - 1) of each
+    # tag holds both colours is a table: one lookup a pixel instead of four.
+    runs = 4
+    first = np.arange(size)
+    end = np.minimum(first[:, None] + np.arange(runs), last) + 1  # (first cell, cells - 1) -> end
+    black = (sat[:, end[:, :, None, None], end[None, None]] - sat[:, first[:, None, None, None], end[None, None]]
+             - sat[:, end[:, :, None, None], first[None, None, :, None]]
+             + sat[:, first[:, None, None, None], first[None, None, :, None]])  # (N, v0, dv, u0, du)
+    span = end - first[:, None]
+    mixed = ((black > 0) & (black < span[:, :, None, None] * span[None, None])).ravel()
+    per_tag = size * runs * size * runs
     tags, cols, rows = [], [], []
-    for t in range(len(hom)):
-        H = hom[t]
-        q = face @ H.T
-        xy = q[:, :2] / q[:, 2:]
-        x0, y0 = np.floor(xy.min(axis=0)).astype(int)
-        x1, y1 = np.ceil(xy.max(axis=0)).astype(int)
-        x0, y0, x1, y1 = max(x0, 1), max(y0, 1), min(x1, w_img - 2), min(y1, h_img - 2)
-        if x1 - x0 < 3 or y1 - y0 < 3:
-            continue
+    for t in use:
         # Tag coordinates of the box's pixels: numerators and denominator as outer sums of a
         # row term and a column term (the same sums, in the same order, as per pixel).
-        xs, ys = np.arange(x0, x1 + 1, dtype=np.float64), np.arange(y0, y1 + 1, dtype=np.float64)
-        Hi = np.linalg.inv(H)
-        u = np.add.outer(Hi[0, 1] * ys, Hi[0, 0] * xs).ravel() + Hi[0, 2]
-        v = np.add.outer(Hi[1, 1] * ys, Hi[1, 0] * xs).ravel() + Hi[1, 2]
-        den = np.add.outer(Hi[2, 1] * ys, Hi[2, 0] * xs).ravel() + Hi[2, 2]
+        xs, ys = np.arange(x0[t], x1[t] + 1, dtype=np.float64), np.arange(y0[t], y1[t] + 1, dtype=np.float64)
+        H = Hi[t]
+        u = np.add.outer(H[0, 1] * ys, H[0, 0] * xs).ravel() + H[0, 2]
+        v = np.add.outer(H[1, 1] * ys, H[1, 0] * xs).ravel() + H[1, 2]
+        den = np.add.outer(H[2, 1] * ys, H[2, 0] * xs).ravel() + H[2, 2]
         u /= den
         v /= den
         on = np.flatnonzero((u > -0.9) & (u < TAG_CELLS + 0.9) & (v > -0.9) & (v < TAG_CELLS + 0.9))
-        gy, gx = np.divmod(on, len(xs))
-        gx += x0
-        gy += y0
-        u, v = u[on], v[on]
-        # Reach in cell units from the face's mean px per cell (a selection, not the model: an
-        # approximation is fine).
-        side = np.linalg.norm(xy[[1, 2, 3, 0]] - xy, axis=1).mean() / 10.0  # px per cell (face = 10 cells)
-        r = (reach_px + 1.5 * sd_px) / max(side, 1e-6)
-        tab = tables[t]
-        # Black cells in the box [u - r, u + r] x [v - r, v + r] by a summed-area table: a pixel is
-        # near a boundary when the box holds both colours.
-        sat = np.zeros((tab.shape[0] + 1, tab.shape[1] + 1))
-        sat[1:, 1:] = tab.cumsum(0).cumsum(1)
-        # Box edges as rows / columns of the padded table (floors taken as floats, then one cast),
-        # looked up in the flattened table (np.take: cheaper than 2-D fancy indexing).
-        last = tab.shape[1] - 1
-        lo_u = np.clip(np.floor(u - r) + _PAD, 0, last).astype(np.intp)
-        hi_u = np.clip(np.floor(u + r) + _PAD, 0, last).astype(np.intp) + 1
-        lo_v = np.clip(np.floor(v - r) + _PAD, 0, last).astype(np.intp)
-        hi_v = np.clip(np.floor(v + r) + _PAD, 0, last).astype(np.intp) + 1
-        flat = sat.ravel()
-        stride = sat.shape[1]
-        lo_v *= stride
-        hi_v *= stride
-        black = (flat.take(hi_v + hi_u) - flat.take(lo_v + hi_u) - flat.take(hi_v + lo_u)
-                 + flat.take(lo_v + lo_u))
-        lo_v //= stride
-        hi_v //= stride
-        near = np.flatnonzero((black > 0) & (black < (hi_u - lo_u) * (hi_v - lo_v)))
+        u, v = u.take(on), v.take(on)
+        rt = r[t]
+        # Box edges as rows / columns of the padded table (floors taken as floats, then one cast).
+        if rt < 1.0:  # on the face such a box stays inside the padded table (no clipping): the table
+            edges = []
+            for c, sgn in ((u, -rt), (u, rt), (v, -rt), (v, rt)):
+                e = c + sgn
+                np.floor(e, out=e)
+                edges.append(e.astype(np.intp))
+            lo_u, hi_u, lo_v, hi_v = edges
+            hi_u -= lo_u
+            hi_v -= lo_v
+            lo_v *= runs  # ((v0 runs + dv) size + u0) runs + du, cells counted from the table's
+            lo_v += hi_v
+            lo_v *= size
+            lo_v += lo_u
+            lo_v *= runs
+            lo_v += hi_u
+            lo_v += t * per_tag + ((_PAD * runs) * size + _PAD) * runs
+            near = np.flatnonzero(mixed.take(lo_v))
+        else:  # a tag of a few px: clipped, by the summed-area table (np.take: cheaper than 2-D fancy indexing)
+            flat = sat[t].ravel()
+            lo_u = np.clip(np.floor(u - rt) + _PAD, 0, last).astype(np.intp)
+            hi_u = np.clip(np.floor(u + rt) + _PAD, 0, last).astype(np.intp) + 1
+            lo_v = np.clip(np.floor(v - rt) + _PAD, 0, last).astype(np.intp) * stride
+            hi_v = (np.clip(np.floor(v + rt) + _PAD, 0, last).astype(np.intp) + 1) * stride
+            count = (flat.take(hi_v + hi_u) - flat.take(lo_v + hi_u) - flat.take(hi_v + lo_u)
+                     + flat.take(lo_v + lo_u))
+            near = np.flatnonzero((count > 0) & (count < (hi_u - lo_u) * ((hi_v - lo_v) // stride)))
         if len(near) > max_pixels:  # a large tag: every k-th pixel (a narrower band loses the levels)
             near = near[np.linspace(0, len(near) - 1, max_pixels).astype(np.intp)]
+        gy, gx = np.divmod(on.take(near), len(xs))
         tags.append(np.full(len(near), t))
-        cols.append(gx[near])
-        rows.append(gy[near])
-    if not tags:
-        z = np.zeros(0, dtype=np.intp)
-        return z, z, z
+        cols.append(gx + x0[t])
+        rows.append(gy + y0[t])
     return np.concatenate(tags), np.concatenate(cols), np.concatenate(rows)
+
+
+def _group_median(x: np.ndarray, group: np.ndarray, pos: np.ndarray, n: int, width: int,
+                  mask: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """np.median of each group's (masked) entries, all groups at once: ((n,) medians, 0 for a group
+    with none; (n,) entries counted). ``group``: each entry's group (0..n-1, entries group after
+    group); ``pos``: its place in the group's run; ``width``: the longest run. Equal to np.median
+    per group bit for bit: the middle one of a sorted run, or the mean of the middle two, (a + b) / 2
+    (a run with a NaN: NaN)."""
+    pad = np.full((n, width), np.inf)  # runs padded with +inf, sorted to each row's end
+    if mask is None:
+        pad[group, pos] = x
+        cnt = np.bincount(group, minlength=n)
+        nan = np.isnan(x)
+    else:
+        pad[group, pos] = np.where(mask, x, np.inf)
+        cnt = np.bincount(group, weights=mask, minlength=n).astype(np.intp)
+        nan = np.isnan(x) & mask
+    pad.sort(axis=1)
+    rows = np.arange(n)
+    lo, hi = np.maximum(cnt - 1, 0) // 2, np.minimum(cnt // 2, width - 1)
+    med = (pad[rows, lo] + pad[rows, hi]) / 2.0
+    if nan.any():  # np.median's answer for a run with a NaN
+        med[np.bincount(group[nan], minlength=n) > 0] = np.nan
+    return np.where(cnt > 0, med, 0.0), cnt
 
 
 def _ndtr32(z: np.ndarray, gauss: np.ndarray) -> np.ndarray:
     """The normal CDF of float32 ``z`` given ``gauss`` = exp(-z^2 / 2): Abramowitz & Stegun 7.1.26
     (erfc to 1.5e-7, i.e. the CDF to 7.5e-8, about float32's rounding of it), reusing the Gaussian
     the fit needs anyway: a third of scipy's ndtr's time here."""
-    t = np.float32(1.0) / (np.float32(1.0) + np.float32(0.3275911 / np.sqrt(2.0)) * np.abs(z))
-    tail = t * (np.float32(0.5 * 0.254829592) + t * (np.float32(0.5 * -0.284496736) + t * (
-        np.float32(0.5 * 1.421413741) + t * (np.float32(0.5 * -1.453152027) + t * np.float32(0.5 * 1.061405429)))))
+    # t = 1 / (1 + p |z|), tail = t (a1 + t (a2 + t (a3 + t (a4 + t a5)))) / 2: Horner's rule
+    # in place, the same operations in the same order.
+    t = np.abs(z)
+    t *= np.float32(0.3275911 / np.sqrt(2.0))
+    t += np.float32(1.0)
+    np.divide(np.float32(1.0), t, out=t)
+    tail = t * np.float32(0.5 * 1.061405429)
+    for a in (0.5 * -1.453152027, 0.5 * 1.421413741, 0.5 * -0.284496736, 0.5 * 0.254829592):
+        tail += np.float32(a)
+        tail *= t
     tail *= gauss  # ndtr(-|z|)
-    return np.where(z > 0.0, np.float32(1.0) - tail, tail)
+    return np.subtract(np.float32(1.0), tail, out=tail, where=z > 0.0)
 
 
 def fit_tags(
@@ -189,10 +254,20 @@ def fit_tags(
         raise ValueError(f"iterations must be >= 2, got {iterations}")
     c_in = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
     n = len(c_in)
+    hom = np.asarray(hom, dtype=np.float64).reshape(n, 3, 3)
+    cells = np.asarray(cells).reshape(n, TAG_CELLS, TAG_CELLS)
+    if n > _CHUNK_TAGS:
+        # Every tag's fit is its own, so a frame's tags are fitted a few at a time (the same numbers):
+        # the per-pixel arrays of ~11 tags stay in cache and their memory is reused from chunk to
+        # chunk, where all 21 tags of a 1080p frame at once need ~20 MB, fresh pages each frame
+        # when the allocator has given the last frame's back (a fifth of the time, when it has).
+        parts = [fit_tags(gray, c_in[k], hom[k], cells[k], psf_sigma_px, iterations, reach_px,
+                          free_tone, max_move_cells, max_pixels)
+                 for k in np.array_split(np.arange(n), -(-n // _CHUNK_TAGS))]
+        return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
     fitted = np.zeros(n, dtype=bool)
     if n == 0:
         return c_in.copy(), fitted
-    hom = np.asarray(hom, dtype=np.float64).reshape(n, 3, 3)
     hom = hom / hom[:, 2:3, 2:3]
     tab = _black_tables(cells)  # (N, S, S)
     sd_px = float(np.sqrt(psf_sigma_px ** 2 + 1.0 / 12.0))  # the PSF and the pixel's area
@@ -203,6 +278,8 @@ def fit_tags(
     px, py = xi.astype(np.float64), yi.astype(np.float64)
     counts = np.bincount(tag, minlength=n)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    pos = np.arange(len(tag)) - starts[tag]  # each pixel's place in its tag's run
+    lmax = int(counts.max())
     h = hom.reshape(n, 9)[:, :8].copy()
     n_par = 8 + 7 + (1 if free_tone else 0)
     theta = np.zeros((n, n_par - 8))  # Lb0, Lb_u, Lb_v, Lw0, Lw_u, Lw_v, log blur scale, [log kappa]
@@ -213,7 +290,7 @@ def fit_tags(
     # c..c+3; a pixel's block is one row of this (a 16-value gather instead of 16 gathers).
     win = sliding_window_view(tab, (4, 4), axis=(1, 2))  # (N, S - 3, S - 3, 4, 4)
     nwin = win.shape[1]
-    blocks = win.reshape(-1, 16).astype(np.float32)
+    blocks_t = np.ascontiguousarray(win.reshape(-1, 16).T, dtype=np.float32)  # (16, blocks)
     ok_tag = counts >= 40
     lam = 1e-3
     misfit = np.full(n, np.inf)
@@ -221,6 +298,7 @@ def fit_tags(
     # Per-pixel arrays are laid out (quantity, pixel): rows are contiguous, which keeps numpy's
     # broadcasting and the normal equations' products cheap (the fit's cost is all elementwise).
     J = np.empty((n_par, len(tag)))
+    X = np.empty((2, 3, 4, len(tag)), dtype=np.float32)  # filled anew at each step
     for it in range(iterations):
         # Each tag's parameters, repeated over its pixels (pixels come tag after tag).
         a11, a12, a13, a21, a22, a23, a31, a32 = np.repeat(h.T, counts, axis=1)
@@ -229,12 +307,12 @@ def fit_tags(
         m11, m12, m21, m22 = a11 - a31 * px, a12 - a32 * px, a21 - a31 * py, a22 - a32 * py
         det = m11 * m22 - m12 * m21
         bx, by = px - a13, py - a23
+        del a11, a12, a13, a21, a22, a23
         u = (m22 * bx - m12 * by) / det
         v = (-m21 * bx + m11 * by) / det
         den = a31 * u + a32 * v + 1.0
         # Jacobian of H at (u, v): d(x, y)/d(u, v) = M / den; its inverse, (den / det) adj(M), has
         # rows grad u = (m22, -m12) den / det and grad v = (-m21, m11) den / det.
-        th = np.repeat(theta.T, counts, axis=1)
         scale = np.repeat(sd_px * np.exp(theta[:, 6]), counts)  # exp per tag, not per pixel
         gd = scale * np.abs(den / det)
         su = np.hypot(m22, m12) * gd
@@ -247,8 +325,8 @@ def fit_tags(
             ci = np.clip(bu.astype(np.intp) + _PAD, 2, size - 2)
             cj = np.clip(bv.astype(np.intp) + _PAD, 2, size - 2)
             # [v, u, p]: the cells b - 2 .. b + 1 along each axis.
-            block = blocks.take((tag * nwin + cj - 2) * nwin + ci - 2, axis=0)  # (P, 16)
-            patch = np.ascontiguousarray(block.T).reshape(4, 4, -1)
+            patch = blocks_t.take((tag * nwin + cj - 2) * nwin + ci - 2, axis=1).reshape(4, 4, -1)
+            del ci, cj
         # u and v stacked: [0] the boundaries along u, [1] along v (one ufunc call each).
         # In float32 (half the memory traffic of this, the fit's bulk): a share's rounding, 6e-8,
         # is 1e-5 of a grey level; with ``_ndtr32``, the corners moved by at most 1.3e-5 px against
@@ -259,20 +337,23 @@ def fit_tags(
         # Only boundaries within 9 sds are evaluated; the rest count as fully on one side (ndtr(-9) =
         # 1e-19, phi(9) = 1e-18). On a large tag most are tens of sds away: evaluated, they cost
         # ndtr's time for nothing and make exp() return subnormals, ~100x slower in every product.
-        inner = np.abs(z) < 9.0
-        zi = z[inner]
+        inner = np.flatnonzero(np.abs(z) < 9.0)  # (indices: cheaper than a boolean mask, used thrice)
+        zi = z.take(inner)
         gauss = np.exp(np.float32(-0.5) * zi * zi)
         e = (z > 0.0).astype(np.float32)
-        e[inner] = _ndtr32(zi, gauss)
+        e.ravel()[inner] = _ndtr32(zi, gauss)
         phi = np.zeros_like(z)
-        phi[inner] = gauss * np.float32(0.3989422804014327)
-        g = phi * isd  # d ndtr(z) / d(boundary - u)
-        hh = phi * z  # d ndtr(z) / d log(blur scale) = -phi(z) z
+        phi.ravel()[inner] = gauss * np.float32(0.3989422804014327)
+        del inner, zi, gauss, su, sv, gd, scale, den
         # [u / v][share, d share / du (dv), d share / d log(blur scale)][cell][pixel]
-        X = np.empty((2, 3, 4, len(tag)), dtype=np.float32)
         np.subtract(e[:, 1:], e[:, :-1], out=X[:, 0])  # each cell's share along u / v
+        del e
+        g = phi * isd  # d ndtr(z) / d(boundary - u)
         np.subtract(g[:, :-1], g[:, 1:], out=X[:, 1])
+        del g, isd
+        hh = np.multiply(phi, z, out=z)  # d ndtr(z) / d log(blur scale) = -phi(z) z
         np.subtract(hh[:, :-1], hh[:, 1:], out=X[:, 2])
+        del z, hh, phi
         av, dav, sav = X[1]
         # Each row's share along u (and its derivatives), then summed over rows against v's.
         rows = np.einsum("jkp,ikp->ijp", patch, X[0])  # (3, 4, P)
@@ -281,25 +362,24 @@ def fit_tags(
         dbu = np.einsum("jp,jp->p", rows[1], av).astype(np.float64)
         dbv = np.einsum("jp,jp->p", pa, dav).astype(np.float64)
         dbs = (np.einsum("jp,jp->p", rows[2], av) + np.einsum("jp,jp->p", pa, sav)).astype(np.float64)
+        del rows, pa, av, dav, sav
         C = 1.0 - black
         uc, vc = (u - 4.0) / 4.0, (v - 4.0) / 4.0
         if it == 0:
             # Levels from the pixels the model calls flat black / flat white.
+            mb, nb = _group_median(obs, tag, pos, n, lmax, C < 0.05)
+            mw, nw = _group_median(obs, tag, pos, n, lmax, C > 0.95)
+            ok_tag &= (nb >= 5) & (nw >= 5)
             for t in np.flatnonzero(ok_tag):
-                s = slice(starts[t], starts[t] + counts[t])
-                gb = obs[s][C[s] < 0.05]
-                gw = obs[s][C[s] > 0.95]
-                if len(gb) < 5 or len(gw) < 5:
-                    ok_tag[t] = False
-                    continue
-                mw = np.median(gw)
-                theta[t, 0] = _srgb_inv(np.median(gb) / 255.0)
-                theta[t, 3] = _srgb_inv(mw / 255.0) if mw < 250 else 1.1
-            th = np.repeat(theta.T, counts, axis=1)
+                theta[t, 0] = _srgb_inv(float(mb[t]) / 255.0)
+                theta[t, 3] = _srgb_inv(float(mw[t]) / 255.0) if mw[t] < 250 else 1.1
+        th = np.repeat(theta[:, :6].T, counts, axis=1)
         lb = th[0] + th[1] * uc + th[2] * vc
         lw = th[3] + th[4] * uc + th[5] * vc
+        del th
         L = lb + (lw - lb) * C
         enc, slope = _srgb(L)
+        del L
         if free_tone:
             kap = np.repeat(np.exp(theta[:, 7]), counts)
             encp = np.maximum(enc, 1e-4)
@@ -312,11 +392,14 @@ def fit_tags(
         if it >= 1:
             # Robust: pixels more than 4 robust sds off this tag's model (glare, a neighbour's edge).
             ab = np.abs(r)
-            mad = np.array([np.median(ab[starts[t]:starts[t] + counts[t]]) if counts[t] else 0.0
-                            for t in range(n)])
+            mad = _group_median(ab, tag, pos, n, lmax)[0]
             keep = ab <= np.maximum(4.0 * 1.4826 * mad[tag], 3.0)
-            contrast = np.array([np.ptp(model[starts[t]:starts[t] + counts[t]]) if counts[t] else 0.0
-                                 for t in range(n)])
+            del ab
+            # Each tag's model range (np.ptp per tag); a tag with no pixels has none.
+            some = np.flatnonzero(counts)
+            contrast = np.zeros(n)
+            contrast[some] = (np.maximum.reduceat(model, starts[some])
+                              - np.minimum.reduceat(model, starts[some]))
             misfit = 1.4826 * mad / np.maximum(contrast, 1.0)
         dC = (lw - lb) * fp  # d grey / d C
         # The Jacobian's rows, zero at dropped pixels (keep is 0/1, so J_k^T J_k = J_k^T J).
@@ -350,6 +433,12 @@ def fit_tags(
         if free_tone:
             J[15] = model * np.log(encp) * kap * keep
         rk = r * keep
+        # The step's pixel arrays go before the next step makes its own (each call's fresh pages
+        # are a third of its time at 540p: its peak memory is its cost).
+        del a31, a32, m11, m12, m21, m22, det, bx, by, u, v, black, dbu, dbv, dbs, C, uc, vc, lb, lw
+        del enc, slope, model, fp, r, dC, w, gx, gy, gp, fk, fw, fb
+        if free_tone:
+            del kap, encp
         A = np.tile(np.eye(n_par), (n, 1, 1))
         b = np.zeros((n, n_par))
         for t in np.flatnonzero(ok_tag):

@@ -168,3 +168,121 @@ def test_photometric_fit_leaves_a_tag_without_contrast_unfitted() -> None:
     assert ok_before.all() and not ok[0]
     np.testing.assert_array_equal(out[0], start[0])
     np.testing.assert_array_equal(ok[1:], ok_before[1:])
+
+
+def test_group_median_is_np_median_per_group() -> None:
+    """The fit's all-tags-at-once median (levels, robust sd) equals np.median tag by tag, bit for
+    bit: odd and even runs, masked entries, a run with nothing left, a NaN, empty groups at the end,
+    integer grey levels (halves) and continuous residuals."""
+    from ficap_ros.photometric import _group_median
+
+    rng = np.random.default_rng(7)
+    counts = np.array([1, 2, 7, 8, 1500, 1499, 3, 0, 0])
+    n = len(counts)
+    group = np.repeat(np.arange(n), counts)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    pos = np.arange(len(group)) - starts[group]
+    for x in (rng.integers(0, 256, len(group)).astype(np.float64), rng.normal(0.0, 3.0, len(group)) ** 2):
+        x[starts[2] + 3] = np.nan  # group 2's median is NaN, as np.median's
+        for mask in (None, x > np.nanmedian(x), np.zeros(len(x), dtype=bool)):
+            med, cnt = _group_median(x, group, pos, n, int(counts.max()), mask)
+            for g in range(n):
+                run = x[starts[g]:starts[g] + counts[g]]
+                if mask is not None:
+                    run = run[mask[starts[g]:starts[g] + counts[g]]]
+                assert cnt[g] == len(run)
+                want = np.median(run) if len(run) else 0.0
+                assert (np.isnan(want) and np.isnan(med[g])) or med[g] == want, (g, med[g], want)
+
+
+def _select_pixels_per_box(shape, hom, tables, sd_px, reach_px, max_pixels):  # noqa: ANN001, ANN202
+    """The pixel selection as first written (every pixel of each tag's box, no shortcuts): the
+    oracle for ``photometric._select_pixels``."""
+    from ficap_ros.photometric import _PAD, TAG_CELLS
+
+    h_img, w_img = shape
+    face = np.array([[-1, -1, 1], [9, -1, 1], [9, 9, 1], [-1, 9, 1]], float)
+    tags, cols, rows = [], [], []
+    for t in range(len(hom)):
+        q = face @ hom[t].T
+        xy = q[:, :2] / q[:, 2:]
+        x0, y0 = np.floor(xy.min(axis=0)).astype(int)
+        x1, y1 = np.ceil(xy.max(axis=0)).astype(int)
+        x0, y0, x1, y1 = max(x0, 1), max(y0, 1), min(x1, w_img - 2), min(y1, h_img - 2)
+        if x1 - x0 < 3 or y1 - y0 < 3:
+            continue
+        xs, ys = np.arange(x0, x1 + 1, dtype=np.float64), np.arange(y0, y1 + 1, dtype=np.float64)
+        Hi = np.linalg.inv(hom[t])
+        u = np.add.outer(Hi[0, 1] * ys, Hi[0, 0] * xs).ravel() + Hi[0, 2]
+        v = np.add.outer(Hi[1, 1] * ys, Hi[1, 0] * xs).ravel() + Hi[1, 2]
+        den = np.add.outer(Hi[2, 1] * ys, Hi[2, 0] * xs).ravel() + Hi[2, 2]
+        u, v = u / den, v / den
+        on = np.flatnonzero((u > -0.9) & (u < TAG_CELLS + 0.9) & (v > -0.9) & (v < TAG_CELLS + 0.9))
+        gy, gx = np.divmod(on, len(xs))
+        u, v = u[on], v[on]
+        side = np.linalg.norm(xy[[1, 2, 3, 0]] - xy, axis=1).mean() / 10.0
+        r = (reach_px + 1.5 * sd_px) / max(side, 1e-6)
+        tab = tables[t]
+        sat = np.zeros((tab.shape[0] + 1, tab.shape[1] + 1))
+        sat[1:, 1:] = tab.cumsum(0).cumsum(1)
+        last = tab.shape[1] - 1
+        lo_u = np.clip(np.floor(u - r) + _PAD, 0, last).astype(np.intp)
+        hi_u = np.clip(np.floor(u + r) + _PAD, 0, last).astype(np.intp) + 1
+        lo_v = np.clip(np.floor(v - r) + _PAD, 0, last).astype(np.intp)
+        hi_v = np.clip(np.floor(v + r) + _PAD, 0, last).astype(np.intp) + 1
+        black = sat[hi_v, hi_u] - sat[lo_v, hi_u] - sat[hi_v, lo_u] + sat[lo_v, lo_u]
+        near = np.flatnonzero((black > 0) & (black < (hi_u - lo_u) * (hi_v - lo_v)))
+        if len(near) > max_pixels:
+            near = near[np.linspace(0, len(near) - 1, max_pixels).astype(np.intp)]
+        tags.append(np.full(len(near), t))
+        cols.append(gx[near] + x0)
+        rows.append(gy[near] + y0)
+    if not tags:
+        return (np.zeros(0, dtype=np.intp),) * 3
+    return np.concatenate(tags), np.concatenate(cols), np.concatenate(rows)
+
+
+def test_pixel_selection_is_the_per_box_one() -> None:
+    """``_select_pixels`` (tags' boxes, inverses and reaches at once; where the reach is under a
+    cell, one lookup a pixel in a table of every box's colours) picks the same pixels, in the same
+    order, as the selection first written: tags from 0.8 to 25 px a cell (reach 0.1 to 2.5 cells:
+    boxes of 1 to 3 cells a side, and the clipped path), strong perspective, cut by the image
+    border, thinned and not."""
+    from ficap_ros.photometric import _black_tables, _select_pixels
+
+    rng = np.random.default_rng(3)
+    shape = (540, 960)
+    homs = []
+    for k in range(40):
+        cell = [0.8, 1.2, 3.0, 6.0, 12.0, 25.0][k % 6]
+        a = cell * np.array([[np.cos(0.3 * k), -np.sin(0.3 * k)], [np.sin(0.3 * k), np.cos(0.3 * k)]])
+        centre = rng.uniform([-40, -40], [shape[1] + 40, shape[0] + 40])
+        H = np.eye(3)
+        H[:2, :2] = a
+        H[2, :2] = rng.normal(0.0, 0.004 / cell, 2) * (k % 3)  # perspective on two tags in three
+        H[:2, 2] = centre - a @ [4.0, 4.0]
+        homs.append(H)
+    hom = np.array(homs)
+    tables = _black_tables(rng.random((len(hom), 8, 8)) < 0.5)
+    for sd_px, max_pixels in ((0.66, 1500), (1.2, 300)):
+        got = _select_pixels(shape, hom, tables, sd_px, 1.0, max_pixels)
+        want = _select_pixels_per_box(shape, hom, tables, sd_px, 1.0, max_pixels)
+        assert len(want[0]) > 1000 and len(np.unique(want[0])) > 20
+        for g, w in zip(got, want):
+            np.testing.assert_array_equal(g, w)
+    assert len(_select_pixels(shape, hom[:0], tables[:0], 0.66, 1.0, 1500)[0]) == 0
+
+
+def test_photometric_fit_of_a_tag_does_not_depend_on_the_others() -> None:
+    """Each tag's fit is its own, which lets ``fit_tags`` fit a frame's tags a few at a time: all
+    of a frame's tags at once (more than a chunk) give, bit for bit, what each tag fitted alone does."""
+    fr = drive_frames("540p", RenderConfig(lighting="low", jpeg_quality=95), n=1)[0]
+    ids = np.array(fr.visible_ids(0.999))
+    start = np.array([fr.corners_px[t] for t in ids]) + 0.1
+    assert len(ids) > 12
+    together, ok = fit_tags_photometric(fr.image, start, ids)
+    for k in range(len(ids)):
+        alone, ok1 = fit_tags_photometric(fr.image, start[k:k + 1], ids[k:k + 1])
+        np.testing.assert_array_equal(alone[0], together[k])
+        assert ok1[0] == ok[k]
+    assert ok.sum() >= len(ids) - 2

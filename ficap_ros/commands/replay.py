@@ -46,7 +46,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--photometric", action="store_true",
                         help="corners' last step: fit each tag's pattern, blurred in linear light and "
                              "through a tone curve, to its pixels (more accurate on noisy frames, "
-                             "~1.3 ms per tag; every recording of a fleet, any engine; docs/detection.md)")
+                             "~0.9 ms per tag; every recording of a fleet, any engine; docs/detection.md)")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     parser.add_argument("--calibration", metavar="FILE",
                         help="head calibration YAML (ficap calibrate / the node's service)")
