@@ -374,8 +374,9 @@ px), and the tags sit near the fully visible ones at the same angles (residual r
 (0.336 / 0.162, 5 tags used) and the as-built set (0.244 / 0.158). What the check flags are the tags hair, neck or headrest cover (9 of 9 there; on every set
 but two); on 540p low the headrest's top edge covers the lower margin of 3 bottom-row tags
 (55-65 deg, 0.70 px off), and under its one side light reads as bright as their shaded white
-(white 71-79, black 17-38 of 255; darkest stretch 0.15-0.33 of the contrast), so no darkness
-test sees it either; on the as-built set 22 of 28 such tags go unflagged with corners 0.13 px off.
+(white 71-79, black 17-38 of 255; darkest stretch 0.15-0.33 of the contrast), below what noise
+gives fully visible tags in `ficap synth`'s low light (0.40 at p99, 4160 tags at 540p and 1080p,
+a one-off run), so no darkness test sees it either; on the as-built set 22 of 28 such tags go unflagged with corners 0.13 px off.
 `ficap synth` paints the faces far to near and shows the same self-occlusion: 11 detected tags
 with 0.1-0.3 % covered by a neighbouring face at 72-79 deg, none flagged, corners 0.044 px off
 against 0.073 for the fully visible tags beyond 70 deg. What more recall could buy, with perfect
