@@ -53,13 +53,28 @@ def machine_line() -> str:
             f"Python {platform.python_version()}, OpenCV {cv2.__version__}, commit {commit}")
 
 
+def _subsections(section: str) -> list[tuple[str, str]]:
+    """(heading line, whole text) of each ``### `` subsection of a ``## `` section, in order."""
+    parts = re.split(r"(?m)^(?=### )", section)
+    return [(p.split("\n", 1)[0], p) for p in parts[1:]]
+
+
 def record_section(name: str, body: str, path: Path = DOC) -> None:
-    """Write ``## name`` + body into docs/benchmarks.md, replacing a section of the same name."""
+    """Write ``## name`` + body into docs/benchmarks.md, replacing a section of the same name.
+
+    ``### `` subsections of the old section that the new body does not write itself (by heading)
+    are kept, after it, in their order: notes written by hand under a recorded table (where the
+    time goes, what was tried) survive re-recording. Text by hand outside a ``###`` subsection is
+    replaced with the rest of the section."""
     text = path.read_text() if path.exists() else DOC_HEAD
     section = f"## {name}\n\n{body.rstrip()}\n\n"
     pattern = re.compile(rf"^## {re.escape(name)}\n.*?(?=^## |\Z)", re.S | re.M)
-    if pattern.search(text):
-        text = pattern.sub(lambda _m: section, text, count=1)
+    match = pattern.search(text)
+    if match:
+        written = {h for h, _ in _subsections(section)}
+        kept = [t.rstrip() + "\n\n" for h, t in _subsections(match.group(0)) if h not in written]
+        section += "".join(kept)
+        text = text[:match.start()] + section + text[match.end():]
     else:
         text = text.rstrip() + "\n\n" + section
     tmp = path.with_suffix(".md.tmp")
