@@ -36,6 +36,7 @@ __all__ = [
     "refine_tag_corners",
     "shift_tag_edges",
     "tag_cells",
+    "stacked_tag_cells",
     "tag_homographies",
     "partly_hidden",
     "TAG_CELLS",
@@ -727,6 +728,16 @@ def tag_cells(tag_id: int) -> np.ndarray:
     return cells
 
 
+@lru_cache(maxsize=256)
+def stacked_tag_cells(ids: tuple[int, ...]) -> np.ndarray:
+    """(K, 8, 8) ``tag_cells`` of each id, stacked (read-only); cached: a tracked cap shows the
+    same ids frame after frame."""
+    out = (np.stack([tag_cells(i) for i in ids]) if ids
+           else np.zeros((0, TAG_CELLS, TAG_CELLS), dtype=bool))
+    out.setflags(write=False)
+    return out
+
+
 def tag_homographies(corners_px: np.ndarray) -> np.ndarray:
     """(K, 3, 3) maps from tag cell units (c0 at (0, 0), c1 at (8, 0), c2 at (8, 8)) to the image.
 
@@ -1059,7 +1070,7 @@ def _cell_errors(gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray) -> n
     except np.linalg.LinAlgError:
         return np.full(len(c), 64)
     read_black, _, _, finite = read_tag_cells(gray, hom)
-    expected = np.stack([tag_cells(int(i)).ravel() for i in ids])
+    expected = stacked_tag_cells(tuple(int(i) for i in ids)).reshape(len(c), -1)
     return np.where(finite, (read_black != expected).sum(axis=1), 64)
 
 
@@ -1582,7 +1593,7 @@ def fit_tags_photometric(
         return out, fitted
     if len(c) == 0:
         return c.copy(), np.zeros(0, dtype=bool)
-    cells = np.stack([tag_cells(int(i)) for i in ids])
+    cells = stacked_tag_cells(tuple(int(i) for i in ids))
     return fit_tags(gray, c, tag_homographies(c), cells, **kwargs)
 
 

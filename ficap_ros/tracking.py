@@ -18,7 +18,6 @@ from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from enum import Enum
-from functools import lru_cache
 
 import numpy as np
 
@@ -29,6 +28,7 @@ from ficap_ros.detection import (
     TagDetector,
     refine_corners_edge_ok,
     read_tag_cells,
+    stacked_tag_cells,
     refine_tag_corners,
     tag_cells,
     tag_homographies,
@@ -164,20 +164,11 @@ def verify_tags(
     except np.linalg.LinAlgError:
         return np.zeros(k, dtype=bool), np.full(k, 64), np.zeros(k)
     read_black, white, black, finite = read_tag_cells(gray, hom)
-    expected = _expected_cells(tuple(int(i) for i in ids))  # (K, 64) True = black
+    expected = stacked_tag_cells(tuple(int(i) for i in ids)).reshape(k, -1)  # (K, 64) True = black
     errors = (read_black != expected).sum(axis=1)
     contrast = white - black
     ok = (errors <= cfg.max_cell_errors) & (contrast >= cfg.min_contrast) & finite
     return ok, errors, contrast
-
-
-@lru_cache(maxsize=256)
-def _expected_cells(ids: tuple[int, ...]) -> np.ndarray:
-    """(K, 64) the cells of each id (True = black), stacked; cached: a tracked cap shows the same
-    ids frame after frame."""
-    out = np.stack([tag_cells(i).ravel() for i in ids]) if ids else np.zeros((0, 64), dtype=bool)
-    out.setflags(write=False)
-    return out
 
 
 # -- the tracker ----------------------------------------------------------------------------------
