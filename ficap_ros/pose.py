@@ -401,8 +401,8 @@ def _at(T: Transform, obs: _Observations) -> tuple[np.ndarray, np.ndarray]:
     return _residuals_and_jacobian_at(T.rotation_matrix, T.translation_m, obs.K, obs.model_m, obs.image_px)
 
 
-def _refine(obs: _Observations, T0: Transform) -> tuple[Transform, None, float]:
-    """Least-squares reprojection refinement; returns (pose, None, rms_px) (see ``_Solution``).
+def _refine(obs: _Observations, T0: Transform) -> tuple[Transform, float]:
+    """Least-squares reprojection refinement; returns (pose, rms_px).
 
     MINPACK Levenberg-Marquardt (``lmder``, as ``scipy.optimize.least_squares(method="lm")`` runs
     it) over a left perturbation of the start, ``x = (d_theta, t)``, with the analytic Jacobian.
@@ -432,14 +432,15 @@ def _refine(obs: _Observations, T0: Transform) -> tuple[Transform, None, float]:
     # default x_scale 'jac'), without that wrapper's argument handling and memoising layers: the
     # same iterates and answer, ~0.25 ms less a pose (a tracked frame solves once or twice). Its
     # two checks of the start are kept: the same errors for a start it would refuse.
-    if not np.all(np.isfinite(fun(x0))):
+    r0 = fun(x0)
+    if not np.all(np.isfinite(r0)):
         raise ValueError("Residuals are not finite in the initial point.")
-    if len(fun(x0)) < len(x0):
+    if len(r0) < len(x0):
         raise ValueError("Method 'lm' doesn't work when the number of residuals is less than "
                          "the number of variables.")
     x, res = _minimise(fun, jac, x0)
     T = Transform(compose(from_rotvec(x[:3]), T0.rotation), x[3:])
-    return T, None, float(np.sqrt(np.mean(res**2) * 2.0))
+    return T, float(np.sqrt(np.mean(res**2) * 2.0))
 
 
 def _direct_lmder_works() -> bool:
@@ -472,18 +473,6 @@ def _minimise(fun: Callable[[np.ndarray], np.ndarray], jac: Callable[[np.ndarray
         return x, info["fvec"]
     sol = least_squares(fun, x0, jac=jac, method="lm", xtol=1e-10, ftol=1e-10, max_nfev=50)
     return sol.x, sol.fun
-
-
-def _covariance(res: np.ndarray, J: np.ndarray) -> np.ndarray:
-    """Covariance (ROS order: translation then rotation) from residuals and Jacobian (rot, trans)."""
-    dof = max(len(res) - 6, 1)
-    sigma2 = float(res @ res) / dof
-    try:
-        cov = np.linalg.inv(J.T @ J) * sigma2
-    except np.linalg.LinAlgError:
-        cov = np.full((6, 6), np.inf)
-    order = [3, 4, 5, 0, 1, 2]
-    return cov[np.ix_(order, order)]
 
 
 def _rotation_sigma_deg(cov: np.ndarray) -> float:
@@ -597,9 +586,6 @@ def _consensus_start(obs: _Observations, config: PoseConfig) -> tuple[Transform,
 class _Solution:
     T: Transform
     used: _Observations
-    #: The fit's own covariance (None from ``_refine``: no caller reads it, ``estimate_cap_pose``
-    #: builds the pose's covariance from ``uncertainty_terms``; an inverse saved per solve).
-    covariance: np.ndarray | None
     rms_px: float
 
 
@@ -639,7 +625,7 @@ def _solve_joint(obs: _Observations, config: PoseConfig, start: Transform | None
     for _ in range(5):
         if len(used) < config.min_tags:
             return f"{len(used)} tag(s) left after outlier rejection, need {config.min_tags}"
-        T, cov, rms = _refine(used, T)
+        T, rms = _refine(used, T)
         err_all = reprojection_errors_px(obs.image_px, obs.K, T, obs.model_m)
         current = np.isin(obs.ids, used.ids)
         median = float(np.median(err_all[current]))
@@ -650,7 +636,7 @@ def _solve_joint(obs: _Observations, config: PoseConfig, start: Transform | None
         if not np.any(keep):
             return "every tag is an outlier"
         if np.array_equal(keep, current):
-            return _Solution(T, used, cov, rms)  # refined on exactly the tags it keeps
+            return _Solution(T, used, rms)  # refined on exactly the tags it keeps
         # Drop only the worst offender per round, so one bad tag cannot drag good ones out.
         bad = current & ~keep
         if np.any(bad):
@@ -662,8 +648,8 @@ def _solve_joint(obs: _Observations, config: PoseConfig, start: Transform | None
         else:
             current |= keep
         used = obs.subset(current)
-    T, cov, rms = _refine(used, T)
-    return _Solution(T, used, cov, rms)
+    T, rms = _refine(used, T)
+    return _Solution(T, used, rms)
 
 
 def _kabsch(model_m: np.ndarray, camera_m: np.ndarray) -> Transform:
@@ -701,8 +687,8 @@ def _solve_paper(obs: _Observations, config: PoseConfig) -> _Solution | str:
     # A tag is used when any of its corners survived; report reprojection statistics on those.
     tag_keep = keep.reshape(-1, 4).any(axis=1)
     used = obs.subset(tag_keep)
-    res, J = _at(T, used)
-    return _Solution(T, used, _covariance(res, J), float(np.sqrt(np.mean(res**2) * 2.0)))
+    res, _ = _at(T, used)
+    return _Solution(T, used, float(np.sqrt(np.mean(res**2) * 2.0)))
 
 
 def _solve_naive(obs: _Observations, config: PoseConfig) -> _Solution | str:
@@ -716,8 +702,8 @@ def _solve_naive(obs: _Observations, config: PoseConfig) -> _Solution | str:
         return "solvePnP failed"
     rvec, tvec = cv2.solvePnPRefineLM(obj, img, obs.K, None, rvec, tvec)
     T = Transform.from_rvec_tvec(rvec, tvec)
-    res, J = _at(T, obs)
-    return _Solution(T, obs, _covariance(res, J), float(np.sqrt(np.mean(res**2) * 2.0)))
+    res, _ = _at(T, obs)
+    return _Solution(T, obs, float(np.sqrt(np.mean(res**2) * 2.0)))
 
 
 _SOLVERS: dict[str, Callable[[_Observations, PoseConfig], _Solution | str]] = {

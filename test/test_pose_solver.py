@@ -41,7 +41,7 @@ def test_refine_reaches_the_least_squares_minimum() -> None:
         off_deg, off_m = (0.2, 0.002) if k % 2 else (5.0, 0.03)
         start = Transform(Rotation.from_rotvec(rng.normal(0, 1, 3) * np.radians(off_deg) / np.sqrt(3)) * T.rotation,
                           T.translation_m + rng.normal(0, off_m, 3))
-        ours, _cov, rms = _refine(obs, start)
+        ours, rms = _refine(obs, start)
         # At the minimum the gradient vanishes: a further Gauss-Newton step stays put.
         ref = _gauss_newton_step(obs, ours)
         worst_deg = max(worst_deg, float(angle_deg(ours.rotation, ref.rotation)))
@@ -78,7 +78,7 @@ def test_refine_is_least_squares_lm_bit_for_bit(direct: bool, monkeypatch: pytes
         off_deg, off_m = (0.5, 0.003) if k % 2 else (10.0, 0.05)
         start = Transform(Rotation.from_rotvec(rng.normal(0, 1, 3) * np.radians(off_deg)) * T.rotation,
                           T.translation_m + rng.normal(0, off_m, 3))
-        ours, _none, rms = _refine(obs, start)
+        ours, rms = _refine(obs, start)
         R0, x0 = start.rotation_matrix, np.concatenate([np.zeros(3), start.translation_m])
         sol = least_squares(lambda x: _residuals_and_jacobian(x, R0, obs.K, obs.model_m, obs.image_px)[0], x0,
                             jac=lambda x: _residuals_and_jacobian(x, R0, obs.K, obs.model_m, obs.image_px)[1],
