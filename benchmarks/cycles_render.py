@@ -74,7 +74,22 @@ SET_SPECS: dict[str, tuple[int, int, str, float, str, int]] = {
     # windows (sky) as the main light and the lamp at a fifth: how much of the path-tracing noise
     # is the light's directness (docs/benchmarks.md, "Cycles calibration renders").
     "cyc_540p_neutral_sky": (960, 540, "neutral", 0.60, "gamma18", 701),
+    # What-if (not a calibration set): cyc_540p_neutral's own renders with extra per-pixel noise
+    # in the linear radiance (``EXTRA_NOISE``), standing in for a path tracer's Monte Carlo noise
+    # at fewer effective samples: does the noise move the shift along the foreshortening?
+    "cyc_540p_neutral_noisy": (960, 540, "neutral", 0.60, "gamma18", 701),
+    # What-if (a check of the renderer, not a calibration set): this scene and chain at
+    # blender_dev 540p neutral's true cap poses (read from its ground_truth.json, as
+    # bench_shading's "synth as" rows do), to tell the poses from the renderer.
+    "cyc_as_dev_540p_neutral": (960, 540, "neutral", 0.60, "gamma18", 706),
 }
+#: What-if sets at a blender_dev set's cap poses: name -> blender_dev set.
+AS_DEV = {"cyc_as_dev_540p_neutral": "dev_540p_neutral"}
+#: What-if sets made from another set's renders: name -> (source set, relative sd of Gaussian
+#: noise multiplied into each pixel's radiance before the lens PSF). 0.15 brings the flat white
+#: areas' grey noise near blender_dev 540p neutral's (a diagnosis of what differs, not a fit:
+#: nothing is calibrated on it).
+EXTRA_NOISE = {"cyc_540p_neutral_noisy": ("cyc_540p_neutral", 0.15)}
 #: Auto-exposure per frame, metered on the rendered radiance: the 90th percentile over the cap's
 #: facing plates (its brightest white) is set to this share of the full well (neutral: 70 %, an
 #: auto-exposure's usual headroom, synth's 45-70 %; low: 8 % at gain 2.5, synth's 1-10 %, a night
@@ -82,7 +97,8 @@ SET_SPECS: dict[str, tuple[int, int, str, float, str, int]] = {
 #: ``WHITE_LEVEL``) and the spotlights push past it, as synth's spotlights do.
 METER_ON_RENDER = {"neutral": 0.70, "low": 0.08}
 DEFAULT_FRAMES = {"cyc_540p_neutral": 30, "cyc_540p_high": 25, "cyc_540p_low": 25,
-                  "cyc_1080p_neutral": 13, "cyc_1080p_high": 12, "cyc_540p_neutral_sky": 30}
+                  "cyc_1080p_neutral": 13, "cyc_1080p_high": 12, "cyc_540p_neutral_sky": 30,
+                  "cyc_540p_neutral_noisy": 30, "cyc_as_dev_540p_neutral": 25}
 #: Cap origin ahead of the camera (frontal frame F: x forward, y left, z up), m.
 P_FRONTAL_CAP_M = (0.77, 0.0, -0.06)
 #: High light: white paper facing the sun collects this share of the full well (before the sky's
@@ -136,6 +152,19 @@ def make_plan(name: str, n_frames: int, work: Path) -> dict:
     scene = drive_scene(width, height)
     model = nominal_model()
     drive = naturalistic_drive(n_frames * FRAME_STEP, fps=30.0, seed=seed, scene=scene)[FRAME_STEP // 2::FRAME_STEP]
+    if name in AS_DEV:
+        import dataclasses
+
+        sys.path.insert(0, str(ROOT / "benchmarks"))
+        import blender_dev
+
+        dev = json.loads((blender_dev.BLENDER_DEV / AS_DEV[name] / "ground_truth.json").read_text())
+        from ficap_ros.transform import Transform
+        from scipy.spatial.transform import Rotation
+
+        drive = [dataclasses.replace(d, index=int(g["motion_frame"]), T_cam_cap=Transform(
+            Rotation.from_matrix(np.asarray(g["T_cam_cap"])[:3, :3]), np.asarray(g["T_cam_cap"])[:3, 3]))
+            for d, g in zip(naturalistic_drive(len(dev["frames"]), seed=seed, scene=scene), dev["frames"])]
     work.mkdir(parents=True, exist_ok=True)
     textures = []
     for tag_id in model.ids:
@@ -265,6 +294,8 @@ def finish_set(name: str, plan: dict, out: Path) -> dict:
     camera = scene.camera
     model = nominal_model()
     work = Path(plan["work"])
+    extra_rel = EXTRA_NOISE[name][1] if name in EXTRA_NOISE else 0.0
+    extra_rng = np.random.default_rng(seed + 5000)
     vis = json.loads((work / "vis.json").read_text())
     R_head_cap = scene.R_cap_head.inv()
     T_head_cap = np.eye(4)
@@ -285,6 +316,8 @@ def finish_set(name: str, plan: dict, out: Path) -> dict:
                 scale = METER_ON_RENDER[lighting] / _plates_p90(radiance, model, np.asarray(fr["T_cam_cap"]), camera)
             else:
                 scale = WHITE_LEVEL[lighting] / float(plan["meter_white"])
+            if extra_rel > 0:
+                radiance = radiance * (1.0 + extra_rel * extra_rng.standard_normal(radiance.shape)).astype(np.float32)
             lin = radiance * np.float32(scale) + np.float32(flare)
             lin = synth._lens_psf(lin, psf, 0.0)
             rng = np.random.default_rng(int(fr["seed"]))
@@ -342,6 +375,7 @@ def finish_set(name: str, plan: dict, out: Path) -> dict:
         "render": {"engine": "Blender Cycles (CPU, 1 thread)", "blender": "bpy 5.0.1",
                    "samples": SAMPLES, "denoise": False, "pixel_filter": "Blackman-Harris 1.5 px (default)",
                    "light": lighting, "psf_sigma_px": psf, "tone": tone_name,
+                   "extra_noise_rel": extra_rel,
                    "noise_model": {"gain": gain, "full_well": cfg.full_well_e, "read_noise_e": cfg.read_noise_e,
                                    "exposure": (f"per frame: 90th percentile of the plates' radiance at "
                                                 f"{METER_ON_RENDER[lighting]:.2f} of full well"
@@ -488,6 +522,11 @@ def main() -> int:
             continue
         n = args.frames or DEFAULT_FRAMES[name]
         work = args.out / "_work" / name
+        if name in EXTRA_NOISE:  # made from another set's renders, no rendering of its own
+            work = args.out / "_work" / EXTRA_NOISE[name][0]
+            finish_set(name, json.loads((work / "plan.json").read_text()), args.out)
+            check(name, args.out)
+            continue
         if args.finish_only:
             finish_set(name, json.loads((work / "plan.json").read_text()), args.out)
             check(name, args.out)
