@@ -4,7 +4,8 @@
 path-traced check set that must not be tuned to. This script makes *our own* path-traced sets, with
 their own poses and seeds, so that calibration can see the physics the analytic renderer lacks
 (Monte Carlo noise at a few samples per pixel, real light fall-off and inter-reflection, the
-renderer's pixel filter). It never touches blender_dev.
+renderer's pixel filter). It reads blender_dev only for the what-if set at its poses
+(``AS_DEV``), a check of the renderer like bench_shading's "synth as" rows; nothing is fitted to it.
 
 Two processes, two venvs (the package never imports bpy):
   1. the project venv plans a set (poses from ``synth.naturalistic_drive``, cap corners from
@@ -26,7 +27,11 @@ brings its own numpy 1.26):
     python3.11 -m venv .venv-bpy && .venv-bpy/bin/pip install bpy==5.0.1
 (``make bpy-venv`` does this). Usage (project venv):
     .venv/bin/python benchmarks/cycles_render.py [--out /work/cycles_sets] [--sets cyc_540p_neutral,...]
-        [--frames N] [--check]
+        [--frames N] [--check | --finish-only | --noise]
+    FICAP_DEV_ROOT=/work/cycles_sets .venv/bin/python benchmarks/bench_shading.py --no-synth-drives
+(the measurements of docs/benchmarks.md, "Cycles calibration renders"). The sets' order for
+``FICAP_DEV_ROOT`` is ``<out>/sets.txt``; the what-if sets (``_sky``, ``_noisy``, ``cyc_as_dev_*``)
+are diagnoses, not calibration data.
 Deterministic: poses, lights, Cycles' sampling seed and the sensor noise are functions of the set.
 
 Scene (physical choices, nothing fitted to blender_dev): the 23 nominal 40 mm plates (quiet zone
@@ -37,6 +42,7 @@ principal point (W/2, H/2) in OpenCV's pixel convention, the cap origin 0.77 m a
 below (blender_dev's geometry, so tag sizes match it: a foreshortened 540p cell is 2-3 px; synth's
 default scene is 0.54 m with a 60 deg lens, 1.7x larger tags). Cycles CPU, 8 samples per pixel,
 no denoising, the default pixel filter (Blackman-Harris 1.5 px), no motion blur, 1 thread.
+Exposure: an auto-exposure metering the plates per frame (``METER_ON_RENDER``; high: ``WHITE_LEVEL``).
 Lights: neutral = a small lamp 5 cm above the lens plus a weak sky through the open side of the
 car; high = a bright sun and sky plus three spotlights on the cap (1-2.5x the base light each:
 clipped highlights); low = one street lamp outside at the front right, gain 2.5.
@@ -47,7 +53,6 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import os
 import subprocess
 import sys
 import time
