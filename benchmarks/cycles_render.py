@@ -27,7 +27,7 @@ brings its own numpy 1.26):
     python3.11 -m venv .venv-bpy && .venv-bpy/bin/pip install bpy==5.0.1
 (``make bpy-venv`` does this). Usage (project venv):
     .venv/bin/python benchmarks/cycles_render.py [--out /work/cycles_sets] [--sets cyc_540p_neutral,...]
-        [--frames N] [--check | --finish-only | --noise]
+        [--frames N] [--check | --finish-only | --noise | --esf]
     FICAP_DEV_ROOT=/work/cycles_sets .venv/bin/python benchmarks/bench_shading.py --no-synth-drives
 (the measurements of docs/benchmarks.md, "Cycles calibration renders"). The sets' order for
 ``FICAP_DEV_ROOT`` is ``<out>/sets.txt``; the what-if sets (``_sky``, ``_noisy``, ``cyc_as_dev_*``)
@@ -501,6 +501,41 @@ def noise_table(roots: dict[str, Path], synth_as_too: bool = True) -> str:
     return "\n".join(rows)
 
 
+def edge_spread(ds, max_view_deg: float = 35.0, gamma: float = 1.8) -> tuple[float, float, int]:  # noqa: ANN001
+    """Effective blur of a set: the median profile across the outer edges of near-frontal clean
+    tags (truth-aligned, linearised with ``value ** gamma``, 0.25-0.75 along each edge), fitted by
+    an error function: (sigma px, offset px, profiles)."""
+    import cv2
+    from scipy.optimize import curve_fit
+    from scipy.special import erf
+
+    offsets = np.arange(-2.0, 2.01, 0.1)
+    profiles = []
+    for f in ds.frames:
+        lin = (f.image.astype(np.float32) / 255.0) ** gamma
+        for t in f.clean_ids(max_view_deg):
+            c = f.corners_px[t]
+            for k in range(4):
+                a, b = c[k], c[(k + 1) % 4]
+                e = (b - a) / np.linalg.norm(b - a)
+                n = np.array([-e[1], e[0]])
+                if n @ ((a + b) / 2 - c.mean(0)) < 0:
+                    n = -n  # outward: black border -> white quiet zone
+                for s in np.linspace(0.25, 0.75, 6):
+                    pts = (a + s * (b - a))[None] + offsets[:, None] * n[None]
+                    profiles.append(cv2.remap(lin, pts[:, :1].astype(np.float32), pts[:, 1:].astype(np.float32),
+                                              cv2.INTER_LINEAR)[:, 0])
+    P = np.array(profiles)
+    lo, hi = P[:, :5].mean(1, keepdims=True), P[:, -5:].mean(1, keepdims=True)
+    m = np.median((P - lo) / (hi - lo), axis=0)
+
+    def model(d, a, b, d0, sigma):  # noqa: ANN001, ANN202
+        return a + (b - a) * 0.5 * (1 + erf((d - d0) / (math.sqrt(2) * sigma)))
+
+    popt, _ = curve_fit(model, offsets, m, p0=[0.0, 1.0, 0.0, 0.7])
+    return float(popt[3]), float(popt[2]), len(P)
+
+
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
@@ -509,9 +544,20 @@ def main() -> int:
     ap.add_argument("--check", action="store_true", help="only check the written sets' corners")
     ap.add_argument("--finish-only", action="store_true",
                     help="re-run only the camera chain and the set's files on the rendered radiance")
+    ap.add_argument("--esf", action="store_true",
+                    help="only the edge spread of blender_dev 540p neutral and the Cycles 540p neutral sets")
     ap.add_argument("--noise", action="store_true",
                     help="only the flat-area noise table: blender_dev, these sets, synth at their poses")
     args = ap.parse_args()
+    if args.esf:
+        sys.path.insert(0, str(ROOT / "benchmarks"))
+        import blender_dev
+
+        for root, name in ((blender_dev.BLENDER_DEV, "dev_540p_neutral"), (args.out, "cyc_as_dev_540p_neutral"),
+                           (args.out, "cyc_540p_neutral")):
+            sigma, offset, n = edge_spread(blender_dev.load_set(name, root))
+            print(f"| {name} | {n} | {sigma:.3f} | {offset:+.3f} |")
+        return 0
     if args.noise:
         sys.path.insert(0, str(ROOT / "benchmarks"))
         import blender_dev
