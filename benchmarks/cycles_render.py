@@ -101,8 +101,8 @@ EXTRA_NOISE = {"cyc_540p_neutral_noisy": ("cyc_540p_neutral", 0.15)}
 #: camera at its longest exposure). High light is exposed for its base light (the sun and sky,
 #: ``WHITE_LEVEL``) and the spotlights push past it, as synth's spotlights do.
 METER_ON_RENDER = {"neutral": 0.70, "low": 0.08}
-DEFAULT_FRAMES = {"cyc_540p_neutral": 30, "cyc_540p_high": 25, "cyc_540p_low": 25,
-                  "cyc_1080p_neutral": 13, "cyc_1080p_high": 12, "cyc_540p_neutral_sky": 30,
+DEFAULT_FRAMES = {"cyc_540p_neutral": 40, "cyc_540p_high": 40, "cyc_540p_low": 40,
+                  "cyc_1080p_neutral": 25, "cyc_1080p_high": 25, "cyc_540p_neutral_sky": 30,
                   "cyc_540p_neutral_noisy": 30, "cyc_as_dev_540p_neutral": 25}
 #: Cap origin ahead of the camera (frontal frame F: x forward, y left, z up), m.
 P_FRONTAL_CAP_M = (0.77, 0.0, -0.06)
@@ -729,9 +729,14 @@ def bpy_render(plan_path: str) -> None:  # pragma: no cover - runs under .venv-b
         spots.append(lo)
 
     F = Matrix(F_CV_TO_BL.tolist())
-    vis: dict[str, dict] = {}
+    # Frames already rendered by an earlier run of the same plan are kept (a longer drive with the
+    # same seed starts with the same frames, and a frame's render is a function of its plan entry).
+    vis_path = work / "vis.json"
+    vis: dict[str, dict] = json.loads(vis_path.read_text()) if vis_path.is_file() else {}
     for fr in plan["frames"]:
         i = int(fr["index"])
+        if str(i) in vis and (work / f"frame_{i:05d}.npy").is_file() and vis[str(i)].get("plan") == fr:
+            continue
         T = Matrix(fr["T_cam_cap"])
         cap.matrix_world = F @ T
         for j, lo in enumerate(spots):
@@ -775,9 +780,10 @@ def bpy_render(plan_path: str) -> None:  # pragma: no cover - runs under .venv-b
         grey = px.reshape(h, w, 4)[::-1, :, 0].copy()  # every material is grey: R = G = B
         np.save(work / f"frame_{i:05d}.npy", grey)
         path.unlink()
-        vis[str(i)] = {"corners": corners, "centre": centres, "render_s": render_s}
+        vis[str(i)] = {"corners": corners, "centre": centres, "render_s": render_s, "plan": fr}
+        vis_path.write_text(json.dumps(vis))
         print(f"frame {i}: {render_s:.1f} s", flush=True)
-    (work / "vis.json").write_text(json.dumps(vis))
+    vis_path.write_text(json.dumps(vis))
 
 
 if __name__ == "__main__":
