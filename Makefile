@@ -9,7 +9,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
 
-.PHONY: demo test bench install clean
+.PHONY: demo test bench install clean bpy-venv
 
 install: $(STAMP)
 
@@ -29,6 +29,12 @@ test: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) benchmarks/run_all.py
+
+# Blender as a Python module, for benchmarks/cycles_render.py only (the package never imports bpy;
+# `make test` does not need it). CPython 3.11, manylinux x86_64; the wheel brings numpy 1.26.
+bpy-venv:
+	test -x .venv-bpy/bin/python || python3.11 -m venv .venv-bpy
+	.venv-bpy/bin/python -m pip install --quiet --disable-pip-version-check bpy==5.0.1
 
 clean:
 	rm -rf $(VENV) build install log *.egg-info

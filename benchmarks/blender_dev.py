@@ -16,6 +16,7 @@ Each set is a rosbag2 (MCAP) read through ``ficap_ros.bag_io`` (the code path re
 from __future__ import annotations
 
 import json
+import os
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -42,6 +43,16 @@ SETS = (
     "dev_1080p_neutral_asbuilt",
     "dev_540p_drive30",
 )
+#: ``FICAP_DEV_ROOT=<folder>`` points this reader (and every benchmark that uses ``BLENDER_DEV`` and
+#: ``SETS``) at other sets in the same format, e.g. ``cycles_render.py``'s path-traced calibration
+#: sets: ``SETS`` becomes the folder's sets (sub-folders with a ground_truth.json), in
+#: ``<folder>/sets.txt``'s order if there is one, else sorted. Unset: blender_dev, as above.
+if os.environ.get("FICAP_DEV_ROOT"):
+    BLENDER_DEV = Path(os.environ["FICAP_DEV_ROOT"])
+    _order = BLENDER_DEV / "sets.txt"
+    SETS = tuple(_order.read_text().split()) if _order.is_file() else tuple(
+        sorted(p.name for p in BLENDER_DEV.iterdir() if (p / "ground_truth.json").is_file())
+        if BLENDER_DEV.is_dir() else ())
 
 
 @dataclass(frozen=True)
