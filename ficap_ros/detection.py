@@ -1074,13 +1074,14 @@ def _cell_errors(gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray) -> n
     return np.where(finite, (read_black != expected).sum(axis=1), 64)
 
 
-def _fittable(corners_px: np.ndarray) -> np.ndarray:
+def _fittable(corners_px: np.ndarray, lines: tuple[np.ndarray, np.ndarray] | None = None) -> np.ndarray:
     """(N,) which tags' cells span ``_MIN_TAG_CELL_PX`` both ways (those ``refine_tag_corners``
-    unbiases and fits with their own cells)."""
+    unbiases and fits with their own cells). ``lines``: ``_side_lines(corners_px)`` when the
+    caller has them."""
     corners = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
     if len(corners) == 0:
         return np.zeros(0, dtype=bool)
-    nrm, rho = _side_lines(corners)
+    nrm, rho = _side_lines(corners) if lines is None else lines
     # Width of the tag across each side (opposite corners from the side's line), in cells.
     across = rho[:, :, None] - np.einsum("nkd,njd->nkj", nrm, corners)
     return across.max(axis=2).min(axis=1) / TAG_CELLS >= _MIN_TAG_CELL_PX
@@ -1121,12 +1122,13 @@ def refine_tag_corners(
         return corners, delta
     ids = np.asarray(ids).reshape(-1)
     nrm, rho = _side_lines(corners)
-    good = _fittable(corners)
+    good = _fittable(corners, (nrm, rho))
     corners_in = corners.copy()
     if good.any():
         c = corners[good]
         if cfg.edge_unbias:
-            c = unbias_corners_edge(gray, c, ids[good], cfg)
+            # The fittable tags' lines are rows of these (each row's arithmetic is its own).
+            c = unbias_corners_edge(gray, c, ids[good], cfg, _lines=(nrm[good], rho[good]))
         if cfg.edge_fit:
             c, delta[good] = fit_tag_edges(gray, c, ids[good], cfg, cfg.edge_fit_iterations)
         corners[good] = c
@@ -1272,7 +1274,8 @@ def shift_tag_edges(corners_px: np.ndarray, shift_px: float) -> np.ndarray:
 
 
 def unbias_corners_edge(
-    gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray, config: DetectorConfig | None = None
+    gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray, config: DetectorConfig | None = None,
+    _lines: tuple[np.ndarray, np.ndarray] | None = None,
 ) -> np.ndarray:
     """Remove the tone-curve bias from edge-fitted corners, using each tag's own black border.
 
@@ -1302,6 +1305,7 @@ def unbias_corners_edge(
     Returns:
         (N, 4, 2) corrected corners (a tag keeps its input corners when no estimate is possible
         or the correction is implausibly large).
+        _lines: ``_side_lines(corners_px)`` when the caller has them (``refine_tag_corners``).
     """
     cfg = config or DetectorConfig()
     c_in = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
@@ -1311,7 +1315,7 @@ def unbias_corners_edge(
     counts, tag_of, starts, (side, uv) = _stacked(_inner_edge_samples, tuple(int(i) for i in ids))
     # uv on the outer edge straight across from each inner sample (one cell out).
     uv_out = uv + _SIDE_OUT[side]
-    nrm, rho = _side_lines(c_in)
+    nrm, rho = _side_lines(c_in) if _lines is None else _lines
     nk = nrm[tag_of, side]  # (T, 2)
 
     # Measure both edges of the border straight across each white data cell, with the same
@@ -1321,7 +1325,8 @@ def unbias_corners_edge(
         hom = tag_homographies(c_in)
     except np.linalg.LinAlgError:
         return c_in.copy()
-    p_in, p_out = _apply_h(hom[tag_of], uv), _apply_h(hom[tag_of], uv_out)
+    hom_t = hom[tag_of]
+    p_in, p_out = _apply_h(hom_t, uv), _apply_h(hom_t, uv_out)
     width0 = np.einsum("td,td->t", nk, p_out - p_in)  # px, one cell across
     half = np.clip(np.minimum(cfg.edge_search_px, cfg.edge_window_cells * width0), 0.75, None)
     samples = cfg.edge_profile_samples
@@ -1347,10 +1352,13 @@ def unbias_corners_edge(
     corners = c_in
     delta = np.zeros((n, 4))
     keep = None
-    for _ in range(2):
-        hom = tag_homographies(corners)
-        p_in_c, p_out_c = _apply_h(hom[tag_of], uv), _apply_h(hom[tag_of], uv_out)
-        width = np.einsum("td,td->t", nk, p_out_c - p_in_c)  # one cell across, corrected geometry
+    for round_ in range(2):
+        if round_ == 0:  # the first round's corners are the input's: its width is width0
+            width = width0
+        else:
+            hom_t = tag_homographies(corners)[tag_of]
+            p_in_c, p_out_c = _apply_h(hom_t, uv), _apply_h(hom_t, uv_out)
+            width = np.einsum("td,td->t", nk, p_out_c - p_in_c)  # one cell across, corrected geometry
         d = midline + 0.5 * width - rho[tag_of, side]  # (T,) how far the fitted line is inside, px
         if keep is None:  # the outliers: from the first round (the second moves d by ~1 %)
             keep = _inlier_samples(d, valid, starts, counts)

@@ -620,14 +620,16 @@ def _solve_joint(obs: _Observations, config: PoseConfig, start: Transform | None
     if begin is None:
         return "no pose agrees with the detected tags"
     T, inliers = begin
-    used = obs.subset(inliers)
+    # ``used`` is always ``obs.subset(current)`` (obs's ids are unique): the mask is kept, not
+    # rebuilt from the ids (np.isin, ~30 us a round).
+    current = np.array(inliers, dtype=bool)
+    used = obs.subset(current)
     # Tags that disagreed with the start may agree with the refined pose: re-admit, then trim.
     for _ in range(5):
         if len(used) < config.min_tags:
             return f"{len(used)} tag(s) left after outlier rejection, need {config.min_tags}"
         T, rms = _refine(used, T)
         err_all = reprojection_errors_px(obs.image_px, obs.K, T, obs.model_m)
-        current = np.isin(obs.ids, used.ids)
         median = float(np.median(err_all[current]))
         limit = max(config.outlier_ratio * median, config.outlier_floor_px)
         keep = err_all <= limit
