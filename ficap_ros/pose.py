@@ -62,6 +62,7 @@ little, and one tag has a mirror solution a first-order covariance does not see)
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from functools import lru_cache
 from typing import Callable, Container, Sequence
@@ -771,7 +772,7 @@ def estimate_cap_pose(
             replaces the consensus search as the refinement's start. The answer does not depend on
             it beyond the optimiser's tolerance.
         with_uncertainty: build the covariance and its bounds (``uncertainty_terms``, about
-            0.9 ms a pose). False for a pose only its ``T_cam_cap`` and tags are wanted of (the
+            0.5 ms a pose). False for a pose only its ``T_cam_cap`` and tags are wanted of (the
             tracker's intermediate poses): ``T_cam_cap``, the tags and ``rms_px`` are the same,
             but ``covariance``, ``rot_err95_deg`` and ``trans_err95_mm`` are NaN and
             ``reliability`` is 0. Never for a pose that is reported.
@@ -852,8 +853,6 @@ def estimate_cap_pose(
 #: Per-tag corner patterns (columns of ``_tag_basis``) grouped as the residuals are pooled.
 _PATTERNS = {"shift": [0, 1], "scale": [2], "turn": [3], "shear": [4, 5], "projective": [6, 7]}
 _ROS_ORDER = np.array([3, 4, 5, 0, 1, 2])
-#: ``np.ix_(_ROS_ORDER, _ROS_ORDER)`` built once: the uncertainty reorders 14 matrices a pose.
-_ROS_IX = np.ix_(_ROS_ORDER, _ROS_ORDER)
 
 
 def _tag_basis(corners_px: np.ndarray) -> np.ndarray:
@@ -944,7 +943,12 @@ def light_gradient_px(edge_shift_px: np.ndarray, centres_px: np.ndarray) -> floa
     c = np.asarray(centres_px, dtype=float)[ok]
     c = (c - c.mean(axis=0)) / max(float(np.ptp(c, axis=0).max()), 1e-9)
     X = np.column_stack([np.ones(len(c)), c])
-    coef, *_ = np.linalg.lstsq(X, es[ok], rcond=None)
+    # The normal equations (3 x 3; the columns are centred and scaled to about 1, so they are
+    # as well conditioned as X), not lstsq's SVD; a degenerate layout (tags on a line) as lstsq.
+    try:
+        coef = np.linalg.solve(X.T @ X, X.T @ es[ok])
+    except np.linalg.LinAlgError:
+        coef, *_ = np.linalg.lstsq(X, es[ok], rcond=None)
     return float(np.std(X @ coef))
 
 
@@ -1038,21 +1042,9 @@ def uncertainty_terms(
     except np.linalg.LinAlgError:
         M = np.full((6, 6), np.inf)  # combine_uncertainty turns this into "unknown"
     A = M @ (J.T * w)  # (6, 2n): pose change per corner coordinate displacement
-    A_tag = A.reshape(6, n_tags, 8)
-
-    def ros(c: np.ndarray) -> np.ndarray:
-        return c[_ROS_IX]
-
-    def together(modes: np.ndarray) -> np.ndarray:  # (2n, k) modes shared by all tags
-        am = A @ modes
-        return ros(am @ am.T)
-
-    def per_tag(modes: np.ndarray, scale: np.ndarray | None = None) -> np.ndarray:
-        # (tags, 8, k) modes independent per tag, each tag's times scale (tags,)
-        am = np.einsum("ktj,tjm->tkm", A_tag, modes)
-        if scale is not None:
-            am = am * scale[:, None, None]
-        return ros(np.einsum("tkm,tlm->kl", am, am))
+    # Rows in ROS order up front: every term below is then in ROS order as computed.
+    A_ros = A[_ROS_ORDER]
+    A_tag = A_ros.reshape(6, n_tags, 8).transpose(1, 0, 2)  # (tags, 6, 8)
 
     K = obs.K
     R = T.rotation_matrix
@@ -1069,25 +1061,41 @@ def uncertainty_terms(
     GR = G @ R  # d(u, v)/d(point in the cap frame)
 
     B = _tag_basis(obs.image_px)
-    terms: dict[str, np.ndarray] = {"noise": ros(A @ A.T)}
     share = rel / np.sqrt(np.mean(rel**2))  # each tag's sigma over the frame's mean tag's
-    for group, idx in _PATTERNS.items():
-        terms[group] = per_tag(B[:, :, idx], share)
-    radial = 2.0 * B[:, :, 2]  # 1 px radial at each corner (the pattern has norm 1 over 4 corners)
-    terms["bias"] = per_tag(radial[:, :, None])
-    terms["bias_common"] = together(radial.reshape(-1, 1))
-    eye = np.eye(3)
-    shift = np.einsum("nij,kj->nik", GR, eye * 1e-3)  # (n, 2, 3): 1 mm along each cap axis
-    # e_k x (corner - tag centre), the corner's move when its plate turns about cap axis k.
+    # Modes independent per tag (tags, 8, k), all in one product: the 8 basis patterns, then
+    # each plate shifted 1 mm along each cap axis (model_t), then turned 1 deg about each
+    # (model_r: e_k x (corner - tag centre), the corner's move when its plate turns about axis k).
+    shift = GR * 1e-3  # (n, 2, 3): 1 mm along each cap axis
     turn = np.einsum("nij,nkj->nik", GR, _model_geometry(obs)[2] * np.radians(1.0))
-    terms["model_t"] = per_tag(shift.reshape(n_tags, 8, 3))
-    terms["model_r"] = per_tag(turn.reshape(n_tags, 8, 3))
-    axes = np.zeros((2 * n, 2))
-    axes[0::2, 0] = 1.0
-    axes[1::2, 1] = 1.0
-    terms["principal_point"] = together(axes)
-    terms["focal"] = together((uv - K[:2, 2]).reshape(-1, 1))
-    terms["tilt"] = together(_tilt_mode(obs, T).reshape(-1, 1))
+    modes = np.concatenate([B, shift.reshape(n_tags, 8, 3), turn.reshape(n_tags, 8, 3)], axis=2)
+    am = A_tag @ modes  # (tags, 6, 14): the pose's response to each tag's mode
+    # Per mode, the covariance summed over the tags (independent): (14, 6, 6). The pattern
+    # groups' with each tag's relative noise (share), bias and the model's without.
+    scaled = am[:, :, :8] * share[:, None, None]
+    per_mode_s = np.einsum("tkm,tlm->mkl", scaled, scaled)
+    per_mode = np.einsum("tkm,tlm->mkl", am, am)
+    terms: dict[str, np.ndarray] = {"noise": A_ros @ A_ros.T}
+    for group, idx in _PATTERNS.items():
+        terms[group] = per_mode_s[idx].sum(axis=0)
+    radial = 2.0 * B[:, :, 2]  # 1 px radial at each corner (the pattern has norm 1 over 4 corners)
+    terms["bias"] = 4.0 * per_mode[2]
+    terms["model_t"] = per_mode[8:11].sum(axis=0)
+    terms["model_r"] = per_mode[11:14].sum(axis=0)
+    # Modes shared by all tags (2n, k): a common radial offset, the principal point (x, y), the
+    # focal length, the tilt.
+    common = radial.reshape(-1)
+    shared = np.empty((2 * n, 5))
+    shared[:, 0] = common
+    shared[:, 1] = np.tile([1.0, 0.0], n)
+    shared[:, 2] = np.tile([0.0, 1.0], n)
+    shared[:, 3] = (uv - K[:2, 2]).reshape(-1)
+    shared[:, 4] = _tilt_mode(obs, T).reshape(-1)
+    am_shared = A_ros @ shared  # (6, 5)
+    a0 = am_shared[:, 0]
+    terms["bias_common"] = np.outer(a0, a0)
+    terms["principal_point"] = am_shared[:, 1:3] @ am_shared[:, 1:3].T
+    terms["focal"] = np.outer(am_shared[:, 3], am_shared[:, 3])
+    terms["tilt"] = np.outer(am_shared[:, 4], am_shared[:, 4])
 
     # The residuals in each tag's patterns; per group, the coefficients' variance pooled over the
     # tags (the frame's mean tag), with the degrees of freedom the fit took from the group (the
@@ -1095,21 +1103,25 @@ def uncertainty_terms(
     # weights come from the same residuals, and a variance pooled through them would be biased low.
     coef = np.einsum("tjm,tj->tm", B, -res.reshape(n_tags, 8))
     Jt = J.reshape(n_tags, 8, 6)
-    hat = np.einsum("tja,ab,tkb->tjk", Jt, M, Jt) / rel[:, None, None] ** 2
-    leverage = np.einsum("tjm,tjs,tsm->tm", B, hat, B)
+    # Batched matmuls, not three-operand einsums (those loop over every index: ~0.1 ms a pose).
+    hat = (Jt @ M) @ Jt.transpose(0, 2, 1) / rel[:, None, None] ** 2
+    leverage = (B * (hat @ B)).sum(axis=1)
     mean_scale = float(coef[:, 2].mean())
     seen: dict[str, float] = {}
+    # Per pattern: the tags' squared coefficients and leverages summed (the scale's about their
+    # mean), then per group (Python floats: five groups of one or two patterns).
+    coef[:, 2] -= mean_scale
+    sq = (coef * coef).sum(axis=0).tolist()
+    lev = leverage.sum(axis=0).tolist()
     for group, idx in _PATTERNS.items():
-        c = coef[:, idx] - (mean_scale if group == "scale" else 0.0)
-        dof = len(idx) * n_tags - float(np.sum(leverage[:, idx]))
+        dof = len(idx) * n_tags - sum(lev[i] for i in idx)
         dof -= 1.0 if group == "scale" else 0.0  # the common offset, taken out above
-        seen[group] = float(np.sqrt(np.sum(c**2) / dof)) if dof > 0.5 else 0.0
+        seen[group] = math.sqrt(sum(sq[i] for i in idx) / dof) if dof > 0.5 else 0.0
         seen[group + "_dof"] = max(dof, 0.0)  # how well the residuals know it (error_bound95)
     # The common radial offset the residuals show is what the fit left of it: part of it went into
     # the depth (that part moved the pose). Scale back to the whole by the share left. The mean
     # carries the tags' scale noise too (its standard error): subtract that in quadrature, or the
     # noise of a mean amplified up to tenfold would pass for an offset where there is none.
-    common = radial.reshape(-1)
     common_left = 1.0 - float(common @ (w * (J @ (A @ common)))) / float(common @ (w * common))
     mean_se2 = seen["scale"] ** 2 / n_tags
     seen["bias_common"] = (float(np.sqrt(max(mean_scale**2 - mean_se2, 0.0)))
@@ -1238,14 +1250,15 @@ def uncertainty_bounds(terms: dict[str, np.ndarray], seen: dict[str, float],
     offset = unit[:, j] / np.sqrt(max(float(unit[j, j]), 1e-300)) * k * seen.get("bias_common", 0.0)
     if not np.all(np.isfinite(offset)):
         offset = np.zeros(6)
-    diag = np.diagonal(covariance) - offset * offset
-    den = np.zeros(2)  # rotation, translation: sum of (part's trace)^2 / its dof
+    diag = (np.diagonal(covariance) - offset * offset).tolist()
+    den = [0.0, 0.0]  # rotation, translation: sum of (part's trace)^2 / its dof
     for group in _PATTERNS:
         dof = seen.get(group + "_dof", np.inf)
-        if np.isfinite(dof) and dof > 0.0:
-            d = np.diagonal(terms[group]) * (k * seen.get(group, 0.0)) ** 2
-            den += np.array([d[3:].sum(), d[:3].sum()]) ** 2 / dof
-    total = np.array([diag[3:].sum(), diag[:3].sum()])
+        if math.isfinite(dof) and dof > 0.0:
+            d = (np.diagonal(terms[group]) * (k * seen.get(group, 0.0)) ** 2).tolist()
+            den[0] += sum(d[3:]) ** 2 / dof
+            den[1] += sum(d[:3]) ** 2 / dof
+    total = [sum(diag[3:]), sum(diag[:3])]
     dofs = [float(t * t / e) if e > 0.0 and t > 0.0 else float("inf") for t, e in zip(total, den)]
     return offset, (dofs[0], dofs[1])
 
