@@ -1560,15 +1560,18 @@ def fit_tag_edges(
         for _round in range(2):
             # Noise-optimal weights: a sample's position noise goes as 1 / its contrast.
             w = np.where(ok, (contrast / np.maximum(top_c[tag_of], 1.0)) ** 2, 0.0)
-            sol, solved, r = _solve_grouped(jac, s, w, starts, 24)
+            # Only the first round's residuals (the outliers) and the last round's solution are
+            # used: neither the last residuals nor the first solution's checks are computed.
+            sol, solved, r = _solve_grouped(jac, s, w, starts, 24, residuals=_round == 0)
+            if _round == 0:
+                assert r is not None
+                sig = 1.4826 * _group_median(np.abs(r), ok, starts, counts)
+                ok &= np.abs(r) <= np.maximum(3.5 * sig[tag_of], 0.05)
+                continue
             # Both edge directions must be seen, or the fit is free along one of them.
             used = w > 0
             vertical = np.add.reduceat(used & (np.abs(nu[:, 0]) > 0.5), starts)
             solved &= (vertical >= 12) & (np.add.reduceat(used, starts) - vertical >= 12)
-            if _round == 1:
-                break
-            sig = 1.4826 * _group_median(np.abs(r), ok, starts, counts)
-            ok &= np.abs(r) <= np.maximum(3.5 * sig[tag_of], 0.05)
         h = h + np.where(solved[:, None], sol[:, :8], 0.0)
         delta = np.where(solved, sol[:, 8:].mean(axis=1), np.nan)  # the two directions' mean
         fitted = solved
@@ -1652,10 +1655,11 @@ def _group_quantile(
 
 
 def _solve_grouped(
-    jac: np.ndarray, rhs: np.ndarray, w: np.ndarray, starts: np.ndarray, min_rows: int
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    jac: np.ndarray, rhs: np.ndarray, w: np.ndarray, starts: np.ndarray, min_rows: int,
+    residuals: bool = True,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Weighted least squares per contiguous group of rows: (solutions (n, P), solved (n,),
-    residuals rhs - jac @ solution (T,))."""
+    residuals rhs - jac @ solution (T,), None unless ``residuals``)."""
     n, p = len(starts), jac.shape[1]
     ends = np.append(starts[1:], len(rhs))
     jw = jac * w[:, None]
@@ -1686,6 +1690,8 @@ def _solve_grouped(
                 except np.linalg.LinAlgError:
                     solved[g] = False
     solved &= np.isfinite(sol).all(axis=1)
+    if not residuals:
+        return sol, solved, None
     resid = np.empty_like(rhs)
     for g, (a, b) in bounds:
         resid[a:b] = rhs[a:b] - jac[a:b] @ sol[g]
