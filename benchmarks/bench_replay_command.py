@@ -184,6 +184,22 @@ class AprilTag3:
         return float(np.mean(np.median(np.array(self.ms), axis=0)))
 
 
+def alternate(bag: Path, out: Path, at3: AprilTag3, rounds: int, at3_rounds: int,
+              label: str = "") -> list[tuple[float, float]]:
+    """(CPU s, wall s) of each of ``rounds`` runs of the command; AprilTag 3's ``at3_rounds``
+    rounds alternate with them, so a change of the shared machine's load falls on both."""
+    runs = []
+    for rnd in range(max(rounds, at3_rounds)):
+        if rnd < rounds:
+            cpu, wall, stdout = run_command(bag, out)
+            runs.append((cpu, wall))
+            print(f"  {label}ficap replay round {rnd + 1}: CPU {cpu:.2f} s, wall {wall:.2f} s; "
+                  f"{stdout.strip()}", file=sys.stderr)
+        if rnd < at3_rounds:
+            print(f"  {label}AprilTag 3 round {rnd + 1}: {at3.round():.1f} ms/frame", file=sys.stderr)
+    return runs
+
+
 def breakdown(bag: Path, tmp: Path) -> dict:
     modules = tmp / "modules.txt"
     script = [str(Path(__file__).resolve())]
@@ -237,15 +253,7 @@ def long_drive(args: argparse.Namespace, tmp: Path, short_bag: Path) -> dict:
     # Does the longer drive continue the shorter one (same seed: the same first frames)?
     short = [r.payload for r in open_frames(short_bag).raw_frames()]
     prefix = sum(a == r.payload for a, r in zip(short, at3.raws))
-    runs = []
-    for rnd in range(max(args.rounds, args.long_at3_rounds)):
-        if rnd < args.rounds:
-            cpu, wall, stdout = run_command(bag, tmp / "out_long")
-            runs.append((cpu, wall))
-            print(f"  longer drive: ficap replay round {rnd + 1}: CPU {cpu:.2f} s, wall {wall:.2f} s; "
-                  f"{stdout.strip()}", file=sys.stderr)
-        if rnd < args.long_at3_rounds:
-            print(f"  longer drive: AprilTag 3 round {rnd + 1}: {at3.round():.1f} ms/frame", file=sys.stderr)
+    runs = alternate(bag, tmp / "out_long", at3, args.rounds, args.long_at3_rounds, "longer drive: ")
     summary = json.loads((tmp / "out_long" / "summary.json").read_text())
     frames = int(summary["frames"])
     assert len(at3.raws) == frames, (len(at3.raws), frames)
@@ -327,18 +335,8 @@ def main() -> int:
             subprocess.run([sys.executable, "-m", "ficap_ros.cli", "synth", "--out", str(bag),
                             "--resolution", "1080p", "--frames", str(frames), "--fps", str(FPS),
                             "--seed", "0", "--quiet"], check=True)
-        # Ours and AprilTag 3 alternate, round by round, so a change of the shared machine's load
-        # falls on both.
         at3 = AprilTag3(bag)
-        runs = []
-        for rnd in range(max(args.rounds, args.at3_rounds)):
-            if rnd < args.rounds:
-                cpu, wall, stdout = run_command(bag, tmp / "out")
-                runs.append((cpu, wall))
-                print(f"  ficap replay round {rnd + 1}: CPU {cpu:.2f} s, wall {wall:.2f} s; "
-                      f"{stdout.strip()}", file=sys.stderr)
-            if rnd < args.at3_rounds:
-                print(f"  AprilTag 3 round {rnd + 1}: {at3.round():.1f} ms/frame", file=sys.stderr)
+        runs = alternate(bag, tmp / "out", at3, args.rounds, args.at3_rounds)
         summary = json.loads((tmp / "out" / "summary.json").read_text())
         frames = int(summary["frames"])
         assert len(at3.raws) == frames, (len(at3.raws), frames)
