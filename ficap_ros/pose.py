@@ -62,6 +62,7 @@ little, and one tag has a mirror solution a first-order covariance does not see)
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field
 from functools import lru_cache
 from typing import Callable, Container, Sequence
@@ -331,6 +332,19 @@ class _Observations:
 
     def __len__(self) -> int:
         return len(self.ids)
+
+
+def _median(values: np.ndarray) -> float:
+    """``float(np.median(values))`` of a 1-D array, bit for bit (the middle value, or the two
+    middle values' sum halved, as numpy's mean of the two), at a tenth of its ~25 us: a pose takes
+    three medians of a few dozen numbers."""
+    v = np.asarray(values, dtype=np.float64).ravel()
+    n = len(v)
+    if n == 0 or not np.isfinite(v).all():
+        return float(np.median(v))
+    s = sorted(v.tolist())
+    k = n // 2
+    return s[k] if n % 2 else (s[k - 1] + s[k]) / 2.0
 
 
 def _project(K: np.ndarray, T: Transform, points_m: np.ndarray) -> np.ndarray:
@@ -620,15 +634,17 @@ def _solve_joint(obs: _Observations, config: PoseConfig, start: Transform | None
     if begin is None:
         return "no pose agrees with the detected tags"
     T, inliers = begin
-    used = obs.subset(inliers)
+    # ``used`` is always ``obs.subset(current)`` (obs's ids are unique): the mask is kept, not
+    # rebuilt from the ids (np.isin, ~30 us a round).
+    current = np.array(inliers, dtype=bool)
+    used = obs.subset(current)
     # Tags that disagreed with the start may agree with the refined pose: re-admit, then trim.
     for _ in range(5):
         if len(used) < config.min_tags:
             return f"{len(used)} tag(s) left after outlier rejection, need {config.min_tags}"
         T, rms = _refine(used, T)
         err_all = reprojection_errors_px(obs.image_px, obs.K, T, obs.model_m)
-        current = np.isin(obs.ids, used.ids)
-        median = float(np.median(err_all[current]))
+        median = _median(err_all[current])
         limit = max(config.outlier_ratio * median, config.outlier_floor_px)
         keep = err_all <= limit
         if hidden is not None:
@@ -769,7 +785,7 @@ def estimate_cap_pose(
             replaces the consensus search as the refinement's start. The answer does not depend on
             it beyond the optimiser's tolerance.
         with_uncertainty: build the covariance and its bounds (``uncertainty_terms``, about
-            0.9 ms a pose). False for a pose only its ``T_cam_cap`` and tags are wanted of (the
+            0.5 ms a pose). False for a pose only its ``T_cam_cap`` and tags are wanted of (the
             tracker's intermediate poses): ``T_cam_cap``, the tags and ``rms_px`` are the same,
             but ``covariance``, ``rot_err95_deg`` and ``trans_err95_mm`` are NaN and
             ``reliability`` is 0. Never for a pose that is reported.
@@ -850,8 +866,6 @@ def estimate_cap_pose(
 #: Per-tag corner patterns (columns of ``_tag_basis``) grouped as the residuals are pooled.
 _PATTERNS = {"shift": [0, 1], "scale": [2], "turn": [3], "shear": [4, 5], "projective": [6, 7]}
 _ROS_ORDER = np.array([3, 4, 5, 0, 1, 2])
-#: ``np.ix_(_ROS_ORDER, _ROS_ORDER)`` built once: the uncertainty reorders 14 matrices a pose.
-_ROS_IX = np.ix_(_ROS_ORDER, _ROS_ORDER)
 
 
 def _tag_basis(corners_px: np.ndarray) -> np.ndarray:
@@ -903,7 +917,7 @@ def tag_noise_px(obs: _Observations, T: Transform) -> np.ndarray:
 
 def _tag_noise(res: np.ndarray, n_tags: int) -> np.ndarray:
     rms = np.sqrt(np.mean(res.reshape(n_tags, 8) ** 2, axis=1))
-    floor = max(float(np.median(rms)), 1e-6)
+    floor = max(_median(rms), 1e-6)
     return np.sqrt(rms**2 + floor**2)
 
 
@@ -942,7 +956,12 @@ def light_gradient_px(edge_shift_px: np.ndarray, centres_px: np.ndarray) -> floa
     c = np.asarray(centres_px, dtype=float)[ok]
     c = (c - c.mean(axis=0)) / max(float(np.ptp(c, axis=0).max()), 1e-9)
     X = np.column_stack([np.ones(len(c)), c])
-    coef, *_ = np.linalg.lstsq(X, es[ok], rcond=None)
+    # The normal equations (3 x 3; the columns are centred and scaled to about 1, so they are
+    # as well conditioned as X), not lstsq's SVD; a degenerate layout (tags on a line) as lstsq.
+    try:
+        coef = np.linalg.solve(X.T @ X, X.T @ es[ok])
+    except np.linalg.LinAlgError:
+        coef, *_ = np.linalg.lstsq(X, es[ok], rcond=None)
     return float(np.std(X @ coef))
 
 
@@ -1029,28 +1048,16 @@ def uncertainty_terms(
     if tag_sigma_px is None:
         rel = np.ones(n_tags)
     else:
-        rel = np.asarray(tag_sigma_px, dtype=float) / max(float(np.median(tag_sigma_px)), 1e-12)
+        rel = np.asarray(tag_sigma_px, dtype=float) / max(_median(tag_sigma_px), 1e-12)
     w = np.repeat(1.0 / rel**2, 8)  # weights per residual coordinate
     try:
         M = np.linalg.inv(J.T @ (w[:, None] * J))
     except np.linalg.LinAlgError:
         M = np.full((6, 6), np.inf)  # combine_uncertainty turns this into "unknown"
     A = M @ (J.T * w)  # (6, 2n): pose change per corner coordinate displacement
-    A_tag = A.reshape(6, n_tags, 8)
-
-    def ros(c: np.ndarray) -> np.ndarray:
-        return c[_ROS_IX]
-
-    def together(modes: np.ndarray) -> np.ndarray:  # (2n, k) modes shared by all tags
-        am = A @ modes
-        return ros(am @ am.T)
-
-    def per_tag(modes: np.ndarray, scale: np.ndarray | None = None) -> np.ndarray:
-        # (tags, 8, k) modes independent per tag, each tag's times scale (tags,)
-        am = np.einsum("ktj,tjm->tkm", A_tag, modes)
-        if scale is not None:
-            am = am * scale[:, None, None]
-        return ros(np.einsum("tkm,tlm->kl", am, am))
+    # Rows in ROS order up front: every term below is then in ROS order as computed.
+    A_ros = A[_ROS_ORDER]
+    A_tag = A_ros.reshape(6, n_tags, 8).transpose(1, 0, 2)  # (tags, 6, 8)
 
     K = obs.K
     R = T.rotation_matrix
@@ -1067,25 +1074,41 @@ def uncertainty_terms(
     GR = G @ R  # d(u, v)/d(point in the cap frame)
 
     B = _tag_basis(obs.image_px)
-    terms: dict[str, np.ndarray] = {"noise": ros(A @ A.T)}
     share = rel / np.sqrt(np.mean(rel**2))  # each tag's sigma over the frame's mean tag's
-    for group, idx in _PATTERNS.items():
-        terms[group] = per_tag(B[:, :, idx], share)
-    radial = 2.0 * B[:, :, 2]  # 1 px radial at each corner (the pattern has norm 1 over 4 corners)
-    terms["bias"] = per_tag(radial[:, :, None])
-    terms["bias_common"] = together(radial.reshape(-1, 1))
-    eye = np.eye(3)
-    shift = np.einsum("nij,kj->nik", GR, eye * 1e-3)  # (n, 2, 3): 1 mm along each cap axis
-    # e_k x (corner - tag centre), the corner's move when its plate turns about cap axis k.
+    # Modes independent per tag (tags, 8, k), all in one product: the 8 basis patterns, then
+    # each plate shifted 1 mm along each cap axis (model_t), then turned 1 deg about each
+    # (model_r: e_k x (corner - tag centre), the corner's move when its plate turns about axis k).
+    shift = GR * 1e-3  # (n, 2, 3): 1 mm along each cap axis
     turn = np.einsum("nij,nkj->nik", GR, _model_geometry(obs)[2] * np.radians(1.0))
-    terms["model_t"] = per_tag(shift.reshape(n_tags, 8, 3))
-    terms["model_r"] = per_tag(turn.reshape(n_tags, 8, 3))
-    axes = np.zeros((2 * n, 2))
-    axes[0::2, 0] = 1.0
-    axes[1::2, 1] = 1.0
-    terms["principal_point"] = together(axes)
-    terms["focal"] = together((uv - K[:2, 2]).reshape(-1, 1))
-    terms["tilt"] = together(_tilt_mode(obs, T).reshape(-1, 1))
+    modes = np.concatenate([B, shift.reshape(n_tags, 8, 3), turn.reshape(n_tags, 8, 3)], axis=2)
+    am = A_tag @ modes  # (tags, 6, 14): the pose's response to each tag's mode
+    # Per mode, the covariance summed over the tags (independent): (14, 6, 6). The pattern
+    # groups' with each tag's relative noise (share), bias and the model's without.
+    scaled = am[:, :, :8] * share[:, None, None]
+    per_mode_s = np.einsum("tkm,tlm->mkl", scaled, scaled)
+    per_mode = np.einsum("tkm,tlm->mkl", am, am)
+    terms: dict[str, np.ndarray] = {"noise": A_ros @ A_ros.T}
+    for group, idx in _PATTERNS.items():
+        terms[group] = per_mode_s[idx].sum(axis=0)
+    radial = 2.0 * B[:, :, 2]  # 1 px radial at each corner (the pattern has norm 1 over 4 corners)
+    terms["bias"] = 4.0 * per_mode[2]
+    terms["model_t"] = per_mode[8:11].sum(axis=0)
+    terms["model_r"] = per_mode[11:14].sum(axis=0)
+    # Modes shared by all tags (2n, k): a common radial offset, the principal point (x, y), the
+    # focal length, the tilt.
+    common = radial.reshape(-1)
+    shared = np.zeros((2 * n, 5))
+    shared[:, 0] = common
+    shared[0::2, 1] = 1.0  # principal point x: every u
+    shared[1::2, 2] = 1.0  # ... y: every v
+    shared[:, 3] = (uv - K[:2, 2]).reshape(-1)
+    shared[:, 4] = _tilt_mode(obs, T).reshape(-1)
+    am_shared = A_ros @ shared  # (6, 5)
+    a0 = am_shared[:, 0]
+    terms["bias_common"] = np.outer(a0, a0)
+    terms["principal_point"] = am_shared[:, 1:3] @ am_shared[:, 1:3].T
+    terms["focal"] = np.outer(am_shared[:, 3], am_shared[:, 3])
+    terms["tilt"] = np.outer(am_shared[:, 4], am_shared[:, 4])
 
     # The residuals in each tag's patterns; per group, the coefficients' variance pooled over the
     # tags (the frame's mean tag), with the degrees of freedom the fit took from the group (the
@@ -1093,21 +1116,25 @@ def uncertainty_terms(
     # weights come from the same residuals, and a variance pooled through them would be biased low.
     coef = np.einsum("tjm,tj->tm", B, -res.reshape(n_tags, 8))
     Jt = J.reshape(n_tags, 8, 6)
-    hat = np.einsum("tja,ab,tkb->tjk", Jt, M, Jt) / rel[:, None, None] ** 2
-    leverage = np.einsum("tjm,tjs,tsm->tm", B, hat, B)
+    # Batched matmuls, not three-operand einsums (those loop over every index: ~0.1 ms a pose).
+    hat = (Jt @ M) @ Jt.transpose(0, 2, 1) / rel[:, None, None] ** 2
+    leverage = (B * (hat @ B)).sum(axis=1)
     mean_scale = float(coef[:, 2].mean())
     seen: dict[str, float] = {}
+    # Per pattern: the tags' squared coefficients and leverages summed (the scale's about their
+    # mean), then per group (Python floats: five groups of one or two patterns).
+    coef[:, 2] -= mean_scale
+    sq = (coef * coef).sum(axis=0).tolist()
+    lev = leverage.sum(axis=0).tolist()
     for group, idx in _PATTERNS.items():
-        c = coef[:, idx] - (mean_scale if group == "scale" else 0.0)
-        dof = len(idx) * n_tags - float(np.sum(leverage[:, idx]))
+        dof = len(idx) * n_tags - sum(lev[i] for i in idx)
         dof -= 1.0 if group == "scale" else 0.0  # the common offset, taken out above
-        seen[group] = float(np.sqrt(np.sum(c**2) / dof)) if dof > 0.5 else 0.0
+        seen[group] = math.sqrt(sum(sq[i] for i in idx) / dof) if dof > 0.5 else 0.0
         seen[group + "_dof"] = max(dof, 0.0)  # how well the residuals know it (error_bound95)
     # The common radial offset the residuals show is what the fit left of it: part of it went into
     # the depth (that part moved the pose). Scale back to the whole by the share left. The mean
     # carries the tags' scale noise too (its standard error): subtract that in quadrature, or the
     # noise of a mean amplified up to tenfold would pass for an offset where there is none.
-    common = radial.reshape(-1)
     common_left = 1.0 - float(common @ (w * (J @ (A @ common)))) / float(common @ (w * common))
     mean_se2 = seen["scale"] ** 2 / n_tags
     seen["bias_common"] = (float(np.sqrt(max(mean_scale**2 - mean_se2, 0.0)))
@@ -1182,16 +1209,22 @@ def _f_quantile_table() -> np.ndarray:
 _F_Q95 = _f_quantile_table()
 
 
+#: ``_F_Q95`` and its grid as Python floats: ``_f_quantile95`` runs six times a pose, and numpy's
+#: scalar indexing and arithmetic cost ~1 us an operation.
+_F_Q95_ROWS = _F_Q95.tolist()
+_F_X0, _F_DX = float(_F_LOG_NU[0]), float(_F_LOG_NU[1] - _F_LOG_NU[0])
+_F_DY = float(_F_INV_DOF[1] - _F_INV_DOF[0])
+
+
 def _f_quantile95(nu: float, dof: float) -> float:
     """Bilinear lookup of the 95 % quantile of F(nu, dof) (dof >= 2; inf: chi2(nu) / nu)."""
-    x = (np.log(min(max(nu, 0.5), 1e6)) - _F_LOG_NU[0]) / (_F_LOG_NU[1] - _F_LOG_NU[0])
-    y = min(1.0 / max(dof, 2.0), 0.5) / (_F_INV_DOF[1] - _F_INV_DOF[0])
+    x = (math.log(min(max(nu, 0.5), 1e6)) - _F_X0) / _F_DX
+    y = min(1.0 / max(dof, 2.0), 0.5) / _F_DY
     i = min(int(x), len(_F_LOG_NU) - 2)
     j = min(int(y), len(_F_INV_DOF) - 2)
     fx, fy = x - i, y - j
-    q = _F_Q95
-    return float((q[i, j] * (1 - fx) + q[i + 1, j] * fx) * (1 - fy)
-                 + (q[i, j + 1] * (1 - fx) + q[i + 1, j + 1] * fx) * fy)
+    q0, q1 = _F_Q95_ROWS[i], _F_Q95_ROWS[i + 1]
+    return float((q0[j] * (1 - fx) + q1[j] * fx) * (1 - fy) + (q0[j + 1] * (1 - fx) + q1[j + 1] * fx) * fy)
 
 
 def _bound95(block: np.ndarray, offset: np.ndarray, dof: float) -> float:
@@ -1199,21 +1232,22 @@ def _bound95(block: np.ndarray, offset: np.ndarray, dof: float) -> float:
     and variance by a scaled chi-square (Welch-Satterthwaite; for m = 0 the quantile of old).
     When S is known only to ``dof`` degrees of freedom, S is first widened to its predictive size
     (by the ratio of the F to the chi-square quantile of its own effective dimensions: for m = 0
-    exactly the predictive F quantile); the offset is a measurement, not widened."""
+    exactly the predictive F quantile); the offset is a measurement, not widened. The three
+    eigenvalues as Python floats (sums in numpy's order for three: left to right)."""
     S = 0.5 * (block + block.T) - np.outer(offset, offset)
-    lam = np.clip(np.linalg.eigvalsh(S), 0.0, None)
-    total = float(np.sum(lam))
-    if np.isfinite(dof) and total > 0.0:
-        nu_s = total * total / float(np.sum(lam**2))
-        widen = _f_quantile95(nu_s, dof) / _f_quantile95(nu_s, np.inf)
-        lam = lam * widen
+    lam = [max(v, 0.0) for v in np.linalg.eigvalsh(S).tolist()]
+    total = sum(lam)
+    if math.isfinite(dof) and total > 0.0:
+        nu_s = total * total / sum(v * v for v in lam)
+        widen = _f_quantile95(nu_s, dof) / _f_quantile95(nu_s, math.inf)
+        lam = [v * widen for v in lam]
         S = S * widen
-    mean = float(np.sum(lam) + offset @ offset)
+    mean = sum(lam) + float(offset @ offset)
     if mean <= 0.0:
         return 0.0
-    var = float(2.0 * np.sum(lam**2) + 4.0 * offset @ S @ offset)
+    var = 2.0 * sum(v * v for v in lam) + float(4.0 * offset @ S @ offset)
     nu = 2.0 * mean * mean / var if var > 1e-12 * mean * mean else 1e6
-    return float(np.sqrt(mean * _f_quantile95(nu, np.inf)))
+    return math.sqrt(mean * _f_quantile95(nu, math.inf))
 
 
 def uncertainty_bounds(terms: dict[str, np.ndarray], seen: dict[str, float],
@@ -1236,14 +1270,15 @@ def uncertainty_bounds(terms: dict[str, np.ndarray], seen: dict[str, float],
     offset = unit[:, j] / np.sqrt(max(float(unit[j, j]), 1e-300)) * k * seen.get("bias_common", 0.0)
     if not np.all(np.isfinite(offset)):
         offset = np.zeros(6)
-    diag = np.diagonal(covariance) - offset * offset
-    den = np.zeros(2)  # rotation, translation: sum of (part's trace)^2 / its dof
+    diag = (np.diagonal(covariance) - offset * offset).tolist()
+    den = [0.0, 0.0]  # rotation, translation: sum of (part's trace)^2 / its dof
     for group in _PATTERNS:
         dof = seen.get(group + "_dof", np.inf)
-        if np.isfinite(dof) and dof > 0.0:
-            d = np.diagonal(terms[group]) * (k * seen.get(group, 0.0)) ** 2
-            den += np.array([d[3:].sum(), d[:3].sum()]) ** 2 / dof
-    total = np.array([diag[3:].sum(), diag[:3].sum()])
+        if math.isfinite(dof) and dof > 0.0:
+            d = (np.diagonal(terms[group]) * (k * seen.get(group, 0.0)) ** 2).tolist()
+            den[0] += sum(d[3:]) ** 2 / dof
+            den[1] += sum(d[:3]) ** 2 / dof
+    total = [sum(diag[3:]), sum(diag[:3])]
     dofs = [float(t * t / e) if e > 0.0 and t > 0.0 else float("inf") for t, e in zip(total, den)]
     return offset, (dofs[0], dofs[1])
 
