@@ -283,15 +283,18 @@ def bounds_at(o: dict[str, list], config: UncertaintyConfig,
 
 
 def grid_search(per_set: dict[str, dict[str, list]], base: UncertaintyConfig,
-                offset_gains: tuple[float, ...] = (1.0,)) -> tuple[dict, list]:
+                offset_gains: tuple[float, ...] = (1.0,),
+                calibrate_on: tuple[str, ...] = ("synth",)) -> tuple[dict, list]:
     """``--grid``: (pick, rows). The ``GRID`` combination (times ``offset_gains``, ``bounds_at``)
-    with the smallest mean log sharpness (rotation and translation) over the ``synth`` sets among
-    those covering >= 90 % in both on every synth set (none: the one with the largest worst
-    coverage); rows: per set, coverage and sharpness at the pick."""
+    with the smallest mean log sharpness (rotation and translation) over the calibration sets
+    (``calibrate_on``: the ``synth`` drives and/or the ``cycles`` sets) among those covering >= 90 %
+    in both on every calibration set (none: the one with the largest worst coverage); rows: per
+    set, coverage and sharpness at the pick."""
     import itertools
 
     keys = list(GRID)
-    synth = [n for n in per_set if n.startswith("synth ") and not n.startswith("synth as ")]
+    synth = [n for n in per_set
+             if any(n.startswith(kind + " ") for kind in calibrate_on) and not n.startswith("synth as ")]
     errs = {n: (np.asarray(o["rot_err"], float), np.asarray(o["trans_err"], float))
             for n, o in per_set.items()}
     best, best_key, best_gain = None, None, 1.0
@@ -362,6 +365,17 @@ def blender_sets(root: Path | None) -> dict[str, tuple]:
     return out
 
 
+def cycles_sets(root: Path, names: list[str]) -> dict[str, tuple]:
+    """``cycles_render.py``'s path-traced sets (blender_dev's format) under ``root``, as "cycles <name>"."""
+    from blender_dev import load_set
+
+    out = {}
+    for name in names:
+        s = load_set(name, root)
+        out[f"cycles {name}"] = ([(f.image, f.T_cam_cap, f.stamp_ns) for f in s.frames], s.camera)
+    return out
+
+
 def synth_sets(n_frames: int, resolutions: list[str], lightings: list[str],
                seed_offset: int = 0) -> dict[str, tuple]:
     from ficap_ros.synth import REALISTIC, RenderConfig, default_scene, naturalistic_drive, render
@@ -402,6 +416,14 @@ def main() -> int:
     ap.add_argument("--seed-offset", type=int, default=0,
                     help="render another noise realisation of the synth drives (held-out check)")
     ap.add_argument("--blender-dev", type=Path, default=None, help="blender_dev folder")
+    ap.add_argument("--cycles", type=Path, default=None, metavar="DIR",
+                    help="also cycles_render.py's path-traced sets in DIR (rows 'cycles <set>')")
+    ap.add_argument("--cycles-sets", default="cyc_540p_neutral,cyc_540p_high,cyc_540p_low,"
+                    "cyc_1080p_neutral,cyc_1080p_high",
+                    help="which sets of --cycles (default: the five calibration sets, no what-ifs)")
+    ap.add_argument("--calibrate-on", action="append", choices=("synth", "cycles", "synth,cycles"),
+                    help="--grid's calibration rows (default synth, as the defaults were calibrated; "
+                         "repeat for several grids)")
     ap.add_argument("--record", action="store_true", help="write the table into docs/benchmarks.md")
     ap.add_argument("--dump", type=Path, help="per-frame numbers as JSON")
     ap.add_argument("--tilt-shift-px", type=float, default=None,
@@ -426,9 +448,10 @@ def main() -> int:
                     help="what-if: also every set's coverage / sharpness for ours with these "
                          "UncertaintyConfig values (e.g. light_gradient_tilt_gain=0.1; not recorded)")
     args = ap.parse_args()
-    if args.record and (args.photometric or args.grid or args.at or args.offset_gain_grid
+    if args.record and (args.cycles or args.photometric or args.grid or args.at or args.offset_gain_grid
                         or args.scale_shape):
-        ap.error("--photometric, --grid, --offset-gain-grid, --scale-shape and --at are not recorded (the section's "
+        ap.error("--cycles, --photometric, --grid, --offset-gain-grid, --scale-shape and --at are not "
+                 "recorded (the section's "
                  "text is by hand)")
     if args.photometric:
         det, pose = METHODS.pop("ficap joint")
@@ -461,6 +484,8 @@ def main() -> int:
 
         for name in [n for n in sets if n.startswith("blender ")]:
             sets["synth as " + name[len("blender "):]] = synth_as(name[len("blender "):], args.blender_dev)
+    if args.cycles:
+        sets.update(cycles_sets(args.cycles, args.cycles_sets.split(",")))
     if not args.no_synth:
         sets.update(synth_sets(args.frames, args.resolutions.split(","), args.lightings.split(","),
                                args.seed_offset))
@@ -523,11 +548,12 @@ def main() -> int:
             print(f"\n{method}: scale and shape of the bounds\n")
             print(md_table(["set", "rotation: factor for 90 %", "sharpness at it",
                             "translation: factor for 90 %", "sharpness at it"], scale_shape_rows(per_set)))
-    if args.grid:
+    for on in (args.calibrate_on or ["synth"]) if args.grid else []:
         for method, per_set in grids.items():
             pick, grid_rows = grid_search(per_set, METHODS[method][1].uncertainty,
-                                          OFFSET_GAINS if args.offset_gain_grid else (1.0,))
-            print(f"\n{method}: the synth grid picks {pick}\n")
+                                          OFFSET_GAINS if args.offset_gain_grid else (1.0,),
+                                          tuple(on.split(",")))
+            print(f"\n{method}: the grid on {on} picks {pick}\n")
             print(md_table(["set", "rotation coverage / sharpness", "translation coverage / sharpness"],
                            grid_rows))
     print(f"\n{(time.time() - t0) / 60:.1f} min; {load_avg()} ({load_before} at the start)", file=sys.stderr)
