@@ -136,15 +136,19 @@ def _cv_from_frontal(p_frontal) -> list[float]:  # noqa: ANN001
     return [float(v) for v in CAM_FROM_FORWARD.apply(np.asarray(p_frontal, dtype=np.float64))]
 
 
+def _face_white(tag_id: int) -> np.ndarray:
+    """(10, 10) True where the printed face is white: the 8-cell tag (``detection.tag_cells``,
+    ``generateImageMarker``'s drawing) in a 1-cell white quiet zone, row 0 = top."""
+    from ficap_ros.detection import tag_cells
+
+    face = np.ones((10, 10), bool)
+    face[1:9, 1:9] = ~tag_cells(tag_id)
+    return face
+
+
 def _tag_texture(tag_id: int, cell_px: int = 16) -> np.ndarray:
     """Reflectance (10 x 10 cells: 1-cell white quiet zone round the 8-cell tag), row 0 = top."""
-    import cv2
-
-    d = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11)
-    tag = cv2.aruco.generateImageMarker(d, tag_id, 8)  # one pixel per cell, border included
-    face = np.full((10, 10), 255, np.uint8)
-    face[1:9, 1:9] = tag
-    refl = np.where(face > 127, WHITE_ALBEDO, BLACK_ALBEDO).astype(np.float32)
+    refl = np.where(_face_white(tag_id), WHITE_ALBEDO, BLACK_ALBEDO).astype(np.float32)
     return np.kron(refl, np.ones((cell_px, cell_px), np.float32))
 
 
@@ -165,10 +169,9 @@ def make_plan(name: str, n_frames: int, work: Path) -> dict:
 
         dev = json.loads((blender_dev.BLENDER_DEV / AS_DEV[name] / "ground_truth.json").read_text())
         from ficap_ros.transform import Transform
-        from scipy.spatial.transform import Rotation
 
-        drive = [dataclasses.replace(d, index=int(g["motion_frame"]), T_cam_cap=Transform(
-            Rotation.from_matrix(np.asarray(g["T_cam_cap"])[:3, :3]), np.asarray(g["T_cam_cap"])[:3, 3]))
+        drive = [dataclasses.replace(d, index=int(g["motion_frame"]),
+                                     T_cam_cap=Transform.from_matrix(np.asarray(g["T_cam_cap"])))
             for d, g in zip(naturalistic_drive(len(dev["frames"]), seed=seed, scene=scene), dev["frames"])]
     work.mkdir(parents=True, exist_ok=True)
     textures = []
@@ -250,13 +253,12 @@ def make_plan(name: str, n_frames: int, work: Path) -> dict:
     return plan
 
 
-def _tag_geometry(model, T_cam_cap) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # noqa: ANN001
-    """(facing, view angle deg, centres) of every tag in the camera frame."""
-    R, t = T_cam_cap.rotation.as_matrix(), T_cam_cap.translation_m
-    n = model.normals @ R.T
-    c = (R @ (model.centres_mm.T / 1000.0)).T + t
-    cosang = np.einsum("ij,ij->i", n, -c) / np.linalg.norm(c, axis=1)
-    return cosang > 0, np.degrees(np.arccos(np.clip(cosang, -1, 1))), c
+def _tag_geometry(model, T_cam_cap) -> tuple[np.ndarray, np.ndarray]:  # noqa: ANN001
+    """(facing, view angle deg) of every tag (``tracking.view_angles_deg``; facing: under 90)."""
+    from ficap_ros.tracking import view_angles_deg
+
+    angle = view_angles_deg(model, T_cam_cap)
+    return angle < 90.0, angle
 
 
 def _plates_p90(radiance: np.ndarray, model, T: np.ndarray, camera) -> float:  # noqa: ANN001
@@ -264,10 +266,9 @@ def _plates_p90(radiance: np.ndarray, model, T: np.ndarray, camera) -> float:  #
     import cv2
 
     from ficap_ros.transform import Transform
-    from scipy.spatial.transform import Rotation
 
-    T_cam_cap = Transform(Rotation.from_matrix(T[:3, :3]), T[:3, 3])
-    facing, _, _ = _tag_geometry(model, T_cam_cap)
+    T_cam_cap = Transform.from_matrix(T)
+    facing, _ = _tag_geometry(model, T_cam_cap)
     faces = T_cam_cap.apply(model.face_corners_mm().reshape(-1, 3) / 1000.0)
     px = camera.project(faces).reshape(-1, 4, 2)
     mask = np.zeros(radiance.shape, np.uint8)
@@ -286,7 +287,6 @@ def finish_set(name: str, plan: dict, out: Path) -> dict:
     from ficap_ros.cap_model import nominal_model
     from ficap_ros.metrics import yaw_pitch_roll_deg
     from ficap_ros.transform import Transform
-    from scipy.spatial.transform import Rotation
 
     width, height, lighting, psf, tone_name, seed = SET_SPECS[name]
     model = nominal_model()
@@ -297,7 +297,6 @@ def finish_set(name: str, plan: dict, out: Path) -> dict:
     flare = synth._LIGHTS[lighting].flare
     scene = drive_scene(width, height)
     camera = scene.camera
-    model = nominal_model()
     work = Path(plan["work"])
     extra_rel = EXTRA_NOISE[name][1] if name in EXTRA_NOISE else 0.0
     extra_rng = np.random.default_rng(seed + 5000)
@@ -331,7 +330,7 @@ def finish_set(name: str, plan: dict, out: Path) -> dict:
             assert ok
             stamp = start + int(round(i * 1e9 / 30.0))
             Tm = np.asarray(fr["T_cam_cap"])
-            T_cam_cap = Transform(Rotation.from_matrix(Tm[:3, :3]), Tm[:3, 3])
+            T_cam_cap = Transform.from_matrix(Tm)
             T_cam_head = Transform(T_cam_cap.rotation * scene.R_cap_head, T_cam_cap.translation_m)
             R_frontal_head = scene.R_cam_frontal.inv() * T_cam_head.rotation
             ypr = yaw_pitch_roll_deg(R_frontal_head)
@@ -340,7 +339,7 @@ def finish_set(name: str, plan: dict, out: Path) -> dict:
                       compressed_image_msg(stamp, "rear_camera_optical", jpg.tobytes()))
             bag.write("/ground_truth/cap_pose", stamp, pose_stamped_msg(stamp, "rear_camera_optical", T_cam_cap))
             bag.write("/ground_truth/head_pose", stamp, pose_stamped_msg(stamp, "rear_camera_optical", T_cam_head))
-            facing, angle, _ = _tag_geometry(model, T_cam_cap)
+            facing, angle = _tag_geometry(model, T_cam_cap)
             v = vis[str(i)]
             tags = [{"id": int(t), "facing": bool(facing[k]), "view_angle_deg": float(angle[k]),
                      "centre_visible": bool(v["centre"][k]) and bool(facing[k]),
@@ -423,7 +422,6 @@ def flat_noise(frames, max_frames: int = 10, max_view_deg: float = 50.0, margin_
     ``frames``: blender_dev.DevFrame's (image, corners_px, clean_ids)."""
     import cv2
 
-    d = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11)
     diffs: dict[bool, list] = {True: [], False: []}
     levels: dict[bool, list] = {True: [], False: []}
     for f in list(frames)[:max_frames]:
@@ -433,8 +431,7 @@ def flat_noise(frames, max_frames: int = 10, max_view_deg: float = 50.0, margin_
             c = f.corners_px[t]
             Hi = np.linalg.inv(cv2.getPerspectiveTransform(
                 np.float32([[1, 1], [9, 1], [9, 9], [1, 9]]), np.float32(c)))
-            bits = np.ones((10, 10), bool)
-            bits[1:9, 1:9] = cv2.aruco.generateImageMarker(d, t, 8) > 127
+            bits = _face_white(t)
             x0, y0 = np.maximum(np.floor(c.min(0)).astype(int) - 4, 1)
             x1, y1 = np.minimum(np.ceil(c.max(0)).astype(int) + 5, [w - 1, h - 1])
             xs, ys = np.meshgrid(np.arange(x0, x1, dtype=np.float64), np.arange(y0, y1, dtype=np.float64))
