@@ -145,8 +145,8 @@ class DetectorConfig:
         edge_photometric: then fit each fitted tag once more, as a whole, to its pixels near the
             cell boundaries: the printed pattern blurred in linear light (blur fitted per tag)
             through an sRGB tone curve (``fit_tags_photometric``, ``ficap_ros.photometric``); more
-            accurate on noisy frames (issue 10), at ~3 ms of CPU a tag, ~65 ms a 1080p frame
-            (docs/detection.md "A tag-level photometric fit", docs/benchmarks.md); ``edge`` refine
+            accurate on noisy frames (issue 10), at ~0.9 ms of CPU a tag, ~20 ms a tracked 1080p
+            frame (docs/detection.md "A tag-level photometric fit", docs/benchmarks.md); ``edge`` refine
             with ``edge_fit`` only (else ``ConfigError``). Off by default.
     """
 
@@ -1307,11 +1307,11 @@ def unbias_corners_edge(
         corners_px: (N, 4, 2) corners from ``refine_corners_edge`` (OpenCV order and convention).
         ids: (N,) the tags' ids (their data cells say where the border's inner edge is).
         config: window settings (``edge_search_px``, ``edge_window_cells``, ``edge_profile_samples``).
+        _lines: ``_side_lines(corners_px)`` when the caller has them (``refine_tag_corners``).
 
     Returns:
         (N, 4, 2) corrected corners (a tag keeps its input corners when no estimate is possible
         or the correction is implausibly large).
-        _lines: ``_side_lines(corners_px)`` when the caller has them (``refine_tag_corners``).
     """
     cfg = config or DetectorConfig()
     c_in = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
