@@ -294,23 +294,22 @@ def synth_self_occlusion(n_frames: int = 120) -> list[list[str]]:
     no face) against the fully visible ones beyond 70 deg: how many the check flags, their corner
     error against the truth."""
     from ficap_ros.synth import RenderConfig, default_scene, naturalistic_drive, render
+    from ficap_ros.tracking import view_angles_deg
 
     model = nominal_model()
     scene = default_scene("1080p")
     drive = naturalistic_drive(15 * n_frames, fps=30, seed=11, scene=scene)[::15]
-    normals = model.normals
     groups = ("another face of the cap covers 0.1-1 %", "none: fully visible, > 70 deg")
     acc = {g: {"n": 0, "flag": 0, "ang": [], "err": []} for g in groups}
+    proc = FrameProcessor(model, DetectorConfig(), PoseConfig(), tracking=False)  # stateless: whole-image search
     for n, fr in enumerate(drive):
+        angles = view_angles_deg(model, fr.T_cam_cap)
         for light in ("neutral", "high"):
             rf = render(model, scene.camera, fr.T_cam_cap, RenderConfig(lighting=light, jpeg_quality=95), seed=n)
-            dets = FrameProcessor(model, DetectorConfig(), PoseConfig(), tracking=False).process(
-                rf.image, scene.camera, fr.stamp_ns).detections
+            dets = proc.process(rf.image, scene.camera, fr.stamp_ns).detections
             flagged = _image_hidden_ids(rf.image, dets)
             for d in dets:
-                centre_m = fr.T_cam_cap.apply(model.corners_of(d.tag_id).mean(axis=0) / 1000.0)
-                normal = fr.T_cam_cap.rotation.apply(normals[model.index_of(d.tag_id)])
-                angle = float(np.degrees(np.arccos(np.clip(-normal @ centre_m / np.linalg.norm(centre_m), -1, 1))))
+                angle = float(angles[model.index_of(d.tag_id)])
                 visible = rf.visible_fraction[d.tag_id]
                 g = groups[0] if 0.999 > visible >= 0.99 else groups[1] if visible >= 0.999 and angle > 70.0 else None
                 if g is None:
