@@ -264,24 +264,31 @@ def long_drive(args: argparse.Namespace, tmp: Path, short_bag: Path) -> dict:
             "prefix_same": prefix, "short_frames": len(short)}
 
 
-def long_table(long: dict, start_s: float) -> str:
+def ratio_table(frames: int, rounds: int, cpu_s: float, wall_s: float, at3_rounds: int,
+                at3_ms: float) -> tuple[str, float, float]:
+    """(the command-against-AprilTag 3 table, ours ms a frame, ratio) of one drive."""
     from _common import md_table
 
+    ours_ms = 1e3 * cpu_s / frames
+    ratio = at3_ms / ours_ms
+    table = md_table(
+        ["", "CPU s (median)", "wall s (median)", "CPU ms/frame", "x AprilTag 3"],
+        [[f"`ficap replay --jobs 1`, whole command ({rounds} run{'s' if rounds > 1 else ''})",
+          f"{cpu_s:.2f}", f"{wall_s:.2f}", f"{ours_ms:.2f}", f"**{ratio:.1f}**"],
+         [f"AprilTag 3 decimate 1 + joint pose, decode included ({at3_rounds} round"
+          f"{'s' if at3_rounds > 1 else ''})", f"{at3_ms * frames / 1e3:.1f}", "", f"{at3_ms:.1f}", "1.0"]])
+    return table, ours_ms, ratio
+
+
+def long_table(long: dict, start_s: float) -> str:
     frames = long["frames"]
-    ours_ms = 1e3 * long["cpu_s"] / frames
     n_short = long["short_frames"]
     same_path = (f"the drive above continued: its first {n_short} JPEGs are that drive's, byte for byte"
                  if long["prefix_same"] == n_short else
                  f"another path of the head: {long['prefix_same']} of its first {n_short} JPEGs are "
                  "the drive above's")
-    ratio = long["at3_ms"] / ours_ms
-    table = md_table(
-        ["", "CPU s (median)", "wall s (median)", "CPU ms/frame", "x AprilTag 3"],
-        [[f"`ficap replay --jobs 1`, whole command ({long['rounds']} runs)", f"{long['cpu_s']:.2f}",
-          f"{long['wall_s']:.2f}", f"{ours_ms:.2f}", f"**{ratio:.1f}**"],
-         [f"AprilTag 3 decimate 1 + joint pose, decode included ({long['at3_rounds']} round"
-          f"{'s' if long['at3_rounds'] > 1 else ''})", f"{long['at3_ms'] * frames / 1e3:.1f}", "",
-          f"{long['at3_ms']:.1f}", "1.0"]])
+    table, ours_ms, ratio = ratio_table(frames, long["rounds"], long["cpu_s"], long["wall_s"],
+                                        long["at3_rounds"], long["at3_ms"])
     return (
         f"### A longer continuous drive (--long-seconds)\n\n{frames} frames ({frames / FPS:.0f} s), "
         f"the same settings (1080p, 30 fps, seed 0, q95; {same_path}), "
@@ -316,7 +323,7 @@ def main() -> int:
     sys.path.insert(0, str(HERE))
     import cv2
     import numpy as np
-    from _common import load_avg, machine_line, md_table, record_section
+    from _common import load_avg, machine_line, record_section
 
     os.sched_setaffinity(0, {args.core})  # children inherit it: everything on one core
     cv2.setNumThreads(1)
@@ -348,16 +355,9 @@ def main() -> int:
             long = long_drive(args, tmp, bag)
     cpu_s = float(np.median([c for c, _ in runs]))
     wall_s = float(np.median([w for _, w in runs]))
-    ours_ms = 1e3 * cpu_s / frames
-    ratio = at3_ms / ours_ms
+    table, ours_ms, ratio = ratio_table(frames, args.rounds, cpu_s, wall_s, args.at3_rounds, at3_ms)
     start_ms = 1e3 * (data["interp"] + data["imports"]) / frames
     load_after = load_avg()
-    table = md_table(
-        ["", "CPU s (median)", "wall s (median)", "CPU ms/frame", "x AprilTag 3"],
-        [[f"`ficap replay --jobs 1`, whole command ({args.rounds} run{'s' if args.rounds > 1 else ''})", f"{cpu_s:.2f}", f"{wall_s:.2f}",
-          f"{ours_ms:.2f}", f"**{ratio:.1f}**"],
-         [f"AprilTag 3 decimate 1 + joint pose, decode included ({args.at3_rounds} round{'s' if args.at3_rounds > 1 else ''})",
-          f"{at3_ms * frames / 1e3:.1f}", "", f"{at3_ms:.1f}", "1.0"]])
     body = (
         f"Machine: {machine_line()}; {load_before} at the start, {load_after} at the end. One core "
         f"(affinity {{{args.core}}} for this process and its children). A continuous 1080p 30 fps "
