@@ -56,6 +56,7 @@ import argparse
 import json
 import sys
 import time
+from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
 
@@ -350,30 +351,25 @@ def scale_shape_rows(per_set: dict[str, dict[str, list]]) -> list[list[str]]:
     return rows
 
 
-def blender_sets(root: Path | None) -> dict[str, tuple]:
-    import blender_dev
-    from blender_dev import SETS, load_set
-
-    root = root or blender_dev.BLENDER_DEV
-    if not root.is_dir():
-        print(f"blender_dev not found at {root}: skipped (--blender-dev PATH)", file=sys.stderr)
-        return {}
-    out = {}
-    for name in SETS:
-        s = load_set(name, root)
-        out[f"blender {name}"] = ([(f.image, f.T_cam_cap, f.stamp_ns) for f in s.frames], s.camera)
-    return out
-
-
-def cycles_sets(root: Path, names: list[str]) -> dict[str, tuple]:
-    """``cycles_render.py``'s path-traced sets (blender_dev's format) under ``root``, as "cycles <name>"."""
+def dev_format_sets(root: Path, names: Sequence[str], label: str) -> dict[str, tuple]:
+    """Sets in blender_dev's format under ``root`` (``blender_dev.load_set``), as "<label> <name>"."""
     from blender_dev import load_set
 
     out = {}
     for name in names:
         s = load_set(name, root)
-        out[f"cycles {name}"] = ([(f.image, f.T_cam_cap, f.stamp_ns) for f in s.frames], s.camera)
+        out[f"{label} {name}"] = ([(f.image, f.T_cam_cap, f.stamp_ns) for f in s.frames], s.camera)
     return out
+
+
+def blender_sets(root: Path | None) -> dict[str, tuple]:
+    import blender_dev
+
+    root = root or blender_dev.BLENDER_DEV
+    if not root.is_dir():
+        print(f"blender_dev not found at {root}: skipped (--blender-dev PATH)", file=sys.stderr)
+        return {}
+    return dev_format_sets(root, blender_dev.SETS, "blender")
 
 
 def synth_sets(n_frames: int, resolutions: list[str], lightings: list[str],
@@ -485,7 +481,8 @@ def main() -> int:
         for name in [n for n in sets if n.startswith("blender ")]:
             sets["synth as " + name[len("blender "):]] = synth_as(name[len("blender "):], args.blender_dev)
     if args.cycles:
-        sets.update(cycles_sets(args.cycles, args.cycles_sets.split(",")))
+        # cycles_render.py's path-traced sets (blender_dev's format).
+        sets.update(dev_format_sets(args.cycles, args.cycles_sets.split(","), "cycles"))
     if not args.no_synth:
         sets.update(synth_sets(args.frames, args.resolutions.split(","), args.lightings.split(","),
                                args.seed_offset))
