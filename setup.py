@@ -30,8 +30,8 @@ setup(
     python_requires=">=3.10",
     entry_points={
         "console_scripts": [
-            "ficap = ficap_ros.cli:main",
-            "ficap_node = ficap_ros.node:main",
+            "ficap = ficap_ros.cli.main:main",
+            "ficap_node = ficap_ros.ros.node:main",
         ],
     },
 )

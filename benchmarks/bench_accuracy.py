@@ -1,6 +1,6 @@
 """The paper's Table 1: cap-rotation error on rendered naturalistic drives, ours vs paper vs naive peer.
 
-One naturalistic drive (``ficap_ros.synth.naturalistic_drive``, seed 0, 30 fps, ``--frames`` frames,
+One naturalistic drive (``ficap_ros.tools.synth.naturalistic_drive``, seed 0, 30 fps, ``--frames`` frames,
 every ``--stride``-th frame rendered) at 540p and 1080p x neutral/high/low lighting. Every frame is
 processed by three pipelines on the same image: ours with the ``joint`` and the ``paper`` pose method
 (opencv tuned + edge-fit corners), and the naive peer (OpenCV sub-pixel corners + one SQPnP/LM).
@@ -23,12 +23,12 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import DOC, ROOT, Progress, load_avg, machine_line, md_table, record_section  # noqa: E402
 
-from ficap_ros.cap_model import nominal_model  # noqa: E402
-from ficap_ros.detection import DetectorConfig  # noqa: E402
-from ficap_ros.metrics import angle_deg  # noqa: E402
-from ficap_ros.pipeline import FrameProcessor  # noqa: E402
-from ficap_ros.pose import PoseConfig  # noqa: E402
-from ficap_ros.synth import RenderConfig, default_scene, naturalistic_drive, render  # noqa: E402
+from ficap_ros.geometry.cap_model import nominal_model  # noqa: E402
+from ficap_ros.vision.detection import DetectorConfig  # noqa: E402
+from ficap_ros.geometry.metrics import angle_deg  # noqa: E402
+from ficap_ros.vision.pipeline import FrameProcessor  # noqa: E402
+from ficap_ros.vision.pose import PoseConfig  # noqa: E402
+from ficap_ros.tools.synth import RenderConfig, default_scene, naturalistic_drive, render  # noqa: E402
 
 #: Paper Table 1 (Phi3, deg): mean, median, p95.
 PAPER = {
@@ -114,7 +114,7 @@ def main() -> int:
         f"One naturalistic drive (seed 0) of {args.frames} frames at 30 fps ({args.frames / 30:.0f} s), "
         + (f"every {args.stride}th frame rendered: {n} frames per condition"
            if args.stride > 1 else f"all {n} frames rendered")
-        + " (`ficap_ros.synth.render`, default camera and image chain: PSF, sensor noise, sRGB). Same frames for every method. "
+        + " (`ficap_ros.tools.synth.render`, default camera and image chain: PSF, sensor noise, sRGB). Same frames for every method. "
         "Errors of the cap orientation against the rendered truth, mean / median / p95 in degrees: "
         "Phi3 = arccos(|q1.q2|) (the paper's metric, half the geodesic angle) and the geodesic angle. "
         "'bar' = median and p95 at most half the naive peer's.",

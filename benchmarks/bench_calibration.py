@@ -11,7 +11,7 @@ Table 1); no images are rendered here. Two reference sources:
 * laser (the paper's): the 2-DOF pointing direction of the head's x axis (noise 0.3 deg per axis,
   template matching on the screen); roll is unknown, so the reference rotation is built with roll 0.
 
-``ficap_ros.calibration.calibrate_reference`` on the first 10 / 100 / 500 and a random 100 frames;
+``ficap_ros.vision.calibration.calibrate_reference`` on the first 10 / 100 / 500 and a random 100 frames;
 error on the remaining frames: geodesic angle of the head orientation (face tracker) or angle of
 the head's forward direction (laser) against the truth, and against the noisy reference (what the
 paper could measure).
@@ -31,9 +31,9 @@ from scipy.spatial.transform import Rotation
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import load_avg, machine_line, md_table, record_section  # noqa: E402
 
-from ficap_ros.calibration import calibrate_reference  # noqa: E402
+from ficap_ros.vision.calibration import calibrate_reference  # noqa: E402
 from ficap_ros.errors import CalibrationError  # noqa: E402
-from ficap_ros.metrics import angle_deg, rotation_from_ypr_deg  # noqa: E402
+from ficap_ros.geometry.metrics import angle_deg, rotation_from_ypr_deg  # noqa: E402
 
 PAPER = {"first 10": (4.93, 3.8, 11.64), "first 100": (3.64, 2.86, 8.64), "first 500": (3.34, 2.86, 7.03),
          "random 100": (2.91, 2.30, 6.92)}

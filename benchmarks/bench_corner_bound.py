@@ -10,7 +10,7 @@ those pixels can reach.
 The model (per tag, at the TRUE corners): the printed pattern (OpenCV's tag36h11 drawing, 8x8 cells,
 white quiet zone) mapped into the image by the corners' homography, supersampled 8x per pixel axis,
 blurred in linear light by the set's Gaussian PSF sigma, integrated over the pixel (box), between a
-black and a white linear level, through the set's tone curve (``ficap_ros.synth.tone_curve``:
+black and a white linear level, through the set's tone curve (``ficap_ros.tools.synth.tone_curve``:
 ``srgb``, ``gamma`` 1.8, ``filmic``; clipping at 1 makes f' = 0 there) to 8-bit:
 
     I(x) = 255 f(Lb + (Lw - Lb) C(x; corners)),  Lb, Lw = f^-1(the tag's flat black / white medians)
@@ -65,11 +65,11 @@ import blender_dev  # noqa: E402
 from _common import load_avg, machine_line, md_table, record_section  # noqa: E402
 from bench_corners import blender_frames, synth_frames  # noqa: E402
 
-from ficap_ros.detection import (  # noqa: E402
+from ficap_ros.vision.detection import (  # noqa: E402
     _FIT_PROFILE_SAMPLES, TAG_CELLS, DetectorConfig, TagDetector, _cell_edge_samples, tag_cells, tag_homographies,
 )
-from ficap_ros.metrics import corner_errors_px  # noqa: E402
-from ficap_ros.synth import tone_curve  # noqa: E402
+from ficap_ros.geometry.metrics import corner_errors_px  # noqa: E402
+from ficap_ros.tools.synth import tone_curve  # noqa: E402
 
 SUPERSAMPLE = 8
 #: The sets of the table and the synth condition matching each (resolution, tone, gamma, PSF, lighting).

@@ -45,8 +45,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import blender_dev  # noqa: E402
 from _common import load_avg, machine_line, md_table, record_section  # noqa: E402
 
-from ficap_ros.detection import DetectorConfig, TagDetector  # noqa: E402
-from ficap_ros.metrics import corner_errors_px  # noqa: E402
+from ficap_ros.vision.detection import DetectorConfig, TagDetector  # noqa: E402
+from ficap_ros.geometry.metrics import corner_errors_px  # noqa: E402
 
 #: The corner methods compared: name -> detector settings.
 METHODS: dict[str, DetectorConfig] = {
@@ -116,9 +116,9 @@ def synth_frames(resolution: str, tone: str, gamma: float, psf_sigma_px: float |
                  n: int = 6) -> list[tuple[np.ndarray, dict[int, np.ndarray], list[int]]]:
     """``n`` frames of one naturalistic drive (1 s apart, seed 5, as test_corners.py's) through the
     camera chain, JPEG 95; clean tags: fully visible, within MAX_VIEW_DEG of head-on."""
-    from ficap_ros.cap_model import nominal_model
-    from ficap_ros.synth import RenderConfig, default_scene, naturalistic_drive, render
-    from ficap_ros.tracking import view_angles_deg
+    from ficap_ros.geometry.cap_model import nominal_model
+    from ficap_ros.tools.synth import RenderConfig, default_scene, naturalistic_drive, render
+    from ficap_ros.vision.tracking import view_angles_deg
 
     model, scene = nominal_model(), default_scene(resolution)
     cfg = RenderConfig(lighting=lighting, tone=tone, gamma=gamma, psf_sigma_px=psf_sigma_px, jpeg_quality=95)
@@ -142,7 +142,7 @@ def noise_split(frames: list[tuple[np.ndarray, dict[int, np.ndarray], list[int]]
     their disagreement's robust sd is the full fit's noise per coordinate (1.177 sd = the median of
     a 2-D Gaussian error). Returns [tags, full-fit median error, noise-only median, the rest
     (sqrt of the difference of squares)]."""
-    import ficap_ros.detection as det
+    import ficap_ros.vision.detection as det
 
     def fit(fractions, image, corners, ids):  # noqa: ANN001, ANN202
         det._EDGE_FRACTIONS = fractions
@@ -183,7 +183,7 @@ def _true_lines(image: np.ndarray, truth: np.ndarray, ids: np.ndarray, window: f
     (``_step_offset``, window +-``window`` cell, at most ``edge_search_px``), the window moved by
     ``-shift_px`` along the normal (the edge then sits at +shift_px): (offset px, contrast,
     cell px, tag index)."""
-    import ficap_ros.detection as det
+    import ficap_ros.vision.detection as det
 
     _counts, tag_of, _starts, (uv, nu) = det._stacked(det._cell_edge_samples, tuple(int(i) for i in ids))
     h = det.tag_homographies(truth).reshape(len(ids), 9)[tag_of]
@@ -211,7 +211,7 @@ def gain_split(frames: list[tuple[np.ndarray, dict[int, np.ndarray], list[int]]]
     differs from tag to tag); gain is the median over lines of (offset at +shift - at -shift) /
     (2 shift). At convergence a fit sits where its lines read zero, so its error per line is about
     sd / gain, whatever the window."""
-    import ficap_ros.detection as det
+    import ficap_ros.vision.detection as det
 
     found_err, lines, fits = [], {w: ([], [], []) for w in GAIN_WINDOWS}, {k: [] for k in (1, 2, 5)}
     for image, truth, clean in frames:
@@ -247,7 +247,7 @@ def gain_split(frames: list[tuple[np.ndarray, dict[int, np.ndarray], list[int]]]
     return row + [f"{np.median(np.concatenate(found_err)):.3f}"]
 
 
-#: Corner-stage functions timed by ``--cost``: label -> name in ficap_ros.detection.
+#: Corner-stage functions timed by ``--cost``: label -> name in ficap_ros.vision.detection.
 STAGE_FUNCS = {
     "line pass (refine_corners_edge_ok)": "refine_corners_edge_ok",
     "border unbias (unbias_corners_edge)": "unbias_corners_edge",
@@ -258,10 +258,10 @@ STAGE_FUNCS = {
 
 def cost_table(n_frames: int = 40, passes: int = 3) -> tuple[list[list[str]], str]:
     """Per-frame process time of the corner stage on consecutive tracked 1080p frames."""
-    import ficap_ros.detection as det
-    from ficap_ros.cap_model import nominal_model
-    from ficap_ros.pipeline import FrameProcessor
-    from ficap_ros.synth import RenderConfig, default_scene, naturalistic_drive, render
+    import ficap_ros.vision.detection as det
+    from ficap_ros.geometry.cap_model import nominal_model
+    from ficap_ros.vision.pipeline import FrameProcessor
+    from ficap_ros.tools.synth import RenderConfig, default_scene, naturalistic_drive, render
 
     model, scene = nominal_model(), default_scene("1080p")
     drive = naturalistic_drive(n_frames, fps=30.0, seed=3, scene=scene, frontal_s=0.0)
@@ -280,8 +280,8 @@ def cost_table(n_frames: int = 40, passes: int = 3) -> tuple[list[list[str]], st
         return wrapper
 
     rows, tags = [], 0
-    import ficap_ros.pipeline as pipe
-    import ficap_ros.tracking as trk
+    import ficap_ros.vision.pipeline as pipe
+    import ficap_ros.vision.tracking as trk
 
     imported = [(mod, name, getattr(mod, name)) for mod in (pipe, trk) for name in originals if hasattr(mod, name)]
     try:

@@ -44,10 +44,10 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import load_avg, machine_line, md_table, patch_own_time, record_section  # noqa: E402
 
-from ficap_ros.cap_model import nominal_model  # noqa: E402
-from ficap_ros.detection import DetectorConfig, TagDetector  # noqa: E402
-from ficap_ros.pipeline import FrameProcessor  # noqa: E402
-from ficap_ros.synth import RenderConfig, default_scene, naturalistic_drive, render  # noqa: E402
+from ficap_ros.geometry.cap_model import nominal_model  # noqa: E402
+from ficap_ros.vision.detection import DetectorConfig, TagDetector  # noqa: E402
+from ficap_ros.vision.pipeline import FrameProcessor  # noqa: E402
+from ficap_ros.tools.synth import RenderConfig, default_scene, naturalistic_drive, render  # noqa: E402
 
 SWAT = Path("/work/shared/data/real_apriltag/swatbotics_mapping_feb_2014")
 FRAME_NS = 33_333_333
@@ -104,28 +104,28 @@ def _ratio_rows(jpegs, truth, camera, procs: dict[str, Callable[[], FrameProcess
 #: (module, attribute, stage): the functions whose own time makes each stage (a stage's time
 #: leaves out the listed functions it calls). Names a refactor removed are skipped.
 STAGES = (
-    ("ficap_ros.detection", "TagDetector._search", "search: ArUco on the decimated image"),
-    ("ficap_ros.detection", "TagDetector._refine", "search: edge refinement of the found tags"),
-    ("ficap_ros.detection", "TagDetector._second_chance", "search: second reading of rejected quads"),
-    ("ficap_ros.detection", "TagDetector.detect", "search: decimation and the rest"),
-    ("ficap_ros.detection", "refine_tag_corners", "corner stage (tone-curve unbias, cell-edge fit)"),
-    ("ficap_ros.tracking", "refine_tag_corners", "corner stage (tone-curve unbias, cell-edge fit)"),
-    ("ficap_ros.pipeline", "refine_tag_corners", "corner stage (tone-curve unbias, cell-edge fit)"),
-    ("ficap_ros.tracking", "refine_corners_edge_ok", "predicted tags: edge refinement"),
-    ("ficap_ros.pipeline", "refine_corners_edge_ok", "predicted tags: edge refinement"),
-    ("ficap_ros.tracking", "predict_tags", "predicted tags: prediction and verification"),
-    ("ficap_ros.tracking", "verify_tags", "predicted tags: prediction and verification"),
-    ("ficap_ros.pipeline", "predict_tags", "predicted tags: prediction and verification"),
-    ("ficap_ros.pipeline", "verify_tags", "predicted tags: prediction and verification"),
-    ("ficap_ros.pose", "_solve_joint", "pose: solver"),
-    ("ficap_ros.pose", "_solve_naive", "pose: solver"),
-    ("ficap_ros.pose", "_reweighted", "pose: tag-noise weights (one weighted step)"),
-    ("ficap_ros.pose", "uncertainty_terms", "pose: uncertainty (terms, covariance, bounds)"),
-    ("ficap_ros.pose", "combine_uncertainty", "pose: uncertainty (terms, covariance, bounds)"),
-    ("ficap_ros.pose", "uncertainty_bounds", "pose: uncertainty (terms, covariance, bounds)"),
-    ("ficap_ros.pose", "error_bound95", "pose: uncertainty (terms, covariance, bounds)"),
-    ("ficap_ros.tracking", "estimate_cap_pose", "pose: the rest (undistortion, set-up)"),
-    ("ficap_ros.pipeline", "estimate_cap_pose", "pose: the rest (undistortion, set-up)"),
+    ("ficap_ros.vision.detection", "TagDetector._search", "search: ArUco on the decimated image"),
+    ("ficap_ros.vision.detection", "TagDetector._refine", "search: edge refinement of the found tags"),
+    ("ficap_ros.vision.detection", "TagDetector._second_chance", "search: second reading of rejected quads"),
+    ("ficap_ros.vision.detection", "TagDetector.detect", "search: decimation and the rest"),
+    ("ficap_ros.vision.detection", "refine_tag_corners", "corner stage (tone-curve unbias, cell-edge fit)"),
+    ("ficap_ros.vision.tracking", "refine_tag_corners", "corner stage (tone-curve unbias, cell-edge fit)"),
+    ("ficap_ros.vision.pipeline", "refine_tag_corners", "corner stage (tone-curve unbias, cell-edge fit)"),
+    ("ficap_ros.vision.tracking", "refine_corners_edge_ok", "predicted tags: edge refinement"),
+    ("ficap_ros.vision.pipeline", "refine_corners_edge_ok", "predicted tags: edge refinement"),
+    ("ficap_ros.vision.tracking", "predict_tags", "predicted tags: prediction and verification"),
+    ("ficap_ros.vision.tracking", "verify_tags", "predicted tags: prediction and verification"),
+    ("ficap_ros.vision.pipeline", "predict_tags", "predicted tags: prediction and verification"),
+    ("ficap_ros.vision.pipeline", "verify_tags", "predicted tags: prediction and verification"),
+    ("ficap_ros.vision.pose", "_solve_joint", "pose: solver"),
+    ("ficap_ros.vision.pose", "_solve_naive", "pose: solver"),
+    ("ficap_ros.vision.pose", "_reweighted", "pose: tag-noise weights (one weighted step)"),
+    ("ficap_ros.vision.pose", "uncertainty_terms", "pose: uncertainty (terms, covariance, bounds)"),
+    ("ficap_ros.vision.pose", "combine_uncertainty", "pose: uncertainty (terms, covariance, bounds)"),
+    ("ficap_ros.vision.pose", "uncertainty_bounds", "pose: uncertainty (terms, covariance, bounds)"),
+    ("ficap_ros.vision.pose", "error_bound95", "pose: uncertainty (terms, covariance, bounds)"),
+    ("ficap_ros.vision.tracking", "estimate_cap_pose", "pose: the rest (undistortion, set-up)"),
+    ("ficap_ros.vision.pipeline", "estimate_cap_pose", "pose: the rest (undistortion, set-up)"),
 )
 
 

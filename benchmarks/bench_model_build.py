@@ -44,14 +44,14 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import load_avg, machine_line, md_table, record_section  # noqa: E402
 
-from ficap_ros.camera import CameraModel  # noqa: E402
-from ficap_ros.cap_model import CapModel, nominal_model  # noqa: E402
-from ficap_ros.detection import DetectorConfig, TagDetection, TagDetector  # noqa: E402
-from ficap_ros.metrics import corner_errors_px  # noqa: E402
-from ficap_ros.model_build import (BuildConfig, align_model, build_model, depth_change_limit,  # noqa: E402
+from ficap_ros.geometry.camera import CameraModel  # noqa: E402
+from ficap_ros.geometry.cap_model import CapModel, nominal_model  # noqa: E402
+from ficap_ros.vision.detection import DetectorConfig, TagDetection, TagDetector  # noqa: E402
+from ficap_ros.geometry.metrics import corner_errors_px  # noqa: E402
+from ficap_ros.tools.model_build import (BuildConfig, align_model, build_model, depth_change_limit,  # noqa: E402
                                    replay_check, size_ratio)  # noqa: E402
-from ficap_ros.pipeline import FrameProcessor  # noqa: E402
-from ficap_ros.transform import Transform  # noqa: E402
+from ficap_ros.vision.pipeline import FrameProcessor  # noqa: E402
+from ficap_ros.geometry.transform import Transform  # noqa: E402
 
 BUILDERS = {
     "side only (before)": BuildConfig(fit_edge_offset=False, anchor_size=False, assembly_sigma_mm=50.0,
@@ -91,7 +91,7 @@ def blender_recording() -> Recording | None:
 
 def synth_recording(seed: int, workdir: Path) -> Recording:
     """A ``ficap synth --model`` drive of a cap whose plates are moved/turned like blender_dev's."""
-    from ficap_ros.bag_io import decode_raw, open_frames
+    from ficap_ros.io.sources import decode_raw, open_frames
     from scipy.spatial.transform import Rotation
 
     from ficap_ros.cli import main
@@ -129,9 +129,9 @@ def _truth_poses(bag: Path) -> dict[int, Transform]:
     """The synth bag's true cap poses (PoseStamped, camera optical frame) by stamp."""
     from scipy.spatial.transform import Rotation
 
-    from ficap_ros.bag_io import open_bag_reader
+    from ficap_ros.io.sources import open_bag_reader
     from ficap_ros.stamps import stamp_to_ns
-    from ficap_ros.commands.synth import TRUTH_CAP_TOPIC
+    from ficap_ros.cli.synth import TRUTH_CAP_TOPIC
 
     reader = open_bag_reader(bag)
     try:

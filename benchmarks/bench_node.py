@@ -1,6 +1,6 @@
 """ficap_node over real rclpy on loopback: end-to-end latency and the highest sustained input rate.
 
-The node (``python -m ficap_ros.node``, default parameters, raw mono8 ``image`` + ``camera_info``)
+The node (``python -m ficap_ros.ros.node``, default parameters, raw mono8 ``image`` + ``camera_info``)
 runs in its own process; this process publishes rendered consecutive drive frames at a fixed rate
 for ``--seconds`` per rate and records ``cap_pose``. Latency = arrival of the pose - publish time of
 its image (matched by stamp), p50/p99. A rate is sustained when at least 99 % of the published
@@ -111,9 +111,9 @@ def measure(args: argparse.Namespace, transport: str) -> list[list[object]]:
     from sensor_msgs.msg import CameraInfo, CompressedImage, Image
     from std_msgs.msg import Header
 
-    from ficap_ros import ros_msgs
-    from ficap_ros.cap_model import nominal_model
-    from ficap_ros.synth import RenderConfig, default_scene, naturalistic_drive, render
+    from ficap_ros.ros import msgs as ros_msgs
+    from ficap_ros.geometry.cap_model import nominal_model
+    from ficap_ros.tools.synth import RenderConfig, default_scene, naturalistic_drive, render
 
     rows: list[list[object]] = []
     env = dict(os.environ)
@@ -122,7 +122,7 @@ def measure(args: argparse.Namespace, transport: str) -> list[list[object]]:
         model = nominal_model()
         drive = naturalistic_drive(600 + args.frames, fps=30.0, seed=0, scene=scene)[600:]
         images = [render(model, scene.camera, d.T_cam_cap, RenderConfig(), seed=d.index).image for d in drive]
-        node_cmd = [sys.executable, "-m", "ficap_ros.node"]
+        node_cmd = [sys.executable, "-m", "ficap_ros.ros.node"]
         if compressed:
             node_cmd += ["--ros-args", "-p", "image_transport:=compressed"]
         node_proc = subprocess.Popen(node_cmd, env=env,

@@ -1,7 +1,7 @@
 """The tag-level photometric corner fit (``DetectorConfig(edge_photometric=True)``): accuracy and cost.
 
 Issue 10's last open corner target (blender_dev dev_540p_low median <= 0.15 px) is missed by the
-cell-edge fit (``ficap edge``); ``detection.fit_tags_photometric`` (``ficap_ros.photometric``) fits each tag's
+cell-edge fit (``ficap edge``); ``detection.fit_tags_photometric`` (``ficap_ros.vision.photometric``) fits each tag's
 printed pattern, blurred in linear light and put through an sRGB curve, to its pixels near the
 cell boundaries, as the corner stage's last step. This measures, with the same detector
 otherwise (``TagDetector``, every frame searched, as ``ficap detect --json``):
@@ -33,7 +33,7 @@ import blender_dev  # noqa: E402
 from _common import load_avg, machine_line, md_table, record_section  # noqa: E402
 from bench_corners import SYNTH_CONDITIONS, blender_frames, measure, synth_frames  # noqa: E402
 
-from ficap_ros.detection import DetectorConfig, TagDetector  # noqa: E402
+from ficap_ros.vision.detection import DetectorConfig, TagDetector  # noqa: E402
 
 METHODS = {
     "ficap edge": DetectorConfig(),
@@ -73,9 +73,9 @@ problem."""
 def cost(n_frames: int = 40, passes: int = 3, resolution: str = "1080p",
          lighting: str = "neutral") -> list[list[str]]:
     """ms of process time per tracked frame, without and with the photometric fit."""
-    from ficap_ros.cap_model import nominal_model
-    from ficap_ros.pipeline import FrameProcessor
-    from ficap_ros.synth import RenderConfig, default_scene, naturalistic_drive, render
+    from ficap_ros.geometry.cap_model import nominal_model
+    from ficap_ros.vision.pipeline import FrameProcessor
+    from ficap_ros.tools.synth import RenderConfig, default_scene, naturalistic_drive, render
 
     model, scene = nominal_model(), default_scene(resolution)
     drive = naturalistic_drive(n_frames, fps=30.0, seed=3, scene=scene, frontal_s=0.0)

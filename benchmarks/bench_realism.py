@@ -1,7 +1,7 @@
 """Renderer realism: corner errors on `ficap synth` frames against the path-traced blender_dev renders.
 
 For every blender_dev set (``benchmarks/blender_dev.py``) the same frames are rendered by
-``ficap_ros.synth.render`` at matching settings: the set's camera K and resolution, its lighting
+``ficap_ros.tools.synth.render`` at matching settings: the set's camera K and resolution, its lighting
 preset, its PSF sigma and tone curve (``ground_truth.json``'s ``render`` block), the set's true cap
 pose ``T_cam_cap`` of each frame and the cap that was rendered. Nothing else is matched: our
 background, head, noise and light levels are the renderer's own physically chosen defaults. The
@@ -11,7 +11,7 @@ Corner methods, each run as a detector on the whole image (no tracking): ours (`
 default ``DetectorConfig``), OpenCV sub-pixel (``subpix``, the naive peer's corners) and AprilTag 3
 (pupil-apriltags, its own edge refinement). Clean tags only: all 4 corners visible (blender: ray
 cast; synth: visible fraction >= 0.999), facing, view angle <= 70 deg. Per corner: the distance to
-the true corner and the radial offset (``ficap_ros.metrics.corner_errors_px``; negative = inward).
+the true corner and the radial offset (``ficap_ros.geometry.metrics.corner_errors_px``; negative = inward).
 
 Usage: .venv/bin/python benchmarks/bench_realism.py [--sets a,b] [--max-frames 25] [--record]
 """
@@ -30,10 +30,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import blender_dev  # noqa: E402
 from _common import load_avg, machine_line, md_table, record_section  # noqa: E402
 
-from ficap_ros.detection import DetectorConfig, TagDetector  # noqa: E402
-from ficap_ros.metrics import corner_errors_px  # noqa: E402
-from ficap_ros.synth import RenderConfig, render  # noqa: E402
-from ficap_ros.tracking import view_angles_deg  # noqa: E402
+from ficap_ros.vision.detection import DetectorConfig, TagDetector  # noqa: E402
+from ficap_ros.geometry.metrics import corner_errors_px  # noqa: E402
+from ficap_ros.tools.synth import RenderConfig, render  # noqa: E402
+from ficap_ros.vision.tracking import view_angles_deg  # noqa: E402
 
 METHODS = {
     "ficap edge": DetectorConfig(),
@@ -170,7 +170,7 @@ def main() -> int:
             f"--max-frames {args.max_frames} --record`.",
             "",
             "Each blender_dev set's frames (every 5th of `dev_540p_drive30`; at most "
-            f"{args.max_frames} per set) next to `ficap_ros.synth.render` frames of the same true poses, "
+            f"{args.max_frames} per set) next to `ficap_ros.tools.synth.render` frames of the same true poses, "
             "camera K, resolution, lighting preset, PSF σ and tone curve (the sets' `render` block), "
             "JPEG 95; everything else (light levels, ink and paper reflectance, flare, sensor noise, "
             "background, head) is the renderer's own default, not fitted to these frames. Corners of "

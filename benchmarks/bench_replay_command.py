@@ -53,26 +53,26 @@ def _replay_args(bag: Path, out: Path) -> list[str]:
 #: (module, attribute, stage) of the command around the pipeline; a generator function's time is
 #: that of its steps. Attributes a refactor removed are skipped.
 COMMAND_STAGES = (
-    ("ficap_ros.cli", "build_parser", "arguments (every verb's parser)"),
-    ("ficap_ros.cap_model", "nominal_model", "cap model (nominal)"),
+    ("ficap_ros.cli.main", "build_parser", "arguments (every verb's parser)"),
+    ("ficap_ros.geometry.cap_model", "nominal_model", "cap model (nominal)"),
     ("ficap_ros.files", "check_output_folder", "output folder (checks, temporary folder, commit)"),
     ("ficap_ros.files", "OutputFolder.__init__", "output folder (checks, temporary folder, commit)"),
     ("ficap_ros.files", "OutputFolder.commit", "output folder (checks, temporary folder, commit)"),
-    ("ficap_ros.bag_io", "open_frames", "open the bag (topics, CameraInfo, first stamp)"),
-    ("ficap_ros.bag_io", "BagSource._bag_frames", "bag reading (MCAP chunks, CDR, RawFrame)"),
-    ("ficap_ros.replay", "process_frames", "replay loop (segments, ProcessedFrame)"),
-    ("ficap_ros.replay", "_process_one", "replay loop (segments, ProcessedFrame)"),
-    ("ficap_ros.replay", "decode_raw", "JPEG decode (cv2.imdecode, grey)"),
-    ("ficap_ros.pipeline", "FrameProcessor.process", "pipeline: bookkeeping (FrameProcessor.process)"),
+    ("ficap_ros.io.sources", "open_frames", "open the bag (topics, CameraInfo, first stamp)"),
+    ("ficap_ros.io.sources", "BagSource._bag_frames", "bag reading (MCAP chunks, CDR, RawFrame)"),
+    ("ficap_ros.tools.replay", "process_frames", "replay loop (segments, ProcessedFrame)"),
+    ("ficap_ros.tools.replay", "_process_one", "replay loop (segments, ProcessedFrame)"),
+    ("ficap_ros.tools.replay", "decode_raw", "JPEG decode (cv2.imdecode, grey)"),
+    ("ficap_ros.vision.pipeline", "FrameProcessor.process", "pipeline: bookkeeping (FrameProcessor.process)"),
     # Under "bookkeeping" until 2026-11-24: the hidden-tag check (the pose's input) and the
     # tracker's extrapolation, measured on their own.
-    ("ficap_ros.pipeline", "hidden_tag_ids", "pipeline: hidden-tag check (partly_hidden)"),
-    ("ficap_ros.tracking", "Tracker._predict_pose", "pipeline: tracker's pose extrapolation"),
-    ("ficap_ros.replay", "record_from_pose", "labels: records (head pose, angles)"),
-    ("ficap_ros.replay", "_summary", "labels: summary statistics"),
-    ("ficap_ros.replay", "write_labels_bag", "labels.mcap (messages, CDR, MCAP)"),
-    ("ficap_ros.replay", "labels_csv_text", "labels.csv and summary.json (text, write)"),
-    ("ficap_ros.replay", "write_output_file", "labels.csv and summary.json (text, write)"),
+    ("ficap_ros.vision.pipeline", "hidden_tag_ids", "pipeline: hidden-tag check (partly_hidden)"),
+    ("ficap_ros.vision.tracking", "Tracker._predict_pose", "pipeline: tracker's pose extrapolation"),
+    ("ficap_ros.tools.replay", "record_from_pose", "labels: records (head pose, angles)"),
+    ("ficap_ros.tools.replay", "_summary", "labels: summary statistics"),
+    ("ficap_ros.tools.replay", "write_labels_bag", "labels.mcap (messages, CDR, MCAP)"),
+    ("ficap_ros.tools.replay", "labels_csv_text", "labels.csv and summary.json (text, write)"),
+    ("ficap_ros.tools.replay", "write_output_file", "labels.csv and summary.json (text, write)"),
 )
 
 
@@ -147,9 +147,9 @@ class AprilTag3:
     def __init__(self, bag: Path) -> None:
         import numpy as np
 
-        from ficap_ros.bag_io import open_frames
-        from ficap_ros.cap_model import nominal_model
-        from ficap_ros.detection import DetectorConfig
+        from ficap_ros.io.sources import open_frames
+        from ficap_ros.geometry.cap_model import nominal_model
+        from ficap_ros.vision.detection import DetectorConfig
 
         self.raws = list(open_frames(bag).raw_frames())
         self.bufs = [np.frombuffer(r.payload, np.uint8) for r in self.raws]
@@ -163,7 +163,7 @@ class AprilTag3:
         import cv2
         import numpy as np
 
-        from ficap_ros.pipeline import FrameProcessor
+        from ficap_ros.vision.pipeline import FrameProcessor
 
         proc = FrameProcessor(self.model, self.config, tracking=False)
         ms = np.zeros(len(self.raws))
@@ -248,7 +248,7 @@ def long_drive(args: argparse.Namespace, tmp: Path, short_bag: Path) -> dict:
                         "--resolution", "1080p", "--frames", str(int(round(args.long_seconds * FPS))),
                         "--fps", str(FPS), "--seed", "0", "--quiet"], check=True)
     at3 = AprilTag3(bag)
-    from ficap_ros.bag_io import open_frames
+    from ficap_ros.io.sources import open_frames
 
     # Does the longer drive continue the shorter one (same seed: the same first frames)?
     short = [r.payload for r in open_frames(short_bag).raw_frames()]
@@ -329,7 +329,7 @@ def main() -> int:
     cv2.setNumThreads(1)
     # The allocator setting the replay command makes for itself, here too: AprilTag 3's rounds
     # (decode included) run in this process and must not pay page faults the command does not.
-    from ficap_ros.replay import keep_freed_memory
+    from ficap_ros.tools.replay import keep_freed_memory
 
     keep_freed_memory()
     load_before = load_avg()

@@ -138,7 +138,7 @@ def tags_region(tracker, camera, stamp_ns: int, margin_px: float,  # noqa: ANN00
                 info: dict) -> tuple[int, int, int, int] | None:
     """The region of the tags ``predict_tags`` puts in the frame at the tracker's extrapolated pose,
     + ``margin_px``, on the iMCU grid (what a tracked frame refines and verifies), or None."""
-    from ficap_ros.tracking import predict_tags
+    from ficap_ros.vision.tracking import predict_tags
 
     predicted = tracker._predict_pose(camera, stamp_ns)
     if predicted is None:
@@ -154,9 +154,9 @@ def tags_region(tracker, camera, stamp_ns: int, margin_px: float,  # noqa: ANN00
 def regions(bag: Path, tj: TurboGray, tag_margin_px: float) -> tuple[list, list, dict]:
     """Replay the drive (tracking on) and collect, per frame, the regions a cropped decode would
     ask for before it, and how the frame was then found."""
-    from ficap_ros.bag_io import open_frames
-    from ficap_ros.cap_model import nominal_model
-    from ficap_ros.pipeline import FrameProcessor
+    from ficap_ros.io.sources import open_frames
+    from ficap_ros.geometry.cap_model import nominal_model
+    from ficap_ros.vision.pipeline import FrameProcessor
 
     raws = list(open_frames(bag).raw_frames())
     bufs = [np.frombuffer(r.payload, np.uint8) for r in raws]
@@ -206,8 +206,8 @@ def pipeline_check(bufs: list, raws: list, tj: TurboGray, info: dict, tag_margin
     """Two trackers side by side, frame by frame: one fed ``cv2.imdecode`` (the replay), one fed a
     zeroed frame with only its own predicted tags' region decoded (the whole frame when it has no
     prediction). Are the results identical, and what does each decode cost inside the loop?"""
-    from ficap_ros.cap_model import nominal_model
-    from ficap_ros.pipeline import FrameProcessor
+    from ficap_ros.geometry.cap_model import nominal_model
+    from ficap_ros.vision.pipeline import FrameProcessor
 
     width, height = info["width"], info["height"]
     ref, roi = FrameProcessor(nominal_model(), tracking=True), FrameProcessor(nominal_model(), tracking=True)

@@ -47,9 +47,9 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import load_avg, machine_line, md_table, record_section  # noqa: E402
 
-from ficap_ros import pose as pose_mod  # noqa: E402
-from ficap_ros.cap_model import nominal_model  # noqa: E402
-from ficap_ros.pipeline import FrameProcessor  # noqa: E402
+from ficap_ros.vision import pose as pose_mod  # noqa: E402
+from ficap_ros.geometry.cap_model import nominal_model  # noqa: E402
+from ficap_ros.vision.pipeline import FrameProcessor  # noqa: E402
 
 MODEL = nominal_model()
 _CAPTURED: dict = {}
@@ -159,7 +159,7 @@ def synth_as(name: str, root: Path | None) -> tuple:
     import blender_dev
     from bench_realism import tone_of
 
-    from ficap_ros.synth import RenderConfig, render
+    from ficap_ros.tools.synth import RenderConfig, render
 
     ds = blender_dev.load_set(name, root or blender_dev.BLENDER_DEV)
     tone, gamma = tone_of(ds.tone)
@@ -180,10 +180,10 @@ def mechanism(root: Path | None) -> str:
 
     import blender_dev
 
-    from ficap_ros import synth
-    from ficap_ros.detection import TagDetector
-    from ficap_ros.synth import RenderConfig, render
-    from ficap_ros.tracking import view_angles_deg
+    from ficap_ros.tools import synth
+    from ficap_ros.vision.detection import TagDetector
+    from ficap_ros.tools.synth import RenderConfig, render
+    from ficap_ros.vision.tracking import view_angles_deg
 
     ds = blender_dev.load_set("dev_540p_neutral", root or blender_dev.BLENDER_DEV)
     model, K = ds.true_model, ds.camera.K

@@ -1,6 +1,6 @@
 """Soak: ficap_node for minutes at 30 Hz with a share of corrupt frames: memory, latency, losses.
 
-The node (``python -m ficap_ros.node``, ``image_transport:=compressed``, otherwise default
+The node (``python -m ficap_ros.ros.node``, ``image_transport:=compressed``, otherwise default
 parameters) runs in its own process; this process publishes JPEG ``CompressedImage`` of rendered
 consecutive drive frames (540p, quality 95, looped) with ``camera_info`` at ``--rate`` Hz for
 ``--minutes``. A ``--corrupt`` share of the frames, spread evenly by a seeded generator, is damaged, a third
@@ -76,9 +76,9 @@ def main() -> int:
     from sensor_msgs.msg import CameraInfo, CompressedImage
     from std_msgs.msg import Header
 
-    from ficap_ros import ros_msgs
-    from ficap_ros.cap_model import nominal_model
-    from ficap_ros.synth import RenderConfig, default_scene, naturalistic_drive, render
+    from ficap_ros.ros import msgs as ros_msgs
+    from ficap_ros.geometry.cap_model import nominal_model
+    from ficap_ros.tools.synth import RenderConfig, default_scene, naturalistic_drive, render
 
     scene = default_scene(args.resolution)
     drive = naturalistic_drive(600 + args.frames, fps=args.rate, seed=0, scene=scene)[600:]
@@ -92,7 +92,7 @@ def main() -> int:
     kinds = rng.choice(["cut", "zeroed", "garbage"], n_total)
 
     stderr_file = tempfile.NamedTemporaryFile(prefix="ficap-soak-", suffix=".log", delete=False)
-    node = subprocess.Popen([sys.executable, "-m", "ficap_ros.node", "--ros-args", "-p",
+    node = subprocess.Popen([sys.executable, "-m", "ficap_ros.ros.node", "--ros-args", "-p",
                              "image_transport:=compressed"],
                             stdout=subprocess.DEVNULL, stderr=stderr_file)
     rclpy.init()

@@ -30,10 +30,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import Progress, load_avg, machine_line, md_table, record_section  # noqa: E402
 from bench_fleet import FRAME_NS, stage_table, stage_times  # noqa: E402
 
-from ficap_ros.cap_model import nominal_model  # noqa: E402
-from ficap_ros.detection import DetectorConfig, TagDetector  # noqa: E402
-from ficap_ros.pipeline import FrameProcessor  # noqa: E402
-from ficap_ros.synth import RenderConfig, default_scene, naturalistic_drive, render  # noqa: E402
+from ficap_ros.geometry.cap_model import nominal_model  # noqa: E402
+from ficap_ros.vision.detection import DetectorConfig, TagDetector  # noqa: E402
+from ficap_ros.vision.pipeline import FrameProcessor  # noqa: E402
+from ficap_ros.tools.synth import RenderConfig, default_scene, naturalistic_drive, render  # noqa: E402
 
 SWAT = Path("/work/shared/data/real_apriltag/swatbotics_mapping_feb_2014")
 
@@ -59,8 +59,8 @@ _POSE_CPU_S = [0.0]
 def _time_poses() -> None:
     """Count the CPU time of every pose estimate the pipeline makes (the final pose, and the
     completion's and second look's)."""
-    import ficap_ros.pipeline as pipeline_module
-    import ficap_ros.tracking as tracking_module
+    import ficap_ros.vision.pipeline as pipeline_module
+    import ficap_ros.vision.tracking as tracking_module
 
     def timer(estimate):  # noqa: ANN001, ANN202
         def timed(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202

@@ -1,7 +1,7 @@
 """Calibrated uncertainty: do the 95 % error bounds cover the true errors, how sharp are they, and
 does reliability rank frames by error?
 
-For every frame with a pose, the pose's ``rot_err95_deg`` / ``trans_err95_mm`` (``ficap_ros.pose``:
+For every frame with a pose, the pose's ``rot_err95_deg`` / ``trans_err95_mm`` (``ficap_ros.vision.pose``:
 per-tag residuals, uneven light, floors propagated through the weighted fit) against the true
 error of ``T_cam_cap``: the geodesic rotation angle and the translation length. Per set:
     coverage: share of frames whose true error is within the bound (target 90-99 %);
@@ -67,12 +67,12 @@ from scipy.stats import spearmanr
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import Progress, load_avg, machine_line, md_table, record_section  # noqa: E402
 
-from ficap_ros.cap_model import nominal_model  # noqa: E402
-from ficap_ros.detection import DetectorConfig  # noqa: E402
-from ficap_ros.metrics import angle_deg  # noqa: E402
-from ficap_ros.pipeline import FrameProcessor, pose_config_for  # noqa: E402
-from ficap_ros import pose as pose_mod  # noqa: E402
-from ficap_ros.pose import PoseConfig, UncertaintyConfig  # noqa: E402
+from ficap_ros.geometry.cap_model import nominal_model  # noqa: E402
+from ficap_ros.vision.detection import DetectorConfig  # noqa: E402
+from ficap_ros.geometry.metrics import angle_deg  # noqa: E402
+from ficap_ros.vision.pipeline import FrameProcessor, pose_config_for  # noqa: E402
+from ficap_ros.vision import pose as pose_mod  # noqa: E402
+from ficap_ros.vision.pose import PoseConfig, UncertaintyConfig  # noqa: E402
 
 METHODS = {
     "ficap joint": (DetectorConfig(), PoseConfig(method="joint")),
@@ -374,7 +374,7 @@ def blender_sets(root: Path | None) -> dict[str, tuple]:
 
 def synth_sets(n_frames: int, resolutions: list[str], lightings: list[str],
                seed_offset: int = 0) -> dict[str, tuple]:
-    from ficap_ros.synth import REALISTIC, RenderConfig, default_scene, naturalistic_drive, render
+    from ficap_ros.tools.synth import REALISTIC, RenderConfig, default_scene, naturalistic_drive, render
 
     model = nominal_model()
     out = {}

@@ -1,9 +1,9 @@
 """Section 6: share of frames with >= 1 and >= 4 tags detected, pose error, and where to mount the camera.
 
-Every count here is a *detector* result: rendered frames (``ficap_ros.synth.render``, default
-``RenderConfig``: neutral light, the default image chain) go through ``ficap_ros.pipeline.FrameProcessor``
+Every count here is a *detector* result: rendered frames (``ficap_ros.tools.synth.render``, default
+``RenderConfig``: neutral light, the default image chain) go through ``ficap_ros.vision.pipeline.FrameProcessor``
 with its default settings, and the cap orientation is compared with the render's exact truth
-(geodesic angle, ``ficap_ros.metrics.angle_deg``). The renderer's own visibility (a tag counts when
+(geodesic angle, ``ficap_ros.geometry.metrics.angle_deg``). The renderer's own visibility (a tag counts when
 at least ``--min-visible`` of it is in the image and not hidden by the head or neck, it faces the
 camera within ``--max-angle-deg`` and every side is at least ``--min-side-px``) is kept as a
 secondary column: it is an upper bound with no detector in it.
@@ -44,14 +44,14 @@ from scipy.spatial.transform import Rotation
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import ROOT, Progress, load_avg, machine_line, md_table, record_section  # noqa: E402
 
-from ficap_ros.camera import CameraModel  # noqa: E402
-from ficap_ros.cap_model import CapModel, nominal_model, write_atomic  # noqa: E402
-from ficap_ros.metrics import angle_deg  # noqa: E402
-from ficap_ros.pipeline import FrameProcessor  # noqa: E402
-from ficap_ros.synth import (  # noqa: E402
+from ficap_ros.geometry.camera import CameraModel  # noqa: E402
+from ficap_ros.geometry.cap_model import CapModel, nominal_model, write_atomic  # noqa: E402
+from ficap_ros.geometry.metrics import angle_deg  # noqa: E402
+from ficap_ros.vision.pipeline import FrameProcessor  # noqa: E402
+from ficap_ros.tools.synth import (  # noqa: E402
     RESOLUTIONS, DriveFrame, DriveScene, RenderConfig, RenderedFrame, default_scene, naturalistic_drive, render,
 )
-from ficap_ros.transform import CAM_FROM_FORWARD  # noqa: E402
+from ficap_ros.geometry.transform import CAM_FROM_FORWARD  # noqa: E402
 
 CAP_RADIUS_M = 0.092  # back of the cap to the cap origin (default_scene: 0.45 m + 0.092)
 SECTION = "Visibility (paper section 6)"
@@ -315,11 +315,11 @@ def main() -> int:
     text = "\n".join([
         f"Machine: {machine} (at the start); {load_start} at the start, {load_avg()} at the end; "
         f"{minutes:.1f} min (run with `nice -n 10`). Code: {code}.", "",
-        "Every count is a detector result: frames rendered by `ficap_ros.synth.render` (default `RenderConfig`: "
+        "Every count is a detector result: frames rendered by `ficap_ros.tools.synth.render` (default `RenderConfig`: "
         "neutral light, the default image chain (PSF, sensor noise, sRGB), head and neck occluders, no headrest, seat, hands or other people) are run "
-        "through `ficap_ros.pipeline.FrameProcessor` with default settings; 'with pose' = the pipeline returned a "
+        "through `ficap_ros.vision.pipeline.FrameProcessor` with default settings; 'with pose' = the pipeline returned a "
         "cap pose; error = geodesic angle between the estimated and the rendered cap orientation "
-        "(`ficap_ros.metrics.angle_deg`, twice the paper's Phi3); 'tags used' = tags kept by the pose. "
+        "(`ficap_ros.geometry.metrics.angle_deg`, twice the paper's Phi3); 'tags used' = tags kept by the pose. "
         "'Renderer visibility' (tags at least "
         f"{100 * args.min_visible:.1f} % visible, facing the camera within {args.max_angle_deg:.0f} deg, every side "
         f">= {args.min_side_px:.0f} px) is the renderer's upper bound with no detector in it.", "",

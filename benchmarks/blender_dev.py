@@ -1,10 +1,10 @@
 """Reader of ``../shared/data/blender_dev``: path-traced renders of the cap with exact ground truth.
 
-The sets are independent of ``ficap_ros.synth`` (Blender/Cycles, a lens PSF in linear light, shot
+The sets are independent of ``ficap_ros.tools.synth`` (Blender/Cycles, a lens PSF in linear light, shot
 and read noise, clipping, a tone curve, JPEG), so they check our corners and poses on images we did
 not make. They are a check, not a training set: nothing in the package is tuned to them.
 
-Each set is a rosbag2 (MCAP) read through ``ficap_ros.bag_io`` (the code path replay uses) plus
+Each set is a rosbag2 (MCAP) read through ``ficap_ros.io.sources`` (the code path replay uses) plus
 ``ground_truth.json`` (documented in the set's README). Benchmarks only: tests never read
 ``../shared``.
 
@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ficap_ros.bag_io import decode_raw, open_frames
-from ficap_ros.camera import CameraModel
-from ficap_ros.cap_model import CapModel
-from ficap_ros.transform import Transform
+from ficap_ros.io.sources import decode_raw, open_frames
+from ficap_ros.geometry.camera import CameraModel
+from ficap_ros.geometry.cap_model import CapModel
+from ficap_ros.geometry.transform import Transform
 
 ROOT = Path(__file__).resolve().parents[1]
 #: ../shared next to the clone (or next to its parent: a git worktree one level further down).
@@ -106,7 +106,7 @@ def _transform(m: list) -> Transform:
 
 
 def load_set(name: str, root: Path = BLENDER_DEV) -> DevSet:
-    """Read one set: frames decoded by ``ficap_ros.bag_io`` and matched to the truth by stamp."""
+    """Read one set: frames decoded by ``ficap_ros.io.sources`` and matched to the truth by stamp."""
     path = root / name
     truth = json.loads((path / "ground_truth.json").read_text())
     corners_mm = np.asarray(truth["cap_corners_mm"], dtype=np.float64).reshape(-1, 4, 3)

@@ -1,6 +1,6 @@
 """Path-traced calibration sets: the cap rendered with Blender Cycles, in blender_dev's format.
 
-``ficap synth`` (``ficap_ros.synth``) draws the cap analytically; ``../shared/data/blender_dev`` is a
+``ficap synth`` (``ficap_ros.tools.synth``) draws the cap analytically; ``../shared/data/blender_dev`` is a
 path-traced check set that must not be tuned to. This script makes *our own* path-traced sets, with
 their own poses and seeds, so that calibration can see the physics the analytic renderer lacks
 (Monte Carlo noise at a few samples per pixel, real light fall-off and inter-reflection, the
@@ -14,9 +14,9 @@ Two processes, two venvs (the package never imports bpy):
   2. ``.venv-bpy/bin/python benchmarks/cycles_render.py _bpy plan.json`` (Blender as a Python
      module) path-traces each frame's *linear* radiance to ``frame_XXX.npy`` and ray-casts every
      tag corner for visibility (``vis.json``); nothing else;
-  3. the project venv applies ``ficap_ros.synth``'s camera chain (flare, Gaussian lens PSF in
+  3. the project venv applies ``ficap_ros.tools.synth``'s camera chain (flare, Gaussian lens PSF in
      linear light, exposure, shot and read noise, full-well clipping, gain, tone curve, 8 bit,
-     JPEG 95) and writes the set with ``ficap_ros.bag_writer``: ``<set>/metadata.yaml``,
+     JPEG 95) and writes the set with ``ficap_ros.io.bag_writer``: ``<set>/metadata.yaml``,
      ``<set>/<set>.mcap`` (/rear_camera/image_raw/compressed, /rear_camera/camera_info,
      /ground_truth/cap_pose, /ground_truth/head_pose) and ``<set>/ground_truth.json`` with
      blender_dev's fields, so ``benchmarks/blender_dev.py`` reads it unchanged
@@ -117,9 +117,9 @@ F_CV_TO_BL = np.diag([1.0, -1.0, -1.0, 1.0])
 # Project venv: plan, post-process, write
 # ------------------------------------------------------------------------------------------------
 def drive_scene(width: int, height: int):  # noqa: ANN201
-    from ficap_ros.camera import CameraModel
-    from ficap_ros.synth import DriveScene
-    from ficap_ros.transform import CAM_FROM_FORWARD
+    from ficap_ros.geometry.camera import CameraModel
+    from ficap_ros.tools.synth import DriveScene
+    from ficap_ros.geometry.transform import CAM_FROM_FORWARD
 
     f = 0.75 * width
     K = np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
@@ -131,7 +131,7 @@ def drive_scene(width: int, height: int):  # noqa: ANN201
 
 
 def _cv_from_frontal(p_frontal) -> list[float]:  # noqa: ANN001
-    from ficap_ros.transform import CAM_FROM_FORWARD
+    from ficap_ros.geometry.transform import CAM_FROM_FORWARD
 
     return [float(v) for v in CAM_FROM_FORWARD.apply(np.asarray(p_frontal, dtype=np.float64))]
 
@@ -139,7 +139,7 @@ def _cv_from_frontal(p_frontal) -> list[float]:  # noqa: ANN001
 def _face_white(tag_id: int) -> np.ndarray:
     """(10, 10) True where the printed face is white: the 8-cell tag (``detection.tag_cells``,
     ``generateImageMarker``'s drawing) in a 1-cell white quiet zone, row 0 = top."""
-    from ficap_ros.detection import tag_cells
+    from ficap_ros.vision.detection import tag_cells
 
     face = np.ones((10, 10), bool)
     face[1:9, 1:9] = ~tag_cells(tag_id)
@@ -153,8 +153,8 @@ def _tag_texture(tag_id: int, cell_px: int = 16) -> np.ndarray:
 
 
 def make_plan(name: str, n_frames: int, work: Path) -> dict:
-    from ficap_ros.cap_model import nominal_model
-    from ficap_ros.synth import (HEAD_CENTRE_M, HEAD_SEMI_AXES_M, NECK_CENTRE_M, NECK_SEMI_AXES_M,
+    from ficap_ros.geometry.cap_model import nominal_model
+    from ficap_ros.tools.synth import (HEAD_CENTRE_M, HEAD_SEMI_AXES_M, NECK_CENTRE_M, NECK_SEMI_AXES_M,
                                  naturalistic_drive)
 
     width, height, lighting, psf, tone, seed = SET_SPECS[name]
@@ -168,7 +168,7 @@ def make_plan(name: str, n_frames: int, work: Path) -> dict:
         import blender_dev
 
         dev = json.loads((blender_dev.BLENDER_DEV / AS_DEV[name] / "ground_truth.json").read_text())
-        from ficap_ros.transform import Transform
+        from ficap_ros.geometry.transform import Transform
 
         drive = [dataclasses.replace(d, index=int(g["motion_frame"]),
                                      T_cam_cap=Transform.from_matrix(np.asarray(g["T_cam_cap"])))
@@ -255,7 +255,7 @@ def make_plan(name: str, n_frames: int, work: Path) -> dict:
 
 def _tag_geometry(model, T_cam_cap) -> tuple[np.ndarray, np.ndarray]:  # noqa: ANN001
     """(facing, view angle deg) of every tag (``tracking.view_angles_deg``; facing: under 90)."""
-    from ficap_ros.tracking import view_angles_deg
+    from ficap_ros.vision.tracking import view_angles_deg
 
     angle = view_angles_deg(model, T_cam_cap)
     return angle < 90.0, angle
@@ -265,7 +265,7 @@ def _plates_p90(radiance: np.ndarray, model, T: np.ndarray, camera) -> float:  #
     """90th percentile of the radiance over the facing plates' pixels (an auto-exposure's meter)."""
     import cv2
 
-    from ficap_ros.transform import Transform
+    from ficap_ros.geometry.transform import Transform
 
     T_cam_cap = Transform.from_matrix(T)
     facing, _ = _tag_geometry(model, T_cam_cap)
@@ -281,12 +281,12 @@ def finish_set(name: str, plan: dict, out: Path) -> dict:
     """Camera chain on the rendered radiance, then the bag and ground_truth.json."""
     import cv2
 
-    from ficap_ros import synth
-    from ficap_ros.bag_io import CAMERA_INFO_TYPE, COMPRESSED_TYPE
-    from ficap_ros.bag_writer import BagWriter, camera_info_msg, compressed_image_msg, pose_stamped_msg
-    from ficap_ros.cap_model import nominal_model
-    from ficap_ros.metrics import yaw_pitch_roll_deg
-    from ficap_ros.transform import Transform
+    from ficap_ros.tools import synth
+    from ficap_ros.io.sources import CAMERA_INFO_TYPE, COMPRESSED_TYPE
+    from ficap_ros.io.bag_writer import BagWriter, camera_info_msg, compressed_image_msg, pose_stamped_msg
+    from ficap_ros.geometry.cap_model import nominal_model
+    from ficap_ros.geometry.metrics import yaw_pitch_roll_deg
+    from ficap_ros.geometry.transform import Transform
 
     width, height, lighting, psf, tone_name, seed = SET_SPECS[name]
     model = nominal_model()
@@ -367,14 +367,14 @@ def finish_set(name: str, plan: dict, out: Path) -> dict:
         "frames_doc": {"camera": "rear_camera_optical: x right, y down, z forward (OpenCV)",
                        "cap": "C (cap-spec.md)", "head": "H: synth.DriveScene's head frame",
                        "T_cam_X": "4x4, metres, p_cam = T_cam_X @ p_X",
-                       "head_angles": "ficap_ros.metrics yaw/pitch/roll of R_frontal_head (REP-103)"},
+                       "head_angles": "ficap_ros.geometry.metrics yaw/pitch/roll of R_frontal_head (REP-103)"},
         "R_head_cap": R_head_cap.as_matrix().tolist(), "T_head_cap": T_head_cap.tolist(),
         "cap_corners_mm": model.corners_mm.reshape(-1, 3).tolist(),
         "cap_corners_nominal_mm": model.corners_mm.reshape(-1, 3).tolist(),
         "cap_corners_doc": "92 x 3, mm, in C; tag id i -> rows 4i..4i+3 = TL, TR, BR, BL (OpenCV ArUco order)",
         "visibility_doc": "tags[]: facing, view angle (normal vs line of sight), centre and the 4 "
                           "corners ray-cast from the camera centre against the whole scene (bpy)",
-        "motion": {"generator": "ficap_ros.synth.naturalistic_drive", "seed": seed, "fps": 30,
+        "motion": {"generator": "ficap_ros.tools.synth.naturalistic_drive", "seed": seed, "fps": 30,
                    "every_nth_frame": FRAME_STEP, "first_frame": FRAME_STEP // 2},
         "render": {"engine": "Blender Cycles (CPU, 1 thread)", "blender": "bpy 5.0.1",
                    "samples": SAMPLES, "denoise": False, "pixel_filter": "Blackman-Harris 1.5 px (default)",
@@ -398,7 +398,7 @@ def check(name: str, out: Path) -> None:
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import blender_dev
 
-    from ficap_ros.detection import TagDetector
+    from ficap_ros.vision.detection import TagDetector
 
     ds = blender_dev.load_set(name, out)
     det = TagDetector()
@@ -467,7 +467,7 @@ def noise_table(roots: dict[str, Path], synth_as_too: bool = True) -> str:
     import blender_dev
     from bench_realism import tone_of
 
-    from ficap_ros.synth import RenderConfig, render
+    from ficap_ros.tools.synth import RenderConfig, render
 
     rows = ["| set | renderer | white level | white noise sd | black level | black noise sd | pixel pairs white / black |",
             "|---|---|---|---|---|---|---|"]

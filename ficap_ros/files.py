@@ -41,7 +41,7 @@ FICAP_OUTPUT_FILES = frozenset({
     "error_histogram.png", "timeseries.png", "error_vs_yaw.png",
     "fleet_summary.csv", "fleet_summary.json", "fleet_summary.png",
 })
-#: The kit's files, whose names carry the paper size and the sheet's page (``ficap_ros.kit``).
+#: The kit's files, whose names carry the paper size and the sheet's page (``ficap_ros.tools.kit``).
 _KIT_FILE = re.compile(r"ficap_tags_(a4|letter)(_p\d+\.svg|\.pdf)|ficap_assembly\.(png|pdf)"
                        r"|ficap_shell\.stl")
 

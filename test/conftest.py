@@ -4,14 +4,13 @@ from __future__ import annotations
 
 import os
 
-# Set before any test imports rclpy: loopback only, and a ROS_DOMAIN_ID per xdist worker so tests
-# that run at once never see each other's topics. FICAP_TEST_DOMAIN_BASE moves the whole block, so
-# two test runs on one machine (two checkouts) can run at the same time.
+# Set before any test imports rclpy: DDS on loopback only, and one ROS domain per xdist worker so
+# tests that run at once never see each other's topics. The domain a caller set (ROS_DOMAIN_ID) is
+# kept as the first worker's and offset by one per further worker; unset, the block starts at 60.
 os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
 os.environ.setdefault("RMW_IMPLEMENTATION", "rmw_fastrtps_cpp")
-_worker = os.environ.get("PYTEST_XDIST_WORKER", "gw0")
-_base = int(os.environ.get("FICAP_TEST_DOMAIN_BASE", "60"))
-os.environ["ROS_DOMAIN_ID"] = str(_base + int(_worker.lstrip("gw") or 0))
+_worker = int(os.environ.get("PYTEST_XDIST_WORKER", "gw0").lstrip("gw") or 0)
+os.environ["ROS_DOMAIN_ID"] = str(int(os.environ.get("ROS_DOMAIN_ID") or 60) + _worker)
 
 from pathlib import Path  # noqa: E402
 
@@ -28,7 +27,20 @@ def real_apriltag_dir() -> Path:
     return REAL_APRILTAG
 
 
-# Property tests (test_fuzz_readers.py): derandomized, so a failure reproduces on every run and
+@pytest.fixture(scope="session")
+def mapping_photos(real_apriltag_dir: Path) -> tuple[Path, dict[str, set[int]]]:
+    """The hand-labelled mapping photos kept in test/data: their folder and, per photo, the ids of
+    the tags it shows (groundtruth.txt)."""
+    root = real_apriltag_dir / "swatbotics_mapping_feb_2014"
+    truth = {}
+    for line in (root / "groundtruth.txt").read_text().splitlines():
+        parts = line.split()
+        if parts:
+            truth[parts[0]] = set(map(int, parts[1:]))
+    return root, truth
+
+
+# Property tests (hypothesis): derandomized, so a failure reproduces on every run and
 # machine; no example database written into the checkout; no deadline on a shared 2-core box.
 from hypothesis import settings as _hypothesis_settings  # noqa: E402
 

@@ -1,5 +1,5 @@
-"""The package's layering (README 'Layout'): no module imports one above it, and the README's
-table lists every module."""
+"""The package's layering: subpackages stacked bottom up, each importing only from those below it,
+and only the ROS skin importing rclpy."""
 
 from __future__ import annotations
 
@@ -7,74 +7,65 @@ import ast
 import re
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[1]
+PACKAGE = ROOT / "ficap_ros"
 
-#: Bottom up, as in README's Layout section.
-LAYERS = [
-    ["errors", "stamps", "native_log", "mailbox"],
-    ["files", "transform", "metrics"],
-    ["image_codec", "bag_salvage"],
-    ["camera", "cap_model"],
-    ["calibration", "messages"],
-    ["photometric"],
-    ["detection", "bag_io"],
-    ["bag_writer"],
-    ["pose"],
-    ["tracking"],
-    ["pipeline"],
-    ["report"],
-    ["live"],
-    ["labels", "synth", "model_build", "kit"],
-    ["replay", "evaluation"],
-    ["fleet"],
-    ["ros_msgs", "ros_params"],
-    ["node"],
-    ["ros_demo"],
-    ["cli", "commands"],
-]
-#: (importer, imported) pairs allowed to break the layering: none.
-EXCEPTIONS: set[tuple[str, str]] = set()
+#: Bottom up. The loose modules (errors, files, stamps) are the bottom layer every subpackage uses.
+LAYERS = ["", "geometry", "vision", "io", "tools", "ros", "cli"]
+#: The loose modules at the top of ficap_ros/ (the bottom layer), besides ``__init__``.
+LOOSE = {"errors", "files", "stamps"}
 
 
-def _imports(path: Path) -> set[str]:
+def _layer(path: Path) -> str:
+    rel = path.relative_to(PACKAGE)
+    return rel.parts[0] if len(rel.parts) > 1 else ""
+
+
+def _imported_layers(path: Path) -> set[str]:
     out = set()
     for n in ast.walk(ast.parse(path.read_text())):
+        names: list[str] = []
         if isinstance(n, ast.ImportFrom) and n.module and n.module.startswith("ficap_ros"):
-            parts = n.module.split(".")
-            out |= {a.name for a in n.names} if len(parts) == 1 else {parts[1]}
+            names = [n.module + "." + a.name for a in n.names] if n.module == "ficap_ros" else [n.module]
         elif isinstance(n, ast.Import):
-            out |= {a.name.split(".")[1] for a in n.names if a.name.startswith("ficap_ros.")}
+            names = [a.name for a in n.names if a.name.startswith("ficap_ros.")]
+        for name in names:
+            parts = name.split(".")
+            out.add(parts[1] if len(parts) > 1 and parts[1] in LAYERS else "")
     return out
 
 
-def test_no_module_imports_one_above_it() -> None:
-    level = {m: i for i, row in enumerate(LAYERS) for m in row}
-    modules = {p.stem for p in (ROOT / "ficap_ros").glob("*.py")} - {"__init__"}
-    assert modules | {"commands"} == set(level), "a module missing from LAYERS (or gone)"
+def test_subpackages_and_loose_modules() -> None:
+    subpackages = {p.name for p in PACKAGE.iterdir() if p.is_dir() and (p / "__init__.py").exists()}
+    assert subpackages == set(LAYERS) - {""}
+    loose = {p.stem for p in PACKAGE.glob("*.py")} - {"__init__"}
+    assert loose == LOOSE
+
+
+def test_no_module_imports_a_layer_above_it() -> None:
     upward = []
-    for path in sorted((ROOT / "ficap_ros").rglob("*.py")):
-        me = "commands" if path.parent.name == "commands" else path.stem
-        if me == "__init__":
-            continue
-        for other in _imports(path) & set(level):
-            if other != me and level[other] >= level[me] and me != "commands" \
-                    and (me, other) not in EXCEPTIONS:
-                upward.append(f"{path.name} imports {other}")
+    for path in sorted(PACKAGE.rglob("*.py")):
+        me = LAYERS.index(_layer(path))
+        for other in _imported_layers(path):
+            if LAYERS.index(other) > me:
+                upward.append(f"{path.relative_to(PACKAGE)} imports ficap_ros.{other}")
     assert not upward, upward
 
 
-def test_readme_layout_lists_every_module() -> None:
-    text = (ROOT / "README.md").read_text()
-    block = text[text.index("## Layout"):]
-    block = block[:block.index("\n## ", 5)]
-    listed = set(re.findall(r"\b([a-z_]+)\.py\b", block))
-    modules = {p.stem for p in (ROOT / "ficap_ros").glob("*.py")} - {"__init__"}
-    assert modules <= listed, sorted(modules - listed)
-
-
 def test_only_the_ros_skin_imports_rclpy() -> None:
-    for path in sorted((ROOT / "ficap_ros").rglob("*.py")):
-        if path.name == "node.py" or path.name.startswith("ros_"):
+    for path in sorted(PACKAGE.rglob("*.py")):
+        if _layer(path) in ("ros", "cli") and path.stem != "live":
             continue
         text = path.read_text()
-        assert not re.search(r"^\s*(import|from) rclpy\b", text, re.M), path.name
+        assert not re.search(r"^\s*(import|from) (rclpy|\w+_msgs|rcl_interfaces)\b", text, re.M), \
+            path.relative_to(PACKAGE)
+
+
+@pytest.mark.xfail(strict=True, reason="transform.py and pose.py still use scipy's private kernels")
+def test_no_private_library_internals() -> None:
+    for path in sorted(PACKAGE.rglob("*.py")):
+        text = path.read_text()
+        assert not re.search(r"_rotation_cy|_minpack|from scipy[.\w]* import _", text), \
+            path.relative_to(PACKAGE)

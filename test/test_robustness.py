@@ -20,18 +20,19 @@ import numpy as np
 import pytest
 import yaml
 
-from ficap_ros.bag_io import (
+from ficap_ros.io.sources import (
     CAMERA_INFO_TYPE,
     COMPRESSED_TYPE,
     IMAGE_TYPE,
     open_bag_reader,
     open_frames,
 )
-from ficap_ros.bag_writer import BagWriter, camera_info_msg, compressed_image_msg, image_msg
-from ficap_ros.calibration import load_calibration, save_calibration
-from ficap_ros.camera import CameraModel, camera_from_info, load_camera_yaml
-from ficap_ros.cap_model import load_model
-from ficap_ros.cli import EXIT_FRAMES_LOST, main
+from ficap_ros.io.bag_writer import BagWriter, camera_info_msg, compressed_image_msg, image_msg
+from ficap_ros.vision.calibration import load_calibration, save_calibration
+from ficap_ros.geometry.camera import CameraModel, camera_from_info, load_camera_yaml
+from ficap_ros.geometry.cap_model import load_model
+from ficap_ros.cli.args import EXIT_FRAMES_LOST
+from ficap_ros.cli.main import main
 from ficap_ros.errors import (
     BagError,
     CalibrationError,
@@ -42,8 +43,8 @@ from ficap_ros.errors import (
     OutputError,
 )
 from ficap_ros.files import check_replaceable
-from ficap_ros.labels import read_labels
-from ficap_ros.calibration import HeadCalibration
+from ficap_ros.io.labels import read_labels
+from ficap_ros.vision.calibration import HeadCalibration
 
 ROOT = Path(__file__).resolve().parents[1]
 FICAP = [sys.executable, "-m", "ficap_ros.cli"]
@@ -473,7 +474,7 @@ def test_output_paths_fail_in_one_line(replayed: Path, tmp_path: Path,
     assert main(["calibrate", str(replayed), "--frontal", "0:2", "--out", str(tmp_path)]) == 1
     _one_error_line(capsys)
     # model build checks its outputs before reading any input.
-    import ficap_ros.bag_io as bag_io
+    import ficap_ros.io.sources as bag_io
 
     def never(*a, **k):  # noqa: ANN002, ANN003, ANN202
         raise AssertionError("inputs read before the output was checked")
@@ -551,8 +552,8 @@ def test_ctrl_c_during_parallel_replay_prints_one_line(tmp_path: Path) -> None:
 def test_libjpeg_messages_are_throttled() -> None:
     code = (
         "import numpy as np, cv2\n"
-        "from ficap_ros.native_log import ThrottledStderr\n"
-        "from ficap_ros.image_codec import decode_compressed\n"
+        "from ficap_ros.io.native_log import ThrottledStderr\n"
+        "from ficap_ros.io.image_codec import decode_compressed\n"
         "img = np.random.default_rng(0).integers(0, 255, (120, 160), dtype=np.uint8)\n"
         "jpg = cv2.imencode('.jpg', img)[1].tobytes()\n"
         "bad = jpg[: len(jpg) // 2] + bytes(50) + jpg[-2:]\n"
@@ -579,7 +580,7 @@ def test_pixel_budget(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
     assert "budget" in _one_error_line(capsys)
     monkeypatch.setenv("FICAP_MAX_PIXELS", "1000")
     with pytest.raises(ImageError, match="budget"):
-        from ficap_ros.image_codec import decode_image
+        from ficap_ros.io.image_codec import decode_image
 
         decode_image("mono8", 48, 64, 64, bytes(48 * 64))
 
@@ -597,7 +598,7 @@ def test_detect_reports_good_images_beside_a_bad_one(real_apriltag_dir: Path, tm
 
 def test_jobs_capped_at_available_cores(drive: Path, tmp_path: Path,
                                         capsys: pytest.CaptureFixture[str]) -> None:
-    from ficap_ros.replay import available_cores, capped_jobs
+    from ficap_ros.tools.replay import available_cores, capped_jobs
 
     cores = available_cores()
     assert capped_jobs(cores + 14) == (cores, f"--jobs {cores + 14} capped at {cores}, "
@@ -625,7 +626,7 @@ def test_camera_info_with_only_p_one_rule_for_node_and_bags() -> None:
         p=np.array(p), binning_x=0, binning_y=0,
         roi=t["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
                                                   do_rectify=False))
-    from ficap_ros import ros_msgs
+    from ficap_ros.ros import msgs as ros_msgs
 
     node_cam = ros_msgs.camera_info_to_model(ros)
     bag_cam = camera_from_info(bag)
@@ -644,7 +645,7 @@ def test_camera_info_with_only_p_one_rule_for_node_and_bags() -> None:
 def test_node_survives_binary_files_and_never_overwrites_them(binary: dict[str, Path],
                                                               tmp_path: Path) -> None:
     from std_srvs.srv import Trigger
-    from test_node import Harness
+    from node_harness import Harness
 
     bad = binary["bin"]
     before = bad.read_bytes()
@@ -663,9 +664,9 @@ def test_node_survives_binary_files_and_never_overwrites_them(binary: dict[str, 
 def test_node_calibrate_says_when_the_file_was_not_saved(tmp_path: Path) -> None:
     from scipy.spatial.transform import Rotation
     from std_srvs.srv import Trigger
-    from test_node import Harness
+    from node_harness import Harness
 
-    from ficap_ros.calibration import CalibrationResult
+    from ficap_ros.vision.calibration import CalibrationResult
 
     blocker = tmp_path / "file"
     blocker.write_text("x")

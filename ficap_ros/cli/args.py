@@ -1,0 +1,71 @@
+"""Argument types and exit codes shared by the verbs: each type returns the parsed value or raises
+``argparse.ArgumentTypeError`` with one line, which argparse prints before exiting with 2."""
+
+from __future__ import annotations
+
+import argparse
+import math
+
+__all__ = ["EXIT_FRAMES_LOST", "int_at_least", "positive_int", "non_negative_int", "finite_float",
+           "positive_float", "non_negative_float", "time_window"]
+
+#: Exit code of a verb that finished but lost frames to a damaged (cut, corrupt) input.
+EXIT_FRAMES_LOST = 3
+
+
+def int_at_least(text: str, least: int) -> int:
+    """An integer >= ``least`` for argparse (``ArgumentTypeError`` with one line otherwise)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer, got {text!r}") from None
+    if value < least:
+        raise argparse.ArgumentTypeError(f"expected at least {least}, got {value}")
+    return value
+
+
+def positive_int(text: str) -> int:
+    """argparse type for counts (frames, pairs): an integer >= 1."""
+    return int_at_least(text, 1)
+
+
+def non_negative_int(text: str) -> int:
+    """argparse type for a count that may be 0 (retries): an integer >= 0."""
+    return int_at_least(text, 0)
+
+
+def finite_float(text: str) -> float:
+    """argparse type for a real number: NaN and infinity are refused (they poison every result)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected a finite number, got {text!r}")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """argparse type for a rate or a size: a finite number > 0."""
+    value = finite_float(text)
+    if not value > 0:
+        raise argparse.ArgumentTypeError(f"expected a positive number, got {value}")
+    return value
+
+
+def non_negative_float(text: str) -> float:
+    """argparse type for a size or a duration that may be 0: a finite number >= 0."""
+    value = finite_float(text)
+    if not value >= 0:
+        raise argparse.ArgumentTypeError(f"expected a number >= 0, got {value}")
+    return value
+
+
+def time_window(text: str) -> tuple[float, float]:
+    """argparse type for ``START:END`` seconds (``replay.parse_window``)."""
+    from ficap_ros.tools.replay import parse_window
+
+    try:
+        return parse_window(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None

@@ -1,0 +1,73 @@
+"""``ficap detect``: print every tag36h11 detection in images (not filtered by a cap model)."""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = "detect every tag36h11 tag in images and print ids and corners (OpenCV order and pixels)"
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("images", nargs="+", metavar="IMAGE", help="image files")
+    parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
+    parser.add_argument("--backend", choices=("opencv", "apriltag"), default="opencv",
+                        help="detector backend (default: opencv)")
+    parser.add_argument("--refine", choices=("edge", "subpix", "apriltag", "none"), default="edge",
+                        help="corner refinement (default: edge)")
+    parser.add_argument("--photometric", action="store_true",
+                        help="with edge refinement: fit each tag's pattern, blurred in linear light and "
+                             "through a tone curve, to its pixels (more accurate on noisy frames, "
+                             "~ms per tag; docs/detection.md)")
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+    import os
+    import sys
+
+    import cv2
+
+    from ficap_ros.vision.detection import DetectorConfig, TagDetector
+    from ficap_ros.errors import FicapError, ImageError
+    from ficap_ros.io.image_codec import check_pixel_budget
+
+    detector = TagDetector(DetectorConfig(backend=args.backend, corner_refine=args.refine,
+                                          edge_photometric=args.photometric))
+    results = []
+    failed = 0
+    # Each image is reported as soon as it is done: one bad file among many costs its own line,
+    # not the results of the others.
+    for path in args.images:
+        try:
+            if not os.path.isfile(path):  # before OpenCV, which prints its own WARN line for it
+                raise ImageError(f"cannot read image {path!r} (no such file)")
+            image = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
+            if image is None:
+                raise ImageError(f"cannot read image {path!r} (missing, unreadable or not an image)")
+            check_pixel_budget(image.shape[1], image.shape[0], what=f"image {path!r}")
+            dets = detector.detect(image)
+        except (FicapError, cv2.error) as err:
+            failed += 1
+            message = str(err).strip().splitlines()[-1] if str(err).strip() else type(err).__name__
+            print(f"ficap: error: {message}", file=sys.stderr)
+            if args.json:
+                results.append({"image": path, "error": message})
+            continue
+        res = {
+            "image": path,
+            "detections": [
+                {"id": d.tag_id, "corners_px": [[round(float(x), 4), round(float(y), 4)]
+                                                for x, y in d.corners_px]}
+                for d in dets
+            ],
+        }
+        if args.json:
+            results.append(res)
+            continue
+        print(f"{res['image']}: {len(res['detections'])} tag(s)")
+        for det in res["detections"]:
+            corners = "  ".join(f"({x:8.2f}, {y:8.2f})" for x, y in det["corners_px"])
+            print(f"  id {det['id']:4d}  {corners}", flush=True)
+    if args.json:
+        print(json.dumps(results, indent=1))
+    return 1 if failed else 0

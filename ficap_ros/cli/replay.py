@@ -1,0 +1,186 @@
+"""``ficap replay``: a recorded drive (bag, .mcap or video) into head-pose labels."""
+
+from __future__ import annotations
+
+import argparse
+
+from ficap_ros.cli.args import non_negative_int, positive_float, positive_int, time_window
+
+HELP = ("replay rosbag2 bags, .mcap files or videos (or folder trees of them, or a manifest) "
+        "through the pipeline; write labels.mcap, labels.csv and summary.json per recording, "
+        "optionally on Ray")
+
+
+def add_input_arguments(parser: argparse.ArgumentParser, many: bool = False) -> None:
+    """The options that say how to read a recording (shared with ``ficap stats``); ``many``:
+    several inputs (recordings or folder trees holding them)."""
+    if many:
+        parser.add_argument("input", metavar="INPUT", nargs="*",
+                            help="rosbag2 folders (sqlite3 or MCAP), .mcap/.db3 files or videos, or "
+                                 "folders searched for them (outputs mirror the inputs under --out)")
+    else:
+        parser.add_argument("input", metavar="INPUT",
+                            help="labels.csv or a replay output folder (counted as they are), or a "
+                                 "rosbag2 folder (sqlite3 or MCAP), single .mcap/.db3 file or video "
+                                 "(the pipeline runs)")
+    parser.add_argument("--image-topic", help="Image or CompressedImage topic (auto when only one)")
+    parser.add_argument("--camera-info-topic", help="CameraInfo topic (auto)")
+    parser.add_argument("--rectified", action="store_true",
+                        help="the images are rectified: use CameraInfo P, no distortion (the "
+                             "node's image_is_rectified; default: raw images, K and D)")
+    parser.add_argument("--intrinsics", metavar="CAMERA_YAML",
+                        help="camera_calibration YAML; required for a video, overrides CameraInfo")
+    parser.add_argument("--fps", type=positive_float,
+                        help="video frame rate (default: the container's)")
+    parser.add_argument("--model", help="as-built cap model YAML (default: nominal)")
+    parser.add_argument("--method", choices=("joint", "paper"), default="joint",
+                        help="cap pose estimator (default: joint)")
+    parser.add_argument("--jobs", type=positive_int, default=1,
+                        help="worker processes, capped at the cores available (default 1; "
+                             "output identical to --jobs 1)")
+    parser.add_argument("--quiet", action="store_true", help="no progress output")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    add_input_arguments(parser, many=True)
+    parser.add_argument("--photometric", action="store_true",
+                        help="corners' last step: fit each tag's pattern, blurred in linear light and "
+                             "through a tone curve, to its pixels (more accurate on noisy frames, "
+                             "~0.9 ms per tag; every recording of a fleet, any engine; docs/detection.md)")
+    parser.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
+    parser.add_argument("--calibration", metavar="FILE",
+                        help="head calibration YAML (ficap calibrate / the node's service)")
+    parser.add_argument("--calibrate-frontal", type=time_window, metavar="START:END",
+                        help="seconds from the start in which the wearer looks straight ahead: "
+                             "calibrate R_cap_head from them and apply it to every frame")
+    parser.add_argument("--namespace", default="",
+                        help="topic namespace in labels.mcap (default: none, as the node: /head_pose ...)")
+    fleet = parser.add_argument_group(
+        "fleet", "several recordings: one output folder each under --out (mirroring the inputs) "
+                 "and fleet_summary.csv/.json/.png; recordings whose outputs match this run's "
+                 "fingerprint are skipped")
+    fleet.add_argument("--manifest", metavar="FILE",
+                       help="text file listing inputs, one per line (relative to the file; "
+                            "# comments); relative entries mirror their paths under --out")
+    fleet.add_argument("--ray", action="store_true",
+                       help="run on an embedded local Ray (loopback only; --jobs CPUs)")
+    fleet.add_argument("--ray-address", metavar="ADDR",
+                       help="run on an existing Ray cluster (e.g. auto, HEAD:6379)")
+    fleet.add_argument("--retries", type=non_negative_int, default=2, metavar="N",
+                       help="Ray: re-runs of a segment whose worker died (default 2)")
+    fleet.add_argument("--force", action="store_true",
+                       help="redo recordings whose outputs are already current")
+    fleet.add_argument("--videos", action="store_true",
+                       help="also take video files found in searched folders (needs --intrinsics)")
+
+
+def open_source(args: argparse.Namespace, path: object = None):  # noqa: ANN201 - FrameSource
+    from ficap_ros.io.sources import open_frames
+
+    return open_frames(args.input if path is None else path, args.image_topic,
+                       args.camera_info_topic, args.intrinsics, args.fps, args.rectified)
+
+
+def _is_fleet(args: argparse.Namespace) -> bool:
+    """Several recordings, a folder tree, a manifest or Ray: the fleet runner (ficap_ros.tools.fleet)."""
+    from pathlib import Path
+
+    from ficap_ros.tools.fleet import is_recording
+
+    return bool(len(args.input) != 1 or args.manifest or args.ray or args.ray_address
+                or not is_recording(Path(args.input[0]), videos=True))
+
+
+def cap_jobs(args: argparse.Namespace) -> int:
+    """``--jobs`` capped at the cores available; says so on stderr when it is."""
+    import sys
+
+    from ficap_ros.tools.replay import capped_jobs
+
+    jobs, note = capped_jobs(args.jobs)
+    if note:
+        print(f"ficap: {note}", file=sys.stderr)
+    return jobs
+
+
+def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from ficap_ros.geometry.cap_model import load_model, nominal_model
+    from ficap_ros.cli.args import EXIT_FRAMES_LOST
+    from ficap_ros.vision.detection import DetectorConfig
+    from ficap_ros.errors import BagError
+    from ficap_ros.files import check_output_folder, check_replaceable
+    from ficap_ros.vision.pose import PoseConfig
+    from ficap_ros.tools.replay import check_output_dir, keep_freed_memory, replay
+
+    keep_freed_memory()  # this process decodes and processes the frames (--jobs 1)
+    model = load_model(args.model) if args.model else nominal_model()
+    detector = DetectorConfig(edge_photometric=args.photometric)
+    calibration = None
+    if args.calibration:
+        from ficap_ros.vision.calibration import load_calibration
+
+        calibration = load_calibration(args.calibration)
+    if not args.input and not args.manifest:
+        from ficap_ros.errors import ConfigError
+
+        raise ConfigError("give at least one INPUT or --manifest FILE")
+    if _is_fleet(args):
+        # The fleet's --out holds a folder per recording: every file in it must be ficap's.
+        check_replaceable(args.out, subfolders=True)
+        check_output_dir(Path(args.out))
+        return _run_fleet(args, model, calibration, detector)
+    args.input = args.input[0]
+    check_output_folder(Path(args.out), [args.input])  # before any processing
+    jobs = cap_jobs(args)
+    source = open_source(args)
+    out = replay(source, args.out, model, PoseConfig(method=args.method), calibration,
+                 args.calibrate_frontal, jobs, args.namespace, progress=not args.quiet,
+                 detector=detector)
+    s = out.summary
+    line = (f"{s['frames']} frames, {s['frames_with_pose']} with a pose "
+            f"({s['pct_with_pose']:.1f} %), >=1 tag {s['pct_ge1_tag']:.1f} %, >=4 tags "
+            f"{s['pct_ge4_tags']:.1f} %, {s['frames_skipped']} skipped, "
+            f"{s['throughput_fps']} fps -> {args.out}")
+    if out.loss is not None:
+        line += f"; {out.loss.describe(source.start_ns)}"
+    print(line)
+    if s["frames"] and not s["frames_decoded"]:
+        reasons = s["skipped_reasons"]
+        top = max(reasons, key=reasons.get) if reasons else "no image decoded"
+        raise BagError(f"none of the {s['frames']} frames could be used ({top})")
+    if s["frames"] == 0:
+        raise BagError(f"{args.input} holds no image on {source.image_topic or 'its video track'}")
+    return EXIT_FRAMES_LOST if out.loss is not None else 0
+
+
+def _run_fleet(args: argparse.Namespace, model, calibration, detector) -> int:  # noqa: ANN001
+    from pathlib import Path
+
+    from ficap_ros.tools.fleet import find_recordings, label_settings, run_fleet
+    from ficap_ros.vision.pose import PoseConfig
+
+    recordings = find_recordings(args.input, args.manifest, args.out, videos=args.videos)
+    pose = PoseConfig(method=args.method)
+    settings = label_settings(model, pose, calibration, args.calibrate_frontal, args.namespace,
+                              args.image_topic, args.camera_info_topic, args.intrinsics, args.fps,
+                              args.rectified, detector)
+    single = len(recordings) == 1 and str(recordings[0].rel) == "."
+    fleet = run_fleet(
+        recordings, args.out, lambda path: open_source(args, path), model, pose, settings,
+        calibration, args.calibrate_frontal, args.namespace, args.jobs, args.ray_address,
+        args.ray, args.retries, args.force, progress=not args.quiet, summary_files=not single,
+        detector=detector)
+    for r in fleet.results:
+        if r.status == "failed":
+            print(f"{r.rel}: failed: {r.error}")
+        elif r.status == "damaged":
+            print(f"{r.rel}: damaged: {r.frames} frames recovered, {r.frames_lost} lost")
+    frames = sum(r.frames for r in fleet.results if r.status in ("done", "damaged"))
+    print(f"{len(fleet.results)} recordings: {fleet.count('done')} done, "
+          f"{fleet.count('skipped')} skipped (current), {fleet.count('damaged')} damaged, "
+          f"{fleet.count('failed')} failed; {frames} frames in {fleet.wall_s:.1f} s "
+          f"({fleet.engine}, {fleet.workers} workers) -> {Path(args.out) / ('' if single else 'fleet_summary.csv')}")
+    # 1: a recording has no labels; 3 (as a single replay of a damaged input): frames were lost.
+    return 1 if fleet.count("failed") else 3 if fleet.count("damaged") else 0

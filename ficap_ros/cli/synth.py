@@ -1,0 +1,217 @@
+"""``ficap synth``: a rendered drive as a rosbag2 MCAP bag with exact ground truth."""
+
+from __future__ import annotations
+
+import argparse
+
+from ficap_ros.cli.args import non_negative_float, positive_float, positive_int
+
+HELP = ("render a naturalistic drive of the cap into a rosbag2 MCAP bag: CompressedImage (JPEG), "
+        "CameraInfo and ground-truth cap and head poses")
+
+#: Topics of a synth bag.
+IMAGE_TOPIC = "/camera/image_raw/compressed"
+CAMERA_INFO_TOPIC = "/camera/camera_info"
+TRUTH_CAP_TOPIC = "/ficap/truth/cap_pose"
+TRUTH_HEAD_TOPIC = "/ficap/truth/head_pose"
+TRUTH_HEAD_CAMERA_TOPIC = "/ficap/truth/head_pose_camera"
+TRUTH_FRONTAL_TOPIC = "/ficap/truth/frontal"
+CAMERA_FRAME = "camera_optical_frame"
+FRONTAL_FRAME = "frontal"
+#: First stamp of a synth bag (2023-11-14 22:13:20 UTC): a realistic epoch, fixed so bags are
+#: reproducible.
+START_NS = 1_700_000_000_000_000_000
+
+
+def _resolution(text: str) -> str | tuple[int, int]:
+    if "x" in text.lower():
+        w, _, h = text.lower().partition("x")
+        try:
+            size = (int(w), int(h))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"expected WxH, got {text!r}") from None
+        if min(size) < 64:
+            raise argparse.ArgumentTypeError(f"resolution {text} is too small")
+        from ficap_ros.errors import ImageError
+        from ficap_ros.io.image_codec import check_pixel_budget
+
+        try:
+            check_pixel_budget(*size, what="rendered image")
+        except ImageError as err:
+            raise argparse.ArgumentTypeError(str(err)) from None
+        return size
+    return text
+
+
+def _jpeg_quality(text: str) -> int:
+    """argparse type for a JPEG quality: an integer in 1..100."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer in 1..100, got {text!r}") from None
+    if not 1 <= value <= 100:
+        raise argparse.ArgumentTypeError(f"expected an integer in 1..100, got {value}")
+    return value
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--out", required=True, metavar="BAG", help="output rosbag2 folder")
+    parser.add_argument("--resolution", type=_resolution, default="540p",
+                        help="540p, 1080p (also 360p, 720p) or WxH (default 540p)")
+    parser.add_argument("--lighting", choices=("neutral", "high", "low"), default="neutral",
+                        help="the paper's illumination conditions (default neutral)")
+    parser.add_argument("--frames", type=positive_int, default=300, help="frames (default 300)")
+    parser.add_argument("--fps", type=positive_float, default=30.0,
+                        help="frame rate, Hz (default 30)")
+    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
+    parser.add_argument("--frontal-s", type=non_negative_float, default=3.0,
+                        help="initial looking-straight-ahead segment, s (default 3)")
+    parser.add_argument("--jpeg-quality", type=_jpeg_quality, default=95,
+                        help="JPEG quality, 1..100 (default 95)")
+    cam = parser.add_argument_group(
+        "camera", "the image formation chain (linear light -> lens PSF -> motion blur -> sensor -> "
+        "tone curve -> 8 bit -> JPEG; see ficap_ros.tools.synth)")
+    cam.add_argument("--psf-sigma-px", type=non_negative_float, default=None,
+                     help="Gaussian lens PSF sigma, px, in linear light (default 0.7 px at 1080p, "
+                     "times sqrt(height/1080); 0 = none)")
+    cam.add_argument("--defocus-px", type=non_negative_float, default=0.0,
+                     help="radius of a defocus disc PSF, px (default 0 = in focus)")
+    cam.add_argument("--tone", choices=("srgb", "gamma", "filmic", "linear"), default="srgb",
+                     help="the camera's tone curve (default srgb; linear = an idealised camera)")
+    cam.add_argument("--gamma", type=positive_float, default=2.2,
+                     help="exponent of --tone gamma: value ** (1/GAMMA) (default 2.2)")
+    cam.add_argument("--exposure-ms", type=positive_float, default=None,
+                     help="exposure time, ms (default: the lighting's auto-exposure: neutral 8, high 4, "
+                     "low 20); the gain follows unless --gain is given")
+    cam.add_argument("--gain", type=positive_float, default=None,
+                     help="sensor gain (default auto: keeps the lighting's brightness)")
+    cam.add_argument("--motion-blur", action="store_true",
+                     help="integrate the head motion over the exposure (truth = mid-exposure pose)")
+    cam.add_argument("--no-noise", action="store_true", help="no shot or read noise")
+    parser.add_argument("--model", help="cap model YAML to render (default: nominal)")
+    parser.add_argument("--quiet", action="store_true", help="no progress output")
+
+
+def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from ficap_ros.geometry.cap_model import load_model, nominal_model
+    from ficap_ros.errors import BagError
+    from ficap_ros.tools.synth import RenderConfig
+
+    # NaN, infinite, negative or zero knobs are argparse's (exit 2, as every verb's numbers).
+    out = Path(args.out)
+    if out.exists():
+        raise BagError(f"{out} exists already; choose a new --out")
+    # Built here so a bad knob fails before anything is written.
+    config = RenderConfig(lighting=args.lighting, background_seed=args.seed, psf_sigma_px=args.psf_sigma_px,
+                          defocus_radius_px=args.defocus_px, tone=args.tone, gamma=args.gamma,
+                          exposure_ms=args.exposure_ms, gain=args.gain, noise=not args.no_noise)
+    model = load_model(args.model) if args.model else nominal_model()
+    info = write_synth_bag(out, model, args.resolution, args.lighting, args.frames, args.fps,
+                           args.seed, args.jpeg_quality, progress=not args.quiet,
+                           frontal_s=args.frontal_s, config=config, motion_blur=args.motion_blur)
+    print(f"{args.frames} frames {info['width']}x{info['height']} {args.lighting} -> {out} "
+          f"({info['fps_rendered']:.1f} frames/s rendered)")
+    return 0
+
+
+def write_synth_bag(
+    out, model, resolution="540p", lighting="neutral", frames=300, fps=30.0, seed=0,
+    jpeg_quality=95, progress=True, frontal_s=3.0, config=None, motion_blur=False,
+) -> dict:
+    """Render ``ficap_ros.tools.synth.naturalistic_drive`` into a rosbag2 MCAP folder at ``out``.
+
+    ``config`` (a ``synth.RenderConfig``; default: the realistic chain for ``lighting``) sets the
+    camera; with ``motion_blur`` each frame integrates the motion over its exposure, centred on
+    the frame's stamp (the truth is the pose at the stamp).
+
+    Topics (all stamped START_NS + the drive's stamp; header stamp = bag receive time):
+        ``/camera/image_raw/compressed`` CompressedImage (JPEG), frame ``camera_optical_frame``;
+        ``/camera/camera_info`` CameraInfo, one per image;
+        ``/ficap/truth/cap_pose`` PoseStamped: true T_cam_cap (camera optical frame);
+        ``/ficap/truth/head_pose`` PoseStamped, frame ``frontal``: true head pose in the frontal
+            frame F (orientation R_frontal_head, position the cap origin in F), what
+            ``ficap evaluate`` compares against labels.csv's head_q*;
+        ``/ficap/truth/head_pose_camera`` PoseStamped: true T_cam_head (as the node's head_pose);
+        ``/ficap/truth/frontal`` std_msgs/Bool: inside the initial looking-ahead segment.
+    The scene's true R_cap_head and R_cam_frontal go into the bag's custom metadata
+    (``ficap.R_cap_head_q_wxyz`` ...).
+
+    Returns:
+        dict with width, height, frames, fps_rendered.
+    """
+    import dataclasses
+    import json
+    import time
+
+    import cv2
+    import numpy as np
+
+    from ficap_ros.tools import synth
+    from ficap_ros.io.sources import CAMERA_INFO_TYPE, COMPRESSED_TYPE, jazzy_typestore
+    from ficap_ros.io.bag_writer import (
+        BagWriter,
+        camera_info_msg,
+        compressed_image_msg,
+        pose_stamped_msg,
+    )
+    from ficap_ros.tools.replay import Progress
+    from ficap_ros.geometry.transform import Transform
+
+    scene = synth.default_scene(resolution)
+    camera = scene.camera
+    motion = synth.naturalistic_motion(frames / fps, seed, scene, frontal_s=frontal_s)
+    drive = [motion.frame(i, fps) for i in range(frames)]
+    if config is None:
+        config = synth.RenderConfig(lighting=lighting, background_seed=seed, **synth.REALISTIC)
+    elif config.lighting != lighting:
+        config = dataclasses.replace(config, lighting=lighting)
+    exposure_ms, gain = config.exposure_and_gain()
+    bool_type = jazzy_typestore().types["std_msgs/msg/Bool"]
+    bar = Progress(len(drive), "frames rendered", enabled=progress)
+    t0 = time.perf_counter()
+
+    def q_wxyz(r) -> str:
+        x, y, z, w = r.as_quat(canonical=True)
+        return json.dumps([round(float(v), 12) for v in (w, x, y, z)])
+
+    with BagWriter(out, storage="mcap", layout="folder") as bag:
+        bag.set_custom_data("ficap.R_cap_head_q_wxyz", q_wxyz(scene.R_cap_head))
+        bag.set_custom_data("ficap.R_cam_frontal_q_wxyz", q_wxyz(scene.R_cam_frontal))
+        bag.set_custom_data("ficap.synth", json.dumps(
+            {"resolution": [camera.width_px, camera.height_px], "lighting": lighting,
+             "frames": frames, "fps": fps, "seed": seed, "jpeg_quality": jpeg_quality,
+             "frontal_s": frontal_s, "psf_sigma_px": config.psf_sigma_for(camera.height_px),
+             "defocus_radius_px": config.defocus_radius_px, "tone": config.tone, "gamma": config.gamma,
+             "exposure_ms": exposure_ms, "gain": gain, "noise": config.noise,
+             "motion_blur": bool(motion_blur)}))
+        bag.add_topic(IMAGE_TOPIC, COMPRESSED_TYPE)
+        bag.add_topic(CAMERA_INFO_TOPIC, CAMERA_INFO_TYPE)
+        bag.add_topic(TRUTH_CAP_TOPIC, "geometry_msgs/msg/PoseStamped")
+        bag.add_topic(TRUTH_HEAD_TOPIC, "geometry_msgs/msg/PoseStamped")
+        bag.add_topic(TRUTH_HEAD_CAMERA_TOPIC, "geometry_msgs/msg/PoseStamped")
+        bag.add_topic(TRUTH_FRONTAL_TOPIC, "std_msgs/msg/Bool")
+        R_frontal_cam = Transform(scene.R_cam_frontal.inv(), np.zeros(3))
+        for f in drive:
+            stamp = START_NS + f.stamp_ns
+            pose = motion.around(f.stamp_ns / 1e9) if motion_blur else f.T_cam_cap
+            rendered = synth.render(model, camera, pose, config, seed=seed * 100003 + f.index)
+            ok, jpg = cv2.imencode(".jpg", rendered.image, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
+            if not ok:  # pragma: no cover - OpenCV always encodes a uint8 image
+                raise RuntimeError("JPEG encoding failed")
+            T_cam_head = Transform(f.T_cam_cap.rotation * scene.R_cap_head,
+                                   f.T_cam_cap.translation_m)
+            bag.write(CAMERA_INFO_TOPIC, stamp, camera_info_msg(stamp, CAMERA_FRAME, camera))
+            bag.write(IMAGE_TOPIC, stamp, compressed_image_msg(stamp, CAMERA_FRAME, jpg.tobytes()))
+            bag.write(TRUTH_CAP_TOPIC, stamp, pose_stamped_msg(stamp, CAMERA_FRAME, f.T_cam_cap))
+            bag.write(TRUTH_HEAD_TOPIC, stamp,
+                      pose_stamped_msg(stamp, FRONTAL_FRAME, R_frontal_cam * T_cam_head))
+            bag.write(TRUTH_HEAD_CAMERA_TOPIC, stamp,
+                      pose_stamped_msg(stamp, CAMERA_FRAME, T_cam_head))
+            bag.write(TRUTH_FRONTAL_TOPIC, stamp, bool_type(data=bool(f.frontal)))
+            bar.update()
+    bar.close()
+    elapsed = time.perf_counter() - t0
+    return {"width": camera.width_px, "height": camera.height_px, "frames": len(drive),
+            "fps_rendered": len(drive) / elapsed if elapsed > 0 else float("inf")}

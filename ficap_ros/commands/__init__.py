@@ -1,1 +1,0 @@
-"""One module per ``ficap`` verb (see ``ficap_ros.cli``)."""

@@ -1,0 +1,5 @@
+"""Files and recordings: image decoding, bags and videos as frame sources, damaged-bag salvage,
+bag writing, ROS messages over their fields (rclpy or rosbags classes), labels and frame status.
+
+No rclpy: it imports only ``vision``, ``geometry`` and the loose bottom modules.
+"""

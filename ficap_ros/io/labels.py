@@ -1,0 +1,388 @@
+"""Head-pose labels: one record per image, written as CSV and as a rosbag2 MCAP; read back.
+
+Frames and quaternions (CSV columns are w, x, y, z; ROS messages store x, y, z, w):
+    cap_q*, cap_*_m: T_cam_cap, the cap frame C in the camera optical frame (m).
+    head_q*, head_*_deg: R_frontal_head, the head frame H in the frontal frame F (the head's zero
+        pose); yaw/pitch/roll as in ``ficap_ros.geometry.metrics``: REP-103 (right-hand, intrinsic ZYX, as
+        tf2's getRPY), pitch positive nose DOWN. Identity-mounted (R_cap_head = I) until a
+        calibration is given (column ``calibrated``).
+    rot_err95_deg, trans_err95_mm: predicted 95 % bounds of this frame's cap pose error, the
+        geodesic rotation angle (deg) and the translation length (mm), from the covariance
+        (``ficap_ros.vision.pose``: residuals, corner bias, cap model, intrinsics); ``reliability`` is
+        derived from rot_err95_deg. They do not include the head calibration's own uncertainty.
+
+labels.mcap holds the live node's topics (``ficap_ros.ros.node``), with the same messages, each stamped
+with the image stamp (header and bag receive time), frame = the image's frame_id; names relative to
+``namespace`` (default none: ``/head_pose`` ...):
+    ``head_pose`` PoseStamped: T_cam_head = T_cam_cap * R_cap_head (camera optical frame).
+    ``head_pose/with_covariance`` PoseWithCovarianceStamped: the same with the estimator's 6x6
+        covariance (ROS order, camera axes).
+    ``cap_pose`` PoseStamped: T_cam_cap.
+    ``head_pose/frontal`` PoseStamped: T_frontal_head, frame ``ficap_frontal`` (F).
+    ``head_rpy_deg`` Vector3Stamped: x roll, y pitch, z yaw of H in F, degrees (REP-103).
+    ``quality`` JointState: ``name[i]`` labels ``position[i]``: tags_detected, tags_used,
+        reliability, rms_px, rot_err95_deg, trans_err95_mm (NaN without a pose); every image.
+    ``status`` DiagnosticArray, one status ``ficap`` per image, level and message as the node's
+        (``ficap_ros.io.status.frame_status``): OK with a pose, WARN without one or below reliability
+        0.5, ERROR for an undecodable image; values tags_detected, tags_used, rms_px, reliability,
+        calibrated and, with a pose, yaw_deg, pitch_deg, roll_deg (R_frontal_head).
+    ``/tf`` (never namespaced) tf2_msgs/TFMessage per posed image: ``ficap_frontal`` -> the camera
+        frame (R_frontal_cam, the frontal frame's orientation; origin at the camera), camera ->
+        ``ficap_cap`` (T_cam_cap), ``ficap_cap`` -> ``ficap_head`` (R_cap_head), so a 3-D view
+        (Foxglove, RViz) fixed in ``ficap_frontal`` shows the head moving.
+Poses exist in the bag only for images with a pose; status and quality for every image.
+"""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Iterable, Sequence
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ficap_ros.errors import BagError
+from ficap_ros.geometry.metrics import yaw_pitch_roll_deg
+from ficap_ros.io.status import (
+    is_skipped,
+    LabelRecord,
+    record_status,
+    quality_values,
+    record_from_pose,
+    record_from_result,
+    status_values,
+)
+from ficap_ros.geometry.transform import Transform, inverse
+
+__all__ = [
+    "LABEL_COLUMNS",
+    "DEFAULT_NAMESPACE",
+    "LabelRecord",
+    "Labels",
+    "record_from_pose",
+    "record_from_result",
+    "labels_csv_text",
+    "read_labels",
+    "read_labels_text",
+    "write_labels_bag",
+    "label_topics",
+]
+
+#: CSV columns, in order.
+LABEL_COLUMNS: tuple[str, ...] = (
+    "frame", "stamp_ns", "tags_detected", "tags_used", "rms_px", "reliability",
+    "rot_err95_deg", "trans_err95_mm",
+    "cap_qw", "cap_qx", "cap_qy", "cap_qz", "cap_x_m", "cap_y_m", "cap_z_m",
+    "head_qw", "head_qx", "head_qy", "head_qz", "head_yaw_deg", "head_pitch_deg", "head_roll_deg",
+    "calibrated", "method", "detected_ids", "used_ids", "reason",
+)
+DEFAULT_NAMESPACE = ""
+#: TF frame names of labels.mcap (the camera's is the image's frame_id).
+FRONTAL_FRAME = "ficap_frontal"
+CAP_FRAME = "ficap_cap"
+HEAD_FRAME = "ficap_head"
+
+
+def _f(value: float, digits: int) -> str:
+    return "" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
+
+
+def _csv_row(rec: LabelRecord) -> list[str]:
+    cap = [""] * 7
+    head = [""] * 7
+    if rec.T_cam_cap is not None and rec.T_frontal_head is not None:
+        cap = [_f(v, 9) for v in rec.T_cam_cap.q_wxyz] + [_f(v, 6) for v in rec.T_cam_cap.translation_m]
+        ypr = yaw_pitch_roll_deg(rec.T_frontal_head.rotation)
+        head = [_f(v, 9) for v in rec.T_frontal_head.q_wxyz] + [_f(v, 4) for v in ypr]
+    return [
+        str(rec.frame), str(rec.stamp_ns), str(rec.tags_detected), str(rec.tags_used),
+        _f(rec.rms_px, 4), _f(rec.reliability, 4), _f(rec.rot_err95_deg, 4),
+        _f(rec.trans_err95_mm, 3), *cap, *head, "1" if rec.calibrated else "0",
+        rec.method, " ".join(map(str, rec.detected_ids)), " ".join(map(str, rec.used_ids)),
+        rec.reason,
+    ]
+
+
+def labels_csv_text(records: Iterable[LabelRecord]) -> str:
+    """labels.csv content: a header row and one row per image (pose fields empty without a pose)."""
+    buf = io.StringIO()
+    writer = csv.writer(buf, lineterminator="\n")
+    writer.writerow(LABEL_COLUMNS)
+    for rec in records:
+        writer.writerow(_csv_row(rec))
+    return buf.getvalue()
+
+
+@dataclass(frozen=True)
+class Labels:
+    """labels.csv read back as columns (NaN where a field is empty).
+
+    Attributes:
+        stamp_ns: (N,) int64.
+        tags_detected, tags_used: (N,) int.
+        rms_px, reliability: (N,) float.
+        rot_err95_deg, trans_err95_mm: (N,) predicted 95 % error bounds (NaN where absent).
+        has_pose: (N,) bool.
+        q_cam_cap_wxyz: (N, 4); t_cam_cap_m: (N, 3).
+        q_frontal_head_wxyz: (N, 4); head_ypr_deg: (N, 3).
+        calibrated: (N,) bool.
+        detected_ids: per row, the detected tag ids.
+        reasons: per row, why there is no pose ("" with one).
+    """
+
+    stamp_ns: np.ndarray
+    tags_detected: np.ndarray
+    tags_used: np.ndarray
+    rms_px: np.ndarray
+    reliability: np.ndarray
+    has_pose: np.ndarray
+    q_cam_cap_wxyz: np.ndarray
+    t_cam_cap_m: np.ndarray
+    q_frontal_head_wxyz: np.ndarray
+    head_ypr_deg: np.ndarray
+    calibrated: np.ndarray
+    detected_ids: tuple[tuple[int, ...], ...]
+    reasons: tuple[str, ...]
+    rot_err95_deg: np.ndarray | None = None
+    trans_err95_mm: np.ndarray | None = None
+
+    def __len__(self) -> int:
+        return int(self.stamp_ns.size)
+
+    @property
+    def skipped(self) -> np.ndarray:
+        return np.array([is_skipped(r) for r in self.reasons], dtype=bool)
+
+    def cap_rotations(self) -> Rotation:
+        """R_cam_cap of the rows with a pose."""
+        return _rot_wxyz(self.q_cam_cap_wxyz[self.has_pose])
+
+    def head_rotations(self) -> Rotation:
+        """R_frontal_head of the rows with a pose."""
+        return _rot_wxyz(self.q_frontal_head_wxyz[self.has_pose])
+
+
+def _rot_wxyz(q_wxyz: np.ndarray) -> Rotation:
+    q = np.asarray(q_wxyz, dtype=np.float64).reshape(-1, 4)
+    return Rotation.from_quat(q[:, [1, 2, 3, 0]])
+
+
+def _num(text: str) -> float:
+    return float(text) if text.strip() else math.nan
+
+
+def read_labels_text(path: str | Path) -> tuple[Path, str]:
+    """The text of a CSV file, or of ``labels.csv`` inside a replay output folder.
+
+    Raises:
+        BagError: the file cannot be read.
+    """
+    from ficap_ros.files import read_text
+
+    path = Path(path)
+    if path.is_dir():
+        path = path / "labels.csv"
+    return path, read_text(path, "labels", BagError)
+
+
+def read_labels(path: str | Path) -> Labels:
+    """Read labels.csv (or a replay output folder holding one).
+
+    A last row cut short (no final newline, fewer fields) is dropped; any other row whose field
+    count differs from the header's is an error.
+
+    Raises:
+        BagError: missing file, not UTF-8 text, or not a labels CSV.
+    """
+    path, text = read_labels_text(path)
+    try:
+        table = [r for r in csv.reader(io.StringIO(text)) if r]
+    except csv.Error as err:
+        raise BagError(f"{path} is not a labels CSV: {err}") from err
+    columns = table[0] if table else []
+    body = table[1:]
+    if body and len(body[-1]) != len(columns) and not text.endswith("\n"):
+        body.pop()  # a last row cut short (an interrupted copy) is not a frame
+    for n, r in enumerate(body):
+        if len(r) != len(columns):
+            raise BagError(f"{path}: row {n + 2} has {len(r)} fields, the header {len(columns)}")
+    rows = [dict(zip(columns, r)) for r in body]
+    need = {"stamp_ns", "tags_detected", "cap_qw", "head_qw"}
+    header = set(columns)
+    if not need <= header:
+        raise BagError(f"{path} is not a labels CSV (missing {', '.join(sorted(need - header))})")
+    try:
+        def col(name: str) -> np.ndarray:
+            return np.array([_num(r.get(name) or "") for r in rows], dtype=np.float64)
+
+        stamps = np.array([int(r["stamp_ns"]) for r in rows], dtype=np.int64)
+        q_cap = np.stack([col(f"cap_q{a}") for a in "wxyz"], axis=-1).reshape(-1, 4)
+        t_cap = np.stack([col(f"cap_{a}_m") for a in "xyz"], axis=-1).reshape(-1, 3)
+        q_head = np.stack([col(f"head_q{a}") for a in "wxyz"], axis=-1).reshape(-1, 4)
+        ypr = np.stack([col(f"head_{a}_deg") for a in ("yaw", "pitch", "roll")],
+                       axis=-1).reshape(-1, 3)
+        ids = tuple(tuple(int(v) for v in (r.get("detected_ids") or "").split()) for r in rows)
+        return Labels(
+            stamp_ns=stamps,
+            tags_detected=col("tags_detected").astype(int),
+            tags_used=np.nan_to_num(col("tags_used")).astype(int),
+            rms_px=col("rms_px"),
+            reliability=col("reliability"),
+            has_pose=np.all(np.isfinite(q_cap), axis=1) & np.all(np.isfinite(q_head), axis=1),
+            q_cam_cap_wxyz=q_cap,
+            t_cam_cap_m=t_cap,
+            q_frontal_head_wxyz=q_head,
+            head_ypr_deg=ypr,
+            calibrated=np.array([(r.get("calibrated") or "0").strip() in ("1", "true", "True")
+                                 for r in rows], dtype=bool),
+            detected_ids=ids,
+            reasons=tuple((r.get("reason") or "") for r in rows),
+            rot_err95_deg=col("rot_err95_deg"),
+            trans_err95_mm=col("trans_err95_mm"),
+        )
+    except (ValueError, KeyError, TypeError) as err:
+        raise BagError(f"{path}: malformed labels row: {_first_bad_field(rows) or err}") from err
+
+
+def _first_bad_field(rows: list[dict[str, str]]) -> str:
+    """Where the columns failed to parse, for the error: ``row N, column: 'value'`` (N counts
+    the header as row 1, as the field-count check does), or '' when no field is to blame."""
+    numbers = {"tags_detected", "tags_used", "rms_px", "reliability", "rot_err95_deg",
+               "trans_err95_mm", *(f"{p}_q{a}" for p in ("cap", "head") for a in "wxyz"),
+               *(f"cap_{a}_m" for a in "xyz"), *(f"head_{a}_deg" for a in ("yaw", "pitch", "roll"))}
+    for n, r in enumerate(rows):
+        for name, value in r.items():
+            try:
+                if name in ("stamp_ns", "detected_ids"):
+                    [int(v) for v in (value or "").split()]
+                elif name in numbers:
+                    _num(value or "")
+            except ValueError:
+                return f"row {n + 2}, {name}: not a number: {value!r}"
+    return ""
+
+
+def label_topics(namespace: str = DEFAULT_NAMESPACE) -> dict[str, str]:
+    """Topic name per label stream: cap_pose, head_pose, head_pose_cov, head_frontal, head_rpy,
+    quality, status, tf (``/tf`` is global, as in ROS: never namespaced)."""
+    ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
+    return {
+        "cap_pose": f"{ns}/cap_pose",
+        "head_pose": f"{ns}/head_pose",
+        "head_pose_cov": f"{ns}/head_pose/with_covariance",
+        "head_frontal": f"{ns}/head_pose/frontal",
+        "head_rpy": f"{ns}/head_rpy_deg",
+        "quality": f"{ns}/quality",
+        "status": f"{ns}/status",
+        "tf": "/tf",
+    }
+
+
+def _quality_msg(rec: LabelRecord) -> object:
+    from ficap_ros.io.bag_writer import header
+    from ficap_ros.io.messages import ROSBAGS, named_values
+
+    return named_values(ROSBAGS, header(rec.stamp_ns, rec.frame_id), quality_values(rec))
+
+
+def _rpy_msg(rec: LabelRecord) -> object:
+    from ficap_ros.io.bag_writer import header
+    from ficap_ros.io.messages import ROSBAGS, rpy_deg
+
+    assert rec.T_frontal_head is not None
+    return rpy_deg(ROSBAGS, header(rec.stamp_ns, FRONTAL_FRAME), rec.T_frontal_head.rotation)
+
+
+def _tf_msg(rec: LabelRecord) -> object:
+    """tf2_msgs/TFMessage: frontal -> camera, camera -> cap, cap -> head (stamp = the image's)."""
+    from ficap_ros.io.sources import jazzy_typestore
+    from ficap_ros.io.bag_writer import header
+
+    assert rec.T_cam_cap is not None and rec.T_frontal_head is not None
+    t = jazzy_typestore().types
+    T_frontal_cam = Transform(rec.R_frontal_cam, np.zeros(3))
+    T_cap_head = rec.T_cam_cap.inv() * T_frontal_cam.inv() * rec.T_frontal_head
+
+    def stamped(parent: str, child: str, T: Transform) -> object:
+        x, y, z = (float(v) for v in T.translation_m)
+        qx, qy, qz, qw = (float(v) for v in T.q_xyzw)
+        return t["geometry_msgs/msg/TransformStamped"](
+            header=header(rec.stamp_ns, parent), child_frame_id=child,
+            transform=t["geometry_msgs/msg/Transform"](
+                translation=t["geometry_msgs/msg/Vector3"](x=x, y=y, z=z),
+                rotation=t["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)))
+
+    return t["tf2_msgs/msg/TFMessage"](transforms=[
+        stamped(FRONTAL_FRAME, rec.frame_id, T_frontal_cam),
+        stamped(rec.frame_id, CAP_FRAME, rec.T_cam_cap),
+        stamped(CAP_FRAME, HEAD_FRAME, T_cap_head),
+    ])
+
+
+def _status_text(key: str, value: object) -> str:
+    """labels.mcap's status strings: fixed decimals (3 for mm, else 4), '' for NaN."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, int):
+        return str(value)
+    return _f(float(value), 3 if key.endswith("_mm") else 4)
+
+
+def _status_msg(rec: LabelRecord) -> object:
+    from ficap_ros.io.sources import jazzy_typestore
+    from ficap_ros.io.bag_writer import header
+
+    t = jazzy_typestore().types
+    level, message = record_status(rec)
+    values = [(k, _status_text(k, v)) for k, v in status_values(rec).items()]
+    status = t["diagnostic_msgs/msg/DiagnosticStatus"](
+        level=level, name="ficap", message=message, hardware_id=rec.frame_id,
+        values=[t["diagnostic_msgs/msg/KeyValue"](key=k, value=v) for k, v in values],
+    )
+    return t["diagnostic_msgs/msg/DiagnosticArray"](header=header(rec.stamp_ns, rec.frame_id),
+                                                    status=[status])
+
+
+def write_labels_bag(path: str | Path, records: Sequence[LabelRecord],
+                     namespace: str = DEFAULT_NAMESPACE) -> None:
+    """Write labels.mcap: a single-file rosbag2 MCAP, plus ``metadata.yaml`` beside it.
+
+    The folder holding ``path`` is thus also a rosbag2 bag. Written atomically.
+
+    Raises:
+        BagError: the folder is not writable.
+    """
+    from ficap_ros.io.bag_writer import BagWriter, pose_stamped_msg, pose_with_covariance_stamped_msg
+
+    topics = label_topics(namespace)
+    with BagWriter(path, storage="mcap", layout="file") as bag:
+        bag.add_topic(topics["cap_pose"], "geometry_msgs/msg/PoseStamped")
+        bag.add_topic(topics["head_pose"], "geometry_msgs/msg/PoseStamped")
+        bag.add_topic(topics["head_pose_cov"], "geometry_msgs/msg/PoseWithCovarianceStamped")
+        bag.add_topic(topics["head_frontal"], "geometry_msgs/msg/PoseStamped")
+        bag.add_topic(topics["head_rpy"], "geometry_msgs/msg/Vector3Stamped")
+        bag.add_topic(topics["quality"], "sensor_msgs/msg/JointState")
+        bag.add_topic(topics["status"], "diagnostic_msgs/msg/DiagnosticArray")
+        bag.add_topic(topics["tf"], "tf2_msgs/msg/TFMessage")
+        for rec in records:
+            if rec.T_cam_cap is not None and rec.T_frontal_head is not None:
+                bag.write(topics["cap_pose"], rec.stamp_ns,
+                          pose_stamped_msg(rec.stamp_ns, rec.frame_id, rec.T_cam_cap))
+                T_cam_head = Transform(inverse(rec.R_frontal_cam), np.zeros(3)) * rec.T_frontal_head
+                bag.write(topics["head_pose"], rec.stamp_ns,
+                          pose_stamped_msg(rec.stamp_ns, rec.frame_id, T_cam_head))
+                assert rec.covariance_cam is not None  # finite and positive: pose.py's guarantee
+                cov = rec.covariance_cam
+                bag.write(topics["head_pose_cov"], rec.stamp_ns,
+                          pose_with_covariance_stamped_msg(rec.stamp_ns, rec.frame_id,
+                                                           T_cam_head, cov))
+                bag.write(topics["head_frontal"], rec.stamp_ns,
+                          pose_stamped_msg(rec.stamp_ns, FRONTAL_FRAME, rec.T_frontal_head))
+                bag.write(topics["head_rpy"], rec.stamp_ns, _rpy_msg(rec))
+                bag.write(topics["tf"], rec.stamp_ns, _tf_msg(rec))
+            bag.write(topics["quality"], rec.stamp_ns, _quality_msg(rec))
+            bag.write(topics["status"], rec.stamp_ns, _status_msg(rec))

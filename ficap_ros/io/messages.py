@@ -1,0 +1,220 @@
+"""ROS messages written once, over their fields: headers, poses, CameraInfo, Image,
+CompressedImage, built from and read into the core types.
+
+The same functions serve the live node and the bag tools: they take a ``MessageClasses`` that says
+where the message classes come from and how array fields are filled. ``ros_msgs.RCLPY`` feeds them
+rclpy's generated classes (the node); ``ROSBAGS`` feeds them the rosbags Jazzy typestore's
+dataclasses (bag_io, bag_writer, labels, evaluation; no ROS install needed). Readers are
+duck-typed: a message of either kind (or anything with the fields) goes in. This module imports
+neither rclpy nor any ROS message package.
+
+Quaternions in messages are the x, y, z, w fields (``q_xyzw``); translations are metres.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, Callable, Mapping
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ficap_ros.geometry.camera import CameraModel
+from ficap_ros.io.image_codec import decode_compressed, decode_image
+from ficap_ros.geometry.metrics import yaw_pitch_roll_deg
+from ficap_ros.geometry.transform import Transform
+
+__all__ = ["MessageClasses", "ROSBAGS", "jazzy_typestore", "as_bytes", "header", "pose",
+           "pose_stamped", "pose_with_covariance_stamped", "rpy_deg", "named_values",
+           "camera_info", "image",
+           "compressed_image", "image_to_array", "compressed_to_array", "orientation",
+           "pose_to_transform", "UNKNOWN_COVARIANCE"]
+
+#: What goes out for a covariance that is not finite: huge (1 m, 180 deg), never zeros ("exact").
+UNKNOWN_COVARIANCE = np.diag([1.0, 1.0, 1.0, np.pi**2, np.pi**2, np.pi**2])
+
+
+@dataclass(frozen=True)
+class MessageClasses:
+    """Where the builders get message classes, and how array fields take their values.
+
+    Attributes:
+        types: ``"pkg/msg/Name"`` -> message class (constructed with field keywords).
+        floats: float64 array -> the value a ``float64[]`` / ``float64[N]`` field takes.
+        octets: contiguous array -> the value a ``uint8[]`` field takes (its bytes).
+    """
+
+    types: Mapping[str, Any]
+    floats: Callable[[np.ndarray], Any]
+    octets: Callable[[np.ndarray], Any]
+
+
+class _Typestore(Mapping[str, Any]):
+    """The rosbags Jazzy typestore's classes, loaded on first use."""
+
+    def __getitem__(self, name: str) -> Any:
+        return jazzy_typestore().types[name]
+
+    def __iter__(self) -> Any:
+        return iter(jazzy_typestore().types)
+
+    def __len__(self) -> int:
+        return len(jazzy_typestore().types)
+
+
+_TYPESTORE: Any = None
+
+
+def jazzy_typestore() -> Any:
+    """rosbags' ROS 2 Jazzy typestore (cached)."""
+    global _TYPESTORE
+    if _TYPESTORE is None:
+        from rosbags.typesys import Stores, get_typestore
+
+        _TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+    return _TYPESTORE
+
+
+#: rosbags' dataclasses: array fields are numpy arrays of their own (CDR serialises them as is).
+ROSBAGS = MessageClasses(
+    types=_Typestore(),
+    floats=lambda a: np.asarray(a, dtype=np.float64).reshape(-1).copy(),
+    octets=lambda a: np.ascontiguousarray(a).view(np.uint8).reshape(-1).copy(),
+)
+
+
+def as_bytes(data: object) -> np.ndarray:
+    """A message's ``uint8[]`` data (array.array, bytes, numpy, list) as a uint8 array, without a
+    copy when possible."""
+    try:
+        return np.frombuffer(data, dtype=np.uint8)  # type: ignore[call-overload]
+    except TypeError:
+        return np.asarray(data, dtype=np.uint8).reshape(-1)
+
+
+# -- building -------------------------------------------------------------------------------------
+def header(c: MessageClasses, stamp_ns: int, frame_id: str) -> Any:
+    """``std_msgs/Header`` (stamp from integer nanoseconds)."""
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    return c.types["std_msgs/msg/Header"](
+        stamp=c.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame_id)
+
+
+def pose(c: MessageClasses, T: Transform) -> Any:
+    """``geometry_msgs/Pose`` of a transform (translation in metres)."""
+    x, y, z = (float(v) for v in T.translation_m)
+    qx, qy, qz, qw = (float(v) for v in T.q_xyzw)
+    return c.types["geometry_msgs/msg/Pose"](
+        position=c.types["geometry_msgs/msg/Point"](x=x, y=y, z=z),
+        orientation=c.types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw))
+
+
+def pose_stamped(c: MessageClasses, head: Any, T: Transform) -> Any:
+    """``geometry_msgs/PoseStamped`` of ``T`` with the header ``head``."""
+    return c.types["geometry_msgs/msg/PoseStamped"](header=head, pose=pose(c, T))
+
+
+def pose_with_covariance_stamped(c: MessageClasses, head: Any, T: Transform,
+                                 covariance: np.ndarray) -> Any:
+    """``geometry_msgs/PoseWithCovarianceStamped``; ``covariance`` is 6x6 in ROS order (x y z rx
+    ry rz). A non-finite one goes out as ``UNKNOWN_COVARIANCE``, never as zeros."""
+    cov = np.asarray(covariance, dtype=np.float64).reshape(36)
+    if not np.all(np.isfinite(cov)):
+        cov = UNKNOWN_COVARIANCE.reshape(36)
+    return c.types["geometry_msgs/msg/PoseWithCovarianceStamped"](
+        header=head, pose=c.types["geometry_msgs/msg/PoseWithCovariance"](
+            pose=pose(c, T), covariance=c.floats(cov)))
+
+
+def rpy_deg(c: MessageClasses, head: Any, R_frontal_head: Rotation) -> Any:
+    """``geometry_msgs/Vector3Stamped`` of the head angles in degrees: x roll, y pitch, z yaw
+    (each about its axis, REP-103 right-hand, intrinsic ZYX: tf2's ``getRPY``); pitch positive
+    nose down."""
+    yaw, pitch, roll = (float(v) for v in yaw_pitch_roll_deg(R_frontal_head))
+    return c.types["geometry_msgs/msg/Vector3Stamped"](
+        header=head, vector=c.types["geometry_msgs/msg/Vector3"](x=roll, y=pitch, z=yaw))
+
+
+def named_values(c: MessageClasses, head: Any, values: Mapping[str, float]) -> Any:
+    """Per-frame numbers as a ``sensor_msgs/JointState``: ``name[i]`` labels ``position[i]``.
+
+    JointState is the standard stamped message of named numbers that Foxglove and PlotJuggler
+    plot by name; velocity and effort stay empty. NaN where a value does not exist (no pose).
+    """
+    return c.types["sensor_msgs/msg/JointState"](
+        header=head, name=list(values),
+        position=c.floats(np.array([float(v) for v in values.values()], dtype=np.float64)),
+        velocity=c.floats(np.zeros(0)), effort=c.floats(np.zeros(0)))
+
+
+def camera_info(c: MessageClasses, head: Any, camera: CameraModel) -> Any:
+    """``sensor_msgs/CameraInfo`` of a camera model (R = I, P = [K | 0]; no distortion is written
+    as plumb_bob with five zeros, what camera drivers publish)."""
+    model = "plumb_bob" if camera.distortion_model == "none" else camera.distortion_model
+    d = camera.D if camera.D.size else np.zeros(5)
+    return c.types["sensor_msgs/msg/CameraInfo"](
+        header=head, height=camera.height_px, width=camera.width_px, distortion_model=model,
+        d=c.floats(d), k=c.floats(camera.K), r=c.floats(np.eye(3)),
+        p=c.floats(np.hstack([camera.K, np.zeros((3, 1))])), binning_x=0, binning_y=0,
+        roi=c.types["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0,
+                                                        width=0, do_rectify=False))
+
+
+def image(c: MessageClasses, head: Any, array: np.ndarray, encoding: str) -> Any:
+    """``sensor_msgs/Image`` of an array already laid out for ``encoding`` (rows unpadded;
+    ``is_bigendian`` from the array's byte order)."""
+    arr = np.ascontiguousarray(array)
+    return c.types["sensor_msgs/msg/Image"](
+        header=head, height=int(arr.shape[0]), width=int(arr.shape[1]), encoding=encoding,
+        is_bigendian=int(arr.dtype.byteorder == ">"), step=int(arr.strides[0]),
+        data=c.octets(arr))
+
+
+def compressed_image(c: MessageClasses, head: Any, data: bytes, fmt: str = "jpeg") -> Any:
+    """``sensor_msgs/CompressedImage`` of encoded bytes (``fmt``: jpeg, png, ...)."""
+    return c.types["sensor_msgs/msg/CompressedImage"](
+        header=head, format=fmt, data=c.octets(np.frombuffer(data, np.uint8)))
+
+
+# -- reading (duck-typed: rclpy or rosbags messages) ----------------------------------------------
+def image_to_array(msg: Any) -> np.ndarray:
+    """A ``sensor_msgs/Image`` as a grey array: uint8, or uint16 (native order) for 16-bit data
+    (``image_codec.decode_image``: honours ``step`` and ``is_bigendian``).
+
+    Raises:
+        ImageError: unknown encoding, zero size, a short step, or data not ``step * height`` long.
+    """
+    return decode_image(str(msg.encoding), int(msg.height), int(msg.width), int(msg.step),
+                        as_bytes(msg.data), bool(msg.is_bigendian))
+
+
+def compressed_to_array(msg: Any) -> np.ndarray:
+    """A ``sensor_msgs/CompressedImage`` decoded to grey uint8.
+
+    Raises:
+        ImageError: empty or undecodable data.
+    """
+    return decode_compressed(as_bytes(msg.data), str(msg.format))
+
+
+def orientation(msg: Any) -> Any:
+    """The orientation of a PoseStamped, PoseWithCovarianceStamped, Odometry,
+    QuaternionStamped or TransformStamped (an object with x, y, z, w)."""
+    if hasattr(msg, "quaternion"):
+        return msg.quaternion
+    if hasattr(msg, "transform"):
+        return msg.transform.rotation
+    p = msg.pose
+    p = p.pose if hasattr(p, "pose") else p  # WithCovariance / Odometry
+    return p.orientation
+
+
+def pose_to_transform(msg: Any) -> Transform:
+    """A Pose, PoseStamped or PoseWithCovariance(Stamped) as a ``Transform`` (metres)."""
+    p = msg
+    while not hasattr(p, "position"):
+        p = p.pose
+    o = p.orientation
+    return Transform(Rotation.from_quat([o.x, o.y, o.z, o.w]),
+                     np.array([p.position.x, p.position.y, p.position.z], dtype=np.float64))
+

@@ -1,0 +1,105 @@
+"""What ``ficap_node`` does with one image, without ROS: decode the message, choose its
+intrinsics, run the pipeline, and decide what the frame reports (label record, status level and
+message, whether its pose is published). The node only subscribes, publishes and serves.
+
+Messages are read duck-typed (``ficap_ros.io.messages``), so tests and tools can drive this with
+rosbags messages as well as rclpy's.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+
+from ficap_ros.io import messages
+from ficap_ros.vision.calibration import HeadCalibration
+from ficap_ros.geometry.camera import CameraInfoCache, CameraModel
+from ficap_ros.errors import FicapError
+from ficap_ros.vision.pipeline import FrameProcessor, FrameResult
+from ficap_ros.stamps import stamp_to_ns
+from ficap_ros.io.status import (LabelRecord, frame_status, quality_values, record_from_pose,
+                              record_from_result, record_status, status_values)
+
+__all__ = ["LiveFrame", "failed_frame", "process_image", "reference_q_xyzw"]
+
+
+@dataclass(frozen=True)
+class LiveFrame:
+    """One image's outcome, as the node publishes it.
+
+    Attributes:
+        record: the frame's label (``report``: the same values as labels.csv / labels.mcap).
+        level, message: the status (``report.frame_status``).
+        search: how the tags were found ('' when the frame failed).
+        result: the pipeline's result; None when the image could not be processed.
+        image: the decoded grey image (None when it failed).
+        camera: the intrinsics used (None when it failed).
+        publish_pose: the pose is published (there is one, reliable enough).
+    """
+
+    record: LabelRecord
+    level: int
+    message: str
+    search: str = ""
+    result: FrameResult | None = None
+    image: np.ndarray | None = None
+    camera: CameraModel | None = None
+    publish_pose: bool = False
+
+    def quality_values(self, latency_ms: float) -> dict[str, float]:
+        """The ``quality`` topic's numbers: labels.mcap's, and the latency."""
+        return {**quality_values(self.record), "latency_ms": float(latency_ms)}
+
+    def status_values(self, latency_ms: float, dropped_frames: int) -> dict[str, Any]:
+        """The ``status`` topic's values: labels.mcap's, how the tags were found, the latency
+        and the frames the mailbox dropped so far."""
+        return {**status_values(self.record), "search": self.search, "latency_ms": latency_ms,
+                "dropped_frames": dropped_frames}
+
+
+def failed_frame(stamp_ns: int, frame_id: str, reason: str,
+                 calibration: HeadCalibration) -> LiveFrame:
+    """An image that could not be processed (ERROR status, ``reason`` as its message)."""
+    rec = record_from_pose(0, stamp_ns, frame_id, None, (), reason, calibration)
+    return LiveFrame(rec, *frame_status(False, math.nan, error=reason))
+
+
+def process_image(msg: Any, processor: FrameProcessor, cameras: CameraInfoCache,
+                  calibration: HeadCalibration, config: Any) -> LiveFrame:
+    """One Image or CompressedImage message through the pipeline (errors become a failed frame).
+
+    Args:
+        msg: the image message (a CompressedImage has ``format``).
+        config: the node's settings (``ros_params.NodeConfig``): ``camera_info_max_stamp_diff_ms``,
+            ``image_is_rectified``, ``publish_min_reliability``, ``warn_reliability``.
+    """
+    header = msg.header
+    stamp_ns = stamp_to_ns(header.stamp)
+    try:
+        image = (messages.compressed_to_array(msg) if hasattr(msg, "format")
+                 else messages.image_to_array(msg))
+        camera = cameras.camera_for(stamp_ns, int(config.camera_info_max_stamp_diff_ms * 1e6),
+                                    config.image_is_rectified)
+        camera.check_image_size(image.shape[1], image.shape[0])
+        result = processor.process(image, camera, stamp_ns, calibration)
+    except FicapError as err:
+        return failed_frame(stamp_ns, header.frame_id, str(err), calibration)
+    pose = result.pose
+    rec = record_from_result(result, calibration, frame_id=header.frame_id)
+    return LiveFrame(rec, *record_status(rec, config.warn_reliability), str(result.search),
+                     result, image, camera,
+                     publish_pose=(pose is not None and result.T_cam_head is not None
+                                   and pose.reliability >= config.publish_min_reliability))
+
+
+def reference_q_xyzw(msg: Any) -> np.ndarray | None:
+    """A reference pose message's orientation as a unit quaternion (x, y, z, w), or None when it
+    is not finite or (near) zero."""
+    o = messages.orientation(msg)
+    q = np.array([o.x, o.y, o.z, o.w], dtype=np.float64)
+    if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-6:
+        return None
+    return q / np.linalg.norm(q)

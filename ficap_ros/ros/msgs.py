@@ -1,0 +1,289 @@
+"""Conversions between ROS 2 messages and the ficap_ros core types (no algorithms here).
+
+Images become numpy arrays the core accepts (grey uint8, or uint16 for ``mono16``), CameraInfo
+becomes a ``CameraModel``, results become PoseStamped / PoseWithCovarianceStamped / DiagnosticArray /
+MarkerArray / a debug Image. Quaternions in messages are the x, y, z, w fields (``q_xyzw``).
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any, Iterator, Mapping
+
+import cv2
+import numpy as np
+from builtin_interfaces.msg import Time
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import Point, Pose, PoseStamped, PoseWithCovarianceStamped, Vector3Stamped
+from scipy.spatial.transform import Rotation
+from sensor_msgs.msg import CameraInfo, Image, JointState
+from std_msgs.msg import Header
+from visualization_msgs.msg import Marker, MarkerArray
+
+from ficap_ros.io import messages
+from ficap_ros.geometry.camera import CameraModel, camera_from_info
+from ficap_ros.geometry.cap_model import CapModel
+from ficap_ros.errors import ImageError
+from ficap_ros.vision.pipeline import FrameResult
+from ficap_ros.stamps import stamp_to_ns
+from ficap_ros.geometry.transform import Transform, rotate_covariance
+
+__all__ = [
+    "IMAGE_ENCODINGS",
+    "RCLPY",
+    "image_to_array",
+    "compressed_to_array",
+    "array_to_image",
+    "camera_info_to_model",
+    "camera_model_to_info",
+    "stamp_to_ns",
+    "ns_to_stamp",
+    "pose_msg",
+    "pose_stamped",
+    "pose_with_covariance_stamped",
+    "rpy_deg_msg",
+    "quality_msg",
+    "diagnostic_status",
+    "diagnostic_array",
+    "markers_msg",
+    "debug_image_msg",
+    "LEVEL_OK",
+    "LEVEL_WARN",
+    "LEVEL_ERROR",
+]
+
+LEVEL_OK = DiagnosticStatus.OK
+LEVEL_WARN = DiagnosticStatus.WARN
+LEVEL_ERROR = DiagnosticStatus.ERROR
+
+#: encoding -> (channels, bytes per channel, cv2 conversion to grey or None).
+IMAGE_ENCODINGS: dict[str, tuple[int, int, int | None]] = {
+    "mono8": (1, 1, None),
+    "8UC1": (1, 1, None),
+    "mono16": (1, 2, None),
+    "16UC1": (1, 2, None),
+    "bgr8": (3, 1, cv2.COLOR_BGR2GRAY),
+    "rgb8": (3, 1, cv2.COLOR_RGB2GRAY),
+    "bgra8": (4, 1, cv2.COLOR_BGRA2GRAY),
+    "rgba8": (4, 1, cv2.COLOR_RGBA2GRAY),
+    # OpenCV's named-by-pattern aliases (4.5+); the older BayerXX names are offset by one pixel.
+    "bayer_rggb8": (1, 1, cv2.COLOR_BayerRGGB2GRAY),
+    "bayer_bggr8": (1, 1, cv2.COLOR_BayerBGGR2GRAY),
+    "bayer_gbrg8": (1, 1, cv2.COLOR_BayerGBRG2GRAY),
+    "bayer_grbg8": (1, 1, cv2.COLOR_BayerGRBG2GRAY),
+}
+
+
+class _RclpyTypes(Mapping[str, Any]):
+    """rclpy's generated message classes by ``pkg/msg/Name`` (imported on first use)."""
+
+    def __getitem__(self, name: str) -> Any:
+        pkg, _, cls = name.split("/")
+        return getattr(importlib.import_module(f"{pkg}.msg"), cls)
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(())
+
+    def __len__(self) -> int:
+        return 0
+
+
+#: rclpy's classes for ``ficap_ros.io.messages``: float arrays as lists (what the generated setters
+#: check), byte arrays as bytes.
+RCLPY = messages.MessageClasses(
+    types=_RclpyTypes(),
+    floats=lambda a: [float(v) for v in np.asarray(a, dtype=np.float64).reshape(-1)],
+    octets=lambda a: np.ascontiguousarray(a).tobytes(),
+)
+
+
+# -- time ----------------------------------------------------------------------------------------
+def ns_to_stamp(stamp_ns: int) -> Time:
+    """Integer nanoseconds -> builtin_interfaces/Time."""
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    return Time(sec=sec, nanosec=nanosec)
+
+
+# -- images --------------------------------------------------------------------------------------
+image_to_array = messages.image_to_array
+compressed_to_array = messages.compressed_to_array
+
+
+def array_to_image(array: np.ndarray, encoding: str, header: Header | None = None) -> Image:
+    """A numpy image (uint8 mono/bgr/rgb/bgra/rgba/bayer, uint16 mono16) as ``sensor_msgs/Image``
+    (``messages.image``), checked against ``encoding``."""
+    if encoding not in IMAGE_ENCODINGS:
+        raise ImageError(f"unsupported image encoding {encoding!r}")
+    channels, depth, _ = IMAGE_ENCODINGS[encoding]
+    arr = np.ascontiguousarray(array)
+    if arr.dtype.itemsize != depth or (arr.shape[2] if arr.ndim == 3 else 1) != channels:
+        raise ImageError(f"array {arr.shape} {arr.dtype} does not match encoding {encoding}")
+    return messages.image(RCLPY, header if header is not None else Header(), arr, encoding)
+
+
+# -- intrinsics ----------------------------------------------------------------------------------
+def camera_info_to_model(msg: CameraInfo, rectified: bool = False) -> CameraModel:
+    """A ``sensor_msgs/CameraInfo`` as a ``CameraModel`` (``ficap_ros.geometry.camera.camera_from_info``,
+    the rule the bag tools use too: K + D, or P's 3x3 when ``rectified`` or K is all zero).
+
+    Raises:
+        IntrinsicsError: zero size, all-zero or NaN matrices, or an unknown lens model.
+    """
+    return camera_from_info(msg, rectified=rectified)
+
+
+def camera_model_to_info(camera: CameraModel, header: Header | None = None) -> CameraInfo:
+    """A ``CameraModel`` as ``sensor_msgs/CameraInfo`` (``messages.camera_info``: R identity,
+    P = [K | 0])."""
+    return messages.camera_info(RCLPY, header if header is not None else Header(), camera)
+
+
+# -- poses ---------------------------------------------------------------------------------------
+def pose_msg(T: Transform) -> Pose:
+    """A transform (translation in metres) as ``geometry_msgs/Pose``."""
+    return messages.pose(RCLPY, T)
+
+
+def pose_stamped(header: Header, T: Transform) -> PoseStamped:
+    """``geometry_msgs/PoseStamped`` of ``T`` with the given header."""
+    return messages.pose_stamped(RCLPY, header, T)
+
+
+def pose_with_covariance_stamped(
+    header: Header, T: Transform, covariance: np.ndarray
+) -> PoseWithCovarianceStamped:
+    """``PoseWithCovarianceStamped``; ``covariance`` is 6x6 already in ROS order (x y z rx ry rz)
+    (non-finite: replaced by a huge diagonal, never by zeros)."""
+    return messages.pose_with_covariance_stamped(RCLPY, header, T, covariance)
+
+
+def rpy_deg_msg(header: Header, R_frontal_head: Rotation) -> Vector3Stamped:
+    """``Vector3Stamped`` of the head angles in degrees (``messages.rpy_deg``: x roll, y pitch,
+    z yaw, tf2's ``getRPY``; pitch positive nose down)."""
+    return messages.rpy_deg(RCLPY, header, R_frontal_head)
+
+
+def quality_msg(header: Header, values: Mapping[str, float]) -> JointState:
+    """Per-frame numbers as a ``sensor_msgs/JointState`` (``messages.named_values``: ``name[i]``
+    labels ``position[i]``)."""
+    return messages.named_values(RCLPY, header, values)
+
+
+# -- diagnostics ---------------------------------------------------------------------------------
+def _fmt(value: object) -> str:
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, float):
+        return f"{value:.4g}"
+    return str(value)
+
+
+def diagnostic_status(
+    name: str, level: bytes, message: str, values: Mapping[str, object], hardware_id: str = ""
+) -> DiagnosticStatus:
+    """One ``DiagnosticStatus`` with key/values formatted as strings."""
+    return DiagnosticStatus(
+        level=level, name=name, message=message, hardware_id=hardware_id,
+        values=[KeyValue(key=k, value=_fmt(v)) for k, v in values.items()],
+    )
+
+
+def diagnostic_array(header: Header, *statuses: DiagnosticStatus) -> DiagnosticArray:
+    """A ``DiagnosticArray`` of the statuses with the given header."""
+    return DiagnosticArray(header=header, status=list(statuses))
+
+
+# -- visualisation -------------------------------------------------------------------------------
+def _point(p: np.ndarray) -> Point:
+    return Point(x=float(p[0]), y=float(p[1]), z=float(p[2]))
+
+
+def markers_msg(
+    header: Header, model: CapModel, result: FrameResult, axis_length_m: float = 0.1
+) -> MarkerArray:
+    """Tag outlines (used tags green, others grey) and the head axes (x red, y green, z blue).
+
+    Without a pose the array only deletes the previous markers.
+    """
+    out = MarkerArray()
+    out.markers.append(Marker(header=header, ns="ficap", action=Marker.DELETEALL))
+    pose = result.pose
+    if pose is None or result.T_cam_head is None:
+        return out
+    used = set(pose.used_ids)
+    corners_cam = pose.T_cam_cap.apply(np.asarray(model.corners_mm, dtype=np.float64) / 1000.0)
+    for i, tag_id in enumerate(model.ids):
+        m = Marker(header=header, ns="ficap_tags", id=int(tag_id), type=Marker.LINE_STRIP,
+                   action=Marker.ADD)
+        m.pose.orientation.w = 1.0
+        m.scale.x = 0.002
+        c = corners_cam[i]
+        m.points = [_point(c[j % 4]) for j in range(5)]
+        on = int(tag_id) in used
+        m.color.r, m.color.g, m.color.b, m.color.a = (0.1, 0.9, 0.1, 1.0) if on else (0.5, 0.5, 0.5, 0.6)
+        out.markers.append(m)
+    T = result.T_cam_head
+    origin = T.translation_m
+    for axis in range(3):
+        m = Marker(header=header, ns="ficap_head_axes", id=axis, type=Marker.ARROW,
+                   action=Marker.ADD)
+        m.pose.orientation.w = 1.0
+        tip = origin + T.rotation.apply(np.eye(3)[axis]) * axis_length_m
+        m.points = [_point(origin), _point(tip)]
+        m.scale.x, m.scale.y, m.scale.z = 0.006, 0.012, 0.02
+        rgb = np.eye(3)[axis]
+        m.color.r, m.color.g, m.color.b, m.color.a = float(rgb[0]), float(rgb[1]), float(rgb[2]), 1.0
+        out.markers.append(m)
+    return out
+
+
+def debug_image_msg(
+    gray: np.ndarray, result: FrameResult | None, camera: CameraModel | None, header: Header,
+    axis_length_m: float = 0.1,
+) -> Image:
+    """A bgr8 image: detected corners and ids (OpenCV's drawing) and the head axes (``gray``:
+    the decoded image, uint8 or uint16; of a multi-channel one the first channel)."""
+    gray = gray if gray.ndim == 2 else gray[:, :, 0]
+    img = gray if gray.dtype == np.uint8 else (gray >> 8).astype(np.uint8)
+    bgr = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
+    if result is not None and result.detections:
+        corners = [d.corners_px.reshape(1, 4, 2).astype(np.float32) for d in result.detections]
+        ids = np.array([[d.tag_id] for d in result.detections], dtype=np.int32)
+        cv2.aruco.drawDetectedMarkers(bgr, corners, ids)
+    if result is not None and result.T_cam_head is not None and camera is not None:
+        T = result.T_cam_head
+        pts = np.vstack([T.translation_m, T.apply(np.eye(3) * axis_length_m)])
+        if np.all(pts[:, 2] > 0):
+            px = camera.project(pts)
+            if np.all(np.isfinite(px)):
+                o = tuple(int(round(v)) for v in px[0])
+                for axis, colour in enumerate([(0, 0, 255), (0, 255, 0), (255, 0, 0)]):
+                    tip = tuple(int(round(v)) for v in px[axis + 1])
+                    cv2.line(bgr, o, tip, colour, 2, cv2.LINE_AA)
+    return array_to_image(bgr, "bgr8", header)
+
+
+def pose_outputs(header: Header, result: FrameResult, R_cam_frontal: Rotation, output_frame: str,
+                 frontal_frame: str, mount: Transform | None) -> dict[str, object]:
+    """The node's pose messages of a posed frame, by publisher: ``head``, ``head_cov``, ``cap``
+    (in ``output_frame`` through ``mount``, else the image's frame), ``head_frontal`` and ``rpy``
+    (the head in the frontal frame: ``output_frame``, else ``frontal_frame``)."""
+    pose = result.pose
+    assert pose is not None and result.T_cam_head is not None
+    out = Header(stamp=header.stamp, frame_id=output_frame or header.frame_id)
+    # Into output_frame through the mount (identity when the outputs stay in the camera's).
+    moved = bool(output_frame) and mount is not None
+    T_out_cam = mount if moved and mount is not None else Transform.identity()
+    cov = rotate_covariance(pose.covariance, T_out_cam.rotation) if moved else pose.covariance
+    # The camera in the frontal frame F: the mount, or at F's origin looking forward.
+    T_frontal_cam = mount or Transform(R_cam_frontal.inv(), np.zeros(3))
+    frontal = Header(stamp=header.stamp, frame_id=output_frame or frontal_frame)
+    msgs: dict[str, object] = {
+        "head": pose_stamped(out, T_out_cam * result.T_cam_head),
+        "head_cov": pose_with_covariance_stamped(out, T_out_cam * result.T_cam_head, cov),
+        "cap": pose_stamped(out, T_out_cam * pose.T_cam_cap),
+        "head_frontal": pose_stamped(frontal, T_frontal_cam * result.T_cam_head),
+    }
+    if result.R_frontal_head is not None:
+        msgs["rpy"] = rpy_deg_msg(frontal, result.R_frontal_head)
+    return msgs

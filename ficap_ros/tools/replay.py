@@ -1,0 +1,506 @@
+"""Replay a recording through the pipeline: labels.mcap, labels.csv and summary.json.
+
+Every frame goes through ``FrameProcessor.process`` (the node's code path), with tracking: a frame
+is looked at where the previous frames put the cap. So that the outputs do not depend on how the
+frames are shared out, the recording is cut into segments of ``SEGMENT_FRAMES`` consecutive frames
+and tracking starts afresh (a whole-image search) at each segment's first frame, whatever ``jobs``
+is. With ``jobs > 1`` the main process reads the bag and worker processes decode and process whole
+segments; results come back in recording order, identical to ``jobs = 1`` (summary.json's timing
+fields aside).
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import sys
+import time
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+from itertools import islice
+from typing import IO, Any, Callable, Iterable, Iterator
+
+import numpy as np
+
+from ficap_ros.io.sources import FrameSource, Loss, RawFrame, decode_raw
+from ficap_ros.geometry.cap_model import CapModel
+from ficap_ros.vision.detection import DetectorConfig
+from ficap_ros.errors import BagError, ImageError
+from ficap_ros.files import write_output_file
+from ficap_ros.io.labels import LabelRecord, labels_csv_text, record_from_pose, write_labels_bag
+from ficap_ros.vision.calibration import HeadCalibration
+from ficap_ros.vision.pipeline import FrameProcessor
+from ficap_ros.vision.pose import CapPose, PoseConfig
+from ficap_ros.io.status import SKIPPED_PREFIX, is_skipped, skipped_reason
+
+__all__ = ["Progress", "ProcessedFrame", "process_frames", "frontal_calibration",
+           "ReplayOutput", "replay", "check_output_dir", "available_cores", "capped_jobs"]
+
+
+def Progress(total: int, label: str = "frames", stream: IO[str] | None = None,  # noqa: N802
+             enabled: bool = True) -> Any:
+    """A ``tqdm`` bar on stderr: per-frame updates, rate and ETA (tqdm's moving average), and
+    nothing at all when the stream is not a terminal (logs, CI) or ``enabled`` is False."""
+    from tqdm import tqdm
+
+    return tqdm(total=max(int(total), 0) or None, desc=label, unit="frame",
+                file=stream if stream is not None else sys.stderr, dynamic_ncols=True,
+                smoothing=0.1, disable=None if enabled else True)
+
+
+@dataclass(frozen=True)
+class ProcessedFrame:
+    """What is kept of a frame after the pipeline (compact: no image, no corner lists).
+
+    Attributes:
+        index, stamp_ns, frame_id: as in the recording.
+        pose: the cap pose, or None.
+        detected_ids: ids of the model tags detected.
+        reason: why there is no pose; ``undecodable: ...`` for a skipped image.
+        detect_ms, pose_ms: pipeline timings (NaN for a skipped image).
+    """
+
+    index: int
+    stamp_ns: int
+    frame_id: str
+    pose: CapPose | None
+    detected_ids: tuple[int, ...]
+    reason: str
+    detect_ms: float = math.nan
+    pose_ms: float = math.nan
+
+    @property
+    def skipped(self) -> bool:
+        return is_skipped(self.reason)
+
+
+# -- worker side ---------------------------------------------------------------------------------
+def keep_freed_memory() -> bool:
+    """Let this process's allocator keep freed large blocks for reuse (glibc ``mallopt``; a
+    no-op returning False elsewhere). For processes of our own that run the pipeline over many
+    frames: the command's, its workers.
+
+    Every frame allocates and frees the same few MB of large buffers (the JPEG payload, the
+    decoded image, the refinement's sample grids). glibc's defaults hand large freed blocks back
+    to the system (blocks above its mmap threshold unmapped, the heap's top trimmed), and the next
+    frame faults the pages in again: a 600-frame 1080p replay took 311 k page faults and ~0.5 s of
+    system time (of ~7.8 s CPU); with blocks up to 8 MB served from the heap, its top trimmed only
+    past 64 MB free and grown 16 MB at a time, 50 k faults and ~0.2 s, the same peak memory
+    (240 MB). The labels do not depend on it.
+    """
+    if not sys.platform.startswith("linux"):
+        return False
+    import ctypes
+
+    try:
+        mallopt = ctypes.CDLL(None).mallopt
+    except (OSError, AttributeError):
+        return False
+    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
+    m_trim_threshold, m_top_pad, m_mmap_threshold = -1, -2, -3  # <malloc.h>
+    # Each call returns 1 on success (musl's stub: 0).
+    return all([mallopt(m_mmap_threshold, 8 << 20) == 1, mallopt(m_trim_threshold, 64 << 20) == 1,
+                mallopt(m_top_pad, 16 << 20) == 1])
+
+
+_PROCESSOR: FrameProcessor | None = None
+_DONE: Any = None  # frames finished in this pool (a shared counter), for the progress bar
+
+
+def _init_worker(model: CapModel, pose: PoseConfig, single_thread: bool, done: Any = None,
+                 detector: DetectorConfig | None = None) -> None:
+    global _PROCESSOR, _DONE
+    _DONE = done
+    if single_thread:  # a worker process of ours (a pool's, Ray's): see keep_freed_memory
+        keep_freed_memory()
+        import signal
+
+        # Ctrl-C reaches the whole process group: only the main process handles it (and stops
+        # the pool); workers printing their own KeyboardInterrupt tracebacks was ~60 lines.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        import cv2
+
+        cv2.setNumThreads(1)  # N processes already use the cores; avoid oversubscription
+    _PROCESSOR = FrameProcessor(model=model, detector=detector, pose=pose)
+
+
+def _process_one(raw: RawFrame) -> ProcessedFrame:
+    assert _PROCESSOR is not None
+    try:
+        image = decode_raw(raw)
+        if raw.camera is None:
+            raise ImageError("no camera intrinsics for this image")
+        result = _PROCESSOR.process(image, raw.camera, raw.stamp_ns)
+    except ImageError as err:
+        return ProcessedFrame(raw.index, raw.stamp_ns, raw.frame_id, None, (),
+                              skipped_reason(err))
+    return ProcessedFrame(
+        raw.index, raw.stamp_ns, raw.frame_id, result.pose,
+        tuple(sorted({d.tag_id for d in result.detections})), result.reason,
+        result.detect_ms, result.pose_ms,
+    )
+
+
+#: Frames per tracking segment (see the module docstring): 128 frames are about 4 s at 30 fps, so
+#: the segment's whole-image search costs about a 128th of a search per frame.
+SEGMENT_FRAMES = 128
+
+
+def _process_segment(raws: list[RawFrame]) -> list[ProcessedFrame]:
+    assert _PROCESSOR is not None
+    _PROCESSOR.reset_tracking()
+    out = []
+    for raw in raws:
+        out.append(_process_one(raw))
+        if _DONE is not None:
+            with _DONE.get_lock():
+                _DONE.value += 1
+    return out
+
+
+def available_cores() -> int:
+    """Cores this process may run on (its CPU affinity, which containers and taskset narrow)."""
+    try:
+        return max(len(os.sched_getaffinity(0)), 1)
+    except AttributeError:  # not on Linux
+        return max(os.cpu_count() or 1, 1)
+
+
+def capped_jobs(requested: int) -> tuple[int, str]:
+    """``requested`` worker processes capped at the cores available, and a note when capped.
+
+    More processes than cores only add memory (each holds a pipeline) and contention: 16 workers
+    on 2 cores took 940 MB and ran 20x slower.
+    """
+    cores = available_cores()
+    if requested > cores:
+        return cores, f"--jobs {requested} capped at {cores}, the cores available"
+    return max(requested, 1), ""
+
+
+def _quiet_pool(ctx: Any, jobs: int, initargs: tuple) -> Any:
+    """A worker pool whose processes ignore Ctrl-C from their first instruction.
+
+    Ctrl-C reaches the whole process group; only the main process must handle it (stop the pool,
+    print one line). The initializer also ignores SIGINT, but a worker still importing numpy or
+    scipy when Ctrl-C comes has not run it yet: start the workers with SIGINT ignored (an
+    ignored signal stays ignored across exec, and Python keeps it so).
+    """
+    import signal
+    import threading
+
+    if threading.current_thread() is not threading.main_thread():
+        return ctx.Pool(jobs, initializer=_init_worker, initargs=initargs)
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        return ctx.Pool(jobs, initializer=_init_worker, initargs=initargs)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
+def process_frames(
+    raws: Iterable[RawFrame], model: CapModel, pose: PoseConfig, jobs: int = 1,
+    on_progress: Callable[[int], None] | None = None, detector: DetectorConfig | None = None,
+) -> Iterator[ProcessedFrame]:
+    """Run the pipeline over raw frames, in order, in ``jobs`` processes (at most one per core).
+
+    Undecodable frames come back with ``pose`` None and ``reason`` ``undecodable: ...``.
+    ``on_progress`` is called with the number of frames processed so far, frame by frame (with
+    ``jobs > 1`` the workers count into a shared counter, read about 10 times a second while
+    waiting for the next segment, so a bar moves smoothly although results come in segments).
+    """
+    jobs = capped_jobs(jobs)[0]
+    it = iter(raws)
+    if jobs <= 1:
+        _init_worker(model, pose, single_thread=False, detector=detector)
+        done = 0
+        while segment := list(islice(it, SEGMENT_FRAMES)):
+            assert _PROCESSOR is not None
+            _PROCESSOR.reset_tracking()
+            for raw in segment:
+                yield _process_one(raw)
+                done += 1
+                if on_progress is not None:
+                    on_progress(done)
+        return
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("spawn")
+    counter = ctx.Value("q", 0)
+    pool = _quiet_pool(ctx, jobs, (model, pose, True, counter, detector))
+    try:
+        # Bounded look-ahead: Pool.imap would read the whole bag into memory ahead of the
+        # workers, so keep one segment per worker in flight plus one, in order.
+        pending: list[Any] = []
+        while True:
+            while len(pending) < jobs + 1:
+                segment = list(islice(it, SEGMENT_FRAMES))
+                if not segment:
+                    break
+                pending.append(pool.apply_async(_process_segment, (segment,)))
+            if not pending:
+                break
+            head = pending.pop(0)
+            while not head.ready():
+                head.wait(0.1)
+                if on_progress is not None:
+                    on_progress(counter.value)
+            if on_progress is not None:
+                on_progress(counter.value)
+            yield from head.get()
+        pool.close()
+    finally:
+        pool.terminate()
+        pool.join()
+
+
+# -- calibration ---------------------------------------------------------------------------------
+def parse_window(text: str) -> tuple[float, float]:
+    """``START:END`` in seconds -> (start_s, end_s); an empty START is 0, an empty END the end of
+    the recording (``math.inf``). Raises ``ValueError`` with a one-line message."""
+    start, sep, end = text.partition(":")
+    usage = f"expected START:END in seconds (e.g. 0:3, or 2: to the end), got {text!r}"
+    if not sep or not (start.strip() or end.strip()):
+        raise ValueError(usage)
+    try:
+        s, e = float(start or 0.0), float(end) if end.strip() else math.inf
+    except ValueError:
+        raise ValueError(usage) from None
+    if not math.isfinite(s) or (end.strip() and not math.isfinite(e)):
+        raise ValueError(f"window {text!r}: START and END must be finite numbers of seconds")
+    if not (s >= 0 and e > s):
+        raise ValueError(f"window {text!r} must have 0 <= START < END")
+    return s, e
+
+
+def frontal_calibration(
+    frames: list[ProcessedFrame], start_ns: int, window_s: tuple[float, float],
+    base: HeadCalibration,
+) -> tuple[HeadCalibration, dict[str, Any]]:
+    """R_cap_head from the frames of a frontal window (``ficap_ros.vision.calibration``'s solver).
+
+    Raises:
+        CalibrationError: too few frames with a pose in the window, or too much spread.
+    """
+    from scipy.spatial.transform import Rotation
+
+    from ficap_ros.vision.calibration import calibrate_frontal, frontal_frames
+    from ficap_ros.errors import CalibrationError
+    from ficap_ros.stamps import window_from_start_ns
+
+    posed = [f.pose for f in frames if f.pose is not None]
+    sel = frontal_frames(np.array([f.stamp_ns for f in frames if f.pose is not None], dtype=np.int64),
+                         np.array([p.reliability for p in posed], dtype=np.float64),
+                         window_from_start_ns(start_ns, window_s))
+    rots = [posed[i].T_cam_cap.rotation for i in sel]
+    if not rots:
+        raise CalibrationError(
+            f"no frame with a cap pose between {window_s[0]:g} s and {window_s[1]:g} s")
+    if len(rots) < 5:
+        # replay asks for min(30, frames in the window), never fewer than 5; it has no --min-frames.
+        raise CalibrationError(
+            f"frontal calibration needs 5 frames with a cap pose, the window {window_s[0]:g}-"
+            f"{window_s[1]:g} s has {len(rots)}: widen --calibrate-frontal "
+            f"(or run `ficap calibrate --frontal ... --min-frames N` on the labels)")
+    result = calibrate_frontal(Rotation.concatenate(rots), base.R_cam_frontal,
+                               min_frames=min(30, max(len(rots), 5)))
+    cal = HeadCalibration(R_cap_head=result.R_cap_head, R_cam_frontal=base.R_cam_frontal,
+                          calibrated=True)
+    info = {"mode": "frontal", "window_s": [window_s[0], window_s[1]],
+            "frames_used": result.frames_used, "spread_deg": result.spread_deg}
+    return cal, info
+
+
+# -- outputs -------------------------------------------------------------------------------------
+def check_output_dir(out: Path) -> None:
+    """Create ``out`` and check it is writable (fail before hours of processing).
+
+    Raises:
+        BagError: not creatable or not writable.
+    """
+    import tempfile
+
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        fd, probe = tempfile.mkstemp(prefix=".ficap-probe.", dir=out)
+        os.close(fd)
+        os.unlink(probe)
+    except OSError as err:
+        raise BagError(f"cannot write to output folder {out}: {err.strerror or err}") from err
+
+
+@dataclass
+class ReplayOutput:
+    """What ``replay`` produced."""
+
+    records: list[LabelRecord]
+    summary: dict[str, Any]
+    files: list[Path] = field(default_factory=list)
+    loss: Loss | None = None
+
+
+def _summary(records: list[LabelRecord], frames: list[ProcessedFrame], elapsed_s: float) -> dict:
+    n = len(records)
+    skipped = [r for r in records if r.skipped]
+    decoded = n - len(skipped)
+    with_pose = sum(r.T_cam_cap is not None for r in records)
+    ge1 = sum(r.tags_detected >= 1 for r in records if not r.skipped)
+    ge4 = sum(r.tags_detected >= 4 for r in records if not r.skipped)
+    reasons = Counter(r.reason[len(SKIPPED_PREFIX):] for r in skipped)
+    no_pose = Counter(r.reason for r in records if r.T_cam_cap is None and not r.skipped)
+    detect_ms = [f.detect_ms for f in frames if not f.skipped]
+    pose_ms = [f.pose_ms for f in frames if not f.skipped]
+
+    def pct(k: int) -> float:
+        # Shares of every frame read, skipped ones included: 28 poses of 40 frames with 12
+        # undecodable is 70 %, not the 100 % a share of decoded frames once printed.
+        return round(100.0 * k / n, 3) if n else 0.0
+
+    return {
+        "frames": n,
+        "frames_decoded": decoded,
+        "pct_decoded": pct(decoded),
+        "frames_with_pose": with_pose,
+        "pct_with_pose": pct(with_pose),
+        "frames_no_tag": decoded - ge1,
+        "frames_ge1_tag": ge1,
+        "frames_ge4_tags": ge4,
+        "pct_ge1_tag": pct(ge1),
+        "pct_ge4_tags": pct(ge4),
+        "frames_skipped": len(skipped),
+        "skipped_reasons": dict(sorted(reasons.items())),
+        "no_pose_reasons": dict(sorted(no_pose.items())),
+        "elapsed_s": round(elapsed_s, 3),
+        "throughput_fps": round(n / elapsed_s, 2) if elapsed_s > 0 else None,
+        "mean_detect_ms": round(float(np.mean(detect_ms)), 3) if detect_ms else None,
+        "mean_pose_ms": round(float(np.mean(pose_ms)), 3) if pose_ms else None,
+    }
+
+
+def replay(
+    source: FrameSource,
+    out_dir: str | Path,
+    model: CapModel,
+    pose: PoseConfig,
+    calibration: HeadCalibration | None = None,
+    calibrate_window_s: tuple[float, float] | None = None,
+    jobs: int = 1,
+    namespace: str = "",
+    progress: bool = True,
+    progress_stream: IO[str] | None = None,
+    engine: Callable[[Iterable[RawFrame]], Iterable[ProcessedFrame]] | None = None,
+    summary_extra: dict[str, Any] | None = None,
+    detector: DetectorConfig | None = None,
+) -> ReplayOutput:
+    """Process every frame of ``source`` and write labels.mcap, labels.csv and summary.json.
+
+    The outputs are built in a temporary folder beside ``out_dir`` and replace it as a unit
+    (``ficap_ros.files.OutputFolder``): an error or Ctrl-C leaves ``out_dir`` as it was. A
+    damaged input yields labels for every frame before the damage; ``ReplayOutput.loss`` and
+    summary.json's ``lost`` say what was lost.
+
+    Args:
+        source: the opened recording.
+        out_dir: output folder (created).
+        model: cap model.
+        pose: pose estimator settings.
+        calibration: head calibration (default: uncalibrated, camera looking forward).
+        calibrate_window_s: (start, end) seconds from the first frame in which the wearer looks
+            straight ahead: R_cap_head is computed from them and applied to every frame.
+        jobs: worker processes (capped at the cores available).
+        namespace: topic namespace of labels.mcap.
+        progress: show progress on ``progress_stream`` (stderr).
+        engine: what turns the raw frames into processed ones, in order (default:
+            ``process_frames`` with ``jobs`` processes; ``ficap_ros.tools.fleet`` passes a Ray one).
+        summary_extra: more fields for summary.json (the fleet's fingerprint).
+        detector: detector settings (default ``DetectorConfig()``): ``process_frames``'s; an
+            ``engine`` carries its own, and this only records them (summary.json's
+            ``photometric``).
+
+    Raises:
+        BagError: unreadable input. OutputError: an output that is or holds the input, a folder
+        ficap did not write, or not writable. CalibrationError: bad frontal window.
+    """
+    from ficap_ros.files import OutputFolder
+
+    out = Path(out_dir)
+    folder = OutputFolder(out, inputs=[source.path])  # refuses an input or a foreign folder
+    try:
+        output = _replay_into(folder.tmp, out, source, model, pose, calibration,
+                              calibrate_window_s, jobs, namespace, progress, progress_stream,
+                              engine, summary_extra, detector)
+    except BaseException:
+        folder.discard()
+        raise
+    folder.commit()
+    return output
+
+
+def _replay_into(
+    tmp: Path, out: Path, source: FrameSource, model: CapModel, pose: PoseConfig,
+    calibration: HeadCalibration | None, calibrate_window_s: tuple[float, float] | None,
+    jobs: int, namespace: str, progress: bool, progress_stream: IO[str] | None,
+    engine: Callable[[Iterable[RawFrame]], Iterable[ProcessedFrame]] | None,
+    summary_extra: dict[str, Any] | None, detector: DetectorConfig | None = None,
+) -> ReplayOutput:
+    base = calibration or HeadCalibration()
+    jobs = capped_jobs(jobs)[0]
+    bar = Progress(source.count, "frames", progress_stream, enabled=progress)
+    t0 = time.perf_counter()
+    frames: list[ProcessedFrame] = []
+    try:
+        raws = source.raw_frames()
+        if engine is not None:
+            for item in engine(raws):
+                frames.append(item)
+                bar.update()
+        else:
+            frames.extend(process_frames(raws, model, pose, jobs,
+                                         on_progress=lambda n: bar.update(n - bar.n), detector=detector))
+    finally:
+        bar.close()
+    elapsed = time.perf_counter() - t0
+    loss = source.loss
+    cal_info: dict[str, Any] = {"mode": "file" if base.calibrated else "none"}
+    cal = base
+    if calibrate_window_s is not None:
+        cal, cal_info = frontal_calibration(frames, source.start_ns, calibrate_window_s, base)
+    records = [
+        record_from_pose(f.index, f.stamp_ns, f.frame_id, f.pose, f.detected_ids, f.reason, cal,
+                         pose.method)
+        for f in frames
+    ]
+    summary = {
+        "writer": "ficap replay",
+        "input": str(source.path),
+        "image_topic": source.image_topic,
+        "camera_info_topic": source.camera_info_topic,
+        "method": pose.method,
+        # Only when on, so summaries of default runs read as before.
+        **({"photometric": True} if detector is not None and detector.edge_photometric else {}),
+        "jobs": jobs,
+        **_summary(records, frames, elapsed),
+        # A damaged input: frames_lost is None when the container cannot say how many.
+        "damaged": loss is not None,
+        "frames_lost": (loss.frames_lost if loss is not None else 0),
+        "lost": loss.to_dict(source.start_ns) if loss is not None else None,
+        "calibration": {
+            **cal_info,
+            "calibrated": cal.calibrated,
+            "R_cap_head_q_wxyz": _q_wxyz(cal.R_cap_head),
+            "R_cam_frontal_q_wxyz": _q_wxyz(cal.R_cam_frontal),
+        },
+        **(summary_extra or {}),
+    }
+    write_labels_bag(tmp / "labels.mcap", records, namespace)
+    write_output_file(tmp / "labels.csv", labels_csv_text(records))
+    write_output_file(tmp / "summary.json", json.dumps(summary, indent=2) + "\n")
+    files = [out / "labels.mcap", out / "metadata.yaml", out / "labels.csv", out / "summary.json"]
+    return ReplayOutput(records, summary, files, loss)
+
+
+def _q_wxyz(rotation: Any) -> list[float]:
+    x, y, z, w = rotation.as_quat(canonical=True)
+    return [round(float(v), 9) for v in (w, x, y, z)]

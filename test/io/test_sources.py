@@ -1,0 +1,225 @@
+"""Reading frames from bags (sqlite3 / MCAP folders, single .mcap) and videos; bad inputs."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from ficap_ros.io.sources import CAMERA_INFO_TYPE, COMPRESSED_TYPE, IMAGE_TYPE, open_frames
+from ficap_ros.io.bag_writer import BagWriter, camera_info_msg, compressed_image_msg, image_msg
+from ficap_ros.geometry.camera import CameraModel
+from ficap_ros.errors import BagError, ImageError
+from ficap_ros.io.image_codec import decode_compressed, decode_image
+
+W, H = 64, 48
+T0 = 1_700_000_000_000_000_000
+CAM = CameraModel(W, H, np.array([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]]),
+                  np.array([0.1, -0.05, 0.001, 0.002, 0.0]), "plumb_bob")
+
+
+def _grey(i: int) -> np.ndarray:
+    rng = np.random.default_rng(i)
+    return rng.integers(0, 256, (H, W), dtype=np.uint8)
+
+
+def _write_bag(path: Path, storage: str = "mcap", layout: str = "folder", n: int = 5,
+               compressed: bool = False, info: bool = True, bad_frame: int | None = None,
+               extra_image_topic: bool = False) -> list[np.ndarray]:
+    images = [_grey(i) for i in range(n)]
+    topic = "/cam/image_raw/compressed" if compressed else "/cam/image_raw"
+    with BagWriter(path, storage=storage, layout=layout) as w:
+        w.add_topic(topic, COMPRESSED_TYPE if compressed else IMAGE_TYPE)
+        if info:
+            w.add_topic("/cam/camera_info", CAMERA_INFO_TYPE)
+        if extra_image_topic:
+            w.add_topic("/other/image_raw", IMAGE_TYPE)
+        for i, img in enumerate(images):
+            stamp = T0 + i * 33_333_333
+            if info:
+                w.write("/cam/camera_info", stamp, camera_info_msg(stamp, "cam_optical", CAM))
+            if compressed:
+                data = cv2.imencode(".png", img)[1].tobytes() if i != bad_frame else b"\x00junk"
+                w.write(topic, stamp, compressed_image_msg(stamp, "cam_optical", data, "png"))
+            else:
+                w.write(topic, stamp, image_msg(stamp, "cam_optical", img, "mono8"))
+            if extra_image_topic:
+                w.write("/other/image_raw", stamp, image_msg(stamp, "x", img, "mono8"))
+    return images
+
+
+# -- codec ---------------------------------------------------------------------------------------
+def test_decode_image_encodings() -> None:
+    rng = np.random.default_rng(0)
+    bgr = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    grey = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
+    rgb = bgr[:, :, ::-1].copy()
+    bgra = cv2.cvtColor(bgr, cv2.COLOR_BGR2BGRA)
+    rgba = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGBA)
+    for enc, arr in (("bgr8", bgr), ("rgb8", rgb), ("bgra8", bgra), ("rgba8", rgba)):
+        out = decode_image(enc, H, W, arr.strides[0], arr.tobytes(), False)
+        assert np.abs(out.astype(int) - grey).max() <= 1, enc
+    # Padded rows (step > width) and 16-bit in both byte orders.
+    padded = np.zeros((H, W + 8), np.uint8)
+    padded[:, :W] = grey
+    np.testing.assert_array_equal(decode_image("mono8", H, W, W + 8, padded.tobytes()), grey)
+    m16 = grey.astype(np.uint16) * 257
+    np.testing.assert_array_equal(decode_image("mono16", H, W, 2 * W, m16.astype("<u2").tobytes(), 0), m16)
+    np.testing.assert_array_equal(decode_image("mono16", H, W, 2 * W, m16.astype(">u2").tobytes(), 1), m16)
+    # Bayer RGGB of a flat colour demosaics to a flat grey close to the colour's luminance.
+    bayer = np.zeros((H, W), np.uint8)
+    bayer[0::2, 0::2], bayer[0::2, 1::2], bayer[1::2, 0::2], bayer[1::2, 1::2] = 200, 100, 100, 40
+    out = decode_image("bayer_rggb8", H, W, W, bayer.tobytes())
+    expect = 0.299 * 200 + 0.587 * 100 + 0.114 * 40
+    assert abs(float(np.median(out)) - expect) < 3
+    with pytest.raises(ImageError, match="encoding"):
+        decode_image("32FC1", H, W, 4 * W, b"\x00" * 4 * W * H)
+    with pytest.raises(ImageError, match="bytes"):
+        decode_image("mono8", H, W, W, b"\x00" * 10)
+    with pytest.raises(ImageError):
+        decode_compressed(b"not an image")
+
+
+# -- bag round trips -----------------------------------------------------------------------------
+@pytest.mark.parametrize("storage,layout,compressed", [
+    ("sqlite3", "folder", False), ("mcap", "folder", False), ("mcap", "folder", True),
+    ("mcap", "file", False),
+])
+def test_round_trip(tmp_path: Path, storage: str, layout: str, compressed: bool) -> None:
+    path = tmp_path / ("drive.mcap" if layout == "file" else "drive")
+    images = _write_bag(path, storage, layout, compressed=compressed)
+    src = open_frames(path)
+    assert src.image_topic.startswith("/cam/image_raw") and src.camera_info_topic == "/cam/camera_info"
+    assert src.count == len(images) and src.start_ns == T0
+    frames = list(src)
+    assert [f.index for f in frames] == list(range(len(images)))
+    for f, img in zip(frames, images):
+        assert f.error is None and f.frame_id == "cam_optical"
+        np.testing.assert_array_equal(f.image, img)  # mono8 and PNG are lossless
+        assert f.camera.distortion_model == "plumb_bob"
+        np.testing.assert_allclose(f.camera.K, CAM.K)
+        np.testing.assert_allclose(f.camera.D, CAM.D)
+    assert frames[3].stamp_ns == T0 + 3 * 33_333_333
+    if layout == "file":  # the folder holding the file is itself a rosbag2 bag
+        assert (tmp_path / "metadata.yaml").exists()
+        assert len(list(open_frames(tmp_path))) == len(images)
+
+
+def test_intrinsics_file_replaces_camera_info(tmp_path: Path) -> None:
+    import yaml
+
+    path = tmp_path / "bag"
+    _write_bag(path, info=False)
+    with pytest.raises(BagError, match="CameraInfo"):
+        open_frames(path)
+    yml = tmp_path / "cam.yaml"
+    yml.write_text(yaml.safe_dump(CAM.to_camera_yaml()))
+    frames = list(open_frames(path, intrinsics=yml))
+    assert len(frames) == 5 and all(f.camera.width_px == W for f in frames)
+
+
+def test_undecodable_frame_is_reported_not_fatal(tmp_path: Path) -> None:
+    path = tmp_path / "bag"
+    _write_bag(path, compressed=True, bad_frame=2)
+    frames = list(open_frames(path))
+    assert [f.error is None for f in frames] == [True, True, False, True, True]
+    assert isinstance(frames[2].error, ImageError)
+
+
+def test_topic_selection_errors(tmp_path: Path) -> None:
+    path = tmp_path / "two"
+    _write_bag(path, extra_image_topic=True)
+    with pytest.raises(BagError, match="--image-topic"):
+        open_frames(path)
+    assert open_frames(path, image_topic="/cam/image_raw").count == 5
+    with pytest.raises(BagError, match="no topic /nope"):
+        open_frames(path, image_topic="/nope")
+    with pytest.raises(BagError, match="not an Image"):
+        open_frames(path, image_topic="/cam/camera_info")
+    with pytest.raises(BagError, match="no topic /nope"):
+        open_frames(path, image_topic="/cam/image_raw", camera_info_topic="/nope")
+
+
+def test_corrupt_and_truncated_bags(tmp_path: Path) -> None:
+    with pytest.raises(BagError, match="does not exist"):
+        open_frames(tmp_path / "missing")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(BagError, match="metadata.yaml"):
+        open_frames(tmp_path / "empty")
+    junk = tmp_path / "junk.mcap"
+    junk.write_bytes(b"this is not an mcap file at all" * 10)
+    with pytest.raises(BagError):
+        open_frames(junk)
+    # A truncated MCAP (recording killed mid-write): no footer, yet every complete image before
+    # the cut is recovered (test_damaged_inputs.py covers the recovery in depth).
+    good = tmp_path / "good.mcap"
+    images = _write_bag(good, layout="file", n=20)
+    cut = tmp_path / "cut.mcap"
+    cut.write_bytes(good.read_bytes()[: good.stat().st_size // 2])
+    source = open_frames(cut)
+    frames = list(source)
+    assert 5 <= len(frames) < 20
+    for frame, image in zip(frames, images):
+        np.testing.assert_array_equal(frame.image, image)
+    assert source.loss is not None and source.loss.frames_lost == 20 - len(frames)
+    # Cut inside the first record: nothing to recover.
+    cut.write_bytes(good.read_bytes()[:40])
+    with pytest.raises(BagError):
+        list(open_frames(cut))
+    # A sqlite3 bag whose database is garbage.
+    sq = tmp_path / "sq"
+    _write_bag(sq, storage="sqlite3")
+    db = next(sq.glob("*.db3"))
+    db.write_bytes(b"\x00" * 100 + db.read_bytes()[100:2000])
+    with pytest.raises(BagError):
+        list(open_frames(sq))
+
+
+def test_video_needs_intrinsics_and_reads_frames(tmp_path: Path) -> None:
+    import yaml
+
+    video = tmp_path / "drive.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (W * 2, H * 2))
+    assert writer.isOpened()
+    for i in range(6):
+        writer.write(cv2.cvtColor(cv2.resize(_grey(i), (W * 2, H * 2)), cv2.COLOR_GRAY2BGR))
+    writer.release()
+    with pytest.raises(BagError, match="--intrinsics"):
+        open_frames(video)
+    yml = tmp_path / "cam.yaml"
+    yml.write_text(yaml.safe_dump(CAM.to_camera_yaml()))
+    frames = list(open_frames(video, intrinsics=yml))  # intrinsics at half size: rescaled
+    assert len(frames) == 6
+    assert frames[1].stamp_ns == 40_000_000  # 25 fps from the container
+    assert frames[0].camera.width_px == 2 * W
+    np.testing.assert_allclose(frames[0].camera.K[0, 0], 2 * CAM.K[0, 0])
+    frames = list(open_frames(video, intrinsics=yml, fps=10.0))
+    assert frames[2].stamp_ns == 200_000_000
+    bogus = tmp_path / "bogus.mp4"
+    bogus.write_bytes(b"nope")
+    with pytest.raises(BagError):
+        open_frames(bogus, intrinsics=yml)
+
+
+def test_sources_are_built_in_one_step(tmp_path: Path) -> None:
+    """``open_frames`` picks ``BagSource`` or ``VideoSource``; each constructor opens completely."""
+    from ficap_ros.io.sources import BagSource, RecordingKind, VideoSource
+
+    bag = tmp_path / "bag"
+    _write_bag(bag)
+    src = open_frames(bag)
+    assert isinstance(src, BagSource) and src.kind is RecordingKind.BAG and src.kind == "bag"
+    direct = BagSource(bag)
+    assert (direct.count, direct.start_ns, direct.image_topic) == (src.count, src.start_ns,
+                                                                  src.image_topic) and src.count == 5
+    video = tmp_path / "v.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (W, H))
+    for i in range(2):
+        writer.write(cv2.cvtColor(_grey(i), cv2.COLOR_GRAY2BGR))
+    writer.release()
+    v = open_frames(video, intrinsics=CAM)
+    assert isinstance(v, VideoSource) and v.kind is RecordingKind.VIDEO and len(list(v)) == 2
+    with pytest.raises(BagError, match="--intrinsics"):
+        VideoSource(video, None)

@@ -1,0 +1,81 @@
+"""ficap_ros.ros.live: the node's frame without ROS, driven here by rosbags messages (the node feeds
+rclpy's; test_live_offline compares the node with replay)."""
+
+from __future__ import annotations
+
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from ficap_ros.io import bag_writer
+from ficap_ros.vision.calibration import HeadCalibration, LiveCalibration
+from ficap_ros.geometry.camera import CameraInfoCache
+from ficap_ros.geometry.cap_model import nominal_model
+from ficap_ros.ros.live import failed_frame, process_image, reference_q_xyzw
+from ficap_ros.geometry.metrics import angle_deg
+from ficap_ros.vision.pipeline import FrameProcessor
+from ficap_ros.io.status import ERROR, OK, WARN
+from ficap_ros.tools.synth import RenderConfig, default_scene, render
+from ficap_ros.geometry.transform import Transform
+
+CONFIG = SimpleNamespace(camera_info_max_stamp_diff_ms=1.0, image_is_rectified=False,
+                         publish_min_reliability=0.0, warn_reliability=0.5)
+S = 5_000_000_000
+
+
+def test_a_rendered_image_gives_its_pose_and_an_ok_status() -> None:
+    scene = default_scene("540p")
+    truth = scene.cap_pose(Transform.identity().rotation)
+    image = render(nominal_model(), scene.camera, truth, RenderConfig(), seed=11).image
+    cameras = CameraInfoCache()
+    cameras.add(S, bag_writer.camera_info_msg(S, "cam", scene.camera))
+    msg = bag_writer.image_msg(S, "cam", image, "mono8")
+    frame = process_image(msg, FrameProcessor(model=nominal_model()), cameras, HeadCalibration(),
+                          CONFIG)
+    assert (frame.level, frame.message) == (OK, "pose") and frame.publish_pose
+    assert frame.result is not None and frame.result.pose is not None
+    assert angle_deg(frame.result.pose.T_cam_cap.rotation, truth.rotation) < 0.2
+    assert np.abs(frame.result.pose.T_cam_cap.translation_m - truth.translation_m).max() < 0.005
+    assert frame.record.stamp_ns == S and frame.record.frame_id == "cam"
+    values = frame.status_values(12.5, 3)
+    assert values["search"] == frame.search == "image" and values["dropped_frames"] == 3
+    assert frame.quality_values(12.5)["latency_ms"] == 12.5
+    # Not reliable enough to publish: the status says so, the pose is kept back.
+    strict = SimpleNamespace(**{**vars(CONFIG), "publish_min_reliability": 1.01,
+                                "warn_reliability": 1.01})
+    frame = process_image(msg, FrameProcessor(model=nominal_model()), cameras, HeadCalibration(),
+                          strict)
+    assert frame.level == WARN and frame.message.startswith("low reliability")
+    assert not frame.publish_pose
+
+
+def test_errors_become_failed_frames() -> None:
+    grey = np.zeros((540, 960), np.uint8)
+    msg = bag_writer.image_msg(S, "cam", grey, "mono8")
+    frame = process_image(msg, FrameProcessor(model=nominal_model()), CameraInfoCache(),
+                          HeadCalibration(), CONFIG)
+    assert frame.level == ERROR and "no CameraInfo" in frame.message and frame.result is None
+    bad = bag_writer.compressed_image_msg(S, "cam", b"not a jpeg", "jpeg")
+    frame = process_image(bad, FrameProcessor(model=nominal_model()), CameraInfoCache(),
+                          HeadCalibration(), CONFIG)
+    assert frame.level == ERROR and frame.result is None and frame.record.stamp_ns == S
+    frame = failed_frame(S, "cam", "internal error: boom", HeadCalibration())
+    assert (frame.level, frame.message, frame.record.reason) == (
+        ERROR, "internal error: boom", "internal error: boom")
+
+
+def test_reference_quaternions_are_checked_and_normalised() -> None:
+    T = Transform.identity()
+    msg = bag_writer.pose_stamped_msg(S, "ref", T)
+    msg.pose.orientation.w = 2.0
+    assert reference_q_xyzw(msg) == pytest.approx([0.0, 0.0, 0.0, 1.0])
+    msg.pose.orientation.w = 0.0
+    assert reference_q_xyzw(msg) is None
+    msg.pose.orientation.x = float("nan")
+    assert reference_q_xyzw(msg) is None
+
+
+def test_live_calibration_says_where_its_calibration_came_from() -> None:
+    live = LiveCalibration()
+    assert live.mode == "none"

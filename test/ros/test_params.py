@@ -1,0 +1,86 @@
+"""ficap_ros.ros.params: the parameter table read into one frozen, typed NodeConfig."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+
+from ficap_ros.errors import ConfigError
+from ficap_ros.ros.params import PARAMETERS, CalibrationMode, NodeConfig
+
+
+def _defaults(**changes: object) -> dict[str, object]:
+    values = {p.name: p.default for p in PARAMETERS}
+    values.update(changes)
+    return values
+
+
+def test_config_is_typed_and_frozen() -> None:
+    cfg = NodeConfig.from_values(_defaults(**{"calibration.window_s": 2, "pose.method": "paper"}))
+    assert cfg.calibration_window_s == 2.0 and isinstance(cfg.calibration_window_s, float)
+    assert cfg.calibration_mode is CalibrationMode.AUTO and cfg.camera_mount == (0.0,) * 7
+    assert cfg.mount is None and cfg.pose_config.method == "paper"
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        cfg.tracking = False  # type: ignore[misc]
+
+
+def test_calibration_mode_resolves_auto() -> None:
+    assert NodeConfig.from_values(_defaults()).effective_calibration_mode is CalibrationMode.FRONTAL
+    ref = NodeConfig.from_values(_defaults(**{"calibration.reference_topic": "/ref"}))
+    assert ref.effective_calibration_mode is CalibrationMode.REFERENCE
+    forced = NodeConfig.from_values(_defaults(**{"calibration.reference_topic": "/ref",
+                                                 "calibration.mode": "frontal"}))
+    assert forced.effective_calibration_mode is CalibrationMode.FRONTAL
+
+
+def test_mount_is_a_transform() -> None:
+    cfg = NodeConfig.from_values(_defaults(camera_mount=[0.1, 0.0, 1.2, 0.5, -0.5, 0.5, -0.5]))
+    assert cfg.mount is not None and abs(cfg.mount.translation_m[2] - 1.2) < 1e-12
+    with pytest.raises(ConfigError):
+        NodeConfig.from_values(_defaults(camera_mount=[0.0] * 6 + [2.0])).mount
+
+
+def test_every_uncertainty_setting_is_a_parameter_with_its_default() -> None:
+    from ficap_ros.vision.pose import UncertaintyConfig
+
+    names = {p.name for p in PARAMETERS}
+    for f in dataclasses.fields(UncertaintyConfig):
+        assert f"uncertainty.{f.name}" in names, f.name
+    cfg = NodeConfig.from_values(_defaults(**{"uncertainty.tilt_shift_px": 0.06,
+                                              "uncertainty.weight_tags": False,
+                                              "uncertainty.light_gradient_gain": 1}))
+    u = cfg.pose_config.uncertainty
+    assert (u.tilt_shift_px, u.weight_tags, u.light_gradient_gain) == (0.06, False, 1.0)
+    assert isinstance(u.light_gradient_gain, float)
+    assert NodeConfig.from_values(_defaults()).pose_config.uncertainty == UncertaintyConfig()
+
+
+def test_node_defaults_are_the_offline_pipeline_and_the_shipped_file() -> None:
+    """The node's defaults are replay's (README: one pipeline live and offline) and
+    config/ficap.yaml ships exactly the declared defaults; the node's search_decimate was 1, so a
+    1080p camera was searched at full size live and at half size by ficap replay."""
+    from pathlib import Path
+
+    import yaml
+
+    from ficap_ros.vision.detection import DetectorConfig
+
+    cfg = NodeConfig.from_values(_defaults())
+    assert cfg.detector_search_decimate == DetectorConfig().search_decimate == 0
+    assert (cfg.detector_backend, cfg.detector_corner_refine) == (
+        DetectorConfig().backend, DetectorConfig().corner_refine)
+    shipped = yaml.safe_load((Path(__file__).resolve().parents[2] / "config" / "ficap.yaml")
+                             .read_text())["/**"]["ros__parameters"]
+    assert shipped == {p.name: p.default for p in PARAMETERS}
+
+
+def test_detector_photometric_reaches_the_detector() -> None:
+    # The node's detector.photometric is the CLI's --photometric: DetectorConfig.edge_photometric
+    # of the pipeline it builds; with another corner refinement the node refuses to start.
+    on = NodeConfig.from_values(_defaults(**{"detector.photometric": True}))
+    assert on.frame_processor().detector.config.edge_photometric is True
+    assert NodeConfig.from_values(_defaults()).frame_processor().detector.config.edge_photometric is False
+    off = NodeConfig.from_values(_defaults(**{"detector.photometric": True, "detector.corner_refine": "subpix"}))
+    with pytest.raises(ConfigError, match="photometric"):
+        off.frame_processor()

@@ -1,0 +1,203 @@
+"""Cap-to-head calibration on synthetic rotations with known truth."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from ficap_ros.vision.calibration import (
+    CalibrationResult,
+    calibrate_frontal,
+    calibrate_reference,
+    frontal_from_camera_mount,
+    load_calibration,
+    save_calibration,
+)
+from ficap_ros.errors import CalibrationError
+from ficap_ros.geometry.metrics import angle_deg, rotation_from_ypr_deg
+from ficap_ros.vision.calibration import HeadCalibration
+from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform
+
+
+def _mount(pitch_down_deg: float = 0.0, yaw_left_deg: float = 0.0) -> Transform:
+    """camera_mount of a camera behind the wearer looking forward, pitched down and yawed left:
+    built from its axes in base_link (x forward, y left, z up), not from Euler angles."""
+    p, y = np.radians(pitch_down_deg), np.radians(yaw_left_deg)
+    z_cam = np.array([np.cos(p) * np.cos(y), np.cos(p) * np.sin(y), -np.sin(p)])  # optical axis
+    x_cam = np.array([np.sin(y), -np.cos(y), 0.0])  # image right
+    y_cam = np.cross(z_cam, x_cam)  # image down
+    R = np.column_stack([x_cam, y_cam, z_cam])
+    assert np.allclose(R.T @ R, np.eye(3)) and np.linalg.det(R) > 0
+    return Transform(Rotation.from_matrix(R), [-0.6, 0.0, 1.2])
+
+
+def _noise(rng: np.random.Generator, n: int, sigma_deg: float) -> Rotation:
+    """Per-axis Gaussian rotation noise, sigma in degrees."""
+    return Rotation.from_rotvec(rng.normal(0.0, np.radians(sigma_deg), size=(n, 3)))
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_frontal_recovers_cap_to_head(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    R_cap_head = Rotation.random(random_state=seed)
+    R_cam_frontal = frontal_from_camera_mount(_mount(pitch_down_deg=10.0))
+    n = 90
+    # The wearer looks "straight ahead" with ~1 deg of natural wobble per axis, and the cap
+    # estimate adds 0.5 deg more; 10 % of the frames are gross glances elsewhere.
+    R_frontal_head = _noise(rng, n, 1.0)
+    glances = rng.random(n) < 0.1
+    R_frontal_head = Rotation.from_rotvec(
+        np.where(glances[:, None], rng.normal(0, np.radians(25), (n, 3)), R_frontal_head.as_rotvec())
+    )
+    R_cam_cap = R_cam_frontal * R_frontal_head * R_cap_head.inv() * _noise(rng, n, 0.5)
+    res = calibrate_frontal(R_cam_cap, R_cam_frontal)
+    assert res.mode == "frontal" and res.R_cam_reference is None
+    assert angle_deg(res.R_cap_head, R_cap_head) < 0.5
+    assert res.frames_used >= int(0.8 * n)
+    assert 0.5 < res.spread_deg < 3.0
+
+
+def test_frontal_refuses_too_few_frames() -> None:
+    r = Rotation.random(5, random_state=3)
+    with pytest.raises(CalibrationError, match="needs 30 frames"):
+        calibrate_frontal(r, CAM_FROM_FORWARD)
+
+
+def test_frontal_refuses_large_spread() -> None:
+    rng = np.random.default_rng(4)
+    R_cam_cap = CAM_FROM_FORWARD * _noise(rng, 60, 8.0)  # the head roams: not a frontal segment
+    with pytest.raises(CalibrationError, match="spread"):
+        calibrate_frontal(R_cam_cap, CAM_FROM_FORWARD, max_spread_deg=3.0)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_reference_recovers_both_rotations(seed: int) -> None:
+    rng = np.random.default_rng(10 + seed)
+    R_cap_head = Rotation.random(random_state=20 + seed)
+    R_cam_ref = Rotation.random(random_state=30 + seed)
+    n = 300
+    # Naturalistic head motion: yaw +-40, pitch +-15, roll +-8 deg.
+    ypr = rng.uniform([-40, -15, -8], [40, 15, 8], size=(n, 3))
+    # (Pitch mirrored: the same rotations this test drew before head angles became REP-103; the
+    # sign does not matter to the calibration, so the seeded sample is kept.)
+    R_ref_head_true = Rotation.concatenate([rotation_from_ypr_deg(a[0], -a[1], a[2]) for a in ypr])
+    R_cam_cap = R_cam_ref * R_ref_head_true * R_cap_head.inv() * _noise(rng, n, 0.3)
+    R_ref_head = R_ref_head_true * _noise(rng, n, 2.0)  # 2 deg per axis reference noise
+    res = calibrate_reference(R_cam_cap, R_ref_head)
+    assert res.mode == "reference"
+    assert angle_deg(res.R_cap_head, R_cap_head) < 1.0
+    assert angle_deg(res.R_cam_reference, R_cam_ref) < 1.0
+    # 2 deg per axis gives a ~3.5 deg RMS geodesic residual.
+    assert 2.0 < res.spread_deg < 5.0
+    # The predicted 1-sigma error is of the size of the actual error (not 10x off either way).
+    assert 0.05 < res.uncertainty_deg < 1.0
+
+
+def test_reference_refuses_too_few_pairs_and_no_motion() -> None:
+    r = Rotation.random(5, random_state=1)
+    with pytest.raises(CalibrationError, match="needs 10 pairs"):
+        calibrate_reference(r, r)
+    with pytest.raises(CalibrationError, match="paired"):
+        calibrate_reference(Rotation.random(20, random_state=1), Rotation.random(12, random_state=2))
+    rng = np.random.default_rng(5)
+    still = _noise(rng, 50, 0.2)
+    with pytest.raises(CalibrationError, match="two axes"):
+        calibrate_reference(still, still)
+
+
+def test_frontal_frame_from_camera_mount_axes() -> None:
+    assert angle_deg(frontal_from_camera_mount(None), CAM_FROM_FORWARD) < 1e-9
+    assert angle_deg(frontal_from_camera_mount(_mount()), CAM_FROM_FORWARD) < 1e-9
+    # Camera pitched down 10 deg: the horizontal forward direction appears above the optical axis
+    # (negative optical y), 10 deg off it.
+    fwd_cam = frontal_from_camera_mount(_mount(pitch_down_deg=10.0)).apply([1.0, 0.0, 0.0])
+    assert fwd_cam[1] < 0
+    assert np.degrees(np.arccos(fwd_cam[2])) == pytest.approx(10.0, abs=1e-9)
+    # Camera yawed to the left: vehicle forward appears to the right of the image centre (+x).
+    fwd_cam = frontal_from_camera_mount(_mount(yaw_left_deg=15.0)).apply([1.0, 0.0, 0.0])
+    assert fwd_cam[0] > 0 and np.degrees(np.arctan2(fwd_cam[0], fwd_cam[2])) == pytest.approx(15.0)
+
+
+def test_save_load_round_trip(tmp_path) -> None:
+    R_cap_head = Rotation.random(random_state=7)
+    R_cam_frontal = frontal_from_camera_mount(_mount(pitch_down_deg=5.0))
+    res = CalibrationResult(R_cap_head, 42, 1.25, "reference", Rotation.random(random_state=8))
+    path = tmp_path / "sub" / "calib.yaml"
+    save_calibration(path, res, R_cam_frontal=R_cam_frontal)
+    text = path.read_text()
+    assert "quaternion_order: wxyz" in text and "R_cam_reference_q_wxyz" in text
+    loaded = load_calibration(path)
+    assert loaded.calibrated
+    assert angle_deg(loaded.R_cap_head, R_cap_head) < 1e-6
+    assert angle_deg(loaded.R_cam_frontal, R_cam_frontal) < 1e-6
+    save_calibration(path, HeadCalibration())
+    assert not load_calibration(path).calibrated
+    assert list(path.parent.iterdir()) == [path]  # no temporary files left behind
+
+
+def test_load_refuses_bad_files(tmp_path) -> None:
+    with pytest.raises(CalibrationError, match="cannot read"):
+        load_calibration(tmp_path / "missing.yaml")
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("R_cap_head_q_wxyz: [0, 0, 0, 0]\n")
+    with pytest.raises(CalibrationError, match="not a valid quaternion"):
+        load_calibration(bad)
+    bad.write_text("just: text\n")
+    with pytest.raises(CalibrationError, match="R_cap_head_q_wxyz"):
+        load_calibration(bad)
+
+
+def test_live_calibration_frontal_frame_rule(tmp_path) -> None:
+    """One rule live and offline (``calibrated_frontal``): a reference calibration's frame is the
+    frontal frame without a camera mount; a mount fixes it; clearing returns to the mount's."""
+    from ficap_ros.vision.calibration import CalibrationResult, LiveCalibration, frontal_from_camera_mount
+    from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform
+
+    R_ref = Rotation.from_euler("ZYX", [170.0, 20.0, -5.0], degrees=True)
+    result = CalibrationResult(Rotation.from_euler("x", 3.0, degrees=True), 50, 0.5, "reference",
+                               R_ref)
+    live = LiveCalibration()
+    before = live.current
+    after = live.apply(result)
+    assert before is not after and not before.calibrated  # swapped whole, never mutated
+    assert angle_deg(live.current.R_cam_frontal, R_ref) < 1e-9
+    mount = Transform(Rotation.from_euler("y", 10.0, degrees=True) * CAM_FROM_FORWARD.inv(),
+                      np.zeros(3))
+    live.set_mount(mount)
+    assert angle_deg(live.current.R_cam_frontal, frontal_from_camera_mount(mount)) < 1e-9
+    assert angle_deg(live.current.R_cap_head, result.R_cap_head) < 1e-9
+    ok, message = live.persist(tmp_path / "cal.yaml", result, "calibrated")
+    assert ok and message.endswith("cal.yaml")
+    cleared = live.clear()
+    assert not cleared.calibrated and angle_deg(cleared.R_cam_frontal,
+                                                frontal_from_camera_mount(mount)) < 1e-9
+    assert LiveCalibration().load(tmp_path / "cal.yaml") == ""  # no mount: the file's frame kept
+
+
+def test_live_calibration_service_outcomes(tmp_path) -> None:
+    from ficap_ros.vision.calibration import CalibrationResult, LiveCalibration
+
+    live = LiveCalibration()
+    assert live.start("") == [] and live.start(tmp_path / "missing.yaml") == []
+
+    def refuse() -> CalibrationResult:
+        raise CalibrationError("no reliable frames buffered for frontal calibration")
+
+    assert live.calibrate(refuse, "") == ("refused", "calibration refused: no reliable frames "
+                                          "buffered for frontal calibration")
+    R = Rotation.from_euler("xyz", [2.0, -5.0, 1.0], degrees=True)
+    outcome, message = live.calibrate(lambda: CalibrationResult(R, 60, 0.3, "frontal"),
+                                      tmp_path / "cal.yaml")
+    assert outcome == "ok" and message.startswith("calibrated (frontal) from 60 frames")
+    assert live.current.calibrated
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    outcome, message = live.clear_and_save(blocker / "cal.yaml")  # its folder is a file
+    assert outcome == "unsaved" and "NOT updated" in message and not live.current.calibrated
+    other = LiveCalibration()
+    log = other.start(tmp_path / "cal.yaml")
+    assert log[-1][0] == "info" and other.current.calibrated
+    assert angle_deg(other.current.R_cap_head, R) < 1e-6
+    (tmp_path / "bad.yaml").write_text("not: a calibration")
+    assert LiveCalibration().start(tmp_path / "bad.yaml")[0][0] == "error"

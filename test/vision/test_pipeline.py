@@ -1,0 +1,104 @@
+"""End-to-end accuracy on rendered frames with exact ground truth (issue: foundation).
+
+Seeded naturalistic-drive frames go through the one pipeline (detection + `joint` pose); the error
+is the geodesic angle between the estimated and the true cap rotation. The naive peer (OpenCV
+sub-pixel corners + one SQPnP/LM) runs on the same frames: our median and p95 must be at most half
+of its.
+"""
+
+from __future__ import annotations
+
+from functools import lru_cache
+
+import cv2
+import numpy as np
+import pytest
+
+from ficap_ros.geometry.cap_model import nominal_model
+from ficap_ros.vision.detection import DetectorConfig
+from ficap_ros.geometry.metrics import angle_deg
+from ficap_ros.vision.pipeline import FrameProcessor
+from ficap_ros.vision.pose import PoseConfig
+from ficap_ros.tools.synth import RenderConfig, default_scene, naturalistic_drive, render
+
+MODEL = nominal_model()
+OURS = FrameProcessor(MODEL)
+# The peer is the afternoon pipeline: every frame searched, OpenCV sub-pixel corners, one PnP.
+PEER = FrameProcessor(MODEL, DetectorConfig(corner_refine="subpix"), PoseConfig(method="naive"), tracking=False)
+
+
+@lru_cache(maxsize=None)
+def _frames(resolution: str, n: int, seed: int):
+    """Frames spread over a drive (every 7th of 7n), so glances and frontal poses both appear."""
+    scene = default_scene(resolution)
+    drive = naturalistic_drive(7 * n, fps=30.0, seed=seed, scene=scene)
+    out = []
+    for k, truth in enumerate(drive[::7]):
+        frame = render(MODEL, scene.camera, truth.T_cam_cap, RenderConfig(lighting="neutral"), seed=seed * 1000 + k)
+        out.append((frame, truth))
+    return scene, out
+
+
+def _errors(processor: FrameProcessor, scene, frames, edit=None) -> np.ndarray:
+    errs = []
+    for frame, truth in frames:
+        image = frame.image if edit is None else edit(frame)
+        result = processor.process(image, scene.camera)
+        errs.append(
+            angle_deg(result.pose.T_cam_cap.rotation, truth.T_cam_cap.rotation) if result.pose else np.inf
+        )
+    return np.array(errs)
+
+
+@pytest.mark.parametrize("resolution, n, median_limit_deg", [("540p", 36, 0.25), ("1080p", 16, 0.12)])
+def test_accuracy_and_peer(resolution: str, n: int, median_limit_deg: float) -> None:
+    scene, frames = _frames(resolution, n, seed=7)
+    ours = _errors(OURS, scene, frames)
+    peer = _errors(PEER, scene, frames)
+    assert np.all(np.isfinite(ours)), "a frame gave no pose"
+    print(f"{resolution}: ours median {np.median(ours):.3f} p95 {np.percentile(ours, 95):.3f}; "
+          f"peer median {np.median(peer):.3f} p95 {np.percentile(peer, 95):.3f} deg")
+    assert np.median(ours) < median_limit_deg
+    assert np.median(ours) <= 0.5 * np.median(peer[np.isfinite(peer)])
+    assert np.percentile(ours, 95) <= 0.5 * np.percentile(peer[np.isfinite(peer)], 95)
+
+
+def _paste_spurious(frame) -> np.ndarray:
+    """Copy the image patch of one visible tag to another place: a second, wrong copy of a real id."""
+    image = frame.image.copy()
+    tag_id, corners = max(frame.corners_px.items(), key=lambda kv: cv2.contourArea(kv[1].astype(np.float32)))
+    x0, y0 = np.floor(corners.min(axis=0)).astype(int) - 4
+    x1, y1 = np.ceil(corners.max(axis=0)).astype(int) + 4
+    patch = image[y0:y1, x0:x1].copy()
+    h, w = patch.shape[:2]
+    # Paste into the top-left corner region (background, away from the cap).
+    image[10:10 + h, 10:10 + w] = patch
+    return image
+
+
+def test_spurious_detection_moves_median_little() -> None:
+    scene, frames = _frames("540p", 36, seed=7)
+    clean = _errors(OURS, scene, frames)
+    spurious = _errors(OURS, scene, frames, edit=_paste_spurious)
+    assert np.all(np.isfinite(spurious))
+    assert abs(np.median(spurious) - np.median(clean)) < 0.1
+
+
+def _occlude_half(frame) -> np.ndarray:
+    """Cover the left half of the visible tags with a dark hand-like blob."""
+    image = frame.image.copy()
+    pts = np.concatenate(list(frame.corners_px.values()))
+    xs = np.sort(np.array([c[:, 0].mean() for c in frame.corners_px.values()]))
+    x_split = 0.5 * (xs[len(xs) // 2 - 1] + xs[len(xs) // 2]) if len(xs) > 1 else xs[0]
+    y0, y1 = int(pts[:, 1].min()) - 20, int(pts[:, 1].max()) + 20
+    x0 = int(pts[:, 0].min()) - 20
+    cv2.rectangle(image, (x0, y0), (int(x_split), y1), 35, thickness=-1)
+    return image
+
+
+def test_half_occluded() -> None:
+    scene, frames = _frames("540p", 36, seed=7)
+    clean = _errors(OURS, scene, frames)
+    occluded = _errors(OURS, scene, frames, edit=_occlude_half)
+    assert np.all(np.isfinite(occluded)), "no pose with half the tags occluded"
+    assert np.median(occluded) < 2.0 * np.median(clean)

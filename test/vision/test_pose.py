@@ -1,0 +1,177 @@
+"""Pose estimators on exactly projected corners with seeded noise (rendered frames: test_accuracy.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from ficap_ros.geometry.camera import CameraModel
+from ficap_ros.geometry.cap_model import nominal_model
+from ficap_ros.vision.detection import TagDetection
+from ficap_ros.errors import ConfigError
+from ficap_ros.geometry.metrics import angle_deg
+from ficap_ros.vision.pose import PoseConfig, estimate_cap_pose
+from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform
+
+MODEL = nominal_model()
+CAMERA = CameraModel.pinhole(960, 540, hfov_deg=60.0)
+
+
+def _pose(rng: np.random.Generator) -> Transform:
+    ypr = rng.uniform(-1, 1, 3) * [45.0, 20.0, 10.0]
+    R = CAM_FROM_FORWARD * Rotation.from_euler("ZYX", ypr, degrees=True)
+    return Transform(R, [rng.uniform(-0.05, 0.05), rng.uniform(-0.05, 0.05), 0.5])
+
+
+def _detections(T: Transform, rng: np.random.Generator, noise_px: float,
+                camera: CameraModel = CAMERA) -> list[TagDetection]:
+    n = T.rotation.apply(MODEL.normals)
+    c = T.apply(MODEL.centres_mm / 1000.0)
+    facing = np.sum(n * c, axis=1) < -0.2 * np.linalg.norm(c, axis=1)
+    return [
+        TagDetection(tag_id, camera.project(T.apply(MODEL.corners_of(tag_id) / 1000.0))
+                     + rng.normal(0.0, noise_px, (4, 2)))
+        for tag_id in np.asarray(MODEL.ids)[facing]
+    ]
+
+
+def _errors(method: str, noise_px: float, n: int = 40, seed: int = 1, **kw) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    errs = []
+    for _ in range(n):
+        T = _pose(rng)
+        result = estimate_cap_pose(_detections(T, rng, noise_px), MODEL, CAMERA, PoseConfig(method=method, **kw))
+        errs.append(angle_deg(result.pose.T_cam_cap.rotation, T.rotation) if result.ok else np.inf)
+    return np.array(errs)
+
+
+@pytest.mark.parametrize("method", ["joint", "paper", "naive"])
+def test_exact_corners_give_exact_pose(method: str) -> None:
+    rng = np.random.default_rng(3)
+    T = _pose(rng)
+    result = estimate_cap_pose(_detections(T, rng, 0.0), MODEL, CAMERA, PoseConfig(method=method))
+    assert result.ok, result.reason
+    assert angle_deg(result.pose.T_cam_cap.rotation, T.rotation) < 1e-5
+    np.testing.assert_allclose(result.pose.T_cam_cap.translation_m, T.translation_m, atol=1e-7)
+    assert result.pose.rms_px < 1e-4
+
+
+def test_joint_beats_paper_under_noise() -> None:
+    joint = _errors("joint", 0.3)
+    paper = _errors("paper", 0.3)
+    assert np.all(np.isfinite(joint)) and np.all(np.isfinite(paper))
+    assert np.median(joint) < 0.5 * np.median(paper)
+
+
+def test_spurious_tag_is_rejected() -> None:
+    """A real id's corners pasted elsewhere, as a duplicate and as the only copy of that id."""
+    rng = np.random.default_rng(5)
+    moved = []
+    for _ in range(20):
+        T = _pose(rng)
+        dets = _detections(T, rng, 0.2)
+        clean = estimate_cap_pose(dets, MODEL, CAMERA)
+        # Duplicate: a second copy of one id 60 px away.
+        dup = dets + [TagDetection(dets[0].tag_id, dets[0].corners_px + [60.0, 25.0])]
+        r_dup = estimate_cap_pose(dup, MODEL, CAMERA)
+        assert dets[0].tag_id in r_dup.pose.used_ids
+        # Misplaced: the only copy of one id moved 40 px.
+        bad = [TagDetection(dets[1].tag_id, dets[1].corners_px + [40.0, -30.0])] + dets[:1] + dets[2:]
+        r_bad = estimate_cap_pose(bad, MODEL, CAMERA)
+        assert dets[1].tag_id not in r_bad.pose.used_ids
+        for r in (r_dup, r_bad):
+            moved.append(angle_deg(r.pose.T_cam_cap.rotation, clean.pose.T_cam_cap.rotation))
+    assert np.median(moved) < 0.1
+
+
+def test_duplicate_that_disagrees_with_pose_drops_both() -> None:
+    rng = np.random.default_rng(8)
+    T = _pose(rng)
+    dets = _detections(T, rng, 0.1)
+    wrong = [TagDetection(dets[0].tag_id, dets[0].corners_px + 80.0),
+             TagDetection(dets[0].tag_id, dets[0].corners_px - 80.0)]
+    result = estimate_cap_pose(wrong + dets[1:], MODEL, CAMERA)
+    assert result.ok and dets[0].tag_id not in result.pose.used_ids
+    assert result.pose.tags_detected == len(dets)
+
+
+def test_single_tag_gives_a_low_reliability_pose() -> None:
+    rng = np.random.default_rng(9)
+    T = _pose(rng)
+    dets = _detections(T, rng, 0.2)
+    one = estimate_cap_pose(dets[:1], MODEL, CAMERA)
+    many = estimate_cap_pose(dets, MODEL, CAMERA)
+    assert one.ok and one.pose.tags_used == 1
+    assert one.pose.reliability < 0.3 < many.pose.reliability
+    assert many.pose.reliability > 0.8
+
+
+def test_no_pose_with_reason() -> None:
+    empty = estimate_cap_pose([], MODEL, CAMERA)
+    assert not empty.ok and "no tag" in empty.reason
+    foreign = estimate_cap_pose([TagDetection(400, np.array([[0, 0], [10, 0], [10, 10], [0, 10]]))], MODEL, CAMERA)
+    assert not foreign.ok and foreign.tags_detected == 0
+    rng = np.random.default_rng(2)
+    T = _pose(rng)
+    two = estimate_cap_pose(_detections(T, rng, 0.1)[:2], MODEL, CAMERA, PoseConfig(min_tags=3))
+    assert not two.ok and "need 3" in two.reason
+
+
+def test_covariance_matches_scatter() -> None:
+    """The reported rotation sigma is the right size: within a factor 2 of the observed scatter."""
+    rng = np.random.default_rng(11)
+    T = _pose(rng)
+    base = _detections(T, rng, 0.0)
+    rotvecs, sigmas = [], []
+    for _ in range(60):
+        dets = [TagDetection(d.tag_id, d.corners_px + rng.normal(0, 0.5, (4, 2))) for d in base]
+        pose = estimate_cap_pose(dets, MODEL, CAMERA).pose
+        rotvecs.append((pose.T_cam_cap.rotation * T.rotation.inv()).as_rotvec())
+        sigmas.append(np.sqrt(np.diag(pose.covariance)[3:]))
+    observed = np.std(np.array(rotvecs), axis=0)
+    predicted = np.median(np.array(sigmas), axis=0)
+    assert np.all(predicted < 2.0 * observed) and np.all(predicted > 0.5 * observed)
+    assert np.allclose(pose.covariance, pose.covariance.T)
+
+
+def test_distorted_camera() -> None:
+    """Corners seen through a plumb_bob lens are undistorted before the solve."""
+    cam = CameraModel(960, 540, CAMERA.K, [-0.25, 0.08, 0.001, -0.0005, -0.01], "plumb_bob")
+    rng = np.random.default_rng(4)
+    T = _pose(rng)
+    result = estimate_cap_pose(_detections(T, rng, 0.0, cam), MODEL, cam)
+    assert angle_deg(result.pose.T_cam_cap.rotation, T.rotation) < 1e-4
+
+
+def test_fisheye_camera() -> None:
+    cam = CameraModel(960, 540, CAMERA.K, [0.05, -0.01, 0.002, -0.001], "equidistant")
+    rng = np.random.default_rng(6)
+    T = _pose(rng)
+    result = estimate_cap_pose(_detections(T, rng, 0.0, cam), MODEL, cam)
+    assert angle_deg(result.pose.T_cam_cap.rotation, T.rotation) < 1e-4
+
+
+def test_unknown_method() -> None:
+    with pytest.raises(ConfigError, match="unknown pose method"):
+        PoseConfig(method="magic")
+
+
+@pytest.mark.parametrize("method", ["joint", "naive"])
+def test_without_uncertainty_same_pose(method: str) -> None:
+    """``with_uncertainty=False`` (the tracker's intermediate poses) returns the same pose, tags and
+    rms bit for bit, and no covariance or bounds (NaN, reliability 0)."""
+    rng = np.random.default_rng(11)
+    for _ in range(5):
+        T = _pose(rng)
+        dets = _detections(T, rng, 0.3)
+        config = PoseConfig(method=method)
+        full = estimate_cap_pose(dets, MODEL, CAMERA, config).pose
+        lean = estimate_cap_pose(dets, MODEL, CAMERA, config, with_uncertainty=False).pose
+        assert full is not None and lean is not None
+        np.testing.assert_array_equal(lean.T_cam_cap.rotation.as_quat(), full.T_cam_cap.rotation.as_quat())
+        np.testing.assert_array_equal(lean.T_cam_cap.translation_m, full.T_cam_cap.translation_m)
+        assert (lean.used_ids, lean.tags_used, lean.rms_px) == (full.used_ids, full.tags_used, full.rms_px)
+        assert np.isfinite(full.rot_err95_deg) and np.all(np.isfinite(full.covariance))
+        assert np.isnan(lean.rot_err95_deg) and np.isnan(lean.trans_err95_mm)
+        assert np.all(np.isnan(lean.covariance)) and lean.reliability == 0.0
