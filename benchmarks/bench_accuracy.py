@@ -21,14 +21,27 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import DOC, ROOT, Progress, load_avg, machine_line, md_table, record_section  # noqa: E402
+from _common import (  # noqa: E402
+    DOC,
+    ROOT,
+    Progress,
+    load_avg,
+    machine_line,
+    md_table,
+    record_section,
+)
 
 from ficap_ros.geometry.cap_model import nominal_model  # noqa: E402
-from ficap_ros.vision.detection import DetectorConfig  # noqa: E402
 from ficap_ros.geometry.metrics import angle_deg  # noqa: E402
+from ficap_ros.tools.synth import (  # noqa: E402
+    RenderConfig,
+    default_scene,
+    naturalistic_drive,
+    render,
+)
+from ficap_ros.vision.detection import DetectorConfig  # noqa: E402
 from ficap_ros.vision.pipeline import FrameProcessor  # noqa: E402
 from ficap_ros.vision.pose import PoseConfig  # noqa: E402
-from ficap_ros.tools.synth import RenderConfig, default_scene, naturalistic_drive, render  # noqa: E402
 
 #: Paper Table 1 (Phi3, deg): mean, median, p95.
 PAPER = {

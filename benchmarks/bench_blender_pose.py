@@ -40,12 +40,12 @@ from _common import load_avg, machine_line, md_table, record_section  # noqa: E4
 
 import ficap_ros.vision.pipeline as pipeline  # noqa: E402
 from ficap_ros.geometry.cap_model import CapModel, nominal_model  # noqa: E402
-from ficap_ros.vision.detection import DetectorConfig, as_gray  # noqa: E402
 from ficap_ros.geometry.metrics import angle_deg  # noqa: E402
+from ficap_ros.geometry.transform import Transform  # noqa: E402
+from ficap_ros.vision.detection import DetectorConfig, as_gray  # noqa: E402
 from ficap_ros.vision.pipeline import FrameProcessor  # noqa: E402
 from ficap_ros.vision.pipeline import hidden_tag_ids as _image_hidden_ids  # noqa: E402
 from ficap_ros.vision.pose import PoseConfig, UncertaintyConfig  # noqa: E402
-from ficap_ros.geometry.transform import Transform  # noqa: E402
 
 #: name -> (detector, pose, tracking)
 METHODS = {
@@ -293,7 +293,12 @@ def synth_self_occlusion(n_frames: int = 120) -> list[list[str]]:
     detected tags another face covers in part (``visible_fraction`` < 0.999, the default head hides
     no face) against the fully visible ones beyond 70 deg: how many the check flags, their corner
     error against the truth."""
-    from ficap_ros.tools.synth import RenderConfig, default_scene, naturalistic_drive, render
+    from ficap_ros.tools.synth import (
+        RenderConfig,
+        default_scene,
+        naturalistic_drive,
+        render,
+    )
     from ficap_ros.vision.tracking import view_angles_deg
 
     model = nominal_model()

@@ -31,9 +31,9 @@ from scipy.spatial.transform import Rotation
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import load_avg, machine_line, md_table, record_section  # noqa: E402
 
-from ficap_ros.vision.calibration import calibrate_reference  # noqa: E402
 from ficap_ros.errors import CalibrationError  # noqa: E402
 from ficap_ros.geometry.metrics import angle_deg, rotation_from_ypr_deg  # noqa: E402
+from ficap_ros.vision.calibration import calibrate_reference  # noqa: E402
 
 PAPER = {"first 10": (4.93, 3.8, 11.64), "first 100": (3.64, 2.86, 8.64), "first 500": (3.34, 2.86, 7.03),
          "random 100": (2.91, 2.30, 6.92)}

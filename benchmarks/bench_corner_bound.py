@@ -65,11 +65,15 @@ import blender_dev  # noqa: E402
 from _common import load_avg, machine_line, md_table, record_section  # noqa: E402
 from bench_corners import blender_frames, synth_frames  # noqa: E402
 
-from ficap_ros.vision.detection import (  # noqa: E402
-    _FIT_PROFILE_SAMPLES, TAG_CELLS, DetectorConfig, TagDetector, _cell_edge_samples, tag_cells, tag_homographies,
-)
 from ficap_ros.geometry.metrics import corner_errors_px  # noqa: E402
+from ficap_ros.geometry.tag36h11 import TAG_CELLS, tag_cells, tag_homographies
 from ficap_ros.tools.synth import tone_curve  # noqa: E402
+from ficap_ros.vision.detection import (
+    _FIT_PROFILE_SAMPLES,
+    DetectorConfig,
+    TagDetector,
+    _cell_edge_samples,
+)
 
 SUPERSAMPLE = 8
 #: The sets of the table and the synth condition matching each (resolution, tone, gamma, PSF, lighting).

@@ -45,8 +45,8 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import blender_dev  # noqa: E402
 from _common import load_avg, machine_line, md_table, record_section  # noqa: E402
 
-from ficap_ros.vision.detection import DetectorConfig, TagDetector  # noqa: E402
 from ficap_ros.geometry.metrics import corner_errors_px  # noqa: E402
+from ficap_ros.vision.detection import DetectorConfig, TagDetector  # noqa: E402
 
 #: The corner methods compared: name -> detector settings.
 METHODS: dict[str, DetectorConfig] = {
@@ -117,7 +117,12 @@ def synth_frames(resolution: str, tone: str, gamma: float, psf_sigma_px: float |
     """``n`` frames of one naturalistic drive (1 s apart, seed 5, as test_corners.py's) through the
     camera chain, JPEG 95; clean tags: fully visible, within MAX_VIEW_DEG of head-on."""
     from ficap_ros.geometry.cap_model import nominal_model
-    from ficap_ros.tools.synth import RenderConfig, default_scene, naturalistic_drive, render
+    from ficap_ros.tools.synth import (
+        RenderConfig,
+        default_scene,
+        naturalistic_drive,
+        render,
+    )
     from ficap_ros.vision.tracking import view_angles_deg
 
     model, scene = nominal_model(), default_scene(resolution)
@@ -260,8 +265,13 @@ def cost_table(n_frames: int = 40, passes: int = 3) -> tuple[list[list[str]], st
     """Per-frame process time of the corner stage on consecutive tracked 1080p frames."""
     import ficap_ros.vision.detection as det
     from ficap_ros.geometry.cap_model import nominal_model
+    from ficap_ros.tools.synth import (
+        RenderConfig,
+        default_scene,
+        naturalistic_drive,
+        render,
+    )
     from ficap_ros.vision.pipeline import FrameProcessor
-    from ficap_ros.tools.synth import RenderConfig, default_scene, naturalistic_drive, render
 
     model, scene = nominal_model(), default_scene("1080p")
     drive = naturalistic_drive(n_frames, fps=30.0, seed=3, scene=scene, frontal_s=0.0)

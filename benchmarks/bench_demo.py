@@ -53,8 +53,8 @@ def child(ref: str | None) -> int:
     if ref:
         for module in ("node", "ros_demo"):
             _load_from(ref, module)
-    from ficap_ros.ros import demo as ros_demo
     from ficap_ros.cli.demo import SAMPLE, sample_recording
+    from ficap_ros.ros import demo as ros_demo
 
     measured: dict[str, float] = {}
     play = ros_demo._play

@@ -45,9 +45,14 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import load_avg, machine_line, md_table, patch_own_time, record_section  # noqa: E402
 
 from ficap_ros.geometry.cap_model import nominal_model  # noqa: E402
+from ficap_ros.tools.synth import (  # noqa: E402
+    RenderConfig,
+    default_scene,
+    naturalistic_drive,
+    render,
+)
 from ficap_ros.vision.detection import DetectorConfig, TagDetector  # noqa: E402
 from ficap_ros.vision.pipeline import FrameProcessor  # noqa: E402
-from ficap_ros.tools.synth import RenderConfig, default_scene, naturalistic_drive, render  # noqa: E402
 
 SWAT = Path("/work/shared/data/real_apriltag/swatbotics_mapping_feb_2014")
 FRAME_NS = 33_333_333

@@ -46,12 +46,18 @@ from _common import load_avg, machine_line, md_table, record_section  # noqa: E4
 
 from ficap_ros.geometry.camera import CameraModel  # noqa: E402
 from ficap_ros.geometry.cap_model import CapModel, nominal_model  # noqa: E402
-from ficap_ros.vision.detection import DetectorConfig, TagDetection, TagDetector  # noqa: E402
 from ficap_ros.geometry.metrics import corner_errors_px  # noqa: E402
-from ficap_ros.tools.model_build import (BuildConfig, align_model, build_model, depth_change_limit,  # noqa: E402
-                                   replay_check, size_ratio)  # noqa: E402
-from ficap_ros.vision.pipeline import FrameProcessor  # noqa: E402
 from ficap_ros.geometry.transform import Transform  # noqa: E402
+from ficap_ros.tools.model_build import (  # noqa: E402
+    BuildConfig,
+    align_model,
+    build_model,
+    depth_change_limit,
+    replay_check,  # noqa: E402
+    size_ratio,
+)
+from ficap_ros.vision.detection import DetectorConfig, TagDetection, TagDetector  # noqa: E402
+from ficap_ros.vision.pipeline import FrameProcessor  # noqa: E402
 
 BUILDERS = {
     "side only (before)": BuildConfig(fit_edge_offset=False, anchor_size=False, assembly_sigma_mm=50.0,
@@ -91,10 +97,10 @@ def blender_recording() -> Recording | None:
 
 def synth_recording(seed: int, workdir: Path) -> Recording:
     """A ``ficap synth --model`` drive of a cap whose plates are moved/turned like blender_dev's."""
-    from ficap_ros.io.sources import decode_raw, open_frames
     from scipy.spatial.transform import Rotation
 
     from ficap_ros.cli import main
+    from ficap_ros.io.sources import decode_raw, open_frames
 
     rng = np.random.default_rng(seed)
     nom = nominal_model()
@@ -129,9 +135,9 @@ def _truth_poses(bag: Path) -> dict[int, Transform]:
     """The synth bag's true cap poses (PoseStamped, camera optical frame) by stamp."""
     from scipy.spatial.transform import Rotation
 
+    from ficap_ros.cli.synth import TRUTH_CAP_TOPIC
     from ficap_ros.io.sources import open_bag_reader
     from ficap_ros.stamps import stamp_to_ns
-    from ficap_ros.cli.synth import TRUTH_CAP_TOPIC
 
     reader = open_bag_reader(bag)
     try:

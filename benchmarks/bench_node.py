@@ -111,9 +111,14 @@ def measure(args: argparse.Namespace, transport: str) -> list[list[object]]:
     from sensor_msgs.msg import CameraInfo, CompressedImage, Image
     from std_msgs.msg import Header
 
-    from ficap_ros.ros import msgs as ros_msgs
     from ficap_ros.geometry.cap_model import nominal_model
-    from ficap_ros.tools.synth import RenderConfig, default_scene, naturalistic_drive, render
+    from ficap_ros.ros import msgs as ros_msgs
+    from ficap_ros.tools.synth import (
+        RenderConfig,
+        default_scene,
+        naturalistic_drive,
+        render,
+    )
 
     rows: list[list[object]] = []
     env = dict(os.environ)

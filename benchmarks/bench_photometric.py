@@ -74,8 +74,13 @@ def cost(n_frames: int = 40, passes: int = 3, resolution: str = "1080p",
          lighting: str = "neutral") -> list[list[str]]:
     """ms of process time per tracked frame, without and with the photometric fit."""
     from ficap_ros.geometry.cap_model import nominal_model
+    from ficap_ros.tools.synth import (
+        RenderConfig,
+        default_scene,
+        naturalistic_drive,
+        render,
+    )
     from ficap_ros.vision.pipeline import FrameProcessor
-    from ficap_ros.tools.synth import RenderConfig, default_scene, naturalistic_drive, render
 
     model, scene = nominal_model(), default_scene(resolution)
     drive = naturalistic_drive(n_frames, fps=30.0, seed=3, scene=scene, frontal_s=0.0)

@@ -12,14 +12,19 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-
 from _common import machine_line  # noqa: E402  (benchmarks/ is the script folder)
+
 from ficap_ros.geometry.cap_model import nominal_model
-from ficap_ros.vision.detection import DetectorConfig
 from ficap_ros.geometry.metrics import angle_deg
+from ficap_ros.tools.synth import (
+    RenderConfig,
+    default_scene,
+    naturalistic_drive,
+    render,
+)
+from ficap_ros.vision.detection import DetectorConfig
 from ficap_ros.vision.pipeline import FrameProcessor
 from ficap_ros.vision.pose import PoseConfig
-from ficap_ros.tools.synth import RenderConfig, default_scene, naturalistic_drive, render
 
 ROOT = Path(__file__).resolve().parents[1]
 

@@ -30,9 +30,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import blender_dev  # noqa: E402
 from _common import load_avg, machine_line, md_table, record_section  # noqa: E402
 
-from ficap_ros.vision.detection import DetectorConfig, TagDetector  # noqa: E402
 from ficap_ros.geometry.metrics import corner_errors_px  # noqa: E402
 from ficap_ros.tools.synth import RenderConfig, render  # noqa: E402
+from ficap_ros.vision.detection import DetectorConfig, TagDetector  # noqa: E402
 from ficap_ros.vision.tracking import view_angles_deg  # noqa: E402
 
 METHODS = {

@@ -147,8 +147,8 @@ class AprilTag3:
     def __init__(self, bag: Path) -> None:
         import numpy as np
 
-        from ficap_ros.io.sources import open_frames
         from ficap_ros.geometry.cap_model import nominal_model
+        from ficap_ros.io.sources import open_frames
         from ficap_ros.vision.detection import DetectorConfig
 
         self.raws = list(open_frames(bag).raw_frames())

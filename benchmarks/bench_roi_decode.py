@@ -154,8 +154,8 @@ def tags_region(tracker, camera, stamp_ns: int, margin_px: float,  # noqa: ANN00
 def regions(bag: Path, tj: TurboGray, tag_margin_px: float) -> tuple[list, list, dict]:
     """Replay the drive (tracking on) and collect, per frame, the regions a cropped decode would
     ask for before it, and how the frame was then found."""
-    from ficap_ros.io.sources import open_frames
     from ficap_ros.geometry.cap_model import nominal_model
+    from ficap_ros.io.sources import open_frames
     from ficap_ros.vision.pipeline import FrameProcessor
 
     raws = list(open_frames(bag).raw_frames())

@@ -47,8 +47,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import load_avg, machine_line, md_table, record_section  # noqa: E402
 
-from ficap_ros.vision import pose as pose_mod  # noqa: E402
 from ficap_ros.geometry.cap_model import nominal_model  # noqa: E402
+from ficap_ros.vision import pose as pose_mod  # noqa: E402
 from ficap_ros.vision.pipeline import FrameProcessor  # noqa: E402
 
 MODEL = nominal_model()
@@ -181,8 +181,8 @@ def mechanism(root: Path | None) -> str:
     import blender_dev
 
     from ficap_ros.tools import synth
-    from ficap_ros.vision.detection import TagDetector
     from ficap_ros.tools.synth import RenderConfig, render
+    from ficap_ros.vision.detection import TagDetector
     from ficap_ros.vision.tracking import view_angles_deg
 
     ds = blender_dev.load_set("dev_540p_neutral", root or blender_dev.BLENDER_DEV)

@@ -76,9 +76,14 @@ def main() -> int:
     from sensor_msgs.msg import CameraInfo, CompressedImage
     from std_msgs.msg import Header
 
-    from ficap_ros.ros import msgs as ros_msgs
     from ficap_ros.geometry.cap_model import nominal_model
-    from ficap_ros.tools.synth import RenderConfig, default_scene, naturalistic_drive, render
+    from ficap_ros.ros import msgs as ros_msgs
+    from ficap_ros.tools.synth import (
+        RenderConfig,
+        default_scene,
+        naturalistic_drive,
+        render,
+    )
 
     scene = default_scene(args.resolution)
     drive = naturalistic_drive(600 + args.frames, fps=args.rate, seed=0, scene=scene)[600:]

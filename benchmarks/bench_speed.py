@@ -31,9 +31,14 @@ from _common import Progress, load_avg, machine_line, md_table, record_section  
 from bench_fleet import FRAME_NS, stage_table, stage_times  # noqa: E402
 
 from ficap_ros.geometry.cap_model import nominal_model  # noqa: E402
+from ficap_ros.tools.synth import (  # noqa: E402
+    RenderConfig,
+    default_scene,
+    naturalistic_drive,
+    render,
+)
 from ficap_ros.vision.detection import DetectorConfig, TagDetector  # noqa: E402
 from ficap_ros.vision.pipeline import FrameProcessor  # noqa: E402
-from ficap_ros.tools.synth import RenderConfig, default_scene, naturalistic_drive, render  # noqa: E402
 
 SWAT = Path("/work/shared/data/real_apriltag/swatbotics_mapping_feb_2014")
 

@@ -68,10 +68,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 from _common import Progress, load_avg, machine_line, md_table, record_section  # noqa: E402
 
 from ficap_ros.geometry.cap_model import nominal_model  # noqa: E402
-from ficap_ros.vision.detection import DetectorConfig  # noqa: E402
 from ficap_ros.geometry.metrics import angle_deg  # noqa: E402
-from ficap_ros.vision.pipeline import FrameProcessor, pose_config_for  # noqa: E402
 from ficap_ros.vision import pose as pose_mod  # noqa: E402
+from ficap_ros.vision.detection import DetectorConfig  # noqa: E402
+from ficap_ros.vision.pipeline import FrameProcessor, pose_config_for  # noqa: E402
 from ficap_ros.vision.pose import PoseConfig, UncertaintyConfig  # noqa: E402
 
 METHODS = {
@@ -374,7 +374,13 @@ def blender_sets(root: Path | None) -> dict[str, tuple]:
 
 def synth_sets(n_frames: int, resolutions: list[str], lightings: list[str],
                seed_offset: int = 0) -> dict[str, tuple]:
-    from ficap_ros.tools.synth import REALISTIC, RenderConfig, default_scene, naturalistic_drive, render
+    from ficap_ros.tools.synth import (
+        REALISTIC,
+        RenderConfig,
+        default_scene,
+        naturalistic_drive,
+        render,
+    )
 
     model = nominal_model()
     out = {}

@@ -47,11 +47,18 @@ from _common import ROOT, Progress, load_avg, machine_line, md_table, record_sec
 from ficap_ros.geometry.camera import CameraModel  # noqa: E402
 from ficap_ros.geometry.cap_model import CapModel, nominal_model, write_atomic  # noqa: E402
 from ficap_ros.geometry.metrics import angle_deg  # noqa: E402
-from ficap_ros.vision.pipeline import FrameProcessor  # noqa: E402
-from ficap_ros.tools.synth import (  # noqa: E402
-    RESOLUTIONS, DriveFrame, DriveScene, RenderConfig, RenderedFrame, default_scene, naturalistic_drive, render,
-)
 from ficap_ros.geometry.transform import CAM_FROM_FORWARD  # noqa: E402
+from ficap_ros.tools.synth import (  # noqa: E402
+    RESOLUTIONS,
+    DriveFrame,
+    DriveScene,
+    RenderConfig,
+    RenderedFrame,
+    default_scene,
+    naturalistic_drive,
+    render,
+)
+from ficap_ros.vision.pipeline import FrameProcessor  # noqa: E402
 
 CAP_RADIUS_M = 0.092  # back of the cap to the cap origin (default_scene: 0.45 m + 0.092)
 SECTION = "Visibility (paper section 6)"

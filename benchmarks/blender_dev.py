@@ -23,10 +23,10 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ficap_ros.io.sources import decode_raw, open_frames
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.cap_model import CapModel
 from ficap_ros.geometry.transform import Transform
+from ficap_ros.io.sources import decode_raw, open_frames
 
 ROOT = Path(__file__).resolve().parents[1]
 #: ../shared next to the clone (or next to its parent: a git worktree one level further down).

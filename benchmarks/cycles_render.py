@@ -118,8 +118,8 @@ F_CV_TO_BL = np.diag([1.0, -1.0, -1.0, 1.0])
 # ------------------------------------------------------------------------------------------------
 def drive_scene(width: int, height: int):  # noqa: ANN201
     from ficap_ros.geometry.camera import CameraModel
-    from ficap_ros.tools.synth import DriveScene
     from ficap_ros.geometry.transform import CAM_FROM_FORWARD
+    from ficap_ros.tools.synth import DriveScene
 
     f = 0.75 * width
     K = np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
@@ -139,7 +139,7 @@ def _cv_from_frontal(p_frontal) -> list[float]:  # noqa: ANN001
 def _face_white(tag_id: int) -> np.ndarray:
     """(10, 10) True where the printed face is white: the 8-cell tag (``detection.tag_cells``,
     ``generateImageMarker``'s drawing) in a 1-cell white quiet zone, row 0 = top."""
-    from ficap_ros.vision.detection import tag_cells
+    from ficap_ros.geometry.tag36h11 import tag_cells
 
     face = np.ones((10, 10), bool)
     face[1:9, 1:9] = ~tag_cells(tag_id)
@@ -154,8 +154,13 @@ def _tag_texture(tag_id: int, cell_px: int = 16) -> np.ndarray:
 
 def make_plan(name: str, n_frames: int, work: Path) -> dict:
     from ficap_ros.geometry.cap_model import nominal_model
-    from ficap_ros.tools.synth import (HEAD_CENTRE_M, HEAD_SEMI_AXES_M, NECK_CENTRE_M, NECK_SEMI_AXES_M,
-                                 naturalistic_drive)
+    from ficap_ros.tools.synth import (
+        HEAD_CENTRE_M,
+        HEAD_SEMI_AXES_M,
+        NECK_CENTRE_M,
+        NECK_SEMI_AXES_M,
+        naturalistic_drive,
+    )
 
     width, height, lighting, psf, tone, seed = SET_SPECS[name]
     scene = drive_scene(width, height)
@@ -281,12 +286,17 @@ def finish_set(name: str, plan: dict, out: Path) -> dict:
     """Camera chain on the rendered radiance, then the bag and ground_truth.json."""
     import cv2
 
-    from ficap_ros.tools import synth
-    from ficap_ros.io.sources import CAMERA_INFO_TYPE, COMPRESSED_TYPE
-    from ficap_ros.io.bag_writer import BagWriter, camera_info_msg, compressed_image_msg, pose_stamped_msg
     from ficap_ros.geometry.cap_model import nominal_model
     from ficap_ros.geometry.metrics import yaw_pitch_roll_deg
     from ficap_ros.geometry.transform import Transform
+    from ficap_ros.io.bag_writer import (
+        BagWriter,
+        camera_info_msg,
+        compressed_image_msg,
+        pose_stamped_msg,
+    )
+    from ficap_ros.io.sources import CAMERA_INFO_TYPE, COMPRESSED_TYPE
+    from ficap_ros.tools import synth
 
     width, height, lighting, psf, tone_name, seed = SET_SPECS[name]
     model = nominal_model()

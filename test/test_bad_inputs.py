@@ -11,15 +11,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ficap_ros.io.sources import open_bag_reader, open_frames
-from ficap_ros.vision.calibration import load_calibration
-from ficap_ros.geometry.camera import load_camera_yaml
-from ficap_ros.geometry.cap_model import load_model
 from ficap_ros.cli.args import EXIT_FRAMES_LOST
 from ficap_ros.cli.main import main
 from ficap_ros.errors import FicapError
+from ficap_ros.geometry.camera import load_camera_yaml
+from ficap_ros.geometry.cap_model import load_model
 from ficap_ros.io.image_codec import decode_compressed
 from ficap_ros.io.labels import read_labels
+from ficap_ros.io.sources import open_bag_reader, open_frames
+from ficap_ros.vision.calibration import load_calibration
 
 CORPUS = Path(__file__).resolve().parent / "data" / "bad_inputs"
 BAGS = sorted([p for p in CORPUS.glob("*.mcap")] + [p for p in CORPUS.iterdir() if p.is_dir()])

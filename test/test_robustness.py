@@ -20,17 +20,6 @@ import numpy as np
 import pytest
 import yaml
 
-from ficap_ros.io.sources import (
-    CAMERA_INFO_TYPE,
-    COMPRESSED_TYPE,
-    IMAGE_TYPE,
-    open_bag_reader,
-    open_frames,
-)
-from ficap_ros.io.bag_writer import BagWriter, camera_info_msg, compressed_image_msg, image_msg
-from ficap_ros.vision.calibration import load_calibration, save_calibration
-from ficap_ros.geometry.camera import CameraModel, camera_from_info, load_camera_yaml
-from ficap_ros.geometry.cap_model import load_model
 from ficap_ros.cli.args import EXIT_FRAMES_LOST
 from ficap_ros.cli.main import main
 from ficap_ros.errors import (
@@ -43,8 +32,27 @@ from ficap_ros.errors import (
     OutputError,
 )
 from ficap_ros.files import check_replaceable
+from ficap_ros.geometry.camera import CameraModel, camera_from_info, load_camera_yaml
+from ficap_ros.geometry.cap_model import load_model
+from ficap_ros.io.bag_writer import (
+    BagWriter,
+    camera_info_msg,
+    compressed_image_msg,
+    image_msg,
+)
 from ficap_ros.io.labels import read_labels
-from ficap_ros.vision.calibration import HeadCalibration
+from ficap_ros.io.sources import (
+    CAMERA_INFO_TYPE,
+    COMPRESSED_TYPE,
+    IMAGE_TYPE,
+    open_bag_reader,
+    open_frames,
+)
+from ficap_ros.vision.calibration import (
+    HeadCalibration,
+    load_calibration,
+    save_calibration,
+)
 
 ROOT = Path(__file__).resolve().parents[1]
 FICAP = [sys.executable, "-m", "ficap_ros.cli"]
@@ -508,12 +516,11 @@ def test_ctrl_c_during_parallel_replay_prints_one_line(tmp_path: Path) -> None:
     bag = tmp_path / "noise"
     _small_bag(bag, "mcap", n=300)
     out = tmp_path / "out"
-    import pty
-    import re
-
     # The progress bar (tqdm) draws only on a terminal: give the command one for stderr, and
     # interrupt once the bar shows processed frames (the workers are busy then).
     import fcntl
+    import pty
+    import re
     import struct
     import termios
 
@@ -644,8 +651,8 @@ def test_camera_info_with_only_p_one_rule_for_node_and_bags() -> None:
 # -- 1/4/5. the node's files (real rclpy) ----------------------------------------------------------
 def test_node_survives_binary_files_and_never_overwrites_them(binary: dict[str, Path],
                                                               tmp_path: Path) -> None:
-    from std_srvs.srv import Trigger
     from node_harness import Harness
+    from std_srvs.srv import Trigger
 
     bad = binary["bin"]
     before = bad.read_bytes()
@@ -662,9 +669,9 @@ def test_node_survives_binary_files_and_never_overwrites_them(binary: dict[str, 
 
 
 def test_node_calibrate_says_when_the_file_was_not_saved(tmp_path: Path) -> None:
+    from node_harness import Harness
     from scipy.spatial.transform import Rotation
     from std_srvs.srv import Trigger
-    from node_harness import Harness
 
     from ficap_ros.vision.calibration import CalibrationResult
 

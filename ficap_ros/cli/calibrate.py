@@ -40,6 +40,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from ficap_ros.errors import BagError, CalibrationError, ConfigError
+    from ficap_ros.files import check_file_target
+    from ficap_ros.geometry.transform import Transform
+    from ficap_ros.io.labels import read_labels
+    from ficap_ros.stamps import window_from_start_ns
     from ficap_ros.vision.calibration import (
         calibrate_frontal,
         calibrate_reference,
@@ -48,11 +53,6 @@ def run(args: argparse.Namespace) -> int:
         reference_pairs,
         save_calibration,
     )
-    from ficap_ros.stamps import window_from_start_ns
-    from ficap_ros.geometry.transform import Transform
-    from ficap_ros.errors import BagError, CalibrationError, ConfigError
-    from ficap_ros.io.labels import read_labels
-    from ficap_ros.files import check_file_target
 
     check_file_target(args.out, "calibration")  # before reading anything
     labels = read_labels(args.labels)

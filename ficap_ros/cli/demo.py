@@ -27,8 +27,8 @@ def sample_recording(progress: bool = True, **options: object) -> Path:
     ``options`` override ``SAMPLE`` (resolution, lighting, frames, seed); each set of options has
     its own cache folder.
     """
-    from ficap_ros.geometry.cap_model import nominal_model
     from ficap_ros.cli.synth import write_synth_bag
+    from ficap_ros.geometry.cap_model import nominal_model
     from ficap_ros.tools.synth import RENDER_VERSION
 
     sample = {**SAMPLE, **options}
@@ -87,10 +87,20 @@ def run_offline(args: argparse.Namespace) -> int:
     import numpy as np
 
     from ficap_ros.geometry.cap_model import nominal_model
-    from ficap_ros.geometry.metrics import angle_deg, phi3_deg, summarize_errors, yaw_pitch_roll_deg
+    from ficap_ros.geometry.metrics import (
+        angle_deg,
+        phi3_deg,
+        summarize_errors,
+        yaw_pitch_roll_deg,
+    )
+    from ficap_ros.tools.synth import (
+        RenderConfig,
+        default_scene,
+        naturalistic_drive,
+        render,
+    )
     from ficap_ros.vision.pipeline import FrameProcessor
     from ficap_ros.vision.pose import PoseConfig
-    from ficap_ros.tools.synth import RenderConfig, default_scene, naturalistic_drive, render
 
     frames = args.frames if args.frames is not None else 150
     model = nominal_model()

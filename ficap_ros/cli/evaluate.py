@@ -24,8 +24,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from ficap_ros.tools.evaluation import evaluate, load_series, write_report
     from ficap_ros.files import check_replaceable
+    from ficap_ros.tools.evaluation import evaluate, load_series, write_report
 
     check_replaceable(args.out)  # never into a recording or a folder of the user's files
     truth = load_series(args.truth)

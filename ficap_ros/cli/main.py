@@ -14,7 +14,6 @@ import importlib
 import sys
 from typing import Sequence
 
-
 from ficap_ros.errors import FicapError
 
 #: Verb -> module under ficap_ros.cli, in the order ``--help`` lists them.

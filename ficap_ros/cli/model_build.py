@@ -82,12 +82,16 @@ def run_build(args: argparse.Namespace) -> int:
     import json
     from pathlib import Path
 
-    from ficap_ros.io.sources import open_frames
-    from ficap_ros.geometry.cap_model import load_model, nominal_model, write_atomic
-    from ficap_ros.vision.detection import DetectorConfig, TagDetector
-    from ficap_ros.tools.model_build import BuildConfig, build_model, depth_change_limit, replay_check
-
     from ficap_ros.files import check_file_target
+    from ficap_ros.geometry.cap_model import load_model, nominal_model, write_atomic
+    from ficap_ros.io.sources import open_frames
+    from ficap_ros.tools.model_build import (
+        BuildConfig,
+        build_model,
+        depth_change_limit,
+        replay_check,
+    )
+    from ficap_ros.vision.detection import DetectorConfig, TagDetector
 
     size = {"auto": {}, "nominal": {"size": "fixed"},
             "images": {"size": "fixed", "anchor_size": False},

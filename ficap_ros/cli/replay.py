@@ -4,7 +4,12 @@ from __future__ import annotations
 
 import argparse
 
-from ficap_ros.cli.args import non_negative_int, positive_float, positive_int, time_window
+from ficap_ros.cli.args import (
+    non_negative_int,
+    positive_float,
+    positive_int,
+    time_window,
+)
 
 HELP = ("replay rosbag2 bags, .mcap files or videos (or folder trees of them, or a manifest) "
         "through the pipeline; write labels.mcap, labels.csv and summary.json per recording, "
@@ -106,13 +111,13 @@ def cap_jobs(args: argparse.Namespace) -> int:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from ficap_ros.geometry.cap_model import load_model, nominal_model
     from ficap_ros.cli.args import EXIT_FRAMES_LOST
-    from ficap_ros.vision.detection import DetectorConfig
     from ficap_ros.errors import BagError
     from ficap_ros.files import check_output_folder, check_replaceable
-    from ficap_ros.vision.pose import PoseConfig
+    from ficap_ros.geometry.cap_model import load_model, nominal_model
     from ficap_ros.tools.replay import check_output_dir, keep_freed_memory, replay
+    from ficap_ros.vision.detection import DetectorConfig
+    from ficap_ros.vision.pose import PoseConfig
 
     keep_freed_memory()  # this process decodes and processes the frames (--jobs 1)
     model = load_model(args.model) if args.model else nominal_model()

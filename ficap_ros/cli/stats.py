@@ -47,11 +47,9 @@ def run(args: argparse.Namespace) -> int:
         stats = detection_stats(lab.tags_detected, lab.detected_ids, lab.reliability,
                                 lab.has_pose, lab.skipped, tuple(model.ids))
     else:
-        from ficap_ros.cli.replay import open_source
-        from ficap_ros.vision.pose import PoseConfig
+        from ficap_ros.cli.replay import cap_jobs, open_source
         from ficap_ros.tools.replay import Progress, process_frames
-
-        from ficap_ros.cli.replay import cap_jobs
+        from ficap_ros.vision.pose import PoseConfig
 
         jobs = cap_jobs(args)
         source = open_source(args)

@@ -95,8 +95,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
-    from ficap_ros.geometry.cap_model import load_model, nominal_model
     from ficap_ros.errors import BagError
+    from ficap_ros.geometry.cap_model import load_model, nominal_model
     from ficap_ros.tools.synth import RenderConfig
 
     # NaN, infinite, negative or zero knobs are argparse's (exit 2, as every verb's numbers).
@@ -148,16 +148,16 @@ def write_synth_bag(
     import cv2
     import numpy as np
 
-    from ficap_ros.tools import synth
-    from ficap_ros.io.sources import CAMERA_INFO_TYPE, COMPRESSED_TYPE, jazzy_typestore
+    from ficap_ros.geometry.transform import Transform
     from ficap_ros.io.bag_writer import (
         BagWriter,
         camera_info_msg,
         compressed_image_msg,
         pose_stamped_msg,
     )
+    from ficap_ros.io.sources import CAMERA_INFO_TYPE, COMPRESSED_TYPE, jazzy_typestore
+    from ficap_ros.tools import synth
     from ficap_ros.tools.replay import Progress
-    from ficap_ros.geometry.transform import Transform
 
     scene = synth.default_scene(resolution)
     camera = scene.camera

@@ -13,11 +13,11 @@ from typing import Any
 
 import numpy as np
 
-from ficap_ros.io import messages
-from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.errors import BagError, OutputError
-from ficap_ros.io.messages import ROSBAGS, jazzy_typestore
+from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.transform import Transform
+from ficap_ros.io import messages
+from ficap_ros.io.messages import ROSBAGS, jazzy_typestore
 
 __all__ = ["BagWriter", "header", "pose_msg", "pose_stamped_msg", "pose_with_covariance_stamped_msg", "camera_info_msg", "compressed_image_msg", "image_msg"]
 

@@ -47,16 +47,16 @@ from scipy.spatial.transform import Rotation
 
 from ficap_ros.errors import BagError
 from ficap_ros.geometry.metrics import yaw_pitch_roll_deg
+from ficap_ros.geometry.transform import Transform, inverse
 from ficap_ros.io.status import (
-    is_skipped,
     LabelRecord,
-    record_status,
+    is_skipped,
     quality_values,
     record_from_pose,
     record_from_result,
+    record_status,
     status_values,
 )
-from ficap_ros.geometry.transform import Transform, inverse
 
 __all__ = [
     "LABEL_COLUMNS",
@@ -299,8 +299,8 @@ def _rpy_msg(rec: LabelRecord) -> object:
 
 def _tf_msg(rec: LabelRecord) -> object:
     """tf2_msgs/TFMessage: frontal -> camera, camera -> cap, cap -> head (stamp = the image's)."""
-    from ficap_ros.io.sources import jazzy_typestore
     from ficap_ros.io.bag_writer import header
+    from ficap_ros.io.sources import jazzy_typestore
 
     assert rec.T_cam_cap is not None and rec.T_frontal_head is not None
     t = jazzy_typestore().types
@@ -333,8 +333,8 @@ def _status_text(key: str, value: object) -> str:
 
 
 def _status_msg(rec: LabelRecord) -> object:
-    from ficap_ros.io.sources import jazzy_typestore
     from ficap_ros.io.bag_writer import header
+    from ficap_ros.io.sources import jazzy_typestore
 
     t = jazzy_typestore().types
     level, message = record_status(rec)
@@ -356,7 +356,11 @@ def write_labels_bag(path: str | Path, records: Sequence[LabelRecord],
     Raises:
         BagError: the folder is not writable.
     """
-    from ficap_ros.io.bag_writer import BagWriter, pose_stamped_msg, pose_with_covariance_stamped_msg
+    from ficap_ros.io.bag_writer import (
+        BagWriter,
+        pose_stamped_msg,
+        pose_with_covariance_stamped_msg,
+    )
 
     topics = label_topics(namespace)
     with BagWriter(path, storage="mcap", layout="file") as bag:

@@ -20,9 +20,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ficap_ros.geometry.camera import CameraModel
-from ficap_ros.io.image_codec import decode_compressed, decode_image
 from ficap_ros.geometry.metrics import yaw_pitch_roll_deg
 from ficap_ros.geometry.transform import Transform
+from ficap_ros.io.image_codec import decode_compressed, decode_image
 
 __all__ = ["MessageClasses", "ROSBAGS", "jazzy_typestore", "as_bytes", "header", "pose",
            "pose_stamped", "pose_with_covariance_stamped", "rpy_deg", "named_values",

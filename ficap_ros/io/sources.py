@@ -27,12 +27,18 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from ficap_ros.geometry.camera import (CAMERA_INFO_MAX_STAMP_DIFF_NS, CameraModel, camera_from_info,
-                              camera_info_key, load_camera_yaml, pick_camera_info)
 from ficap_ros.errors import BagError, FicapError, ImageError
-from ficap_ros.stamps import stamp_to_ns
+from ficap_ros.geometry.camera import (
+    CAMERA_INFO_MAX_STAMP_DIFF_NS,
+    CameraModel,
+    camera_from_info,
+    camera_info_key,
+    load_camera_yaml,
+    pick_camera_info,
+)
 from ficap_ros.io.image_codec import check_pixel_budget, decode_compressed, decode_image
 from ficap_ros.io.messages import jazzy_typestore
+from ficap_ros.stamps import stamp_to_ns
 
 __all__ = [
     "RecordingKind",
@@ -169,11 +175,11 @@ def decode_raw(raw: RawFrame) -> np.ndarray:
 
 
 def _bag_errors() -> tuple[type[BaseException], ...]:
+    import struct
+
     from rosbags.highlevel import AnyReaderError
     from rosbags.rosbag2 import ReaderError
     from rosbags.serde import SerdeError
-
-    import struct
 
     # What rosbags' parsers raise on hostile bytes: the bad-input corpus found TypeError from an
     # MCAP file that ends after its magic, the property tests MemoryError from a flipped length

@@ -16,11 +16,11 @@ from typing import Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ficap_ros.vision.calibration import HeadCalibration
 from ficap_ros.geometry.metrics import yaw_pitch_roll_deg
+from ficap_ros.geometry.transform import Transform
+from ficap_ros.vision.calibration import HeadCalibration
 from ficap_ros.vision.pipeline import FrameResult
 from ficap_ros.vision.pose import CapPose
-from ficap_ros.geometry.transform import Transform
 
 __all__ = ["OK", "WARN", "ERROR", "WARN_RELIABILITY", "DEFAULT_CAMERA_FRAME", "LabelRecord",
            "record_from_pose", "record_from_result", "frame_status", "record_status", "quality_values",

@@ -24,12 +24,17 @@ from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, CompressedImage
 from std_srvs.srv import Trigger
 
-from ficap_ros.io.sources import open_bag_reader
-from ficap_ros.stamps import stamp_to_ns
 from ficap_ros.errors import BagError
-from ficap_ros.geometry.metrics import angle_deg, phi3_deg, summarize_errors, yaw_pitch_roll_deg
-from ficap_ros.ros.node import FicapNode, make_executor
+from ficap_ros.geometry.metrics import (
+    angle_deg,
+    phi3_deg,
+    summarize_errors,
+    yaw_pitch_roll_deg,
+)
 from ficap_ros.geometry.transform import CAM_FROM_FORWARD
+from ficap_ros.io.sources import open_bag_reader
+from ficap_ros.ros.node import FicapNode, make_executor
+from ficap_ros.stamps import stamp_to_ns
 
 IMAGE_TOPIC = "/camera/image_raw/compressed"
 INFO_TOPIC = "/camera/camera_info"

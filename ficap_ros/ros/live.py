@@ -14,14 +14,21 @@ from typing import Any
 
 import numpy as np
 
-from ficap_ros.io import messages
-from ficap_ros.vision.calibration import HeadCalibration
-from ficap_ros.geometry.camera import CameraInfoCache, CameraModel
 from ficap_ros.errors import FicapError
-from ficap_ros.vision.pipeline import FrameProcessor, FrameResult
+from ficap_ros.geometry.camera import CameraInfoCache, CameraModel
+from ficap_ros.io import messages
+from ficap_ros.io.status import (
+    LabelRecord,
+    frame_status,
+    quality_values,
+    record_from_pose,
+    record_from_result,
+    record_status,
+    status_values,
+)
 from ficap_ros.stamps import stamp_to_ns
-from ficap_ros.io.status import (LabelRecord, frame_status, quality_values, record_from_pose,
-                              record_from_result, record_status, status_values)
+from ficap_ros.vision.calibration import HeadCalibration
+from ficap_ros.vision.pipeline import FrameProcessor, FrameResult
 
 __all__ = ["LiveFrame", "failed_frame", "process_image", "reference_q_xyzw"]
 

@@ -14,19 +14,25 @@ import cv2
 import numpy as np
 from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import Point, Pose, PoseStamped, PoseWithCovarianceStamped, Vector3Stamped
+from geometry_msgs.msg import (
+    Point,
+    Pose,
+    PoseStamped,
+    PoseWithCovarianceStamped,
+    Vector3Stamped,
+)
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, Image, JointState
 from std_msgs.msg import Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-from ficap_ros.io import messages
+from ficap_ros.errors import ImageError
 from ficap_ros.geometry.camera import CameraModel, camera_from_info
 from ficap_ros.geometry.cap_model import CapModel
-from ficap_ros.errors import ImageError
-from ficap_ros.vision.pipeline import FrameResult
-from ficap_ros.stamps import stamp_to_ns
 from ficap_ros.geometry.transform import Transform, rotate_covariance
+from ficap_ros.io import messages
+from ficap_ros.stamps import stamp_to_ns
+from ficap_ros.vision.pipeline import FrameResult
 
 __all__ = [
     "IMAGE_ENCODINGS",

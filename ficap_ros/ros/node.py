@@ -40,21 +40,30 @@ from rclpy.context import Context
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
-from rclpy.qos import HistoryPolicy, QoSProfile, ReliabilityPolicy, qos_profile_sensor_data
+from rclpy.qos import (
+    HistoryPolicy,
+    QoSProfile,
+    ReliabilityPolicy,
+    qos_profile_sensor_data,
+)
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image, JointState
 from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from ficap_ros.ros import msgs as ros_msgs
-from ficap_ros.ros import params as ros_params
-from ficap_ros.vision.calibration import CalibrationResult, HeadCalibration, LiveCalibration
-from ficap_ros.geometry.camera import CameraInfoCache
 from ficap_ros.errors import FicapError
-from ficap_ros.ros.live import LiveFrame, failed_frame, process_image, reference_q_xyzw
-from ficap_ros.ros.mailbox import Mailbox
+from ficap_ros.geometry.camera import CameraInfoCache
 from ficap_ros.io.native_log import ThrottledStderr
 from ficap_ros.io.status import PeriodStats
+from ficap_ros.ros import msgs as ros_msgs
+from ficap_ros.ros import params as ros_params
+from ficap_ros.ros.live import LiveFrame, failed_frame, process_image, reference_q_xyzw
+from ficap_ros.ros.mailbox import Mailbox
+from ficap_ros.vision.calibration import (
+    CalibrationResult,
+    HeadCalibration,
+    LiveCalibration,
+)
 
 __all__ = ["FicapNode", "main", "make_executor"]
 

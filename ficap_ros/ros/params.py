@@ -10,18 +10,23 @@ from enum import Enum
 from typing import Any
 
 import numpy as np
+from rcl_interfaces.msg import (
+    FloatingPointRange,
+    IntegerRange,
+    ParameterDescriptor,
+    ParameterType,
+)
 from scipy.spatial.transform import Rotation
-from rcl_interfaces.msg import FloatingPointRange, IntegerRange, ParameterDescriptor, ParameterType
 
-from ficap_ros.geometry.camera import CAMERA_INFO_MAX_STAMP_DIFF_NS
-from ficap_ros.vision.calibration import CalibrationRecorder, CalibrationResult
-from ficap_ros.geometry.cap_model import load_model, nominal_model
-from ficap_ros.vision.detection import DetectorConfig
 from ficap_ros.errors import CalibrationError, ConfigError
+from ficap_ros.geometry.camera import CAMERA_INFO_MAX_STAMP_DIFF_NS
+from ficap_ros.geometry.cap_model import load_model, nominal_model
+from ficap_ros.geometry.transform import Transform
+from ficap_ros.io.status import WARN_RELIABILITY
+from ficap_ros.vision.calibration import CalibrationRecorder, CalibrationResult
+from ficap_ros.vision.detection import DetectorConfig
 from ficap_ros.vision.pipeline import FrameProcessor
 from ficap_ros.vision.pose import POSE_METHODS, PoseConfig, UncertaintyConfig
-from ficap_ros.io.status import WARN_RELIABILITY
-from ficap_ros.geometry.transform import Transform
 
 __all__ = ["ParamSpec", "PARAMETERS", "REMOVED_PARAMETERS", "CalibrationMode", "NodeConfig",
            "camera_mount_transform", "descriptor", "validate_parameter", "frames_reason"]

@@ -23,8 +23,6 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from ficap_ros.errors import BagError
-from ficap_ros.io.labels import read_labels_text
-from ficap_ros.stamps import pair_by_stamp
 from ficap_ros.geometry.metrics import (
     angle_deg,
     phi3_deg,
@@ -32,6 +30,8 @@ from ficap_ros.geometry.metrics import (
     summarize_errors,
     yaw_pitch_roll_deg,
 )
+from ficap_ros.io.labels import read_labels_text
+from ficap_ros.stamps import pair_by_stamp
 
 __all__ = [
     "PoseSeries",
@@ -143,8 +143,8 @@ def read_series_bag(path: str | Path, topic: str) -> PoseSeries:
     Raises:
         BagError: unreadable bag, missing topic or an unsupported message type.
     """
-    from ficap_ros.io.sources import open_bag_reader
     from ficap_ros.io.messages import orientation
+    from ficap_ros.io.sources import open_bag_reader
     from ficap_ros.stamps import stamp_to_ns
 
     reader = open_bag_reader(Path(path))

@@ -43,10 +43,10 @@ from pathlib import Path
 from typing import Any, Callable, Iterable, Iterator, Sequence
 
 from ficap_ros import __version__
-from ficap_ros.io.sources import VIDEO_SUFFIXES, FrameSource, RawFrame
-from ficap_ros.geometry.cap_model import CapModel
 from ficap_ros.errors import BagError, ConfigError, FicapError
 from ficap_ros.files import write_output_file
+from ficap_ros.geometry.cap_model import CapModel
+from ficap_ros.io.sources import VIDEO_SUFFIXES, FrameSource, RawFrame
 from ficap_ros.vision.calibration import HeadCalibration
 from ficap_ros.vision.detection import DetectorConfig
 from ficap_ros.vision.pipeline import pose_config_for

@@ -23,6 +23,8 @@ from xml.sax.saxutils import escape
 
 import numpy as np
 
+from ficap_ros.errors import ConfigError
+from ficap_ros.files import prepare_output_folder
 from ficap_ros.geometry.cap_model import (
     FACE_SIDE_MM,
     ROWS,
@@ -31,9 +33,7 @@ from ficap_ros.geometry.cap_model import (
     nominal_model,
     write_atomic,
 )
-from ficap_ros.vision.detection import TAG_CELLS  # cells across a tag36h11 tag with its black border
-from ficap_ros.errors import ConfigError
-from ficap_ros.files import prepare_output_folder
+from ficap_ros.geometry.tag36h11 import TAG_CELLS
 
 __all__ = [
     "PAPER_SIZES_MM",
@@ -166,7 +166,7 @@ def tag_cells(tag_id: int) -> np.ndarray:
     (``detection.tag_cells``, read-only), after checking the id is one of the family's."""
     import cv2
 
-    from ficap_ros.vision.detection import tag_cells as detected_tag_cells
+    from ficap_ros.geometry.tag36h11 import tag_cells as detected_tag_cells
 
     count = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11).bytesList.shape[0]
     if not 0 <= tag_id < count:

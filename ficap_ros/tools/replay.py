@@ -18,22 +18,27 @@ import sys
 import time
 from collections import Counter
 from dataclasses import dataclass, field
-from pathlib import Path
 from itertools import islice
+from pathlib import Path
 from typing import IO, Any, Callable, Iterable, Iterator
 
 import numpy as np
 
-from ficap_ros.io.sources import FrameSource, Loss, RawFrame, decode_raw
-from ficap_ros.geometry.cap_model import CapModel
-from ficap_ros.vision.detection import DetectorConfig
 from ficap_ros.errors import BagError, ImageError
 from ficap_ros.files import write_output_file
-from ficap_ros.io.labels import LabelRecord, labels_csv_text, record_from_pose, write_labels_bag
+from ficap_ros.geometry.cap_model import CapModel
+from ficap_ros.io.labels import (
+    LabelRecord,
+    labels_csv_text,
+    record_from_pose,
+    write_labels_bag,
+)
+from ficap_ros.io.sources import FrameSource, Loss, RawFrame, decode_raw
+from ficap_ros.io.status import SKIPPED_PREFIX, is_skipped, skipped_reason
 from ficap_ros.vision.calibration import HeadCalibration
+from ficap_ros.vision.detection import DetectorConfig
 from ficap_ros.vision.pipeline import FrameProcessor
 from ficap_ros.vision.pose import CapPose, PoseConfig
-from ficap_ros.io.status import SKIPPED_PREFIX, is_skipped, skipped_reason
 
 __all__ = ["Progress", "ProcessedFrame", "process_frames", "frontal_calibration",
            "ReplayOutput", "replay", "check_output_dir", "available_cores", "capped_jobs"]
@@ -286,9 +291,9 @@ def frontal_calibration(
     """
     from scipy.spatial.transform import Rotation
 
-    from ficap_ros.vision.calibration import calibrate_frontal, frontal_frames
     from ficap_ros.errors import CalibrationError
     from ficap_ros.stamps import window_from_start_ns
+    from ficap_ros.vision.calibration import calibrate_frontal, frontal_frames
 
     posed = [f.pose for f in frames if f.pose is not None]
     sel = frontal_frames(np.array([f.stamp_ns for f in frames if f.pose is not None], dtype=np.int64),

@@ -67,11 +67,13 @@ import cv2
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ficap_ros.errors import ConfigError
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.cap_model import CapModel
-from ficap_ros.errors import ConfigError
 from ficap_ros.geometry.metrics import rotation_from_ypr_deg
+from ficap_ros.geometry.tag36h11 import TAG_CELLS
 from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform
+from ficap_ros.vision.tone import TONES, srgb_to_linear, tone_curve
 
 __all__ = [
     "RENDER_VERSION",
@@ -122,7 +124,6 @@ RESOLUTIONS: dict[str, tuple[int, int]] = {
     "1080p": (1920, 1080),
 }
 
-_CELLS_TAG = 8  # black border + 6x6 data
 _CELLS_FACE = 10  # plus the 1-cell white quiet zone each side (40 mm face / 4 mm cells)
 _NEAR_M = 0.02
 # Reflectances (linear, relative to the white paper): matte black toner or ink reflects about 4-6 %
@@ -132,10 +133,6 @@ _BLACK_ALBEDO = 0.05
 _HAIR_ALBEDO = 0.05
 _NECK_ALBEDO = 0.12
 
-#: Tone curves of ``RenderConfig.tone``.
-TONES = ("srgb", "gamma", "filmic", "linear")
-#: Contrast of the ``filmic`` S-curve (its slope at mid-grey of the sRGB-encoded value).
-FILMIC_CONTRAST = 1.5
 #: Default lens PSF: Gaussian sigma at 1080p, px; other heights scale with sqrt(height / 1080).
 PSF_SIGMA_1080P_PX = 0.7
 #: Levels of the 16-bit linear code the tone curve's lookup table is indexed by.
@@ -344,7 +341,7 @@ def _face_texture(tag_id: int, cell_px: int) -> np.ndarray:
     Texture pixel j covers [j - 0.5, j + 0.5]; the tag's outer edge is at c - 0.5 and 9c - 0.5.
     """
     dictionary = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11)
-    marker = cv2.aruco.generateImageMarker(dictionary, int(tag_id), _CELLS_TAG * cell_px)
+    marker = cv2.aruco.generateImageMarker(dictionary, int(tag_id), TAG_CELLS * cell_px)
     n = _CELLS_FACE * cell_px
     tex = np.zeros((n, n, 3), np.uint8)
     tex[..., 0] = 255
@@ -659,7 +656,7 @@ def _render_scene(
         # wide, and a ramp that wide, point-sampled and box-filtered, puts the edge within 0.09
         # supersample of the truth at any sub-pixel phase (a sharper texture would be off by up
         # to 0.25 supersample); the ramp is symmetric, so it only adds a little blur.
-        texel_px = max(float(sides_px.min()), 1.0) * s / _CELLS_TAG
+        texel_px = max(float(sides_px.min()), 1.0) * s / TAG_CELLS
         cell = int(min(64, max(2, 2 ** math.floor(math.log2(max(texel_px, 2.0))))))
         tex = _face_texture(tag_id, cell)
         c = float(cell)
@@ -753,43 +750,8 @@ def _spotlights(img: np.ndarray, faces_cam: np.ndarray, k: np.ndarray, rng: np.r
 
 
 # ------------------------------------------------------------------------------------------------
-# The camera: lens PSF, sensor, tone curve
+# The camera: lens PSF, sensor, tone curve (``vision.tone``)
 # ------------------------------------------------------------------------------------------------
-def srgb_to_linear(value: np.ndarray) -> np.ndarray:
-    """Inverse of the sRGB transfer function (IEC 61966-2-1) on values in [0, 1]."""
-    v = np.asarray(value)
-    return np.where(v <= 0.04045, v / 12.92, ((v + 0.055) / 1.055) ** 2.4).astype(v.dtype, copy=False)
-
-
-def tone_curve(linear: np.ndarray, tone: str = "srgb", gamma: float = 2.2) -> np.ndarray:
-    """A camera tone curve on linear values in [0, 1] (clipped there): 0 -> 0, 1 -> 1, monotone.
-
-    Args:
-        linear: linear sensor output, 1 = the brightest code.
-        tone: ``srgb`` (IEC 61966-2-1), ``gamma`` (``linear ** (1 / gamma)``), ``filmic`` (the
-            sRGB value through the S-curve ``s**c / (s**c + (1 - s)**c)``, c = ``FILMIC_CONTRAST``:
-            a toe that crushes blacks, a shoulder that rolls off highlights, mid-grey fixed) or
-            ``linear``.
-        gamma: exponent of ``gamma``.
-
-    Returns:
-        Encoded values in [0, 1], float64.
-    """
-    v = np.clip(np.asarray(linear, dtype=np.float64), 0.0, 1.0)
-    if tone == "linear":
-        return v
-    if tone == "gamma":
-        return v ** (1.0 / float(gamma))
-    s = np.where(v <= 0.0031308, 12.92 * v, 1.055 * v ** (1.0 / 2.4) - 0.055)
-    s = np.where(v >= 1.0, 1.0, np.minimum(s, 1.0))  # exactly 1 at 1 (1.055 - 0.055 is not, in floats)
-    if tone == "srgb":
-        return s
-    if tone == "filmic":
-        a, b = s ** FILMIC_CONTRAST, (1.0 - s) ** FILMIC_CONTRAST
-        return a / (a + b)
-    raise ConfigError(f"tone must be one of {', '.join(TONES)}, got {tone!r}")
-
-
 @functools.lru_cache(maxsize=16)
 def _tone_lut(tone: str, gamma: float) -> np.ndarray:
     """8-bit output for every 16-bit linear code (the ISP's lookup table)."""

@@ -36,8 +36,8 @@ from scipy.spatial.transform import Rotation
 from ficap_ros.errors import CalibrationError, FicapError, OutputError
 from ficap_ros.files import read_text, write_output_file
 from ficap_ros.geometry.metrics import angle_deg, robust_mean_rotation
-from ficap_ros.stamps import pair_by_stamp, window_mask
 from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform, compose, inverse
+from ficap_ros.stamps import pair_by_stamp, window_mask
 
 __all__ = [
     "HeadCalibration",

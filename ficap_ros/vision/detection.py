@@ -20,6 +20,18 @@ from typing import Any
 import numpy as np
 
 from ficap_ros.errors import ConfigError, ImageError
+from ficap_ros.geometry.tag36h11 import (
+    CELL_CENTRES,
+    CELL_CENTRES_H,
+    TAG_AREA,
+    TAG_CELLS,
+    apply_homographies,
+    decode_tags,
+    read_tag_cells,
+    stacked_tag_cells,
+    tag_cells,
+    tag_homographies,
+)
 from ficap_ros.vision.photometric import fit_tags
 
 __all__ = [
@@ -35,11 +47,7 @@ __all__ = [
     "fit_tags_photometric",
     "refine_tag_corners",
     "shift_tag_edges",
-    "tag_cells",
-    "stacked_tag_cells",
-    "tag_homographies",
     "partly_hidden",
-    "TAG_CELLS",
     "BACKENDS",
     "CORNER_REFINES",
 ]
@@ -51,8 +59,6 @@ CORNER_REFINES = ("edge", "subpix", "apriltag", "none")
 _APRILTAG_TO_OPENCV = (1, 0, 3, 2)
 #: AprilTag puts (0, 0) at the outer corner of the top-left pixel; OpenCV at its centre.
 _APRILTAG_PIXEL_OFFSET_PX = -0.5
-#: tag36h11's black square is 8 cells wide (6x6 data + 1-cell black border each side).
-TAG_CELLS = 8
 
 
 @dataclass(frozen=True)
@@ -722,164 +728,6 @@ def _masked_median(x: np.ndarray, mask: np.ndarray) -> np.ndarray:
 # ------------------------------------------------------------------------------------------------
 # Tone-curve bias: the black border's two edges
 # ------------------------------------------------------------------------------------------------
-@lru_cache(maxsize=None)
-def tag_cells(tag_id: int) -> np.ndarray:
-    """The 8x8 cells of a tag36h11 tag (True = black), in OpenCV's drawing (corner order c0..c3)."""
-    import cv2
-
-    dictionary = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11)
-    img = cv2.aruco.generateImageMarker(dictionary, int(tag_id), TAG_CELLS, borderBits=1)
-    cells = img == 0
-    cells.setflags(write=False)
-    return cells
-
-
-@lru_cache(maxsize=256)
-def stacked_tag_cells(ids: tuple[int, ...]) -> np.ndarray:
-    """(K, 8, 8) ``tag_cells`` of each id, stacked (read-only); cached: a tracked cap shows the
-    same ids frame after frame."""
-    out = (np.stack([tag_cells(i) for i in ids]) if ids
-           else np.zeros((0, TAG_CELLS, TAG_CELLS), dtype=bool))
-    out.setflags(write=False)
-    return out
-
-
-def tag_homographies(corners_px: np.ndarray) -> np.ndarray:
-    """(K, 3, 3) maps from tag cell units (c0 at (0, 0), c1 at (8, 0), c2 at (8, 8)) to the image.
-
-    The square-to-quadrilateral homography in closed form (Heckbert 1989), vectorised over the
-    tags: no linear solve. Raises ``np.linalg.LinAlgError`` for a degenerate quadrilateral (three
-    corners on a line), as a solve would.
-    """
-    c = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
-    x0, y0 = c[:, 0, 0], c[:, 0, 1]
-    x1, y1 = c[:, 1, 0], c[:, 1, 1]
-    x2, y2 = c[:, 2, 0], c[:, 2, 1]
-    x3, y3 = c[:, 3, 0], c[:, 3, 1]
-    dx1, dx2, dx3 = x1 - x2, x3 - x2, x0 - x1 + x2 - x3
-    dy1, dy2, dy3 = y1 - y2, y3 - y2, y0 - y1 + y2 - y3
-    den = dx1 * dy2 - dx2 * dy1
-    if not (np.isfinite(den) & (den != 0.0)).all():
-        raise np.linalg.LinAlgError("degenerate tag quadrilateral")
-    g = (dx3 * dy2 - dx2 * dy3) / den
-    h = (dx1 * dy3 - dx3 * dy1) / den
-    out = np.empty((len(c), 3, 3))
-    inv = 1.0 / TAG_CELLS  # the unit square's homography, scaled to 8 cells
-    out[:, 0, 0], out[:, 0, 1], out[:, 0, 2] = (x1 - x0 + g * x1) * inv, (x3 - x0 + h * x3) * inv, x0
-    out[:, 1, 0], out[:, 1, 1], out[:, 1, 2] = (y1 - y0 + g * y1) * inv, (y3 - y0 + h * y3) * inv, y0
-    out[:, 2, 0], out[:, 2, 1], out[:, 2, 2] = g * inv, h * inv, 1.0
-    return out
-
-
-def _apply_h(hom: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Points (P, 2) through homographies (P, 3, 3), one per point."""
-    p = np.einsum("pij,pj->pi", hom[:, :, :2], uv) + hom[:, :, 2]
-    return p[:, :2] / p[:, 2:3]
-
-
-# -- reading a tag's cells (tracking's verification, the search's second chance) ----------------
-def _cell_grid() -> np.ndarray:
-    """Centres (100, 2) of the 10x10 cells (white margin ring + 8x8 tag), in cell units from c0."""
-    c = np.arange(-1, TAG_CELLS + 1) + 0.5
-    gx, gy = np.meshgrid(c, c)
-    return np.column_stack([gx.ravel(), gy.ravel()])
-
-
-_GRID = _cell_grid()
-_GRID_H = np.concatenate([_GRID, np.ones((len(_GRID), 1))], axis=1)  # homogeneous (100, 3)
-_RING_MARGIN = ((_GRID < 0) | (_GRID > TAG_CELLS)).any(axis=1)  # the white quiet zone
-_INNER = ~_RING_MARGIN  # the 8x8 tag cells, row-major
-_BORDER = ((_GRID[_INNER] < 1) | (_GRID[_INNER] > TAG_CELLS - 1)).any(axis=1)  # of the 64: the black border
-
-
-def read_tag_cells(gray: np.ndarray, hom: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Read the 8x8 cells of tags through their homographies (cell units from c0 -> pixels).
-
-    Each cell is sampled at its centre and read against the tag's own levels, taken from the cells
-    every tag shares: its black border and the white quiet zone around it.
-
-    Returns:
-        (read_black (K, 64) bool row-major, white (K,), black (K,) grey levels, finite (K,): every
-        sample point finite, i.e. the homography is usable).
-    """
-    import cv2
-
-    p = np.einsum("kij,gj->kgi", hom, _GRID_H)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        xy = (p[..., :2] / p[..., 2:3]).astype(np.float32)  # (K, 100, 2)
-    finite = np.all(np.isfinite(xy), axis=(1, 2))
-    xy = np.where(np.isfinite(xy), xy, -1.0)
-    vals = cv2.remap(gray, xy[..., 0], xy[..., 1], cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_CONSTANT, borderValue=0).astype(np.float64)  # (K, 100)
-    inner = vals[:, _INNER]  # (K, 64)
-    white = vals[:, _RING_MARGIN].mean(axis=1)
-    black = inner[:, _BORDER].mean(axis=1)
-    return inner < 0.5 * (white + black)[:, None], white, black, finite
-
-
-@lru_cache(maxsize=1)
-def _all_codes() -> np.ndarray:
-    """(587, 36) the 6x6 data cells of every tag36h11 id (True = black), OpenCV's drawing."""
-    import cv2
-
-    n = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11).bytesList.shape[0]
-    codes = np.stack([tag_cells(i)[1:-1, 1:-1].ravel() for i in range(n)])
-    codes.setflags(write=False)
-    return codes
-
-
-def _pack36(bits: np.ndarray) -> np.ndarray:
-    """(N, 36) bool -> (N,) uint64 words."""
-    return (bits.astype(np.uint64) << np.arange(36, dtype=np.uint64)).sum(axis=1, dtype=np.uint64)
-
-
-@lru_cache(maxsize=1)
-def _all_words() -> np.ndarray:
-    return _pack36(_all_codes())
-
-
-def decode_tags(
-    gray: np.ndarray, corners_px: np.ndarray, max_bit_errors: int = 2, min_contrast: float = 10.0,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Read quads of unknown id as tag36h11 tags (the search's second chance).
-
-    Each quad's cells are read by ``read_tag_cells`` (as tracking verifies a tag), in its four
-    corner orders; the order and id whose 36 data cells are nearest (Hamming) win. A quad is a tag when at most
-    ``max_bit_errors`` data cells and 2 of the 28 border cells disagree and the border is at
-    least ``min_contrast`` grey levels darker than the white margin. tag36h11 codes are 11 bits
-    apart, so 2 errors are corrected with room to spare (AprilTag 3 corrects 2 by default).
-
-    Args:
-        gray: (H, W) uint8 image.
-        corners_px: (K, 4, 2) quads (any corner order), refined on ``gray``.
-
-    Returns:
-        (ok (K,) bool, ids (K,), bit errors (K,), corners (K, 4, 2) in the id's OpenCV order).
-    """
-    c = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
-    k = len(c)
-    if k == 0:
-        return np.zeros(0, bool), np.zeros(0, int), np.zeros(0, int), c.copy()
-    rolled = np.stack([np.roll(c, -r, axis=1) for r in range(4)], axis=1).reshape(-1, 4, 2)  # (4K,)
-    try:
-        hom = tag_homographies(rolled)
-    except np.linalg.LinAlgError:
-        return np.zeros(k, bool), np.zeros(k, int), np.full(k, 36), c.copy()
-    read_black, white, black, finite = read_tag_cells(gray, hom)
-    border_errors = (~read_black[:, _BORDER]).sum(axis=1)
-    data = read_black.reshape(-1, TAG_CELLS, TAG_CELLS)[:, 1:-1, 1:-1].reshape(-1, 36)
-    # Hamming distances to every code as popcounts of 36-bit words: (4K, 587) in one pass.
-    dist = np.bitwise_count(_pack36(data)[:, None] ^ _all_words()[None, :])
-    best_id, best_err = dist.argmin(axis=1), dist.min(axis=1)
-    good = finite & (border_errors <= 2) & (white - black >= min_contrast)
-    score = np.where(good, best_err, 99).reshape(k, 4)
-    order = score.argmin(axis=1)
-    rows = np.arange(k) * 4 + order
-    errors = score[np.arange(k), order]
-    ok = errors <= max_bit_errors
-    return ok, best_id[rows].astype(int), errors.astype(int), rolled[rows]
-
-
 #: Where the inner edge of the border is sampled across a white data cell (fractions of the cell
 #: along the side): away from the cell's ends, where the neighbouring black cells blur in.
 _INNER_FRACTIONS = (0.35, 0.5, 0.65)
@@ -953,7 +801,7 @@ def _intersect_sides(nrm: np.ndarray, rho: np.ndarray) -> np.ndarray:
 
 
 def _margin_cycle() -> np.ndarray:
-    """Indices into ``_GRID`` of the 36 quiet-zone samples in order around the tag (c0, c1, c2,
+    """Indices into ``CELL_CENTRES`` of the 36 quiet-zone samples in order around the tag (c0, c1, c2,
     c3), so that neighbours along the margin are neighbours in the array (cyclically)."""
     n = TAG_CELLS + 2
     top = [c for c in range(n)]
@@ -975,9 +823,9 @@ _HIDDEN_MARGIN_RUN = 5
 
 @lru_cache(maxsize=None)
 def _black_samples(tag_id: int) -> np.ndarray:
-    """(100,) which of ``_GRID``'s samples of this tag are black (its cells; the margin is white)."""
-    black = np.zeros(len(_GRID), dtype=bool)
-    black[_INNER] = tag_cells(tag_id).ravel()
+    """(100,) which of ``CELL_CENTRES``'s samples of this tag are black (its cells; the margin is white)."""
+    black = np.zeros(len(CELL_CENTRES), dtype=bool)
+    black[TAG_AREA] = tag_cells(tag_id).ravel()
     black.setflags(write=False)
     return black
 
@@ -1028,7 +876,7 @@ def partly_hidden(gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray) -> 
     if k == 0:
         return np.zeros(0, dtype=bool)
     hom = tag_homographies(c)
-    p = hom @ _GRID_H.T  # (K, 3, 100); a matmul, not einsum: a tenth of the time
+    p = hom @ CELL_CENTRES_H.T  # (K, 3, 100); a matmul, not einsum: a tenth of the time
     with np.errstate(divide="ignore", invalid="ignore"):
         x = (p[:, 0] / p[:, 2]).astype(np.float32)
         y = (p[:, 1] / p[:, 2]).astype(np.float32)
@@ -1332,7 +1180,7 @@ def unbias_corners_edge(
     except np.linalg.LinAlgError:
         return c_in.copy()
     hom_t = hom[tag_of]
-    p_in, p_out = _apply_h(hom_t, uv), _apply_h(hom_t, uv_out)
+    p_in, p_out = apply_homographies(hom_t, uv), apply_homographies(hom_t, uv_out)
     width0 = np.einsum("td,td->t", nk, p_out - p_in)  # px, one cell across
     half = np.maximum(np.minimum(cfg.edge_search_px, cfg.edge_window_cells * width0), 0.75)
     samples = cfg.edge_profile_samples
@@ -1363,7 +1211,7 @@ def unbias_corners_edge(
             width = width0
         else:
             hom_t = tag_homographies(corners)[tag_of]
-            p_in_c, p_out_c = _apply_h(hom_t, uv), _apply_h(hom_t, uv_out)
+            p_in_c, p_out_c = apply_homographies(hom_t, uv), apply_homographies(hom_t, uv_out)
             width = np.einsum("td,td->t", nk, p_out_c - p_in_c)  # one cell across, corrected geometry
         d = midline + 0.5 * width - rho[tag_of, side]  # (T,) how far the fitted line is inside, px
         if keep is None:  # the outliers: from the first round (the second moves d by ~1 %)

@@ -42,11 +42,9 @@ from __future__ import annotations
 import numpy as np
 from numpy.lib.stride_tricks import sliding_window_view
 
-__all__ = ["fit_tags", "PSF_SIGMA_PX"]
+from ficap_ros.geometry.tag36h11 import TAG_CELLS
 
-#: A tag36h11 tag's cells across (border included), as ``detection.TAG_CELLS``: this module sits
-#: below detection (which calls it) and takes the tags' cells and homographies from it.
-TAG_CELLS = 8
+__all__ = ["fit_tags", "PSF_SIGMA_PX"]
 
 #: Default lens PSF sigma, px, assumed when the recording's is unknown: the middle of issue 10's
 #: realistic range (0.4-1.0 px); the fit is insensitive to it within that range (docs/detection.md).
@@ -237,8 +235,8 @@ def fit_tags(
     Args:
         gray: (H, W) uint8 image.
         corners_px: (N, 4, 2) starting corners (the cell-edge fit's; within a few tenths of a px).
-        hom: (N, 3, 3) their homographies from tag cell units (``detection.tag_homographies``).
-        cells: (N, 8, 8) each tag's cells, True = black (``detection.tag_cells``).
+        hom: (N, 3, 3) their homographies from tag cell units (``tag36h11.tag_homographies``).
+        cells: (N, 8, 8) each tag's cells, True = black (``tag36h11.tag_cells``).
         psf_sigma_px: lens PSF sigma, px (linear light), where the per-tag blur scale starts.
         iterations: Gauss-Newton steps, at least 2 (a tag's misfit, which decides whether it is
             fitted, is measured from the second step on).

@@ -11,13 +11,24 @@ from dataclasses import dataclass, replace
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ficap_ros.vision.calibration import HeadCalibration
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.cap_model import CapModel, nominal_model
-from ficap_ros.vision.detection import DetectorConfig, TagDetection, TagDetector, as_gray, partly_hidden
-from ficap_ros.vision.pose import CapPose, PoseConfig, UncertaintyConfig, estimate_cap_pose
-from ficap_ros.vision.tracking import Search, TrackConfig, Tracker
 from ficap_ros.geometry.transform import Transform
+from ficap_ros.vision.calibration import HeadCalibration
+from ficap_ros.vision.detection import (
+    DetectorConfig,
+    TagDetection,
+    TagDetector,
+    as_gray,
+    partly_hidden,
+)
+from ficap_ros.vision.pose import (
+    CapPose,
+    PoseConfig,
+    UncertaintyConfig,
+    estimate_cap_pose,
+)
+from ficap_ros.vision.tracking import Search, TrackConfig, Tracker
 
 __all__ = ["FrameResult", "FrameProcessor", "hidden_tag_ids", "corner_estimator", "pose_config_for"]
 

@@ -77,11 +77,11 @@ except ImportError:  # another scipy (e.g. a distribution's in an apt + colcon i
     _lmder = None
 from scipy.spatial.transform import Rotation
 
+from ficap_ros.errors import ConfigError
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.cap_model import TAG_SIDE_MM, CapModel
-from ficap_ros.vision.detection import TagDetection
-from ficap_ros.errors import ConfigError
 from ficap_ros.geometry.transform import Transform, compose, from_rotvec
+from ficap_ros.vision.detection import TagDetection
 
 __all__ = [
     "POSE_METHODS",

@@ -21,21 +21,23 @@ from enum import Enum
 
 import numpy as np
 
+from ficap_ros.errors import ConfigError
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.cap_model import CapModel
+from ficap_ros.geometry.tag36h11 import (
+    read_tag_cells,
+    stacked_tag_cells,
+    tag_cells,
+    tag_homographies,
+)
+from ficap_ros.geometry.transform import Transform, compose, from_rotvec, inverse
 from ficap_ros.vision.detection import (
     TagDetection,
     TagDetector,
     refine_corners_edge_ok,
-    read_tag_cells,
-    stacked_tag_cells,
     refine_tag_corners,
-    tag_cells,
-    tag_homographies,
 )
-from ficap_ros.errors import ConfigError
 from ficap_ros.vision.pose import PoseConfig, estimate_cap_pose
-from ficap_ros.geometry.transform import Transform, compose, from_rotvec, inverse
 
 __all__ = ["TrackConfig", "Tracker", "Search", "extrapolate_pose", "predict_tags", "verify_tags", "tag_cells",
            "view_angles_deg"]

@@ -10,15 +10,15 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from ficap_ros.io.bag_writer import BagWriter, pose_stamped_msg
 from ficap_ros.cli.main import main
-from ficap_ros.tools.evaluation import evaluate, load_series
-from ficap_ros.stamps import pair_by_stamp
-from ficap_ros.io.labels import labels_csv_text, record_from_pose
 from ficap_ros.geometry.metrics import rotation_from_ypr_deg
+from ficap_ros.geometry.transform import Transform
+from ficap_ros.io.bag_writer import BagWriter, pose_stamped_msg
+from ficap_ros.io.labels import labels_csv_text, record_from_pose
+from ficap_ros.stamps import pair_by_stamp
+from ficap_ros.tools.evaluation import evaluate, load_series
 from ficap_ros.vision.calibration import HeadCalibration
 from ficap_ros.vision.pose import CapPose
-from ficap_ros.geometry.transform import Transform
 
 N = 400
 FPS = 30.0

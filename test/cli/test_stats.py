@@ -10,12 +10,12 @@ import numpy as np
 import pytest
 import yaml
 
-from ficap_ros.tools import synth
-from ficap_ros.io.sources import CAMERA_INFO_TYPE, COMPRESSED_TYPE
-from ficap_ros.io.bag_writer import BagWriter, camera_info_msg, compressed_image_msg
-from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.cli.main import main
+from ficap_ros.geometry.cap_model import nominal_model
+from ficap_ros.io.bag_writer import BagWriter, camera_info_msg, compressed_image_msg
 from ficap_ros.io.labels import read_labels
+from ficap_ros.io.sources import CAMERA_INFO_TYPE, COMPRESSED_TYPE
+from ficap_ros.tools import synth
 
 N = 5
 BAD = 2

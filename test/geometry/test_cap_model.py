@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from ficap_ros.errors import ModelError
 from ficap_ros.geometry.cap_model import (
     SPHERE_RADIUS_MM,
     TAG_SIDE_MM,
@@ -18,7 +19,6 @@ from ficap_ros.geometry.cap_model import (
     load_model,
     nominal_model,
 )
-from ficap_ros.errors import ModelError
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from ficap_ros.geometry.camera import CameraModel, load_camera_yaml
 from ficap_ros.errors import IntrinsicsError
+from ficap_ros.geometry.camera import CameraModel, load_camera_yaml
 from ficap_ros.geometry.metrics import (
     angle_deg,
     phi3_deg,

@@ -6,9 +6,15 @@ from __future__ import annotations
 import numpy as np
 
 from ficap_ros.geometry.cap_model import nominal_model
-from ficap_ros.vision.detection import TagDetector
 from ficap_ros.geometry.metrics import corner_errors_px
-from ficap_ros.tools.synth import RenderConfig, RenderedFrame, default_scene, naturalistic_drive, render
+from ficap_ros.tools.synth import (
+    RenderConfig,
+    RenderedFrame,
+    default_scene,
+    naturalistic_drive,
+    render,
+)
+from ficap_ros.vision.detection import TagDetector
 from ficap_ros.vision.tracking import view_angles_deg
 
 MODEL = nominal_model()

@@ -19,15 +19,15 @@ import yaml
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
-from ficap_ros.io.sources import CAMERA_INFO_TYPE, COMPRESSED_TYPE, IMAGE_TYPE  # noqa: E402
-from ficap_ros.io.bag_writer import ( # noqa: E402
+from ficap_ros.geometry.camera import CameraModel  # noqa: E402
+from ficap_ros.geometry.cap_model import nominal_model  # noqa: E402
+from ficap_ros.io.bag_writer import (  # noqa: E402
     BagWriter,
     camera_info_msg,
     compressed_image_msg,
     image_msg,
 )
-from ficap_ros.geometry.camera import CameraModel  # noqa: E402
-from ficap_ros.geometry.cap_model import nominal_model  # noqa: E402
+from ficap_ros.io.sources import CAMERA_INFO_TYPE, COMPRESSED_TYPE, IMAGE_TYPE  # noqa: E402
 
 OUT = Path(__file__).resolve().parents[1] / "data" / "bad_inputs"
 W, H = 96, 72

@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ficap_ros.io.sources import IMAGE_TYPE
 from ficap_ros.io.bag_writer import BagWriter, image_msg
+from ficap_ros.io.sources import IMAGE_TYPE
 
 
 def _grey(i: int) -> np.ndarray:

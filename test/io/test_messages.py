@@ -12,13 +12,12 @@ import pytest
 from rclpy.serialization import deserialize_message, serialize_message
 from scipy.spatial.transform import Rotation
 
-from ficap_ros.io import bag_writer
-from ficap_ros.io import messages
-from ficap_ros.ros import msgs as ros_msgs
 from ficap_ros.geometry.camera import CameraModel, camera_from_info
-from ficap_ros.io.messages import ROSBAGS, jazzy_typestore
-from ficap_ros.ros.msgs import RCLPY
 from ficap_ros.geometry.transform import Transform
+from ficap_ros.io import bag_writer, messages
+from ficap_ros.io.messages import ROSBAGS, jazzy_typestore
+from ficap_ros.ros import msgs as ros_msgs
+from ficap_ros.ros.msgs import RCLPY
 
 T = Transform(Rotation.from_euler("xyz", [10.0, -20.0, 33.0], degrees=True),
               np.array([0.05, -0.02, 0.61]))

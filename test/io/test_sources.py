@@ -8,11 +8,21 @@ import cv2
 import numpy as np
 import pytest
 
-from ficap_ros.io.sources import CAMERA_INFO_TYPE, COMPRESSED_TYPE, IMAGE_TYPE, open_frames
-from ficap_ros.io.bag_writer import BagWriter, camera_info_msg, compressed_image_msg, image_msg
-from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.errors import BagError, ImageError
+from ficap_ros.geometry.camera import CameraModel
+from ficap_ros.io.bag_writer import (
+    BagWriter,
+    camera_info_msg,
+    compressed_image_msg,
+    image_msg,
+)
 from ficap_ros.io.image_codec import decode_compressed, decode_image
+from ficap_ros.io.sources import (
+    CAMERA_INFO_TYPE,
+    COMPRESSED_TYPE,
+    IMAGE_TYPE,
+    open_frames,
+)
 
 W, H = 64, 48
 T0 = 1_700_000_000_000_000_000

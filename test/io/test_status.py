@@ -20,8 +20,13 @@ def test_frame_status_levels() -> None:
 def test_label_record_values_feed_status_and_quality() -> None:
     """One record per frame gives the status values, quality numbers and level of the node and
     labels.mcap alike (``record_status`` = ``frame_status`` of its fields)."""
+    from ficap_ros.io.status import (
+        quality_values,
+        record_from_pose,
+        record_status,
+        status_values,
+    )
     from ficap_ros.vision.calibration import HeadCalibration
-    from ficap_ros.io.status import quality_values, record_from_pose, record_status, status_values
 
     cal = HeadCalibration()
     none = record_from_pose(3, 10, "", None, (4, 2), "no tag of the model detected", cal)

@@ -8,16 +8,16 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from ficap_ros.io import bag_writer
-from ficap_ros.vision.calibration import HeadCalibration, LiveCalibration
 from ficap_ros.geometry.camera import CameraInfoCache
 from ficap_ros.geometry.cap_model import nominal_model
-from ficap_ros.ros.live import failed_frame, process_image, reference_q_xyzw
 from ficap_ros.geometry.metrics import angle_deg
-from ficap_ros.vision.pipeline import FrameProcessor
-from ficap_ros.io.status import ERROR, OK, WARN
-from ficap_ros.tools.synth import RenderConfig, default_scene, render
 from ficap_ros.geometry.transform import Transform
+from ficap_ros.io import bag_writer
+from ficap_ros.io.status import ERROR, OK, WARN
+from ficap_ros.ros.live import failed_frame, process_image, reference_q_xyzw
+from ficap_ros.tools.synth import RenderConfig, default_scene, render
+from ficap_ros.vision.calibration import HeadCalibration, LiveCalibration
+from ficap_ros.vision.pipeline import FrameProcessor
 
 CONFIG = SimpleNamespace(camera_info_max_stamp_diff_ms=1.0, image_is_rectified=False,
                          publish_min_reliability=0.0, warn_reliability=0.5)

@@ -10,24 +10,28 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from node_harness import header_at
 from scipy.spatial.transform import Rotation
 from std_srvs.srv import Trigger
-from node_harness import header_at
 
 from ficap_ros import stamps
-from ficap_ros.io import sources as bag_io
-from ficap_ros.io import bag_writer
-from ficap_ros.ros import msgs as ros_msgs
-from ficap_ros.io.sources import open_frames
-from ficap_ros.io.bag_writer import BagWriter
-from ficap_ros.vision.calibration import CalibrationRecorder, load_calibration, reference_pairs
-from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.cli.main import main
+from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.geometry.metrics import angle_deg, rotation_from_ypr_deg
-from ficap_ros.vision.pose import PoseConfig
+from ficap_ros.geometry.transform import Transform
+from ficap_ros.io import bag_writer
+from ficap_ros.io import sources as bag_io
+from ficap_ros.io.bag_writer import BagWriter
+from ficap_ros.io.sources import open_frames
+from ficap_ros.ros import msgs as ros_msgs
 from ficap_ros.tools.replay import replay
 from ficap_ros.tools.synth import RenderConfig, default_scene, render
-from ficap_ros.geometry.transform import Transform
+from ficap_ros.vision.calibration import (
+    CalibrationRecorder,
+    load_calibration,
+    reference_pairs,
+)
+from ficap_ros.vision.pose import PoseConfig
 
 T0 = 10**9
 DT = 33_333_333

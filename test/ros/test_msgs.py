@@ -12,11 +12,11 @@ from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CameraInfo, CompressedImage, Image
 from std_msgs.msg import Header
 
-from ficap_ros.ros import msgs as ros_msgs
-from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.errors import ImageError, IntrinsicsError
-from ficap_ros.ros.params import PARAMETERS, validate_parameter
+from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.transform import Transform
+from ficap_ros.ros import msgs as ros_msgs
+from ficap_ros.ros.params import PARAMETERS, validate_parameter
 
 CONFIG = Path(__file__).resolve().parents[2] / "config" / "ficap.yaml"
 

@@ -18,10 +18,10 @@ from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CompressedImage
 from std_srvs.srv import Trigger
 
-from ficap_ros.ros import msgs as ros_msgs
-from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.errors import ConfigError
+from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.metrics import angle_deg
+from ficap_ros.ros import msgs as ros_msgs
 from ficap_ros.ros.node import FicapNode
 
 CONFIG = Path(__file__).resolve().parents[2] / "config" / "ficap.yaml"
@@ -223,7 +223,11 @@ def test_shipped_params_file_applies_under_a_namespace_and_new_name(tmp_path) ->
 def test_calibration_file_loaded_at_start_and_cleared(harness_factory, tmp_path) -> None:
     from scipy.spatial.transform import Rotation
 
-    from ficap_ros.vision.calibration import CalibrationResult, load_calibration, save_calibration
+    from ficap_ros.vision.calibration import (
+        CalibrationResult,
+        load_calibration,
+        save_calibration,
+    )
 
     path = tmp_path / "calib.yaml"
     R = Rotation.from_euler("xyz", [3.0, -8.0, 2.0], degrees=True)

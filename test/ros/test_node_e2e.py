@@ -12,16 +12,21 @@ import time
 import numpy as np
 import pytest
 from geometry_msgs.msg import PoseStamped
+from node_harness import Harness, header_at, info_at, level_of
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import Image
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
-from node_harness import Harness, header_at, info_at, level_of
 
-from ficap_ros.ros import msgs as ros_msgs
 from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.geometry.metrics import angle_deg
-from ficap_ros.tools.synth import RenderConfig, default_scene, naturalistic_drive, render
+from ficap_ros.ros import msgs as ros_msgs
+from ficap_ros.tools.synth import (
+    RenderConfig,
+    default_scene,
+    naturalistic_drive,
+    render,
+)
 
 SEED = 11
 FPS = 30.0

@@ -13,13 +13,13 @@ from __future__ import annotations
 
 import numpy as np
 from geometry_msgs.msg import PoseStamped
+from node_harness import header_at, info_at
 from scipy.spatial.transform import Rotation
 from std_srvs.srv import Trigger
-from node_harness import header_at, info_at
 
-from ficap_ros.ros import msgs as ros_msgs
 from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.geometry.metrics import angle_deg, rotation_from_ypr_deg
+from ficap_ros.ros import msgs as ros_msgs
 from ficap_ros.tools.synth import RenderConfig, default_scene, render
 
 N_ORIENTATIONS = 48
@@ -73,10 +73,10 @@ def test_reference_calibration_with_noisy_reference(harness_factory, tmp_path) -
 
     # The same poses offline: the node's cap poses as labels.csv, the references as a bag,
     # `ficap calibrate --reference` with the node's pair tolerance: the same pairs and frames.
-    from ficap_ros.io.bag_writer import BagWriter, pose_stamped_msg
-    from ficap_ros.vision.calibration import load_calibration
     from ficap_ros.cli.main import main
     from ficap_ros.geometry.transform import Transform
+    from ficap_ros.io.bag_writer import BagWriter, pose_stamped_msg
+    from ficap_ros.vision.calibration import load_calibration
 
     with h.lock:
         caps = list(h.cap)

@@ -10,10 +10,15 @@ from pathlib import Path
 
 import pytest
 
-from ficap_ros.tools import replay as replay_mod
 from ficap_ros.cli.main import main
 from ficap_ros.errors import BagError
-from ficap_ros.tools.fleet import Recording, find_recordings, fingerprint, input_identity
+from ficap_ros.tools import replay as replay_mod
+from ficap_ros.tools.fleet import (
+    Recording,
+    find_recordings,
+    fingerprint,
+    input_identity,
+)
 
 FRAMES = 20
 #: Segments of 8 frames, so 20-frame recordings span three segments (two full, one short) and
@@ -286,8 +291,8 @@ def test_no_ray_import_without_ray(fleet_in: Path, tmp_path: Path) -> None:
 def test_ray_retries_a_dead_worker_and_fails_only_the_broken_recording(
     fleet_in: Path, tmp_path: Path, local_ray, small_segments
 ) -> None:
-    from ficap_ros.io.sources import open_frames
     from ficap_ros.geometry.cap_model import nominal_model
+    from ficap_ros.io.sources import open_frames
     from ficap_ros.tools.fleet import RayEngine, label_settings, run_fleet
     from ficap_ros.vision.pose import PoseConfig
 
@@ -339,8 +344,8 @@ def test_ray_retries_a_dead_worker_and_fails_only_the_broken_recording(
 
     # An engine started with other settings than the fleet's would write labels its fingerprints
     # do not describe: refused before anything is written.
-    from ficap_ros.vision.detection import DetectorConfig
     from ficap_ros.errors import ConfigError
+    from ficap_ros.vision.detection import DetectorConfig
 
     for other in ({"pose": PoseConfig(method="paper")}, {"detector": DetectorConfig(edge_photometric=True)}):
         with pytest.raises(ConfigError, match="another model, pose or detector"):

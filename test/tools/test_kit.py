@@ -12,9 +12,9 @@ import cv2
 import numpy as np
 import pytest
 
-from ficap_ros.geometry.cap_model import FACE_SIDE_MM, TAG_SIDE_MM, nominal_model
 from ficap_ros.cli.main import main
 from ficap_ros.errors import ConfigError
+from ficap_ros.geometry.cap_model import FACE_SIDE_MM, TAG_SIDE_MM, nominal_model
 from ficap_ros.tools.kit import (
     PAPER_SIZES_MM,
     PT_PER_MM,

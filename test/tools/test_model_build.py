@@ -8,11 +8,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from ficap_ros.errors import ConfigError, ModelError
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.cap_model import CapModel, load_model, nominal_model
-from ficap_ros.vision.detection import TagDetection
-from ficap_ros.errors import ConfigError, ModelError
 from ficap_ros.geometry.metrics import rotation_from_ypr_deg
+from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform
 from ficap_ros.tools.model_build import (
     BuildConfig,
     CoverageError,
@@ -25,8 +25,8 @@ from ficap_ros.tools.model_build import (
     size_ratio,
     tag_frames,
 )
+from ficap_ros.vision.detection import TagDetection
 from ficap_ros.vision.pose import estimate_cap_pose
-from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform
 
 CAMERA = CameraModel.pinhole(1280, 960, hfov_deg=60.0)
 
@@ -219,8 +219,8 @@ def test_cli_builds_from_a_bag_of_rendered_frames(tmp_path, capsys) -> None:
     adjusts and replays with both models."""
     import json
 
-    from ficap_ros.io.bag_writer import BagWriter, camera_info_msg, image_msg
     from ficap_ros.cli.main import main
+    from ficap_ros.io.bag_writer import BagWriter, camera_info_msg, image_msg
     from ficap_ros.tools.synth import REALISTIC, RenderConfig, render
 
     camera = CameraModel.pinhole(960, 720, hfov_deg=50.0)
@@ -350,8 +350,8 @@ def test_replay_check_compares_with_the_nominal(built) -> None:
 
 def test_unconverged_build_exits_non_zero(tmp_path, capsys) -> None:
     """A solver that runs out of budget is not trusted: exit 1 and no file, unless --allow-partial."""
-    from ficap_ros.io.bag_writer import BagWriter, camera_info_msg, image_msg
     from ficap_ros.cli.main import main
+    from ficap_ros.io.bag_writer import BagWriter, camera_info_msg, image_msg
     from ficap_ros.tools.synth import RenderConfig, render
 
     camera = CameraModel.pinhole(640, 480, hfov_deg=50.0)

@@ -10,10 +10,10 @@ import pytest
 from rosbags.highlevel import AnyReader
 from scipy.spatial.transform import Rotation
 
-from ficap_ros.cli.main import main
 from ficap_ros.cli import synth as synth_cmd
-from ficap_ros.tools.evaluation import read_series_bag
+from ficap_ros.cli.main import main
 from ficap_ros.io.labels import read_labels
+from ficap_ros.tools.evaluation import read_series_bag
 
 FRAMES = 45
 FPS = 5.0  # 9 s of drive: the 3 s frontal segment, then mirror and cluster glances
@@ -173,10 +173,10 @@ def test_jobs_2_identical_to_jobs_1(drive: Path, replayed: Path, tmp_path: Path)
 def test_jobs_2_progress_moves_frame_by_frame(drive: Path) -> None:
     """With --jobs the results come back a whole segment at a time, but the bar is fed the
     workers' shared frame counter: it moves through intermediate counts, never backwards."""
-    from ficap_ros.io.sources import open_frames
     from ficap_ros.geometry.cap_model import nominal_model
-    from ficap_ros.vision.pose import PoseConfig
+    from ficap_ros.io.sources import open_frames
     from ficap_ros.tools.replay import process_frames
+    from ficap_ros.vision.pose import PoseConfig
 
     seen: list[int] = []
     source = open_frames(drive)

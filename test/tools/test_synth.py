@@ -10,10 +10,11 @@ import pytest
 from scipy.spatial.transform import Rotation
 from scipy.stats import norm
 
+from ficap_ros.errors import ConfigError
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.cap_model import TAG_SIDE_MM, CapModel, nominal_model
-from ficap_ros.errors import ConfigError
 from ficap_ros.geometry.metrics import angle_deg, rotation_from_ypr_deg
+from ficap_ros.geometry.transform import Transform
 from ficap_ros.tools.synth import (
     HEAD_CENTRE_M,
     HEAD_SEMI_AXES_M,
@@ -28,7 +29,6 @@ from ficap_ros.tools.synth import (
     srgb_to_linear,
     tone_curve,
 )
-from ficap_ros.geometry.transform import Transform
 
 MODEL = nominal_model()
 #: An idealised camera (no lens blur, grey levels proportional to light): what the geometry tests
@@ -353,10 +353,10 @@ def test_cli_rejects_bad_camera_knobs(tmp_path, capsys) -> None:
 def test_naive_peer_is_biased_inward_on_default_synth_frames(tmp_path) -> None:
     """Issue 10: default ``ficap synth`` frames show what real cameras do to corners: the naive
     peer's (OpenCV sub-pixel) corners sit >= 0.2 px toward the tag centre."""
-    from ficap_ros.io.sources import decode_raw, open_frames
     from ficap_ros.cli.main import main
-    from ficap_ros.vision.detection import DetectorConfig, TagDetector
     from ficap_ros.geometry.metrics import corner_errors_px
+    from ficap_ros.io.sources import decode_raw, open_frames
+    from ficap_ros.vision.detection import DetectorConfig, TagDetector
     from ficap_ros.vision.tracking import view_angles_deg
 
     seed, n = 11, 3

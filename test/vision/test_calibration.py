@@ -6,18 +6,18 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from ficap_ros.errors import CalibrationError
+from ficap_ros.geometry.metrics import angle_deg, rotation_from_ypr_deg
+from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform
 from ficap_ros.vision.calibration import (
     CalibrationResult,
+    HeadCalibration,
     calibrate_frontal,
     calibrate_reference,
     frontal_from_camera_mount,
     load_calibration,
     save_calibration,
 )
-from ficap_ros.errors import CalibrationError
-from ficap_ros.geometry.metrics import angle_deg, rotation_from_ypr_deg
-from ficap_ros.vision.calibration import HeadCalibration
-from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform
 
 
 def _mount(pitch_down_deg: float = 0.0, yaw_left_deg: float = 0.0) -> Transform:
@@ -151,8 +151,12 @@ def test_load_refuses_bad_files(tmp_path) -> None:
 def test_live_calibration_frontal_frame_rule(tmp_path) -> None:
     """One rule live and offline (``calibrated_frontal``): a reference calibration's frame is the
     frontal frame without a camera mount; a mount fixes it; clearing returns to the mount's."""
-    from ficap_ros.vision.calibration import CalibrationResult, LiveCalibration, frontal_from_camera_mount
     from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform
+    from ficap_ros.vision.calibration import (
+        CalibrationResult,
+        LiveCalibration,
+        frontal_from_camera_mount,
+    )
 
     R_ref = Rotation.from_euler("ZYX", [170.0, 20.0, -5.0], degrees=True)
     result = CalibrationResult(Rotation.from_euler("x", 3.0, degrees=True), 50, 0.5, "reference",

@@ -11,13 +11,17 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from corner_eval import MODEL, clean_corner_errors, drive_frames
 
-from ficap_ros.vision.detection import DetectorConfig, TagDetector, fit_tag_edges, refine_corners_edge_ok
 from ficap_ros.geometry.metrics import corner_errors_px
 from ficap_ros.tools.synth import RenderConfig
+from ficap_ros.vision.detection import (
+    DetectorConfig,
+    TagDetector,
+    fit_tag_edges,
+    refine_corners_edge_ok,
+)
 from ficap_ros.vision.tracking import view_angles_deg
-
-from corner_eval import MODEL, clean_corner_errors, drive_frames
 
 OURS = TagDetector(DetectorConfig())
 PEER = TagDetector(DetectorConfig(corner_refine="subpix"))
@@ -85,7 +89,7 @@ def test_fit_recovers_a_known_erosion() -> None:
     and report delta ~ 0.4 px."""
     import cv2
 
-    from ficap_ros.vision.detection import tag_cells
+    from ficap_ros.geometry.tag36h11 import tag_cells
 
     cell, ss, delta, tag_id, size = 12.0, 10, 0.4, 11, 160
     x0 = y0 = 32.3  # outer corner c0 at a sub-pixel position

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from ficap_ros.cli.main import main as cli_main
-from ficap_ros.vision.detection import DetectorConfig, TagDetector, as_gray
 from ficap_ros.errors import ConfigError, ImageError
+from ficap_ros.vision.detection import DetectorConfig, TagDetector, as_gray
 
 DICT = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11)
 SUPERSAMPLE = 8

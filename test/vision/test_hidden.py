@@ -11,14 +11,20 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from ficap_ros.geometry.cap_model import nominal_model
-from ficap_ros.vision.detection import DetectorConfig, TagDetection, partly_hidden
 from ficap_ros.errors import ConfigError
+from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.geometry.metrics import angle_deg
+from ficap_ros.geometry.transform import Transform
+from ficap_ros.tools.synth import (
+    HEAD_CENTRE_M,
+    RenderConfig,
+    default_scene,
+    naturalistic_drive,
+    render,
+)
+from ficap_ros.vision.detection import DetectorConfig, TagDetection, partly_hidden
 from ficap_ros.vision.pipeline import FrameProcessor, hidden_tag_ids
 from ficap_ros.vision.pose import PoseConfig, estimate_cap_pose
-from ficap_ros.tools.synth import HEAD_CENTRE_M, RenderConfig, default_scene, naturalistic_drive, render
-from ficap_ros.geometry.transform import Transform
 
 MODEL = nominal_model()
 #: The default head moved 6 mm along the cap's z: it covers one corner of tags 0 and 2.

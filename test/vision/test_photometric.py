@@ -12,13 +12,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from corner_eval import MODEL, clean_corner_errors, drive_frames
 
-from ficap_ros.vision.detection import DetectorConfig, TagDetector, fit_tags_photometric
 from ficap_ros.geometry.metrics import corner_errors_px
 from ficap_ros.tools.synth import RenderConfig
+from ficap_ros.vision.detection import DetectorConfig, TagDetector, fit_tags_photometric
 from ficap_ros.vision.tracking import view_angles_deg
-
-from corner_eval import MODEL, clean_corner_errors, drive_frames
 
 EDGE = TagDetector(DetectorConfig())
 PHOTO = TagDetector(DetectorConfig(edge_photometric=True))
@@ -120,9 +119,13 @@ def test_pipeline_takes_the_uncertainty_profile_of_its_corners() -> None:
     narrower translation bound under spotlights than the default corners' profile would give), with
     the default corners those of ``PoseConfig()``; an uncertainty set by the user is kept; and the
     fleet fingerprint's pose is the one applied (the default corners' as it always was)."""
-    from ficap_ros.vision.detection import as_gray
     from ficap_ros.tools.fleet import label_settings
-    from ficap_ros.vision.pipeline import FrameProcessor, hidden_tag_ids, pose_config_for
+    from ficap_ros.vision.detection import as_gray
+    from ficap_ros.vision.pipeline import (
+        FrameProcessor,
+        hidden_tag_ids,
+        pose_config_for,
+    )
     from ficap_ros.vision.pose import PoseConfig, UncertaintyConfig, estimate_cap_pose
 
     photo_u = UncertaintyConfig.for_corners("photometric")

@@ -15,11 +15,16 @@ import numpy as np
 import pytest
 
 from ficap_ros.geometry.cap_model import nominal_model
-from ficap_ros.vision.detection import DetectorConfig
 from ficap_ros.geometry.metrics import angle_deg
+from ficap_ros.tools.synth import (
+    RenderConfig,
+    default_scene,
+    naturalistic_drive,
+    render,
+)
+from ficap_ros.vision.detection import DetectorConfig
 from ficap_ros.vision.pipeline import FrameProcessor
 from ficap_ros.vision.pose import PoseConfig
-from ficap_ros.tools.synth import RenderConfig, default_scene, naturalistic_drive, render
 
 MODEL = nominal_model()
 OURS = FrameProcessor(MODEL)

@@ -10,8 +10,8 @@ from scipy.spatial.transform import Rotation
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.geometry.metrics import angle_deg
-from ficap_ros.vision.pose import _at, _make_obs, _refine
 from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform
+from ficap_ros.vision.pose import _at, _make_obs, _refine
 
 MODEL = nominal_model()
 CAMERA = CameraModel.pinhole(1920, 1080, hfov_deg=60.0)

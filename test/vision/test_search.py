@@ -7,12 +7,17 @@ import cv2
 import numpy as np
 import pytest
 
-from ficap_ros.geometry.cap_model import nominal_model
-from ficap_ros.vision.detection import DetectorConfig, TagDetector, _auto_decimate
 from ficap_ros.errors import ConfigError
+from ficap_ros.geometry.cap_model import nominal_model
+from ficap_ros.geometry.tag36h11 import decode_tags, tag_cells
+from ficap_ros.tools.synth import (
+    RenderConfig,
+    default_scene,
+    naturalistic_drive,
+    render,
+)
+from ficap_ros.vision.detection import DetectorConfig, TagDetector, _auto_decimate
 from ficap_ros.vision.pipeline import FrameProcessor
-from ficap_ros.tools.synth import RenderConfig, default_scene, naturalistic_drive, render
-from ficap_ros.vision.detection import decode_tags, tag_cells
 
 DICT = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11)
 

@@ -9,13 +9,24 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.errors import ConfigError
+from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.geometry.metrics import angle_deg
-from ficap_ros.vision.pipeline import FrameProcessor
-from ficap_ros.tools.synth import RenderConfig, default_scene, naturalistic_drive, render
-from ficap_ros.vision.tracking import TrackConfig, extrapolate_pose, predict_tags, tag_cells, verify_tags
 from ficap_ros.geometry.transform import Transform
+from ficap_ros.tools.synth import (
+    RenderConfig,
+    default_scene,
+    naturalistic_drive,
+    render,
+)
+from ficap_ros.vision.pipeline import FrameProcessor
+from ficap_ros.vision.tracking import (
+    TrackConfig,
+    extrapolate_pose,
+    predict_tags,
+    tag_cells,
+    verify_tags,
+)
 
 MODEL = nominal_model()
 FRAME_NS = 33_333_333
