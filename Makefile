@@ -13,11 +13,13 @@ STAMP := $(VENV)/.installed-stamp
 
 install: $(STAMP)
 
-$(STAMP): requirements.txt setup.py package.xml
+REQUIREMENTS := requirements.txt requirements-extras.txt requirements-test.txt
+
+$(STAMP): $(REQUIREMENTS) setup.py package.xml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	# A venv's bundled pip may predate PEP 660 editable installs of an ament_python setup.cfg.
 	$(PY) -m pip install --quiet --disable-pip-version-check pip==26.3
-	$(PY) -m pip install --quiet --disable-pip-version-check -r requirements.txt
+	$(PY) -m pip install --quiet --disable-pip-version-check $(addprefix -r ,$(REQUIREMENTS))
 	$(PY) -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e .
 	touch $(STAMP)
 

@@ -18,10 +18,12 @@ setup(
         ("share/" + package_name + "/launch", glob("launch/*.launch.py")),
     ],
     install_requires=["setuptools"],
-    # ficap replay --ray; colcon test runs pytest when it is a test dependency (the Jazzy
-    # ament_python form). requirements.txt pins every version.
+    # Runtime dependencies come from package.xml (rosdep) or requirements.txt (pip, pinned);
+    # the extras mirror requirements-extras.txt and requirements-test.txt.
     extras_require={"ray": ["ray==2.60.0"],
-                    "test": ["pytest", "pytest-xdist", "pytest-timeout", "hypothesis"]},
+                    "apriltag": ["pupil-apriltags==1.0.4.post11"],
+                    "test": ["pytest", "pytest-xdist", "pytest-timeout", "hypothesis",
+                             "mcap-ros2-support"]},
     zip_safe=True,
     maintainer="ficap_ros maintainers",
     maintainer_email="maintainers@users.noreply.h-seed-c0fda0a4.example",
