@@ -16,6 +16,7 @@ __all__ = [
     "CalibrationError",
     "BagError",
     "OutputError",
+    "one_line",
 ]
 
 
@@ -49,3 +50,17 @@ class BagError(FicapError):
 
 class OutputError(FicapError):
     """An output cannot be written, or would overwrite an input or a folder ficap did not write."""
+
+
+def one_line(err: BaseException, typed: bool = False) -> str:
+    """An error as one line of text, for a message that quotes it.
+
+    A ``FicapError``'s message is one line already. Another error's message is reduced to its
+    first line (its type's name when it has none); ``typed`` instead names the type, then gives the
+    message's last line: for errors of unknown origin, such as a Ray task's, whose message is a
+    traceback that names the task first and ends with the cause.
+    """
+    lines = str(err).strip().splitlines()
+    if typed and not isinstance(err, FicapError):
+        return f"{type(err).__name__}: {lines[-1] if lines else ''}".strip()
+    return lines[0] if lines else type(err).__name__

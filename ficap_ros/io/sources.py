@@ -27,7 +27,7 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from ficap_ros.errors import BagError, FicapError, ImageError
+from ficap_ros.errors import BagError, FicapError, ImageError, one_line
 from ficap_ros.geometry.camera import (
     CAMERA_INFO_MAX_STAMP_DIFF_NS,
     CameraModel,
@@ -228,13 +228,8 @@ def open_bag_reader(path: Path, salvage: bool = True) -> Any:
                         f"(docs/bag_tools.md)") from err
             except BagError:
                 pass  # not even a damaged bag: report rosbags' reason
-        raise BagError(f"cannot read bag {path}: {_one_line(err)}") from err
+        raise BagError(f"cannot read bag {path}: {one_line(err)}") from err
     return reader
-
-
-def _one_line(err: BaseException) -> str:
-    text = str(err).strip().splitlines()
-    return text[0] if text else type(err).__name__
 
 
 def _pick_camera_info(topics: dict[str, str], image_topic: str) -> str | None:
@@ -371,7 +366,7 @@ class BagSource(FrameSource):
                     break
                 except _bag_errors() as err:
                     # Damage the index did not show: keep what was read, say what stopped it.
-                    self._midway = f"unreadable after {index} images: {_one_line(err)}"
+                    self._midway = f"unreadable after {index} images: {one_line(err)}"
                     break
                 first_ns = first_ns or int(log_ns)
                 last_ns = int(log_ns)
@@ -388,7 +383,7 @@ class BagSource(FrameSource):
             msg = reader.deserialize(raw, conn.msgtype)
         except _bag_errors() as err:
             return RawFrame(index, int(log_ns), self._camera_at(int(log_ns)), "image", b"",
-                            error=f"undecodable {conn.msgtype} message: {_one_line(err)}")
+                            error=f"undecodable {conn.msgtype} message: {one_line(err)}")
         stamp = stamp_to_ns(msg.header.stamp) or int(log_ns)
         camera = self._camera_at(stamp)
         frame_id = str(msg.header.frame_id)
@@ -467,7 +462,7 @@ class BagSource(FrameSource):
                 out.append((stamp_to_ns(msg.header.stamp) or int(log_ns), last))
         except _bag_errors() as err:
             if not out:  # damage past some CameraInfo only costs the frames after it
-                raise BagError(f"bag {self.path} is corrupt: {_one_line(err)}") from err
+                raise BagError(f"bag {self.path} is corrupt: {one_line(err)}") from err
         if not out:
             raise BagError(f"topic {topic} holds no valid CameraInfo; pass --intrinsics camera.yaml")
         out.sort(key=lambda item: item[0])
