@@ -128,7 +128,7 @@ def main() -> int:
         "its thread pool again, without waiting, and re-submits it (ros2/rclpy#1452, fixed upstream "
         "by #1547), so its spin thread loops on the GIL the pool thread and the node's worker need, "
         "longer the busier the machine (25-60 submissions per callback measured). ficap_node and "
-        "the demo spin one SingleThreadedExecutor (`node.make_executor`).",
+        "the demo spin one SingleThreadedExecutor (`spin.make_executor`).",
     ])
     print(text)
     if args.record:

@@ -170,7 +170,7 @@ def run(scene: DriveScene, drive: list[DriveFrame], tracking: bool, label: str,
         f = render(model, scene.camera, d.T_cam_cap, cfg, seed=d.index)
         r = proc.process(f.image, scene.camera, d.stamp_ns)
         det.append(r.tags_detected)
-        used.append(r.tags_used)
+        used.append(0 if r.pose is None else r.pose.tags_used)
         err.append(np.nan if r.pose is None else angle_deg(r.pose.T_cam_cap.rotation, d.T_cam_cap.rotation))
         seen.append(renderer_visible(f, model, args))
         prog.update()

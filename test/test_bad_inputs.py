@@ -16,10 +16,10 @@ from ficap_ros.cli.main import main
 from ficap_ros.errors import FicapError
 from ficap_ros.geometry.camera import load_camera_yaml
 from ficap_ros.geometry.cap_model import load_model
+from ficap_ros.io.calibration_file import load_calibration
 from ficap_ros.io.image_codec import decode_compressed
 from ficap_ros.io.labels import read_labels
 from ficap_ros.io.sources import open_bag_reader, open_frames
-from ficap_ros.vision.calibration import load_calibration
 
 CORPUS = Path(__file__).resolve().parent / "data" / "bad_inputs"
 BAGS = sorted([p for p in CORPUS.glob("*.mcap")] + [p for p in CORPUS.iterdir() if p.is_dir()])

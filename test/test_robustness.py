@@ -40,6 +40,7 @@ from ficap_ros.io.bag_writer import (
     compressed_image_msg,
     image_msg,
 )
+from ficap_ros.io.calibration_file import load_calibration, save_calibration
 from ficap_ros.io.labels import read_labels
 from ficap_ros.io.sources import (
     CAMERA_INFO_TYPE,
@@ -48,11 +49,7 @@ from ficap_ros.io.sources import (
     open_bag_reader,
     open_frames,
 )
-from ficap_ros.vision.calibration import (
-    HeadCalibration,
-    load_calibration,
-    save_calibration,
-)
+from ficap_ros.vision.calibration import HeadCalibration
 
 ROOT = Path(__file__).resolve().parents[1]
 FICAP = [sys.executable, "-m", "ficap_ros.cli"]

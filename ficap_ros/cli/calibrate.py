@@ -43,6 +43,7 @@ def run(args: argparse.Namespace) -> int:
     from ficap_ros.errors import BagError, CalibrationError, ConfigError
     from ficap_ros.files import check_file_target
     from ficap_ros.geometry.transform import Transform
+    from ficap_ros.io.calibration_file import save_calibration
     from ficap_ros.io.labels import read_labels
     from ficap_ros.stamps import window_from_start_ns
     from ficap_ros.vision.calibration import (
@@ -51,7 +52,6 @@ def run(args: argparse.Namespace) -> int:
         calibrated_frontal,
         frontal_frames,
         reference_pairs,
-        save_calibration,
     )
 
     check_file_target(args.out, "calibration")  # before reading anything

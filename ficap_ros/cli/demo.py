@@ -93,6 +93,7 @@ def run_offline(args: argparse.Namespace) -> int:
         summarize_errors,
         yaw_pitch_roll_deg,
     )
+    from ficap_ros.io.labels import FrameRecord
     from ficap_ros.tools.synth import (
         RenderConfig,
         default_scene,
@@ -131,7 +132,9 @@ def run_offline(args: argparse.Namespace) -> int:
         phi3.append(phi3_deg(T.rotation, truth.T_cam_cap.rotation))
         if k % args.every == 0:
             # Head angles of the cap seen as the head (uncalibrated): readable, not the truth's axes.
-            ypr = yaw_pitch_roll_deg(result.R_frontal_head)
+            head = FrameRecord.of(result, k, truth.stamp_ns, "").T_frontal_head
+            assert head is not None
+            ypr = yaw_pitch_roll_deg(head.rotation)
             x, y, z = T.translation_m
             print(f"{k:>5} {truth.stamp_ns / 1e9:>6.2f} {result.tags_detected:>5} {result.pose.tags_used:>4} "
                   f"{result.pose.rms_px:>6.2f} {result.pose.reliability:>5.2f} {ypr[0]:>7.2f} {ypr[1]:>7.2f} "

@@ -90,7 +90,7 @@ def _is_fleet(args: argparse.Namespace) -> bool:
     """Several recordings, a folder tree, a manifest or Ray: the fleet runner (ficap_ros.tools.fleet)."""
     from pathlib import Path
 
-    from ficap_ros.tools.fleet import is_recording
+    from ficap_ros.tools.fleet.manifest import is_recording
 
     return bool(len(args.input) != 1 or args.manifest or args.ray or args.ray_address
                 or not is_recording(Path(args.input[0]), videos=True))
@@ -124,7 +124,7 @@ def run(args: argparse.Namespace) -> int:
     detector = DetectorConfig(edge_photometric=args.photometric)
     calibration = None
     if args.calibration:
-        from ficap_ros.vision.calibration import load_calibration
+        from ficap_ros.io.calibration_file import load_calibration
 
         calibration = load_calibration(args.calibration)
     if not args.input and not args.manifest:
@@ -163,7 +163,9 @@ def run(args: argparse.Namespace) -> int:
 def _run_fleet(args: argparse.Namespace, model, calibration, detector) -> int:  # noqa: ANN001
     from pathlib import Path
 
-    from ficap_ros.tools.fleet import find_recordings, label_settings, run_fleet
+    from ficap_ros.tools.fleet.fingerprints import label_settings
+    from ficap_ros.tools.fleet.manifest import find_recordings
+    from ficap_ros.tools.fleet.run import run_fleet
     from ficap_ros.vision.pose import PoseConfig
 
     recordings = find_recordings(args.input, args.manifest, args.out, videos=args.videos)

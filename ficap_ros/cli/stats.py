@@ -55,16 +55,17 @@ def run(args: argparse.Namespace) -> int:
         source = open_source(args)
         bar = Progress(source.count, "frames", enabled=not args.quiet)
         try:
-            frames = list(process_frames(source.raw_frames(), model, PoseConfig(method=args.method),
-                                         jobs, on_progress=lambda n: bar.update(n - bar.n)))
+            records = [f.record for f in process_frames(
+                source.raw_frames(), model, PoseConfig(method=args.method), jobs,
+                on_progress=lambda n: bar.update(n - bar.n))]
         finally:
             bar.close()
         stats = detection_stats(
-            np.array([len(f.detected_ids) for f in frames], dtype=int),
-            tuple(f.detected_ids for f in frames),
-            np.array([f.pose.reliability if f.pose is not None else np.nan for f in frames]),
-            np.array([f.pose is not None for f in frames], dtype=bool),
-            np.array([f.skipped for f in frames], dtype=bool),
+            np.array([r.tags_detected for r in records], dtype=int),
+            tuple(r.detected_ids for r in records),
+            np.array([r.reliability for r in records]),
+            np.array([r.pose is not None for r in records], dtype=bool),
+            np.array([r.skipped for r in records], dtype=bool),
             tuple(model.ids),
         )
         loss = source.loss

@@ -1,4 +1,5 @@
-"""Head-pose labels: one record per image, written as CSV and as a rosbag2 MCAP; read back.
+"""Head-pose labels: one record per image (``FrameRecord``, the node's and the bag tools' alike,
+where the head pose is composed from the cap pose), written as CSV and as a rosbag2 MCAP; read back.
 
 Frames and quaternions (CSV columns are w, x, y, z; ROS messages store x, y, z, w):
     cap_q*, cap_*_m: T_cam_cap, the cap frame C in the camera optical frame (m).
@@ -23,7 +24,7 @@ with the image stamp (header and bag receive time), frame = the image's frame_id
     ``quality`` JointState: ``name[i]`` labels ``position[i]``: tags_detected, tags_used,
         reliability, rms_px, rot_err95_deg, trans_err95_mm (NaN without a pose); every image.
     ``status`` DiagnosticArray, one status ``ficap`` per image, level and message as the node's
-        (``ficap_ros.io.status.frame_status``): OK with a pose, WARN without one or below reliability
+        (``ficap_ros.io.status.record_status``): OK with a pose, WARN without one or below reliability
         0.5, ERROR for an undecodable image; values tags_detected, tags_used, rms_px, reliability,
         calibrated and, with a pose, yaw_deg, pitch_deg, roll_deg (R_frontal_head).
     ``/tf`` (never namespaced) tf2_msgs/TFMessage per posed image: ``ficap_frontal`` -> the camera
@@ -39,6 +40,7 @@ import csv
 import io
 import math
 from dataclasses import dataclass
+from functools import cached_property
 from pathlib import Path
 from typing import Iterable, Sequence
 
@@ -47,24 +49,27 @@ from scipy.spatial.transform import Rotation
 
 from ficap_ros.errors import BagError
 from ficap_ros.geometry.metrics import yaw_pitch_roll_deg
-from ficap_ros.geometry.transform import Transform, inverse
+from ficap_ros.geometry.transform import Transform, compose, inverse
 from ficap_ros.io.status import (
-    LabelRecord,
-    is_skipped,
+    FrameStatus,
     quality_values,
-    record_from_pose,
-    record_from_result,
     record_status,
+    status_reason,
     status_values,
 )
+from ficap_ros.vision.calibration import HeadCalibration
+from ficap_ros.vision.pipeline import FrameResult
+from ficap_ros.vision.pose import CapPose
 
 __all__ = [
     "LABEL_COLUMNS",
     "DEFAULT_NAMESPACE",
-    "LabelRecord",
+    "DEFAULT_CAMERA_FRAME",
+    "UNCALIBRATED",
+    "HeadPose",
+    "head_pose",
+    "FrameRecord",
     "Labels",
-    "record_from_pose",
-    "record_from_result",
     "labels_csv_text",
     "read_labels",
     "read_labels_text",
@@ -81,17 +86,168 @@ LABEL_COLUMNS: tuple[str, ...] = (
     "calibrated", "method", "detected_ids", "used_ids", "reason",
 )
 DEFAULT_NAMESPACE = ""
+#: frame_id of labels whose images carry none.
+DEFAULT_CAMERA_FRAME = "camera_optical_frame"
+#: The head calibration of a record made without one: the cap is the head, the camera looks ahead.
+UNCALIBRATED = HeadCalibration()
 #: TF frame names of labels.mcap (the camera's is the image's frame_id).
 FRONTAL_FRAME = "ficap_frontal"
 CAP_FRAME = "ficap_cap"
 HEAD_FRAME = "ficap_head"
 
 
+@dataclass(frozen=True)
+class HeadPose:
+    """The head pose of one frame.
+
+    Attributes:
+        T_cam_head: the head frame H in the camera optical frame (origin at the cap origin).
+        T_frontal_head: H in the frontal frame F: rotation R_frontal_head (the head angles),
+            translation the cap origin in F's axes at the camera.
+    """
+
+    T_cam_head: Transform
+    T_frontal_head: Transform
+
+
+def head_pose(T_cam_cap: Transform, calibration: HeadCalibration) -> HeadPose:
+    """The head pose of a cap pose under a head calibration: the one place it is composed.
+
+    The cap pose turned by ``R_cap_head`` (head origin = cap origin) is put in the frontal frame
+    (``T_frontal_head``); ``T_cam_head`` is that pose seen from the camera again, so the node's
+    ``head_pose``, labels.mcap's and the head angles are one pose to the last bit.
+    """
+    R_frontal_cam = calibration.R_cam_frontal.inv()
+    turned = Transform(compose(T_cam_cap.rotation, calibration.R_cap_head), T_cam_cap.translation_m)
+    T_frontal_head = Transform(R_frontal_cam, np.zeros(3)) * turned
+    return HeadPose(Transform(inverse(R_frontal_cam), np.zeros(3)) * T_frontal_head, T_frontal_head)
+
+
+@dataclass(frozen=True)
+class FrameRecord:
+    """Everything a frame reports: the label of labels.csv / labels.mcap, the node's outputs.
+
+    Attributes:
+        index: image index in the recording (0 live).
+        stamp_ns: image stamp, ns.
+        frame_id: the image's optical frame.
+        status: what became of the frame (``FrameStatus``: a pose, no pose, undecodable, failed).
+        reason: why there is no pose or the image could not be processed ('' with a pose).
+        detected_ids: ids of the model tags detected, sorted, each once.
+        pose: the cap pose, or None.
+        calibration: the head calibration the head pose is composed with (``head``).
+        method: the pose method of the settings.
+    """
+
+    index: int
+    stamp_ns: int
+    frame_id: str
+    status: FrameStatus
+    reason: str = ""
+    detected_ids: tuple[int, ...] = ()
+    pose: CapPose | None = None
+    calibration: HeadCalibration = UNCALIBRATED
+    method: str = ""
+
+    @classmethod
+    def processed(cls, index: int, stamp_ns: int, frame_id: str, pose: CapPose | None,
+                  detected_ids: Iterable[int], reason: str = "",
+                  calibration: HeadCalibration = UNCALIBRATED, method: str = "") -> FrameRecord:
+        """A processed frame: ``POSE`` with a pose, else ``NO_POSE`` (reason default "no pose");
+        ``frame_id`` '' is ``DEFAULT_CAMERA_FRAME``."""
+        return cls(int(index), int(stamp_ns), frame_id or DEFAULT_CAMERA_FRAME,
+                   FrameStatus.POSE if pose is not None else FrameStatus.NO_POSE,
+                   "" if pose is not None else reason or "no pose",
+                   tuple(sorted({int(i) for i in detected_ids})), pose, calibration,
+                   pose.method if pose is not None else method)
+
+    @classmethod
+    def of(cls, result: FrameResult, index: int, stamp_ns: int, frame_id: str,
+           calibration: HeadCalibration = UNCALIBRATED, method: str = "") -> FrameRecord:
+        """The record of the pipeline's result for a frame."""
+        return cls.processed(index, stamp_ns, frame_id, result.pose, result.detected_ids,
+                             result.reason, calibration, method)
+
+    @classmethod
+    def unprocessed(cls, index: int, stamp_ns: int, frame_id: str, reason: str,
+                    status: FrameStatus = FrameStatus.UNDECODABLE,
+                    calibration: HeadCalibration = UNCALIBRATED, method: str = "") -> FrameRecord:
+        """A frame whose image could not be processed (``UNDECODABLE`` or ``FAILED``)."""
+        return cls(int(index), int(stamp_ns), frame_id or DEFAULT_CAMERA_FRAME, status, reason,
+                   calibration=calibration, method=method)
+
+    @cached_property
+    def head(self) -> HeadPose | None:
+        """The head pose (``head_pose`` of the cap pose under ``calibration``), or None."""
+        return None if self.pose is None else head_pose(self.pose.T_cam_cap, self.calibration)
+
+    @property
+    def skipped(self) -> bool:
+        """The image could not be decoded: a lost frame of the recording."""
+        return self.status is FrameStatus.UNDECODABLE
+
+    @property
+    def tags_detected(self) -> int:
+        return len(self.detected_ids)
+
+    @property
+    def tags_used(self) -> int:
+        return self.pose.tags_used if self.pose is not None else 0
+
+    @property
+    def used_ids(self) -> tuple[int, ...]:
+        return tuple(sorted(self.pose.used_ids)) if self.pose is not None else ()
+
+    @property
+    def rms_px(self) -> float:
+        return float(self.pose.rms_px) if self.pose is not None else math.nan
+
+    @property
+    def reliability(self) -> float:
+        return float(self.pose.reliability) if self.pose is not None else math.nan
+
+    @property
+    def rot_err95_deg(self) -> float:
+        """Predicted 95 % bound of the cap pose's geodesic rotation error, deg (NaN: no pose)."""
+        return float(self.pose.rot_err95_deg) if self.pose is not None else math.nan
+
+    @property
+    def trans_err95_mm(self) -> float:
+        """Predicted 95 % bound of the cap pose's translation error, mm (NaN: no pose)."""
+        return float(self.pose.trans_err95_mm) if self.pose is not None else math.nan
+
+    @property
+    def T_cam_cap(self) -> Transform | None:
+        return self.pose.T_cam_cap if self.pose is not None else None
+
+    @property
+    def T_cam_head(self) -> Transform | None:
+        return self.head.T_cam_head if self.head is not None else None
+
+    @property
+    def T_frontal_head(self) -> Transform | None:
+        return self.head.T_frontal_head if self.head is not None else None
+
+    @property
+    def covariance_cam(self) -> np.ndarray | None:
+        """The cap pose's 6x6 covariance (ROS order, camera axes), or None."""
+        return None if self.pose is None else np.asarray(self.pose.covariance, dtype=np.float64).reshape(6, 6)
+
+    @property
+    def R_frontal_cam(self) -> Rotation:
+        """Orientation of the camera in the frontal frame F."""
+        return self.calibration.R_cam_frontal.inv()
+
+    @property
+    def calibrated(self) -> bool:
+        return self.calibration.calibrated
+
+
 def _f(value: float, digits: int) -> str:
     return "" if value is None or not math.isfinite(value) else f"{value:.{digits}f}"
 
 
-def _csv_row(rec: LabelRecord) -> list[str]:
+def _csv_row(rec: FrameRecord) -> list[str]:
     cap = [""] * 7
     head = [""] * 7
     if rec.T_cam_cap is not None and rec.T_frontal_head is not None:
@@ -99,15 +255,15 @@ def _csv_row(rec: LabelRecord) -> list[str]:
         ypr = yaw_pitch_roll_deg(rec.T_frontal_head.rotation)
         head = [_f(v, 9) for v in rec.T_frontal_head.q_wxyz] + [_f(v, 4) for v in ypr]
     return [
-        str(rec.frame), str(rec.stamp_ns), str(rec.tags_detected), str(rec.tags_used),
+        str(rec.index), str(rec.stamp_ns), str(rec.tags_detected), str(rec.tags_used),
         _f(rec.rms_px, 4), _f(rec.reliability, 4), _f(rec.rot_err95_deg, 4),
         _f(rec.trans_err95_mm, 3), *cap, *head, "1" if rec.calibrated else "0",
         rec.method, " ".join(map(str, rec.detected_ids)), " ".join(map(str, rec.used_ids)),
-        rec.reason,
+        status_reason(rec),
     ]
 
 
-def labels_csv_text(records: Iterable[LabelRecord]) -> str:
+def labels_csv_text(records: Iterable[FrameRecord]) -> str:
     """labels.csv content: a header row and one row per image (pose fields empty without a pose)."""
     buf = io.StringIO()
     writer = csv.writer(buf, lineterminator="\n")
@@ -155,7 +311,8 @@ class Labels:
 
     @property
     def skipped(self) -> np.ndarray:
-        return np.array([is_skipped(r) for r in self.reasons], dtype=bool)
+        """(N,) bool: the image could not be decoded (its reason starts ``undecodable``)."""
+        return np.array([r.startswith(str(FrameStatus.UNDECODABLE)) for r in self.reasons], dtype=bool)
 
     def cap_rotations(self) -> Rotation:
         """R_cam_cap of the rows with a pose."""
@@ -282,14 +439,14 @@ def label_topics(namespace: str = DEFAULT_NAMESPACE) -> dict[str, str]:
     }
 
 
-def _quality_msg(rec: LabelRecord) -> object:
+def _quality_msg(rec: FrameRecord) -> object:
     from ficap_ros.io.bag_writer import header
     from ficap_ros.io.messages import ROSBAGS, named_values
 
     return named_values(ROSBAGS, header(rec.stamp_ns, rec.frame_id), quality_values(rec))
 
 
-def _rpy_msg(rec: LabelRecord) -> object:
+def _rpy_msg(rec: FrameRecord) -> object:
     from ficap_ros.io.bag_writer import header
     from ficap_ros.io.messages import ROSBAGS, rpy_deg
 
@@ -297,7 +454,7 @@ def _rpy_msg(rec: LabelRecord) -> object:
     return rpy_deg(ROSBAGS, header(rec.stamp_ns, FRONTAL_FRAME), rec.T_frontal_head.rotation)
 
 
-def _tf_msg(rec: LabelRecord) -> object:
+def _tf_msg(rec: FrameRecord) -> object:
     """tf2_msgs/TFMessage: frontal -> camera, camera -> cap, cap -> head (stamp = the image's)."""
     from ficap_ros.io.bag_writer import header
     from ficap_ros.io.sources import jazzy_typestore
@@ -332,7 +489,7 @@ def _status_text(key: str, value: object) -> str:
     return _f(float(value), 3 if key.endswith("_mm") else 4)
 
 
-def _status_msg(rec: LabelRecord) -> object:
+def _status_msg(rec: FrameRecord) -> object:
     from ficap_ros.io.bag_writer import header
     from ficap_ros.io.sources import jazzy_typestore
 
@@ -347,7 +504,7 @@ def _status_msg(rec: LabelRecord) -> object:
                                                     status=[status])
 
 
-def write_labels_bag(path: str | Path, records: Sequence[LabelRecord],
+def write_labels_bag(path: str | Path, records: Sequence[FrameRecord],
                      namespace: str = DEFAULT_NAMESPACE) -> None:
     """Write labels.mcap: a single-file rosbag2 MCAP, plus ``metadata.yaml`` beside it.
 
@@ -376,7 +533,7 @@ def write_labels_bag(path: str | Path, records: Sequence[LabelRecord],
             if rec.T_cam_cap is not None and rec.T_frontal_head is not None:
                 bag.write(topics["cap_pose"], rec.stamp_ns,
                           pose_stamped_msg(rec.stamp_ns, rec.frame_id, rec.T_cam_cap))
-                T_cam_head = Transform(inverse(rec.R_frontal_cam), np.zeros(3)) * rec.T_frontal_head
+                T_cam_head = rec.T_cam_head
                 bag.write(topics["head_pose"], rec.stamp_ns,
                           pose_stamped_msg(rec.stamp_ns, rec.frame_id, T_cam_head))
                 assert rec.covariance_cam is not None  # finite and positive: pose.py's guarantee

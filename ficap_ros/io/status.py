@@ -1,6 +1,7 @@
-"""What a processed frame reports, decided once for the node and the bag tools: its label record
-(``LabelRecord`` from a ``FrameResult`` or a cap pose), status level and message, status values
-and quality numbers (the node's ``status`` and ``quality``, labels.mcap's and labels.csv's).
+"""What a processed frame reports, decided once for the node and the bag tools from its record
+(``ficap_ros.io.labels.FrameRecord``): its status level and message, status values and quality
+numbers (the node's ``status`` and ``quality``, labels.mcap's); and the node's health over a period
+(``/diagnostics``).
 
 Levels are ``diagnostic_msgs/DiagnosticStatus``'s numbers (OK 0, WARN 1, ERROR 2); this module is
 ROS-free, so the node turns them into its message type.
@@ -10,158 +11,60 @@ from __future__ import annotations
 
 import math
 import time
-from dataclasses import dataclass
-from typing import Sequence
-
-import numpy as np
-from scipy.spatial.transform import Rotation
+from enum import Enum
+from typing import TYPE_CHECKING
 
 from ficap_ros.geometry.metrics import yaw_pitch_roll_deg
-from ficap_ros.geometry.transform import Transform
-from ficap_ros.vision.calibration import HeadCalibration
-from ficap_ros.vision.pipeline import FrameResult
-from ficap_ros.vision.pose import CapPose
 
-__all__ = ["OK", "WARN", "ERROR", "WARN_RELIABILITY", "DEFAULT_CAMERA_FRAME", "LabelRecord",
-           "record_from_pose", "record_from_result", "frame_status", "record_status", "quality_values",
-           "status_values", "health_status", "health_values", "PeriodStats", "SKIPPED_PREFIX",
-           "skipped_reason", "is_skipped"]
+if TYPE_CHECKING:
+    from ficap_ros.io.labels import FrameRecord
+
+__all__ = ["OK", "WARN", "ERROR", "WARN_RELIABILITY", "FrameStatus", "record_status",
+           "status_reason", "quality_values", "status_values", "health_status", "health_values",
+           "PeriodStats"]
 
 OK, WARN, ERROR = 0, 1, 2
 
 #: Status level is WARN below this reliability (the node's ``warn_reliability`` default).
 WARN_RELIABILITY = 0.5
 
-#: frame_id of labels whose images carry none.
-DEFAULT_CAMERA_FRAME = "camera_optical_frame"
+
+class FrameStatus(str, Enum):
+    """What became of a frame (``FrameRecord.status``; a ``str`` that prints as its value)."""
+
+    POSE = "pose"  # a cap pose
+    NO_POSE = "no pose"  # processed, no pose: the record's reason says why
+    #: A recording's image that could not be decoded (or has no intrinsics): a lost frame.
+    UNDECODABLE = "undecodable"
+    #: The live node could not process the image (input or internal error: the reason).
+    FAILED = "failed"
+
+    def __str__(self) -> str:
+        return self.value
 
 
-def frame_status(has_pose: bool, reliability: float, reason: str = "", error: str = "",
-                 warn_reliability: float = WARN_RELIABILITY) -> tuple[int, str]:
-    """(level, message) of one frame.
+def status_reason(rec: FrameRecord) -> str:
+    """The frame's reason as its label and status state it: an undecodable image's reason after
+    ``undecodable: ``; any other as it is ('' with a pose)."""
+    if rec.status is FrameStatus.UNDECODABLE:
+        return f"{FrameStatus.UNDECODABLE}: {rec.reason}"
+    return rec.reason
 
-    Args:
-        has_pose: the frame has a cap pose.
-        reliability: the pose's reliability (ignored without a pose).
-        reason: why there is no pose ('' = no tags).
-        error: the input could not be processed (an undecodable image, no intrinsics): ERROR.
-        warn_reliability: a pose less reliable than this is a WARN.
-    """
-    if error:
-        return ERROR, error
-    if not has_pose:
-        return WARN, f"no pose: {reason or 'no tags'}"
-    if math.isfinite(reliability) and reliability < warn_reliability:
-        return WARN, f"low reliability {reliability:.2f}"
+
+def record_status(rec: FrameRecord, warn_reliability: float = WARN_RELIABILITY) -> tuple[int, str]:
+    """(level, message) of a frame: ERROR with its reason when it could not be processed, WARN
+    "no pose: ..." without a pose, WARN "low reliability ..." below ``warn_reliability``, else
+    OK "pose"."""
+    if rec.status in (FrameStatus.UNDECODABLE, FrameStatus.FAILED):
+        return ERROR, status_reason(rec)
+    if rec.status is FrameStatus.NO_POSE:
+        return WARN, f"no pose: {rec.reason or 'no tags'}"
+    if math.isfinite(rec.reliability) and rec.reliability < warn_reliability:
+        return WARN, f"low reliability {rec.reliability:.2f}"
     return OK, "pose"
 
 
-#: The reason of a frame that could not be decoded (it is counted, labelled and reported as lost).
-SKIPPED_PREFIX = "undecodable: "
-
-
-def skipped_reason(error: object) -> str:
-    """The reason recorded for an image that could not be decoded."""
-    return f"{SKIPPED_PREFIX}{error}"
-
-
-def is_skipped(reason: str) -> bool:
-    """Whether a frame's reason says its image could not be decoded."""
-    return reason.startswith(SKIPPED_PREFIX.rstrip(": "))
-
-
-@dataclass(frozen=True)
-class LabelRecord:
-    """The label of one image.
-
-    Attributes:
-        frame: image index in the recording.
-        stamp_ns: image stamp, ns.
-        frame_id: the image's optical frame.
-        tags_detected, tags_used: model tags seen / used by the estimator.
-        detected_ids, used_ids: their ids, sorted.
-        rms_px, reliability: estimator quality (NaN without a pose).
-        T_cam_cap: cap pose in the camera optical frame, or None.
-        T_frontal_head: head pose in the frontal frame, or None.
-        covariance_cam: the cap pose's 6x6 covariance (ROS order, camera axes), or None.
-        R_frontal_cam: orientation of the camera in F (to rotate the covariance).
-        calibrated: whether a head calibration was applied.
-        method: pose method name.
-        reason: why there is no pose ("" with a pose); ``undecodable: ...`` for a skipped image.
-        rot_err95_deg, trans_err95_mm: predicted 95 % bounds of the cap pose's rotation error
-            (geodesic, deg) and translation error (mm); NaN without a pose.
-    """
-
-    frame: int
-    stamp_ns: int
-    frame_id: str
-    tags_detected: int
-    tags_used: int
-    detected_ids: tuple[int, ...]
-    used_ids: tuple[int, ...]
-    rms_px: float
-    reliability: float
-    T_cam_cap: Transform | None
-    T_frontal_head: Transform | None
-    covariance_cam: np.ndarray | None
-    R_frontal_cam: Rotation
-    calibrated: bool
-    method: str
-    reason: str
-    rot_err95_deg: float = math.nan
-    trans_err95_mm: float = math.nan
-
-    @property
-    def skipped(self) -> bool:
-        return is_skipped(self.reason)
-
-
-def record_from_pose(
-    frame: int, stamp_ns: int, frame_id: str, pose: CapPose | None,
-    detected_ids: Sequence[int], reason: str, calibration: HeadCalibration, method: str = "",
-) -> LabelRecord:
-    """The label of one processed frame.
-
-    The head pose comes from the cap pose through ``calibration`` (the ``HeadCalibration`` methods
-    the pipeline uses), so a calibration found after processing applies to every frame.
-
-    Args:
-        frame: image index.
-        stamp_ns: image stamp.
-        frame_id: the image's optical frame ("" -> ``camera_optical_frame``).
-        pose: the cap pose, or None.
-        detected_ids: ids of the model tags detected.
-        reason: why there is no pose; ``undecodable: ...`` marks a skipped image.
-        calibration: head calibration to apply.
-        method: pose method name (used when there is no pose).
-    """
-    R_frontal_cam = calibration.R_cam_frontal.inv()
-    frame_id = frame_id or DEFAULT_CAMERA_FRAME
-    detected = tuple(sorted(set(int(i) for i in detected_ids)))
-    if pose is None:
-        return LabelRecord(frame, int(stamp_ns), frame_id, len(detected), 0, detected, (),
-                           math.nan, math.nan, None, None, None, R_frontal_cam,
-                           calibration.calibrated, method, reason or "no pose")
-    T_cam_head = calibration.head_in_camera(pose.T_cam_cap)
-    T_frontal_head = Transform(R_frontal_cam, np.zeros(3)) * T_cam_head
-    return LabelRecord(
-        frame, int(stamp_ns), frame_id, pose.tags_detected, pose.tags_used, detected,
-        tuple(sorted(pose.used_ids)), float(pose.rms_px), float(pose.reliability), pose.T_cam_cap,
-        T_frontal_head, np.asarray(pose.covariance, dtype=np.float64).reshape(6, 6),
-        R_frontal_cam, calibration.calibrated, pose.method or method, "",
-        float(pose.rot_err95_deg), float(pose.trans_err95_mm),
-    )
-
-
-def record_from_result(result: FrameResult, calibration: HeadCalibration, frame: int = 0,
-                       frame_id: str = "") -> LabelRecord:
-    """The label of a ``FrameResult`` (see ``record_from_pose``)."""
-    return record_from_pose(frame, result.stamp_ns, frame_id, result.pose,
-                            [d.tag_id for d in result.detections], result.reason, calibration,
-                            result.pose.method if result.pose is not None else "")
-
-
-def quality_values(rec: LabelRecord) -> dict[str, float]:
+def quality_values(rec: FrameRecord) -> dict[str, float]:
     """The numbers of the ``quality`` topic (the node adds its latency): NaN without a pose,
     reliability 0."""
     return {
@@ -174,7 +77,7 @@ def quality_values(rec: LabelRecord) -> dict[str, float]:
     }
 
 
-def status_values(rec: LabelRecord) -> dict[str, float | int | bool]:
+def status_values(rec: FrameRecord) -> dict[str, float | int | bool]:
     """The values of a frame's status (labels.mcap's; the node adds search, latency and dropped
     frames): tags, quality, calibrated and, with a pose, the head angles in the frontal frame."""
     values: dict[str, float | int | bool] = {
@@ -190,12 +93,6 @@ def status_values(rec: LabelRecord) -> dict[str, float | int | bool]:
         ypr = yaw_pitch_roll_deg(rec.T_frontal_head.rotation)
         values.update({f"{k}_deg": float(v) for k, v in zip(("yaw", "pitch", "roll"), ypr)})
     return values
-
-
-def record_status(rec: LabelRecord, warn_reliability: float = WARN_RELIABILITY) -> tuple[int, str]:
-    """(level, message) of a label record (``frame_status``; a skipped image is an ERROR)."""
-    return frame_status(rec.T_cam_cap is not None, rec.reliability, rec.reason,
-                        error=rec.reason if rec.skipped else "", warn_reliability=warn_reliability)
 
 
 def health_status(received: int, errors: int, last_error: str, calibrated: bool) -> tuple[int, str]:

@@ -33,7 +33,8 @@ from ficap_ros.geometry.metrics import (
 )
 from ficap_ros.geometry.transform import CAM_FROM_FORWARD
 from ficap_ros.io.sources import open_bag_reader
-from ficap_ros.ros.node import FicapNode, make_executor
+from ficap_ros.ros.node import FicapNode
+from ficap_ros.ros.spin import make_executor
 from ficap_ros.stamps import stamp_to_ns
 
 IMAGE_TOPIC = "/camera/image_raw/compressed"
@@ -150,7 +151,7 @@ def run_demo(bag: Path, frontal_s: float, every: int, method: str = "joint") -> 
         Parameter("calibration.window_s", value=float(frontal_s) - 0.2),
     ])
     player = _Player()
-    # One spin thread for both nodes, as ficap_node spins (node.make_executor says why not more).
+    # One spin thread for both nodes, as ficap_node spins (spin.make_executor says why not more).
     executor = make_executor()
     executor.add_node(node)
     executor.add_node(player)

@@ -1,6 +1,8 @@
-"""What ``ficap_node`` does with one image, without ROS: decode the message, choose its
-intrinsics, run the pipeline, and decide what the frame reports (label record, status level and
-message, whether its pose is published). The node only subscribes, publishes and serves.
+"""What ``ficap_node`` does with one image, without ROS: build its pipeline from the settings,
+decode the message, choose its intrinsics, run the pipeline, and make the frame's record
+(``ficap_ros.io.labels.FrameRecord``, the labels' own) with what the node adds to it (status level
+and message, whether its pose is published, the image and tags to draw). The node only subscribes,
+publishes and serves.
 
 Messages are read duck-typed (``ficap_ros.io.messages``), so tests and tools can drive this with
 rosbags messages as well as rclpy's.
@@ -8,7 +10,6 @@ rosbags messages as well as rclpy's.
 
 from __future__ import annotations
 
-import math
 from dataclasses import dataclass
 from typing import Any
 
@@ -16,45 +17,51 @@ import numpy as np
 
 from ficap_ros.errors import FicapError
 from ficap_ros.geometry.camera import CameraInfoCache, CameraModel
+from ficap_ros.geometry.cap_model import load_model, nominal_model
 from ficap_ros.io import messages
+from ficap_ros.io.labels import FrameRecord
 from ficap_ros.io.status import (
-    LabelRecord,
-    frame_status,
+    FrameStatus,
     quality_values,
-    record_from_pose,
-    record_from_result,
     record_status,
     status_values,
 )
 from ficap_ros.stamps import stamp_to_ns
 from ficap_ros.vision.calibration import HeadCalibration
-from ficap_ros.vision.pipeline import FrameProcessor, FrameResult
+from ficap_ros.vision.detection import TagDetection
+from ficap_ros.vision.pipeline import FrameProcessor
 
-__all__ = ["LiveFrame", "failed_frame", "process_image", "reference_q_xyzw"]
+__all__ = ["LiveFrame", "frame_processor", "failed_frame", "process_image", "reference_q_xyzw"]
 
 
 @dataclass(frozen=True)
 class LiveFrame:
-    """One image's outcome, as the node publishes it.
+    """One image's outcome, as the node publishes it: the frame's record and the node's own.
 
     Attributes:
-        record: the frame's label (``report``: the same values as labels.csv / labels.mcap).
-        level, message: the status (``report.frame_status``).
+        record: the frame's record (the same values as labels.csv / labels.mcap).
+        level, message: its status (``status.record_status`` under the node's
+            ``warn_reliability``).
         search: how the tags were found ('' when the frame failed).
-        result: the pipeline's result; None when the image could not be processed.
+        detections: the tags found, with their corners (for the debug image).
         image: the decoded grey image (None when it failed).
         camera: the intrinsics used (None when it failed).
         publish_pose: the pose is published (there is one, reliable enough).
     """
 
-    record: LabelRecord
+    record: FrameRecord
     level: int
     message: str
     search: str = ""
-    result: FrameResult | None = None
+    detections: tuple[TagDetection, ...] = ()
     image: np.ndarray | None = None
     camera: CameraModel | None = None
     publish_pose: bool = False
+
+    @property
+    def failed(self) -> bool:
+        """The image could not be processed."""
+        return self.record.status is FrameStatus.FAILED
 
     def quality_values(self, latency_ms: float) -> dict[str, float]:
         """The ``quality`` topic's numbers: labels.mcap's, and the latency."""
@@ -67,11 +74,23 @@ class LiveFrame:
                 "dropped_frames": dropped_frames}
 
 
+def frame_processor(config: Any) -> FrameProcessor:
+    """The pipeline of the node's settings (``ros.params.NodeConfig``: cap model, detector, pose,
+    tracking).
+
+    Raises:
+        ModelError: an unreadable ``model_file``. ConfigError: bad detector settings.
+    """
+    return FrameProcessor(model=load_model(config.model_file) if config.model_file else nominal_model(),
+                          detector=config.detector_config, pose=config.pose_config,
+                          tracking=config.tracking)
+
+
 def failed_frame(stamp_ns: int, frame_id: str, reason: str,
                  calibration: HeadCalibration) -> LiveFrame:
     """An image that could not be processed (ERROR status, ``reason`` as its message)."""
-    rec = record_from_pose(0, stamp_ns, frame_id, None, (), reason, calibration)
-    return LiveFrame(rec, *frame_status(False, math.nan, error=reason))
+    rec = FrameRecord.unprocessed(0, stamp_ns, frame_id, reason, FrameStatus.FAILED, calibration)
+    return LiveFrame(rec, *record_status(rec))
 
 
 def process_image(msg: Any, processor: FrameProcessor, cameras: CameraInfoCache,
@@ -80,7 +99,8 @@ def process_image(msg: Any, processor: FrameProcessor, cameras: CameraInfoCache,
 
     Args:
         msg: the image message (a CompressedImage has ``format``).
-        config: the node's settings (``ros_params.NodeConfig``): ``camera_info_max_stamp_diff_ms``,
+        calibration: the head calibration of the frame's record.
+        config: the node's settings (``ros.params.NodeConfig``): ``camera_info_max_stamp_diff_ms``,
             ``image_is_rectified``, ``publish_min_reliability``, ``warn_reliability``.
     """
     header = msg.header
@@ -91,15 +111,15 @@ def process_image(msg: Any, processor: FrameProcessor, cameras: CameraInfoCache,
         camera = cameras.camera_for(stamp_ns, int(config.camera_info_max_stamp_diff_ms * 1e6),
                                     config.image_is_rectified)
         camera.check_image_size(image.shape[1], image.shape[0])
-        result = processor.process(image, camera, stamp_ns, calibration)
+        result = processor.process(image, camera, stamp_ns)
     except FicapError as err:
         return failed_frame(stamp_ns, header.frame_id, str(err), calibration)
-    pose = result.pose
-    rec = record_from_result(result, calibration, frame_id=header.frame_id)
+    rec = FrameRecord.of(result, 0, stamp_ns, header.frame_id, calibration,
+                         processor.pose_config.method)
     return LiveFrame(rec, *record_status(rec, config.warn_reliability), str(result.search),
-                     result, image, camera,
-                     publish_pose=(pose is not None and result.T_cam_head is not None
-                                   and pose.reliability >= config.publish_min_reliability))
+                     result.detections, image, camera,
+                     publish_pose=(rec.pose is not None
+                                   and rec.pose.reliability >= config.publish_min_reliability))
 
 
 def reference_q_xyzw(msg: Any) -> np.ndarray | None:

@@ -1,7 +1,7 @@
 """Conversions between ROS 2 messages and the ficap_ros core types (no algorithms here).
 
 Images become numpy arrays the core accepts (grey uint8, or uint16 for ``mono16``), CameraInfo
-becomes a ``CameraModel``, results become PoseStamped / PoseWithCovarianceStamped / DiagnosticArray /
+becomes a ``CameraModel``, frame records become PoseStamped / PoseWithCovarianceStamped / DiagnosticArray /
 MarkerArray / a debug Image. Quaternions in messages are the x, y, z, w fields (``q_xyzw``).
 """
 
@@ -31,8 +31,9 @@ from ficap_ros.geometry.camera import CameraModel, camera_from_info
 from ficap_ros.geometry.cap_model import CapModel
 from ficap_ros.geometry.transform import Transform, rotate_covariance
 from ficap_ros.io import messages
+from ficap_ros.io.labels import FrameRecord
 from ficap_ros.stamps import stamp_to_ns
-from ficap_ros.vision.pipeline import FrameResult
+from ficap_ros.vision.detection import TagDetection
 
 __all__ = [
     "IMAGE_ENCODINGS",
@@ -205,7 +206,7 @@ def _point(p: np.ndarray) -> Point:
 
 
 def markers_msg(
-    header: Header, model: CapModel, result: FrameResult, axis_length_m: float = 0.1
+    header: Header, model: CapModel, record: FrameRecord, axis_length_m: float = 0.1
 ) -> MarkerArray:
     """Tag outlines (used tags green, others grey) and the head axes (x red, y green, z blue).
 
@@ -213,8 +214,8 @@ def markers_msg(
     """
     out = MarkerArray()
     out.markers.append(Marker(header=header, ns="ficap", action=Marker.DELETEALL))
-    pose = result.pose
-    if pose is None or result.T_cam_head is None:
+    pose, T = record.pose, record.T_cam_head
+    if pose is None or T is None:
         return out
     used = set(pose.used_ids)
     corners_cam = pose.T_cam_cap.apply(np.asarray(model.corners_mm, dtype=np.float64) / 1000.0)
@@ -228,7 +229,6 @@ def markers_msg(
         on = int(tag_id) in used
         m.color.r, m.color.g, m.color.b, m.color.a = (0.1, 0.9, 0.1, 1.0) if on else (0.5, 0.5, 0.5, 0.6)
         out.markers.append(m)
-    T = result.T_cam_head
     origin = T.translation_m
     for axis in range(3):
         m = Marker(header=header, ns="ficap_head_axes", id=axis, type=Marker.ARROW,
@@ -244,20 +244,21 @@ def markers_msg(
 
 
 def debug_image_msg(
-    gray: np.ndarray, result: FrameResult | None, camera: CameraModel | None, header: Header,
-    axis_length_m: float = 0.1,
+    gray: np.ndarray, detections: tuple[TagDetection, ...], T_cam_head: Transform | None,
+    camera: CameraModel | None, header: Header, axis_length_m: float = 0.1,
 ) -> Image:
-    """A bgr8 image: detected corners and ids (OpenCV's drawing) and the head axes (``gray``:
-    the decoded image, uint8 or uint16; of a multi-channel one the first channel)."""
+    """A bgr8 image: detected corners and ids (OpenCV's drawing) and the head axes at
+    ``T_cam_head`` (``gray``: the decoded image, uint8 or uint16; of a multi-channel one the first
+    channel)."""
     gray = gray if gray.ndim == 2 else gray[:, :, 0]
     img = gray if gray.dtype == np.uint8 else (gray >> 8).astype(np.uint8)
     bgr = cv2.cvtColor(img, cv2.COLOR_GRAY2BGR)
-    if result is not None and result.detections:
-        corners = [d.corners_px.reshape(1, 4, 2).astype(np.float32) for d in result.detections]
-        ids = np.array([[d.tag_id] for d in result.detections], dtype=np.int32)
+    if detections:
+        corners = [d.corners_px.reshape(1, 4, 2).astype(np.float32) for d in detections]
+        ids = np.array([[d.tag_id] for d in detections], dtype=np.int32)
         cv2.aruco.drawDetectedMarkers(bgr, corners, ids)
-    if result is not None and result.T_cam_head is not None and camera is not None:
-        T = result.T_cam_head
+    if T_cam_head is not None and camera is not None:
+        T = T_cam_head
         pts = np.vstack([T.translation_m, T.apply(np.eye(3) * axis_length_m)])
         if np.all(pts[:, 2] > 0):
             px = camera.project(pts)
@@ -269,27 +270,26 @@ def debug_image_msg(
     return array_to_image(bgr, "bgr8", header)
 
 
-def pose_outputs(header: Header, result: FrameResult, R_cam_frontal: Rotation, output_frame: str,
-                 frontal_frame: str, mount: Transform | None) -> dict[str, object]:
+def pose_outputs(header: Header, record: FrameRecord, output_frame: str, frontal_frame: str,
+                 mount: Transform | None) -> dict[str, object]:
     """The node's pose messages of a posed frame, by publisher: ``head``, ``head_cov``, ``cap``
     (in ``output_frame`` through ``mount``, else the image's frame), ``head_frontal`` and ``rpy``
     (the head in the frontal frame: ``output_frame``, else ``frontal_frame``)."""
-    pose = result.pose
-    assert pose is not None and result.T_cam_head is not None
+    pose, T_cam_head, T_frontal_head = record.pose, record.T_cam_head, record.T_frontal_head
+    assert pose is not None and T_cam_head is not None and T_frontal_head is not None
     out = Header(stamp=header.stamp, frame_id=output_frame or header.frame_id)
     # Into output_frame through the mount (identity when the outputs stay in the camera's).
     moved = bool(output_frame) and mount is not None
     T_out_cam = mount if moved and mount is not None else Transform.identity()
     cov = rotate_covariance(pose.covariance, T_out_cam.rotation) if moved else pose.covariance
-    # The camera in the frontal frame F: the mount, or at F's origin looking forward.
-    T_frontal_cam = mount or Transform(R_cam_frontal.inv(), np.zeros(3))
+    # The head in the frontal frame F: through the mount (the camera's place in F too), or the
+    # record's (the camera at F's origin).
     frontal = Header(stamp=header.stamp, frame_id=output_frame or frontal_frame)
-    msgs: dict[str, object] = {
-        "head": pose_stamped(out, T_out_cam * result.T_cam_head),
-        "head_cov": pose_with_covariance_stamped(out, T_out_cam * result.T_cam_head, cov),
+    return {
+        "head": pose_stamped(out, T_out_cam * T_cam_head),
+        "head_cov": pose_with_covariance_stamped(out, T_out_cam * T_cam_head, cov),
         "cap": pose_stamped(out, T_out_cam * pose.T_cam_cap),
-        "head_frontal": pose_stamped(frontal, T_frontal_cam * result.T_cam_head),
+        "head_frontal": pose_stamped(frontal, mount * T_cam_head if mount is not None
+                                     else T_frontal_head),
+        "rpy": rpy_deg_msg(frontal, T_frontal_head.rotation),
     }
-    if result.R_frontal_head is not None:
-        msgs["rpy"] = rpy_deg_msg(frontal, result.R_frontal_head)
-    return msgs

@@ -26,18 +26,14 @@ to be processed. What a frame becomes (decoding, intrinsics, pipeline, status) i
 from __future__ import annotations
 
 import math
-import sys
 import threading
 import time
 from typing import Any
 
-import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, Vector3Stamped
 from rcl_interfaces.msg import SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
-from rclpy.context import Context
-from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import (
@@ -51,21 +47,17 @@ from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from ficap_ros.errors import FicapError
 from ficap_ros.geometry.camera import CameraInfoCache
-from ficap_ros.io.native_log import ThrottledStderr
 from ficap_ros.io.status import PeriodStats
+from ficap_ros.ros import live
 from ficap_ros.ros import msgs as ros_msgs
 from ficap_ros.ros import params as ros_params
-from ficap_ros.ros.live import LiveFrame, failed_frame, process_image, reference_q_xyzw
+from ficap_ros.ros.live_calibration import LiveCalibration, compute_calibration
 from ficap_ros.ros.mailbox import Mailbox
-from ficap_ros.vision.calibration import (
-    CalibrationResult,
-    HeadCalibration,
-    LiveCalibration,
-)
+from ficap_ros.ros.spin import run_node
+from ficap_ros.vision.calibration import HeadCalibration
 
-__all__ = ["FicapNode", "main", "make_executor"]
+__all__ = ["FicapNode", "main"]
 
 NODE_NAME = "ficap_node"
 STATUS_NAME = "ficap"
@@ -82,7 +74,7 @@ class FicapNode(Node):
         self.add_post_set_parameters_callback(self._after_set_parameters)
 
         # Core objects: the pipeline, the intrinsics, the calibration (swapped whole, under a lock).
-        self._processor = cfg.frame_processor()
+        self._processor = live.frame_processor(cfg)
         self._cameras = CameraInfoCache.with_file(cfg.camera_info_file)
         if self._cameras.static_error:
             self.get_logger().error(self._cameras.static_error)
@@ -96,11 +88,23 @@ class FicapNode(Node):
         self._stats = PeriodStats()
         self._camera_frame = ""  # the frame_id of the last image (the default hardware_id)
 
-        # Callback groups: frames, side inputs, services and timers never wait on each other when
-        # the node is composed into a multi-threaded executor; ficap_node itself spins one thread
-        # (make_executor), where every callback is short and the worker does the processing.
+        self._subscribe(cfg)
+        self._advertise()
+        self.unknown_parameters = ros_params.unknown_parameters(self)
+        if self.unknown_parameters:
+            self.get_logger().warning(ros_params.unknown_warning(self.unknown_parameters))
+        self._worker = threading.Thread(target=self._work, name="ficap_worker", daemon=True)
+        self._worker.start()
+        self.get_logger().info(
+            f"ficap_node ready: {cfg.image_transport} images on {self._image_sub.topic_name}, "
+            f"pose method {cfg.pose_method}, "
+            f"{'calibrated' if self.calibration.calibrated else 'not calibrated'}")
+
+    def _subscribe(self, cfg: ros_params.NodeConfig) -> None:
+        """The image, CameraInfo and reference subscriptions (callback groups: frames and side
+        inputs never wait on each other when the node is composed into a multi-threaded executor;
+        ficap_node itself spins one thread, ``spin.make_executor``, where every callback is short)."""
         inputs, side = MutuallyExclusiveCallbackGroup(), ReentrantCallbackGroup()
-        services, timers = MutuallyExclusiveCallbackGroup(), MutuallyExclusiveCallbackGroup()
         sensor_qos = QoSProfile(
             history=HistoryPolicy.KEEP_LAST, depth=cfg.qos_depth,
             reliability=(ReliabilityPolicy.BEST_EFFORT if cfg.qos_reliability == "best_effort"
@@ -123,6 +127,9 @@ class FicapNode(Node):
                                  reliability=ReliabilityPolicy.BEST_EFFORT)
             self.create_subscription(PoseStamped, cfg.calibration_reference_topic,
                                      self._on_reference, ref_qos, callback_group=side)
+
+    def _advertise(self) -> None:
+        """The publishers, the calibration services and the diagnostics timer."""
         pub = self.create_publisher
         # The pose outputs by ros_msgs.pose_outputs' names.
         self._pubs = {"head": pub(PoseStamped, "head_pose", 10),
@@ -136,20 +143,12 @@ class FicapNode(Node):
         self._pub_markers = pub(MarkerArray, "markers", 10)
         # Reliable publishers match both reliable and best-effort subscribers (rviz, rqt).
         self._pub_debug = pub(Image, "debug_image", 2)
+        services = MutuallyExclusiveCallbackGroup()
         self.create_service(Trigger, "~/calibrate", self._on_calibrate, callback_group=services)
         self.create_service(Trigger, "~/clear_calibration", self._on_clear_calibration,
                             callback_group=services)
-        self.create_timer(1.0, self._on_diagnostics_timer, callback_group=timers)
-
-        self.unknown_parameters = ros_params.unknown_parameters(self)
-        if self.unknown_parameters:
-            self.get_logger().warning(ros_params.unknown_warning(self.unknown_parameters))
-        self._worker = threading.Thread(target=self._work, name="ficap_worker", daemon=True)
-        self._worker.start()
-        self.get_logger().info(
-            f"ficap_node ready: {cfg.image_transport} images on {self._image_sub.topic_name}, "
-            f"pose method {cfg.pose_method}, "
-            f"{'calibrated' if self.calibration.calibrated else 'not calibrated'}")
+        self.create_timer(1.0, self._on_diagnostics_timer,
+                          callback_group=MutuallyExclusiveCallbackGroup())
 
     # -- parameters ------------------------------------------------------------------------------
     def _on_set_parameters(self, params: list[Parameter]) -> SetParametersResult:
@@ -169,12 +168,11 @@ class FicapNode(Node):
         """The calibration in use."""
         return self._calibration.current
 
-    def _run_calibration(self) -> CalibrationResult:
-        return self._config.calibrate(self._recorder, self._calibration.frontal_frame())
-
     def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
+        cfg = self._config
         return self._answer(response, *self._calibration.calibrate(
-            self._run_calibration, self._config.calibration_file))
+            lambda: compute_calibration(cfg, self._recorder, self._calibration.frontal_frame()),
+            cfg.calibration_file))
 
     def _on_clear_calibration(self, request: Trigger.Request,
                               response: Trigger.Response) -> Trigger.Response:
@@ -199,7 +197,7 @@ class FicapNode(Node):
         self._cameras.add(ros_msgs.stamp_to_ns(msg.header.stamp), msg)
 
     def _on_reference(self, msg: PoseStamped) -> None:
-        q = reference_q_xyzw(msg)
+        q = live.reference_q_xyzw(msg)
         if q is None:
             self.get_logger().warning("reference pose with an invalid quaternion ignored",
                                       throttle_duration_sec=self._config.warn_throttle_s)
@@ -218,11 +216,11 @@ class FicapNode(Node):
     def _report_error(self, header: Header, reason: str) -> None:
         self._stats.error(reason)
         self.get_logger().warning(reason, throttle_duration_sec=self._config.warn_throttle_s)
-        self._publish_status(header, failed_frame(ros_msgs.stamp_to_ns(header.stamp),
-                                                  header.frame_id, reason, self.calibration),
+        self._publish_status(header, live.failed_frame(ros_msgs.stamp_to_ns(header.stamp),
+                                                       header.frame_id, reason, self.calibration),
                              math.nan)
 
-    def _publish_status(self, header: Header, frame: LiveFrame, latency_ms: float) -> None:
+    def _publish_status(self, header: Header, frame: live.LiveFrame, latency_ms: float) -> None:
         """``quality`` and ``status`` of a frame (``ficap_ros.io.status``'s values, as labels.mcap)."""
         self._pub_quality.publish(ros_msgs.quality_msg(header, frame.quality_values(latency_ms)))
         status = ros_msgs.diagnostic_status(
@@ -234,30 +232,33 @@ class FicapNode(Node):
     def _process(self, msg: Image | CompressedImage, received_ns: int) -> None:
         cfg, header = self._config, msg.header
         self._camera_frame = header.frame_id
-        calibration = self.calibration  # one read per frame: the service thread swaps it whole
-        frame = process_image(msg, self._processor, self._cameras, calibration, cfg)
-        result = frame.result
-        if result is None:
+        # One read of the calibration per frame: the service thread swaps it whole.
+        frame = live.process_image(msg, self._processor, self._cameras, self.calibration, cfg)
+        if frame.failed:
             self._report_error(header, frame.message)
             return
+        rec = frame.record
         if frame.publish_pose:
-            for name, out in ros_msgs.pose_outputs(header, result, calibration.R_cam_frontal,
-                                                   cfg.output_frame, cfg.frontal_frame,
+            for name, out in ros_msgs.pose_outputs(header, rec, cfg.output_frame, cfg.frontal_frame,
                                                    self._mount).items():
                 self._pubs[name].publish(out)
         latency_ms = (time.monotonic_ns() - received_ns) / 1e6
         self._publish_status(header, frame, latency_ms)
-        # Markers and the debug image are drawn in camera coordinates: the camera's frame.
+        self._publish_drawings(header, frame)
+        self._stats.frame(rec.tags_detected, latency_ms)
+        if rec.pose is not None:
+            self._recorder.add_cap(rec.stamp_ns, rec.pose.T_cam_cap.rotation, rec.pose.reliability)
+
+    def _publish_drawings(self, header: Header, frame: live.LiveFrame) -> None:
+        """``markers`` and ``debug_image``, while someone subscribes (drawn in camera coordinates:
+        the camera's frame)."""
         cam_header = Header(stamp=header.stamp, frame_id=header.frame_id)
         if self._pub_markers.get_subscription_count() > 0:
-            self._pub_markers.publish(ros_msgs.markers_msg(cam_header, self._processor.model, result))
+            self._pub_markers.publish(ros_msgs.markers_msg(cam_header, self._processor.model,
+                                                           frame.record))
         if self._pub_debug.get_subscription_count() > 0 and frame.image is not None:
-            self._pub_debug.publish(ros_msgs.debug_image_msg(frame.image, result, frame.camera,
-                                                             cam_header))
-        self._stats.frame(result.tags_detected, latency_ms)
-        if result.pose is not None:
-            self._recorder.add_cap(result.stamp_ns, result.pose.T_cam_cap.rotation,
-                                   result.pose.reliability)
+            self._pub_debug.publish(ros_msgs.debug_image_msg(
+                frame.image, frame.detections, frame.record.T_cam_head, frame.camera, cam_header))
 
     # -- diagnostics -----------------------------------------------------------------------------
     def _on_diagnostics_timer(self) -> None:
@@ -282,54 +283,9 @@ class FicapNode(Node):
         super().destroy_node()
 
 
-def make_executor(context: Context | None = None) -> SingleThreadedExecutor:
-    """The executor ficap_node spins in (``main``, and the demo's node and player).
-
-    Callbacks only fill the mailbox, publish or answer services (the worker thread does the
-    processing), so one executor thread suffices. rclpy's MultiThreadedExecutor (Jazzy 7.1) must
-    not be used: while a callback waits in its thread pool, its spin loop yields the queued task
-    again without waiting and re-submits it (ros2/rclpy#1452, fixed upstream by #1547), a busy loop
-    that holds the GIL the pool thread and the worker need. Measured in ``make demo``: 25-60 pool
-    submissions per callback and the spin thread taking 8-16 s of CPU in a 240-frame play.
-    """
-    return SingleThreadedExecutor(context=context)
-
-
-def _rcl_message(err: BaseException) -> str:
-    """rcl's error as one line, without the C source locations it appends (``, at file.c:N``)."""
-    import re
-
-    text = " ".join(str(err).split())
-    return re.sub(r",? at /\S+:\d+", "", text).strip()
-
-
 def main(args: list[str] | None = None) -> int:
-    """Run ``ficap_node`` (Jazzy's idiom: spin until Ctrl-C or external shutdown)."""
-    from rclpy.impl.implementation_singleton import rclpy_implementation
-
-    try:
-        rclpy.init(args=args)
-    except rclpy_implementation.RCLError as err:  # bad --ros-args: a params file, a remap
-        print(f"ficap_node: {_rcl_message(err)}", file=sys.stderr)
-        return 1
-    node: FicapNode | None = None
-    code = 0
-    try:
-        node = FicapNode()
-        log = node.get_logger()
-        # libjpeg/FFmpeg print per damaged frame on fd 2: through the logger, throttled.
-        with ThrottledStderr(lambda text: log.warning(text)):
-            rclpy.spin(node, make_executor())
-    except (KeyboardInterrupt, ExternalShutdownException):
-        pass
-    except FicapError as err:
-        print(f"ficap_node: {err}", file=sys.stderr)
-        code = 1
-    finally:
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-    return code
+    """Run ``ficap_node`` (``spin.run_node``: until Ctrl-C or external shutdown)."""
+    return run_node(FicapNode, "ficap_node", args)
 
 
 if __name__ == "__main__":

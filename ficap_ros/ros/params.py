@@ -1,11 +1,13 @@
 """``ficap_node``'s parameters: declared once from one table, validated on every set, read into
-one frozen, typed ``NodeConfig`` (imports rclpy's parameter types, hence the ``ros_`` prefix).
+one frozen, typed ``NodeConfig`` (imports rclpy's parameter types). What the node builds from them
+is beside it: the pipeline in ``ficap_ros.ros.live``, calibrations in
+``ficap_ros.ros.live_calibration``.
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, fields
+from dataclasses import asdict, dataclass, fields
 from enum import Enum
 from typing import Any
 
@@ -16,16 +18,12 @@ from rcl_interfaces.msg import (
     ParameterDescriptor,
     ParameterType,
 )
-from scipy.spatial.transform import Rotation
 
-from ficap_ros.errors import CalibrationError, ConfigError
+from ficap_ros.errors import ConfigError
 from ficap_ros.geometry.camera import CAMERA_INFO_MAX_STAMP_DIFF_NS
-from ficap_ros.geometry.cap_model import load_model, nominal_model
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.io.status import WARN_RELIABILITY
-from ficap_ros.vision.calibration import CalibrationRecorder, CalibrationResult
 from ficap_ros.vision.detection import DetectorConfig
-from ficap_ros.vision.pipeline import FrameProcessor
 from ficap_ros.vision.pose import POSE_METHODS, PoseConfig, UncertaintyConfig
 
 __all__ = ["ParamSpec", "PARAMETERS", "REMOVED_PARAMETERS", "CalibrationMode", "NodeConfig",
@@ -99,8 +97,9 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               choices=("edge", "subpix", "apriltag", "none"), read_only=True),
     ParamSpec("detector.photometric", False, "Corners' last step: fit each tag's pattern, blurred in "
               "linear light and through a tone curve, to its pixels (more accurate on noisy frames, "
-              "~0.9 ms of CPU a tag: ~20 ms a tracked 1080p frame of 22 tags on top of the default "
-              "~12, about a whole core at 30 fps live; docs/detection.md).", read_only=True),
+              "at a CPU cost per tag that can take a whole core live: docs/detection.md). While "
+              "every uncertainty.* parameter is at its default, its corners get their own "
+              "covariance profile.", read_only=True),
     ParamSpec("detector.search_decimate", 0, "Search an image this many times smaller (corners "
               "are refined at full size); 0 = auto, as ficap replay: 2 from 1920 px wide up, else 1.",
               range=(0, 4),
@@ -142,8 +141,8 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               "Covariance: shared shift of the tags along their foreshortening per px of the "
               "frame's light gradient (the mode that moves the depth).", range=(0.0, 10.0)),
     ParamSpec("uncertainty.tilt_shift_px", _UNCERTAINTY.tilt_shift_px,
-              "Covariance floor: that shared shift, px at a tag seen edge-on (0 = none; ~0.06 for "
-              "a 540p camera with a gamma tone curve, see docs/benchmarks.md).", range=(0.0, 10.0)),
+              "Covariance floor: that shared shift, px at a tag seen edge-on (0 = none; values for "
+              "small blurred tags in docs/benchmarks.md).", range=(0.0, 10.0)),
     ParamSpec("uncertainty.weight_tags", _UNCERTAINTY.weight_tags,
               "Joint pose: weight each tag by its own corner noise (one weighted Gauss-Newton "
               "step from the unweighted optimum)."),
@@ -325,42 +324,23 @@ class NodeConfig:
                 CalibrationMode.FRONTAL
         return self.calibration_mode
 
-    def frame_processor(self) -> FrameProcessor:
-        """The pipeline these settings describe (cap model, detector, pose, tracking)."""
-        return FrameProcessor(
-            model=load_model(self.model_file) if self.model_file else nominal_model(),
-            detector=DetectorConfig(backend=self.detector_backend,
-                                    corner_refine=self.detector_corner_refine,
-                                    search_decimate=self.detector_search_decimate,
-                                    edge_photometric=self.detector_photometric),
-            pose=self.pose_config, tracking=self.tracking)
-
-    def calibrate(self, recorder: CalibrationRecorder, R_cam_frontal: Rotation) -> CalibrationResult:
-        """What ``~/calibrate`` does under these settings, from ``recorder``'s buffers
-        (``R_cam_frontal``: the frontal frame a frontal calibration keeps).
-
-        Raises:
-            CalibrationError: too few frames or pairs, too much spread, or reference mode
-                without a reference topic.
-        """
-        if self.effective_calibration_mode is CalibrationMode.FRONTAL:
-            return recorder.frontal(self.calibration_window_s, R_cam_frontal,
-                                    min_frames=self.calibration_min_frames,
-                                    max_spread_deg=self.calibration_max_spread_deg,
-                                    min_reliability=self.calibration_min_reliability)
-        if not self.calibration_reference_topic:
-            raise CalibrationError("reference mode needs calibration.reference_topic")
-        return recorder.reference(int(self.calibration_pair_tolerance_ms * 1e6),
-                                  min_pairs=self.calibration_min_pairs,
-                                  max_pairs=self.calibration_max_pairs)
+    @property
+    def detector_config(self) -> DetectorConfig:
+        """The detector settings."""
+        return DetectorConfig(backend=self.detector_backend, corner_refine=self.detector_corner_refine,
+                              search_decimate=self.detector_search_decimate,
+                              edge_photometric=self.detector_photometric)
 
     @property
     def pose_config(self) -> PoseConfig:
-        """The pose settings (estimator and covariance floors)."""
+        """The pose settings (estimator and covariance floors). A parameter cannot be unset, so
+        ``uncertainty.*`` all at their defaults is "not set": the uncertainty profile of the
+        detector's corner estimator (``PoseConfig.uncertainty`` None)."""
         u = {f.name: getattr(self, f"uncertainty_{f.name}") for f in fields(UncertaintyConfig)
              if hasattr(self, f"uncertainty_{f.name}")}
+        unset = u == {k: v for k, v in asdict(_UNCERTAINTY).items() if k in u}
         return PoseConfig(method=self.pose_method, min_tags=self.pose_min_tags,
-                          uncertainty=UncertaintyConfig(**u))
+                          uncertainty=None if unset else UncertaintyConfig(**u))
 
 
 assert {f.name for f in fields(NodeConfig)} == {s.name.replace(".", "_") for s in PARAMETERS}

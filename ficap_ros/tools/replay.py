@@ -1,7 +1,9 @@
 """Replay a recording through the pipeline: labels.mcap, labels.csv and summary.json.
 
 Every frame goes through ``FrameProcessor.process`` (the node's code path), with tracking: a frame
-is looked at where the previous frames put the cap. So that the outputs do not depend on how the
+is looked at where the previous frames put the cap; it becomes the node's record
+(``ficap_ros.io.labels.FrameRecord``), and the head calibration, known only once every frame is
+in when it is calibrated from a frontal window, is applied to all of them at the end. So that the outputs do not depend on how the
 frames are shared out, the recording is cut into segments of ``SEGMENT_FRAMES`` consecutive frames
 and tracking starts afresh (a whole-image search) at each segment's first frame, whatever ``jobs``
 is. With ``jobs > 1`` the main process reads the bag and worker processes decode and process whole
@@ -17,7 +19,7 @@ import os
 import sys
 import time
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from itertools import islice
 from pathlib import Path
 from typing import IO, Any, Callable, Iterable, Iterator
@@ -27,20 +29,20 @@ import numpy as np
 from ficap_ros.errors import BagError, ImageError
 from ficap_ros.files import write_output_file
 from ficap_ros.geometry.cap_model import CapModel
+from ficap_ros.io.calibration_file import q_wxyz
 from ficap_ros.io.labels import (
-    LabelRecord,
+    UNCALIBRATED,
+    FrameRecord,
     labels_csv_text,
-    record_from_pose,
     write_labels_bag,
 )
 from ficap_ros.io.sources import FrameSource, Loss, RawFrame, decode_raw
-from ficap_ros.io.status import SKIPPED_PREFIX, is_skipped, skipped_reason
 from ficap_ros.vision.calibration import HeadCalibration
 from ficap_ros.vision.detection import DetectorConfig
 from ficap_ros.vision.pipeline import FrameProcessor
-from ficap_ros.vision.pose import CapPose, PoseConfig
+from ficap_ros.vision.pose import PoseConfig
 
-__all__ = ["Progress", "ProcessedFrame", "process_frames", "frontal_calibration",
+__all__ = ["Progress", "ReplayedFrame", "process_frames", "frontal_calibration",
            "ReplayOutput", "replay", "check_output_dir", "available_cores", "capped_jobs"]
 
 
@@ -56,29 +58,19 @@ def Progress(total: int, label: str = "frames", stream: IO[str] | None = None,  
 
 
 @dataclass(frozen=True)
-class ProcessedFrame:
-    """What is kept of a frame after the pipeline (compact: no image, no corner lists).
+class ReplayedFrame:
+    """A frame after the pipeline: its record (compact: no image, no corners; the head pose is
+    composed once its calibration is known) and the pipeline's timings.
 
     Attributes:
-        index, stamp_ns, frame_id: as in the recording.
-        pose: the cap pose, or None.
-        detected_ids: ids of the model tags detected.
-        reason: why there is no pose; ``undecodable: ...`` for a skipped image.
-        detect_ms, pose_ms: pipeline timings (NaN for a skipped image).
+        record: the frame's record, uncalibrated (``labels.UNCALIBRATED``) until ``replay`` applies
+            the run's calibration.
+        detect_ms, pose_ms: pipeline timings (NaN for an undecodable image).
     """
 
-    index: int
-    stamp_ns: int
-    frame_id: str
-    pose: CapPose | None
-    detected_ids: tuple[int, ...]
-    reason: str
+    record: FrameRecord
     detect_ms: float = math.nan
     pose_ms: float = math.nan
-
-    @property
-    def skipped(self) -> bool:
-        return is_skipped(self.reason)
 
 
 # -- worker side ---------------------------------------------------------------------------------
@@ -90,10 +82,9 @@ def keep_freed_memory() -> bool:
     Every frame allocates and frees the same few MB of large buffers (the JPEG payload, the
     decoded image, the refinement's sample grids). glibc's defaults hand large freed blocks back
     to the system (blocks above its mmap threshold unmapped, the heap's top trimmed), and the next
-    frame faults the pages in again: a 600-frame 1080p replay took 311 k page faults and ~0.5 s of
-    system time (of ~7.8 s CPU); with blocks up to 8 MB served from the heap, its top trimmed only
-    past 64 MB free and grown 16 MB at a time, 50 k faults and ~0.2 s, the same peak memory
-    (240 MB). The labels do not depend on it.
+    frame faults the pages in again. Here blocks up to 8 MB are served from the heap, its top is
+    trimmed only past 64 MB free and grown 16 MB at a time: far fewer page faults for the same
+    peak memory (docs/benchmarks.md). The labels do not depend on it.
     """
     if not sys.platform.startswith("linux"):
         return False
@@ -123,7 +114,7 @@ def _init_worker(model: CapModel, pose: PoseConfig, single_thread: bool, done: A
         import signal
 
         # Ctrl-C reaches the whole process group: only the main process handles it (and stops
-        # the pool); workers printing their own KeyboardInterrupt tracebacks was ~60 lines.
+        # the pool), so workers print no KeyboardInterrupt tracebacks of their own.
         signal.signal(signal.SIGINT, signal.SIG_IGN)
         import cv2
 
@@ -131,21 +122,19 @@ def _init_worker(model: CapModel, pose: PoseConfig, single_thread: bool, done: A
     _PROCESSOR = FrameProcessor(model=model, detector=detector, pose=pose)
 
 
-def _process_one(raw: RawFrame) -> ProcessedFrame:
+def _process_one(raw: RawFrame) -> ReplayedFrame:
     assert _PROCESSOR is not None
+    method = _PROCESSOR.pose_config.method
     try:
         image = decode_raw(raw)
         if raw.camera is None:
             raise ImageError("no camera intrinsics for this image")
         result = _PROCESSOR.process(image, raw.camera, raw.stamp_ns)
     except ImageError as err:
-        return ProcessedFrame(raw.index, raw.stamp_ns, raw.frame_id, None, (),
-                              skipped_reason(err))
-    return ProcessedFrame(
-        raw.index, raw.stamp_ns, raw.frame_id, result.pose,
-        tuple(sorted({d.tag_id for d in result.detections})), result.reason,
-        result.detect_ms, result.pose_ms,
-    )
+        return ReplayedFrame(FrameRecord.unprocessed(raw.index, raw.stamp_ns, raw.frame_id,
+                                                     str(err), method=method))
+    return ReplayedFrame(FrameRecord.of(result, raw.index, raw.stamp_ns, raw.frame_id, method=method),
+                         result.detect_ms, result.pose_ms)
 
 
 #: Frames per tracking segment (see the module docstring): 128 frames are about 4 s at 30 fps, so
@@ -153,7 +142,7 @@ def _process_one(raw: RawFrame) -> ProcessedFrame:
 SEGMENT_FRAMES = 128
 
 
-def _process_segment(raws: list[RawFrame]) -> list[ProcessedFrame]:
+def _process_segment(raws: list[RawFrame]) -> list[ReplayedFrame]:
     assert _PROCESSOR is not None
     _PROCESSOR.reset_tracking()
     out = []
@@ -176,8 +165,7 @@ def available_cores() -> int:
 def capped_jobs(requested: int) -> tuple[int, str]:
     """``requested`` worker processes capped at the cores available, and a note when capped.
 
-    More processes than cores only add memory (each holds a pipeline) and contention: 16 workers
-    on 2 cores took 940 MB and ran 20x slower.
+    More processes than cores only add memory (each holds a pipeline) and contention.
     """
     cores = available_cores()
     if requested > cores:
@@ -208,10 +196,10 @@ def _quiet_pool(ctx: Any, jobs: int, initargs: tuple) -> Any:
 def process_frames(
     raws: Iterable[RawFrame], model: CapModel, pose: PoseConfig, jobs: int = 1,
     on_progress: Callable[[int], None] | None = None, detector: DetectorConfig | None = None,
-) -> Iterator[ProcessedFrame]:
+) -> Iterator[ReplayedFrame]:
     """Run the pipeline over raw frames, in order, in ``jobs`` processes (at most one per core).
 
-    Undecodable frames come back with ``pose`` None and ``reason`` ``undecodable: ...``.
+    Undecodable frames come back with an ``UNDECODABLE`` record saying why.
     ``on_progress`` is called with the number of frames processed so far, frame by frame (with
     ``jobs > 1`` the workers count into a shared counter, read about 10 times a second while
     waiting for the next segment, so a bar moves smoothly although results come in segments).
@@ -281,10 +269,10 @@ def parse_window(text: str) -> tuple[float, float]:
 
 
 def frontal_calibration(
-    frames: list[ProcessedFrame], start_ns: int, window_s: tuple[float, float],
+    frames: list[FrameRecord], start_ns: int, window_s: tuple[float, float],
     base: HeadCalibration,
 ) -> tuple[HeadCalibration, dict[str, Any]]:
-    """R_cap_head from the frames of a frontal window (``ficap_ros.vision.calibration``'s solver).
+    """R_cap_head from the records of a frontal window (``ficap_ros.vision.calibration``'s solver).
 
     Raises:
         CalibrationError: too few frames with a pose in the window, or too much spread.
@@ -340,27 +328,27 @@ def check_output_dir(out: Path) -> None:
 class ReplayOutput:
     """What ``replay`` produced."""
 
-    records: list[LabelRecord]
+    records: list[FrameRecord]
     summary: dict[str, Any]
     files: list[Path] = field(default_factory=list)
     loss: Loss | None = None
 
 
-def _summary(records: list[LabelRecord], frames: list[ProcessedFrame], elapsed_s: float) -> dict:
+def _summary(frames: list[ReplayedFrame], elapsed_s: float) -> dict:
+    records = [f.record for f in frames]
     n = len(records)
     skipped = [r for r in records if r.skipped]
     decoded = n - len(skipped)
     with_pose = sum(r.T_cam_cap is not None for r in records)
     ge1 = sum(r.tags_detected >= 1 for r in records if not r.skipped)
     ge4 = sum(r.tags_detected >= 4 for r in records if not r.skipped)
-    reasons = Counter(r.reason[len(SKIPPED_PREFIX):] for r in skipped)
+    reasons = Counter(r.reason for r in skipped)
     no_pose = Counter(r.reason for r in records if r.T_cam_cap is None and not r.skipped)
-    detect_ms = [f.detect_ms for f in frames if not f.skipped]
-    pose_ms = [f.pose_ms for f in frames if not f.skipped]
+    detect_ms = [f.detect_ms for f in frames if not f.record.skipped]
+    pose_ms = [f.pose_ms for f in frames if not f.record.skipped]
 
     def pct(k: int) -> float:
-        # Shares of every frame read, skipped ones included: 28 poses of 40 frames with 12
-        # undecodable is 70 %, not the 100 % a share of decoded frames once printed.
+        # Shares of every frame read, undecodable ones included (not of the decoded frames).
         return round(100.0 * k / n, 3) if n else 0.0
 
     return {
@@ -395,7 +383,7 @@ def replay(
     namespace: str = "",
     progress: bool = True,
     progress_stream: IO[str] | None = None,
-    engine: Callable[[Iterable[RawFrame]], Iterable[ProcessedFrame]] | None = None,
+    engine: Callable[[Iterable[RawFrame]], Iterable[ReplayedFrame]] | None = None,
     summary_extra: dict[str, Any] | None = None,
     detector: DetectorConfig | None = None,
 ) -> ReplayOutput:
@@ -447,14 +435,13 @@ def _replay_into(
     tmp: Path, out: Path, source: FrameSource, model: CapModel, pose: PoseConfig,
     calibration: HeadCalibration | None, calibrate_window_s: tuple[float, float] | None,
     jobs: int, namespace: str, progress: bool, progress_stream: IO[str] | None,
-    engine: Callable[[Iterable[RawFrame]], Iterable[ProcessedFrame]] | None,
+    engine: Callable[[Iterable[RawFrame]], Iterable[ReplayedFrame]] | None,
     summary_extra: dict[str, Any] | None, detector: DetectorConfig | None = None,
 ) -> ReplayOutput:
-    base = calibration or HeadCalibration()
     jobs = capped_jobs(jobs)[0]
     bar = Progress(source.count, "frames", progress_stream, enabled=progress)
     t0 = time.perf_counter()
-    frames: list[ProcessedFrame] = []
+    frames: list[ReplayedFrame] = []
     try:
         raws = source.raw_frames()
         if engine is not None:
@@ -462,31 +449,25 @@ def _replay_into(
                 frames.append(item)
                 bar.update()
         else:
-            frames.extend(process_frames(raws, model, pose, jobs,
-                                         on_progress=lambda n: bar.update(n - bar.n), detector=detector))
+            frames.extend(process_frames(raws, model, pose, jobs, detector=detector,
+                                         on_progress=lambda n: bar.update(n - bar.n)))
     finally:
         bar.close()
     elapsed = time.perf_counter() - t0
+    cal, cal_info = _calibration(frames, source.start_ns, calibration, calibrate_window_s)
+    records = [f.record if f.record.calibration is cal else replace(f.record, calibration=cal)
+               for f in frames]
     loss = source.loss
-    cal_info: dict[str, Any] = {"mode": "file" if base.calibrated else "none"}
-    cal = base
-    if calibrate_window_s is not None:
-        cal, cal_info = frontal_calibration(frames, source.start_ns, calibrate_window_s, base)
-    records = [
-        record_from_pose(f.index, f.stamp_ns, f.frame_id, f.pose, f.detected_ids, f.reason, cal,
-                         pose.method)
-        for f in frames
-    ]
     summary = {
         "writer": "ficap replay",
         "input": str(source.path),
         "image_topic": source.image_topic,
         "camera_info_topic": source.camera_info_topic,
         "method": pose.method,
-        # Only when on, so summaries of default runs read as before.
+        # Only when on (the default runs' summaries name no detector setting).
         **({"photometric": True} if detector is not None and detector.edge_photometric else {}),
         "jobs": jobs,
-        **_summary(records, frames, elapsed),
+        **_summary(frames, elapsed),
         # A damaged input: frames_lost is None when the container cannot say how many.
         "damaged": loss is not None,
         "frames_lost": (loss.frames_lost if loss is not None else 0),
@@ -494,8 +475,8 @@ def _replay_into(
         "calibration": {
             **cal_info,
             "calibrated": cal.calibrated,
-            "R_cap_head_q_wxyz": _q_wxyz(cal.R_cap_head),
-            "R_cam_frontal_q_wxyz": _q_wxyz(cal.R_cam_frontal),
+            "R_cap_head_q_wxyz": [round(v, 9) for v in q_wxyz(cal.R_cap_head)],
+            "R_cam_frontal_q_wxyz": [round(v, 9) for v in q_wxyz(cal.R_cam_frontal)],
         },
         **(summary_extra or {}),
     }
@@ -506,6 +487,11 @@ def _replay_into(
     return ReplayOutput(records, summary, files, loss)
 
 
-def _q_wxyz(rotation: Any) -> list[float]:
-    x, y, z, w = rotation.as_quat(canonical=True)
-    return [round(float(v), 9) for v in (w, x, y, z)]
+def _calibration(frames: list[ReplayedFrame], start_ns: int, given: HeadCalibration | None,
+                 window_s: tuple[float, float] | None) -> tuple[HeadCalibration, dict[str, Any]]:
+    """The run's head calibration and summary.json's account of it: the one given (or none),
+    or a frontal calibration from ``window_s`` (``frontal_calibration``) over it."""
+    base = given or UNCALIBRATED
+    if window_s is None:
+        return base, {"mode": "file" if base.calibrated else "none"}
+    return frontal_calibration([f.record for f in frames], start_ns, window_s, base)

@@ -16,7 +16,9 @@ Two ways to find ``R_cap_head``:
       and refined by robust nonlinear least squares. The reference's head frame must use the same
       axes as H (x forward, y left, z up).
 
-Pure core: no ROS imports; the live node and ``ficap calibrate`` share it.
+Pure core: no files, no ROS; the live node, ``ficap calibrate`` and replay share it. Calibration
+files are ``ficap_ros.io.calibration_file``'s; the node's calibration state is
+``ficap_ros.ros.live_calibration``'s; the head pose of a frame is composed in ``ficap_ros.io.labels``.
 """
 
 from __future__ import annotations
@@ -25,18 +27,15 @@ import math
 import threading
 from collections import deque
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any, Callable
+from typing import Callable
 
 import numpy as np
-import yaml
 from scipy.optimize import least_squares
 from scipy.spatial.transform import Rotation
 
-from ficap_ros.errors import CalibrationError, FicapError, OutputError
-from ficap_ros.files import read_text, write_output_file
+from ficap_ros.errors import CalibrationError
 from ficap_ros.geometry.metrics import angle_deg, robust_mean_rotation
-from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform, compose, inverse
+from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform
 from ficap_ros.stamps import pair_by_stamp, window_mask
 
 __all__ = [
@@ -47,17 +46,10 @@ __all__ = [
     "reference_pairs",
     "calibrated_frontal",
     "CalibrationRecorder",
-    "LiveCalibration",
     "calibrate_frontal",
     "calibrate_reference",
     "frontal_from_camera_mount",
-    "save_calibration",
-    "load_calibration",
-    "CALIBRATION_FORMAT",
 ]
-
-#: Name and version written into calibration files.
-CALIBRATION_FORMAT = "ficap_calibration/1"
 
 #: Least rotation excursion of the reference (second singular value of the rotation vectors about
 #: their mean, RMS degrees) that makes the reference problem well posed: with the head held still
@@ -81,14 +73,6 @@ class HeadCalibration:
     R_cap_head: Rotation = field(default_factory=Rotation.identity)
     R_cam_frontal: Rotation = field(default_factory=lambda: CAM_FROM_FORWARD)
     calibrated: bool = False
-
-    def head_in_camera(self, T_cam_cap: Transform) -> Transform:
-        """T_cam_head: the cap pose composed with R_cap_head (head origin = cap origin)."""
-        return Transform(compose(T_cam_cap.rotation, self.R_cap_head), T_cam_cap.translation_m)
-
-    def head_in_frontal(self, T_cam_cap: Transform) -> Rotation:
-        """R_frontal_head: the head orientation in the frontal frame (identity when frontal)."""
-        return compose(compose(inverse(self.R_cam_frontal), T_cam_cap.rotation), self.R_cap_head)
 
 
 @dataclass(frozen=True)
@@ -333,6 +317,27 @@ def calibrate_reference(
         CalibrationError: too few pairs, different lengths, or too little head motion to separate
             the two rotations.
     """
+    A, B = _reference_pairs_checked(R_cam_cap, R_ref_head, min_pairs)
+    residuals = _reference_residuals(A, B)
+    x0 = np.concatenate([r.as_rotvec() for r in _reference_start(A, B)])
+    # Soft-L1 beyond 3 sigma of the start's residuals (robust MAD estimate): about as efficient as
+    # least squares for Gaussian reference noise, while gross reference failures stay bounded.
+    sigma0 = float(np.median(np.abs(residuals(x0)))) / 0.6745
+    f_scale = max(loss_scale_deg, 3.0 * sigma0) if np.isfinite(sigma0) else loss_scale_deg
+    x = least_squares(residuals, x0, loss="soft_l1", f_scale=f_scale, x_scale=1.0).x
+    resid = np.linalg.norm(residuals(x).reshape(-1, 3), axis=1)
+    rms_med = max(float(np.median(resid)), 1e-9)
+    keep = resid <= 3.0 * rms_med + 1e-9
+    spread = float(np.sqrt(np.mean(resid[keep] ** 2)))
+    return CalibrationResult(Rotation.from_rotvec(x[:3]), int(np.count_nonzero(keep)), spread,
+                             "reference", Rotation.from_rotvec(x[3:]),
+                             _reference_uncertainty_deg(residuals, x, keep))
+
+
+def _reference_pairs_checked(R_cam_cap: Rotation, R_ref_head: Rotation,
+                             min_pairs: int) -> tuple[Rotation, Rotation]:
+    """The paired rotations as stacks, checked: as many of each, ``min_pairs`` at least, and head
+    motion about two axes (else a rotation about the one axis could move between X and Y)."""
     n = _count(R_cam_cap)
     if _count(R_ref_head) != n:
         raise CalibrationError(
@@ -341,9 +346,7 @@ def calibrate_reference(
         )
     if n < min_pairs:
         raise CalibrationError(f"reference calibration needs {min_pairs} pairs, got {n}")
-    A = _as_stack(R_cam_cap)
     B = _as_stack(R_ref_head)
-    # Head motion must span two axes, else a rotation about the one axis is unobservable.
     rv = (B.mean().inv() * B).as_rotvec(degrees=True)
     sv = np.linalg.svd(rv - rv.mean(axis=0), compute_uv=False) / math.sqrt(n)
     if sv[1] < MIN_REFERENCE_EXCITATION_DEG:
@@ -351,6 +354,12 @@ def calibrate_reference(
             f"reference calibration needs head rotation about two axes: motion spread "
             f"{sv[0]:.1f}/{sv[1]:.1f} deg, needs {MIN_REFERENCE_EXCITATION_DEG:.1f} deg on the second"
         )
+    return _as_stack(R_cam_cap), B
+
+
+def _reference_start(A: Rotation, B: Rotation) -> tuple[Rotation, Rotation]:
+    """(Y, X) = (R_cap_head, R_cam_reference) to start the fit from: OpenCV's closed form, or the
+    mean rotations and the identity where it fails or gives no finite answer."""
     try:
         Y0, X0 = _hand_eye_initial(A, B)
     except Exception:  # noqa: BLE001 - OpenCV's solver can fail on odd data; start elsewhere
@@ -358,269 +367,34 @@ def calibrate_reference(
         X0 = Rotation.identity()
     if not (np.all(np.isfinite(Y0.as_quat())) and np.all(np.isfinite(X0.as_quat()))):
         Y0, X0 = A.mean().inv() * B.mean(), Rotation.identity()
+    return Y0, X0
 
+
+def _reference_residuals(A: Rotation, B: Rotation) -> Callable[[np.ndarray], np.ndarray]:
+    """Residuals (3 per pair, deg) of ``X B_i = A_i Y`` at the parameters (rotvec Y, rotvec X)."""
     def residuals(params: np.ndarray) -> np.ndarray:
         Y = Rotation.from_rotvec(params[:3])
         X = Rotation.from_rotvec(params[3:])
         return np.degrees(((X * B).inv() * (A * Y)).as_rotvec()).reshape(-1)
 
-    x0 = np.concatenate([Y0.as_rotvec(), X0.as_rotvec()])
-    # Soft-L1 beyond 3 sigma of the start's residuals (robust MAD estimate): about as efficient as
-    # least squares for Gaussian reference noise, while gross reference failures stay bounded.
-    sigma0 = float(np.median(np.abs(residuals(x0)))) / 0.6745
-    f_scale = max(loss_scale_deg, 3.0 * sigma0) if np.isfinite(sigma0) else loss_scale_deg
-    sol = least_squares(residuals, x0, loss="soft_l1", f_scale=f_scale, x_scale=1.0)
-    Y = Rotation.from_rotvec(sol.x[:3])
-    X = Rotation.from_rotvec(sol.x[3:])
-    resid = np.linalg.norm(residuals(sol.x).reshape(-1, 3), axis=1)
-    rms_med = max(float(np.median(resid)), 1e-9)
-    keep = resid <= 3.0 * rms_med + 1e-9
-    spread = float(np.sqrt(np.mean(resid[keep] ** 2)))
-    # Covariance of the parameters from the plain (unweighted) Jacobian of the kept pairs.
+    return residuals
+
+
+def _reference_uncertainty_deg(residuals: Callable[[np.ndarray], np.ndarray], x: np.ndarray,
+                               keep: np.ndarray) -> float:
+    """1-sigma error of Y about its worst axis, deg: the covariance of the parameters from the
+    plain (unweighted) central-difference Jacobian of the kept pairs (inf when singular)."""
     rows = np.repeat(keep, 3)
     step = 1e-6
     jac = np.empty((int(rows.sum()), 6))
     for j in range(6):
         dx = np.zeros(6)
         dx[j] = step
-        jac[:, j] = (residuals(sol.x + dx)[rows] - residuals(sol.x - dx)[rows]) / (2 * step)
+        jac[:, j] = (residuals(x + dx)[rows] - residuals(x - dx)[rows]) / (2 * step)
     dof = max(int(rows.sum()) - 6, 1)
-    s2 = float(np.sum(residuals(sol.x)[rows] ** 2)) / dof
+    s2 = float(np.sum(residuals(x)[rows] ** 2)) / dof
     try:
         cov = s2 * np.linalg.inv(jac.T @ jac)
-        uncertainty = float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0))))
+        return float(np.degrees(np.sqrt(max(np.linalg.eigvalsh(cov[:3, :3]).max(), 0.0))))
     except np.linalg.LinAlgError:
-        uncertainty = float("inf")
-    return CalibrationResult(Y, int(np.count_nonzero(keep)), spread, "reference", X, uncertainty)
-
-
-# -- files ---------------------------------------------------------------------------------------
-def _q_wxyz(rotation: Rotation) -> list[float]:
-    x, y, z, w = rotation.as_quat(canonical=True)
-    return [float(w), float(x), float(y), float(z)]
-
-
-def _from_q_wxyz(values: Any, name: str) -> Rotation:
-    try:
-        q = np.asarray(values, dtype=np.float64).reshape(4)
-    except (TypeError, ValueError) as err:
-        raise CalibrationError(f"calibration field {name} must be 4 numbers (w, x, y, z)") from err
-    if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-6:
-        raise CalibrationError(f"calibration field {name} is not a valid quaternion")
-    return Rotation.from_quat([q[1], q[2], q[3], q[0]])
-
-
-def save_calibration(
-    path: str | Path,
-    calibration: HeadCalibration | CalibrationResult,
-    result: CalibrationResult | None = None,
-    R_cam_frontal: Rotation | None = None,
-) -> None:
-    """Write a calibration as YAML, atomically. Quaternions are ``q_wxyz`` (w, x, y, z).
-
-    Args:
-        path: output file.
-        calibration: the runtime calibration, or a result (then ``R_cam_frontal`` gives the frontal
-            frame, default ``CAM_FROM_FORWARD``).
-        result: how it was computed (mode, frames used, spread, R_cam_reference), when known.
-        R_cam_frontal: frontal frame for a ``CalibrationResult`` argument.
-
-    Raises:
-        OutputError: ``path`` is a folder, an existing file that is not a calibration, or cannot
-            be written (one line).
-    """
-    if isinstance(calibration, CalibrationResult):
-        result = calibration
-        calibration = HeadCalibration(
-            R_cap_head=calibration.R_cap_head,
-            R_cam_frontal=R_cam_frontal if R_cam_frontal is not None else CAM_FROM_FORWARD,
-            calibrated=True,
-        )
-    data: dict[str, Any] = {
-        "format": CALIBRATION_FORMAT,
-        "quaternion_order": "wxyz",
-        "calibrated": bool(calibration.calibrated),
-        "R_cap_head_q_wxyz": _q_wxyz(calibration.R_cap_head),
-        "R_cam_frontal_q_wxyz": _q_wxyz(calibration.R_cam_frontal),
-    }
-    if result is not None:
-        data["mode"] = result.mode
-        data["frames_used"] = int(result.frames_used)
-        data["spread_deg"] = float(result.spread_deg)
-        if result.R_cam_reference is not None:
-            data["R_cam_reference_q_wxyz"] = _q_wxyz(result.R_cam_reference)
-    path = Path(path)
-    if path.is_file():
-        # Only a calibration replaces a calibration: an unreadable or foreign file at this path
-        # (a typo in calibration.file, a binary) is the user's, not ours to overwrite.
-        try:
-            load_calibration(path)
-        except CalibrationError as err:
-            raise OutputError(f"{path} exists and is not a readable calibration ({err}); "
-                              "not overwritten") from err
-    if str(path.parent) and not path.parent.exists():
-        try:
-            path.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as err:
-            raise OutputError(f"cannot create folder {path.parent}: {err.strerror or err}") from err
-    write_output_file(path, yaml.safe_dump(data, sort_keys=False), what="calibration")
-
-
-def load_calibration(path: str | Path) -> HeadCalibration:
-    """Read a calibration file written by ``save_calibration``.
-
-    Raises:
-        CalibrationError: missing, unreadable or malformed file.
-    """
-    text = read_text(path, "calibration", CalibrationError)
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        raise CalibrationError(f"calibration {path} is not valid YAML") from err
-    if not isinstance(data, dict) or "R_cap_head_q_wxyz" not in data:
-        raise CalibrationError(f"calibration {path} has no R_cap_head_q_wxyz")
-    if str(data.get("quaternion_order", "wxyz")) != "wxyz":
-        raise CalibrationError(f"calibration {path}: quaternion_order must be wxyz")
-    R_cam_frontal = (
-        _from_q_wxyz(data["R_cam_frontal_q_wxyz"], "R_cam_frontal_q_wxyz")
-        if "R_cam_frontal_q_wxyz" in data else CAM_FROM_FORWARD
-    )
-    return HeadCalibration(
-        R_cap_head=_from_q_wxyz(data["R_cap_head_q_wxyz"], "R_cap_head_q_wxyz"),
-        R_cam_frontal=R_cam_frontal,
-        calibrated=_flag(data.get("calibrated", True), f"calibration {path}: calibrated"),
-    )
-
-
-def _flag(value: Any, name: str) -> bool:
-    """A YAML boolean; the strings a hand-edited file may hold ("no", "false", "0") too.
-
-    ``bool("no")`` is True, which once loaded ``calibrated: "no"`` as calibrated.
-    """
-    if isinstance(value, bool):
-        return value
-    if isinstance(value, int) and value in (0, 1):
-        return bool(value)
-    text = str(value).strip().lower()
-    if text in ("true", "yes", "on", "1"):
-        return True
-    if text in ("false", "no", "off", "0"):
-        return False
-    raise CalibrationError(f"{name} must be true or false, got {value!r}")
-
-
-class LiveCalibration:
-    """The calibration a live node uses, swapped whole (``HeadCalibration`` is immutable) under a
-    lock, and the recorder it is computed from. Readers take ``current`` once per frame.
-
-    Args:
-        mount: the ``camera_mount`` transform (T_parent_cam), or None.
-    """
-
-    def __init__(self, mount: Transform | None = None) -> None:
-        self._lock = threading.Lock()
-        self._mount = mount
-        self._current = HeadCalibration(R_cam_frontal=frontal_from_camera_mount(mount))
-        self.last_result: CalibrationResult | None = None
-        self.recorder = CalibrationRecorder()
-
-    @property
-    def current(self) -> HeadCalibration:
-        return self._current
-
-    def load(self, path: str | Path) -> str:
-        """Use a calibration file; returns a warning ('' when none). The file's frontal frame is
-        kept (as ``replay --calibration`` does) unless a mount sets one.
-
-        Raises:
-            CalibrationError: unreadable file.
-        """
-        loaded = load_calibration(path)
-        with self._lock:
-            R_cam_frontal = loaded.R_cam_frontal if self._mount is None else \
-                frontal_from_camera_mount(self._mount)
-            self._current = HeadCalibration(loaded.R_cap_head, R_cam_frontal, loaded.calibrated)
-        off = angle_deg(loaded.R_cam_frontal, R_cam_frontal)
-        if loaded.calibrated and off > 0.01:
-            return (f"calibration {path} was made with a frontal frame {off:.2f} deg from the "
-                    "current camera_mount parameter; head angles keep the current frontal frame")
-        return ""
-
-    def apply(self, result: CalibrationResult) -> HeadCalibration:
-        """Use a computed calibration (frontal frame: ``calibrated_frontal``)."""
-        with self._lock:
-            self._current = HeadCalibration(result.R_cap_head,
-                                            calibrated_frontal(result, self._mount), True)
-            self.last_result = result
-            return self._current
-
-    def clear(self) -> HeadCalibration:
-        with self._lock:
-            self._current = HeadCalibration(R_cam_frontal=frontal_from_camera_mount(self._mount))
-            self.last_result = None
-            return self._current
-
-    def set_mount(self, mount: Transform | None) -> None:
-        """A new ``camera_mount``: the frontal frame follows it (R_cap_head stays)."""
-        with self._lock:
-            self._mount = mount
-            old = self._current
-            R = calibrated_frontal(self.last_result if old.calibrated else None, mount)
-            if angle_deg(old.R_cam_frontal, R) > 1e-9:
-                self._current = HeadCalibration(old.R_cap_head, R, old.calibrated)
-
-    def frontal_frame(self) -> Rotation:
-        """The frontal frame a new calibration is computed in (the mount's)."""
-        return calibrated_frontal(None, self._mount)
-
-    @property
-    def mode(self) -> str:
-        """How the current calibration came: the last computed one's mode (frontal, reference),
-        ``loaded`` (from a file) or ``none`` (/diagnostics says it)."""
-        last = self.last_result
-        return last.mode if last else ("loaded" if self._current.calibrated else "none")
-
-    def persist(self, path: str | Path, result: CalibrationResult | None,
-                message: str) -> tuple[bool, str]:
-        """Save the current calibration to ``path`` ('' = not persisted): (success, message). A
-        calibration in use but not saved is a failure (lost at the next start: the caller must
-        know); ``save_calibration`` never replaces a file that is not a calibration."""
-        if not path:
-            return True, message
-        try:
-            save_calibration(path, self._current, result)
-        except (OSError, FicapError) as err:
-            what = "; in use but NOT saved" if result else f" in memory; {path} NOT updated"
-            return False, f"{message}{what}: {err}"
-        return True, message + (f", saved to {path}" if result else "")
-
-    def start(self, path: str | Path) -> list[tuple[str, str]]:
-        """Load ``path`` at start when it exists ('' = none): what to log, (severity, text)."""
-        if not path or not Path(path).exists():
-            return []
-        try:
-            warning = self.load(path)
-        except CalibrationError as err:
-            return [("error", f"{err}; starting uncalibrated")]
-        return ([("warning", warning)] if warning else []) + [
-            ("info", f"loaded calibration {path} (calibrated: {self._current.calibrated})")]
-
-    def calibrate(self, compute: Callable[[], CalibrationResult],
-                  path: str | Path) -> tuple[str, str]:
-        """``~/calibrate``: compute, use, save to ``path``. Returns (outcome, message), outcome
-        ``refused`` (nothing changed), ``unsaved`` (in use, not saved) or ``ok``."""
-        try:
-            result = compute()
-        except CalibrationError as err:
-            return "refused", f"calibration refused: {err}"
-        self.apply(result)
-        ok, message = self.persist(path, result, (
-            f"calibrated ({result.mode}) from {result.frames_used} frames, spread "
-            f"{result.spread_deg:.2f} deg, uncertainty {result.uncertainty_deg:.2f} deg"))
-        return ("ok" if ok else "unsaved"), message
-
-    def clear_and_save(self, path: str | Path) -> tuple[str, str]:
-        """``~/clear_calibration``: (outcome, message) as ``calibrate``'s."""
-        self.clear()
-        ok, message = self.persist(path, None, "calibration cleared")
-        return ("ok" if ok else "unsaved"), message
+        return float("inf")

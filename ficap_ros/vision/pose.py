@@ -135,8 +135,8 @@ class UncertaintyConfig:
     leaves much less of the shift along the foreshortening under uneven light, and the same synth
     calibration grid picks ``light_gradient_tilt_gain`` 0.1 for it (0.3 / 1.0 for the others, as
     the defaults; held-out noise seeds agree). ``pipeline.FrameProcessor`` uses the profile of its
-    detector's corner estimator when the pose's uncertainty is the default ``UncertaintyConfig()``
-    (docs/benchmarks.md, "Calibrated uncertainty with photometric corners").
+    detector's corner estimator when the pose's uncertainty is not set (``PoseConfig.uncertainty``
+    None; docs/benchmarks.md, "Calibrated uncertainty with photometric corners").
 
     Attributes:
         corner_noise_px: independent corner noise, px (an edge fit over many 8-bit samples is
@@ -235,7 +235,9 @@ class PoseConfig:
         inlier_fraction: see ``inlier_px``.
         paper_threshold_mm: ``paper``: trimming stops when the RMS 3-D corner residual is below this.
         paper_min_corners: ``paper``: never trim below this many corners.
-        uncertainty: the error sources of the covariance (``UncertaintyConfig``).
+        uncertainty: the error sources of the covariance (``UncertaintyConfig``); None: the
+            profile of the corner estimator in use (``pipeline.pose_config_for``), the defaults
+            when ``estimate_cap_pose`` is called directly.
     """
 
     method: str = "joint"
@@ -247,7 +249,7 @@ class PoseConfig:
     inlier_fraction: float = 0.1
     paper_threshold_mm: float = 1.0
     paper_min_corners: int = 4
-    uncertainty: UncertaintyConfig = field(default_factory=UncertaintyConfig)
+    uncertainty: UncertaintyConfig | None = None
 
     def __post_init__(self) -> None:
         if self.method not in POSE_METHODS:
@@ -796,6 +798,7 @@ def estimate_cap_pose(
         A ``PoseResult``: a ``CapPose``, or ``pose=None`` with the reason.
     """
     config = config or PoseConfig()
+    uncertainty = config.uncertainty if config.uncertainty is not None else UncertaintyConfig()
     K = camera.K
     groups: dict[int, list[np.ndarray]] = {}
     ours = [d for d in detections if d.tag_id in model]
@@ -828,7 +831,7 @@ def estimate_cap_pose(
     used_n = len(solution.used)
     T = solution.T
     tag_sigma = None
-    if config.method == "joint" and config.uncertainty.weight_tags:
+    if config.method == "joint" and uncertainty.weight_tags:
         T, tag_sigma = _reweighted(solution.used, T)
     res, J = _at(T, solution.used)
     rms = float(np.sqrt(np.mean(res**2) * 2.0))
@@ -839,8 +842,8 @@ def estimate_cap_pose(
             shifts[det.tag_id] = float("nan") if det.tag_id in shifts else float(det.edge_shift_px)
         edge_shift = np.array([shifts.get(i, float("nan")) for i in solution.used.ids])
         terms, seen = uncertainty_terms(solution.used, T, tag_sigma, edge_shift, at=(res, J))
-        covariance = combine_uncertainty(terms, seen, config.uncertainty)
-        rot95, trans95 = error_bound95(covariance, *uncertainty_bounds(terms, seen, config.uncertainty,
+        covariance = combine_uncertainty(terms, seen, uncertainty)
+        rot95, trans95 = error_bound95(covariance, *uncertainty_bounds(terms, seen, uncertainty,
                                                                        covariance))
     else:
         covariance = np.full((6, 6), np.nan)

@@ -10,14 +10,16 @@ image patch matches one given 64-cell pattern within 2 cells with a chance of ab
 random cells), so a verified tag is as trustworthy as a searched one.
 
 This replaces ArUco's search (the costliest step: adaptive thresholds, contours, candidate
-decoding over the whole image) on every tracked frame; the pipeline falls back to the search when
-tracking cannot verify enough tags (``Tracker`` below, which ``pipeline.FrameProcessor`` runs).
+decoding over the whole image) on every tracked frame; the tracker falls back to the search when
+tracking cannot verify enough tags (``Tracker`` below, which ``pipeline.FrameProcessor`` runs one
+call a frame: ``Tracker.track``).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, replace
 from enum import Enum
+from typing import Callable
 
 import numpy as np
 
@@ -37,10 +39,10 @@ from ficap_ros.vision.detection import (
     refine_corners_edge_ok,
     refine_tag_corners,
 )
-from ficap_ros.vision.pose import PoseConfig, estimate_cap_pose
+from ficap_ros.vision.pose import PoseConfig, PoseResult, estimate_cap_pose
 
-__all__ = ["TrackConfig", "Tracker", "Search", "extrapolate_pose", "predict_tags", "verify_tags", "tag_cells",
-           "view_angles_deg"]
+__all__ = ["TrackConfig", "Tracker", "TrackedFrame", "PoseSolver", "Search", "extrapolate_pose",
+           "predict_tags", "verify_tags", "tag_cells", "view_angles_deg"]
 
 @dataclass(frozen=True)
 class TrackConfig:
@@ -185,14 +187,13 @@ _TRACK_MAX_AREA = 0.6
 #: verified tags when that moves its predicted corners by more than this.
 _TRACK_RETRY_PX = 0.5
 #: A refinement pass that moves no corner by more than this started close enough to the edges for
-#: its result to be final (0.05, 0.1, 0.2 and 0.5 px gave the same pose error on the rendered
-#: glance sequence; a second pass is a fifth of a tracked frame's time).
+#: its result to be final (smaller thresholds give the same pose error and cost a second pass).
 _TRACK_CONVERGED_PX = 0.2
 
 
 class Search(str, Enum):
-    """How a frame's tags were found (``FrameResult.search``; a ``str`` so it prints and compares
-    as its value)."""
+    """How a frame's tags were found (``TrackedFrame.search``, ``FrameResult.search``; a ``str``
+    so it prints and compares as its value)."""
 
     TRACKED = "tracked"  # verified where the last poses predicted them, no search
     REGION = "region"  # searched around the last pose
@@ -200,6 +201,27 @@ class Search(str, Enum):
 
     def __str__(self) -> str:
         return self.value
+
+
+#: How the pipeline solves a frame's pose: (the tags the pose uses, the pose they were predicted
+#: at or None) -> the pose result. ``Tracker.track`` calls it once a frame.
+PoseSolver = Callable[[tuple[TagDetection, ...], "Transform | None"], PoseResult]
+
+
+@dataclass(frozen=True)
+class TrackedFrame:
+    """One frame through the tracker.
+
+    Attributes:
+        detections: the model's tags found in the frame (duplicates included).
+        result: the frame's pose, solved by the pipeline's ``PoseSolver`` from the detections the
+            pose should use (without tags seen too obliquely at the predicted pose).
+        search: how the tags were found.
+    """
+
+    detections: tuple[TagDetection, ...]
+    result: PoseResult
+    search: Search
 
 
 @dataclass(frozen=True)
@@ -222,14 +244,16 @@ class Tracker:
     uses the whole image's settings and refines on the whole image, so a tag gets the same corners
     however it was found; the tags a search missed are read where the searched ones put them.
 
+    The pose settings come with each frame (``track``), so settings the node replaces apply to
+    the next frame.
+
     Args:
         model: the cap model.
         detector: the tag detector (searches and the corner settings of tracked tags).
-        pose: pose settings at construction (the naive locating pose of a search's completion).
         config: tracking settings.
     """
 
-    def __init__(self, model: CapModel, detector: TagDetector, pose: PoseConfig,
+    def __init__(self, model: CapModel, detector: TagDetector,
                  config: TrackConfig | None = None) -> None:
         self.model = model
         self.detector = detector
@@ -248,7 +272,8 @@ class Tracker:
         # Search-free tracking rests on the edge refinement (it pulls predicted corners onto the
         # border); with another corner refinement tracked frames are searched in the region.
         self._verify = base.corner_refine == "edge"
-        self._locate_pose = replace(pose, method="naive")
+        # The naive pose a search's completion locates the cap with, for the last settings given.
+        self._locate: tuple[PoseConfig, PoseConfig] | None = None
         self._track: _TrackState | None = None
         # The view angles at the last pose asked for (``_view_angles``): a tracked frame's
         # prediction and its pose's choice of tags both want them at the predicted pose.
@@ -336,18 +361,15 @@ class Tracker:
         """Refine predicted corners and keep the tags whose cells read as their ids; also the
         largest distance, px, a verified tag's corner moved from its prediction."""
         refined, ok = self._refine_predicted(gray, corners)
-        # The tone-curve bias and the cell-edge fit, as on searched tags (one corner estimator).
-        # Not one fit round straight from the prediction (tried in 9f23cef, ~1 ms cheaper per
-        # 1080p frame): corners started at the model's projection keep a pull toward it, the
-        # residuals shrink and the 95 % rotation bound then covered 53 % of a synth drive's frames
-        # (test_bag_replay) instead of >= 85 %.
+        # The tone-curve bias and the cell-edge fit, as on searched tags (one corner estimator),
+        # after the edge refinement: corners fitted straight from the prediction keep a pull toward
+        # the model's projection, which shrinks the residuals and so the error bounds.
         shift = np.full(len(ids), np.nan)
         refined[ok], shift[ok] = refine_tag_corners(gray, refined[ok], ids[ok], self._tracked_corners)
         ver, errors, contrast = verify_tags(gray, ids[ok], refined[ok], self.config)
         kept = np.flatnonzero(ok)[ver]
         moved = np.linalg.norm(refined[kept] - corners[kept], axis=2)
-        # Python numbers (tolist) for the per-tag fields: converting numpy scalars one by one
-        # cost ~5 us a tag.
+        # Python numbers (tolist) for the per-tag fields: cheaper than numpy scalars one by one.
         return ([TagDetection(i, c, e, m, x)
                  for i, c, e, m, x in zip(ids[kept].tolist(), refined[kept], errors[ver].tolist(),
                                           contrast[ver].tolist(), shift[kept].tolist())],
@@ -386,9 +408,15 @@ class Tracker:
                     found += self._verified(gray, ids2[retry], corners2[retry])[0]
         return tuple(found)
 
+    def _locate_pose(self, pose: PoseConfig) -> PoseConfig:
+        """``pose`` with the ``naive`` method: the locating pose of a search's completion."""
+        if self._locate is None or self._locate[0] is not pose:
+            self._locate = (pose, replace(pose, method="naive"))
+        return self._locate[1]
+
     def _complete_search(
         self, gray: np.ndarray, camera: CameraModel, found: tuple[TagDetection, ...],
-        predicted: Transform | None,
+        predicted: Transform | None, pose: PoseConfig,
     ) -> tuple[tuple[TagDetection, ...], Transform | None, bool]:
         """A search's tags plus the model's other tags read where the searched ones put them.
 
@@ -403,7 +431,8 @@ class Tracker:
         # One SQPnP + LM is enough to place the others: a wrong prediction verifies no tag, and
         # the final pose only starts from it if every tag agrees with it. Only its T_cam_cap is
         # wanted: no uncertainty (the frame's final pose has it).
-        first = estimate_cap_pose(found, self.model, camera, self._locate_pose, with_uncertainty=False)
+        first = estimate_cap_pose(found, self.model, camera, self._locate_pose(pose),
+                                  with_uncertainty=False)
         if first.pose is None:
             return found, predicted, False
         ids, corners = predict_tags(self.model, camera, first.pose.T_cam_cap, self.config)
@@ -415,7 +444,25 @@ class Tracker:
         return found, first.pose.T_cam_cap, True
 
     # -- one frame ----------------------------------------------------------------------------
-    def find(
+    def track(self, gray: np.ndarray, camera: CameraModel, stamp_ns: int, pose: PoseConfig,
+              solve: PoseSolver) -> TrackedFrame:
+        """One frame: its tags, its pose (``solve``) and how the tags were found; the pose is
+        remembered for the next frame (None: lost, the next frame is searched).
+
+        Args:
+            gray: (H, W) uint8 image.
+            camera: its intrinsics (a frame of another camera is searched).
+            stamp_ns: its stamp (0: unknown; frames further apart than a gap are searched).
+            pose: the current pose settings (second looks, search completion, the pose's tags).
+            solve: the pipeline's solver of the frame's final pose.
+        """
+        detections, predicted, search = self._find(gray, camera, stamp_ns, pose)
+        result = solve(self._pose_tags(detections, predicted, pose), predicted)
+        self._remember(None if result.pose is None else result.pose.T_cam_cap, stamp_ns,
+                       detections, camera)
+        return TrackedFrame(detections, result, search)
+
+    def _find(
         self, gray: np.ndarray, camera: CameraModel, stamp_ns: int, pose: PoseConfig
     ) -> tuple[tuple[TagDetection, ...], Transform | None, Search]:
         """Tags of a frame, the pose they were predicted at (None: none) and how they were found.
@@ -445,23 +492,23 @@ class Tracker:
                 for d in found)
             if inside or len({d.tag_id for d in found}) >= self._track.n_tags:
                 self.roi_searches += 1
-                found, seen_at, _ = self._complete_search(gray, camera, found, predicted)
+                found, seen_at, _ = self._complete_search(gray, camera, found, predicted, pose)
                 return found, seen_at, Search.REGION
         self.full_searches += 1
         # A decimated search skips its second reading of rejected quads once it found enough of
-        # the model's tags for the completion, which reads the rest at their pose (-0.3 ms a
-        # searched 1080p frame, the same tags); should that pose fail, the frame is searched
-        # again with the second reading.
+        # the model's tags for the completion, which reads the rest at their pose (the same
+        # tags, cheaper); should that pose fail, the frame is searched again with the second
+        # reading.
         enough = self.config.min_tags if self._verify else 0
         found = tuple(d for d in self.detector.detect(gray, wanted_ids=self.model, enough_tags=enough)
                       if d.tag_id in self.model)
-        found, seen_at, located = self._complete_search(gray, camera, found, predicted)
+        found, seen_at, located = self._complete_search(gray, camera, found, predicted, pose)
         if enough and not located and len({d.tag_id for d in found}) >= enough:
             found = tuple(d for d in self.detector.detect(gray) if d.tag_id in self.model)
-            found, seen_at, _ = self._complete_search(gray, camera, found, predicted)
+            found, seen_at, _ = self._complete_search(gray, camera, found, predicted, pose)
         return found, seen_at, Search.IMAGE
 
-    def pose_tags(
+    def _pose_tags(
         self, detections: tuple[TagDetection, ...], predicted: Transform | None, pose: PoseConfig
     ) -> tuple[TagDetection, ...]:
         """The detections the pose should use: without the tags seen too obliquely at the
@@ -475,8 +522,8 @@ class Tracker:
             return detections
         return kept
 
-    def update(self, T_cam_cap: Transform | None, stamp_ns: int,
-               detections: tuple[TagDetection, ...], camera: CameraModel) -> None:
+    def _remember(self, T_cam_cap: Transform | None, stamp_ns: int,
+                  detections: tuple[TagDetection, ...], camera: CameraModel) -> None:
         """Remember a frame's pose (None: lost, the next frame is searched over the whole image)."""
         if T_cam_cap is None:
             self._track = None

@@ -12,8 +12,9 @@ from ficap_ros.cli.main import main
 from ficap_ros.geometry.metrics import rotation_from_ypr_deg
 from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform
 from ficap_ros.io.bag_writer import BagWriter, pose_stamped_msg
+from ficap_ros.io.calibration_file import load_calibration
 from ficap_ros.io.labels import labels_csv_text, record_from_pose
-from ficap_ros.vision.calibration import HeadCalibration, load_calibration
+from ficap_ros.vision.calibration import HeadCalibration
 from ficap_ros.vision.pose import CapPose
 
 N = 300

@@ -85,34 +85,6 @@ def test_a_missing_verb_module_fails_loudly(monkeypatch) -> None:
         cli.build_parser()
 
 
-def test_fleet_progress_off_a_terminal_is_plain_lines() -> None:
-    """A fleet's progress in a log: whole lines (a first one, then at most one per 30 s, and the
-    last), never a line redrawn with carriage returns; on a terminal the bar redraws."""
-    from ficap_ros.tools.fleet import _FleetProgress
-
-    log = io.StringIO()
-    bar = _FleetProgress(60, 2, 0, 0, enabled=True, stream=log)
-    for recording in range(2):
-        list(bar.counted([None] * 30))
-        bar.recording_done("done")
-    bar.close()
-    text = log.getvalue()
-    assert "\r" not in text and text.endswith("\n"), repr(text)
-    lines = text.splitlines()
-    assert 2 <= len(lines) <= 3, lines  # the first, the last, and one more if a 30 s tick fell
-    assert "60/60" in lines[-1] and "2/2 recordings" in lines[-1]
-
-    class Tty(io.StringIO):
-        def isatty(self) -> bool:
-            return True
-
-    tty = Tty()
-    bar = _FleetProgress(60, 2, 0, 0, enabled=True, stream=tty)
-    list(bar.counted([None] * 60))
-    bar.close()
-    assert "\r" in tty.getvalue() and "60/60" in tty.getvalue()
-
-
 def test_every_option_has_help_that_states_its_default() -> None:
     """`ficap VERB --help`: no option without a help text, and every option with a default says
     which (a user should not have to read the code for it)."""

@@ -19,7 +19,8 @@ from std_srvs.srv import Trigger
 
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.ros import msgs as ros_msgs
-from ficap_ros.ros.node import FicapNode, make_executor
+from ficap_ros.ros.node import FicapNode
+from ficap_ros.ros.spin import make_executor
 
 WAIT_S = 10.0
 
@@ -57,7 +58,7 @@ class Harness:
         self.calibrate = self.peer.create_client(Trigger, "/ficap_node/calibrate")
         self.clear = self.peer.create_client(Trigger, "/ficap_node/clear_calibration")
         self.set_params = self.peer.create_client(SetParameters, "/ficap_node/set_parameters")
-        # One spin thread for node and peer, as ficap_node spins (node.make_executor says why).
+        # One spin thread for node and peer, as ficap_node spins (spin.make_executor says why).
         self.executor = make_executor(context=self.context)
         self.executor.add_node(self.node)
         self.executor.add_node(self.peer)

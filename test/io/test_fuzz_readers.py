@@ -21,10 +21,10 @@ from ficap_ros.errors import FicapError, ImageError
 from ficap_ros.geometry.camera import CameraModel, load_camera_yaml
 from ficap_ros.geometry.cap_model import load_model, nominal_model
 from ficap_ros.io.bag_writer import BagWriter, camera_info_msg, image_msg
+from ficap_ros.io.calibration_file import load_calibration
 from ficap_ros.io.image_codec import ENCODINGS, decode_compressed, decode_image
 from ficap_ros.io.labels import read_labels
 from ficap_ros.io.sources import CAMERA_INFO_TYPE, IMAGE_TYPE, open_frames
-from ficap_ros.vision.calibration import load_calibration
 
 CAM = CameraModel(64, 48, np.array([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]]),
                   np.array([0.1, -0.05, 0.0, 0.0, 0.0]), "plumb_bob")

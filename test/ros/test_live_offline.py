@@ -22,15 +22,12 @@ from ficap_ros.geometry.transform import Transform
 from ficap_ros.io import bag_writer
 from ficap_ros.io import sources as bag_io
 from ficap_ros.io.bag_writer import BagWriter
+from ficap_ros.io.calibration_file import load_calibration
 from ficap_ros.io.sources import open_frames
 from ficap_ros.ros import msgs as ros_msgs
 from ficap_ros.tools.replay import replay
 from ficap_ros.tools.synth import RenderConfig, default_scene, render
-from ficap_ros.vision.calibration import (
-    CalibrationRecorder,
-    load_calibration,
-    reference_pairs,
-)
+from ficap_ros.vision.calibration import CalibrationRecorder, reference_pairs
 from ficap_ros.vision.pose import PoseConfig
 
 T0 = 10**9

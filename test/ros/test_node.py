@@ -223,11 +223,8 @@ def test_shipped_params_file_applies_under_a_namespace_and_new_name(tmp_path) ->
 def test_calibration_file_loaded_at_start_and_cleared(harness_factory, tmp_path) -> None:
     from scipy.spatial.transform import Rotation
 
-    from ficap_ros.vision.calibration import (
-        CalibrationResult,
-        load_calibration,
-        save_calibration,
-    )
+    from ficap_ros.io.calibration_file import load_calibration, save_calibration
+    from ficap_ros.vision.calibration import CalibrationResult
 
     path = tmp_path / "calib.yaml"
     R = Rotation.from_euler("xyz", [3.0, -8.0, 2.0], degrees=True)

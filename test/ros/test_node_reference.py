@@ -76,7 +76,7 @@ def test_reference_calibration_with_noisy_reference(harness_factory, tmp_path) -
     from ficap_ros.cli.main import main
     from ficap_ros.geometry.transform import Transform
     from ficap_ros.io.bag_writer import BagWriter, pose_stamped_msg
-    from ficap_ros.vision.calibration import load_calibration
+    from ficap_ros.io.calibration_file import load_calibration
 
     with h.lock:
         caps = list(h.cap)

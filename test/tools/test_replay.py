@@ -212,7 +212,7 @@ def test_stats_from_labels_and_bag_agree(drive: Path, replayed: Path, tmp_path: 
 
 
 def test_calibrate_frontal_from_labels(drive: Path, replayed: Path, tmp_path: Path) -> None:
-    from ficap_ros.vision.calibration import load_calibration
+    from ficap_ros.io.calibration_file import load_calibration
 
     out = tmp_path / "cal.yaml"
     assert main(["calibrate", str(replayed), "--frontal", "0:2.9", "--min-frames", "10",

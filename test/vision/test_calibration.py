@@ -10,13 +10,9 @@ from ficap_ros.errors import CalibrationError
 from ficap_ros.geometry.metrics import angle_deg, rotation_from_ypr_deg
 from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform
 from ficap_ros.vision.calibration import (
-    CalibrationResult,
-    HeadCalibration,
     calibrate_frontal,
     calibrate_reference,
     frontal_from_camera_mount,
-    load_calibration,
-    save_calibration,
 )
 
 
@@ -117,91 +113,3 @@ def test_frontal_frame_from_camera_mount_axes() -> None:
     # Camera yawed to the left: vehicle forward appears to the right of the image centre (+x).
     fwd_cam = frontal_from_camera_mount(_mount(yaw_left_deg=15.0)).apply([1.0, 0.0, 0.0])
     assert fwd_cam[0] > 0 and np.degrees(np.arctan2(fwd_cam[0], fwd_cam[2])) == pytest.approx(15.0)
-
-
-def test_save_load_round_trip(tmp_path) -> None:
-    R_cap_head = Rotation.random(random_state=7)
-    R_cam_frontal = frontal_from_camera_mount(_mount(pitch_down_deg=5.0))
-    res = CalibrationResult(R_cap_head, 42, 1.25, "reference", Rotation.random(random_state=8))
-    path = tmp_path / "sub" / "calib.yaml"
-    save_calibration(path, res, R_cam_frontal=R_cam_frontal)
-    text = path.read_text()
-    assert "quaternion_order: wxyz" in text and "R_cam_reference_q_wxyz" in text
-    loaded = load_calibration(path)
-    assert loaded.calibrated
-    assert angle_deg(loaded.R_cap_head, R_cap_head) < 1e-6
-    assert angle_deg(loaded.R_cam_frontal, R_cam_frontal) < 1e-6
-    save_calibration(path, HeadCalibration())
-    assert not load_calibration(path).calibrated
-    assert list(path.parent.iterdir()) == [path]  # no temporary files left behind
-
-
-def test_load_refuses_bad_files(tmp_path) -> None:
-    with pytest.raises(CalibrationError, match="cannot read"):
-        load_calibration(tmp_path / "missing.yaml")
-    bad = tmp_path / "bad.yaml"
-    bad.write_text("R_cap_head_q_wxyz: [0, 0, 0, 0]\n")
-    with pytest.raises(CalibrationError, match="not a valid quaternion"):
-        load_calibration(bad)
-    bad.write_text("just: text\n")
-    with pytest.raises(CalibrationError, match="R_cap_head_q_wxyz"):
-        load_calibration(bad)
-
-
-def test_live_calibration_frontal_frame_rule(tmp_path) -> None:
-    """One rule live and offline (``calibrated_frontal``): a reference calibration's frame is the
-    frontal frame without a camera mount; a mount fixes it; clearing returns to the mount's."""
-    from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform
-    from ficap_ros.vision.calibration import (
-        CalibrationResult,
-        LiveCalibration,
-        frontal_from_camera_mount,
-    )
-
-    R_ref = Rotation.from_euler("ZYX", [170.0, 20.0, -5.0], degrees=True)
-    result = CalibrationResult(Rotation.from_euler("x", 3.0, degrees=True), 50, 0.5, "reference",
-                               R_ref)
-    live = LiveCalibration()
-    before = live.current
-    after = live.apply(result)
-    assert before is not after and not before.calibrated  # swapped whole, never mutated
-    assert angle_deg(live.current.R_cam_frontal, R_ref) < 1e-9
-    mount = Transform(Rotation.from_euler("y", 10.0, degrees=True) * CAM_FROM_FORWARD.inv(),
-                      np.zeros(3))
-    live.set_mount(mount)
-    assert angle_deg(live.current.R_cam_frontal, frontal_from_camera_mount(mount)) < 1e-9
-    assert angle_deg(live.current.R_cap_head, result.R_cap_head) < 1e-9
-    ok, message = live.persist(tmp_path / "cal.yaml", result, "calibrated")
-    assert ok and message.endswith("cal.yaml")
-    cleared = live.clear()
-    assert not cleared.calibrated and angle_deg(cleared.R_cam_frontal,
-                                                frontal_from_camera_mount(mount)) < 1e-9
-    assert LiveCalibration().load(tmp_path / "cal.yaml") == ""  # no mount: the file's frame kept
-
-
-def test_live_calibration_service_outcomes(tmp_path) -> None:
-    from ficap_ros.vision.calibration import CalibrationResult, LiveCalibration
-
-    live = LiveCalibration()
-    assert live.start("") == [] and live.start(tmp_path / "missing.yaml") == []
-
-    def refuse() -> CalibrationResult:
-        raise CalibrationError("no reliable frames buffered for frontal calibration")
-
-    assert live.calibrate(refuse, "") == ("refused", "calibration refused: no reliable frames "
-                                          "buffered for frontal calibration")
-    R = Rotation.from_euler("xyz", [2.0, -5.0, 1.0], degrees=True)
-    outcome, message = live.calibrate(lambda: CalibrationResult(R, 60, 0.3, "frontal"),
-                                      tmp_path / "cal.yaml")
-    assert outcome == "ok" and message.startswith("calibrated (frontal) from 60 frames")
-    assert live.current.calibrated
-    blocker = tmp_path / "file"
-    blocker.write_text("x")
-    outcome, message = live.clear_and_save(blocker / "cal.yaml")  # its folder is a file
-    assert outcome == "unsaved" and "NOT updated" in message and not live.current.calibrated
-    other = LiveCalibration()
-    log = other.start(tmp_path / "cal.yaml")
-    assert log[-1][0] == "info" and other.current.calibrated
-    assert angle_deg(other.current.R_cap_head, R) < 1e-6
-    (tmp_path / "bad.yaml").write_text("not: a calibration")
-    assert LiveCalibration().start(tmp_path / "bad.yaml")[0][0] == "error"

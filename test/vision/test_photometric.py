@@ -113,13 +113,13 @@ def test_photometric_fit_takes_colour_frames_and_refuses_what_it_cannot_do() -> 
 
 
 def test_pipeline_takes_the_uncertainty_profile_of_its_corners() -> None:
-    """The default uncertainty means the synth-calibrated profile of the corner estimator in use
+    """An unset uncertainty (None) means the synth-calibrated profile of the corner estimator in use
     (``UncertaintyConfig.for_corners``): with photometric corners the pipeline's bounds are those of
     ``estimate_cap_pose`` with the photometric profile on the same detections (tilt gain 0.1, so a
     narrower translation bound under spotlights than the default corners' profile would give), with
     the default corners those of ``PoseConfig()``; an uncertainty set by the user is kept; and the
-    fleet fingerprint's pose is the one applied (the default corners' as it always was)."""
-    from ficap_ros.tools.fleet import label_settings
+    fleet fingerprint's pose is the one applied."""
+    from ficap_ros.tools.fleet.fingerprints import config_json, label_settings
     from ficap_ros.vision.detection import as_gray
     from ficap_ros.vision.pipeline import (
         FrameProcessor,
@@ -147,13 +147,16 @@ def test_pipeline_takes_the_uncertainty_profile_of_its_corners() -> None:
         assert bounds["photometric"][0] < 0.9 * bounds["edge"][0]
         err_mm = 1e3 * np.linalg.norm(r.pose.T_cam_cap.translation_m - fr.T_cam_cap.translation_m)
         assert err_mm <= r.pose.trans_err95_mm
-    # A set uncertainty is the user's, whatever the corners; the default corners' pose is the pose.
+    # A set uncertainty is the user's, whatever the corners, even the defaults; unset is resolved.
     mine = PoseConfig(uncertainty=UncertaintyConfig(light_gradient_tilt_gain=0.2))
     assert pose_config_for(mine, DetectorConfig(edge_photometric=True)) is mine
-    assert pose_config_for(PoseConfig(), DetectorConfig()) == PoseConfig()
-    assert label_settings(MODEL, PoseConfig())["pose"] == repr(PoseConfig())
+    defaults = PoseConfig(uncertainty=UncertaintyConfig())
+    assert pose_config_for(defaults, DetectorConfig(edge_photometric=True)) is defaults
+    assert pose_config_for(PoseConfig(), DetectorConfig()) == defaults
+    assert label_settings(MODEL, PoseConfig())["pose"] == config_json(defaults)
     photo = label_settings(MODEL, PoseConfig(), detector=DetectorConfig(edge_photometric=True))["pose"]
-    assert photo == repr(PoseConfig(uncertainty=photo_u)) and "light_gradient_tilt_gain=0.1," in photo
+    assert photo == config_json(PoseConfig(uncertainty=photo_u))
+    assert photo["uncertainty"]["light_gradient_tilt_gain"] == 0.1
 
 
 def test_photometric_fit_leaves_a_tag_without_contrast_unfitted() -> None:

@@ -1,51 +1,18 @@
-"""ficap replay over a fleet: layout, fingerprints and skipping, and a local Ray (2 CPUs)."""
+"""ficap_ros.tools.fleet.ray_engine: a local Ray (2 CPUs) on loopback, labels identical to one
+process, a dead worker retried, a broken segment failing its recording only."""
 
 from __future__ import annotations
 
 import json
 import os
-import subprocess
-import sys
 from pathlib import Path
 
 import pytest
+from fleet_inputs import FLEET_FRAMES as FRAMES
+from fleet_inputs import FLEET_SEGMENT as SEGMENT
 
 from ficap_ros.cli.main import main
-from ficap_ros.errors import BagError
-from ficap_ros.tools import replay as replay_mod
-from ficap_ros.tools.fleet import (
-    Recording,
-    find_recordings,
-    fingerprint,
-    input_identity,
-)
-
-FRAMES = 20
-#: Segments of 8 frames, so 20-frame recordings span three segments (two full, one short) and
-#: the Ray engine must put them back in order; set in this process, where segments are cut.
-SEGMENT = 8
-
-
-@pytest.fixture(scope="module")
-def fleet_in(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """Three small synth recordings under a tree: two bag folders and a truncated .mcap file."""
-    root = tmp_path_factory.mktemp("fleet") / "drives"
-    for seed, rel in ((1, "alice/d1"), (2, "bob/d2"), (3, "bob/d3")):
-        assert main(["synth", "--out", str(root / rel), "--resolution", "480x270", "--frames",
-                     str(FRAMES), "--fps", "10", "--seed", str(seed), "--quiet"]) == 0
-    # d3 becomes a lone .mcap cut at 60 %: what a recorder killed mid-drive leaves.
-    whole = next((root / "bob/d3").glob("*.mcap"))
-    data = whole.read_bytes()
-    (root / "bob/cut.mcap").write_bytes(data[: len(data) * 6 // 10])
-    for f in (root / "bob/d3").iterdir():
-        f.unlink()
-    (root / "bob/d3").rmdir()
-    return root
-
-
-@pytest.fixture
-def small_segments(monkeypatch: pytest.MonkeyPatch) -> None:
-    monkeypatch.setattr(replay_mod, "SEGMENT_FRAMES", SEGMENT)
+from ficap_ros.tools.fleet.manifest import Recording
 
 
 def _tcp_sockets() -> dict[int, tuple[str, str]]:
@@ -56,6 +23,7 @@ def _tcp_sockets() -> dict[int, tuple[str, str]]:
             parts = line.split()
             out[int(parts[9])] = (parts[1].split(":")[0], parts[2].split(":")[0])
     return out
+
 
 
 def _descendants(pid: int) -> set[int]:
@@ -76,6 +44,7 @@ def _descendants(pid: int) -> set[int]:
     return seen
 
 
+
 def _is_loopback(hex_addr: str) -> bool:
     if len(hex_addr) == 8:  # IPv4, little-endian bytes: 127.x.x.x has 0x7F last
         return hex_addr[6:8] == "7F" or hex_addr == "00000000"
@@ -89,7 +58,7 @@ def local_ray():
     """The embedded Ray of ``--ray`` (2 CPUs), shared by this module's runs and shut down after."""
     pytest.importorskip("ray")
     from ficap_ros.geometry.cap_model import nominal_model
-    from ficap_ros.tools.fleet import RayEngine
+    from ficap_ros.tools.fleet.ray_engine import RayEngine
     from ficap_ros.vision.pose import PoseConfig
 
     engine = RayEngine(nominal_model(), PoseConfig(), num_cpus=2)
@@ -173,127 +142,14 @@ def test_ray_fleet_identical_resumable_and_reports_damage(
         assert (out / rel / "labels.csv").read_bytes() == (ref / "labels.csv").read_bytes()
 
 
-def test_changed_settings_redo_a_recording(fleet_in: Path, tmp_path: Path) -> None:
-    """The fingerprint holds every label-changing setting: --method paper is not skipped."""
-    out = tmp_path / "out"
-    rec = str(fleet_in / "alice/d1")
-    base = ["replay", rec, str(fleet_in / "bob/d2"), "--out", str(out), "--quiet"]
-    assert main(base) == 0
-    assert main(base) == 0
-    doc = json.loads((out / "fleet_summary.json").read_text())
-    assert [r["status"] for r in doc["recordings"]] == ["skipped", "skipped"]
-    assert main(base + ["--method", "paper"]) == 0
-    doc = json.loads((out / "fleet_summary.json").read_text())
-    assert [r["status"] for r in doc["recordings"]] == ["done", "done"]
-    summary = json.loads((out / "d1" / "summary.json").read_text())
-    assert summary["method"] == "paper" and summary["fingerprint"]["settings"]["pose"].count("paper")
-
-
-def test_photometric_fleet_matches_a_single_photometric_replay(fleet_in: Path, tmp_path: Path) -> None:
-    """--photometric reaches every recording of a fleet and its fingerprint: the default run's
-    outputs are redone, and each recording's labels are the single-recording --photometric ones."""
-    out = tmp_path / "out"
-    recs = [str(fleet_in / "alice/d1"), str(fleet_in / "bob/d2")]
-    assert main(["replay", *recs, "--out", str(out), "--quiet"]) == 0
-    default = (out / "d1" / "labels.csv").read_text()
-    assert "photometric" not in json.loads((out / "d1" / "summary.json").read_text())  # as before
-    assert main(["replay", *recs, "--out", str(out), "--quiet", "--photometric"]) == 0
-    doc = json.loads((out / "fleet_summary.json").read_text())
-    assert [r["status"] for r in doc["recordings"]] == ["done", "done"]
-    settings = json.loads((out / "d1" / "summary.json").read_text())["fingerprint"]["settings"]
-    assert "edge_photometric=True" in settings["detector"]
-    single = tmp_path / "single"
-    assert main(["replay", recs[0], "--out", str(single), "--quiet", "--photometric"]) == 0
-    assert (out / "d1" / "labels.csv").read_text() == (single / "labels.csv").read_text() != default
-    # summary.json says how the labels were made: the single replay's too (it has no fingerprint).
-    assert json.loads((single / "summary.json").read_text())["photometric"] is True
-    assert json.loads((out / "d1" / "summary.json").read_text())["photometric"] is True
-    assert main(["replay", *recs, "--out", str(out), "--quiet", "--photometric"]) == 0
-    doc = json.loads((out / "fleet_summary.json").read_text())
-    assert [r["status"] for r in doc["recordings"]] == ["skipped", "skipped"]
-
-
-def test_interrupted_recording_is_redone(fleet_in: Path, tmp_path: Path) -> None:
-    """Outputs without their summary.json (a run killed while writing) are not current."""
-    out = tmp_path / "out"
-    base = ["replay", str(fleet_in / "alice/d1"), str(fleet_in / "bob/d2"), "--out", str(out), "--quiet"]
-    assert main(base) == 0
-    (out / "d2" / "summary.json").unlink()
-    assert main(base) == 0
-    doc = json.loads((out / "fleet_summary.json").read_text())
-    assert [r["status"] for r in doc["recordings"]] == ["skipped", "done"]
-
-
-def test_layout_mirrors_inputs_and_manifest(fleet_in: Path, tmp_path: Path) -> None:
-    one_tree = find_recordings([fleet_in])
-    assert {str(r.rel) for r in one_tree} == {"alice/d1", "bob/d2", "bob/cut"}
-    assert {r.path for r in one_tree} == {fleet_in / "alice/d1", fleet_in / "bob/d2",
-                                          fleet_in / "bob/cut.mcap"}
-    two = find_recordings([fleet_in / "alice", fleet_in / "bob/cut.mcap"])
-    assert [str(r.rel) for r in two] == ["alice/d1", "cut"]
-    assert find_recordings([fleet_in / "alice/d1"]) == [Recording(fleet_in / "alice/d1", Path("."))]
-    manifest = fleet_in / "fleet.txt"
-    manifest.write_text("# the drives\nalice/d1\n\nbob/cut.mcap  # truncated\n")
-    try:
-        got = find_recordings([], manifest)
-    finally:
-        manifest.unlink()
-    assert [(r.path, str(r.rel)) for r in got] == [(fleet_in / "alice/d1", "alice/d1"),
-                                                   (fleet_in / "bob/cut.mcap", "bob/cut")]
-    # Outputs written inside the searched tree are not taken for recordings.
-    out = fleet_in / "labels_out"
-    (out / "x").mkdir(parents=True)
-    (out / "x" / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
-    try:
-        assert len(find_recordings([fleet_in], out=out)) == 3
-    finally:
-        (out / "x" / "metadata.yaml").unlink()
-        (out / "x").rmdir()
-        out.rmdir()
-    (tmp_path / "other").mkdir()
-    (tmp_path / "other" / "cut.mcap").write_bytes(b"\x89MCAP0\r\n")
-    with pytest.raises(BagError, match="would both write"):
-        find_recordings([fleet_in / "bob/cut.mcap", tmp_path / "other" / "cut.mcap"])
-    (tmp_path / "empty").mkdir()
-    with pytest.raises(BagError, match="no recording"):
-        find_recordings([tmp_path / "empty"])
-    with pytest.raises(BagError, match="does not exist"):
-        find_recordings([tmp_path / "nope"])
-
-
-def test_fingerprint_follows_the_input_not_its_place(fleet_in: Path, tmp_path: Path) -> None:
-    settings = {"method": "joint"}
-    a = fingerprint(fleet_in / "alice/d1", settings)
-    copy = tmp_path / "d1"
-    copy.mkdir()
-    for f in (fleet_in / "alice/d1").iterdir():
-        (copy / f.name).write_bytes(f.read_bytes())
-    assert fingerprint(copy, settings)["sha256"] == a["sha256"]  # a copied fleet still resumes
-    mcap = next(copy.glob("*.mcap"))
-    data = bytearray(mcap.read_bytes())
-    data[-100] ^= 0xFF
-    mcap.write_bytes(bytes(data))
-    assert fingerprint(copy, settings)["sha256"] != a["sha256"]
-    assert fingerprint(fleet_in / "alice/d1", {"method": "paper"})["sha256"] != a["sha256"]
-    assert set(input_identity(copy)["files"]) == {mcap.name, "metadata.yaml"}
-
-
-def test_no_ray_import_without_ray(fleet_in: Path, tmp_path: Path) -> None:
-    code = ("import sys; from ficap_ros.cli.main import main; "
-            f"rc = main(['replay', {str(fleet_in / 'alice/d1')!r}, {str(fleet_in / 'bob/d2')!r}, "
-            f"'--out', {str(tmp_path / 'o')!r}, '--quiet']); "
-            "assert rc == 0, rc; assert 'ray' not in sys.modules, 'ray imported'; print('ok')")
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
-    assert proc.returncode == 0, proc.stderr[-2000:]
-    assert proc.stdout.strip().endswith("ok")
-
-
 def test_ray_retries_a_dead_worker_and_fails_only_the_broken_recording(
     fleet_in: Path, tmp_path: Path, local_ray, small_segments
 ) -> None:
     from ficap_ros.geometry.cap_model import nominal_model
     from ficap_ros.io.sources import open_frames
-    from ficap_ros.tools.fleet import RayEngine, label_settings, run_fleet
+    from ficap_ros.tools.fleet.fingerprints import label_settings
+    from ficap_ros.tools.fleet.ray_engine import RayEngine
+    from ficap_ros.tools.fleet.run import run_fleet
     from ficap_ros.vision.pose import PoseConfig
 
     model, pose = nominal_model(), PoseConfig()
@@ -309,12 +165,12 @@ def test_ray_retries_a_dead_worker_and_fails_only_the_broken_recording(
         import os as _os
         from pathlib import Path as _Path
 
-        from ficap_ros.tools.fleet import _ray_segment
+        from ficap_ros.tools.fleet.ray_engine import ray_segment
 
         if not _Path(marker).exists():
             _Path(marker).touch()
             _os._exit(1)
-        return _ray_segment(config, raws)
+        return ray_segment(config, raws)
 
     engine = RayEngine(model, pose, retries=2, segment_fn=dies_once)
     fleet = run_fleet(recs[:1], tmp_path / "retried", open_frames, model, pose, settings,
@@ -327,11 +183,11 @@ def test_ray_retries_a_dead_worker_and_fails_only_the_broken_recording(
     poison = next(iter(open_frames(recs[1].path).raw_frames())).payload
 
     def breaks_on_d2(config, raws):
-        from ficap_ros.tools.fleet import _ray_segment
+        from ficap_ros.tools.fleet.ray_engine import ray_segment
 
         if any(r.payload == poison for r in raws):
             raise RuntimeError("pipeline bug on this segment")
-        return _ray_segment(config, raws)
+        return ray_segment(config, raws)
 
     engine = RayEngine(model, pose, retries=2, segment_fn=breaks_on_d2)
     fleet = run_fleet(recs, tmp_path / "isolated", open_frames, model, pose, settings,
