@@ -13,7 +13,7 @@ from ficap_ros.geometry.metrics import rotation_from_ypr_deg
 from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform
 from ficap_ros.io.bag_writer import BagWriter, pose_stamped_msg
 from ficap_ros.io.calibration_file import load_calibration
-from ficap_ros.io.labels import labels_csv_text, record_from_pose
+from ficap_ros.io.labels import FrameRecord, labels_csv_text
 from ficap_ros.vision.calibration import HeadCalibration
 from ficap_ros.vision.pose import CapPose
 
@@ -39,7 +39,7 @@ def _drive(tmp_path: Path, noise_deg: float = 0.2) -> tuple[Path, np.ndarray, Ro
     for i in range(N):
         pose = CapPose(Transform(R_cam_cap[i], [0.0, 0.06, 0.54]), 8, 8, tuple(range(8)), 0.2,
                        np.eye(6) * 1e-6, 0.95, "joint")
-        recs.append(record_from_pose(i, int(stamps[i]), "cam", pose, tuple(range(8)), "", cal))
+        recs.append(FrameRecord.processed(i, int(stamps[i]), "cam", pose, tuple(range(8)), "", cal))
     path = tmp_path / "labels.csv"
     path.write_text(labels_csv_text(recs))
     return path, stamps, R_frontal_head

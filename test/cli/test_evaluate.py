@@ -14,7 +14,7 @@ from ficap_ros.cli.main import main
 from ficap_ros.geometry.metrics import rotation_from_ypr_deg
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.io.bag_writer import BagWriter, pose_stamped_msg
-from ficap_ros.io.labels import labels_csv_text, record_from_pose
+from ficap_ros.io.labels import FrameRecord, labels_csv_text
 from ficap_ros.stamps import pair_by_stamp
 from ficap_ros.tools.evaluation import evaluate, load_series
 from ficap_ros.vision.calibration import HeadCalibration
@@ -37,12 +37,12 @@ def _truth(tmp_path: Path) -> tuple[Path, Rotation, np.ndarray]:
     records = []
     for i in range(N):
         if i % 5 == 4:
-            records.append(record_from_pose(i, int(stamps[i]), "cam", None, (), "no tag", cal))
+            records.append(FrameRecord.processed(i, int(stamps[i]), "cam", None, (), "no tag", cal))
             continue
         R_cam_cap = cal.R_cam_frontal * R_frontal_head[i]
         pose = CapPose(Transform(R_cam_cap, [0.0, 0.1, 0.5]), 6, 6, (1, 2, 3, 4, 5, 6), 0.3,
                        np.eye(6) * 1e-6, 0.9, "joint")
-        records.append(record_from_pose(i, int(stamps[i]), "cam", pose, (1, 2, 3, 4, 5, 6), "", cal))
+        records.append(FrameRecord.processed(i, int(stamps[i]), "cam", pose, (1, 2, 3, 4, 5, 6), "", cal))
     path = tmp_path / "labels.csv"
     path.write_text(labels_csv_text(records))
     return path, R_frontal_head, stamps

@@ -1,42 +1,69 @@
-"""ficap_ros.io.status: one status level and message per frame for the node and labels.mcap."""
+"""ficap_ros.io.status: one status level, message and values per frame record, for the node and
+labels.mcap alike; the node's health over a period."""
 
 from __future__ import annotations
 
 import math
 
-from ficap_ros.io.status import ERROR, OK, WARN, WARN_RELIABILITY, frame_status
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ficap_ros.geometry.transform import Transform
+from ficap_ros.io.labels import FrameRecord
+from ficap_ros.io.status import (
+    ERROR,
+    OK,
+    WARN,
+    WARN_RELIABILITY,
+    FrameStatus,
+    quality_values,
+    record_status,
+    status_reason,
+    status_values,
+)
+from ficap_ros.vision.calibration import HeadCalibration
+from ficap_ros.vision.pose import CapPose
 
 
-def test_frame_status_levels() -> None:
-    assert frame_status(True, 0.9) == (OK, "pose")
-    assert frame_status(True, WARN_RELIABILITY - 0.01) == (WARN, "low reliability 0.49")
-    assert frame_status(True, 0.3, warn_reliability=0.2) == (OK, "pose")
-    assert frame_status(False, math.nan, "no tag of the model detected") == (
-        WARN, "no pose: no tag of the model detected")
-    assert frame_status(False, math.nan) == (WARN, "no pose: no tags")
-    assert frame_status(False, math.nan, error="undecodable: bad JPEG") == (ERROR, "undecodable: bad JPEG")
+def _pose(reliability: float) -> CapPose:
+    T = Transform(Rotation.from_euler("xyz", [170.0, 5.0, -3.0], degrees=True), [0.01, -0.02, 0.6])
+    return CapPose(T, 6, 5, (1, 2, 3, 4, 5), 0.12, np.eye(6) * 1e-8, reliability, "joint", 0.4, 0.9)
 
 
-def test_label_record_values_feed_status_and_quality() -> None:
-    """One record per frame gives the status values, quality numbers and level of the node and
-    labels.mcap alike (``record_status`` = ``frame_status`` of its fields)."""
-    from ficap_ros.io.status import (
-        quality_values,
-        record_from_pose,
-        record_status,
-        status_values,
-    )
-    from ficap_ros.vision.calibration import HeadCalibration
-
-    cal = HeadCalibration()
-    none = record_from_pose(3, 10, "", None, (4, 2), "no tag of the model detected", cal)
-    assert none.frame_id == "camera_optical_frame" and none.detected_ids == (2, 4)
+def test_levels_and_messages() -> None:
+    """OK with a reliable pose, WARN below ``warn_reliability`` or without a pose, ERROR when the
+    image could not be processed (an undecodable image says so, a failed one gives its reason)."""
+    posed = FrameRecord.processed(0, 10, "cam", _pose(0.9), (1, 2, 3, 4, 5, 6))
+    assert posed.status is FrameStatus.POSE and record_status(posed) == (OK, "pose")
+    weak = FrameRecord.processed(0, 10, "cam", _pose(WARN_RELIABILITY - 0.01), (1,))
+    assert record_status(weak) == (WARN, "low reliability 0.49")
+    assert record_status(weak, warn_reliability=0.2) == (OK, "pose")
+    none = FrameRecord.processed(3, 10, "", None, (4, 2, 4), "no tag of the model detected")
+    assert none.status is FrameStatus.NO_POSE and none.frame_id == "camera_optical_frame"
+    assert none.detected_ids == (2, 4) and none.tags_detected == 2
     assert record_status(none) == (WARN, "no pose: no tag of the model detected")
+    assert record_status(FrameRecord.processed(0, 10, "cam", None, ())) == (WARN, "no pose: no pose")
+    bad = FrameRecord.unprocessed(4, 11, "cam", "bad JPEG")
+    assert bad.skipped and status_reason(bad) == "undecodable: bad JPEG"
+    assert record_status(bad) == (ERROR, "undecodable: bad JPEG")
+    failed = FrameRecord.unprocessed(0, 11, "cam", "no CameraInfo received", FrameStatus.FAILED)
+    assert not failed.skipped and record_status(failed) == (ERROR, "no CameraInfo received")
+
+
+def test_values_and_quality_come_from_the_record() -> None:
+    cal = HeadCalibration(calibrated=True)
+    none = FrameRecord.processed(3, 10, "", None, (4, 2), "no tag", cal)
     assert quality_values(none)["reliability"] == 0.0 and math.isnan(quality_values(none)["rms_px"])
     assert list(status_values(none)) == ["tags_detected", "tags_used", "rms_px", "reliability",
                                          "rot_err95_deg", "trans_err95_mm", "calibrated"]
-    bad = record_from_pose(4, 11, "cam", None, (), "undecodable: bad JPEG", cal)
-    assert record_status(bad) == (ERROR, "undecodable: bad JPEG")
+    assert status_values(none)["calibrated"] is True
+    posed = FrameRecord.processed(0, 10, "cam", _pose(0.9), (1, 2, 3, 4, 5, 6), calibration=cal)
+    values = status_values(posed)
+    assert (values["tags_detected"], values["tags_used"], values["reliability"]) == (6, 5, 0.9)
+    assert values["rot_err95_deg"] == 0.4 and values["trans_err95_mm"] == 0.9
+    assert {"yaw_deg", "pitch_deg", "roll_deg"} <= set(values)
+    assert quality_values(posed) == {"tags_detected": 6.0, "tags_used": 5.0, "reliability": 0.9,
+                                     "rms_px": 0.12, "rot_err95_deg": 0.4, "trans_err95_mm": 0.9}
 
 
 def test_period_stats_and_health() -> None:

@@ -13,10 +13,15 @@ from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.geometry.metrics import angle_deg
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.io import bag_writer
-from ficap_ros.io.status import ERROR, OK, WARN
-from ficap_ros.ros.live import failed_frame, process_image, reference_q_xyzw
+from ficap_ros.io.status import ERROR, OK, WARN, FrameStatus
+from ficap_ros.ros.live import (
+    failed_frame,
+    frame_processor,
+    process_image,
+    reference_q_xyzw,
+)
 from ficap_ros.tools.synth import RenderConfig, default_scene, render
-from ficap_ros.vision.calibration import HeadCalibration, LiveCalibration
+from ficap_ros.vision.calibration import HeadCalibration
 from ficap_ros.vision.pipeline import FrameProcessor
 
 CONFIG = SimpleNamespace(camera_info_max_stamp_diff_ms=1.0, image_is_rectified=False,
@@ -34,10 +39,13 @@ def test_a_rendered_image_gives_its_pose_and_an_ok_status() -> None:
     frame = process_image(msg, FrameProcessor(model=nominal_model()), cameras, HeadCalibration(),
                           CONFIG)
     assert (frame.level, frame.message) == (OK, "pose") and frame.publish_pose
-    assert frame.result is not None and frame.result.pose is not None
-    assert angle_deg(frame.result.pose.T_cam_cap.rotation, truth.rotation) < 0.2
-    assert np.abs(frame.result.pose.T_cam_cap.translation_m - truth.translation_m).max() < 0.005
-    assert frame.record.stamp_ns == S and frame.record.frame_id == "cam"
+    rec = frame.record
+    assert rec.status is FrameStatus.POSE and rec.T_cam_cap is not None and not frame.failed
+    assert angle_deg(rec.T_cam_cap.rotation, truth.rotation) < 0.2
+    assert np.abs(rec.T_cam_cap.translation_m - truth.translation_m).max() < 0.005
+    assert rec.stamp_ns == S and rec.frame_id == "cam" and frame.image is not None
+    assert rec.detected_ids == tuple(sorted({d.tag_id for d in frame.detections}))
+    assert rec.T_cam_head is not None and not rec.calibrated
     values = frame.status_values(12.5, 3)
     assert values["search"] == frame.search == "image" and values["dropped_frames"] == 3
     assert frame.quality_values(12.5)["latency_ms"] == 12.5
@@ -55,14 +63,30 @@ def test_errors_become_failed_frames() -> None:
     msg = bag_writer.image_msg(S, "cam", grey, "mono8")
     frame = process_image(msg, FrameProcessor(model=nominal_model()), CameraInfoCache(),
                           HeadCalibration(), CONFIG)
-    assert frame.level == ERROR and "no CameraInfo" in frame.message and frame.result is None
+    assert frame.level == ERROR and "no CameraInfo" in frame.message and frame.failed
+    assert frame.record.reason == frame.message and frame.image is None
     bad = bag_writer.compressed_image_msg(S, "cam", b"not a jpeg", "jpeg")
     frame = process_image(bad, FrameProcessor(model=nominal_model()), CameraInfoCache(),
                           HeadCalibration(), CONFIG)
-    assert frame.level == ERROR and frame.result is None and frame.record.stamp_ns == S
+    assert frame.level == ERROR and frame.failed and frame.record.stamp_ns == S
     frame = failed_frame(S, "cam", "internal error: boom", HeadCalibration())
     assert (frame.level, frame.message, frame.record.reason) == (
         ERROR, "internal error: boom", "internal error: boom")
+    assert frame.record.status is FrameStatus.FAILED and not frame.record.skipped
+
+
+def test_the_node_settings_build_its_pipeline() -> None:
+    """``frame_processor``: the cap model, detector, pose and tracking of the node's settings."""
+    from ficap_ros.vision.detection import DetectorConfig
+    from ficap_ros.vision.pose import PoseConfig
+
+    cfg = SimpleNamespace(model_file="", detector_config=DetectorConfig(edge_photometric=True),
+                          pose_config=PoseConfig(method="paper"), tracking=False)
+    proc = frame_processor(cfg)
+    assert proc.tracker is None and proc.detector.config.edge_photometric
+    assert proc.pose_config.method == "paper" and proc.model.ids == nominal_model().ids
+    # The pose settings resolved for photometric corners: that profile's uncertainty.
+    assert proc.effective_pose_config.uncertainty.light_gradient_tilt_gain == 0.1
 
 
 def test_reference_quaternions_are_checked_and_normalised() -> None:
@@ -74,8 +98,3 @@ def test_reference_quaternions_are_checked_and_normalised() -> None:
     assert reference_q_xyzw(msg) is None
     msg.pose.orientation.x = float("nan")
     assert reference_q_xyzw(msg) is None
-
-
-def test_live_calibration_says_where_its_calibration_came_from() -> None:
-    live = LiveCalibration()
-    assert live.mode == "none"

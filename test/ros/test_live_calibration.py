@@ -95,3 +95,8 @@ def test_compute_calibration_follows_the_mode() -> None:
     with pytest.raises(CalibrationError, match="reference_topic"):
         compute_calibration(_settings(effective_calibration_mode="reference"), recorder,
                             R_cam_frontal)
+
+
+def test_live_calibration_says_where_its_calibration_came_from() -> None:
+    live = LiveCalibration()
+    assert live.mode == "none"

@@ -53,7 +53,11 @@ def test_every_uncertainty_setting_is_a_parameter_with_its_default() -> None:
     u = cfg.pose_config.uncertainty
     assert (u.tilt_shift_px, u.weight_tags, u.light_gradient_gain) == (0.06, False, 1.0)
     assert isinstance(u.light_gradient_gain, float)
-    assert NodeConfig.from_values(_defaults()).pose_config.uncertainty == UncertaintyConfig()
+    # Parameters cannot be unset: all at their defaults is "not set", the corner estimator's
+    # profile (applied by the pipeline); any one changed sets them all.
+    assert NodeConfig.from_values(_defaults()).pose_config.uncertainty is None
+    one = NodeConfig.from_values(_defaults(**{"uncertainty.focal_rel": 0.01})).pose_config.uncertainty
+    assert one == UncertaintyConfig(focal_rel=0.01)
 
 
 def test_node_defaults_are_the_offline_pipeline_and_the_shipped_file() -> None:
@@ -77,10 +81,10 @@ def test_node_defaults_are_the_offline_pipeline_and_the_shipped_file() -> None:
 
 def test_detector_photometric_reaches_the_detector() -> None:
     # The node's detector.photometric is the CLI's --photometric: DetectorConfig.edge_photometric
-    # of the pipeline it builds; with another corner refinement the node refuses to start.
+    # of its detector settings; with another corner refinement the node refuses to start.
     on = NodeConfig.from_values(_defaults(**{"detector.photometric": True}))
-    assert on.frame_processor().detector.config.edge_photometric is True
-    assert NodeConfig.from_values(_defaults()).frame_processor().detector.config.edge_photometric is False
+    assert on.detector_config.edge_photometric is True
+    assert NodeConfig.from_values(_defaults()).detector_config.edge_photometric is False
     off = NodeConfig.from_values(_defaults(**{"detector.photometric": True, "detector.corner_refine": "subpix"}))
     with pytest.raises(ConfigError, match="photometric"):
-        off.frame_processor()
+        off.detector_config

@@ -283,3 +283,45 @@ def test_keep_freed_memory_takes_on_glibc() -> None:
 
     expected = sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc"
     assert keep_freed_memory() is expected
+
+
+def test_records_take_the_runs_calibration_and_say_what_was_lost(drive: Path, tmp_path: Path) -> None:
+    """An engine hands back each frame's record (uncalibrated) and timings; replay applies the
+    run's calibration to every record, and an undecodable frame is one by its status: labels.csv
+    says ``undecodable: ...``, summary.json counts it lost with its plain reason."""
+    from scipy.spatial.transform import Rotation as R
+
+    from ficap_ros.geometry.cap_model import nominal_model
+    from ficap_ros.io.labels import UNCALIBRATED, FrameRecord
+    from ficap_ros.io.sources import open_frames
+    from ficap_ros.io.status import FrameStatus
+    from ficap_ros.tools.replay import ReplayedFrame, process_frames, replay
+    from ficap_ros.vision.calibration import HeadCalibration
+    from ficap_ros.vision.pose import PoseConfig
+
+    model, pose = nominal_model(), PoseConfig()
+    handed: list[ReplayedFrame] = []
+
+    def engine(raws):  # noqa: ANN001, ANN202
+        for f in process_frames(raws, model, pose):
+            if f.record.index == 2:
+                f = ReplayedFrame(FrameRecord.unprocessed(2, f.record.stamp_ns, f.record.frame_id,
+                                                          "bad JPEG", method=pose.method))
+            handed.append(f)
+            yield f
+
+    cal = HeadCalibration(R.from_euler("y", 5.0, degrees=True), calibrated=True)
+    out = replay(open_frames(drive), tmp_path / "out", model, pose, cal, engine=engine,
+                 progress=False)
+    assert all(f.record.calibration is UNCALIBRATED for f in handed)
+    assert len(out.records) == FRAMES and all(r.calibration is cal for r in out.records)
+    assert all(r.calibrated for r in out.records)
+    assert [r.status for r in out.records].count(FrameStatus.UNDECODABLE) == 1
+    assert out.summary["frames_skipped"] == 1 and out.summary["skipped_reasons"] == {"bad JPEG": 1}
+    assert out.summary["frames_decoded"] == FRAMES - 1
+    labels = read_labels(tmp_path / "out")
+    assert labels.reasons[2] == "undecodable: bad JPEG" and labels.skipped.tolist().count(True) == 1
+    assert labels.calibrated.all()
+    posed = next(r for r in out.records if r.pose is not None)
+    R_frontal_head = cal.R_cam_frontal.inv() * posed.T_cam_cap.rotation * cal.R_cap_head
+    assert np.degrees((posed.T_frontal_head.rotation.inv() * R_frontal_head).magnitude()) < 1e-9

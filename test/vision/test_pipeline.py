@@ -107,3 +107,25 @@ def test_half_occluded() -> None:
     occluded = _errors(OURS, scene, frames, edit=_occlude_half)
     assert np.all(np.isfinite(occluded)), "no pose with half the tags occluded"
     assert np.median(occluded) < 2.0 * np.median(clean)
+
+
+def test_a_frame_result_and_pose_settings_replaced_between_frames() -> None:
+    """What a frame shows: its tags (ids sorted, each once), the cap pose, how they were found and
+    the time spent; ``pose_config`` replaced as a whole applies from the next frame (the node's
+    parameters), and an unset uncertainty is the default corners' profile."""
+    from ficap_ros.vision.pose import UncertaintyConfig
+
+    scene, frames = _frames("540p", 2, seed=3)
+    proc = FrameProcessor(MODEL)
+    assert proc.effective_pose_config.uncertainty == UncertaintyConfig()
+    r = proc.process(frames[0][0].image, scene.camera, 1_000)
+    assert r.pose is not None and r.reason == "" and r.search == "image"
+    assert r.detected_ids == tuple(sorted({d.tag_id for d in r.detections}))
+    assert r.tags_detected == len(r.detected_ids) >= r.pose.tags_used
+    assert r.detect_ms > 0 and r.pose_ms > 0
+    proc.pose_config = PoseConfig(method="paper")
+    r = proc.process(frames[1][0].image, scene.camera, 2_000)
+    assert r.pose is not None and r.pose.method == "paper"
+    assert proc.effective_pose_config.method == "paper"
+    assert FrameProcessor(MODEL, tracking=False).process(np.full((540, 960), 90, np.uint8),
+                                                         scene.camera).reason

@@ -165,3 +165,41 @@ def test_search_kinds_are_their_strings() -> None:
     from ficap_ros.vision.tracking import Search
 
     assert Search.TRACKED == "tracked" and f"{Search.REGION}" == "region" and str(Search.IMAGE) == "image"
+
+
+def test_one_call_a_frame_with_the_pose_settings_of_that_call() -> None:
+    """``Tracker.track`` is the whole frame: it finds the tags, hands the pipeline's solver the
+    tags the pose should use and the pose they were predicted or located at (once), and remembers
+    the solved pose for the next frame; the pose settings come with each call."""
+    from ficap_ros.vision.detection import TagDetector
+    from ficap_ros.vision.pose import PoseConfig, estimate_cap_pose
+    from ficap_ros.vision.tracking import Search, Tracker
+
+    scene, frames = _drive(4, 600)
+    tracker = Tracker(MODEL, TagDetector())
+    calls: list[tuple[tuple[int, ...], bool]] = []
+
+    def solver(pose: PoseConfig):
+        def solve(tags, start):
+            calls.append((tuple(d.tag_id for d in tags), start is not None))
+            return estimate_cap_pose(tags, MODEL, scene.camera, pose, start=start)
+        return solve
+
+    searched = tracker.track(frames[0].image, scene.camera, FRAME_NS, PoseConfig(),
+                             solver(PoseConfig()))
+    assert searched.search == Search.IMAGE and searched.result.pose is not None
+    # Solved once, from the tags not seen too obliquely where the search's own pose put them.
+    assert len(calls) == 1 and set(calls[0][0]) <= {d.tag_id for d in searched.detections}
+    tracked = tracker.track(frames[1].image, scene.camera, 2 * FRAME_NS, PoseConfig(),
+                            solver(PoseConfig()))
+    assert tracked.search == Search.TRACKED and len(calls) == 2 and calls[1][1]
+    assert set(calls[1][0]) <= {d.tag_id for d in tracked.detections}
+    assert angle_deg(tracked.result.pose.T_cam_cap.rotation, frames[1].T_cam_cap.rotation) < 0.05
+    # Settings of this call: a pose needing more tags than the cap shows gives none, so the
+    # tracker forgets the cap and the next frame is searched again.
+    strict = PoseConfig(min_tags=23)
+    lost = tracker.track(frames[2].image, scene.camera, 3 * FRAME_NS, strict, solver(strict))
+    assert lost.result.pose is None and lost.search == Search.TRACKED
+    again = tracker.track(frames[3].image, scene.camera, 4 * FRAME_NS, PoseConfig(),
+                          solver(PoseConfig()))
+    assert again.search == Search.IMAGE and again.result.pose is not None and len(calls) == 4
