@@ -60,15 +60,15 @@ COMMAND_STAGES = (
     ("ficap_ros.files", "OutputFolder.commit", "output folder (checks, temporary folder, commit)"),
     ("ficap_ros.io.sources", "open_frames", "open the bag (topics, CameraInfo, first stamp)"),
     ("ficap_ros.io.sources", "BagSource._bag_frames", "bag reading (MCAP chunks, CDR, RawFrame)"),
-    ("ficap_ros.tools.replay", "process_frames", "replay loop (segments, ProcessedFrame)"),
-    ("ficap_ros.tools.replay", "_process_one", "replay loop (segments, ProcessedFrame)"),
+    ("ficap_ros.tools.replay", "process_frames", "replay loop (segments, ReplayedFrame)"),
+    ("ficap_ros.tools.replay", "_process_one", "replay loop (segments, ReplayedFrame)"),
     ("ficap_ros.tools.replay", "decode_raw", "JPEG decode (cv2.imdecode, grey)"),
     ("ficap_ros.vision.pipeline", "FrameProcessor.process", "pipeline: bookkeeping (FrameProcessor.process)"),
     # Under "bookkeeping" until 2026-11-24: the hidden-tag check (the pose's input) and the
     # tracker's extrapolation, measured on their own.
     ("ficap_ros.vision.pipeline", "hidden_tag_ids", "pipeline: hidden-tag check (partly_hidden)"),
     ("ficap_ros.vision.tracking", "Tracker._predict_pose", "pipeline: tracker's pose extrapolation"),
-    ("ficap_ros.tools.replay", "record_from_pose", "labels: records (head pose, angles)"),
+    ("ficap_ros.io.labels", "head_pose", "labels: records (head pose, angles)"),
     ("ficap_ros.tools.replay", "_summary", "labels: summary statistics"),
     ("ficap_ros.tools.replay", "write_labels_bag", "labels.mcap (messages, CDR, MCAP)"),
     ("ficap_ros.tools.replay", "labels_csv_text", "labels.csv and summary.json (text, write)"),

@@ -51,7 +51,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--photometric", action="store_true",
                         help="corners' last step: fit each tag's pattern, blurred in linear light and "
                              "through a tone curve, to its pixels (more accurate on noisy frames, "
-                             "~0.9 ms per tag; every recording of a fleet, any engine; docs/detection.md)")
+                             "at a CPU cost per tag: docs/detection.md; every recording of a fleet, "
+                             "any engine)")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     parser.add_argument("--calibration", metavar="FILE",
                         help="head calibration YAML (ficap calibrate / the node's service)")

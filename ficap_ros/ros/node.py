@@ -55,7 +55,7 @@ from ficap_ros.ros import params as ros_params
 from ficap_ros.ros.live_calibration import LiveCalibration, compute_calibration
 from ficap_ros.ros.mailbox import Mailbox
 from ficap_ros.ros.spin import run_node
-from ficap_ros.vision.calibration import HeadCalibration
+from ficap_ros.vision.calibration import CalibrationResult, HeadCalibration
 
 __all__ = ["FicapNode", "main"]
 
@@ -168,11 +168,13 @@ class FicapNode(Node):
         """The calibration in use."""
         return self._calibration.current
 
+    def _run_calibration(self) -> CalibrationResult:
+        """What ``~/calibrate`` computes now (``live_calibration.compute_calibration``)."""
+        return compute_calibration(self._config, self._recorder, self._calibration.frontal_frame())
+
     def _on_calibrate(self, request: Trigger.Request, response: Trigger.Response) -> Trigger.Response:
-        cfg = self._config
         return self._answer(response, *self._calibration.calibrate(
-            lambda: compute_calibration(cfg, self._recorder, self._calibration.frontal_frame()),
-            cfg.calibration_file))
+            self._run_calibration, self._config.calibration_file))
 
     def _on_clear_calibration(self, request: Trigger.Request,
                               response: Trigger.Response) -> Trigger.Response:
