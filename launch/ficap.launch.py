@@ -10,12 +10,11 @@ cannot be passed as a launch argument). With ``image_transport:=compressed`` the
 ``<image>/compressed``. Two cameras: ``ficap_two_cameras.launch.py``.
 """
 
+from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument
 from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
 from launch_ros.substitutions import FindPackageShare
-
-from launch import LaunchDescription
 
 
 def generate_launch_description() -> LaunchDescription:

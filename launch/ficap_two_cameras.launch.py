@@ -11,12 +11,11 @@ pitched down 10 deg); replace them with the car's. ``diagnostics.hardware_id`` t
 apart on /diagnostics.
 """
 
+from launch import LaunchDescription
 from launch.actions import DeclareLaunchArgument
 from launch.substitutions import LaunchConfiguration, PathJoinSubstitution
 from launch_ros.actions import Node
 from launch_ros.substitutions import FindPackageShare
-
-from launch import LaunchDescription
 
 #: (namespace, image topic, camera_info topic, camera_mount [x y z qx qy qz qw]).
 CAMERAS = (
