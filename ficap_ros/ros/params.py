@@ -24,7 +24,7 @@ from ficap_ros.geometry.cap_model import load_model, nominal_model
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.io.status import WARN_RELIABILITY
 from ficap_ros.vision.calibration import CalibrationRecorder, CalibrationResult
-from ficap_ros.vision.detection import DetectorConfig
+from ficap_ros.vision.detector import DetectorConfig
 from ficap_ros.vision.pipeline import FrameProcessor
 from ficap_ros.vision.pose import POSE_METHODS, PoseConfig, UncertaintyConfig
 

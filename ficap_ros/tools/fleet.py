@@ -48,7 +48,7 @@ from ficap_ros.files import write_output_file
 from ficap_ros.geometry.cap_model import CapModel
 from ficap_ros.io.sources import VIDEO_SUFFIXES, FrameSource, RawFrame
 from ficap_ros.vision.calibration import HeadCalibration
-from ficap_ros.vision.detection import DetectorConfig
+from ficap_ros.vision.detector import DetectorConfig
 from ficap_ros.vision.pipeline import pose_config_for
 from ficap_ros.vision.pose import PoseConfig
 
