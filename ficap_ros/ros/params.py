@@ -98,9 +98,10 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("detector.corner_refine", "edge", "Corner refinement.",
               choices=("edge", "subpix", "apriltag", "none"), read_only=True),
     ParamSpec("detector.photometric", False, "Corners' last step: fit each tag's pattern, blurred in "
-              "linear light and through a tone curve, to its pixels (more accurate on noisy frames, "
-              "~0.9 ms of CPU a tag: ~20 ms a tracked 1080p frame of 22 tags on top of the default "
-              "~12, about a whole core at 30 fps live; docs/detection.md).", read_only=True),
+              "linear light and through a tone curve, to its pixels: more accurate where noise limits "
+              "the corners (dim frames), at more CPU a frame than all the rest of the processing, "
+              "which a live camera's frame rate may not leave (costs in docs/benchmarks.md).",
+              read_only=True),
     ParamSpec("detector.search_decimate", 0, "Search an image this many times smaller (corners "
               "are refined at full size); 0 = auto, as ficap replay: 2 from 1920 px wide up, else 1.",
               range=(0, 4),
