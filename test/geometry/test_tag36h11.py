@@ -41,11 +41,14 @@ UNIT_CORNERS = np.array([[0.0, 0.0], [TAG_CELLS, 0.0], [TAG_CELLS, TAG_CELLS], [
 
 @given(st.integers(0, N_IDS - 1))
 def test_cells_are_the_dictionarys_bits_inside_a_black_border(tag_id: int) -> None:
-    """The 6 x 6 data cells are the dictionary's code (bit 1 = white), read from its byte list,
-    not from a drawing; the outer ring is black; the array is cached read-only."""
+    """The cells are OpenCV's drawing of the tag (read at the cell centres of a 10 px-a-cell
+    drawing, row-major from c0), its 6 x 6 data cells the dictionary's code (bit 1 = white, from
+    its byte list), inside a black ring; the array is cached read-only."""
     cells = tag_cells(tag_id)
+    drawing = cv2.aruco.generateImageMarker(DICT, tag_id, 10 * TAG_CELLS, borderBits=1)
     bits = cv2.aruco.Dictionary.getBitsFromByteList(DICT.bytesList[tag_id:tag_id + 1], 6)
     assert cells.shape == (TAG_CELLS, TAG_CELLS) and cells.dtype == bool
+    np.testing.assert_array_equal(cells, drawing[5::10, 5::10] == 0)
     np.testing.assert_array_equal(cells[1:-1, 1:-1], bits == 0)
     assert cells[BORDER.reshape(TAG_CELLS, TAG_CELLS)].all()
     assert not cells.flags.writeable and tag_cells(tag_id) is cells
