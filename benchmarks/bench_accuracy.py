@@ -39,7 +39,7 @@ from ficap_ros.tools.synth import (  # noqa: E402
     naturalistic_drive,
     render,
 )
-from ficap_ros.vision.detection import DetectorConfig  # noqa: E402
+from ficap_ros.vision.detector import DetectorConfig  # noqa: E402
 from ficap_ros.vision.pipeline import FrameProcessor  # noqa: E402
 from ficap_ros.vision.pose import PoseConfig  # noqa: E402
 

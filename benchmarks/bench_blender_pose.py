@@ -42,7 +42,7 @@ import ficap_ros.vision.pipeline as pipeline  # noqa: E402
 from ficap_ros.geometry.cap_model import CapModel, nominal_model  # noqa: E402
 from ficap_ros.geometry.metrics import angle_deg  # noqa: E402
 from ficap_ros.geometry.transform import Transform  # noqa: E402
-from ficap_ros.vision.detection import DetectorConfig, as_gray  # noqa: E402
+from ficap_ros.vision.detector import DetectorConfig, as_gray  # noqa: E402
 from ficap_ros.vision.pipeline import FrameProcessor  # noqa: E402
 from ficap_ros.vision.pipeline import hidden_tag_ids as _image_hidden_ids  # noqa: E402
 from ficap_ros.vision.pose import PoseConfig, UncertaintyConfig  # noqa: E402

@@ -68,12 +68,8 @@ from bench_corners import blender_frames, synth_frames  # noqa: E402
 from ficap_ros.geometry.metrics import corner_errors_px  # noqa: E402
 from ficap_ros.geometry.tag36h11 import TAG_CELLS, tag_cells, tag_homographies
 from ficap_ros.tools.synth import tone_curve  # noqa: E402
-from ficap_ros.vision.detection import (
-    _FIT_PROFILE_SAMPLES,
-    DetectorConfig,
-    TagDetector,
-    _cell_edge_samples,
-)
+from ficap_ros.vision.corners import _FIT_PROFILE_SAMPLES, _cell_edge_samples
+from ficap_ros.vision.detector import DetectorConfig, TagDetector
 
 SUPERSAMPLE = 8
 #: The sets of the table and the synth condition matching each (resolution, tone, gamma, PSF, lighting).

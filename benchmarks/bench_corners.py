@@ -46,7 +46,7 @@ import blender_dev  # noqa: E402
 from _common import load_avg, machine_line, md_table, record_section  # noqa: E402
 
 from ficap_ros.geometry.metrics import corner_errors_px  # noqa: E402
-from ficap_ros.vision.detection import DetectorConfig, TagDetector  # noqa: E402
+from ficap_ros.vision.detector import DetectorConfig, TagDetector  # noqa: E402
 
 #: The corner methods compared: name -> detector settings.
 METHODS: dict[str, DetectorConfig] = {
@@ -147,7 +147,7 @@ def noise_split(frames: list[tuple[np.ndarray, dict[int, np.ndarray], list[int]]
     their disagreement's robust sd is the full fit's noise per coordinate (1.177 sd = the median of
     a 2-D Gaussian error). Returns [tags, full-fit median error, noise-only median, the rest
     (sqrt of the difference of squares)]."""
-    import ficap_ros.vision.detection as det
+    import ficap_ros.vision.corners as det
 
     def fit(fractions, image, corners, ids):  # noqa: ANN001, ANN202
         det._EDGE_FRACTIONS = fractions
@@ -185,10 +185,10 @@ GAIN_SHIFT_PX = 0.3
 def _true_lines(image: np.ndarray, truth: np.ndarray, ids: np.ndarray, window: float,
                 shift_px: float) -> tuple[np.ndarray, ...]:
     """Every cell-edge sample line of the tags at their true corners, as ``fit_tag_edges`` reads it
-    (``_step_offset``, window +-``window`` cell, at most ``edge_search_px``), the window moved by
+    (``step_offset``, window +-``window`` cell, at most ``edge_search_px``), the window moved by
     ``-shift_px`` along the normal (the edge then sits at +shift_px): (offset px, contrast,
     cell px, tag index)."""
-    import ficap_ros.vision.detection as det
+    import ficap_ros.vision.corners as det
 
     _counts, tag_of, _starts, (uv, nu) = det._stacked(det._cell_edge_samples, tuple(int(i) for i in ids))
     h = det.tag_homographies(truth).reshape(len(ids), 9)[tag_of]
@@ -202,7 +202,7 @@ def _true_lines(image: np.ndarray, truth: np.ndarray, ids: np.ndarray, window: f
     gn = np.hypot(gx, gy)
     nrm = np.column_stack([gx, gy]) / gn[:, None]
     half = np.minimum(DetectorConfig().edge_search_px, window / gn)
-    s, contrast = det._step_offset(image, np.column_stack([px, py]) - shift_px * nrm, nrm, half,
+    s, contrast = det.step_offset(image, np.column_stack([px, py]) - shift_px * nrm, nrm, half,
                                    det._FIT_PROFILE_SAMPLES)
     return s, contrast, 1.0 / gn, tag_of
 
@@ -216,7 +216,7 @@ def gain_split(frames: list[tuple[np.ndarray, dict[int, np.ndarray], list[int]]]
     differs from tag to tag); gain is the median over lines of (offset at +shift - at -shift) /
     (2 shift). At convergence a fit sits where its lines read zero, so its error per line is about
     sd / gain, whatever the window."""
-    import ficap_ros.vision.detection as det
+    import ficap_ros.vision.corners as det
 
     found_err, lines, fits = [], {w: ([], [], []) for w in GAIN_WINDOWS}, {k: [] for k in (1, 2, 5)}
     for image, truth, clean in frames:
@@ -252,7 +252,8 @@ def gain_split(frames: list[tuple[np.ndarray, dict[int, np.ndarray], list[int]]]
     return row + [f"{np.median(np.concatenate(found_err)):.3f}"]
 
 
-#: Corner-stage functions timed by ``--cost``: label -> name in ficap_ros.vision.detection.
+#: Corner-stage functions timed by ``--cost``: label -> name in ficap_ros.vision.corners (and
+#: where the line pass is called from: edges, pipeline, tracking).
 STAGE_FUNCS = {
     "line pass (refine_corners_edge_ok)": "refine_corners_edge_ok",
     "border unbias (unbias_corners_edge)": "unbias_corners_edge",
@@ -263,7 +264,7 @@ STAGE_FUNCS = {
 
 def cost_table(n_frames: int = 40, passes: int = 3) -> tuple[list[list[str]], str]:
     """Per-frame process time of the corner stage on consecutive tracked 1080p frames."""
-    import ficap_ros.vision.detection as det
+    import ficap_ros.vision.corners as det
     from ficap_ros.geometry.cap_model import nominal_model
     from ficap_ros.tools.synth import (
         RenderConfig,
@@ -290,14 +291,16 @@ def cost_table(n_frames: int = 40, passes: int = 3) -> tuple[list[list[str]], st
         return wrapper
 
     rows, tags = [], 0
+    import ficap_ros.vision.edges as edges
     import ficap_ros.vision.pipeline as pipe
     import ficap_ros.vision.tracking as trk
 
-    imported = [(mod, name, getattr(mod, name)) for mod in (pipe, trk) for name in originals if hasattr(mod, name)]
+    imported = [(mod, name, getattr(mod, name)) for mod in (pipe, trk, edges) for name in originals
+                if hasattr(mod, name)]
     try:
         for name, fn in originals.items():
             setattr(det, name, timed(name, fn))
-        for mod, name, fn in imported:  # the names the pipeline and the tracker imported
+        for mod, name, fn in imported:  # where the pipeline, the tracker and the search call them
             setattr(mod, name, timed(name, fn))
         per_pass = []
         for k in range(passes + 1):  # the first pass warms the caches

@@ -51,7 +51,7 @@ from ficap_ros.tools.synth import (  # noqa: E402
     naturalistic_drive,
     render,
 )
-from ficap_ros.vision.detection import DetectorConfig, TagDetector  # noqa: E402
+from ficap_ros.vision.detector import DetectorConfig, TagDetector  # noqa: E402
 from ficap_ros.vision.pipeline import FrameProcessor  # noqa: E402
 
 SWAT = Path("/work/shared/data/real_apriltag/swatbotics_mapping_feb_2014")
@@ -109,11 +109,11 @@ def _ratio_rows(jpegs, truth, camera, procs: dict[str, Callable[[], FrameProcess
 #: (module, attribute, stage): the functions whose own time makes each stage (a stage's time
 #: leaves out the listed functions it calls). Names a refactor removed are skipped.
 STAGES = (
-    ("ficap_ros.vision.detection", "TagDetector._search", "search: ArUco on the decimated image"),
-    ("ficap_ros.vision.detection", "TagDetector._refine", "search: edge refinement of the found tags"),
-    ("ficap_ros.vision.detection", "TagDetector._second_chance", "search: second reading of rejected quads"),
-    ("ficap_ros.vision.detection", "TagDetector.detect", "search: decimation and the rest"),
-    ("ficap_ros.vision.detection", "refine_tag_corners", "corner stage (tone-curve unbias, cell-edge fit)"),
+    ("ficap_ros.vision.detector", "TagDetector._search", "search: ArUco on the decimated image"),
+    ("ficap_ros.vision.detector", "TagDetector._refine", "search: edge refinement of the found tags"),
+    ("ficap_ros.vision.detector", "TagDetector._second_chance", "search: second reading of rejected quads"),
+    ("ficap_ros.vision.detector", "TagDetector.detect", "search: decimation and the rest"),
+    ("ficap_ros.vision.corners", "refine_tag_corners", "corner stage (tone-curve unbias, cell-edge fit)"),
     ("ficap_ros.vision.tracking", "refine_tag_corners", "corner stage (tone-curve unbias, cell-edge fit)"),
     ("ficap_ros.vision.pipeline", "refine_tag_corners", "corner stage (tone-curve unbias, cell-edge fit)"),
     ("ficap_ros.vision.tracking", "refine_corners_edge_ok", "predicted tags: edge refinement"),

@@ -56,7 +56,7 @@ from ficap_ros.tools.model_build import (  # noqa: E402
     replay_check,  # noqa: E402
     size_ratio,
 )
-from ficap_ros.vision.detection import DetectorConfig, TagDetection, TagDetector  # noqa: E402
+from ficap_ros.vision.detector import DetectorConfig, TagDetection, TagDetector  # noqa: E402
 from ficap_ros.vision.pipeline import FrameProcessor  # noqa: E402
 
 BUILDERS = {

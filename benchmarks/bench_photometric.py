@@ -33,7 +33,7 @@ import blender_dev  # noqa: E402
 from _common import load_avg, machine_line, md_table, record_section  # noqa: E402
 from bench_corners import SYNTH_CONDITIONS, blender_frames, measure, synth_frames  # noqa: E402
 
-from ficap_ros.vision.detection import DetectorConfig, TagDetector  # noqa: E402
+from ficap_ros.vision.detector import DetectorConfig, TagDetector  # noqa: E402
 
 METHODS = {
     "ficap edge": DetectorConfig(),

@@ -32,7 +32,7 @@ from _common import load_avg, machine_line, md_table, record_section  # noqa: E4
 
 from ficap_ros.geometry.metrics import corner_errors_px  # noqa: E402
 from ficap_ros.tools.synth import RenderConfig, render  # noqa: E402
-from ficap_ros.vision.detection import DetectorConfig, TagDetector  # noqa: E402
+from ficap_ros.vision.detector import DetectorConfig, TagDetector  # noqa: E402
 from ficap_ros.vision.tracking import view_angles_deg  # noqa: E402
 
 METHODS = {

@@ -149,7 +149,7 @@ class AprilTag3:
 
         from ficap_ros.geometry.cap_model import nominal_model
         from ficap_ros.io.sources import open_frames
-        from ficap_ros.vision.detection import DetectorConfig
+        from ficap_ros.vision.detector import DetectorConfig
 
         self.raws = list(open_frames(bag).raw_frames())
         self.bufs = [np.frombuffer(r.payload, np.uint8) for r in self.raws]

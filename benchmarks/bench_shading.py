@@ -182,7 +182,7 @@ def mechanism(root: Path | None) -> str:
 
     from ficap_ros.tools import synth
     from ficap_ros.tools.synth import RenderConfig, render
-    from ficap_ros.vision.detection import TagDetector
+    from ficap_ros.vision.detector import TagDetector
     from ficap_ros.vision.tracking import view_angles_deg
 
     ds = blender_dev.load_set("dev_540p_neutral", root or blender_dev.BLENDER_DEV)

@@ -37,7 +37,7 @@ from ficap_ros.tools.synth import (  # noqa: E402
     naturalistic_drive,
     render,
 )
-from ficap_ros.vision.detection import DetectorConfig, TagDetector  # noqa: E402
+from ficap_ros.vision.detector import DetectorConfig, TagDetector  # noqa: E402
 from ficap_ros.vision.pipeline import FrameProcessor  # noqa: E402
 
 SWAT = Path("/work/shared/data/real_apriltag/swatbotics_mapping_feb_2014")

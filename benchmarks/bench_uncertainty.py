@@ -70,7 +70,7 @@ from _common import Progress, load_avg, machine_line, md_table, record_section  
 from ficap_ros.geometry.cap_model import nominal_model  # noqa: E402
 from ficap_ros.geometry.metrics import angle_deg  # noqa: E402
 from ficap_ros.vision import pose as pose_mod  # noqa: E402
-from ficap_ros.vision.detection import DetectorConfig  # noqa: E402
+from ficap_ros.vision.detector import DetectorConfig  # noqa: E402
 from ficap_ros.vision.pipeline import FrameProcessor, pose_config_for  # noqa: E402
 from ficap_ros.vision.pose import PoseConfig, UncertaintyConfig  # noqa: E402
 

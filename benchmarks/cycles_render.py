@@ -408,7 +408,7 @@ def check(name: str, out: Path) -> None:
     sys.path.insert(0, str(ROOT / "benchmarks"))
     import blender_dev
 
-    from ficap_ros.vision.detection import TagDetector
+    from ficap_ros.vision.detector import TagDetector
 
     ds = blender_dev.load_set(name, out)
     det = TagDetector()

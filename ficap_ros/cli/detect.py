@@ -29,7 +29,7 @@ def run(args: argparse.Namespace) -> int:
 
     from ficap_ros.errors import FicapError, ImageError
     from ficap_ros.io.image_codec import check_pixel_budget
-    from ficap_ros.vision.detection import DetectorConfig, TagDetector
+    from ficap_ros.vision.detector import DetectorConfig, TagDetector
 
     detector = TagDetector(DetectorConfig(backend=args.backend, corner_refine=args.refine,
                                           edge_photometric=args.photometric))

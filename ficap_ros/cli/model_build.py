@@ -91,7 +91,7 @@ def run_build(args: argparse.Namespace) -> int:
         depth_change_limit,
         replay_check,
     )
-    from ficap_ros.vision.detection import DetectorConfig, TagDetector
+    from ficap_ros.vision.detector import DetectorConfig, TagDetector
 
     size = {"auto": {}, "nominal": {"size": "fixed"},
             "images": {"size": "fixed", "anchor_size": False},

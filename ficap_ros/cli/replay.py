@@ -117,7 +117,7 @@ def run(args: argparse.Namespace) -> int:
     from ficap_ros.files import check_output_folder, check_replaceable
     from ficap_ros.geometry.cap_model import load_model, nominal_model
     from ficap_ros.tools.replay import check_output_dir, keep_freed_memory, replay
-    from ficap_ros.vision.detection import DetectorConfig
+    from ficap_ros.vision.detector import DetectorConfig
     from ficap_ros.vision.pose import PoseConfig
 
     keep_freed_memory()  # this process decodes and processes the frames (--jobs 1)

@@ -14,8 +14,8 @@ from functools import lru_cache
 import numpy as np
 
 __all__ = ["TAG_CELLS", "CELL_CENTRES", "CELL_CENTRES_H", "QUIET_ZONE", "TAG_AREA", "BORDER", "tag_cells",
-           "stacked_tag_cells", "tag_homographies", "apply_homographies", "read_tag_cells",
-           "decode_tags"]
+           "stacked_tag_cells", "tag_homographies", "homography_corners", "usable_quads",
+           "apply_homographies", "read_tag_cells", "cell_errors", "decode_tags"]
 
 #: Cells across a tag36h11 tag, its black border included (6 x 6 data cells inside).
 TAG_CELLS = 8
@@ -70,6 +70,26 @@ def tag_homographies(corners_px: np.ndarray) -> np.ndarray:
     return out
 
 
+def homography_corners(h8: np.ndarray) -> np.ndarray:
+    """(N, 4, 2) the corners c0..c3 that homographies from tag cell units put in the image, from
+    their first 8 entries (N, 8) row-major (the ninth is 1): the inverse of ``tag_homographies``."""
+    n = len(h8)
+    full = np.concatenate([h8, np.ones((n, 1))], axis=1).reshape(n, 3, 3)
+    src = np.array([[0, 0, 1], [TAG_CELLS, 0, 1], [TAG_CELLS, TAG_CELLS, 1], [0, TAG_CELLS, 1]], float)
+    p = np.einsum("nij,kj->nki", full, src)
+    return p[..., :2] / p[..., 2:3]
+
+
+def usable_quads(corners_px: np.ndarray) -> np.ndarray:
+    """(K,) which quadrilaterals (K, 4, 2) ``tag_homographies`` maps to: finite corners, c1, c2 and
+    c3 not on a line (``tag_homographies`` raises for a batch holding one that is not)."""
+    c = corners_px
+    d1, d2 = c[:, 1] - c[:, 2], c[:, 3] - c[:, 2]
+    with np.errstate(invalid="ignore", over="ignore"):
+        den = d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1]
+    return np.isfinite(c).all(axis=(1, 2)) & np.isfinite(den) & (den != 0.0)
+
+
 def apply_homographies(hom: np.ndarray, uv: np.ndarray) -> np.ndarray:
     """Points (P, 2) through homographies (P, 3, 3), one per point."""
     p = np.einsum("pij,pj->pi", hom[:, :, :2], uv) + hom[:, :, 2]
@@ -118,6 +138,21 @@ def read_tag_cells(gray: np.ndarray, hom: np.ndarray) -> tuple[np.ndarray, np.nd
     white = vals[:, QUIET_ZONE].mean(axis=1)
     black = inner[:, BORDER].mean(axis=1)
     return inner < 0.5 * (white + black)[:, None], white, black, finite
+
+
+def cell_errors(gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """(K,) how many of each tag's 64 cells, read at ``corners_px`` (K, 4, 2) (``read_tag_cells``),
+    differ from its id's code (64 where the corners give no usable homography)."""
+    c = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    if len(c) == 0:
+        return np.zeros(0, dtype=int)
+    try:
+        hom = tag_homographies(c)
+    except np.linalg.LinAlgError:
+        return np.full(len(c), 64)
+    read_black, _, _, finite = read_tag_cells(gray, hom)
+    expected = stacked_tag_cells(tuple(int(i) for i in ids)).reshape(len(c), -1)
+    return np.where(finite, (read_black != expected).sum(axis=1), 64)
 
 
 @lru_cache(maxsize=1)

@@ -28,7 +28,7 @@ from ficap_ros.io.status import (
 )
 from ficap_ros.stamps import stamp_to_ns
 from ficap_ros.vision.calibration import HeadCalibration
-from ficap_ros.vision.detection import TagDetection
+from ficap_ros.vision.detector import TagDetection
 from ficap_ros.vision.pipeline import FrameProcessor
 
 __all__ = ["LiveFrame", "frame_processor", "failed_frame", "process_image", "reference_q_xyzw"]

@@ -33,7 +33,7 @@ from ficap_ros.geometry.transform import Transform, rotate_covariance
 from ficap_ros.io import messages
 from ficap_ros.io.labels import FrameRecord
 from ficap_ros.stamps import stamp_to_ns
-from ficap_ros.vision.detection import TagDetection
+from ficap_ros.vision.detector import TagDetection
 
 __all__ = [
     "IMAGE_ENCODINGS",

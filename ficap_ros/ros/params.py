@@ -23,7 +23,7 @@ from ficap_ros.errors import ConfigError
 from ficap_ros.geometry.camera import CAMERA_INFO_MAX_STAMP_DIFF_NS
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.io.status import WARN_RELIABILITY
-from ficap_ros.vision.detection import DetectorConfig
+from ficap_ros.vision.detector import DetectorConfig
 from ficap_ros.vision.pose import POSE_METHODS, PoseConfig, UncertaintyConfig
 
 __all__ = ["ParamSpec", "PARAMETERS", "REMOVED_PARAMETERS", "CalibrationMode", "NodeConfig",
@@ -96,8 +96,9 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("detector.corner_refine", "edge", "Corner refinement.",
               choices=("edge", "subpix", "apriltag", "none"), read_only=True),
     ParamSpec("detector.photometric", False, "Corners' last step: fit each tag's pattern, blurred in "
-              "linear light and through a tone curve, to its pixels (more accurate on noisy frames, "
-              "at a CPU cost per tag that can take a whole core live: docs/detection.md). While "
+              "linear light and through a tone curve, to its pixels: more accurate where noise limits "
+              "the corners (dim frames), at more CPU a frame than all the rest of the processing, "
+              "which a live camera's frame rate may not leave (costs in docs/benchmarks.md). While "
               "every uncertainty.* parameter is at its default, its corners get their own "
               "covariance profile.", read_only=True),
     ParamSpec("detector.search_decimate", 0, "Search an image this many times smaller (corners "

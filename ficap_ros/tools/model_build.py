@@ -61,7 +61,7 @@ from ficap_ros.errors import ConfigError, ModelError
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.cap_model import TAG_SIDE_MM, CapModel, nominal_model
 from ficap_ros.geometry.transform import Transform
-from ficap_ros.vision.detection import TagDetection
+from ficap_ros.vision.detector import TagDetection
 
 __all__ = [
     "CoverageError",

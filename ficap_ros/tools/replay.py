@@ -38,7 +38,7 @@ from ficap_ros.io.labels import (
 )
 from ficap_ros.io.sources import FrameSource, Loss, RawFrame, decode_raw
 from ficap_ros.vision.calibration import HeadCalibration
-from ficap_ros.vision.detection import DetectorConfig
+from ficap_ros.vision.detector import DetectorConfig
 from ficap_ros.vision.pipeline import FrameProcessor
 from ficap_ros.vision.pose import PoseConfig
 

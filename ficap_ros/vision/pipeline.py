@@ -14,13 +14,8 @@ import numpy as np
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.cap_model import CapModel, nominal_model
 from ficap_ros.geometry.transform import Transform
-from ficap_ros.vision.detection import (
-    DetectorConfig,
-    TagDetection,
-    TagDetector,
-    as_gray,
-    partly_hidden,
-)
+from ficap_ros.vision.detector import DetectorConfig, TagDetection, TagDetector, as_gray
+from ficap_ros.vision.occlusion import partly_hidden
 from ficap_ros.vision.pose import (
     CapPose,
     PoseConfig,

@@ -81,7 +81,7 @@ from ficap_ros.errors import ConfigError
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.cap_model import TAG_SIDE_MM, CapModel
 from ficap_ros.geometry.transform import Transform, compose, from_rotvec
-from ficap_ros.vision.detection import TagDetection
+from ficap_ros.vision.detector import TagDetection
 
 __all__ = [
     "POSE_METHODS",

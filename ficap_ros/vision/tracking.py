@@ -33,12 +33,9 @@ from ficap_ros.geometry.tag36h11 import (
     tag_homographies,
 )
 from ficap_ros.geometry.transform import Transform, compose, from_rotvec, inverse
-from ficap_ros.vision.detection import (
-    TagDetection,
-    TagDetector,
-    refine_corners_edge_ok,
-    refine_tag_corners,
-)
+from ficap_ros.vision.corners import refine_tag_corners
+from ficap_ros.vision.detector import TagDetection, TagDetector
+from ficap_ros.vision.edges import refine_corners_edge_ok
 from ficap_ros.vision.pose import PoseConfig, PoseResult, estimate_cap_pose
 
 __all__ = ["TrackConfig", "Tracker", "TrackedFrame", "PoseSolver", "Search", "extrapolate_pose",

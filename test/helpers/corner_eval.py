@@ -14,7 +14,7 @@ from ficap_ros.tools.synth import (
     naturalistic_drive,
     render,
 )
-from ficap_ros.vision.detection import TagDetector
+from ficap_ros.vision.detector import TagDetector
 from ficap_ros.vision.tracking import view_angles_deg
 
 MODEL = nominal_model()

@@ -77,7 +77,7 @@ def test_errors_become_failed_frames() -> None:
 
 def test_the_node_settings_build_its_pipeline() -> None:
     """``frame_processor``: the cap model, detector, pose and tracking of the node's settings."""
-    from ficap_ros.vision.detection import DetectorConfig
+    from ficap_ros.vision.detector import DetectorConfig
     from ficap_ros.vision.pose import PoseConfig
 
     cfg = SimpleNamespace(model_file="", detector_config=DetectorConfig(edge_photometric=True),

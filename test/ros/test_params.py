@@ -68,7 +68,7 @@ def test_node_defaults_are_the_offline_pipeline_and_the_shipped_file() -> None:
 
     import yaml
 
-    from ficap_ros.vision.detection import DetectorConfig
+    from ficap_ros.vision.detector import DetectorConfig
 
     cfg = NodeConfig.from_values(_defaults())
     assert cfg.detector_search_decimate == DetectorConfig().search_decimate == 0

@@ -14,7 +14,7 @@ from ficap_ros.tools.fleet.fingerprints import (
     label_settings,
     settings_key,
 )
-from ficap_ros.vision.detection import DetectorConfig
+from ficap_ros.vision.detector import DetectorConfig
 from ficap_ros.vision.pose import PoseConfig, UncertaintyConfig
 
 

@@ -201,7 +201,7 @@ def test_ray_retries_a_dead_worker_and_fails_only_the_broken_recording(
     # An engine started with other settings than the fleet's would write labels its fingerprints
     # do not describe: refused before anything is written.
     from ficap_ros.errors import ConfigError
-    from ficap_ros.vision.detection import DetectorConfig
+    from ficap_ros.vision.detector import DetectorConfig
 
     for other in ({"pose": PoseConfig(method="paper")}, {"detector": DetectorConfig(edge_photometric=True)}):
         with pytest.raises(ConfigError, match="another model, pose or detector"):

@@ -25,7 +25,7 @@ from ficap_ros.tools.model_build import (
     size_ratio,
     tag_frames,
 )
-from ficap_ros.vision.detection import TagDetection
+from ficap_ros.vision.detector import TagDetection
 from ficap_ros.vision.pose import estimate_cap_pose
 
 CAMERA = CameraModel.pinhole(1280, 960, hfov_deg=60.0)

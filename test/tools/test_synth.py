@@ -356,7 +356,7 @@ def test_naive_peer_is_biased_inward_on_default_synth_frames(tmp_path) -> None:
     from ficap_ros.cli.main import main
     from ficap_ros.geometry.metrics import corner_errors_px
     from ficap_ros.io.sources import decode_raw, open_frames
-    from ficap_ros.vision.detection import DetectorConfig, TagDetector
+    from ficap_ros.vision.detector import DetectorConfig, TagDetector
     from ficap_ros.vision.tracking import view_angles_deg
 
     seed, n = 11, 3

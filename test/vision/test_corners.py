@@ -1,10 +1,10 @@
-"""Corners free of the tone-curve bias (issue 10), on frames rendered through the realistic chain.
+"""Corners free of the tone-curve bias, on frames rendered through the realistic chain.
 
 A lens blurs linear light; the camera's tone curve then moves every black/white edge toward its
-black side, so a grey-midpoint corner sits inside the tag (the naive peer: 0.3-1.9 px). Our
-corners are measured against the exact truth of ``ficap_ros.tools.synth`` frames rendered with a lens
-PSF, sensor noise, clipping, each tone curve and JPEG, on fully visible tags within 70 deg of
-head-on (what the issue's targets are stated for).
+black side, so a grey-midpoint corner (the naive peer's) sits inside the tag. Our corners are
+measured against the exact truth of ``ficap_ros.tools.synth`` frames rendered with a lens PSF,
+sensor noise, clipping, each tone curve and JPEG, on fully visible tags within 70 deg of head-on
+(what the corner targets are stated for).
 """
 
 from __future__ import annotations
@@ -15,12 +15,9 @@ from corner_eval import MODEL, clean_corner_errors, drive_frames
 
 from ficap_ros.geometry.metrics import corner_errors_px
 from ficap_ros.tools.synth import RenderConfig
-from ficap_ros.vision.detection import (
-    DetectorConfig,
-    TagDetector,
-    fit_tag_edges,
-    refine_corners_edge_ok,
-)
+from ficap_ros.vision.corners import fit_tag_edges
+from ficap_ros.vision.detector import DetectorConfig, TagDetector
+from ficap_ros.vision.edges import refine_corners_edge_ok
 from ficap_ros.vision.tracking import view_angles_deg
 
 OURS = TagDetector(DetectorConfig())
@@ -39,7 +36,7 @@ PEER = TagDetector(DetectorConfig(corner_refine="subpix"))
     ],
 )
 def test_corners_unbiased_under_each_tone_curve(resolution, tone, gamma, psf_sigma_px, lighting) -> None:
-    """The issue's targets: median <= 0.15 px, p95 <= 0.5 px, mean radial offset within
+    """The corner targets: median <= 0.15 px, p95 <= 0.5 px, mean radial offset within
     +-0.05 px, where the naive peer on the same frames is >= 0.2 px inward."""
     frames = drive_frames(resolution, RenderConfig(lighting=lighting, tone=tone, gamma=gamma,
                                               psf_sigma_px=psf_sigma_px, jpeg_quality=95))
@@ -60,13 +57,10 @@ def test_corners_unbiased_under_each_tone_curve(resolution, tone, gamma, psf_sig
     [("540p", "srgb", 2.2, 0.7), ("1080p", "filmic", 2.2, 0.4), ("1080p", "gamma", 1.8, 0.4)],
 )
 def test_corners_in_low_light(resolution, tone, gamma, psf_sigma_px) -> None:
-    """Low light (one side lamp, gain 2.5, noisy): the issue's targets hold there too. What used
-    to break the mean radial offset (+0.10 / +0.14 px at 1080p with a sharp lens) was no bias
-    (median radial +0.007 px) but one tag in 47 with a corner 12-20 px off: at low light a
-    search polygon's corner, or a line side, latches onto a neighbouring tag's edge; the fit
-    (which moves at most a third of a cell) refused it or settled a cell off. Such tags are now
-    fitted again from corners rebuilt from the other three (measured before: +0.138 / +0.099 /
-    +0.044 px; after: +0.001 / -0.000 / +0.012)."""
+    """Low light (one side lamp, gain 2.5, noisy): the targets hold there too. At low light a
+    search polygon's corner, or a line side, can latch onto a neighbouring tag's edge; the fit
+    (which moves at most a third of a cell) cannot undo that, so such tags are fitted again from
+    corners rebuilt from the other three: no corner stays a cell or more off."""
     frames = drive_frames(resolution, RenderConfig(lighting="low", tone=tone, gamma=gamma, psf_sigma_px=psf_sigma_px,
                                               jpeg_quality=95))
     err, rad, found, clean = clean_corner_errors(OURS, frames)
@@ -113,7 +107,7 @@ def test_fit_recovers_a_known_erosion() -> None:
     assert rad_lines.mean() == pytest.approx(-delta * np.sqrt(2.0), abs=0.05)  # each side in by delta
     fitted, fitted_delta = fit_tag_edges(img, lines, np.array([tag_id]), iterations=3)
     err, _ = corner_errors_px(fitted, true[None])
-    assert err.max() <= 0.05  # from 0.57 px radial; what is left is the sampling of unblurred edges
+    assert err.max() <= 0.05  # what is left is the sampling of unblurred edges
     assert fitted_delta[0] == pytest.approx(delta, abs=0.03)
 
 
@@ -122,7 +116,7 @@ def test_small_tags_take_the_line_estimators_bias_measured_on_the_fitted_tags() 
     own tone-curve shift; its line-fit corners sit inside the tag. The bias the line estimator has
     with that tag's windows is measured on the frame's fitted tags (their true edges are known)
     and removed: the small tags' radial offset drops to a fraction of the line fit's."""
-    from ficap_ros.vision.detection import _side_lines
+    from ficap_ros.vision.edges import side_lines
 
     frames = drive_frames("360p", RenderConfig(lighting="high", tone="srgb", jpeg_quality=95), n=8)
     lines = TagDetector(DetectorConfig(edge_unbias=False, edge_fit=False))
@@ -135,7 +129,7 @@ def test_small_tags_take_the_line_estimators_bias_measured_on_the_fitted_tags() 
             if angles[t] > 70.0 or t not in line or t not in ours:
                 continue
             c = line[t].corners_px[None]
-            nrm, rho = _side_lines(c)
+            nrm, rho = side_lines(c)
             if (rho[:, :, None] - np.einsum("nkd,njd->nkj", nrm, c)).max(axis=2).min() / 8 >= 2.0:
                 continue
             assert np.isnan(ours[t].edge_shift_px)  # corrected with what other tags measured

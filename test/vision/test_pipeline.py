@@ -22,7 +22,7 @@ from ficap_ros.tools.synth import (
     naturalistic_drive,
     render,
 )
-from ficap_ros.vision.detection import DetectorConfig
+from ficap_ros.vision.detector import DetectorConfig
 from ficap_ros.vision.pipeline import FrameProcessor
 from ficap_ros.vision.pose import PoseConfig
 

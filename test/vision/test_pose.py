@@ -11,7 +11,7 @@ from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.geometry.metrics import angle_deg
 from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform
-from ficap_ros.vision.detection import TagDetection
+from ficap_ros.vision.detector import TagDetection
 from ficap_ros.vision.pose import PoseConfig, estimate_cap_pose
 
 MODEL = nominal_model()

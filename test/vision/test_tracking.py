@@ -171,7 +171,7 @@ def test_one_call_a_frame_with_the_pose_settings_of_that_call() -> None:
     """``Tracker.track`` is the whole frame: it finds the tags, hands the pipeline's solver the
     tags the pose should use and the pose they were predicted or located at (once), and remembers
     the solved pose for the next frame; the pose settings come with each call."""
-    from ficap_ros.vision.detection import TagDetector
+    from ficap_ros.vision.detector import TagDetector
     from ficap_ros.vision.pose import PoseConfig, estimate_cap_pose
     from ficap_ros.vision.tracking import Search, Tracker
 

@@ -9,7 +9,7 @@ import pytest
 from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.geometry.metrics import angle_deg, rotation_from_ypr_deg
 from ficap_ros.tools.synth import default_scene
-from ficap_ros.vision.detection import TagDetection
+from ficap_ros.vision.detector import TagDetection
 from ficap_ros.vision.pose import (
     PoseConfig,
     UncertaintyConfig,

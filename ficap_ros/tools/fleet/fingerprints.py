@@ -18,7 +18,7 @@ from ficap_ros.errors import BagError
 from ficap_ros.geometry.cap_model import CapModel
 from ficap_ros.tools import replay
 from ficap_ros.vision.calibration import HeadCalibration
-from ficap_ros.vision.detection import DetectorConfig
+from ficap_ros.vision.detector import DetectorConfig
 from ficap_ros.vision.pipeline import pose_config_for
 from ficap_ros.vision.pose import PoseConfig
 

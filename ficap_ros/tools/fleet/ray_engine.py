@@ -23,7 +23,7 @@ from ficap_ros.geometry.cap_model import CapModel
 from ficap_ros.io.sources import RawFrame
 from ficap_ros.tools import replay
 from ficap_ros.tools.fleet.fingerprints import settings_key
-from ficap_ros.vision.detection import DetectorConfig
+from ficap_ros.vision.detector import DetectorConfig
 from ficap_ros.vision.pose import PoseConfig
 
 __all__ = ["RayEngine", "ray_segment"]

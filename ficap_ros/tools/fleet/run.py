@@ -34,7 +34,7 @@ from ficap_ros.tools.fleet.summary import (
     write_fleet_summary,
 )
 from ficap_ros.vision.calibration import HeadCalibration
-from ficap_ros.vision.detection import DetectorConfig
+from ficap_ros.vision.detector import DetectorConfig
 from ficap_ros.vision.pose import PoseConfig
 
 __all__ = ["run_fleet"]

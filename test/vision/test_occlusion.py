@@ -1,7 +1,8 @@
-"""Partly hidden tags (issue 10, replay's rms_px): read from their quiet zone, dropped by the pose at a
-lower residual. Rendered frames with exact ground truth: ``ficap synth``'s head pushed 6 mm up in
-the cap frame pokes through the rim and covers a corner of tags 0 and 2 (about 92 % of each tag
-visible), as hair and headrests do on the blender_dev renders."""
+"""Partly hidden tags: read from their quiet zone, dropped by the pose at a lower residual.
+
+Rendered frames with exact ground truth: ``ficap synth``'s head pushed 6 mm up in the cap frame
+pokes through the rim and covers a corner of tags 0 and 2 (about 92 % of each tag visible), as hair
+and headrests do on the blender_dev renders."""
 
 from __future__ import annotations
 
@@ -22,7 +23,8 @@ from ficap_ros.tools.synth import (
     naturalistic_drive,
     render,
 )
-from ficap_ros.vision.detection import DetectorConfig, TagDetection, partly_hidden
+from ficap_ros.vision.detector import DetectorConfig, TagDetection
+from ficap_ros.vision.occlusion import partly_hidden
 from ficap_ros.vision.pipeline import FrameProcessor, hidden_tag_ids
 from ficap_ros.vision.pose import PoseConfig, estimate_cap_pose
 
@@ -127,8 +129,8 @@ def test_replay_leaves_out_the_hidden_tag_with_a_bad_corner() -> None:
 def test_one_degenerate_quadrilateral_does_not_flag_or_unfit_the_others() -> None:
     # The frame's tags are read together; a tag whose corners give no homography (three on a
     # line, NaN) is flagged (or left unfitted) alone: the others' answers are the ones they get
-    # without it (it used to flag every tag of the frame hidden, and leave every tag unfitted).
-    from ficap_ros.vision.detection import fit_tags_photometric
+    # without it (not every tag of the frame flagged hidden, or left unfitted).
+    from ficap_ros.vision.corners import fit_tags_photometric
 
     dets, rf = _detections("540p", "neutral", HEAD_CENTRE_M)
     c = np.stack([d.corners_px for d in dets])

@@ -1,0 +1,31 @@
+"""ficap detect: JSON output, and one line on a corrupt image."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+
+from ficap_ros.cli.main import main as cli_main
+
+
+def test_cli_json(real_apriltag_dir, capsys):
+    path = str(real_apriltag_dir / "apriltags_jl" / "tagtest.jpg")
+    assert cli_main(["detect", "--json", path]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert [r["image"] for r in out] == [path]
+    dets = out[0]["detections"]
+    assert sorted(d["id"] for d in dets) == [5, 6, 9]
+    for d in dets:
+        assert set(d) == {"id", "corners_px"}
+        assert np.asarray(d["corners_px"]).shape == (4, 2)
+    assert cli_main(["detect", "--backend", "apriltag", "--refine", "none", path]) == 0
+    assert "id" in capsys.readouterr().out
+
+
+def test_cli_corrupt_image_exits_1_with_one_line(tmp_path, capsys):
+    bad = tmp_path / "broken.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\n not really a png")
+    assert cli_main(["detect", str(bad)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("ficap: error:") and "\n" not in err
