@@ -32,7 +32,7 @@ from ficap_ros.errors import (
     OutputError,
 )
 from ficap_ros.files import check_replaceable
-from ficap_ros.geometry.camera import CameraModel, camera_from_info, load_camera_yaml
+from ficap_ros.geometry.camera import CameraModel, load_camera_yaml
 from ficap_ros.geometry.cap_model import load_model
 from ficap_ros.io.bag_writer import (
     BagWriter,
@@ -40,6 +40,7 @@ from ficap_ros.io.bag_writer import (
     compressed_image_msg,
     image_msg,
 )
+from ficap_ros.io.camera_info import camera_from_info
 from ficap_ros.io.labels import read_labels
 from ficap_ros.io.sources import (
     CAMERA_INFO_TYPE,

@@ -28,12 +28,11 @@ from typing import Any, Iterator
 import numpy as np
 
 from ficap_ros.errors import BagError, FicapError, ImageError
-from ficap_ros.geometry.camera import (
+from ficap_ros.geometry.camera import CameraModel, load_camera_yaml
+from ficap_ros.io.camera_info import (
     CAMERA_INFO_MAX_STAMP_DIFF_NS,
-    CameraModel,
     camera_from_info,
     camera_info_key,
-    load_camera_yaml,
     pick_camera_info,
 )
 from ficap_ros.io.image_codec import check_pixel_budget, decode_compressed, decode_image
@@ -329,7 +328,7 @@ class FrameSource:
 class BagSource(FrameSource):
     """The images of one topic of a rosbag2 bag (folder, ``.mcap`` or ``.db3``), with the
     CameraInfo of its namespace (or ``intrinsics``; ``rectified``: P, no distortion). Each image
-    takes the CameraInfo ``camera.pick_camera_info`` chooses, as the node does."""
+    takes the CameraInfo ``camera_info.pick_camera_info`` chooses, as the node does."""
 
     kind = RecordingKind.BAG
 

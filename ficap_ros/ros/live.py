@@ -15,8 +15,9 @@ from typing import Any
 import numpy as np
 
 from ficap_ros.errors import FicapError
-from ficap_ros.geometry.camera import CameraInfoCache, CameraModel
+from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.io import messages
+from ficap_ros.io.camera_info import CameraInfoCache
 from ficap_ros.io.status import (
     LabelRecord,
     frame_status,

@@ -27,10 +27,11 @@ from std_msgs.msg import Header
 from visualization_msgs.msg import Marker, MarkerArray
 
 from ficap_ros.errors import ImageError
-from ficap_ros.geometry.camera import CameraModel, camera_from_info
+from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.cap_model import CapModel
 from ficap_ros.geometry.transform import Transform, rotate_covariance
 from ficap_ros.io import messages
+from ficap_ros.io.camera_info import camera_from_info
 from ficap_ros.stamps import stamp_to_ns
 from ficap_ros.vision.pipeline import FrameResult
 
@@ -129,7 +130,7 @@ def array_to_image(array: np.ndarray, encoding: str, header: Header | None = Non
 
 # -- intrinsics ----------------------------------------------------------------------------------
 def camera_info_to_model(msg: CameraInfo, rectified: bool = False) -> CameraModel:
-    """A ``sensor_msgs/CameraInfo`` as a ``CameraModel`` (``ficap_ros.geometry.camera.camera_from_info``,
+    """A ``sensor_msgs/CameraInfo`` as a ``CameraModel`` (``ficap_ros.io.camera_info.camera_from_info``,
     the rule the bag tools use too: K + D, or P's 3x3 when ``rectified`` or K is all zero).
 
     Raises:

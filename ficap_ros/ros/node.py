@@ -52,7 +52,7 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from ficap_ros.errors import FicapError
-from ficap_ros.geometry.camera import CameraInfoCache
+from ficap_ros.io.camera_info import CameraInfoCache
 from ficap_ros.io.native_log import ThrottledStderr
 from ficap_ros.io.status import PeriodStats
 from ficap_ros.ros import msgs as ros_msgs

@@ -19,9 +19,9 @@ from rcl_interfaces.msg import (
 from scipy.spatial.transform import Rotation
 
 from ficap_ros.errors import CalibrationError, ConfigError
-from ficap_ros.geometry.camera import CAMERA_INFO_MAX_STAMP_DIFF_NS
 from ficap_ros.geometry.cap_model import load_model, nominal_model
 from ficap_ros.geometry.transform import Transform
+from ficap_ros.io.camera_info import CAMERA_INFO_MAX_STAMP_DIFF_NS
 from ficap_ros.io.status import WARN_RELIABILITY
 from ficap_ros.vision.calibration import CalibrationRecorder, CalibrationResult
 from ficap_ros.vision.detection import DetectorConfig

@@ -12,9 +12,10 @@ import pytest
 from rclpy.serialization import deserialize_message, serialize_message
 from scipy.spatial.transform import Rotation
 
-from ficap_ros.geometry.camera import CameraModel, camera_from_info
+from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.io import bag_writer, messages
+from ficap_ros.io.camera_info import camera_from_info
 from ficap_ros.io.messages import ROSBAGS, jazzy_typestore
 from ficap_ros.ros import msgs as ros_msgs
 from ficap_ros.ros.msgs import RCLPY

@@ -8,11 +8,11 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from ficap_ros.geometry.camera import CameraInfoCache
 from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.geometry.metrics import angle_deg
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.io import bag_writer
+from ficap_ros.io.camera_info import CameraInfoCache
 from ficap_ros.io.status import ERROR, OK, WARN
 from ficap_ros.ros.live import failed_frame, process_image, reference_q_xyzw
 from ficap_ros.tools.synth import RenderConfig, default_scene, render

@@ -119,7 +119,7 @@ def test_camera_info_rules_live_and_offline(harness_factory, tmp_path: Path, cas
 
 def test_camera_info_choice_live_and_offline(harness_factory, tmp_path: Path) -> None:  # noqa: F811
     """CameraInfo stamped around the images, two intrinsics (A true, B 4 % longer focal): the node
-    and a bag pick the same one per image (camera.pick_camera_info: the nearest within 1 ms, else
+    and a bag pick the same one per image (camera_info.pick_camera_info: the nearest within 1 ms, else
     the last at or before the image), so their poses agree. Before, the node took the latest
     received and bags the last at or before: images 0 and 1 disagreed."""
     a = default_scene("540p").camera
