@@ -149,11 +149,13 @@ def write_synth_bag(
     import numpy as np
 
     from ficap_ros.geometry.transform import Transform
-    from ficap_ros.io.bag_writer import (
-        BagWriter,
-        camera_info_msg,
-        compressed_image_msg,
-        pose_stamped_msg,
+    from ficap_ros.io.bag_writer import BagWriter
+    from ficap_ros.io.messages import (
+        ROSBAGS,
+        camera_info,
+        compressed_image,
+        header,
+        pose_stamped,
     )
     from ficap_ros.io.sources import CAMERA_INFO_TYPE, COMPRESSED_TYPE, jazzy_typestore
     from ficap_ros.tools import synth
@@ -202,13 +204,14 @@ def write_synth_bag(
                 raise RuntimeError("JPEG encoding failed")
             T_cam_head = Transform(f.T_cam_cap.rotation * scene.R_cap_head,
                                    f.T_cam_cap.translation_m)
-            bag.write(CAMERA_INFO_TOPIC, stamp, camera_info_msg(stamp, CAMERA_FRAME, camera))
-            bag.write(IMAGE_TOPIC, stamp, compressed_image_msg(stamp, CAMERA_FRAME, jpg.tobytes()))
-            bag.write(TRUTH_CAP_TOPIC, stamp, pose_stamped_msg(stamp, CAMERA_FRAME, f.T_cam_cap))
+            in_camera = header(ROSBAGS, stamp, CAMERA_FRAME)
+            bag.write(CAMERA_INFO_TOPIC, stamp, camera_info(ROSBAGS, in_camera, camera))
+            bag.write(IMAGE_TOPIC, stamp, compressed_image(ROSBAGS, in_camera, jpg.tobytes()))
+            bag.write(TRUTH_CAP_TOPIC, stamp, pose_stamped(ROSBAGS, in_camera, f.T_cam_cap))
             bag.write(TRUTH_HEAD_TOPIC, stamp,
-                      pose_stamped_msg(stamp, FRONTAL_FRAME, R_frontal_cam * T_cam_head))
-            bag.write(TRUTH_HEAD_CAMERA_TOPIC, stamp,
-                      pose_stamped_msg(stamp, CAMERA_FRAME, T_cam_head))
+                      pose_stamped(ROSBAGS, header(ROSBAGS, stamp, FRONTAL_FRAME),
+                                   R_frontal_cam * T_cam_head))
+            bag.write(TRUTH_HEAD_CAMERA_TOPIC, stamp, pose_stamped(ROSBAGS, in_camera, T_cam_head))
             bag.write(TRUTH_FRONTAL_TOPIC, stamp, bool_type(data=bool(f.frontal)))
             bar.update()
     bar.close()

@@ -1,11 +1,15 @@
-"""ficap_ros.io.camera_info: which CameraInfo an image uses, and CameraInfo -> CameraModel."""
+"""ficap_ros.io.camera_info: which CameraInfo an image uses, and CameraInfo (rosbags' or rclpy's)
+-> CameraModel."""
 
 from __future__ import annotations
 
 import numpy as np
+import pytest
 from hypothesis import given
 from hypothesis import strategies as st
+from sensor_msgs.msg import CameraInfo
 
+from ficap_ros.errors import IntrinsicsError
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.io import messages
 from ficap_ros.io.camera_info import (
@@ -15,6 +19,7 @@ from ficap_ros.io.camera_info import (
     pick_camera_info,
 )
 from ficap_ros.io.messages import ROSBAGS
+from ficap_ros.ros.msgs import RCLPY
 
 MS = 1_000_000
 
@@ -81,3 +86,36 @@ def test_camera_info_cache_picks_by_stamp_and_falls_back_to_static() -> None:
         np.testing.assert_array_equal(got.K, cam.K)
         assert not got.is_distorted
     assert CameraInfoCache(None, "no file").static_error == "no file"
+
+
+def info_at(**kw: object) -> CameraInfo:
+    """An rclpy CameraInfo with K, D and a different P, fields overridden by ``kw``."""
+    msg = CameraInfo(width=640, height=480, distortion_model="plumb_bob",
+                     d=[-0.1, 0.01, 0.0, 0.0, 0.0],
+                     k=[500.0, 0.0, 320.0, 0.0, 510.0, 240.0, 0.0, 0.0, 1.0],
+                     p=[480.0, 0.0, 315.0, 0.0, 0.0, 490.0, 238.0, 0.0, 0.0, 0.0, 1.0, 0.0])
+    for k, v in kw.items():
+        setattr(msg, k, v)
+    return msg
+
+
+def test_camera_from_info_of_rclpy_messages() -> None:
+    cam = camera_from_info(info_at())
+    assert cam.distortion_model == "plumb_bob" and cam.K[0, 0] == 500.0 and cam.D[0] == -0.1
+    rect = camera_from_info(info_at(), rectified=True)
+    assert rect.distortion_model == "none" and rect.K[0, 0] == 480.0 and rect.K[1, 2] == 238.0
+    back = messages.camera_info(RCLPY, messages.header(RCLPY, 0, ""), cam)
+    assert camera_from_info(back).K.tolist() == cam.K.tolist()
+    with pytest.raises(IntrinsicsError, match="all zero"):
+        camera_from_info(info_at(k=[0.0] * 9, p=[0.0] * 12))
+    # K all zero with a valid P (some drivers): P, as the bag tools do (one rule).
+    assert camera_from_info(info_at(k=[0.0] * 9)).K.tolist() == rect.K.tolist()
+    with pytest.raises(IntrinsicsError, match="NaN"):
+        camera_from_info(info_at(k=[float("nan")] + [0.0] * 8))
+    with pytest.raises(IntrinsicsError, match="P is all zero"):
+        camera_from_info(info_at(p=[0.0] * 12), rectified=True)
+    with pytest.raises(IntrinsicsError):
+        camera_from_info(info_at(width=0, height=0))
+    with pytest.raises(IntrinsicsError, match="distortion model"):
+        camera_from_info(info_at(distortion_model="weird_lens"))
+
