@@ -294,6 +294,8 @@ def finish_set(name: str, plan: dict, out: Path) -> dict:
     from ficap_ros.io.messages import ROSBAGS
     from ficap_ros.io.sources import CAMERA_INFO_TYPE, COMPRESSED_TYPE
     from ficap_ros.tools import synth
+    from ficap_ros.tools.synth import camera_chain
+    from ficap_ros.tools.synth.lighting import LIGHTS
 
     width, height, lighting, psf, tone_name, seed = SET_SPECS[name]
     model = nominal_model()
@@ -301,7 +303,7 @@ def finish_set(name: str, plan: dict, out: Path) -> dict:
     gamma = 1.8 if tone_name == "gamma18" else 2.2
     cfg = synth.RenderConfig(lighting=lighting, tone=tone, gamma=gamma, psf_sigma_px=psf)
     exposure_ms, gain = cfg.exposure_and_gain()
-    flare = synth._LIGHTS[lighting].flare
+    flare = LIGHTS[lighting].flare
     scene = drive_scene(width, height)
     camera = scene.camera
     work = Path(plan["work"])
@@ -330,9 +332,9 @@ def finish_set(name: str, plan: dict, out: Path) -> dict:
             if extra_rel > 0:
                 radiance = radiance * (1.0 + extra_rel * extra_rng.standard_normal(radiance.shape)).astype(np.float32)
             lin = radiance * np.float32(scale) + np.float32(flare)
-            lin = synth._lens_psf(lin, psf, 0.0)
+            lin = camera_chain.lens_psf(lin, psf, 0.0)
             rng = np.random.default_rng(int(fr["seed"]))
-            image = synth._sensor_and_tone(lin, cfg, exposure_ms, gain, rng)
+            image = camera_chain.sensor_and_tone(lin, cfg, exposure_ms, gain, rng)
             ok, jpg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 95])
             assert ok
             stamp = start + int(round(i * 1e9 / 30.0))
