@@ -32,7 +32,8 @@ HEAD_SEMI_AXES_M = (0.11, 0.08, 0.10)
 NECK_CENTRE_M = (0.02, 0.0, -0.15)
 NECK_SEMI_AXES_M = (0.075, 0.075, 0.1)
 
-CELLS_FACE = 10  # plus the 1-cell white quiet zone each side (40 mm face / 4 mm cells)
+#: Cells across a face: the tag's 8 plus a 1-cell white quiet zone each side (40 mm / 4 mm).
+CELLS_FACE = 10
 #: Nearest depth drawn, m: a face or head point closer to the camera is outside the view.
 NEAR_M = 0.02
 # Reflectances (linear, relative to the white paper): matte black toner or ink reflects about 4-6 %
