@@ -112,6 +112,7 @@ def measure(args: argparse.Namespace, transport: str) -> list[list[object]]:
     from std_msgs.msg import Header
 
     from ficap_ros.geometry.cap_model import nominal_model
+    from ficap_ros.io import messages
     from ficap_ros.ros import msgs as ros_msgs
     from ficap_ros.tools.synth import (
         RenderConfig,
@@ -164,13 +165,13 @@ def measure(args: argparse.Namespace, transport: str) -> list[list[object]]:
 
             def send(i: int, st: int) -> float:
                 h = Header()
-                h.stamp = ros_msgs.ns_to_stamp(st)
+                h.stamp = messages.time(ros_msgs.RCLPY, st)
                 h.frame_id = "camera"
-                info = ros_msgs.camera_model_to_info(scene.camera, h)
+                info = messages.camera_info(ros_msgs.RCLPY, h, scene.camera)
                 if compressed:
                     im = CompressedImage(header=h, format="jpeg", data=jpegs[i % len(jpegs)])
                 else:
-                    im = ros_msgs.array_to_image(msgs[i % len(msgs)], "mono8", h)
+                    im = messages.image(ros_msgs.RCLPY, h, msgs[i % len(msgs)], "mono8")
                 pub_info.publish(info)
                 t = time.perf_counter()
                 pub_img.publish(im)

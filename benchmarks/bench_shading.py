@@ -180,14 +180,13 @@ def mechanism(root: Path | None) -> str:
 
     import blender_dev
 
-    from ficap_ros.tools import synth
-    from ficap_ros.tools.synth import RenderConfig, render
+    from ficap_ros.tools.synth import RenderConfig, lighting, render
     from ficap_ros.vision.detector import TagDetector
     from ficap_ros.vision.tracking import view_angles_deg
 
     ds = blender_dev.load_set("dev_540p_neutral", root or blender_dev.BLENDER_DEV)
     model, K = ds.true_model, ds.camera.K
-    lamp = synth._LIGHTS["neutral"]
+    lamp = lighting.LIGHTS["neutral"]
     # Flat: the lamp's light at a face seen at ~40 deg, spread evenly (one level per face).
     flat = dataclasses.replace(lamp, ambient=lamp.ambient + 0.75 * lamp.camera_lamp, camera_lamp=0.0)
     detector = TagDetector()
@@ -196,7 +195,7 @@ def mechanism(root: Path | None) -> str:
                              ("gamma", 1.8, 0.6), ("gamma", 1.8, 1.0)):
         row = [f"{tone}{'' if tone == 'linear' else ' ' + str(gamma)}", f"{psf:.1f}"]
         for light in (flat, lamp):
-            synth._LIGHTS["neutral"] = light
+            lighting.LIGHTS["neutral"] = light
             try:
                 cfg = RenderConfig(lighting="neutral", tone=tone, gamma=gamma, psf_sigma_px=psf, noise=False)
                 coefs = []
@@ -214,7 +213,7 @@ def mechanism(root: Path | None) -> str:
                     coef, *_ = np.linalg.lstsq(np.stack([tilt, radial], 1), d, rcond=None)
                     coefs.append(coef)
             finally:
-                synth._LIGHTS["neutral"] = lamp
+                lighting.LIGHTS["neutral"] = lamp
             c = np.mean(coefs, axis=0)
             row += [f"{c[0]:+.3f}", f"{c[1]:+.3f}"]
         print(row, file=sys.stderr, flush=True)

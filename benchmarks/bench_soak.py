@@ -77,6 +77,7 @@ def main() -> int:
     from std_msgs.msg import Header
 
     from ficap_ros.geometry.cap_model import nominal_model
+    from ficap_ros.io import messages
     from ficap_ros.ros import msgs as ros_msgs
     from ficap_ros.tools.synth import (
         RenderConfig,
@@ -136,12 +137,12 @@ def main() -> int:
         for i in range(n_total):
             stamp += int(1e9 / args.rate)
             h = Header()
-            h.stamp = ros_msgs.ns_to_stamp(stamp)
+            h.stamp = messages.time(ros_msgs.RCLPY, stamp)
             h.frame_id = "camera"
             data = jpegs[i % len(jpegs)]
             if damaged[i]:
                 data = _damage(data, str(kinds[i]), rng)
-            pub_info.publish(ros_msgs.camera_model_to_info(scene.camera, h))
+            pub_info.publish(messages.camera_info(ros_msgs.RCLPY, h, scene.camera))
             sent[stamp] = (time.perf_counter(), bool(damaged[i]))
             pub_img.publish(CompressedImage(header=h, format="jpeg", data=data))
             now = time.perf_counter()

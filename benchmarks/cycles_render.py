@@ -289,14 +289,13 @@ def finish_set(name: str, plan: dict, out: Path) -> dict:
     from ficap_ros.geometry.cap_model import nominal_model
     from ficap_ros.geometry.metrics import yaw_pitch_roll_deg
     from ficap_ros.geometry.transform import Transform
-    from ficap_ros.io.bag_writer import (
-        BagWriter,
-        camera_info_msg,
-        compressed_image_msg,
-        pose_stamped_msg,
-    )
+    from ficap_ros.io import messages
+    from ficap_ros.io.bag_writer import BagWriter
+    from ficap_ros.io.messages import ROSBAGS
     from ficap_ros.io.sources import CAMERA_INFO_TYPE, COMPRESSED_TYPE
     from ficap_ros.tools import synth
+    from ficap_ros.tools.synth import camera_chain
+    from ficap_ros.tools.synth.lighting import LIGHTS
 
     width, height, lighting, psf, tone_name, seed = SET_SPECS[name]
     model = nominal_model()
@@ -304,7 +303,7 @@ def finish_set(name: str, plan: dict, out: Path) -> dict:
     gamma = 1.8 if tone_name == "gamma18" else 2.2
     cfg = synth.RenderConfig(lighting=lighting, tone=tone, gamma=gamma, psf_sigma_px=psf)
     exposure_ms, gain = cfg.exposure_and_gain()
-    flare = synth._LIGHTS[lighting].flare
+    flare = LIGHTS[lighting].flare
     scene = drive_scene(width, height)
     camera = scene.camera
     work = Path(plan["work"])
@@ -333,9 +332,9 @@ def finish_set(name: str, plan: dict, out: Path) -> dict:
             if extra_rel > 0:
                 radiance = radiance * (1.0 + extra_rel * extra_rng.standard_normal(radiance.shape)).astype(np.float32)
             lin = radiance * np.float32(scale) + np.float32(flare)
-            lin = synth._lens_psf(lin, psf, 0.0)
+            lin = camera_chain.lens_psf(lin, psf, 0.0)
             rng = np.random.default_rng(int(fr["seed"]))
-            image = synth._sensor_and_tone(lin, cfg, exposure_ms, gain, rng)
+            image = camera_chain.sensor_and_tone(lin, cfg, exposure_ms, gain, rng)
             ok, jpg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 95])
             assert ok
             stamp = start + int(round(i * 1e9 / 30.0))
@@ -344,11 +343,12 @@ def finish_set(name: str, plan: dict, out: Path) -> dict:
             T_cam_head = Transform(T_cam_cap.rotation * scene.R_cap_head, T_cam_cap.translation_m)
             R_frontal_head = scene.R_cam_frontal.inv() * T_cam_head.rotation
             ypr = yaw_pitch_roll_deg(R_frontal_head)
-            bag.write("/rear_camera/camera_info", stamp, camera_info_msg(stamp, "rear_camera_optical", camera))
+            head = messages.header(ROSBAGS, stamp, "rear_camera_optical")
+            bag.write("/rear_camera/camera_info", stamp, messages.camera_info(ROSBAGS, head, camera))
             bag.write("/rear_camera/image_raw/compressed", stamp,
-                      compressed_image_msg(stamp, "rear_camera_optical", jpg.tobytes()))
-            bag.write("/ground_truth/cap_pose", stamp, pose_stamped_msg(stamp, "rear_camera_optical", T_cam_cap))
-            bag.write("/ground_truth/head_pose", stamp, pose_stamped_msg(stamp, "rear_camera_optical", T_cam_head))
+                      messages.compressed_image(ROSBAGS, head, jpg.tobytes()))
+            bag.write("/ground_truth/cap_pose", stamp, messages.pose_stamped(ROSBAGS, head, T_cam_cap))
+            bag.write("/ground_truth/head_pose", stamp, messages.pose_stamped(ROSBAGS, head, T_cam_head))
             facing, angle = _tag_geometry(model, T_cam_cap)
             v = vis[str(i)]
             tags = [{"id": int(t), "facing": bool(facing[k]), "view_angle_deg": float(angle[k]),

@@ -32,16 +32,14 @@ from ficap_ros.errors import (
     OutputError,
 )
 from ficap_ros.files import check_replaceable
-from ficap_ros.geometry.camera import CameraModel, camera_from_info, load_camera_yaml
+from ficap_ros.geometry.camera import CameraModel, load_camera_yaml
 from ficap_ros.geometry.cap_model import load_model
-from ficap_ros.io.bag_writer import (
-    BagWriter,
-    camera_info_msg,
-    compressed_image_msg,
-    image_msg,
-)
+from ficap_ros.io import messages
+from ficap_ros.io.bag_writer import BagWriter
 from ficap_ros.io.calibration_file import load_calibration, save_calibration
+from ficap_ros.io.camera_info import camera_from_info
 from ficap_ros.io.labels import read_labels
+from ficap_ros.io.messages import ROSBAGS
 from ficap_ros.io.sources import (
     CAMERA_INFO_TYPE,
     COMPRESSED_TYPE,
@@ -183,8 +181,9 @@ def _small_bag(path: Path, storage: str, n: int = 40) -> list[np.ndarray]:
         w.add_topic("/cam/camera_info", CAMERA_INFO_TYPE)
         for i, img in enumerate(images):
             stamp = 1_700_000_000_000_000_000 + i * 33_333_333
-            w.write("/cam/camera_info", stamp, camera_info_msg(stamp, "cam", cam))
-            w.write("/cam/image_raw", stamp, image_msg(stamp, "cam", img, "mono8"))
+            head = messages.header(ROSBAGS, stamp, "cam")
+            w.write("/cam/camera_info", stamp, messages.camera_info(ROSBAGS, head, cam))
+            w.write("/cam/image_raw", stamp, messages.image(ROSBAGS, head, img, "mono8"))
     return images
 
 
@@ -430,7 +429,9 @@ def test_share_with_pose_counts_undecodable_frames(drive: Path, tmp_path: Path,
                 if conn.msgtype == COMPRESSED_TYPE:
                     images += 1
                     if images % 4 == 0:
-                        msg = compressed_image_msg(log_ns, msg.header.frame_id, b"\xff\xd8junk")
+                        msg = messages.compressed_image(
+                            ROSBAGS, messages.header(ROSBAGS, log_ns, msg.header.frame_id),
+                            b"\xff\xd8junk")
                         broken += 1
                 w.write(conn.topic, log_ns, msg)
     finally:
@@ -452,8 +453,9 @@ def test_every_frame_skipped_is_an_error(tmp_path: Path,
         w.add_topic("/cam/image_raw", IMAGE_TYPE)
         w.add_topic("/cam/camera_info", CAMERA_INFO_TYPE)
         for i in range(5):
-            w.write("/cam/camera_info", i + 1, camera_info_msg(i + 1, "cam", cam))
-            msg = image_msg(i + 1, "cam", np.zeros((48, 64), np.uint8), "mono8")
+            head = messages.header(ROSBAGS, i + 1, "cam")
+            w.write("/cam/camera_info", i + 1, messages.camera_info(ROSBAGS, head, cam))
+            msg = messages.image(ROSBAGS, head, np.zeros((48, 64), np.uint8), "mono8")
             msg.encoding = "bgr8"  # wrong encoding: the data is a third of what bgr8 needs
             w.write("/cam/image_raw", i + 1, msg)
     assert main(["replay", str(bag), "--out", str(tmp_path / "o"), "--quiet"]) == 1
@@ -630,19 +632,18 @@ def test_camera_info_with_only_p_one_rule_for_node_and_bags() -> None:
         p=np.array(p), binning_x=0, binning_y=0,
         roi=t["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
                                                   do_rectify=False))
-    from ficap_ros.ros import msgs as ros_msgs
 
-    node_cam = ros_msgs.camera_info_to_model(ros)
+    node_cam = camera_from_info(ros)
     bag_cam = camera_from_info(bag)
     for cam in (node_cam, bag_cam):
         np.testing.assert_allclose(cam.K, [[400, 0, 320], [0, 410, 240], [0, 0, 1]])
         assert cam.distortion_model == "none"
     ros.p = [0.0] * 12
     with pytest.raises(IntrinsicsError, match="all zero"):
-        ros_msgs.camera_info_to_model(ros)
+        camera_from_info(ros)
     ros.k = [float("nan")] * 9
     with pytest.raises(FicapError):
-        ros_msgs.camera_info_to_model(ros)
+        camera_from_info(ros)
 
 
 # -- 1/4/5. the node's files (real rclpy) ----------------------------------------------------------

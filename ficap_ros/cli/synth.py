@@ -3,8 +3,19 @@
 from __future__ import annotations
 
 import argparse
+import json
+from pathlib import Path
+from typing import TYPE_CHECKING
 
 from ficap_ros.cli.args import non_negative_float, positive_float, positive_int
+
+if TYPE_CHECKING:
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from ficap_ros.geometry.cap_model import CapModel
+    from ficap_ros.io.bag_writer import BagWriter
+    from ficap_ros.tools.synth import DriveFrame, DriveScene, RenderConfig
 
 HELP = ("render a naturalistic drive of the cap into a rosbag2 MCAP bag: CompressedImage (JPEG), "
         "CameraInfo and ground-truth cap and head poses")
@@ -93,8 +104,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from pathlib import Path
-
     from ficap_ros.errors import BagError
     from ficap_ros.geometry.cap_model import load_model, nominal_model
     from ficap_ros.tools.synth import RenderConfig
@@ -117,9 +126,11 @@ def run(args: argparse.Namespace) -> int:
 
 
 def write_synth_bag(
-    out, model, resolution="540p", lighting="neutral", frames=300, fps=30.0, seed=0,
-    jpeg_quality=95, progress=True, frontal_s=3.0, config=None, motion_blur=False,
-) -> dict:
+    out: str | Path, model: CapModel, resolution: str | tuple[int, int] = "540p",
+    lighting: str = "neutral", frames: int = 300, fps: float = 30.0, seed: int = 0,
+    jpeg_quality: int = 95, progress: bool = True, frontal_s: float = 3.0,
+    config: RenderConfig | None = None, motion_blur: bool = False,
+) -> dict[str, float]:
     """Render ``ficap_ros.tools.synth.naturalistic_drive`` into a rosbag2 MCAP folder at ``out``.
 
     ``config`` (a ``synth.RenderConfig``; default: the realistic chain for ``lighting``) sets the
@@ -141,77 +152,110 @@ def write_synth_bag(
     Returns:
         dict with width, height, frames, fps_rendered.
     """
-    import dataclasses
-    import json
     import time
 
-    import cv2
-    import numpy as np
-
-    from ficap_ros.geometry.transform import Transform
-    from ficap_ros.io.bag_writer import (
-        BagWriter,
-        camera_info_msg,
-        compressed_image_msg,
-        pose_stamped_msg,
-    )
-    from ficap_ros.io.sources import CAMERA_INFO_TYPE, COMPRESSED_TYPE, jazzy_typestore
+    from ficap_ros.io.bag_writer import BagWriter
     from ficap_ros.tools import synth
     from ficap_ros.tools.replay import Progress
 
     scene = synth.default_scene(resolution)
-    camera = scene.camera
     motion = synth.naturalistic_motion(frames / fps, seed, scene, frontal_s=frontal_s)
     drive = [motion.frame(i, fps) for i in range(frames)]
-    if config is None:
-        config = synth.RenderConfig(lighting=lighting, background_seed=seed, **synth.REALISTIC)
-    elif config.lighting != lighting:
-        config = dataclasses.replace(config, lighting=lighting)
-    exposure_ms, gain = config.exposure_and_gain()
-    bool_type = jazzy_typestore().types["std_msgs/msg/Bool"]
+    config = _render_config(config, lighting, seed)
     bar = Progress(len(drive), "frames rendered", enabled=progress)
     t0 = time.perf_counter()
-
-    def q_wxyz(r) -> str:
-        x, y, z, w = r.as_quat(canonical=True)
-        return json.dumps([round(float(v), 12) for v in (w, x, y, z)])
-
     with BagWriter(out, storage="mcap", layout="folder") as bag:
-        bag.set_custom_data("ficap.R_cap_head_q_wxyz", q_wxyz(scene.R_cap_head))
-        bag.set_custom_data("ficap.R_cam_frontal_q_wxyz", q_wxyz(scene.R_cam_frontal))
-        bag.set_custom_data("ficap.synth", json.dumps(
-            {"resolution": [camera.width_px, camera.height_px], "lighting": lighting,
-             "frames": frames, "fps": fps, "seed": seed, "jpeg_quality": jpeg_quality,
-             "frontal_s": frontal_s, "psf_sigma_px": config.psf_sigma_for(camera.height_px),
-             "defocus_radius_px": config.defocus_radius_px, "tone": config.tone, "gamma": config.gamma,
-             "exposure_ms": exposure_ms, "gain": gain, "noise": config.noise,
-             "motion_blur": bool(motion_blur)}))
-        bag.add_topic(IMAGE_TOPIC, COMPRESSED_TYPE)
-        bag.add_topic(CAMERA_INFO_TOPIC, CAMERA_INFO_TYPE)
-        bag.add_topic(TRUTH_CAP_TOPIC, "geometry_msgs/msg/PoseStamped")
-        bag.add_topic(TRUTH_HEAD_TOPIC, "geometry_msgs/msg/PoseStamped")
-        bag.add_topic(TRUTH_HEAD_CAMERA_TOPIC, "geometry_msgs/msg/PoseStamped")
-        bag.add_topic(TRUTH_FRONTAL_TOPIC, "std_msgs/msg/Bool")
-        R_frontal_cam = Transform(scene.R_cam_frontal.inv(), np.zeros(3))
+        _write_metadata(bag, scene, config, {
+            "lighting": lighting, "frames": frames, "fps": fps, "seed": seed,
+            "jpeg_quality": jpeg_quality, "frontal_s": frontal_s, "motion_blur": motion_blur})
+        _add_topics(bag)
         for f in drive:
-            stamp = START_NS + f.stamp_ns
             pose = motion.around(f.stamp_ns / 1e9) if motion_blur else f.T_cam_cap
-            rendered = synth.render(model, camera, pose, config, seed=seed * 100003 + f.index)
-            ok, jpg = cv2.imencode(".jpg", rendered.image, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
-            if not ok:  # pragma: no cover - OpenCV always encodes a uint8 image
-                raise RuntimeError("JPEG encoding failed")
-            T_cam_head = Transform(f.T_cam_cap.rotation * scene.R_cap_head,
-                                   f.T_cam_cap.translation_m)
-            bag.write(CAMERA_INFO_TOPIC, stamp, camera_info_msg(stamp, CAMERA_FRAME, camera))
-            bag.write(IMAGE_TOPIC, stamp, compressed_image_msg(stamp, CAMERA_FRAME, jpg.tobytes()))
-            bag.write(TRUTH_CAP_TOPIC, stamp, pose_stamped_msg(stamp, CAMERA_FRAME, f.T_cam_cap))
-            bag.write(TRUTH_HEAD_TOPIC, stamp,
-                      pose_stamped_msg(stamp, FRONTAL_FRAME, R_frontal_cam * T_cam_head))
-            bag.write(TRUTH_HEAD_CAMERA_TOPIC, stamp,
-                      pose_stamped_msg(stamp, CAMERA_FRAME, T_cam_head))
-            bag.write(TRUTH_FRONTAL_TOPIC, stamp, bool_type(data=bool(f.frontal)))
+            rendered = synth.render(model, scene.camera, pose, config, seed=seed * 100003 + f.index)
+            _write_frame(bag, scene, f, rendered.image, jpeg_quality)
             bar.update()
     bar.close()
     elapsed = time.perf_counter() - t0
-    return {"width": camera.width_px, "height": camera.height_px, "frames": len(drive),
+    return {"width": scene.camera.width_px, "height": scene.camera.height_px, "frames": len(drive),
             "fps_rendered": len(drive) / elapsed if elapsed > 0 else float("inf")}
+
+
+def _render_config(config: RenderConfig | None, lighting: str, seed: int) -> RenderConfig:
+    """The camera of a synth bag: ``config`` in ``lighting``, or the realistic chain."""
+    import dataclasses
+
+    from ficap_ros.tools import synth
+
+    if config is None:
+        return synth.RenderConfig(lighting=lighting, background_seed=seed, **synth.REALISTIC)
+    if config.lighting != lighting:
+        return dataclasses.replace(config, lighting=lighting)
+    return config
+
+
+def _q_wxyz_json(r: Rotation) -> str:
+    x, y, z, w = r.as_quat(canonical=True)
+    return json.dumps([round(float(v), 12) for v in (w, x, y, z)])
+
+
+def _write_metadata(bag: BagWriter, scene: DriveScene, config: RenderConfig,
+                    options: dict[str, object]) -> None:
+    """The bag's custom metadata: the scene's true rotations and how the drive was rendered
+    (``options``: lighting, frames, fps, seed, jpeg_quality, frontal_s, motion_blur)."""
+    camera = scene.camera
+    exposure_ms, gain = config.exposure_and_gain()
+    bag.set_custom_data("ficap.R_cap_head_q_wxyz", _q_wxyz_json(scene.R_cap_head))
+    bag.set_custom_data("ficap.R_cam_frontal_q_wxyz", _q_wxyz_json(scene.R_cam_frontal))
+    bag.set_custom_data("ficap.synth", json.dumps(
+        {"resolution": [camera.width_px, camera.height_px], "lighting": options["lighting"],
+         "frames": options["frames"], "fps": options["fps"], "seed": options["seed"],
+         "jpeg_quality": options["jpeg_quality"], "frontal_s": options["frontal_s"],
+         "psf_sigma_px": config.psf_sigma_for(camera.height_px),
+         "defocus_radius_px": config.defocus_radius_px, "tone": config.tone, "gamma": config.gamma,
+         "exposure_ms": exposure_ms, "gain": gain, "noise": config.noise,
+         "motion_blur": bool(options["motion_blur"])}))
+
+
+def _add_topics(bag: BagWriter) -> None:
+    from ficap_ros.io.sources import CAMERA_INFO_TYPE, COMPRESSED_TYPE
+
+    bag.add_topic(IMAGE_TOPIC, COMPRESSED_TYPE)
+    bag.add_topic(CAMERA_INFO_TOPIC, CAMERA_INFO_TYPE)
+    bag.add_topic(TRUTH_CAP_TOPIC, "geometry_msgs/msg/PoseStamped")
+    bag.add_topic(TRUTH_HEAD_TOPIC, "geometry_msgs/msg/PoseStamped")
+    bag.add_topic(TRUTH_HEAD_CAMERA_TOPIC, "geometry_msgs/msg/PoseStamped")
+    bag.add_topic(TRUTH_FRONTAL_TOPIC, "std_msgs/msg/Bool")
+
+
+def _write_frame(bag: BagWriter, scene: DriveScene, f: DriveFrame, image: np.ndarray,
+                 jpeg_quality: int) -> None:
+    """One frame's messages: CameraInfo, the JPEG image and the true poses, at the frame's stamp."""
+    import cv2
+    import numpy as np
+
+    from ficap_ros.geometry.transform import Transform
+    from ficap_ros.io.messages import (
+        ROSBAGS,
+        camera_info,
+        compressed_image,
+        header,
+        jazzy_typestore,
+        pose_stamped,
+    )
+
+    stamp = START_NS + f.stamp_ns
+    ok, jpg = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, jpeg_quality])
+    if not ok:  # pragma: no cover - OpenCV always encodes a uint8 image
+        raise RuntimeError("JPEG encoding failed")
+    T_cam_head = Transform(f.T_cam_cap.rotation * scene.R_cap_head, f.T_cam_cap.translation_m)
+    R_frontal_cam = Transform(scene.R_cam_frontal.inv(), np.zeros(3))
+    in_camera = header(ROSBAGS, stamp, CAMERA_FRAME)
+    bag.write(CAMERA_INFO_TOPIC, stamp, camera_info(ROSBAGS, in_camera, scene.camera))
+    bag.write(IMAGE_TOPIC, stamp, compressed_image(ROSBAGS, in_camera, jpg.tobytes()))
+    bag.write(TRUTH_CAP_TOPIC, stamp, pose_stamped(ROSBAGS, in_camera, f.T_cam_cap))
+    bag.write(TRUTH_HEAD_TOPIC, stamp,
+              pose_stamped(ROSBAGS, header(ROSBAGS, stamp, FRONTAL_FRAME),
+                           R_frontal_cam * T_cam_head))
+    bag.write(TRUTH_HEAD_CAMERA_TOPIC, stamp, pose_stamped(ROSBAGS, in_camera, T_cam_head))
+    bag.write(TRUTH_FRONTAL_TOPIC, stamp,
+              jazzy_typestore().types["std_msgs/msg/Bool"](data=bool(f.frontal)))

@@ -1,8 +1,8 @@
-"""Writing rosbag2 bags (MCAP or sqlite3) atomically, and the rosbags message builders the bag
-tools and tests write with (no ROS install needed).
+"""Writing rosbag2 bags (MCAP or sqlite3) atomically (no ROS install needed).
 
 A bag is written into a hidden temporary folder beside its destination and renamed into place when
-complete, so an error or Ctrl-C never leaves a partial bag.
+complete, so an error or Ctrl-C never leaves a partial bag. Messages come from
+``ficap_ros.io.messages``'s builders over ``messages.ROSBAGS``.
 """
 
 from __future__ import annotations
@@ -11,18 +11,12 @@ import os
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from ficap_ros.errors import BagError, OutputError
-from ficap_ros.geometry.camera import CameraModel
-from ficap_ros.geometry.transform import Transform
-from ficap_ros.io import messages
-from ficap_ros.io.messages import ROSBAGS, jazzy_typestore
+from ficap_ros.io.messages import jazzy_typestore
 
-__all__ = ["BagWriter", "header", "pose_msg", "pose_stamped_msg", "pose_with_covariance_stamped_msg", "camera_info_msg", "compressed_image_msg", "image_msg"]
+__all__ = ["BagWriter"]
 
 
-# -- writing -------------------------------------------------------------------------------------
 class BagWriter:
     """Write a rosbag2 bag atomically: into a hidden temporary folder, renamed when complete.
 
@@ -122,42 +116,3 @@ class BagWriter:
                 raise OutputError(f"cannot write {self.path}: {err.strerror or err}") from err
         finally:
             shutil.rmtree(self._tmpdir, ignore_errors=True)
-
-
-# -- message builders (rosbags message objects; no ROS needed): ficap_ros.io.messages over ROSBAGS ---
-def header(stamp_ns: int, frame_id: str) -> Any:
-    """``std_msgs/Header``."""
-    return messages.header(ROSBAGS, stamp_ns, frame_id)
-
-
-def pose_msg(T: Transform) -> Any:
-    """``geometry_msgs/Pose`` of a ``Transform`` (translation in m)."""
-    return messages.pose(ROSBAGS, T)
-
-
-def pose_stamped_msg(stamp_ns: int, frame_id: str, T: Transform) -> Any:
-    """``geometry_msgs/PoseStamped``."""
-    return messages.pose_stamped(ROSBAGS, header(stamp_ns, frame_id), T)
-
-
-def pose_with_covariance_stamped_msg(stamp_ns: int, frame_id: str, T: Transform,
-                                     covariance: np.ndarray) -> Any:
-    """``geometry_msgs/PoseWithCovarianceStamped`` (covariance 6x6, ROS order; non-finite: a
-    huge diagonal, as the node publishes it)."""
-    return messages.pose_with_covariance_stamped(ROSBAGS, header(stamp_ns, frame_id), T,
-                                                 covariance)
-
-
-def camera_info_msg(stamp_ns: int, frame_id: str, camera: CameraModel) -> Any:
-    """``sensor_msgs/CameraInfo`` of a camera model (P = [K | 0], R = I)."""
-    return messages.camera_info(ROSBAGS, header(stamp_ns, frame_id), camera)
-
-
-def compressed_image_msg(stamp_ns: int, frame_id: str, data: bytes, fmt: str = "jpeg") -> Any:
-    """``sensor_msgs/CompressedImage``."""
-    return messages.compressed_image(ROSBAGS, header(stamp_ns, frame_id), data, fmt)
-
-
-def image_msg(stamp_ns: int, frame_id: str, image: np.ndarray, encoding: str) -> Any:
-    """``sensor_msgs/Image`` of an array already laid out for ``encoding``."""
-    return messages.image(ROSBAGS, header(stamp_ns, frame_id), image, encoding)

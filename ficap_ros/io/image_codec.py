@@ -11,12 +11,13 @@ import numpy as np
 
 from ficap_ros.errors import ImageError
 
-__all__ = ["ENCODINGS", "decode_image", "decode_compressed", "check_pixel_budget", "max_pixels",
-           "DEFAULT_MAX_PIXELS"]
+__all__ = ["ENCODINGS", "encoding_layout", "decode_image", "decode_compressed",
+           "check_pixel_budget", "max_pixels", "DEFAULT_MAX_PIXELS"]
 
 #: Largest image accepted, in pixels (``FICAP_MAX_PIXELS`` overrides it). 40 MP holds every
-#: camera a cap is filmed with (1080p is 2.1 MP, 4K 8.3 MP, a 12 MP phone photo); an 8000x6000
-#: photo (48 MP) took 2.3 GB in detection and died under a 1.5 GB limit with a cv2.error.
+#: camera a cap is filmed with (1080p is 2.1 MP, 4K 8.3 MP, a 12 MP phone photo); detection's
+#: working memory grows with the pixel count, so a larger photo is refused before it costs
+#: gigabytes.
 DEFAULT_MAX_PIXELS = 40_000_000
 
 
@@ -70,6 +71,19 @@ for _pattern in _BAYER:
 ENCODINGS: tuple[str, ...] = tuple(sorted(_LAYOUT))
 
 
+def encoding_layout(encoding: str) -> tuple[int, int]:
+    """(channels, bytes per channel) of a raw image encoding (case-insensitive; Bayer mosaics are
+    one channel).
+
+    Raises:
+        ImageError: not one of ``ENCODINGS``.
+    """
+    enc = str(encoding).strip().lower()
+    if enc not in _LAYOUT:
+        raise ImageError(f"unsupported image encoding {encoding!r}")
+    return _LAYOUT[enc]
+
+
 def decode_image(
     encoding: str, height: int, width: int, step: int, data: bytes | np.ndarray,
     is_bigendian: bool | int = False,
@@ -90,9 +104,7 @@ def decode_image(
         ImageError: unknown encoding, or a size/step that does not match the data.
     """
     enc = str(encoding).strip().lower()
-    if enc not in _LAYOUT:
-        raise ImageError(f"unsupported image encoding {encoding!r}")
-    channels, depth = _LAYOUT[enc]
+    channels, depth = encoding_layout(enc)
     try:
         height, width, step = int(height), int(width), int(step)
     except (TypeError, ValueError, OverflowError) as err:

@@ -440,23 +440,22 @@ def label_topics(namespace: str = DEFAULT_NAMESPACE) -> dict[str, str]:
 
 
 def _quality_msg(rec: FrameRecord) -> object:
-    from ficap_ros.io.bag_writer import header
-    from ficap_ros.io.messages import ROSBAGS, named_values
+    from ficap_ros.io.messages import ROSBAGS, header, named_values
 
-    return named_values(ROSBAGS, header(rec.stamp_ns, rec.frame_id), quality_values(rec))
+    return named_values(ROSBAGS, header(ROSBAGS, rec.stamp_ns, rec.frame_id), quality_values(rec))
 
 
 def _rpy_msg(rec: FrameRecord) -> object:
-    from ficap_ros.io.bag_writer import header
-    from ficap_ros.io.messages import ROSBAGS, rpy_deg
+    from ficap_ros.io.messages import ROSBAGS, header, rpy_deg
 
     assert rec.T_frontal_head is not None
-    return rpy_deg(ROSBAGS, header(rec.stamp_ns, FRONTAL_FRAME), rec.T_frontal_head.rotation)
+    return rpy_deg(ROSBAGS, header(ROSBAGS, rec.stamp_ns, FRONTAL_FRAME),
+                   rec.T_frontal_head.rotation)
 
 
 def _tf_msg(rec: FrameRecord) -> object:
     """tf2_msgs/TFMessage: frontal -> camera, camera -> cap, cap -> head (stamp = the image's)."""
-    from ficap_ros.io.bag_writer import header
+    from ficap_ros.io.messages import ROSBAGS, header
     from ficap_ros.io.sources import jazzy_typestore
 
     assert rec.T_cam_cap is not None and rec.T_frontal_head is not None
@@ -468,7 +467,7 @@ def _tf_msg(rec: FrameRecord) -> object:
         x, y, z = (float(v) for v in T.translation_m)
         qx, qy, qz, qw = (float(v) for v in T.q_xyzw)
         return t["geometry_msgs/msg/TransformStamped"](
-            header=header(rec.stamp_ns, parent), child_frame_id=child,
+            header=header(ROSBAGS, rec.stamp_ns, parent), child_frame_id=child,
             transform=t["geometry_msgs/msg/Transform"](
                 translation=t["geometry_msgs/msg/Vector3"](x=x, y=y, z=z),
                 rotation=t["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)))
@@ -490,7 +489,7 @@ def _status_text(key: str, value: object) -> str:
 
 
 def _status_msg(rec: FrameRecord) -> object:
-    from ficap_ros.io.bag_writer import header
+    from ficap_ros.io.messages import ROSBAGS, header
     from ficap_ros.io.sources import jazzy_typestore
 
     t = jazzy_typestore().types
@@ -500,8 +499,8 @@ def _status_msg(rec: FrameRecord) -> object:
         level=level, name="ficap", message=message, hardware_id=rec.frame_id,
         values=[t["diagnostic_msgs/msg/KeyValue"](key=k, value=v) for k, v in values],
     )
-    return t["diagnostic_msgs/msg/DiagnosticArray"](header=header(rec.stamp_ns, rec.frame_id),
-                                                    status=[status])
+    return t["diagnostic_msgs/msg/DiagnosticArray"](
+        header=header(ROSBAGS, rec.stamp_ns, rec.frame_id), status=[status])
 
 
 def write_labels_bag(path: str | Path, records: Sequence[FrameRecord],
@@ -513,10 +512,12 @@ def write_labels_bag(path: str | Path, records: Sequence[FrameRecord],
     Raises:
         BagError: the folder is not writable.
     """
-    from ficap_ros.io.bag_writer import (
-        BagWriter,
-        pose_stamped_msg,
-        pose_with_covariance_stamped_msg,
+    from ficap_ros.io.bag_writer import BagWriter
+    from ficap_ros.io.messages import (
+        ROSBAGS,
+        header,
+        pose_stamped,
+        pose_with_covariance_stamped,
     )
 
     topics = label_topics(namespace)
@@ -531,18 +532,19 @@ def write_labels_bag(path: str | Path, records: Sequence[FrameRecord],
         bag.add_topic(topics["tf"], "tf2_msgs/msg/TFMessage")
         for rec in records:
             if rec.T_cam_cap is not None and rec.T_frontal_head is not None:
+                in_camera = header(ROSBAGS, rec.stamp_ns, rec.frame_id)
                 bag.write(topics["cap_pose"], rec.stamp_ns,
-                          pose_stamped_msg(rec.stamp_ns, rec.frame_id, rec.T_cam_cap))
+                          pose_stamped(ROSBAGS, in_camera, rec.T_cam_cap))
                 T_cam_head = rec.T_cam_head
                 bag.write(topics["head_pose"], rec.stamp_ns,
-                          pose_stamped_msg(rec.stamp_ns, rec.frame_id, T_cam_head))
+                          pose_stamped(ROSBAGS, in_camera, T_cam_head))
                 assert rec.covariance_cam is not None  # finite and positive: pose.py's guarantee
                 cov = rec.covariance_cam
                 bag.write(topics["head_pose_cov"], rec.stamp_ns,
-                          pose_with_covariance_stamped_msg(rec.stamp_ns, rec.frame_id,
-                                                           T_cam_head, cov))
+                          pose_with_covariance_stamped(ROSBAGS, in_camera, T_cam_head, cov))
                 bag.write(topics["head_frontal"], rec.stamp_ns,
-                          pose_stamped_msg(rec.stamp_ns, FRONTAL_FRAME, rec.T_frontal_head))
+                          pose_stamped(ROSBAGS, header(ROSBAGS, rec.stamp_ns, FRONTAL_FRAME),
+                                       rec.T_frontal_head))
                 bag.write(topics["head_rpy"], rec.stamp_ns, _rpy_msg(rec))
                 bag.write(topics["tf"], rec.stamp_ns, _tf_msg(rec))
             bag.write(topics["quality"], rec.stamp_ns, _quality_msg(rec))

@@ -1,12 +1,12 @@
-"""ROS messages written once, over their fields: headers, poses, CameraInfo, Image,
-CompressedImage, built from and read into the core types.
+"""ROS messages written once, over their fields: stamps, headers, poses, head angles, named
+values, CameraInfo, Image, CompressedImage, built from and read into the core types.
 
-The same functions serve the live node and the bag tools: they take a ``MessageClasses`` that says
-where the message classes come from and how array fields are filled. ``ros_msgs.RCLPY`` feeds them
-rclpy's generated classes (the node); ``ROSBAGS`` feeds them the rosbags Jazzy typestore's
-dataclasses (bag_io, bag_writer, labels, evaluation; no ROS install needed). Readers are
-duck-typed: a message of either kind (or anything with the fields) goes in. This module imports
-neither rclpy nor any ROS message package.
+These are the only message builders: the live node and the bag tools call them directly with a
+``MessageClasses`` that says where the message classes come from and how array fields are filled.
+``ros.msgs.RCLPY`` feeds them rclpy's generated classes (the node); ``ROSBAGS`` feeds them the
+rosbags Jazzy typestore's dataclasses (the bag writers, labels, synth, evaluation; no ROS install
+needed). Readers are duck-typed: a message of either kind (or anything with the fields) goes in.
+This module imports neither rclpy nor any ROS message package.
 
 Quaternions in messages are the x, y, z, w fields (``q_xyzw``); translations are metres.
 """
@@ -19,12 +19,13 @@ from typing import Any, Callable, Mapping
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from ficap_ros.errors import ImageError
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.metrics import yaw_pitch_roll_deg
 from ficap_ros.geometry.transform import Transform
-from ficap_ros.io.image_codec import decode_compressed, decode_image
+from ficap_ros.io.image_codec import decode_compressed, decode_image, encoding_layout
 
-__all__ = ["MessageClasses", "ROSBAGS", "jazzy_typestore", "as_bytes", "header", "pose",
+__all__ = ["MessageClasses", "ROSBAGS", "jazzy_typestore", "as_bytes", "time", "header", "pose",
            "pose_stamped", "pose_with_covariance_stamped", "rpy_deg", "named_values",
            "camera_info", "image",
            "compressed_image", "image_to_array", "compressed_to_array", "orientation",
@@ -93,11 +94,15 @@ def as_bytes(data: object) -> np.ndarray:
 
 
 # -- building -------------------------------------------------------------------------------------
+def time(c: MessageClasses, stamp_ns: int) -> Any:
+    """``builtin_interfaces/Time`` of integer nanoseconds."""
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    return c.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec)
+
+
 def header(c: MessageClasses, stamp_ns: int, frame_id: str) -> Any:
     """``std_msgs/Header`` (stamp from integer nanoseconds)."""
-    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
-    return c.types["std_msgs/msg/Header"](
-        stamp=c.types["builtin_interfaces/msg/Time"](sec=sec, nanosec=nanosec), frame_id=frame_id)
+    return c.types["std_msgs/msg/Header"](stamp=time(c, stamp_ns), frame_id=frame_id)
 
 
 def pose(c: MessageClasses, T: Transform) -> Any:
@@ -162,8 +167,16 @@ def camera_info(c: MessageClasses, head: Any, camera: CameraModel) -> Any:
 
 def image(c: MessageClasses, head: Any, array: np.ndarray, encoding: str) -> Any:
     """``sensor_msgs/Image`` of an array already laid out for ``encoding`` (rows unpadded;
-    ``is_bigendian`` from the array's byte order)."""
+    ``is_bigendian`` from the array's byte order).
+
+    Raises:
+        ImageError: an encoding ``image_codec`` does not decode, or an array whose channels or
+            sample size do not match it.
+    """
+    channels, depth = encoding_layout(encoding)
     arr = np.ascontiguousarray(array)
+    if arr.dtype.itemsize != depth or (arr.shape[2] if arr.ndim == 3 else 1) != channels:
+        raise ImageError(f"array {arr.shape} {arr.dtype} does not match encoding {encoding}")
     return c.types["sensor_msgs/msg/Image"](
         header=head, height=int(arr.shape[0]), width=int(arr.shape[1]), encoding=encoding,
         is_bigendian=int(arr.dtype.byteorder == ">"), step=int(arr.strides[0]),

@@ -6,9 +6,12 @@ cut short ("database disk image is malformed"). ``SalvageReader`` reads such fil
 and offers the part of rosbags' ``AnyReader`` interface the bag tools use (``connections``,
 ``messages``, ``deserialize``, ``close``), plus what it could not read (``damage``).
 
-* MCAP: records are walked in file order. A chunk cut short is decompressed as far as its bytes
-  go (no compression, zstd and lz4 all decode a prefix) and its complete messages are kept; the
-  chunk header still says until when its messages ran, which bounds the lost time range.
+* MCAP: records are walked in file order. Each is located by its opcode and length and checked
+  against the bytes that follow; whole records are read by mcap's own ``StreamReader`` (one
+  record at a time, so a malformed one cannot make it read into the next). A chunk cut short is
+  decompressed as far as its bytes go (no compression, zstd and lz4 all decode a prefix) and its
+  whole records are kept; the chunk header still says until when its messages ran, which bounds
+  the lost time range.
 * sqlite3: the database is copied to a temporary file (the input is only read), cut to whole
   pages with the header's page count set to match, and the messages table is read in rowid order
   (the order the recorder inserted them) until the first unreadable page.
@@ -29,11 +32,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator, Sequence
 
+from mcap.data_stream import ReadDataStream
+from mcap.exceptions import McapError
+from mcap.opcode import Opcode
+from mcap.records import Channel, Chunk, McapRecord, Message, Schema
+from mcap.stream_reader import MAGIC_SIZE, StreamReader, read_magic
+
 from ficap_ros.errors import BagError
 
-__all__ = ["SalvageConnection", "Damage", "SalvageReader", "storage_files"]
-
-_MAGIC = b"\x89MCAP0\r\n"
+__all__ = ["SalvageConnection", "Damage", "SalvageReader", "NothingSalvaged", "storage_files"]
 
 
 class NothingSalvaged(BagError):
@@ -43,7 +50,6 @@ class NothingSalvaged(BagError):
     def __init__(self, message: str, detail: str) -> None:
         super().__init__(message)
         self.detail = detail
-_OP_SCHEMA, _OP_CHANNEL, _OP_MESSAGE, _OP_CHUNK, _OP_FOOTER = 0x03, 0x04, 0x05, 0x06, 0x02
 
 
 @dataclass(frozen=True)
@@ -103,49 +109,115 @@ def _metadata(path: Path) -> tuple[dict[str, int] | None, int | None]:
 
 
 # -- MCAP ----------------------------------------------------------------------------------------
-class _Cursor:
-    """Little-endian fields of an MCAP record body; ``EOFError`` past the end."""
+#: A record's opcode (1 byte) and body length (8 bytes, little-endian) before its body.
+_RECORD_HEADER = struct.Struct("<BQ")
+#: Records the salvage needs (the rest are indexes and summaries of what it walks anyway).
+_DATA_OPCODES = frozenset({Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE})
 
-    def __init__(self, data: bytes | memoryview) -> None:
-        self.data = memoryview(data)
-        self.pos = 0
 
-    def take(self, n: int) -> memoryview:
-        if n < 0 or self.pos + n > len(self.data):
-            raise EOFError
-        out = self.data[self.pos: self.pos + n]
-        self.pos += n
+class _Exact:
+    """Bytes for mcap's ``ReadDataStream`` that give every read all it asks or nothing.
+
+    mcap's stream returns a short read as it is and fails only on an empty one, so over a whole
+    file a field that overruns its record would read the next record's bytes. Over one record's
+    bytes an overrun is ``EndOfFile`` instead: the record is malformed.
+    """
+
+    def __init__(self, data: bytes) -> None:
+        self._data = memoryview(data)
+        self._pos = 0
+
+    def read(self, n: int = -1) -> bytes:
+        if n < 0 or self._pos + n > len(self._data):
+            return b""
+        out = bytes(self._data[self._pos: self._pos + n])
+        self._pos += n
         return out
 
-    def u16(self) -> int:
-        return struct.unpack("<H", self.take(2))[0]
 
-    def u32(self) -> int:
-        return struct.unpack("<I", self.take(4))[0]
-
-    def u64(self) -> int:
-        return struct.unpack("<Q", self.take(8))[0]
-
-    def string(self) -> str:
-        return bytes(self.take(self.u32())).decode("utf-8", "replace")
+class _Malformed(Exception):
+    """A whole record whose fields do not fit its length (or are not UTF-8 where text)."""
 
 
-def _records(data: Any, start: int) -> Iterator[tuple[int, bytes, bool, int]]:
-    """(opcode, body, complete, offset) of consecutive records; the last may be incomplete.
+@dataclass(frozen=True)
+class _Frame:
+    """One record located by its header: ``offset`` in its buffer, ``opcode`` (-1 when the
+    9-byte header itself is cut), body ``length`` as declared, ``complete`` when every byte of
+    the body is there."""
 
-    ``data`` is bytes or a read-only mmap (slices are copies, so no view outlives the map)."""
+    offset: int
+    opcode: int
+    length: int
+    complete: bool
+
+    @property
+    def end(self) -> int:
+        return self.offset + _RECORD_HEADER.size + self.length
+
+
+def _frames(data: Any, start: int) -> Iterator[_Frame]:
+    """The records of ``data`` (bytes or a read-only mmap) from ``start``, each length-checked
+    against the bytes there: a cut record is the last one.
+
+    mcap's ``StreamReader`` assumes whole records (it reads a cut one's remaining fields as
+    whatever bytes are left, then fails), so the salvage locates each record first and hands
+    mcap only whole ones.
+    """
     pos = start
-    while pos + 9 <= len(data):
-        op = data[pos]
-        (length,) = struct.unpack("<Q", data[pos + 1: pos + 9])
-        body = data[pos + 9: pos + 9 + length]
-        complete = len(body) == length
-        yield op, body, complete, pos
-        if not complete:
+    while pos + _RECORD_HEADER.size <= len(data):
+        opcode, length = _RECORD_HEADER.unpack_from(data, pos)
+        frame = _Frame(pos, opcode, length, pos + _RECORD_HEADER.size + length <= len(data))
+        yield frame
+        if not frame.complete:
             return
-        pos += 9 + length
+        pos = frame.end
     if pos < len(data):
-        yield -1, data[pos:], False, pos  # a record header cut short
+        yield _Frame(pos, -1, 0, False)  # a record header cut short
+
+
+def _read_record(record: bytes) -> McapRecord:
+    """One whole record (header and body) by mcap's stream reader.
+
+    Raises:
+        _Malformed: its fields overrun its length, or a text field is not UTF-8.
+    """
+    reader = StreamReader(_Exact(record), skip_magic=True, emit_chunks=True,
+                          record_size_limit=None)
+    try:
+        return next(iter(reader.records))
+    except (McapError, UnicodeDecodeError, ValueError, struct.error) as err:
+        raise _Malformed(str(err)) from None
+
+
+@dataclass(frozen=True)
+class _ChunkHead:
+    """The fields before a chunk's compressed records: the end of its messages' log times (ns),
+    its compression, the declared length of the records and where they start in the body."""
+
+    message_end_ns: int
+    compression: str
+    records_length: int
+    records_offset: int
+
+
+def _chunk_head(body: bytes) -> _ChunkHead | None:
+    """The header of a chunk mcap's ``Chunk.read`` cannot take whole (the record is cut short,
+    or its records' length disagrees with the record's); None when the header itself is cut.
+
+    The fields are mcap's ``Chunk`` ones in its order, read with mcap's ``ReadDataStream``; the
+    compression name is decoded leniently (an unknown one only makes the records unreadable).
+    """
+    stream = ReadDataStream(_Exact(body))
+    try:
+        stream.read8()  # message start time
+        end_ns = stream.read8()
+        stream.read8()  # uncompressed size
+        stream.read4()  # uncompressed CRC
+        compression = stream.read(stream.read4()).decode("utf-8", "replace")
+        length = stream.read8()
+    except McapError:
+        return None
+    return _ChunkHead(end_ns, compression, length, stream.count)
 
 
 def _decompress_prefix(compression: str, data: bytes) -> bytes:
@@ -169,7 +241,8 @@ def _decompress_prefix(compression: str, data: bytes) -> bytes:
 
 
 class _McapFile:
-    """One MCAP file walked front to back."""
+    """One MCAP file walked front to back: records located and length-checked here, read by
+    mcap's ``StreamReader``; a chunk cut short gives up the whole records its prefix holds."""
 
     def __init__(self, path: Path) -> None:
         self.path = path
@@ -178,80 +251,89 @@ class _McapFile:
         self.damage = ""
         self.lost_until_ns: int | None = None
 
-    def _inner(self, records: bytes, complete: bool) -> Iterator[tuple[int, int, bytes]]:
-        for op, body, whole, _ in _records(records, 0):
-            if not whole:
-                if complete:
-                    self.damage = self.damage or "a record inside a chunk is cut short"
-                return
-            yield from self._record(op, body)
-
-    def _record(self, op: int, body: bytes) -> Iterator[tuple[int, int, bytes]]:
-        c = _Cursor(body)
-        try:
-            if op == _OP_SCHEMA:
-                sid, name, enc = c.u16(), c.string(), c.string()
-                self.schemas[sid] = (name, enc, bytes(c.take(c.u32())))
-            elif op == _OP_CHANNEL:
-                cid, sid, topic = c.u16(), c.u16(), c.string()
-                self.channels[cid] = (topic, sid)
-            elif op == _OP_MESSAGE:
-                cid = c.u16()
-                c.u32()  # sequence
-                log_ns = c.u64()
-                c.u64()  # publish time
-                yield cid, log_ns, bytes(body[c.pos:])
-        except EOFError:
-            self.damage = self.damage or f"a record of {self.path.name} is malformed"
-
     def messages(self) -> Iterator[tuple[int, int, bytes]]:
         """(channel id, log time, payload) of every complete message, in file order."""
         with open(self.path, "rb") as handle:
             size = os.fstat(handle.fileno()).st_size
-            if size < len(_MAGIC):
+            if size < MAGIC_SIZE:
                 self.damage = f"{self.path.name} is empty or cut before its first record"
                 return
             with mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ) as mm:
-                if mm[:8] != _MAGIC:
-                    raise BagError(f"{self.path} is not an MCAP file")
-                footer = False
-                for op, body, complete, offset in _records(mm, 8):
-                    if op == _OP_FOOTER:
-                        footer = True
-                        break
-                    if op == _OP_CHUNK:
-                        yield from self._chunk(body, complete, offset, size)
-                    elif complete:
-                        yield from self._record(op, body)
-                    if not complete:
-                        self.damage = self.damage or (
-                            f"{self.path.name} ends inside a record at byte {offset} of "
-                            f"{size} (no footer)")
-                        break
-                if not footer and not self.damage:
-                    self.damage = f"{self.path.name} has no footer (file cut short)"
+                try:
+                    read_magic(ReadDataStream(_Exact(mm[:MAGIC_SIZE])))
+                except McapError:
+                    raise BagError(f"{self.path} is not an MCAP file") from None
+                yield from self._walk(mm, size)
 
-    def _chunk(self, body: bytes, complete: bool, offset: int,
-               size: int) -> Iterator[tuple[int, int, bytes]]:
-        c = _Cursor(body)
+    def _walk(self, mm: mmap.mmap, size: int) -> Iterator[tuple[int, int, bytes]]:
+        """The data section's records up to the footer, or up to the first record cut short."""
+        footer = False
+        for frame in _frames(mm, MAGIC_SIZE):
+            if frame.opcode == Opcode.FOOTER:
+                footer = True
+                break
+            if frame.opcode == Opcode.CHUNK:
+                yield from self._chunk(mm[frame.offset: frame.end], frame.complete, frame.offset,
+                                       size)
+            elif frame.complete and frame.opcode in _DATA_OPCODES:
+                yield from self._record(mm[frame.offset: frame.end])
+            if not frame.complete:
+                self.damage = self.damage or (
+                    f"{self.path.name} ends inside a record at byte {frame.offset} of "
+                    f"{size} (no footer)")
+                break
+        if not footer and not self.damage:
+            self.damage = f"{self.path.name} has no footer (file cut short)"
+
+    def _record(self, record: bytes) -> Iterator[tuple[int, int, bytes]]:
+        """A schema or channel is kept, a message yielded as (channel id, log time, payload)."""
         try:
-            c.u64()
-            end_ns = c.u64()
-            c.u64()  # uncompressed size
-            c.u32()  # crc
-            compression = c.string()
-            length = c.u64()
-        except EOFError:
+            parsed = _read_record(record)
+        except _Malformed:
+            self.damage = self.damage or f"a record of {self.path.name} is malformed"
+            return
+        if isinstance(parsed, Schema):
+            self.schemas[parsed.id] = (parsed.name, parsed.encoding, parsed.data)
+        elif isinstance(parsed, Channel):
+            self.channels[parsed.id] = (parsed.topic, parsed.schema_id)
+        elif isinstance(parsed, Message):
+            yield parsed.channel_id, parsed.log_time, parsed.data
+
+    def _chunk(self, record: bytes, complete: bool, offset: int,
+               size: int) -> Iterator[tuple[int, int, bytes]]:
+        """A chunk's messages: all of a whole one, the whole records of a cut one's prefix (the
+        cut chunk's header still says until when its messages ran)."""
+        if complete:
+            try:
+                chunk = _read_record(record)
+            except _Malformed:
+                chunk = None
+            if isinstance(chunk, Chunk):
+                yield from self._inner(_decompress_prefix(chunk.compression, chunk.data), True)
+                return
+        body = record[_RECORD_HEADER.size:]
+        head = _chunk_head(body)
+        if head is None:
             self.damage = (f"{self.path.name} ends inside a chunk header at byte {offset} of "
                            f"{size}")
             return
-        payload = body[c.pos: c.pos + length]
-        whole = complete and len(payload) == length
+        payload = body[head.records_offset: head.records_offset + head.records_length]
+        whole = complete and len(payload) == head.records_length
         if not whole:
-            self.lost_until_ns = end_ns
+            self.lost_until_ns = head.message_end_ns
             self.damage = (f"{self.path.name} ends inside a chunk at byte {offset} of {size} "
                            "(no footer)")
-        yield from self._inner(_decompress_prefix(compression, payload), whole)
+        yield from self._inner(_decompress_prefix(head.compression, payload), whole)
+
+    def _inner(self, records: bytes, complete: bool) -> Iterator[tuple[int, int, bytes]]:
+        """The records of a chunk's decompressed bytes (of a cut chunk: up to the one cut)."""
+        for frame in _frames(records, 0):
+            if not frame.complete:
+                if complete:
+                    self.damage = self.damage or "a record inside a chunk is cut short"
+                return
+            if frame.opcode in _DATA_OPCODES:
+                yield from self._record(records[frame.offset: frame.end])
 
 
 # -- sqlite3 -------------------------------------------------------------------------------------

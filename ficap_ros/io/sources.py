@@ -28,12 +28,11 @@ from typing import Any, Iterator
 import numpy as np
 
 from ficap_ros.errors import BagError, FicapError, ImageError, one_line
-from ficap_ros.geometry.camera import (
+from ficap_ros.geometry.camera import CameraModel, load_camera_yaml
+from ficap_ros.io.camera_info import (
     CAMERA_INFO_MAX_STAMP_DIFF_NS,
-    CameraModel,
     camera_from_info,
     camera_info_key,
-    load_camera_yaml,
     pick_camera_info,
 )
 from ficap_ros.io.image_codec import check_pixel_budget, decode_compressed, decode_image
@@ -181,9 +180,9 @@ def _bag_errors() -> tuple[type[BaseException], ...]:
     from rosbags.rosbag2 import ReaderError
     from rosbags.serde import SerdeError
 
-    # What rosbags' parsers raise on hostile bytes: the bad-input corpus found TypeError from an
-    # MCAP file that ends after its magic, the property tests MemoryError from a flipped length
-    # field that asks for gigabytes.
+    # What rosbags' parsers raise on hostile bytes, besides their own errors: TypeError for an
+    # MCAP file that ends after its magic, MemoryError for a flipped length field that asks for
+    # gigabytes.
     return (AnyReaderError, ReaderError, SerdeError, sqlite3.Error, OSError, ValueError,
             KeyError, IndexError, EOFError, AssertionError, TypeError, struct.error,
             OverflowError, AttributeError, NotImplementedError, RuntimeError, MemoryError)
@@ -194,7 +193,7 @@ def open_bag_reader(path: Path, salvage: bool = True) -> Any:
 
     Normally rosbags' ``AnyReader``. When it refuses a damaged bag (an MCAP without footer, a
     sqlite3 database cut short, a folder whose recorder died before writing metadata.yaml) and
-    ``salvage`` is set, a ``bag_salvage.SalvageReader`` over the complete messages; its
+    ``salvage`` is set, a ``salvage.SalvageReader`` over the complete messages; its
     ``damage`` says what could not be read (``AnyReader`` has none).
 
     Raises:
@@ -281,7 +280,7 @@ class FrameSource:
             else load_camera_yaml(intrinsics))
         if not self.path.exists():
             raise BagError(f"{self.path} does not exist")
-        self._damage: Any = None  # bag_salvage.Damage of the container, if damaged
+        self._damage: Any = None  # salvage.Damage of the container, if damaged
         self._read = 0  # images the last full iteration yielded
         self._last_ns = 0  # log time (video: stamp) of the last image read
         self._midway: str = ""  # an error that stopped an iteration early
@@ -324,7 +323,7 @@ class FrameSource:
 class BagSource(FrameSource):
     """The images of one topic of a rosbag2 bag (folder, ``.mcap`` or ``.db3``), with the
     CameraInfo of its namespace (or ``intrinsics``; ``rectified``: P, no distortion). Each image
-    takes the CameraInfo ``camera.pick_camera_info`` chooses, as the node does."""
+    takes the CameraInfo ``camera_info.pick_camera_info`` chooses, as the node does."""
 
     kind = RecordingKind.BAG
 

@@ -16,9 +16,10 @@ from typing import Any
 import numpy as np
 
 from ficap_ros.errors import FicapError
-from ficap_ros.geometry.camera import CameraInfoCache, CameraModel
+from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.cap_model import load_model, nominal_model
 from ficap_ros.io import messages
+from ficap_ros.io.camera_info import CameraInfoCache
 from ficap_ros.io.labels import FrameRecord
 from ficap_ros.io.status import (
     FrameStatus,

@@ -1,8 +1,10 @@
-"""Conversions between ROS 2 messages and the ficap_ros core types (no algorithms here).
+"""The node's messages: rclpy's classes for ``ficap_ros.io.messages`` (``RCLPY``), and the
+messages only the node publishes (its pose outputs, DiagnosticArray, MarkerArray, a debug Image).
 
-Images become numpy arrays the core accepts (grey uint8, or uint16 for ``mono16``), CameraInfo
-becomes a ``CameraModel``, frame records become PoseStamped / PoseWithCovarianceStamped / DiagnosticArray /
-MarkerArray / a debug Image. Quaternions in messages are the x, y, z, w fields (``q_xyzw``).
+Headers, poses, head angles, named values, CameraInfo and images are built and read by
+``ficap_ros.io.messages``'s functions over ``RCLPY``; CameraInfo becomes a ``CameraModel`` by
+``ficap_ros.io.camera_info.camera_from_info``. Quaternions in messages are the x, y, z, w fields
+(``q_xyzw``). Frame records become the node's pose messages (``pose_outputs``).
 """
 
 from __future__ import annotations
@@ -12,22 +14,13 @@ from typing import Any, Iterator, Mapping
 
 import cv2
 import numpy as np
-from builtin_interfaces.msg import Time
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import (
-    Point,
-    Pose,
-    PoseStamped,
-    PoseWithCovarianceStamped,
-    Vector3Stamped,
-)
-from scipy.spatial.transform import Rotation
-from sensor_msgs.msg import CameraInfo, Image, JointState
+from geometry_msgs.msg import Point
+from sensor_msgs.msg import Image
 from std_msgs.msg import Header
 from visualization_msgs.msg import Marker, MarkerArray
 
-from ficap_ros.errors import ImageError
-from ficap_ros.geometry.camera import CameraModel, camera_from_info
+from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.cap_model import CapModel
 from ficap_ros.geometry.transform import Transform, rotate_covariance
 from ficap_ros.io import messages
@@ -36,20 +29,8 @@ from ficap_ros.stamps import stamp_to_ns
 from ficap_ros.vision.detector import TagDetection
 
 __all__ = [
-    "IMAGE_ENCODINGS",
     "RCLPY",
-    "image_to_array",
-    "compressed_to_array",
-    "array_to_image",
-    "camera_info_to_model",
-    "camera_model_to_info",
     "stamp_to_ns",
-    "ns_to_stamp",
-    "pose_msg",
-    "pose_stamped",
-    "pose_with_covariance_stamped",
-    "rpy_deg_msg",
-    "quality_msg",
     "diagnostic_status",
     "diagnostic_array",
     "markers_msg",
@@ -62,23 +43,6 @@ __all__ = [
 LEVEL_OK = DiagnosticStatus.OK
 LEVEL_WARN = DiagnosticStatus.WARN
 LEVEL_ERROR = DiagnosticStatus.ERROR
-
-#: encoding -> (channels, bytes per channel, cv2 conversion to grey or None).
-IMAGE_ENCODINGS: dict[str, tuple[int, int, int | None]] = {
-    "mono8": (1, 1, None),
-    "8UC1": (1, 1, None),
-    "mono16": (1, 2, None),
-    "16UC1": (1, 2, None),
-    "bgr8": (3, 1, cv2.COLOR_BGR2GRAY),
-    "rgb8": (3, 1, cv2.COLOR_RGB2GRAY),
-    "bgra8": (4, 1, cv2.COLOR_BGRA2GRAY),
-    "rgba8": (4, 1, cv2.COLOR_RGBA2GRAY),
-    # OpenCV's named-by-pattern aliases (4.5+); the older BayerXX names are offset by one pixel.
-    "bayer_rggb8": (1, 1, cv2.COLOR_BayerRGGB2GRAY),
-    "bayer_bggr8": (1, 1, cv2.COLOR_BayerBGGR2GRAY),
-    "bayer_gbrg8": (1, 1, cv2.COLOR_BayerGBRG2GRAY),
-    "bayer_grbg8": (1, 1, cv2.COLOR_BayerGRBG2GRAY),
-}
 
 
 class _RclpyTypes(Mapping[str, Any]):
@@ -102,78 +66,6 @@ RCLPY = messages.MessageClasses(
     floats=lambda a: [float(v) for v in np.asarray(a, dtype=np.float64).reshape(-1)],
     octets=lambda a: np.ascontiguousarray(a).tobytes(),
 )
-
-
-# -- time ----------------------------------------------------------------------------------------
-def ns_to_stamp(stamp_ns: int) -> Time:
-    """Integer nanoseconds -> builtin_interfaces/Time."""
-    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
-    return Time(sec=sec, nanosec=nanosec)
-
-
-# -- images --------------------------------------------------------------------------------------
-image_to_array = messages.image_to_array
-compressed_to_array = messages.compressed_to_array
-
-
-def array_to_image(array: np.ndarray, encoding: str, header: Header | None = None) -> Image:
-    """A numpy image (uint8 mono/bgr/rgb/bgra/rgba/bayer, uint16 mono16) as ``sensor_msgs/Image``
-    (``messages.image``), checked against ``encoding``."""
-    if encoding not in IMAGE_ENCODINGS:
-        raise ImageError(f"unsupported image encoding {encoding!r}")
-    channels, depth, _ = IMAGE_ENCODINGS[encoding]
-    arr = np.ascontiguousarray(array)
-    if arr.dtype.itemsize != depth or (arr.shape[2] if arr.ndim == 3 else 1) != channels:
-        raise ImageError(f"array {arr.shape} {arr.dtype} does not match encoding {encoding}")
-    return messages.image(RCLPY, header if header is not None else Header(), arr, encoding)
-
-
-# -- intrinsics ----------------------------------------------------------------------------------
-def camera_info_to_model(msg: CameraInfo, rectified: bool = False) -> CameraModel:
-    """A ``sensor_msgs/CameraInfo`` as a ``CameraModel`` (``ficap_ros.geometry.camera.camera_from_info``,
-    the rule the bag tools use too: K + D, or P's 3x3 when ``rectified`` or K is all zero).
-
-    Raises:
-        IntrinsicsError: zero size, all-zero or NaN matrices, or an unknown lens model.
-    """
-    return camera_from_info(msg, rectified=rectified)
-
-
-def camera_model_to_info(camera: CameraModel, header: Header | None = None) -> CameraInfo:
-    """A ``CameraModel`` as ``sensor_msgs/CameraInfo`` (``messages.camera_info``: R identity,
-    P = [K | 0])."""
-    return messages.camera_info(RCLPY, header if header is not None else Header(), camera)
-
-
-# -- poses ---------------------------------------------------------------------------------------
-def pose_msg(T: Transform) -> Pose:
-    """A transform (translation in metres) as ``geometry_msgs/Pose``."""
-    return messages.pose(RCLPY, T)
-
-
-def pose_stamped(header: Header, T: Transform) -> PoseStamped:
-    """``geometry_msgs/PoseStamped`` of ``T`` with the given header."""
-    return messages.pose_stamped(RCLPY, header, T)
-
-
-def pose_with_covariance_stamped(
-    header: Header, T: Transform, covariance: np.ndarray
-) -> PoseWithCovarianceStamped:
-    """``PoseWithCovarianceStamped``; ``covariance`` is 6x6 already in ROS order (x y z rx ry rz)
-    (non-finite: replaced by a huge diagonal, never by zeros)."""
-    return messages.pose_with_covariance_stamped(RCLPY, header, T, covariance)
-
-
-def rpy_deg_msg(header: Header, R_frontal_head: Rotation) -> Vector3Stamped:
-    """``Vector3Stamped`` of the head angles in degrees (``messages.rpy_deg``: x roll, y pitch,
-    z yaw, tf2's ``getRPY``; pitch positive nose down)."""
-    return messages.rpy_deg(RCLPY, header, R_frontal_head)
-
-
-def quality_msg(header: Header, values: Mapping[str, float]) -> JointState:
-    """Per-frame numbers as a ``sensor_msgs/JointState`` (``messages.named_values``: ``name[i]``
-    labels ``position[i]``)."""
-    return messages.named_values(RCLPY, header, values)
 
 
 # -- diagnostics ---------------------------------------------------------------------------------
@@ -267,7 +159,7 @@ def debug_image_msg(
                 for axis, colour in enumerate([(0, 0, 255), (0, 255, 0), (255, 0, 0)]):
                     tip = tuple(int(round(v)) for v in px[axis + 1])
                     cv2.line(bgr, o, tip, colour, 2, cv2.LINE_AA)
-    return array_to_image(bgr, "bgr8", header)
+    return messages.image(RCLPY, header, bgr, "bgr8")
 
 
 def pose_outputs(header: Header, record: FrameRecord, output_frame: str, frontal_frame: str,
@@ -286,10 +178,10 @@ def pose_outputs(header: Header, record: FrameRecord, output_frame: str, frontal
     # record's (the camera at F's origin).
     frontal = Header(stamp=header.stamp, frame_id=output_frame or frontal_frame)
     return {
-        "head": pose_stamped(out, T_out_cam * T_cam_head),
-        "head_cov": pose_with_covariance_stamped(out, T_out_cam * T_cam_head, cov),
-        "cap": pose_stamped(out, T_out_cam * pose.T_cam_cap),
-        "head_frontal": pose_stamped(frontal, mount * T_cam_head if mount is not None
-                                     else T_frontal_head),
-        "rpy": rpy_deg_msg(frontal, T_frontal_head.rotation),
+        "head": messages.pose_stamped(RCLPY, out, T_out_cam * T_cam_head),
+        "head_cov": messages.pose_with_covariance_stamped(RCLPY, out, T_out_cam * T_cam_head, cov),
+        "cap": messages.pose_stamped(RCLPY, out, T_out_cam * pose.T_cam_cap),
+        "head_frontal": messages.pose_stamped(RCLPY, frontal, mount * T_cam_head if mount is not None
+                                              else T_frontal_head),
+        "rpy": messages.rpy_deg(RCLPY, frontal, T_frontal_head.rotation),
     }

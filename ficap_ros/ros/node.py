@@ -47,7 +47,8 @@ from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from ficap_ros.geometry.camera import CameraInfoCache
+from ficap_ros.io import messages
+from ficap_ros.io.camera_info import CameraInfoCache
 from ficap_ros.io.status import PeriodStats
 from ficap_ros.ros import live
 from ficap_ros.ros import msgs as ros_msgs
@@ -224,7 +225,8 @@ class FicapNode(Node):
 
     def _publish_status(self, header: Header, frame: live.LiveFrame, latency_ms: float) -> None:
         """``quality`` and ``status`` of a frame (``ficap_ros.io.status``'s values, as labels.mcap)."""
-        self._pub_quality.publish(ros_msgs.quality_msg(header, frame.quality_values(latency_ms)))
+        self._pub_quality.publish(messages.named_values(ros_msgs.RCLPY, header,
+                                                         frame.quality_values(latency_ms)))
         status = ros_msgs.diagnostic_status(
             STATUS_NAME, bytes([frame.level]), frame.message,
             frame.status_values(latency_ms, self._mailbox.dropped), hardware_id=header.frame_id)

@@ -20,8 +20,8 @@ from rcl_interfaces.msg import (
 )
 
 from ficap_ros.errors import ConfigError
-from ficap_ros.geometry.camera import CAMERA_INFO_MAX_STAMP_DIFF_NS
 from ficap_ros.geometry.transform import Transform
+from ficap_ros.io.camera_info import CAMERA_INFO_MAX_STAMP_DIFF_NS
 from ficap_ros.io.status import WARN_RELIABILITY
 from ficap_ros.vision.detector import DetectorConfig
 from ficap_ros.vision.pose import POSE_METHODS, PoseConfig, UncertaintyConfig

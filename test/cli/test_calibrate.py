@@ -11,9 +11,11 @@ from scipy.spatial.transform import Rotation
 from ficap_ros.cli.main import main
 from ficap_ros.geometry.metrics import rotation_from_ypr_deg
 from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform
-from ficap_ros.io.bag_writer import BagWriter, pose_stamped_msg
+from ficap_ros.io import messages
+from ficap_ros.io.bag_writer import BagWriter
 from ficap_ros.io.calibration_file import load_calibration
 from ficap_ros.io.labels import FrameRecord, labels_csv_text
+from ficap_ros.io.messages import ROSBAGS
 from ficap_ros.vision.calibration import HeadCalibration
 from ficap_ros.vision.pose import CapPose
 
@@ -68,7 +70,8 @@ def test_reference(tmp_path: Path, pick: list[str], tol_deg: float) -> None:
         w.add_topic("/face/head_pose", "geometry_msgs/msg/PoseStamped")
         for i in range(N):
             s = int(stamps[i]) + 2_000_000
-            w.write("/face/head_pose", s, pose_stamped_msg(s, "face", Transform(R_ref_head[i], np.zeros(3))))
+            w.write("/face/head_pose", s, messages.pose_stamped(
+                ROSBAGS, messages.header(ROSBAGS, s, "face"), Transform(R_ref_head[i], np.zeros(3))))
     out = tmp_path / "cal.yaml"
     assert main(["calibrate", str(labels), "--reference", f"{bag}:/face/head_pose", *pick,
                  "--out", str(out)]) == 0

@@ -13,8 +13,10 @@ from scipy.spatial.transform import Rotation
 from ficap_ros.cli.main import main
 from ficap_ros.geometry.metrics import rotation_from_ypr_deg
 from ficap_ros.geometry.transform import Transform
-from ficap_ros.io.bag_writer import BagWriter, pose_stamped_msg
+from ficap_ros.io import messages
+from ficap_ros.io.bag_writer import BagWriter
 from ficap_ros.io.labels import FrameRecord, labels_csv_text
+from ficap_ros.io.messages import ROSBAGS
 from ficap_ros.stamps import pair_by_stamp
 from ficap_ros.tools.evaluation import evaluate, load_series
 from ficap_ros.vision.calibration import HeadCalibration
@@ -78,7 +80,9 @@ def test_evaluate_reports_injected_yaw_error(tmp_path: Path, kind: str) -> None:
             w.add_topic("/estimator/head_pose", "geometry_msgs/msg/PoseStamped")
             for i in range(N):
                 w.write("/estimator/head_pose", int(est_stamps[i]),
-                        pose_stamped_msg(int(est_stamps[i]), "frontal", Transform(R_est[i], np.zeros(3))))
+                        messages.pose_stamped(ROSBAGS,
+                                              messages.header(ROSBAGS, int(est_stamps[i]), "frontal"),
+                                              Transform(R_est[i], np.zeros(3))))
         spec = f"{bag}:/estimator/head_pose"
     else:
         spec = str(tmp_path / "estimate.csv")

@@ -12,8 +12,10 @@ import yaml
 
 from ficap_ros.cli.main import main
 from ficap_ros.geometry.cap_model import nominal_model
-from ficap_ros.io.bag_writer import BagWriter, camera_info_msg, compressed_image_msg
+from ficap_ros.io import messages
+from ficap_ros.io.bag_writer import BagWriter
 from ficap_ros.io.labels import read_labels
+from ficap_ros.io.messages import ROSBAGS
 from ficap_ros.io.sources import CAMERA_INFO_TYPE, COMPRESSED_TYPE
 from ficap_ros.tools import synth
 
@@ -39,9 +41,10 @@ def bag(rendered, tmp_path_factory: pytest.TempPathFactory) -> Path:  # noqa: AN
         w.add_topic("/cam/camera_info", CAMERA_INFO_TYPE)
         for i, img in enumerate(images):
             s = T0 + i * 33_333_333
-            w.write("/cam/camera_info", s, camera_info_msg(s, "cam", scene.camera))
+            head = messages.header(ROSBAGS, s, "cam")
+            w.write("/cam/camera_info", s, messages.camera_info(ROSBAGS, head, scene.camera))
             data = cv2.imencode(".jpg", img)[1].tobytes() if i != BAD else b"\xff\xd8 truncated"
-            w.write("/cam/image/compressed", s, compressed_image_msg(s, "cam", data))
+            w.write("/cam/image/compressed", s, messages.compressed_image(ROSBAGS, head, data))
     return path
 
 

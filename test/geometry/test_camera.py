@@ -1,10 +1,50 @@
-"""ficap_ros.geometry.camera.CameraModel identity: one key, equality and hash."""
+"""ficap_ros.geometry.camera.CameraModel: identity (one key, equality and hash), and properties of
+projection, undistortion, scaling and the camera YAML."""
 
 from __future__ import annotations
 
-import numpy as np
+import tempfile
+from pathlib import Path
 
-from ficap_ros.geometry.camera import CameraModel
+import numpy as np
+import pytest
+import yaml
+from hypothesis import given
+from hypothesis import strategies as st
+
+from ficap_ros.geometry.camera import CameraModel, load_camera_yaml
+
+#: Moderate lens coefficients per model: distortion stays monotonic over the sampled field.
+_COEFFS = {
+    "none": [],
+    "plumb_bob": [(-0.3, 0.3), (-0.1, 0.1), (-0.005, 0.005), (-0.005, 0.005), (-0.05, 0.05)],
+    "rational_polynomial": [(-0.3, 0.3), (-0.1, 0.1), (-0.005, 0.005), (-0.005, 0.005),
+                            (-0.05, 0.05), (-0.1, 0.1), (-0.05, 0.05), (-0.02, 0.02)],
+    "equidistant": [(-0.1, 0.1), (-0.03, 0.03), (-0.01, 0.01), (-0.005, 0.005)],
+}
+
+
+@st.composite
+def cameras(draw: st.DrawFn, models: tuple[str, ...] = tuple(_COEFFS)) -> CameraModel:
+    """A camera of any lens model: size, focal lengths, principal point near the centre."""
+    model = draw(st.sampled_from(models))
+    width = draw(st.integers(64, 4000))
+    height = draw(st.integers(48, 3000))
+    fx = draw(st.floats(0.3, 3.0)) * width
+    fy = fx * draw(st.floats(0.95, 1.05))
+    cx = draw(st.floats(0.35, 0.65)) * width
+    cy = draw(st.floats(0.35, 0.65)) * height
+    d = [draw(st.floats(lo, hi)) for lo, hi in _COEFFS[model]]
+    return CameraModel(width, height, np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]),
+                       np.array(d), model)
+
+
+def _points(seed: int, n: int = 20, max_tan: float = 0.5) -> np.ndarray:
+    """Points in front of the camera within ``max_tan`` of the axis (metres, optical frame)."""
+    rng = np.random.default_rng(seed)
+    xy = rng.uniform(-max_tan, max_tan, (n, 2))
+    z = rng.uniform(0.2, 5.0, (n, 1))
+    return np.hstack([xy * z, z])
 
 
 def test_camera_models_compare_and_hash_by_value() -> None:
@@ -17,18 +57,51 @@ def test_camera_models_compare_and_hash_by_value() -> None:
     assert d != a and d.key != a.key
 
 
-def test_pick_camera_info_nearest_within_tolerance_else_last_before() -> None:
-    from ficap_ros.geometry.camera import pick_camera_info
+@given(camera=cameras(), seed=st.integers(0, 2**32 - 1))
+def test_undistort_inverts_project_to_the_ideal_pinhole(camera: CameraModel, seed: int) -> None:
+    """A point projected through the lens and undistorted lands where the ideal pinhole with the
+    same K puts it."""
+    pts = _points(seed)
+    ideal = (pts / pts[:, 2:3]) @ camera.K.T
+    back = camera.undistort_px(camera.project(pts))
+    np.testing.assert_allclose(back, ideal[:, :2], rtol=0, atol=1e-3)
 
-    ms = 1_000_000
-    stamps = [100 * ms, 105 * ms, 105 * ms, 120 * ms]
-    assert pick_camera_info(stamps, 100 * ms, ms) == 0  # equal stamp
-    assert pick_camera_info(stamps, 119 * ms + 500_000, ms) == 3  # 0.5 ms after the image
-    assert pick_camera_info(stamps, 110 * ms, ms) == 2  # none close: the last at or before
-    assert pick_camera_info(stamps, 105 * ms, ms) == 2  # equal stamps: the last received
-    assert pick_camera_info(stamps, 99 * ms, ms) == 0  # 1 ms before the first: within
-    assert pick_camera_info(stamps, 50 * ms, ms) == 0  # before every one: the first
-    assert pick_camera_info(stamps, 500 * ms, ms) == 3
-    assert pick_camera_info([0, 10], 5, 5) == 0  # a tie: the earlier
-    assert pick_camera_info([0, 10], 6, 5) == 1  # the nearer
-    assert pick_camera_info([0, 10], 6, 0) == 0  # zero tolerance: the last before
+
+@given(camera=cameras(), factor=st.floats(0.25, 4.0), seed=st.integers(0, 2**32 - 1))
+def test_a_scaled_camera_sees_the_resized_image(camera: CameraModel, factor: float,
+                                                 seed: int) -> None:
+    """Pixel-centre convention: a point at u in the image sits at (u + 0.5) * f - 0.5 in the image
+    resized by f; the lens is unchanged and scaling back restores K."""
+    scaled = camera.scaled(factor)
+    assert (scaled.width_px, scaled.height_px) == (round(camera.width_px * factor),
+                                                   round(camera.height_px * factor))
+    assert scaled.distortion_model == camera.distortion_model
+    np.testing.assert_array_equal(scaled.D, camera.D)
+    pts = _points(seed)
+    np.testing.assert_allclose(scaled.project(pts), (camera.project(pts) + 0.5) * factor - 0.5,
+                               rtol=1e-9, atol=1e-6)
+    np.testing.assert_allclose(scaled.scaled(1.0 / factor).K, camera.K, rtol=1e-12, atol=1e-9)
+
+
+@pytest.fixture(scope="module")
+def scratch() -> Path:
+    with tempfile.TemporaryDirectory(prefix="ficap-camera-") as path:
+        yield Path(path)
+
+
+@given(camera=cameras(), name=st.text(st.characters(codec="ascii", categories=("L", "N")),
+                                      min_size=1, max_size=12))
+def test_camera_yaml_round_trip(scratch: Path, camera: CameraModel, name: str) -> None:
+    """``to_camera_yaml`` then ``load_camera_yaml`` gives the same camera (a lens without
+    distortion is written as plumb_bob with five zeros, which projects the same)."""
+    path = scratch / "camera.yaml"
+    data = camera.to_camera_yaml(name)
+    assert data["camera_name"] == name
+    path.write_text(yaml.safe_dump(data))
+    back = load_camera_yaml(path)
+    if camera.distortion_model == "none":
+        assert back.distortion_model == "plumb_bob" and not np.any(back.D)
+        np.testing.assert_array_equal(back.K, camera.K)
+        assert (back.width_px, back.height_px) == (camera.width_px, camera.height_px)
+    else:
+        assert back == camera

@@ -21,12 +21,9 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))
 
 from ficap_ros.geometry.camera import CameraModel  # noqa: E402
 from ficap_ros.geometry.cap_model import nominal_model  # noqa: E402
-from ficap_ros.io.bag_writer import (  # noqa: E402
-    BagWriter,
-    camera_info_msg,
-    compressed_image_msg,
-    image_msg,
-)
+from ficap_ros.io import messages  # noqa: E402
+from ficap_ros.io.bag_writer import BagWriter  # noqa: E402
+from ficap_ros.io.messages import ROSBAGS  # noqa: E402
 from ficap_ros.io.sources import CAMERA_INFO_TYPE, COMPRESSED_TYPE, IMAGE_TYPE  # noqa: E402
 
 OUT = Path(__file__).resolve().parents[1] / "data" / "bad_inputs"
@@ -62,19 +59,20 @@ def _bag(path: Path, frames: list[dict], storage: str = "mcap", layout: str = "f
         for i, f in enumerate(frames):
             stamp = T0 + i * DT
             info = f.get("info", CAM)
-            w.write("/cam/camera_info", stamp, camera_info_msg(stamp, "cam", info)
+            head = messages.header(ROSBAGS, stamp, "cam")
+            w.write("/cam/camera_info", stamp, messages.camera_info(ROSBAGS, head, info)
                     if isinstance(info, CameraModel) else info(stamp))
             if compressed:
-                w.write(topic, stamp, compressed_image_msg(stamp, "cam", f["image"]))
+                w.write(topic, stamp, messages.compressed_image(ROSBAGS, head, f["image"]))
             else:
-                msg = image_msg(stamp, "cam", f["image"], "mono8")
+                msg = messages.image(ROSBAGS, head, f["image"], "mono8")
                 msg.encoding = f.get("encoding", "mono8")
                 w.write(topic, stamp, msg)
 
 
 def _info_with(k: list[float], p: list[float] | None = None):  # noqa: ANN202
     def make(stamp: int):  # noqa: ANN202
-        msg = camera_info_msg(stamp, "cam", CAM)
+        msg = messages.camera_info(ROSBAGS, messages.header(ROSBAGS, stamp, "cam"), CAM)
         msg.k = np.asarray(k, dtype=np.float64)
         if p is not None:
             msg.p = np.asarray(p, dtype=np.float64)

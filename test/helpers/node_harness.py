@@ -18,6 +18,7 @@ from std_msgs.msg import Header
 from std_srvs.srv import Trigger
 
 from ficap_ros.geometry.camera import CameraModel
+from ficap_ros.io import messages
 from ficap_ros.ros import msgs as ros_msgs
 from ficap_ros.ros.node import FicapNode
 from ficap_ros.ros.spin import make_executor
@@ -127,11 +128,11 @@ class Harness:
 
 
 def header_at(stamp_ns: int) -> Header:
-    return Header(stamp=ros_msgs.ns_to_stamp(stamp_ns), frame_id="rear_cam_optical")
+    return Header(stamp=messages.time(ros_msgs.RCLPY, stamp_ns), frame_id="rear_cam_optical")
 
 
 def info_at(camera: CameraModel, stamp_ns: int) -> CameraInfo:
-    return ros_msgs.camera_model_to_info(camera, header_at(stamp_ns))
+    return messages.camera_info(ros_msgs.RCLPY, header_at(stamp_ns), camera)
 
 
 def level_of(status) -> bytes:

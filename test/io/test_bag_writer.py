@@ -7,7 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from ficap_ros.io.bag_writer import BagWriter, image_msg
+from ficap_ros.io import messages
+from ficap_ros.io.bag_writer import BagWriter
+from ficap_ros.io.messages import ROSBAGS
 from ficap_ros.io.sources import IMAGE_TYPE
 
 
@@ -24,6 +26,7 @@ def test_bag_writer_is_atomic(tmp_path: Path) -> None:
     with pytest.raises(Boom):
         with BagWriter(path) as w:
             w.add_topic("/cam/image_raw", IMAGE_TYPE)
-            w.write("/cam/image_raw", 1, image_msg(1, "c", _grey(0), "mono8"))
+            w.write("/cam/image_raw", 1,
+                    messages.image(ROSBAGS, messages.header(ROSBAGS, 1, "c"), _grey(0), "mono8"))
             raise Boom
     assert list(tmp_path.iterdir()) == []

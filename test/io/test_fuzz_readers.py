@@ -20,10 +20,12 @@ from hypothesis import strategies as st
 from ficap_ros.errors import FicapError, ImageError
 from ficap_ros.geometry.camera import CameraModel, load_camera_yaml
 from ficap_ros.geometry.cap_model import load_model, nominal_model
-from ficap_ros.io.bag_writer import BagWriter, camera_info_msg, image_msg
+from ficap_ros.io import messages
+from ficap_ros.io.bag_writer import BagWriter
 from ficap_ros.io.calibration_file import load_calibration
 from ficap_ros.io.image_codec import ENCODINGS, decode_compressed, decode_image
 from ficap_ros.io.labels import read_labels
+from ficap_ros.io.messages import ROSBAGS
 from ficap_ros.io.sources import CAMERA_INFO_TYPE, IMAGE_TYPE, open_frames
 
 CAM = CameraModel(64, 48, np.array([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]]),
@@ -139,8 +141,9 @@ def bag(scratch: Path) -> Path:
         w.add_topic("/cam/image_raw", IMAGE_TYPE)
         w.add_topic("/cam/camera_info", CAMERA_INFO_TYPE)
         for i in range(4):
-            w.write("/cam/camera_info", i + 1, camera_info_msg(i + 1, "cam", CAM))
-            w.write("/cam/image_raw", i + 1, image_msg(i + 1, "cam", IMAGE, "mono8"))
+            head = messages.header(ROSBAGS, i + 1, "cam")
+            w.write("/cam/camera_info", i + 1, messages.camera_info(ROSBAGS, head, CAM))
+            w.write("/cam/image_raw", i + 1, messages.image(ROSBAGS, head, IMAGE, "mono8"))
     return path
 
 

@@ -10,13 +10,10 @@ import pytest
 
 from ficap_ros.errors import BagError, ImageError
 from ficap_ros.geometry.camera import CameraModel
-from ficap_ros.io.bag_writer import (
-    BagWriter,
-    camera_info_msg,
-    compressed_image_msg,
-    image_msg,
-)
+from ficap_ros.io import messages
+from ficap_ros.io.bag_writer import BagWriter
 from ficap_ros.io.image_codec import decode_compressed, decode_image
+from ficap_ros.io.messages import ROSBAGS
 from ficap_ros.io.sources import (
     CAMERA_INFO_TYPE,
     COMPRESSED_TYPE,
@@ -48,15 +45,17 @@ def _write_bag(path: Path, storage: str = "mcap", layout: str = "folder", n: int
             w.add_topic("/other/image_raw", IMAGE_TYPE)
         for i, img in enumerate(images):
             stamp = T0 + i * 33_333_333
+            head = messages.header(ROSBAGS, stamp, "cam_optical")
             if info:
-                w.write("/cam/camera_info", stamp, camera_info_msg(stamp, "cam_optical", CAM))
+                w.write("/cam/camera_info", stamp, messages.camera_info(ROSBAGS, head, CAM))
             if compressed:
                 data = cv2.imencode(".png", img)[1].tobytes() if i != bad_frame else b"\x00junk"
-                w.write(topic, stamp, compressed_image_msg(stamp, "cam_optical", data, "png"))
+                w.write(topic, stamp, messages.compressed_image(ROSBAGS, head, data, "png"))
             else:
-                w.write(topic, stamp, image_msg(stamp, "cam_optical", img, "mono8"))
+                w.write(topic, stamp, messages.image(ROSBAGS, head, img, "mono8"))
             if extra_image_topic:
-                w.write("/other/image_raw", stamp, image_msg(stamp, "x", img, "mono8"))
+                w.write("/other/image_raw", stamp,
+                        messages.image(ROSBAGS, messages.header(ROSBAGS, stamp, "x"), img, "mono8"))
     return images
 
 

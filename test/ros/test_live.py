@@ -8,11 +8,12 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from ficap_ros.geometry.camera import CameraInfoCache
 from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.geometry.metrics import angle_deg
 from ficap_ros.geometry.transform import Transform
-from ficap_ros.io import bag_writer
+from ficap_ros.io import messages
+from ficap_ros.io.camera_info import CameraInfoCache
+from ficap_ros.io.messages import ROSBAGS
 from ficap_ros.io.status import ERROR, OK, WARN, FrameStatus
 from ficap_ros.ros.live import (
     failed_frame,
@@ -34,8 +35,8 @@ def test_a_rendered_image_gives_its_pose_and_an_ok_status() -> None:
     truth = scene.cap_pose(Transform.identity().rotation)
     image = render(nominal_model(), scene.camera, truth, RenderConfig(), seed=11).image
     cameras = CameraInfoCache()
-    cameras.add(S, bag_writer.camera_info_msg(S, "cam", scene.camera))
-    msg = bag_writer.image_msg(S, "cam", image, "mono8")
+    cameras.add(S, messages.camera_info(ROSBAGS, messages.header(ROSBAGS, S, "cam"), scene.camera))
+    msg = messages.image(ROSBAGS, messages.header(ROSBAGS, S, "cam"), image, "mono8")
     frame = process_image(msg, FrameProcessor(model=nominal_model()), cameras, HeadCalibration(),
                           CONFIG)
     assert (frame.level, frame.message) == (OK, "pose") and frame.publish_pose
@@ -60,12 +61,12 @@ def test_a_rendered_image_gives_its_pose_and_an_ok_status() -> None:
 
 def test_errors_become_failed_frames() -> None:
     grey = np.zeros((540, 960), np.uint8)
-    msg = bag_writer.image_msg(S, "cam", grey, "mono8")
+    msg = messages.image(ROSBAGS, messages.header(ROSBAGS, S, "cam"), grey, "mono8")
     frame = process_image(msg, FrameProcessor(model=nominal_model()), CameraInfoCache(),
                           HeadCalibration(), CONFIG)
     assert frame.level == ERROR and "no CameraInfo" in frame.message and frame.failed
     assert frame.record.reason == frame.message and frame.image is None
-    bad = bag_writer.compressed_image_msg(S, "cam", b"not a jpeg", "jpeg")
+    bad = messages.compressed_image(ROSBAGS, messages.header(ROSBAGS, S, "cam"), b"not a jpeg", "jpeg")
     frame = process_image(bad, FrameProcessor(model=nominal_model()), CameraInfoCache(),
                           HeadCalibration(), CONFIG)
     assert frame.level == ERROR and frame.failed and frame.record.stamp_ns == S
@@ -91,7 +92,7 @@ def test_the_node_settings_build_its_pipeline() -> None:
 
 def test_reference_quaternions_are_checked_and_normalised() -> None:
     T = Transform.identity()
-    msg = bag_writer.pose_stamped_msg(S, "ref", T)
+    msg = messages.pose_stamped(ROSBAGS, messages.header(ROSBAGS, S, "ref"), T)
     msg.pose.orientation.w = 2.0
     assert reference_q_xyzw(msg) == pytest.approx([0.0, 0.0, 0.0, 1.0])
     msg.pose.orientation.w = 0.0

@@ -19,10 +19,11 @@ from ficap_ros.cli.main import main
 from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.geometry.metrics import angle_deg, rotation_from_ypr_deg
 from ficap_ros.geometry.transform import Transform
-from ficap_ros.io import bag_writer
+from ficap_ros.io import messages
 from ficap_ros.io import sources as bag_io
 from ficap_ros.io.bag_writer import BagWriter
 from ficap_ros.io.calibration_file import load_calibration
+from ficap_ros.io.messages import ROSBAGS
 from ficap_ros.io.sources import open_frames
 from ficap_ros.ros import msgs as ros_msgs
 from ficap_ros.tools.replay import replay
@@ -50,15 +51,16 @@ def _write_bag(path: Path, topic: str, images: list[np.ndarray], info_fields: di
         w.add_topic("/camera/camera_info", "sensor_msgs/msg/CameraInfo")
         for i, image in enumerate(images):
             s = T0 + i * DT
-            info = dataclasses.replace(bag_writer.camera_info_msg(s, "rear_cam_optical", camera),
+            head = messages.header(ROSBAGS, s, "rear_cam_optical")
+            info = dataclasses.replace(messages.camera_info(ROSBAGS, head, camera),
                                        **{k: np.asarray(v, dtype=np.float64)
                                           for k, v in info_fields.items()})
             w.write("/camera/camera_info", s, info)
-            w.write(topic, s, bag_writer.image_msg(s, "rear_cam_optical", image, "mono8"))
+            w.write(topic, s, messages.image(ROSBAGS, head, image, "mono8"))
 
 
 def _live_info(stamp_ns: int, info_fields: dict):
-    msg = ros_msgs.camera_model_to_info(default_scene("540p").camera, header_at(stamp_ns))
+    msg = messages.camera_info(ros_msgs.RCLPY, header_at(stamp_ns), default_scene("540p").camera)
     for k, v in info_fields.items():
         setattr(msg, k, [float(x) for x in np.asarray(v).reshape(-1)])
     return msg
@@ -68,7 +70,7 @@ def _live_caps(h, images: list[np.ndarray], info_fields: dict) -> list:
     statuses = []
     for i, image in enumerate(images):
         s = T0 + i * DT
-        statuses.append(h.publish_and_wait(ros_msgs.array_to_image(image, "mono8", header_at(s)),
+        statuses.append(h.publish_and_wait(messages.image(ros_msgs.RCLPY, header_at(s), image, "mono8"),
                                            _live_info(s, info_fields)))
     h.wait_for(lambda: len(h.cap) >= sum(st.message == "pose" for st in statuses), what="cap poses")
     return statuses
@@ -116,7 +118,7 @@ def test_camera_info_rules_live_and_offline(harness_factory, tmp_path: Path, cas
 
 def test_camera_info_choice_live_and_offline(harness_factory, tmp_path: Path) -> None:  # noqa: F811
     """CameraInfo stamped around the images, two intrinsics (A true, B 4 % longer focal): the node
-    and a bag pick the same one per image (camera.pick_camera_info: the nearest within 1 ms, else
+    and a bag pick the same one per image (camera_info.pick_camera_info: the nearest within 1 ms, else
     the last at or before the image), so their poses agree. Before, the node took the latest
     received and bags the last at or before: images 0 and 1 disagreed."""
     a = default_scene("540p").camera
@@ -134,7 +136,7 @@ def test_camera_info_choice_live_and_offline(harness_factory, tmp_path: Path) ->
     for i, image in enumerate(images):
         s = T0 + i * DT
         for offset_ns, camera in infos[i]:
-            msg = ros_msgs.camera_model_to_info(camera, header_at(s + offset_ns))
+            msg = messages.camera_info(ros_msgs.RCLPY, header_at(s + offset_ns), camera)
             for _ in range(3):  # best effort: re-send a lost one
                 h.pub_info.publish(msg)
                 try:
@@ -142,7 +144,8 @@ def test_camera_info_choice_live_and_offline(harness_factory, tmp_path: Path) ->
                     break
                 except AssertionError:
                     continue
-        statuses.append(h.publish_and_wait(ros_msgs.array_to_image(image, "mono8", header_at(s))))
+        statuses.append(h.publish_and_wait(messages.image(ros_msgs.RCLPY, header_at(s), image,
+                                                          "mono8")))
     assert [st.message for st in statuses] == ["pose"] * len(images)
     h.wait_for(lambda: len(h.cap) >= len(images), what="cap poses")
 
@@ -153,10 +156,11 @@ def test_camera_info_choice_live_and_offline(harness_factory, tmp_path: Path) ->
         for i, image in enumerate(images):
             s = T0 + i * DT
             for offset_ns, camera in infos[i]:
+                head = messages.header(ROSBAGS, s + offset_ns, "rear_cam_optical")
                 w.write("/camera/camera_info", s + offset_ns,
-                        bag_writer.camera_info_msg(s + offset_ns, "rear_cam_optical", camera))
-            w.write("/camera/image_raw", s,
-                    bag_writer.image_msg(s, "rear_cam_optical", image, "mono8"))
+                        messages.camera_info(ROSBAGS, head, camera))
+            w.write("/camera/image_raw", s, messages.image(
+                ROSBAGS, messages.header(ROSBAGS, s, "rear_cam_optical"), image, "mono8"))
     src = open_frames(bag)
     assert [raw.camera.K[0, 0] for raw in src.raw_frames()] == [c.K[0, 0] for c in want]
     out = replay(src, tmp_path / "out", nominal_model(), PoseConfig(), progress=False)

@@ -21,6 +21,7 @@ from std_srvs.srv import Trigger
 from ficap_ros.errors import ConfigError
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.metrics import angle_deg
+from ficap_ros.io import messages
 from ficap_ros.ros import msgs as ros_msgs
 from ficap_ros.ros.node import FicapNode
 
@@ -37,37 +38,38 @@ def test_bad_inputs_give_error_status_and_node_survives(harness_factory) -> None
     t = 1_000_000_000
 
     # 1. No CameraInfo yet.
-    st = h.publish_and_wait(ros_msgs.array_to_image(grey, "mono8", header_at(t)))
+    st = h.publish_and_wait(messages.image(ros_msgs.RCLPY, header_at(t), grey, "mono8"))
     assert level_of(st) == ros_msgs.LEVEL_ERROR and "CameraInfo" in st.message
 
     # 2. All-zero CameraInfo (an uncalibrated camera driver).
     zero = info_at(cam, t + 1)
     zero.k = [0.0] * 9
     zero.p = [0.0] * 12
-    st = h.publish_and_wait(ros_msgs.array_to_image(grey, "mono8", header_at(t + 1)), zero)
+    st = h.publish_and_wait(messages.image(ros_msgs.RCLPY, header_at(t + 1), grey, "mono8"), zero)
     assert level_of(st) == ros_msgs.LEVEL_ERROR and "all zero" in st.message
 
     # 3. NaN CameraInfo.
     nan = info_at(cam, t + 2)
     nan.k = [float("nan")] * 9
-    st = h.publish_and_wait(ros_msgs.array_to_image(grey, "mono8", header_at(t + 2)), nan)
+    st = h.publish_and_wait(messages.image(ros_msgs.RCLPY, header_at(t + 2), grey, "mono8"), nan)
     assert level_of(st) == ros_msgs.LEVEL_ERROR and "NaN" in st.message
 
     # 4. Unknown encoding.
-    img = ros_msgs.array_to_image(grey, "mono8", header_at(t + 3))
+    img = messages.image(ros_msgs.RCLPY, header_at(t + 3), grey, "mono8")
     img.encoding = "32FC1"
     st = h.publish_and_wait(img, info_at(cam, t + 3))
     assert level_of(st) == ros_msgs.LEVEL_ERROR and "encoding" in st.message
 
     # 5. Wrong data length.
-    img = ros_msgs.array_to_image(grey, "mono8", header_at(t + 4))
+    img = messages.image(ros_msgs.RCLPY, header_at(t + 4), grey, "mono8")
     img.data = bytes(img.data)[:-10]
     st = h.publish_and_wait(img, info_at(cam, t + 4))
     assert level_of(st) == ros_msgs.LEVEL_ERROR and "bytes" in st.message
 
     # 6. Image and intrinsics of different sizes.
-    st = h.publish_and_wait(ros_msgs.array_to_image(np.zeros((40, 60), np.uint8), "mono8",
-                                                    header_at(t + 5)), info_at(cam, t + 5))
+    st = h.publish_and_wait(messages.image(ros_msgs.RCLPY, header_at(t + 5),
+                                           np.zeros((40, 60), np.uint8), "mono8"),
+                            info_at(cam, t + 5))
     assert level_of(st) == ros_msgs.LEVEL_ERROR and "does not match" in st.message
 
     # The node is alive: it still answers services and reports every error, and never posed.

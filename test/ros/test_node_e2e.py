@@ -20,6 +20,7 @@ from visualization_msgs.msg import MarkerArray
 
 from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.geometry.metrics import angle_deg
+from ficap_ros.io import messages
 from ficap_ros.ros import msgs as ros_msgs
 from ficap_ros.tools.synth import (
     RenderConfig,
@@ -54,7 +55,7 @@ def drive():
 
 def _image_msg(image: np.ndarray, stamp_ns: int):
     enc = "mono8" if image.ndim == 2 else "bgr8"
-    return ros_msgs.array_to_image(image, enc, header_at(stamp_ns))
+    return messages.image(ros_msgs.RCLPY, header_at(stamp_ns), image, enc)
 
 
 def _rotation(msg: PoseStamped) -> Rotation:

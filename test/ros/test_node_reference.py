@@ -19,6 +19,7 @@ from std_srvs.srv import Trigger
 
 from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.geometry.metrics import angle_deg, rotation_from_ypr_deg
+from ficap_ros.io import messages
 from ficap_ros.ros import msgs as ros_msgs
 from ficap_ros.tools.synth import RenderConfig, default_scene, render
 
@@ -57,7 +58,7 @@ def test_reference_calibration_with_noisy_reference(harness_factory, tmp_path) -
             ref.pose.orientation.z, ref.pose.orientation.w = float(z), float(w)
             h.pub_ref.publish(ref)
             refs.append((stamp, ref))
-            h.publish_and_wait(ros_msgs.array_to_image(image, "mono8", header_at(stamp)),
+            h.publish_and_wait(messages.image(ros_msgs.RCLPY, header_at(stamp), image, "mono8"),
                                info_at(scene.camera, stamp))
     n = N_ORIENTATIONS * REPEATS
     h.wait_for(lambda: h.node._recorder.references >= n - 5, timeout=5.0, what="references")
@@ -75,8 +76,9 @@ def test_reference_calibration_with_noisy_reference(harness_factory, tmp_path) -
     # `ficap calibrate --reference` with the node's pair tolerance: the same pairs and frames.
     from ficap_ros.cli.main import main
     from ficap_ros.geometry.transform import Transform
-    from ficap_ros.io.bag_writer import BagWriter, pose_stamped_msg
+    from ficap_ros.io.bag_writer import BagWriter
     from ficap_ros.io.calibration_file import load_calibration
+    from ficap_ros.io.messages import ROSBAGS
 
     with h.lock:
         caps = list(h.cap)
@@ -91,7 +93,8 @@ def test_reference_calibration_with_noisy_reference(harness_factory, tmp_path) -
         for s, ref in refs:
             o = ref.pose.orientation
             T = Transform(Rotation.from_quat([o.x, o.y, o.z, o.w]), np.zeros(3))
-            w.write(topic, s, pose_stamped_msg(s, "face_tracker", T))
+            w.write(topic, s,
+                    messages.pose_stamped(ROSBAGS, messages.header(ROSBAGS, s, "face_tracker"), T))
     assert main(["calibrate", str(tmp_path / "labels.csv"), "--reference",
                  f"{tmp_path / 'ref'}:{topic}", "--max-dt-ms", "5", "--out",
                  str(tmp_path / "cal.yaml")]) == 0

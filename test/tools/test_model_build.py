@@ -220,7 +220,9 @@ def test_cli_builds_from_a_bag_of_rendered_frames(tmp_path, capsys) -> None:
     import json
 
     from ficap_ros.cli.main import main
-    from ficap_ros.io.bag_writer import BagWriter, camera_info_msg, image_msg
+    from ficap_ros.io import messages
+    from ficap_ros.io.bag_writer import BagWriter
+    from ficap_ros.io.messages import ROSBAGS
     from ficap_ros.tools.synth import REALISTIC, RenderConfig, render
 
     camera = CameraModel.pinhole(960, 720, hfov_deg=50.0)
@@ -236,8 +238,9 @@ def test_cli_builds_from_a_bag_of_rendered_frames(tmp_path, capsys) -> None:
                           [rng.uniform(-0.02, 0.02), rng.uniform(-0.02, 0.02), rng.uniform(0.38, 0.48)])
             frame = render(truth, camera, T, RenderConfig(head=False, **REALISTIC), seed=k)
             stamp = 1_000_000_000 + k * 100_000_000
-            writer.write("/cam/camera_info", stamp, camera_info_msg(stamp, "cam", camera))
-            writer.write("/cam/image_raw", stamp, image_msg(stamp, "cam", frame.image, "mono8"))
+            head = messages.header(ROSBAGS, stamp, "cam")
+            writer.write("/cam/camera_info", stamp, messages.camera_info(ROSBAGS, head, camera))
+            writer.write("/cam/image_raw", stamp, messages.image(ROSBAGS, head, frame.image, "mono8"))
     out = tmp_path / "cap_asbuilt.yaml"
     report = tmp_path / "report.json"
     plot = tmp_path / "deviations.png"
@@ -351,7 +354,9 @@ def test_replay_check_compares_with_the_nominal(built) -> None:
 def test_unconverged_build_exits_non_zero(tmp_path, capsys) -> None:
     """A solver that runs out of budget is not trusted: exit 1 and no file, unless --allow-partial."""
     from ficap_ros.cli.main import main
-    from ficap_ros.io.bag_writer import BagWriter, camera_info_msg, image_msg
+    from ficap_ros.io import messages
+    from ficap_ros.io.bag_writer import BagWriter
+    from ficap_ros.io.messages import ROSBAGS
     from ficap_ros.tools.synth import RenderConfig, render
 
     camera = CameraModel.pinhole(640, 480, hfov_deg=50.0)
@@ -366,8 +371,9 @@ def test_unconverged_build_exits_non_zero(tmp_path, capsys) -> None:
             T = Transform(CAM_FROM_FORWARD * rotation_from_ypr_deg(yaw, pitch, 0.0), [0.0, 0.0, 0.42])
             frame = render(truth, camera, T, RenderConfig(head=False, supersample=2), seed=k)
             stamp = 1_000_000_000 + k * 100_000_000
-            writer.write("/cam/camera_info", stamp, camera_info_msg(stamp, "cam", camera))
-            writer.write("/cam/image_raw", stamp, image_msg(stamp, "cam", frame.image, "mono8"))
+            head = messages.header(ROSBAGS, stamp, "cam")
+            writer.write("/cam/camera_info", stamp, messages.camera_info(ROSBAGS, head, camera))
+            writer.write("/cam/image_raw", stamp, messages.image(ROSBAGS, head, frame.image, "mono8"))
     out = tmp_path / "cap.yaml"
     args = ["model", "build", str(bag), "--out", str(out), "--max-nfev", "2", "--min-frames-per-tag", "1",
             "--quiet"]

@@ -440,7 +440,7 @@ def test_lamp_at_the_camera_lights_an_oblique_face_unevenly(lighting: str) -> No
     brighter on its nearer side. Measured in linear light (no PSF, no noise) in the middle of the
     white quiet zone on both sides, against the geometry computed here; ``low`` light (one distant
     source) lights a face evenly."""
-    from ficap_ros.tools.synth import _LIGHTS
+    from ficap_ros.tools.synth.lighting import LIGHTS
 
     h = TAG_SIDE_MM / 2
     corners = np.array([[[-h, -h, 0.0], [h, -h, 0.0], [h, h, 0.0], [-h, h, 0.0]]])
@@ -453,7 +453,7 @@ def test_lamp_at_the_camera_lights_an_oblique_face_unevenly(lighting: str) -> No
                        background=False, gain=gain)
     frame = render(model, camera, T, cfg)
     assert frame.visible_ids() == [0]
-    light = _LIGHTS[lighting]
+    light = LIGHTS[lighting]
     normal = T.rotation.apply(model.normals[0])
     assert normal[2] < 0.0  # facing the camera
     to_light = np.asarray(light.toward_light_cam) / np.linalg.norm(light.toward_light_cam)
