@@ -233,3 +233,16 @@ def test_cam_from_forward_and_rotated_covariance() -> None:
     turned = rotate_covariance(cov, Rotation.from_euler("z", 90, degrees=True))
     np.testing.assert_allclose(np.diag(turned), [2.0, 1.0, 3.0, 5.0, 4.0, 6.0], atol=1e-12)
     assert np.trace(turned) == pytest.approx(np.trace(cov))
+
+
+def test_transform_algebra() -> None:
+    a = Transform(Rotation.from_euler("z", 30, degrees=True), [1, 2, 3])
+    b = Transform(Rotation.from_euler("x", -20, degrees=True), [0.5, 0, -1])
+    p = np.array([0.3, -0.2, 0.9])
+    np.testing.assert_allclose((a * b).apply(p), a.apply(b.apply(p)))
+    np.testing.assert_allclose((a * a.inv()).matrix, np.eye(4), atol=1e-12)
+    w, x, y, z = a.q_wxyz
+    np.testing.assert_allclose(a.q_xyzw, [x, y, z, w])
+    # The forward body frame's x is the optical axis, its z is the camera's -y (up).
+    np.testing.assert_allclose(CAM_FROM_FORWARD.apply([1, 0, 0]), [0, 0, 1], atol=1e-12)
+    np.testing.assert_allclose(CAM_FROM_FORWARD.apply([0, 0, 1]), [0, -1, 0], atol=1e-12)
