@@ -35,6 +35,7 @@ little, and one tag has a mirror solution a first-order covariance does not see)
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Callable, Container, Sequence
 
@@ -176,11 +177,34 @@ class PoseResult:
 # -- the least-squares refinement -------------------------------------------------------------------
 
 
+def _rodrigues(rotvec_rad: Sequence[float]) -> np.ndarray:
+    """The rotation matrix (3, 3) of a rotation vector (rad) by Rodrigues' formula,
+    ``R = cos(theta) I + (1 - cos(theta)) r r^T + sin(theta) [r]_x`` with ``r`` the unit axis, in
+    ``cv2.Rodrigues``' arithmetic term for term (the same matrix, bit for bit), without the
+    derivative that call always computes as well. The identity below machine epsilon."""
+    x, y, z = rotvec_rad
+    theta = math.sqrt(x * x + y * y + z * z)
+    if theta < _EPS:
+        return np.eye(3)
+    c, s = math.cos(theta), math.sin(theta)
+    c1 = 1.0 - c
+    inv = 1.0 / theta
+    x, y, z = x * inv, y * inv, z * inv
+    c0 = c * 0.0
+    xy, xz, yz = x * y, x * z, y * z
+    return np.array([[c + c1 * (x * x) + s * 0.0, c0 + c1 * xy + s * -z, c0 + c1 * xz + s * y],
+                     [c0 + c1 * xy + s * z, c + c1 * (y * y) + s * 0.0, c0 + c1 * yz + s * -x],
+                     [c0 + c1 * xz + s * -y, c0 + c1 * yz + s * x, c + c1 * (z * z) + s * 0.0]])
+
+
+_EPS = float(np.finfo(np.float64).eps)
+
+
 def _turned_residuals_and_jacobian(x: np.ndarray, R0: np.ndarray,
                                    obs: TagObservations) -> tuple[np.ndarray, np.ndarray]:
     """Residuals (8T,) and Jacobian (8T, 6) of the pose ``(exp(x[:3]) R0, x[3:])``: x is a left
     turn d_theta (3, rad, camera axes) of the 3x3 rotation R0 and the translation t (3, m)."""
-    R = cv2.Rodrigues(np.ascontiguousarray(x[:3]))[0] @ R0
+    R = _rodrigues(x[:3].tolist()) @ R0
     return residuals_and_jacobian_rt(R, x[3:], obs.K, obs.model_m, obs.image_px)
 
 
@@ -370,7 +394,7 @@ def _solve_joint(obs: TagObservations, config: PoseConfig, start: Transform | No
         return "no pose agrees with the detected tags"
     T, inliers = begin
     # ``used`` is always ``obs.subset(current)`` (obs's ids are unique): the mask is kept, not
-    # rebuilt from the ids (np.isin, ~30 us a round).
+    # rebuilt from the ids each round.
     current = np.array(inliers, dtype=bool)
     used = obs.subset(current)
     # Tags that disagreed with the start may agree with the refined pose: re-admit, then trim.

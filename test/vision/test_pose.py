@@ -4,8 +4,11 @@ reaches the reprojection minimum from near and far starts, as ``least_squares(me
 
 from __future__ import annotations
 
+import cv2
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
 from ficap_ros.errors import ConfigError
@@ -17,6 +20,7 @@ from ficap_ros.vision.detector import TagDetection
 from ficap_ros.vision.pose import (
     PoseConfig,
     _refine,
+    _rodrigues,
     _turned_residuals_and_jacobian,
     estimate_cap_pose,
 )
@@ -266,3 +270,15 @@ def test_refine_refuses_a_start_least_squares_refuses() -> None:
     one_corner = TagObservations(obs.ids, obs.image_px[:, :1], obs.model_m[:, :1], obs.K)
     with pytest.raises(ValueError, match="number of residuals"):
         _refine(one_corner, T)
+
+
+@given(st.tuples(*[st.floats(-1.0, 1.0)] * 3), st.floats(-18.0, 0.7), st.sampled_from([(), (0,), (0, 1), (1, 2)]))
+def test_rodrigues_is_opencvs_bit_for_bit(direction: tuple[float, float, float], log_angle: float,
+                                         zeros: tuple[int, ...]) -> None:
+    """The LM's rotation matrix is ``cv2.Rodrigues``' to the last bit (zeros' signs included), from
+    below machine epsilon to beyond a half turn, with some components exactly zero."""
+    v = np.array(direction) * 10.0**log_angle
+    v[list(zeros)] = 0.0
+    ref = cv2.Rodrigues(np.ascontiguousarray(v))[0]
+    ours = _rodrigues(v.tolist())
+    assert np.array_equal(ours, ref) and np.array_equal(np.signbit(ours), np.signbit(ref))
