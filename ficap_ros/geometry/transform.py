@@ -86,6 +86,19 @@ def _rotvec_quat(rotvec_rad: Sequence[float]) -> Quat:
     return (scale * x, scale * y, scale * z, math.cos(angle / 2))
 
 
+def _rotvec(q: Quat) -> np.ndarray:
+    """The rotation vector (3,), rad, angle in [0, pi], of a unit quaternion, as
+    ``Rotation.as_rotvec`` computes it (from the canonical quaternion, w >= 0)."""
+    x, y, z, w = _canonical(q)
+    angle = 2 * math.atan2(math.sqrt(x * x + y * y + z * z), w)
+    if angle <= _SMALL_ANGLE_RAD:
+        angle2 = angle * angle
+        scale = 2 + angle2 / 12 + 7 * angle2 * angle2 / 2880
+    else:
+        scale = angle / math.sin(angle / 2)
+    return np.array([scale * x, scale * y, scale * z])
+
+
 def _matrix(q: Quat) -> np.ndarray:
     """The rotation matrix (3, 3) of a unit quaternion."""
     x, y, z, w = q
@@ -246,8 +259,8 @@ class Transform:
 
     @property
     def rvec(self) -> np.ndarray:
-        """OpenCV rotation vector, rad."""
-        return self.rotation.as_rotvec()
+        """OpenCV rotation vector, rad, angle in [0, pi] (``rotation.as_rotvec()``)."""
+        return _rotvec(self._q)
 
     @property
     def q_wxyz(self) -> np.ndarray:

@@ -115,6 +115,7 @@ def test_algebra_equals_rotation_operators_bit_for_bit(A: Transform, B: Transfor
     assert np.array_equal(Ai.inv().rotation.as_quat(), RA.inv().inv().as_quat())
     turned = A.turned(rv, t)
     assert np.array_equal(turned.rotation.as_quat(), (Rotation.from_rotvec(rv) * RA).as_quat())
+    assert np.array_equal(AB.rvec, (RA * RB).as_rotvec()) and np.array_equal(Ai.rvec, RA.inv().as_rotvec())
     assert np.array_equal(turned.translation_m, t)
     chain = (AB.inv() * A).turned(rv, t).inv()
     ref = (Rotation.from_rotvec(rv) * ((RA * RB).inv() * RA)).inv()
