@@ -176,6 +176,9 @@ class PoseResult:
 
 # -- the least-squares refinement -------------------------------------------------------------------
 
+#: Machine epsilon: below it a rotation vector is the identity (as ``cv2.Rodrigues`` treats it).
+_EPS = float(np.finfo(np.float64).eps)
+
 
 def _rodrigues(rotvec_rad: Sequence[float]) -> np.ndarray:
     """The rotation matrix (3, 3) of a rotation vector (rad) by Rodrigues' formula,
@@ -195,9 +198,6 @@ def _rodrigues(rotvec_rad: Sequence[float]) -> np.ndarray:
     return np.array([[c + c1 * (x * x) + s * 0.0, c0 + c1 * xy + s * -z, c0 + c1 * xz + s * y],
                      [c0 + c1 * xy + s * z, c + c1 * (y * y) + s * 0.0, c0 + c1 * yz + s * -x],
                      [c0 + c1 * xz + s * -y, c0 + c1 * yz + s * x, c + c1 * (z * z) + s * 0.0]])
-
-
-_EPS = float(np.finfo(np.float64).eps)
 
 
 def _turned_residuals_and_jacobian(x: np.ndarray, R0: np.ndarray,
