@@ -45,7 +45,8 @@ from ficap_ros.geometry.transform import Transform  # noqa: E402
 from ficap_ros.vision.detector import DetectorConfig, as_gray  # noqa: E402
 from ficap_ros.vision.pipeline import FrameProcessor  # noqa: E402
 from ficap_ros.vision.pipeline import hidden_tag_ids as _image_hidden_ids  # noqa: E402
-from ficap_ros.vision.pose import PoseConfig, UncertaintyConfig  # noqa: E402
+from ficap_ros.vision.pose import PoseConfig  # noqa: E402
+from ficap_ros.vision.uncertainty import UncertaintyConfig  # noqa: E402
 
 #: name -> (detector, pose, tracking)
 METHODS = {

@@ -124,7 +124,7 @@ STAGES = (
     ("ficap_ros.vision.pipeline", "verify_tags", "predicted tags: prediction and verification"),
     ("ficap_ros.vision.pose", "_solve_joint", "pose: solver"),
     ("ficap_ros.vision.pose", "_solve_naive", "pose: solver"),
-    ("ficap_ros.vision.pose", "_reweighted", "pose: tag-noise weights (one weighted step)"),
+    ("ficap_ros.vision.pose", "reweighted", "pose: tag-noise weights (one weighted step)"),
     ("ficap_ros.vision.pose", "uncertainty_terms", "pose: uncertainty (terms, covariance, bounds)"),
     ("ficap_ros.vision.pose", "combine_uncertainty", "pose: uncertainty (terms, covariance, bounds)"),
     ("ficap_ros.vision.pose", "uncertainty_bounds", "pose: uncertainty (terms, covariance, bounds)"),

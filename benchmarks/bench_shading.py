@@ -7,14 +7,14 @@ cells first, the uneven light on top.
 Per set, over the tags the pose used (``ficap joint``, default settings) whose view angle is over
 24 deg (sin > 0.4):
     contrast ratio: the quiet zone's grey level minus the black border's, on the side of the tag
-        its foreshortening points to (``pose._tilt_mode``'s direction: the image direction of the
+        its foreshortening points to (``uncertainty._tilt_mode``'s direction: the image direction of the
         tag's inward normal, toward the middle of the cap) over the opposite side (medians over
         the sides' sample points and over the tags; from the image, truth corners);
     point light at the camera: the same ratio for irradiance from a point source at the camera
         centre (inverse square times the cosine of incidence; geometry only, no image);
     tilt shift: the true corner errors (detected minus projected truth) fitted by the shift of
         every tag along its foreshortening times the sine of its view angle
-        (``pose._tilt_mode``, px at a tag seen edge-on) and the tags' common radial offset,
+        (``uncertainty._tilt_mode``, px at a tag seen edge-on) and the tags' common radial offset,
         per frame; the depth error the tilt share causes through the fit (``A d``, mm);
     tag by tag: the same shift fitted to each tag alone (its 8 corner errors on its own tilt
         mode), averaged over the tags whose corners the cell-edge fit made and over those left
@@ -49,7 +49,13 @@ from _common import load_avg, machine_line, md_table, record_section  # noqa: E4
 
 from ficap_ros.geometry.cap_model import nominal_model  # noqa: E402
 from ficap_ros.vision import pose as pose_mod  # noqa: E402
+from ficap_ros.vision import uncertainty as unc_mod  # noqa: E402
 from ficap_ros.vision.pipeline import FrameProcessor  # noqa: E402
+from ficap_ros.vision.reprojection import (  # noqa: E402
+    TagObservations,
+    project_px,
+    residuals_and_jacobian,
+)
 
 MODEL = nominal_model()
 _CAPTURED: dict = {}
@@ -118,11 +124,11 @@ def measure(frames, camera, label: str) -> dict:  # noqa: ANN001
             if r.pose is None or "obs" not in _CAPTURED:
                 continue
             obs, T = _CAPTURED["obs"], _CAPTURED["T"]
-            d = (obs.image_px - pose_mod._project(K, truth, obs.model_m)).reshape(-1)
-            tilt = pose_mod._tilt_mode(obs, T)
-            radial = (2.0 * pose_mod._tag_basis(obs.image_px)[:, :, 2]).reshape(-1)
+            d = (obs.image_px - project_px(K, truth, obs.model_m)).reshape(-1)
+            tilt = unc_mod._tilt_mode(obs, T)
+            radial = (2.0 * unc_mod._tag_basis(obs.image_px)[:, :, 2]).reshape(-1)
             coef, *_ = np.linalg.lstsq(np.stack([tilt, radial], 1), d, rcond=None)
-            res, J = pose_mod._at(T, obs)
+            res, J = residuals_and_jacobian(T, obs)
             sigma = _CAPTURED["sigma"]
             rel = np.ones(len(obs)) if sigma is None else sigma / np.median(sigma)
             w = np.repeat(1.0 / rel**2, 8)
@@ -137,7 +143,7 @@ def measure(frames, camera, label: str) -> dict:  # noqa: ANN001
             radials.append(coef[1])
             depth.append(1e3 * tz)
             gray = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
-            true_px = pose_mod._project(K, truth, obs.model_m)
+            true_px = project_px(K, truth, obs.model_m)
             for k in range(len(obs)):
                 out = side_contrast(gray, true_px[k], obs.model_m[k], truth, K)
                 if out is not None and out[2] > 0.4:
@@ -206,10 +212,10 @@ def mechanism(root: Path | None) -> str:
                     ids = [t for t in frame.visible_ids(0.999) if t in got and angles[t] < 75.0]
                     if len(ids) < 4:
                         continue
-                    obs = pose_mod._make_obs({t: got[t] for t in ids}, model, K)
-                    d = (obs.image_px - pose_mod._project(K, f.T_cam_cap, obs.model_m)).reshape(-1)
-                    tilt = pose_mod._tilt_mode(obs, f.T_cam_cap)
-                    radial = (2.0 * pose_mod._tag_basis(obs.image_px)[:, :, 2]).reshape(-1)
+                    obs = TagObservations.of({t: got[t] for t in ids}, model, K)
+                    d = (obs.image_px - project_px(K, f.T_cam_cap, obs.model_m)).reshape(-1)
+                    tilt = unc_mod._tilt_mode(obs, f.T_cam_cap)
+                    radial = (2.0 * unc_mod._tag_basis(obs.image_px)[:, :, 2]).reshape(-1)
                     coef, *_ = np.linalg.lstsq(np.stack([tilt, radial], 1), d, rcond=None)
                     coefs.append(coef)
             finally:

@@ -70,9 +70,15 @@ from _common import Progress, load_avg, machine_line, md_table, record_section  
 from ficap_ros.geometry.cap_model import nominal_model  # noqa: E402
 from ficap_ros.geometry.metrics import angle_deg  # noqa: E402
 from ficap_ros.vision import pose as pose_mod  # noqa: E402
+from ficap_ros.vision import uncertainty as unc_mod  # noqa: E402
 from ficap_ros.vision.detector import DetectorConfig  # noqa: E402
 from ficap_ros.vision.pipeline import FrameProcessor, pose_config_for  # noqa: E402
-from ficap_ros.vision.pose import PoseConfig, UncertaintyConfig  # noqa: E402
+from ficap_ros.vision.pose import PoseConfig  # noqa: E402
+from ficap_ros.vision.reprojection import (  # noqa: E402
+    TagObservations,
+    residuals_and_jacobian,
+)
+from ficap_ros.vision.uncertainty import UncertaintyConfig  # noqa: E402
 
 METHODS = {
     "ficap joint": (DetectorConfig(), PoseConfig(method="joint")),
@@ -97,22 +103,22 @@ CEILING_SEED_OFFSET = 5000
 
 
 def residual_only_bound(result, camera, model) -> float:  # noqa: ANN001
-    """The rotation bound of the covariance of old: sigma_res^2 (J^T J)^-1 (``_at``, ``_make_obs``
-    are the estimator's own)."""
+    """The rotation bound of the covariance of old: sigma_res^2 (J^T J)^-1 (``residuals_and_jacobian``,
+    ``TagObservations`` are the estimator's own)."""
     pose = result.pose
     corners = {}
     for d in result.detections:
         if d.tag_id in pose.used_ids and d.tag_id not in corners:
             corners[d.tag_id] = camera.undistort_px(d.corners_px)
-    obs = pose_mod._make_obs(corners, model, camera.K)
-    res, J = pose_mod._at(pose.T_cam_cap, obs)
+    obs = TagObservations.of(corners, model, camera.K)
+    res, J = residuals_and_jacobian(pose.T_cam_cap, obs)
     sigma2 = float(res @ res) / max(len(res) - 6, 1)
     try:
         cov = np.linalg.inv(J.T @ J) * sigma2
     except np.linalg.LinAlgError:
         return float("inf")
     order = [3, 4, 5, 0, 1, 2]
-    return pose_mod.error_bound95(cov[np.ix_(order, order)])[0]
+    return unc_mod.error_bound95(cov[np.ix_(order, order)])[0]
 
 
 def ideal_ratio(covs: list[np.ndarray], rows: slice, scale: float, rng: np.random.Generator) -> float:
@@ -121,14 +127,14 @@ def ideal_ratio(covs: list[np.ndarray], rows: slice, scale: float, rng: np.rando
     for cov in covs:
         block = cov[rows, rows] * scale**2
         lam = np.clip(np.linalg.eigvalsh(0.5 * (block + block.T)), 0.0, None)
-        bounds.append(pose_mod._bound95(block, np.zeros(3), float("inf")))
+        bounds.append(unc_mod._bound95(block, np.zeros(3), float("inf")))
         norms.append(np.linalg.norm(rng.standard_normal((200, 3)) * np.sqrt(lam), axis=1))
     return float(np.median(bounds) / np.median(np.concatenate(norms)))
 
 
 KEYS = ("rot_err", "trans_err", "rot95", "trans95", "rel", "rot95_res", "tags", "cov", "key", "sources",
         "terms")
-#: What the translation bound is made of: groups of ``pose.uncertainty_sources``.
+#: What the translation bound is made of: groups of ``uncertainty.uncertainty_sources``.
 SOURCE_GROUPS = {
     "residuals: per-tag shift": ("residual_shift",),
     "residuals: per-tag scale": ("residual_scale",),
@@ -157,7 +163,7 @@ def per_tag_offset_terms(obs, T, tag_sigma_px=None, edge_shift_px=None, at=None)
     tags' random scale noise alone gives (the ``scale`` term carries that as a spread). Passed
     on as the ``bias_common`` mode (unit 1: its floor then adds 0.002^2 of it, negligible)."""
     terms, seen = _TERMS(obs, T, tag_sigma_px, edge_shift_px, at=at)
-    res, J = pose_mod._at(T, obs) if at is None else at
+    res, J = residuals_and_jacobian(T, obs) if at is None else at
     n = len(obs)
     rel = (np.ones(n) if tag_sigma_px is None
            else np.asarray(tag_sigma_px, float) / max(float(np.median(tag_sigma_px)), 1e-12))
@@ -166,11 +172,11 @@ def per_tag_offset_terms(obs, T, tag_sigma_px=None, edge_shift_px=None, at=None)
         A = np.linalg.solve(J.T @ (w[:, None] * J), J.T * w)
     except np.linalg.LinAlgError:
         return terms, seen
-    B = pose_mod._tag_basis(obs.image_px)[:, :, 2]
+    B = unc_mod._tag_basis(obs.image_px)[:, :, 2]
     coef = np.einsum("tj,tj->t", B, -res.reshape(n, 8))
     radial = 2.0 * B.reshape(-1)
     left = max(1.0 - float(radial @ (w * (J @ (A @ radial)))) / float(radial @ (w * radial)), 0.1)
-    o = (A @ (B * coef[:, None]).reshape(-1))[pose_mod._ROS_ORDER] / left
+    o = (A @ (B * coef[:, None]).reshape(-1))[unc_mod._ROS_ORDER] / left
     for rows in (slice(0, 3), slice(3, 6)):
         noise = float(np.trace(terms["scale"][rows, rows])) * seen["scale"] ** 2 / left**2
         size = float(o[rows] @ o[rows])
@@ -184,7 +190,7 @@ _TERMS_IMPL = [_TERMS]
 def translation_shares(config: UncertaintyConfig) -> list[float]:
     """Share of the last pose's translation variance (trace) per ``SOURCE_GROUPS`` entry."""
     terms, seen = _CAPTURED["terms"]
-    parts = pose_mod.uncertainty_sources(terms, seen, config)
+    parts = unc_mod.uncertainty_sources(terms, seen, config)
     tr = {k: float(np.trace(v[:3, :3])) for k, v in parts.items()}
     total = max(sum(tr.values()), 1e-300)
     return [sum(tr[k] for k in keys) / total for keys in SOURCE_GROUPS.values()]
@@ -276,8 +282,8 @@ def bounds_at(o: dict[str, list], config: UncertaintyConfig,
         terms, seen = t
         if offset_gain != 1.0:
             seen = {**seen, "bias_common": offset_gain * seen["bias_common"]}
-        cov = pose_mod.combine_uncertainty(terms, seen, config)
-        r, tr = pose_mod.error_bound95(cov, *pose_mod.uncertainty_bounds(terms, seen, config, cov))
+        cov = unc_mod.combine_uncertainty(terms, seen, config)
+        r, tr = unc_mod.error_bound95(cov, *unc_mod.uncertainty_bounds(terms, seen, config, cov))
         rot.append(r)
         trans.append(tr)
     return np.asarray(rot), np.asarray(trans)

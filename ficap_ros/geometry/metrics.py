@@ -13,8 +13,8 @@ Head angles (``yaw_pitch_roll_deg``) of a head frame H (x forward, y left, z up)
 frame with the same axes at zero pose, REP-103: right-hand rotations, R = Rz(yaw) Ry(pitch) Rx(roll)
 (intrinsic z-y'-x''), the same numbers as tf2's ``getRPY`` / ``getEulerYPR``:
     yaw: positive turning to the wearer's left (right-hand about +z, up);
-    pitch: positive nose DOWN (right-hand about +y, which points left; the instrument cluster is at
-        about +20 deg, a glance up at the rear-view mirror about -5 deg);
+    pitch: positive nose DOWN (right-hand about +y, which points left: a look down at the instrument
+        cluster is positive, a glance up at the rear-view mirror negative);
     roll: positive tilting the head toward the right shoulder (right-hand about +x, forward).
 """
 

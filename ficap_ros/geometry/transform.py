@@ -1,15 +1,22 @@
 """Rigid transforms with the frames in their names.
 
 ``T_a_b`` is the pose of frame b in frame a: it maps a point from b coordinates into a coordinates,
-``p_a = R_a_b p_b + t_a_b``. Rotations are ``scipy.spatial.transform.Rotation``; quaternions that
-cross an interface are named for their order: ``q_wxyz`` (ROS messages store x, y, z, w fields;
-our CSV columns are w, x, y, z) or ``q_xyzw`` (scipy's order).
+``p_a = R_a_b p_b + t_a_b``. Rotations that cross an interface are
+``scipy.spatial.transform.Rotation``; quaternions are named for their order: ``q_wxyz`` (our CSV
+columns; scipy's ``scalar_first=True``) or ``q_xyzw`` (ROS message fields, scipy's default).
+
+``Transform`` keeps its rotation as a unit quaternion of its own and composes, inverts and turns it
+with scalar arithmetic that follows scipy's ``Rotation`` step for step (the same products, sums
+and normalisation, in the same order), so a chain of transforms gives the quaternions, matrices
+and translations ``Rotation``'s operators give, to the last bit. The ``Rotation`` object is built
+from the quaternion's source only when asked for (``Transform.rotation``): the per-frame path
+(composition, inversion, the pose solver's left turns) then needs no ``Rotation`` at all.
 """
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-from functools import cached_property
+import math
+from typing import Any, Sequence
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -18,102 +25,181 @@ from ficap_ros.errors import ConfigError
 
 __all__ = ["Transform", "CAM_FROM_FORWARD", "rotate_covariance", "compose", "inverse", "from_rotvec"]
 
-# Rotation's own Cython kernels (scipy 1.17, pinned): ``compose``, ``inverse`` and ``from_rotvec``
-# call the functions ``Rotation``'s operators call, on the same numbers, without its array-API
-# dispatch and argument promotion (~7 of a composition's ~9 us; a tracked frame and its labels
-# compose ~20 rotations). Bit-identical quaternions (test_transform checks them against the
-# operators); private, so optional: without it, or for anything but single numpy rotations, the
-# operators themselves.
-try:
-    from scipy.spatial.transform import _rotation_cy as _KERNELS
+#: A quaternion (x, y, z, w) as four Python floats.
+Quat = tuple[float, float, float, float]
 
-    _IDENTITY = Rotation.identity()
-    _XP = _IDENTITY._xp
-    _FAST = _IDENTITY._backend is _KERNELS and _IDENTITY._single
-except (ImportError, AttributeError):  # pragma: no cover - another scipy
-    _FAST = False
-
-
-def _single(quat: np.ndarray) -> Rotation:
-    """A single Rotation holding ``quat`` (1, 4), as ``Rotation._from_raw_quat`` builds one (its
-    own ``atleast_nd`` is a third of an inversion's time)."""
-    rot = Rotation.__new__(Rotation)
-    rot._single, rot._quat, rot._xp, rot._backend = True, quat, _XP, _KERNELS
-    return rot
-
-
-def _fast(*rotations: Rotation) -> bool:
-    return _FAST and all(type(r) is Rotation and r._single and r._backend is _KERNELS for r in rotations)
+#: Below this rotation angle (rad) a rotation vector's quaternion uses the Taylor series of
+#: sin(angle / 2) / angle, as ``Rotation.from_rotvec`` does.
+_SMALL_ANGLE_RAD = 1e-3
 
 
 def compose(a: Rotation, b: Rotation) -> Rotation:
-    """``a * b`` (apply b, then a) of single rotations: the same quaternion as the operator."""
-    if not _fast(a, b):
-        return a * b
-    q = _KERNELS.from_quat(_KERNELS.compose_quat(a._quat, b._quat), normalize=True, copy=False,
-                           scalar_first=False)
-    return _single(q)
+    """``a * b``: apply b, then a."""
+    return a * b
 
 
 def inverse(a: Rotation) -> Rotation:
-    """``a.inv()`` of a single rotation: the same quaternion."""
-    if not _fast(a):
-        return a.inv()
-    return _single(_KERNELS.inv(a._quat))
+    """``a.inv()``."""
+    return a.inv()
 
 
 def from_rotvec(rotvec_rad: np.ndarray) -> Rotation:
-    """``Rotation.from_rotvec`` of one rotation vector (3,), rad: the same quaternion."""
-    rv = np.asarray(rotvec_rad, dtype=np.float64)
-    if not _FAST or rv.shape != (3,):
-        return Rotation.from_rotvec(rv)
-    return _single(_KERNELS.from_rotvec(rv[None], degrees=False))
+    """``Rotation.from_rotvec`` of a rotation vector (3,), rad."""
+    return Rotation.from_rotvec(np.asarray(rotvec_rad, dtype=np.float64))
 
 
-def _apply(a: Rotation, vector: np.ndarray) -> np.ndarray:
-    """``a.apply(vector)`` of one vector (3,) by a single rotation: the same numbers."""
-    if not _fast(a):
-        return a.apply(vector)
-    return _KERNELS.apply(a._quat, np.asarray(vector, dtype=np.float64).reshape(1, 3), inverse=False)[0]
+# -- quaternion arithmetic (x, y, z, w), as scipy's Rotation does it --------------------------------
 
 
-def _kernels_agree() -> bool:
-    """The kernels take these arguments and give the operators' numbers (checked once, at
-    import: a scipy whose private kernels changed falls back to the operators, not to errors)."""
-    try:
-        a, b = Rotation.from_rotvec([0.1, -0.2, 0.3]), Rotation.from_rotvec([-0.3, 0.1, 0.2])
-        v = np.array([0.5, -1.0, 2.0])
-        return bool(np.array_equal(compose(a, b).as_quat(), (a * b).as_quat())
-                    and np.array_equal(inverse(a).as_quat(), a.inv().as_quat())
-                    and np.array_equal(from_rotvec([0.1, -0.2, 0.3]).as_quat(), a.as_quat())
-                    and np.array_equal(_apply(a, v), a.apply(v)))
-    except (TypeError, ValueError, AttributeError):  # pragma: no cover - another scipy
-        return False
+def _product(p: Quat, q: Quat) -> Quat:
+    """The Hamilton product p q (apply q, then p), before normalisation."""
+    px, py, pz, pw = p
+    qx, qy, qz, qw = q
+    return (pw * qx + qw * px + (py * qz - pz * qy),
+            pw * qy + qw * py + (pz * qx - px * qz),
+            pw * qz + qw * pz + (px * qy - py * qx),
+            pw * qw - px * qx - py * qy - pz * qz)
 
 
-_FAST = _FAST and _kernels_agree()
+def _normalised(q: Quat) -> Quat:
+    x, y, z, w = q
+    norm = math.sqrt(x * x + y * y + z * z + w * w)
+    if norm == 0.0:
+        raise ValueError("zero-norm quaternion")
+    return (x / norm, y / norm, z / norm, w / norm)
 
 
-@dataclass(frozen=True)
+def _conjugate(q: Quat) -> Quat:
+    x, y, z, w = q
+    return (-x, -y, -z, w)
+
+
+def _rotvec_quat(rotvec_rad: Sequence[float]) -> Quat:
+    """The unit quaternion of a rotation vector (rad), as ``Rotation.from_rotvec`` computes it."""
+    x, y, z = (float(v) for v in rotvec_rad)
+    angle = math.sqrt(x * x + y * y + z * z)
+    if angle <= _SMALL_ANGLE_RAD:
+        angle2 = angle * angle
+        scale = 0.5 - angle2 / 48 + angle2 * angle2 / 3840
+    else:
+        scale = math.sin(angle / 2) / angle
+    return (scale * x, scale * y, scale * z, math.cos(angle / 2))
+
+
+def _rotvec(q: Quat) -> np.ndarray:
+    """The rotation vector (3,), rad, angle in [0, pi], of a unit quaternion, as
+    ``Rotation.as_rotvec`` computes it (from the canonical quaternion, w >= 0)."""
+    x, y, z, w = _canonical(q)
+    angle = 2 * math.atan2(math.sqrt(x * x + y * y + z * z), w)
+    if angle <= _SMALL_ANGLE_RAD:
+        angle2 = angle * angle
+        scale = 2 + angle2 / 12 + 7 * angle2 * angle2 / 2880
+    else:
+        scale = angle / math.sin(angle / 2)
+    return np.array([scale * x, scale * y, scale * z])
+
+
+def _matrix(q: Quat) -> np.ndarray:
+    """The rotation matrix (3, 3) of a unit quaternion."""
+    x, y, z, w = q
+    x2, y2, z2, w2 = x * x, y * y, z * z, w * w
+    xy, zw, xz, yw, yz, xw = x * y, z * w, x * z, y * w, y * z, x * w
+    return np.array([[x2 - y2 - z2 + w2, 2 * (xy - zw), 2 * (xz + yw)],
+                     [2 * (xy + zw), -x2 + y2 - z2 + w2, 2 * (yz - xw)],
+                     [2 * (xz - yw), 2 * (yz + xw), -x2 - y2 + z2 + w2]])
+
+
+def _canonical(q: Quat) -> Quat:
+    """The quaternion of the same rotation with w >= 0 (the first non-zero component positive
+    when w is 0), as ``Rotation.as_quat(canonical=True)``."""
+    x, y, z, w = q
+    if w < 0 or (w == 0 and (x < 0 or (x == 0 and (y < 0 or (y == 0 and z < 0))))):
+        return (x * -1.0, y * -1.0, z * -1.0, w * -1.0)
+    return q
+
+
+# How a transform's ``Rotation`` is built when asked for: the public constructor that gives exactly
+# its quaternion. ("quat", raw): ``Rotation.from_quat(raw)`` (a product before normalisation);
+# ("rotvec", v): ``Rotation.from_rotvec(v)``; ("inv", r): ``r.inv()``.
+_Source = tuple[str, Any]
+
+
+def _build(source: _Source) -> Rotation:
+    kind, value = source
+    if kind == "quat":
+        return Rotation.from_quat(np.array(value))
+    if kind == "rotvec":
+        return Rotation.from_rotvec(np.array(value))
+    return value.inv()
+
+
+def _source_of_inverse(source: _Source) -> _Source:
+    kind, value = source
+    if kind == "quat":  # normalising is symmetric in the signs
+        return ("quat", _conjugate(value))
+    if kind == "rotvec":
+        return ("rotvec", tuple(-v for v in value))
+    raise ValueError(f"no inverse source for {kind!r}")
+
+
 class Transform:
-    """A rigid transform ``T_a_b``: rotation and translation in metres."""
+    """A rigid transform ``T_a_b``: a rotation and a translation in metres. Immutable.
 
-    rotation: Rotation
-    translation_m: np.ndarray
+    Build one from a ``Rotation`` (``Transform(rotation, translation_m)``) or with the
+    constructors below; ``rotation`` gives it back as a ``Rotation``.
+    """
 
-    def __post_init__(self) -> None:
-        t = np.asarray(self.translation_m, dtype=np.float64).reshape(3).copy()
+    __slots__ = ("_q", "_source", "_rotation", "_t", "_rotation_matrix")
+
+    def __init__(self, rotation: Rotation, translation_m: Any) -> None:
+        q = np.asarray(rotation.as_quat(), dtype=np.float64)
+        if q.shape != (4,):
+            raise ValueError(f"a Transform holds one rotation, got quaternions of shape {q.shape}")
+        self._init(tuple(q.tolist()), None, rotation, translation_m)
+
+    def _init(self, q: Quat, source: _Source | None, rotation: Rotation | None, translation_m: Any,
+              rotation_matrix: np.ndarray | None = None) -> None:
+        """``q``: the unit quaternion (x, y, z, w); ``source``: how to build its ``Rotation``
+        (None: ``rotation`` is given); ``rotation_matrix``: its matrix when already computed."""
+        t = np.array(translation_m, dtype=np.float64).reshape(3)
         t.setflags(write=False)
-        object.__setattr__(self, "translation_m", t)
+        if rotation_matrix is not None:
+            rotation_matrix.setflags(write=False)
+        set_ = object.__setattr__
+        set_(self, "_q", q)
+        set_(self, "_source", source)
+        set_(self, "_rotation", rotation)
+        set_(self, "_t", t)
+        set_(self, "_rotation_matrix", rotation_matrix)
+
+    @classmethod
+    def _of(cls, q: Quat, source: _Source | None, rotation: Rotation | None, translation_m: Any,
+            rotation_matrix: np.ndarray | None = None) -> Transform:
+        out = cls.__new__(cls)
+        out._init(q, source, rotation, translation_m, rotation_matrix)
+        return out
+
+    def __setattr__(self, name: str, value: Any) -> None:
+        raise AttributeError("Transform is immutable")
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (Transform._of, (self._q, self._source, self._rotation, self._t))
+
+    def __repr__(self) -> str:
+        return f"Transform(q_xyzw={list(self._q)}, translation_m={self._t.tolist()})"
+
+    # -- constructors -----------------------------------------------------------------------------
 
     @classmethod
     def identity(cls) -> Transform:
-        return cls(Rotation.identity(), np.zeros(3))
+        one: Quat = (0.0, 0.0, 0.0, 1.0)
+        return cls._of(one, ("quat", one), None, np.zeros(3))
 
     @classmethod
     def from_rvec_tvec(cls, rvec: np.ndarray, tvec_m: np.ndarray) -> Transform:
         """From OpenCV's rotation vector (rad) and translation (m)."""
-        return cls(Rotation.from_rotvec(np.asarray(rvec, dtype=np.float64).reshape(3)), tvec_m)
+        rv = tuple(np.asarray(rvec, dtype=np.float64).reshape(3).tolist())
+        return cls._of(_rotvec_quat(rv), ("rotvec", rv), None, tvec_m)
 
     @classmethod
     def from_matrix(cls, matrix: np.ndarray) -> Transform:
@@ -140,52 +226,91 @@ class Transform:
             raise ConfigError(f"{name} quaternion (qx qy qz qw) must be unit length, norm {norm:.6g}")
         return cls(Rotation.from_quat(v[3:] / norm), v[:3])
 
+    # -- views ------------------------------------------------------------------------------------
+
+    @property
+    def rotation(self) -> Rotation:
+        """R_a_b as a ``Rotation`` (built on first use; its quaternion is this transform's)."""
+        if self._rotation is None:
+            object.__setattr__(self, "_rotation", _build(self._source))
+        return self._rotation
+
+    @property
+    def translation_m(self) -> np.ndarray:
+        """t_a_b (3,), m (read-only)."""
+        return self._t
+
+    @property
+    def rotation_matrix(self) -> np.ndarray:
+        """3x3 rotation matrix R_a_b (read-only; computed once)."""
+        if self._rotation_matrix is None:
+            m = _matrix(self._q)
+            m.setflags(write=False)
+            object.__setattr__(self, "_rotation_matrix", m)
+        return self._rotation_matrix
+
     @property
     def matrix(self) -> np.ndarray:
         """4x4 homogeneous matrix, translation in metres."""
         m = np.eye(4)
-        m[:3, :3] = self.rotation.as_matrix()
-        m[:3, 3] = self.translation_m
+        m[:3, :3] = self.rotation_matrix
+        m[:3, 3] = self._t
         return m
 
     @property
     def rvec(self) -> np.ndarray:
-        """OpenCV rotation vector, rad."""
-        return self.rotation.as_rotvec()
+        """OpenCV rotation vector, rad, angle in [0, pi] (``rotation.as_rotvec()``)."""
+        return _rotvec(self._q)
 
     @property
     def q_wxyz(self) -> np.ndarray:
         """Unit quaternion (w, x, y, z), w >= 0."""
-        x, y, z, w = self.rotation.as_quat(canonical=True)
+        x, y, z, w = _canonical(self._q)
         return np.array([w, x, y, z])
 
     @property
     def q_xyzw(self) -> np.ndarray:
         """Unit quaternion (x, y, z, w), w >= 0 (scipy's and ROS message field order)."""
-        return self.rotation.as_quat(canonical=True)
+        return np.array(_canonical(self._q))
+
+    # -- algebra ----------------------------------------------------------------------------------
 
     def __mul__(self, other: Transform) -> Transform:
         """Compose: ``T_a_b * T_b_c = T_a_c``."""
-        return Transform(
-            compose(self.rotation, other.rotation),
-            _apply(self.rotation, np.array(other.translation_m)) + self.translation_m,
-        )
+        if not isinstance(other, Transform):
+            return NotImplemented
+        raw = _product(self._q, other._q)
+        t = self.rotation_matrix @ other._t + self._t
+        return Transform._of(_normalised(raw), ("quat", raw), None, t)
 
     def inv(self) -> Transform:
-        r_inv = inverse(self.rotation)
-        return Transform(r_inv, -_apply(r_inv, np.array(self.translation_m)))
+        """``T_b_a``."""
+        q = _conjugate(self._q)
+        R = _matrix(q)
+        source, rotation = self._inverse_source()
+        return Transform._of(q, source, rotation, -(R @ self._t), R)
 
-    @cached_property
-    def rotation_matrix(self) -> np.ndarray:
-        """3x3 rotation matrix R_a_b (read-only; computed once: the pose code applies it often)."""
-        m = self.rotation.as_matrix()
-        m.setflags(write=False)
-        return m
+    def _inverse_source(self) -> tuple[_Source | None, Rotation | None]:
+        """(source, rotation) of the inverse's ``Rotation``: the inverse of a given rotation is its
+        ``inv()``, the inverse of such an inverse that rotation itself, and a built one's source
+        is conjugated."""
+        if self._source is None:
+            return ("inv", self._rotation), None
+        if self._source[0] == "inv":
+            return None, self._source[1]
+        return _source_of_inverse(self._source), None
+
+    def turned(self, rotvec_rad: np.ndarray, translation_m: Any) -> Transform:
+        """``(exp(rotvec) R_a_b, translation_m)``: the rotation turned by a rotation vector (rad,
+        frame a's axes) after R_a_b, as ``Rotation.from_rotvec(rotvec) * rotation``, with a new
+        translation (m). A left perturbation: the pose solver's step."""
+        raw = _product(_rotvec_quat(np.asarray(rotvec_rad, dtype=np.float64).tolist()), self._q)
+        return Transform._of(_normalised(raw), ("quat", raw), None, translation_m)
 
     def apply(self, points: np.ndarray) -> np.ndarray:
         """Map points (..., 3) from frame b into frame a (same length unit as the translation)."""
         pts = np.asarray(points, dtype=np.float64)
-        return (pts.reshape(-1, 3) @ self.rotation_matrix.T + self.translation_m).reshape(pts.shape)
+        return (pts.reshape(-1, 3) @ self.rotation_matrix.T + self._t).reshape(pts.shape)
 
 
 #: Rotation of a REP-103 body frame (x forward, y left, z up) whose x axis looks along the camera's

@@ -24,7 +24,8 @@ from ficap_ros.geometry.transform import Transform
 from ficap_ros.io.camera_info import CAMERA_INFO_MAX_STAMP_DIFF_NS
 from ficap_ros.io.status import WARN_RELIABILITY
 from ficap_ros.vision.detector import DetectorConfig
-from ficap_ros.vision.pose import POSE_METHODS, PoseConfig, UncertaintyConfig
+from ficap_ros.vision.pose import POSE_METHODS, PoseConfig
+from ficap_ros.vision.uncertainty import UncertaintyConfig
 
 __all__ = ["ParamSpec", "PARAMETERS", "REMOVED_PARAMETERS", "CalibrationMode", "NodeConfig",
            "camera_mount_transform", "descriptor", "validate_parameter", "frames_reason"]

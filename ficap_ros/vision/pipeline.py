@@ -20,10 +20,10 @@ from ficap_ros.vision.pose import (
     CapPose,
     PoseConfig,
     PoseResult,
-    UncertaintyConfig,
     estimate_cap_pose,
 )
 from ficap_ros.vision.tracking import Search, TrackConfig, TrackedFrame, Tracker
+from ficap_ros.vision.uncertainty import UncertaintyConfig
 
 __all__ = ["FrameResult", "FrameProcessor", "hidden_tag_ids", "corner_estimator", "pose_config_for"]
 

@@ -1,5 +1,5 @@
-"""ficap_ros.geometry.camera.CameraModel: identity (one key, equality and hash), and properties of
-projection, undistortion, scaling and the camera YAML."""
+"""ficap_ros.geometry.camera.CameraModel: identity (one key, equality and hash), intrinsics checks,
+rectified CameraInfo, and properties of projection, undistortion, scaling and the camera YAML."""
 
 from __future__ import annotations
 
@@ -12,6 +12,7 @@ import yaml
 from hypothesis import given
 from hypothesis import strategies as st
 
+from ficap_ros.errors import IntrinsicsError
 from ficap_ros.geometry.camera import CameraModel, load_camera_yaml
 
 #: Moderate lens coefficients per model: distortion stays monotonic over the sampled field.
@@ -105,3 +106,50 @@ def test_camera_yaml_round_trip(scratch: Path, camera: CameraModel, name: str) -
         assert (back.width_px, back.height_px) == (camera.width_px, camera.height_px)
     else:
         assert back == camera
+
+
+@pytest.mark.parametrize(
+    "k, d, model, message",
+    [
+        ([np.nan, 0, 480, 0, 500, 270, 0, 0, 1], [], "none", "NaN"),
+        ([0, 0, 0, 0, 0, 0, 0, 0, 0], [], "none", "focal lengths must be positive"),
+        ([500, 0, 480, 0, 500, 270, 0, 0, 1], [0.1], "kannala", "unknown distortion model"),
+        ([500, 0, 2000, 0, 500, 270, 0, 0, 1], [], "none", "principal point"),
+    ],
+)
+def test_bad_intrinsics(k, d, model, message) -> None:
+    with pytest.raises(IntrinsicsError, match=message):
+        CameraModel(960, 540, k, d, model)
+
+
+@pytest.mark.parametrize(
+    "model, d",
+    [("plumb_bob", [-0.2, 0.05, 0.001, 0.002, 0.0]),
+     ("rational_polynomial", [-0.2, 0.05, 0.001, 0.002, 0.0, 0.01, 0.002, 0.0]),
+     ("equidistant", [0.05, -0.01, 0.002, -0.001])],
+)
+def test_undistort_inverts_project(model: str, d: list[float]) -> None:
+    cam = CameraModel(960, 540, [700, 0, 480, 0, 700, 270, 0, 0, 1], d, model)
+    rng = np.random.default_rng(3)
+    pts = np.column_stack([rng.uniform(-0.4, 0.4, 50), rng.uniform(-0.25, 0.25, 50), np.ones(50)])
+    ideal = pts[:, :2] * 700 + [480, 270]
+    np.testing.assert_allclose(cam.undistort_px(cam.project(pts)), ideal, atol=1e-3)
+
+
+def test_rectified_camera_info_uses_p() -> None:
+    p = [600, 0, 470, 0, 0, 610, 280, 0, 0, 0, 1, 0]
+    cam = CameraModel.from_camera_info(960, 540, [700, 0, 480, 0, 700, 270, 0, 0, 1],
+                                       [-0.3, 0.1, 0, 0, 0], "plumb_bob", p=p, rectified=True)
+    assert cam.K[0, 0] == 600 and cam.distortion_model == "none"
+
+
+def test_camera_yaml_round_trip_of_a_plumb_bob_file(tmp_path) -> None:
+    import yaml
+
+    cam = CameraModel(960, 540, [700, 0, 480, 0, 701, 270, 0, 0, 1], [-0.2, 0.05, 0, 0, 0], "plumb_bob")
+    path = tmp_path / "camera.yaml"
+    path.write_text(yaml.safe_dump(cam.to_camera_yaml()))
+    back = load_camera_yaml(path)
+    np.testing.assert_allclose(back.K, cam.K)
+    np.testing.assert_allclose(back.D, cam.D)
+    assert back.distortion_model == "plumb_bob"

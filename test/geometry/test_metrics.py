@@ -1,4 +1,5 @@
-"""Rotation metrics, head angles, robust averaging, and camera models."""
+"""ficap_ros.geometry.metrics: rotation metrics, head angles, robust averaging, error summaries and
+corner errors (seeded cases and hypothesis properties)."""
 
 from __future__ import annotations
 
@@ -6,19 +7,19 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
-from ficap_ros.errors import IntrinsicsError
-from ficap_ros.geometry.camera import CameraModel, load_camera_yaml
 from ficap_ros.geometry.metrics import (
     angle_deg,
+    corner_errors_px,
     phi3_deg,
     robust_mean_rotation,
     rotation_from_ypr_deg,
     summarize_errors,
     yaw_pitch_roll_deg,
 )
-from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform
 
 
 def test_phi3_is_half_the_geodesic_angle() -> None:
@@ -97,61 +98,55 @@ def test_summary() -> None:
     assert s["n"] == 3 and s["median"] == 2.0 and s["mean"] == 2.0
 
 
-def test_transform_algebra() -> None:
-    a = Transform(Rotation.from_euler("z", 30, degrees=True), [1, 2, 3])
-    b = Transform(Rotation.from_euler("x", -20, degrees=True), [0.5, 0, -1])
-    p = np.array([0.3, -0.2, 0.9])
-    np.testing.assert_allclose((a * b).apply(p), a.apply(b.apply(p)))
-    np.testing.assert_allclose((a * a.inv()).matrix, np.eye(4), atol=1e-12)
-    w, x, y, z = a.q_wxyz
-    np.testing.assert_allclose(a.q_xyzw, [x, y, z, w])
-    # The forward body frame's x is the optical axis, its z is the camera's -y (up).
-    np.testing.assert_allclose(CAM_FROM_FORWARD.apply([1, 0, 0]), [0, 0, 1], atol=1e-12)
-    np.testing.assert_allclose(CAM_FROM_FORWARD.apply([0, 0, 1]), [0, -1, 0], atol=1e-12)
+# -- properties (hypothesis) ---------------------------------------------------------------------------
+
+quaternions = st.tuples(*[st.floats(-1.0, 1.0)] * 4).filter(lambda q: np.linalg.norm(q) > 1e-2)
+rotations = quaternions.map(lambda q: Rotation.from_quat(np.asarray(q)))
 
 
-@pytest.mark.parametrize(
-    "k, d, model, message",
-    [
-        ([np.nan, 0, 480, 0, 500, 270, 0, 0, 1], [], "none", "NaN"),
-        ([0, 0, 0, 0, 0, 0, 0, 0, 0], [], "none", "focal lengths must be positive"),
-        ([500, 0, 480, 0, 500, 270, 0, 0, 1], [0.1], "kannala", "unknown distortion model"),
-        ([500, 0, 2000, 0, 500, 270, 0, 0, 1], [], "none", "principal point"),
-    ],
-)
-def test_bad_intrinsics(k, d, model, message) -> None:
-    with pytest.raises(IntrinsicsError, match=message):
-        CameraModel(960, 540, k, d, model)
+@given(rotations, rotations, rotations)
+def test_angles_are_a_metric_of_orientations(a: Rotation, b: Rotation, c: Rotation) -> None:
+    """Symmetric, zero on itself, unchanged by a common rotation of both frames (applied on the
+    left or the right), twice Phi3 (to arccos's resolution near 0: about 1e-6 deg), and within a
+    half turn."""
+    ab = angle_deg(a, b)
+    assert ab == pytest.approx(angle_deg(b, a), abs=1e-6)
+    assert angle_deg(a, a) == pytest.approx(0.0, abs=1e-6)
+    assert angle_deg(c * a, c * b) == pytest.approx(ab, abs=1e-6)
+    assert angle_deg(a * c, b * c) == pytest.approx(ab, abs=1e-6)
+    assert ab == pytest.approx(2.0 * phi3_deg(a, b), abs=1e-5)
+    assert 0.0 <= ab <= 180.0 + 1e-9
+    assert angle_deg(a, c) <= angle_deg(a, b) + angle_deg(b, c) + 1e-6  # the triangle inequality
 
 
-@pytest.mark.parametrize(
-    "model, d",
-    [("plumb_bob", [-0.2, 0.05, 0.001, 0.002, 0.0]),
-     ("rational_polynomial", [-0.2, 0.05, 0.001, 0.002, 0.0, 0.01, 0.002, 0.0]),
-     ("equidistant", [0.05, -0.01, 0.002, -0.001])],
-)
-def test_undistort_inverts_project(model: str, d: list[float]) -> None:
-    cam = CameraModel(960, 540, [700, 0, 480, 0, 700, 270, 0, 0, 1], d, model)
-    rng = np.random.default_rng(3)
-    pts = np.column_stack([rng.uniform(-0.4, 0.4, 50), rng.uniform(-0.25, 0.25, 50), np.ones(50)])
-    ideal = pts[:, :2] * 700 + [480, 270]
-    np.testing.assert_allclose(cam.undistort_px(cam.project(pts)), ideal, atol=1e-3)
+@given(st.floats(-179.0, 179.0), st.floats(-89.0, 89.0), st.floats(-179.0, 179.0))
+def test_head_angles_round_trip(yaw: float, pitch: float, roll: float) -> None:
+    ypr = yaw_pitch_roll_deg(rotation_from_ypr_deg(yaw, pitch, roll))
+    np.testing.assert_allclose(ypr, [yaw, pitch, roll], atol=1e-7)
 
 
-def test_rectified_camera_info_uses_p() -> None:
-    p = [600, 0, 470, 0, 0, 610, 280, 0, 0, 0, 1, 0]
-    cam = CameraModel.from_camera_info(960, 540, [700, 0, 480, 0, 700, 270, 0, 0, 1],
-                                       [-0.3, 0.1, 0, 0, 0], "plumb_bob", p=p, rectified=True)
-    assert cam.K[0, 0] == 600 and cam.distortion_model == "none"
+@given(st.lists(st.one_of(st.floats(-1e6, 1e6), st.just(float("nan"))), min_size=1, max_size=40))
+def test_summary_ignores_nans(values: list[float]) -> None:
+    e = np.array(values)
+    finite = e[np.isfinite(e)]
+    s = summarize_errors(e)
+    assert s["n"] == finite.size
+    if finite.size:
+        assert s["median"] == float(np.median(finite)) and s["max"] == float(finite.max())
+        assert s["mean"] == pytest.approx(float(np.mean(finite)))
+    else:
+        assert np.isnan(s["median"]) and np.isnan(s["mean"])
 
 
-def test_camera_yaml_round_trip(tmp_path) -> None:
-    import yaml
-
-    cam = CameraModel(960, 540, [700, 0, 480, 0, 701, 270, 0, 0, 1], [-0.2, 0.05, 0, 0, 0], "plumb_bob")
-    path = tmp_path / "camera.yaml"
-    path.write_text(yaml.safe_dump(cam.to_camera_yaml()))
-    back = load_camera_yaml(path)
-    np.testing.assert_allclose(back.K, cam.K)
-    np.testing.assert_allclose(back.D, cam.D)
-    assert back.distortion_model == "plumb_bob"
+@given(st.floats(-2.0, 2.0), st.floats(-3.0, 3.0), st.floats(-3.0, 3.0))
+def test_corner_errors_split_radial_and_distance(radial_px: float, dx: float, dy: float) -> None:
+    """Corners moved radially by r have radial error r and distance |r|; a common shift adds its
+    length to every distance's bound and nothing to the mean radial error of a square."""
+    true = np.array([[[-10.0, -10.0], [10.0, -10.0], [10.0, 10.0], [-10.0, 10.0]]]) + 100.0
+    out = (true - true.mean(axis=1, keepdims=True)) / (10.0 * np.sqrt(2.0))
+    dist, radial = corner_errors_px(true + radial_px * out, true)
+    np.testing.assert_allclose(radial, radial_px, atol=1e-12)
+    np.testing.assert_allclose(dist, abs(radial_px), atol=1e-12)
+    dist, radial = corner_errors_px(true + [dx, dy], true)
+    np.testing.assert_allclose(dist, np.hypot(dx, dy), atol=1e-12)
+    assert float(radial.mean()) == pytest.approx(0.0, abs=1e-12)

@@ -42,7 +42,7 @@ def test_mount_is_a_transform() -> None:
 
 
 def test_every_uncertainty_setting_is_a_parameter_with_its_default() -> None:
-    from ficap_ros.vision.pose import UncertaintyConfig
+    from ficap_ros.vision.uncertainty import UncertaintyConfig
 
     names = {p.name for p in PARAMETERS}
     for f in dataclasses.fields(UncertaintyConfig):

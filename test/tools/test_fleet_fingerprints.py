@@ -15,7 +15,8 @@ from ficap_ros.tools.fleet.fingerprints import (
     settings_key,
 )
 from ficap_ros.vision.detector import DetectorConfig
-from ficap_ros.vision.pose import PoseConfig, UncertaintyConfig
+from ficap_ros.vision.pose import PoseConfig
+from ficap_ros.vision.uncertainty import UncertaintyConfig
 
 
 def test_fingerprint_follows_the_input_not_its_place(fleet_in: Path, tmp_path: Path) -> None:

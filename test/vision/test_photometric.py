@@ -127,7 +127,8 @@ def test_pipeline_takes_the_uncertainty_profile_of_its_corners() -> None:
         hidden_tag_ids,
         pose_config_for,
     )
-    from ficap_ros.vision.pose import PoseConfig, UncertaintyConfig, estimate_cap_pose
+    from ficap_ros.vision.pose import PoseConfig, estimate_cap_pose
+    from ficap_ros.vision.uncertainty import UncertaintyConfig
 
     photo_u = UncertaintyConfig.for_corners("photometric")
     assert UncertaintyConfig.for_corners("edge") == UncertaintyConfig()

@@ -113,7 +113,7 @@ def test_a_frame_result_and_pose_settings_replaced_between_frames() -> None:
     """What a frame shows: its tags (ids sorted, each once), the cap pose, how they were found and
     the time spent; ``pose_config`` replaced as a whole applies from the next frame (the node's
     parameters), and an unset uncertainty is the default corners' profile."""
-    from ficap_ros.vision.pose import UncertaintyConfig
+    from ficap_ros.vision.uncertainty import UncertaintyConfig
 
     scene, frames = _frames("540p", 2, seed=3)
     proc = FrameProcessor(MODEL)

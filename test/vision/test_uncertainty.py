@@ -1,4 +1,4 @@
-"""The pose covariance and its 95 % bounds (ficap_ros.vision.pose): never zero, the propagation right
+"""The pose covariance and its 95 % bounds (ficap_ros.vision.uncertainty): never zero, the propagation right
 (Monte Carlo with errors drawn from the stated sources), the residuals split into their sources."""
 
 from __future__ import annotations
@@ -10,13 +10,17 @@ from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.geometry.metrics import angle_deg, rotation_from_ypr_deg
 from ficap_ros.tools.synth import default_scene
 from ficap_ros.vision.detector import TagDetection
-from ficap_ros.vision.pose import (
-    PoseConfig,
-    UncertaintyConfig,
-    error_bound95,
-    estimate_cap_pose,
-)
+from ficap_ros.vision.pose import PoseConfig, estimate_cap_pose
+from ficap_ros.vision.reprojection import TagObservations
 from ficap_ros.vision.tracking import view_angles_deg
+from ficap_ros.vision.uncertainty import (
+    UncertaintyConfig,
+    combine_uncertainty,
+    error_bound95,
+    light_gradient_px,
+    uncertainty_bounds,
+    uncertainty_terms,
+)
 
 MODEL = nominal_model()
 SCENE = default_scene("540p")
@@ -79,11 +83,9 @@ def _draw_errors(rng: np.random.Generator, corners: dict[int, np.ndarray], T, cf
 
 def _floors_only(corners: dict[int, np.ndarray], T, cfg: UncertaintyConfig) -> np.ndarray:  # noqa: ANN001
     """The covariance of the stated sources alone (the residual-based share left out)."""
-    from ficap_ros.vision import pose as pose_mod
-
-    obs = pose_mod._make_obs({i: CAM.undistort_px(c) for i, c in corners.items()}, MODEL, CAM.K)
-    terms, seen = pose_mod.uncertainty_terms(obs, T)
-    return pose_mod.combine_uncertainty(terms, dict.fromkeys(seen, 0.0), cfg)
+    obs = TagObservations.of({i: CAM.undistort_px(c) for i, c in corners.items()}, MODEL, CAM.K)
+    terms, seen = uncertainty_terms(obs, T)
+    return combine_uncertainty(terms, dict.fromkeys(seen, 0.0), cfg)
 
 
 SOURCES = UncertaintyConfig(corner_noise_px=0.1, corner_bias_px=0.1, corner_bias_common_px=0.1,
@@ -214,8 +216,6 @@ def test_offset_is_the_measured_common_radial_share() -> None:
     """The offset ``uncertainty_bounds`` returns is the share of the covariance that the tags'
     measured common radial offset contributes (the covariance minus it is the rest), and the
     degrees of freedom are those the residual pooling had."""
-    from ficap_ros.vision import pose as pose_mod
-
     T = _truth(15.0)
     exact = _exact_corners(T)
     rng = np.random.default_rng(8)
@@ -224,13 +224,13 @@ def test_offset_is_the_measured_common_radial_share() -> None:
         radial = c - c.mean(axis=0)
         radial /= np.linalg.norm(radial, axis=1, keepdims=True)
         corners[i] = c - 0.3 * radial + rng.normal(0.0, 0.05, (4, 2))  # every tag 0.3 px inward
-    obs = pose_mod._make_obs({i: CAM.undistort_px(c) for i, c in corners.items()}, MODEL, CAM.K)
+    obs = TagObservations.of({i: CAM.undistort_px(c) for i, c in corners.items()}, MODEL, CAM.K)
     cfg = UncertaintyConfig()
-    terms, seen = pose_mod.uncertainty_terms(obs, T)
+    terms, seen = uncertainty_terms(obs, T)
     assert seen["bias_common"] > 0.1
-    cov = pose_mod.combine_uncertainty(terms, seen, cfg)
-    offset, dof = pose_mod.uncertainty_bounds(terms, seen, cfg, cov)
-    rest = pose_mod.combine_uncertainty(terms, {**seen, "bias_common": 0.0}, cfg)
+    cov = combine_uncertainty(terms, seen, cfg)
+    offset, dof = uncertainty_bounds(terms, seen, cfg, cov)
+    rest = combine_uncertainty(terms, {**seen, "bias_common": 0.0}, cfg)
     np.testing.assert_allclose(cov - np.outer(offset, offset), rest, rtol=1e-6, atol=1e-15)
     assert all(np.isfinite(d) and d > 10 for d in dof)  # ~20 tags x patterns
 
@@ -260,8 +260,6 @@ def test_noisy_tags_weighted_down() -> None:
 
 
 def test_light_gradient_px() -> None:
-    from ficap_ros.vision.pose import light_gradient_px
-
     rng = np.random.default_rng(2)
     centres = rng.uniform(0.0, 400.0, (15, 2))
     plane = 0.2 + 0.5 * (centres[:, 0] - centres[:, 0].mean()) / np.ptp(centres, axis=0).max()
@@ -292,8 +290,8 @@ def test_uneven_light_widens_the_bound() -> None:
     even = bounds([0.4] * len(corners))
     uneven = bounds(ramp)
     assert even == pytest.approx(none, rel=1e-9)
-    # With the calibrated gains (0.3 / 0.35, bench_uncertainty.py) this 0.6 px ramp widens the
-    # rotation bound 1.43x and the translation bound 5.6x; the term grows with the gains.
+    # With the default gains this 0.6 px ramp widens both bounds well beyond 1.3x; the term grows
+    # with the gains.
     assert uneven[0] > 1.3 * none[0] and uneven[1] > 1.3 * none[1]
     stronger = bounds(ramp, PoseConfig(uncertainty=UncertaintyConfig(light_gradient_gain=0.6,
                                                                      light_gradient_tilt_gain=0.7)))
@@ -302,19 +300,20 @@ def test_uneven_light_widens_the_bound() -> None:
 
 def test_quantile_tables_without_scipy_stats() -> None:
     """The bounds' quantile table (its chi column and its F columns) is scipy.stats' own
-    (chi2.ppf, f.ppf) taken from scipy.special, bit for bit: importing scipy.stats costs every command ~0.2-0.3 s CPU of
-    start-up, and the pose module (every replay, stats, the node) must not bring it in."""
+    (chi2.ppf, f.ppf) taken from scipy.special, bit for bit: importing scipy.stats is a large
+    start-up cost of every command, and the pose modules (every replay, stats, the node) must not
+    bring it in."""
     import subprocess
     import sys
 
     from scipy.stats import chi2, f
 
-    from ficap_ros.vision import pose
+    from ficap_ros.vision import uncertainty
 
-    nu = np.exp(pose._F_LOG_NU)[:, None]
-    dof = 1.0 / pose._F_INV_DOF[None, 1:]
-    assert np.array_equal(pose._F_Q95[:, :1], chi2.ppf(0.95, nu) / nu)
-    assert np.array_equal(pose._F_Q95[:, 1:], f.ppf(0.95, nu, dof))
+    nu = np.exp(uncertainty._F_LOG_NU)[:, None]
+    dof = 1.0 / uncertainty._F_INV_DOF[None, 1:]
+    assert np.array_equal(uncertainty._F_Q95[:, :1], chi2.ppf(0.95, nu) / nu)
+    assert np.array_equal(uncertainty._F_Q95[:, 1:], f.ppf(0.95, nu, dof))
     run = subprocess.run([sys.executable, "-c", "import sys, ficap_ros.vision.pose, ficap_ros.tools.replay; "
                           "print('scipy.stats' in sys.modules)"],
                          capture_output=True, text=True, timeout=120)

@@ -1,0 +1,648 @@
+"""The uncertainty of a cap pose: its covariance, its 95 % error bounds and the tags' weights.
+
+Covariance (``CapPose.covariance``, 6x6, ROS order, camera axes): first-order propagation through
+the weighted least-squares fit (``A = (J^T W J)^-1 J^T W`` maps corner displacements to pose
+changes) of
+    the residual-based term: each tag's corner residuals split into orthonormal patterns (shift,
+        scale, turn, shears, projective: how misplaced plates, radial corner bias and noise move a
+        tag's corners), each pattern group's variance pooled over the frame's tags with the
+        degrees of freedom the fit took from it subtracted (its leverage), shared out among the
+        tags in proportion to their corner noise, plus the tags' common radial offset;
+    the corner errors neighbouring tags share, which the pose absorbs without residuals: uneven
+        light (a spotlight) moves every tag's edges toward its darker side; its measure is how the
+        tags' fitted edge shifts vary across the cap (``light_gradient_px``), scaled into noise the
+        pose absorbs and into a shift of every tag along its foreshortening (the depth's mode);
+    the floors of ``UncertaintyConfig`` added to it: independent corner noise, radial corner bias
+        (per tag and common), a shift along the foreshortening, each plate shifted and turned as a
+        rigid whole against the cap model, the intrinsics (principal point, focal length).
+Pooling by pattern matters: a tag's corner errors are not independent (a blurred border moves all
+four corners inward), and treating them as such misjudges which pose directions they disturb.
+
+Bounds: ``rot_err95_deg`` / ``trans_err95_mm`` are the 95 % quantiles of the rotation angle /
+translation length under the covariance (``error_bound95``), with two things the covariance alone
+does not say (``uncertainty_bounds``): the tags' common radial offset is measured (its sign and
+size, from the residuals), so its effect on the pose is a mean error, not a spread (the covariance
+holds its square, as a mean squared error must); and the residual-based sigmas are estimates pooled
+from a few dozen coefficients, so the bound is the predictive (F, Welch-Satterthwaite degrees of
+freedom) quantile, not the Gaussian one.
+
+Tag weights (``joint`` pose, ``UncertaintyConfig.weight_tags``): each tag's corner noise is
+estimated from its own residuals with the frame's median as a prior (``tag_noise_px``), and the pose
+takes one weighted Gauss-Newton step from the unweighted optimum (``reweighted``), so oblique, dark
+or second-read tags with worse corners count less.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import numpy as np
+
+from ficap_ros.errors import ConfigError
+from ficap_ros.geometry.transform import Transform
+from ficap_ros.vision.reprojection import (
+    TagObservations,
+    median,
+    residuals_and_jacobian,
+)
+
+__all__ = [
+    "UncertaintyConfig",
+    "CORNER_ESTIMATORS",
+    "tag_noise_px",
+    "reweighted",
+    "light_gradient_px",
+    "uncertainty_terms",
+    "uncertainty_sources",
+    "combine_uncertainty",
+    "uncertainty_bounds",
+    "error_bound95",
+]
+
+
+@dataclass(frozen=True)
+class UncertaintyConfig:
+    """How the pose covariance is built: the residual-based term, the terms for corner errors that
+    neighbouring tags share (which the pose absorbs without residuals), and the floors (1-sigma).
+
+    The residual-based term carries what each frame's corners show (noise, per-tag corner bias,
+    misplaced plates: ``uncertainty_terms``), tag by tag in proportion to each tag's own corner
+    noise (``tag_noise_px``). What residuals cannot show is a corner error shared by neighbouring
+    tags: the pose absorbs it and leaves no residual. Uneven light (spotlights, clipping) causes
+    one: the tone-curve edge shift each tag's cell fit measures (``TagDetection.edge_shift_px``)
+    then varies smoothly across the cap, and the edges of each tag move toward its darker side, a
+    field the pose absorbs. Its size is the frame's ``light_gradient_px`` (spread of a plane fitted
+    to the tags' edge shifts over their image positions); ``light_gradient_gain`` turns it into
+    corner noise the pose absorbs, and ``light_gradient_tilt_gain`` into a shift of every tag along
+    its foreshortening (the projected normal, times the sine of the view angle), the mode that
+    moves the depth.
+
+    The gains and ``residual_inflation`` are calibrated on ``ficap synth`` drives (the smallest
+    bounds whose rotation and translation bounds cover at least 90 % in every lighting and
+    resolution condition) and checked, not fitted, on independent renders; the procedure and
+    its figures are in docs/benchmarks.md ("Calibrated uncertainty"). The floors state what
+    residuals cannot estimate and guarantee that no pose is ever "exact".
+
+    Profiles per corner estimator (``for_corners``): the defaults are the profile of the default
+    cell-edge corners (``edge``). The tag-level photometric corner fit (``photometric``:
+    ``DetectorConfig(edge_photometric=True)``, ``--photometric``, node ``detector.photometric``)
+    leaves much less of the shift along the foreshortening under uneven light, so its profile has
+    a smaller ``light_gradient_tilt_gain`` from the same calibration. ``pipeline.FrameProcessor``
+    uses the profile of its detector's corner estimator when the pose's uncertainty is not set
+    (``PoseConfig.uncertainty`` None).
+
+    Attributes:
+        corner_noise_px: independent corner noise, px (> 0: an edge fit over many 8-bit samples is
+            still limited by their quantisation).
+        corner_bias_px: radial offset of a tag's corners toward or away from its centre (blur and
+            tone curve move dark borders), independent per tag, px.
+        corner_bias_common_px: the same offset shared by every tag of a frame, px.
+        model_mm, model_deg: each tag plate's placement on the built cap against the model, per
+            axis (shift, mm; turn about the plate centre, deg). 0 by default: misplaced plates
+            show in the residuals; raise them when the cap may have changed since its model was
+            made.
+        principal_point_px, focal_rel: intrinsics error (principal point per axis, px; focal
+            length, relative). 0 by default: CameraInfo says nothing of it, and a constant
+            intrinsics error is a constant rotation offset that a frontal calibration absorbs in
+            the head angles.
+        residual_inflation: factor (>= 1) on the residual-based sigmas.
+        light_gradient_gain: corner noise absorbed by the pose per px of ``light_gradient_px``.
+        light_gradient_tilt_gain: shared shift of the tags along their foreshortening per px of
+            ``light_gradient_px``.
+        tilt_shift_px: floor for that shared shift, px at a tag seen edge-on. 0 by default: no
+            residual reveals it, and it arises where tags are small and blurred (the corner fit's
+            bias on small foreshortened cells) under a light beside the lens, which lights each
+            oblique face unevenly; set it for such a camera.
+        weight_tags: weight each tag in the ``joint`` pose by its corner noise
+            (``tag_noise_px``): one weighted Gauss-Newton step from the unweighted optimum.
+    """
+
+    corner_noise_px: float = 0.002
+    corner_bias_px: float = 0.002
+    corner_bias_common_px: float = 0.002
+    model_mm: float = 0.0
+    model_deg: float = 0.0
+    principal_point_px: float = 0.0
+    focal_rel: float = 0.0
+    residual_inflation: float = 1.0
+    light_gradient_gain: float = 0.3
+    light_gradient_tilt_gain: float = 0.35
+    tilt_shift_px: float = 0.0
+    weight_tags: bool = True
+
+    def __post_init__(self) -> None:
+        if not (np.isfinite(self.residual_inflation) and self.residual_inflation >= 1.0):
+            raise ConfigError("residual_inflation must be >= 1")
+        values = (self.corner_noise_px, self.corner_bias_px, self.corner_bias_common_px,
+                  self.model_mm, self.model_deg, self.principal_point_px, self.focal_rel,
+                  self.light_gradient_gain, self.light_gradient_tilt_gain, self.tilt_shift_px)
+        if not all(np.isfinite(v) and v >= 0 for v in values):
+            raise ConfigError("uncertainty sigmas and gains must be finite and >= 0")
+        if self.corner_noise_px <= 0:
+            raise ConfigError("corner_noise_px must be > 0 (no pose is exact)")
+
+    @classmethod
+    def for_corners(cls, corners: str = "edge") -> UncertaintyConfig:
+        """The synth-calibrated profile for a corner estimator (``CORNER_ESTIMATORS``): ``edge``
+        (the cell-edge fit and every other ``corner_refine``: the defaults) or ``photometric``.
+
+        Raises:
+            ConfigError: unknown corner estimator.
+        """
+        if corners not in _CORNER_PROFILES:
+            raise ConfigError(f"unknown corner estimator {corners!r}; expected one of "
+                              f"{', '.join(CORNER_ESTIMATORS)}")
+        return cls(**_CORNER_PROFILES[corners])
+
+
+#: ``UncertaintyConfig.for_corners``: the fields each corner estimator's profile changes from the
+#: defaults (the ``edge`` profile), picked by ``bench_uncertainty.py --photometric --grid``.
+_CORNER_PROFILES: dict[str, dict[str, float]] = {
+    "edge": {},
+    "photometric": {"light_gradient_tilt_gain": 0.1},
+}
+CORNER_ESTIMATORS = tuple(_CORNER_PROFILES)
+
+
+#: Per-tag corner patterns (columns of ``_tag_basis``) grouped as the residuals are pooled.
+_PATTERNS = {"shift": [0, 1], "scale": [2], "turn": [3], "shear": [4, 5], "projective": [6, 7]}
+_ROS_ORDER = np.array([3, 4, 5, 0, 1, 2])
+
+
+def _tag_basis(corners_px: np.ndarray) -> np.ndarray:
+    """(tags, 8, 8): per tag an orthonormal basis of its corners' displacements (x0 y0 ... x3 y3):
+    shift x, shift y, scale (radial), turn, two shears, and the two left (projective), in that
+    order (Gram-Schmidt from the tag's observed corner layout; the identity completes it)."""
+    n_tags = corners_px.shape[0]
+    p = corners_px - corners_px.mean(axis=1, keepdims=True)
+    p = p / np.maximum(np.linalg.norm(p.reshape(n_tags, -1), axis=1), 1e-9)[:, None, None]
+    px, py = p[..., 0], p[..., 1]
+    # Columns (x0 y0 ... x3 y3 down each): the six patterns, then the identity's eight; the shift
+    # columns and the identity are the same for every tag (copied from one template).
+    M = np.repeat(_BASIS_TEMPLATE, n_tags, axis=0)
+    M[:, 0::2, 2], M[:, 1::2, 2] = px, py  # scale (radial)
+    M[:, 0::2, 3], M[:, 1::2, 3] = -py, px  # turn
+    M[:, 0::2, 4], M[:, 1::2, 4] = px, -py  # shear
+    M[:, 0::2, 5], M[:, 1::2, 5] = py, px  # shear
+    Q, _ = np.linalg.qr(M)
+    return Q[:, :, :8]
+
+
+def _basis_template() -> np.ndarray:
+    """(1, 8, 14): ``_tag_basis``'s columns that do not depend on the tag: shift x, shift y
+    (0 and 1), the identity (6..13); the tag's four patterns (2..5) are filled in."""
+    t = np.zeros((1, 8, 14))
+    t[0, 0::2, 0] = 1.0
+    t[0, 1::2, 1] = 1.0
+    t[0, :, 6:] = np.eye(8)
+    t.setflags(write=False)
+    return t
+
+
+_BASIS_TEMPLATE = _basis_template()
+
+
+def tag_noise_px(obs: TagObservations, T: Transform) -> np.ndarray:
+    """Per-tag corner noise estimate (tags,), px: the tag's own RMS reprojection residual and the
+    frame's median tag RMS added in quadrature.
+
+    What makes one tag's corners worse than another's (oblique view, small size, blur, a dark or
+    clipped plate, no cell-edge fit, a tag added by the search's second reading) shows in its own
+    residuals; a tag's 8 residuals are a noisy estimate of it (and the fit absorbed a share), so
+    the frame's median is added as a prior: a tag with residuals at the median gets sqrt(2) times
+    them, one far above the median its own."""
+    return _tag_noise(residuals_and_jacobian(T, obs)[0], len(obs))
+
+
+def _tag_noise(res: np.ndarray, n_tags: int) -> np.ndarray:
+    rms = np.sqrt(np.mean(res.reshape(n_tags, 8) ** 2, axis=1))
+    floor = max(median(rms), 1e-6)
+    return np.sqrt(rms**2 + floor**2)
+
+
+def reweighted(obs: TagObservations, T: Transform) -> tuple[Transform, np.ndarray]:
+    """The pose with each tag weighted by its corner noise (``tag_noise_px``), and that noise.
+
+    One Gauss-Newton step of the weighted reprojection error from the unweighted optimum: the
+    weights move the pose by little, where the problem is linear, so one step is enough. With
+    fewer than four tags the residuals say too little about which tag is worse: equal weights."""
+    n_tags = len(obs)
+    if n_tags < 4:
+        return T, np.ones(n_tags)
+    res, J = residuals_and_jacobian(T, obs)
+    sigma = _tag_noise(res, n_tags)
+    w = np.repeat(1.0 / sigma**2, 8)
+    try:
+        dx = -np.linalg.solve(J.T @ (w[:, None] * J), J.T @ (w * res))
+    except np.linalg.LinAlgError:
+        return T, sigma
+    if not np.all(np.isfinite(dx)):
+        return T, sigma
+    return T.turned(dx[:3], T.translation_m + dx[3:]), sigma
+
+
+def light_gradient_px(edge_shift_px: np.ndarray, centres_px: np.ndarray) -> float:
+    """How unevenly the light moves the tags' edges across the cap, px: the spread (standard
+    deviation over the tags) of a plane fitted to the tags' measured edge shifts
+    (``TagDetection.edge_shift_px``) over their image positions. The smooth part only: a tag's own
+    edge shift scatters with its noise and view angle, a spotlight's gradient is shared by its
+    neighbours. 0 with fewer than six fitted tags (too few to tell a gradient from scatter)."""
+    es = np.asarray(edge_shift_px, dtype=float)
+    ok = np.isfinite(es)
+    if ok.sum() < 6:
+        return 0.0
+    c = np.asarray(centres_px, dtype=float)[ok]
+    c = (c - c.mean(axis=0)) / max(float(np.ptp(c, axis=0).max()), 1e-9)
+    X = np.column_stack([np.ones(len(c)), c])
+    # The normal equations (3 x 3; the columns are centred and scaled to about 1, so they are
+    # as well conditioned as X), not lstsq's SVD; a degenerate layout (tags on a line) as lstsq.
+    try:
+        coef = np.linalg.solve(X.T @ X, X.T @ es[ok])
+    except np.linalg.LinAlgError:
+        coef, *_ = np.linalg.lstsq(X, es[ok], rcond=None)
+    return float(np.std(X @ coef))
+
+
+def _model_geometry(obs: TagObservations) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Of the used tags' model corners: centres (tags, 3), unit outward normals (tags, 3) and, per
+    corner, the cross products e_k x (corner - its tag's centre) (4 * tags, 3, 3): cached on the
+    corners' bytes (a tracked cap's frames use the same tags frame after frame)."""
+    return _model_geometry_of(obs.model_m.tobytes(), len(obs))
+
+
+@lru_cache(maxsize=64)
+def _model_geometry_of(model_key: bytes, n_tags: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    model_m = np.frombuffer(model_key, dtype=np.float64).reshape(n_tags, 4, 3)
+    centres = model_m.mean(axis=1)  # (tags, 3) cap frame, m
+    a, b = model_m[:, 1] - model_m[:, 0], model_m[:, 3] - model_m[:, 0]
+    normal = np.cross(a, b)
+    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
+    lever = model_m.reshape(-1, 3) - np.repeat(model_m.mean(axis=1), 4, axis=0)
+    cross = np.cross(np.eye(3)[None], lever[:, None])
+    for x in (centres, normal, cross):
+        x.setflags(write=False)
+    return centres, normal, cross
+
+
+def _tilt_mode(obs: TagObservations, T: Transform) -> np.ndarray:
+    """(2n,): each tag's corners shifted by 1 px along the image direction of its outward normal,
+    times the sine of its view angle (0 for a tag seen head-on, 1 edge-on)."""
+    centres, normal, _ = _model_geometry(obs)
+    c_cam = T.apply(centres)
+    n_cam = normal @ T.rotation_matrix.T
+    K = obs.K
+
+    def project(p: np.ndarray) -> np.ndarray:
+        q = p @ K.T
+        return q[:, :2] / q[:, 2:3]
+
+    d = project(c_cam + 1e-3 * n_cam) - project(c_cam)
+    u = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
+    cos_view = np.abs(np.einsum("ij,ij->i", n_cam, c_cam)) / np.maximum(np.linalg.norm(c_cam, axis=1), 1e-12)
+    sin_view = np.sqrt(np.clip(1.0 - cos_view**2, 0.0, 1.0))
+    return np.repeat((u * sin_view[:, None])[:, None, :], 4, axis=1).reshape(-1)
+
+
+def uncertainty_terms(
+    obs: TagObservations, T: Transform, tag_sigma_px: np.ndarray | None = None,
+    edge_shift_px: np.ndarray | None = None,
+    at: tuple[np.ndarray, np.ndarray] | None = None,
+) -> tuple[dict[str, np.ndarray], dict[str, float]]:
+    """What the covariance is built from.
+
+    Args:
+        obs: the tags the pose used.
+        T: the pose.
+        tag_sigma_px: per-tag corner noise (``tag_noise_px``) when the pose weighted its tags by
+            it (``reweighted``); None: equal weights. It sets the fit's weights and each tag's
+            share of the residual-based variance (a tag with twice the noise gets four times the
+            variance in every pattern).
+        edge_shift_px: per tag, the edge shift its cell fit measured (NaN: not fitted); None:
+            unknown (``light_gradient`` 0).
+        at: ``residuals_and_jacobian(T, obs)`` when the caller has it already: the same residuals
+            and Jacobian, not computed twice.
+
+    Returns:
+        terms: per error source, the pose covariance (6x6, ROS order) that one unit of its sigma
+            causes, by first-order propagation through the (weighted) fit
+            (``A = (J^T W J)^-1 J^T W``): each residual pattern group of ``_PATTERNS`` (1 px per
+            pattern coordinate for a tag of median noise, scaled by the tag's relative noise,
+            independent per tag), ``noise`` (1 px, every coordinate independent), ``bias``
+            (1 px radial at every corner, independent per tag), ``bias_common`` (the same for
+            all tags), ``model_t`` / ``model_r`` (each plate shifted 1 mm / turned 1 deg about
+            each cap axis), ``principal_point`` (1 px per axis), ``focal`` (relative 1),
+            ``tilt`` (every tag shifted along its foreshortening, ``_tilt_mode``, 1 px edge-on).
+        seen: what the residuals show: per pattern group the sigma of its coefficients (each
+            tag's divided by its relative noise) pooled over the tags, less the share the fit
+            absorbed (the weighted hat matrix's leverage of the group), and ``bias_common``, the
+            tags' mean radial offset (px per corner), scaled back by the share of it the fit left
+            in the residuals; and ``light_gradient`` (``light_gradient_px``), px; per pattern
+            group also ``<group>_dof``, the degrees of freedom its sigma was pooled from (the
+            bounds widen for a sigma estimated from few, ``uncertainty_bounds``).
+    """
+    res, J = residuals_and_jacobian(T, obs) if at is None else at
+    n_tags = len(obs)
+    if tag_sigma_px is None:
+        rel = np.ones(n_tags)
+    else:
+        rel = np.asarray(tag_sigma_px, dtype=float) / max(median(tag_sigma_px), 1e-12)
+    w = np.repeat(1.0 / rel**2, 8)  # weights per residual coordinate
+    M, A = _propagation(J, w)
+    # Rows in ROS order up front: every term below is then in ROS order as computed.
+    A_ros = A[_ROS_ORDER]
+    B = _tag_basis(obs.image_px)
+    common = (2.0 * B[:, :, 2]).reshape(-1)  # 1 px radial at each corner (the pattern has norm 1)
+    terms = _per_tag_terms(obs, T, A_ros, B, rel)
+    terms.update(_shared_terms(obs, T, A_ros, common))
+    seen, mean_scale = _residual_sigmas(res, J, M, B, rel)
+    seen["bias_common"] = _common_offset_px(common, w, J, A, mean_scale, seen["scale"], n_tags)
+    seen["light_gradient"] = (0.0 if edge_shift_px is None
+                              else light_gradient_px(edge_shift_px, obs.image_px.mean(axis=1)))
+    return terms, seen
+
+
+def _propagation(J: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(M, A) of the weighted fit with Jacobian ``J`` (2n, 6) and weights ``w`` (2n,):
+    ``M = (J^T W J)^-1`` and ``A = M J^T W`` (6, 2n), the pose change per corner coordinate
+    displacement. A singular fit gives an infinite M (``combine_uncertainty`` turns it into
+    "unknown")."""
+    try:
+        M = np.linalg.inv(J.T @ (w[:, None] * J))
+    except np.linalg.LinAlgError:
+        M = np.full((6, 6), np.inf)
+    return M, M @ (J.T * w)
+
+
+def _per_tag_terms(obs: TagObservations, T: Transform, A_ros: np.ndarray, B: np.ndarray,
+                   rel: np.ndarray) -> dict[str, np.ndarray]:
+    """The terms of the error sources independent per tag: ``noise``, the pattern groups of
+    ``_PATTERNS`` (each tag's at its relative noise ``rel``), ``bias``, ``model_t``, ``model_r``.
+    ``A_ros`` (6, 2n): the fit's map in ROS order; ``B`` (tags, 8, 8): ``_tag_basis``."""
+    n_tags = len(obs)
+    A_tag = A_ros.reshape(6, n_tags, 8).transpose(1, 0, 2)  # (tags, 6, 8)
+    GR = _image_gradient(obs, T) @ T.rotation_matrix  # d(u, v)/d(point in the cap frame)
+    share = rel / np.sqrt(np.mean(rel**2))  # each tag's sigma over the frame's mean tag's
+    # Modes independent per tag (tags, 8, k), all in one product: the 8 basis patterns, then
+    # each plate shifted 1 mm along each cap axis (model_t), then turned 1 deg about each
+    # (model_r: e_k x (corner - tag centre), the corner's move when its plate turns about axis k).
+    shift = GR * 1e-3  # (n, 2, 3): 1 mm along each cap axis
+    turn = np.einsum("nij,nkj->nik", GR, _model_geometry(obs)[2] * np.radians(1.0))
+    modes = np.concatenate([B, shift.reshape(n_tags, 8, 3), turn.reshape(n_tags, 8, 3)], axis=2)
+    am = A_tag @ modes  # (tags, 6, 14): the pose's response to each tag's mode
+    # Per mode, the covariance summed over the tags (independent): (14, 6, 6). The pattern
+    # groups' with each tag's relative noise (share), bias and the model's without.
+    scaled = am[:, :, :8] * share[:, None, None]
+    per_mode_s = np.einsum("tkm,tlm->mkl", scaled, scaled)
+    per_mode = np.einsum("tkm,tlm->mkl", am, am)
+    terms: dict[str, np.ndarray] = {"noise": A_ros @ A_ros.T}
+    for group, idx in _PATTERNS.items():
+        terms[group] = per_mode_s[idx].sum(axis=0)
+    terms["bias"] = 4.0 * per_mode[2]
+    terms["model_t"] = per_mode[8:11].sum(axis=0)
+    terms["model_r"] = per_mode[11:14].sum(axis=0)
+    return terms
+
+
+def _image_gradient(obs: TagObservations, T: Transform) -> np.ndarray:
+    """(4 * tags, 2, 3): d(u, v)/d(point in the camera frame) at each model corner under ``T``."""
+    K = obs.K
+    Xc = obs.model_m.reshape(-1, 3) @ T.rotation_matrix.T + T.translation_m  # corners, camera frame
+    iz = 1.0 / Xc[:, 2]
+    fx, fy, s = K[0, 0], K[1, 1], K[0, 1]
+    G = np.zeros((len(Xc), 2, 3))
+    G[:, 0, 0] = fx * iz
+    G[:, 0, 1] = s * iz
+    G[:, 0, 2] = -(fx * Xc[:, 0] + s * Xc[:, 1]) * iz * iz
+    G[:, 1, 1] = fy * iz
+    G[:, 1, 2] = -fy * Xc[:, 1] * iz * iz
+    return G
+
+
+def _shared_terms(obs: TagObservations, T: Transform, A_ros: np.ndarray,
+                  common: np.ndarray) -> dict[str, np.ndarray]:
+    """The terms of the error sources shared by all tags: ``bias_common`` (``common`` (2n,): 1 px
+    radial at each corner), ``principal_point`` (x, y), ``focal`` and ``tilt``."""
+    uv = obs.image_px.reshape(-1, 2)
+    shared = np.zeros((len(common), 5))
+    shared[:, 0] = common
+    shared[0::2, 1] = 1.0  # principal point x: every u
+    shared[1::2, 2] = 1.0  # ... y: every v
+    shared[:, 3] = (uv - obs.K[:2, 2]).reshape(-1)
+    shared[:, 4] = _tilt_mode(obs, T).reshape(-1)
+    am_shared = A_ros @ shared  # (6, 5)
+    a0 = am_shared[:, 0]
+    return {
+        "bias_common": np.outer(a0, a0),
+        "principal_point": am_shared[:, 1:3] @ am_shared[:, 1:3].T,
+        "focal": np.outer(am_shared[:, 3], am_shared[:, 3]),
+        "tilt": np.outer(am_shared[:, 4], am_shared[:, 4]),
+    }
+
+
+def _residual_sigmas(res: np.ndarray, J: np.ndarray, M: np.ndarray, B: np.ndarray,
+                     rel: np.ndarray) -> tuple[dict[str, float], float]:
+    """(seen, mean_scale): per pattern group of ``_PATTERNS`` the sigma the residuals show and its
+    ``<group>_dof``; and the tags' mean scale (radial) coefficient, px.
+
+    The residuals in each tag's patterns; per group, the coefficients' variance pooled over the
+    tags (the frame's mean tag), with the degrees of freedom the fit took from the group (the
+    weighted hat matrix's leverage, w_t J_t M J_t^T) subtracted. Pooled with equal weights: the
+    weights come from the same residuals, and a variance pooled through them would be biased low.
+    """
+    n_tags = len(rel)
+    coef = np.einsum("tjm,tj->tm", B, -res.reshape(n_tags, 8))
+    Jt = J.reshape(n_tags, 8, 6)
+    # Batched matmuls, not three-operand einsums (those loop over every index).
+    hat = (Jt @ M) @ Jt.transpose(0, 2, 1) / rel[:, None, None] ** 2
+    leverage = (B * (hat @ B)).sum(axis=1)
+    mean_scale = float(coef[:, 2].mean())
+    seen: dict[str, float] = {}
+    # Per pattern: the tags' squared coefficients and leverages summed (the scale's about their
+    # mean), then per group (Python floats: five groups of one or two patterns).
+    coef[:, 2] -= mean_scale
+    sq = (coef * coef).sum(axis=0).tolist()
+    lev = leverage.sum(axis=0).tolist()
+    for group, idx in _PATTERNS.items():
+        dof = len(idx) * n_tags - sum(lev[i] for i in idx)
+        dof -= 1.0 if group == "scale" else 0.0  # the common offset, taken out above
+        seen[group] = math.sqrt(sum(sq[i] for i in idx) / dof) if dof > 0.5 else 0.0
+        seen[group + "_dof"] = max(dof, 0.0)  # how well the residuals know it (error_bound95)
+    return seen, mean_scale
+
+
+def _common_offset_px(common: np.ndarray, w: np.ndarray, J: np.ndarray, A: np.ndarray,
+                      mean_scale: float, scale_sigma: float, n_tags: int) -> float:
+    """The tags' common radial offset, px per corner, from their mean scale coefficient.
+
+    What the residuals show of it is what the fit left: part of it went into the depth (that part
+    moved the pose). Scaled back to the whole by the share left. The mean carries the tags' scale
+    noise too (its standard error): subtracted in quadrature, or the noise of a mean amplified up
+    to tenfold would pass for an offset where there is none."""
+    common_left = 1.0 - float(common @ (w * (J @ (A @ common)))) / float(common @ (w * common))
+    mean_se2 = scale_sigma ** 2 / n_tags
+    return (float(np.sqrt(max(mean_scale**2 - mean_se2, 0.0)))
+            / 2.0 / max(common_left, 0.1))
+
+
+def uncertainty_sources(terms: dict[str, np.ndarray], seen: dict[str, float],
+                        config: UncertaintyConfig) -> dict[str, np.ndarray]:
+    """The pose covariance's parts (6x6 each, ROS order), by source: ``residual_<group>`` (each
+    pattern group of ``_PATTERNS`` at the sigma the residuals show), ``light_noise`` and
+    ``light_tilt`` (the frame's ``light_gradient`` times the gains), ``common_offset`` (the
+    measured common radial offset, a mean error: ``uncertainty_bounds``) and the floors
+    (``floor_noise``, ``floor_bias``, ``floor_tilt``, ``floor_model``, ``floor_intrinsics``).
+    ``combine_uncertainty`` is their sum; benchmarks/bench_uncertainty.py reports what each
+    contributes to the bounds."""
+    c = config
+    k2 = c.residual_inflation**2
+    gradient = seen.get("light_gradient", 0.0)
+    parts = {f"residual_{g}": k2 * seen[g] ** 2 * terms[g] for g in _PATTERNS}
+    parts.update(
+        floor_noise=c.corner_noise_px**2 * terms["noise"],
+        light_noise=(c.light_gradient_gain * gradient) ** 2 * terms["noise"],
+        floor_bias=(c.corner_bias_px**2 * terms["bias"]
+                    + c.corner_bias_common_px**2 * terms["bias_common"]),
+        common_offset=k2 * seen["bias_common"] ** 2 * terms["bias_common"],
+        light_tilt=(c.light_gradient_tilt_gain * gradient) ** 2 * terms["tilt"],
+        floor_tilt=c.tilt_shift_px**2 * terms["tilt"],
+        floor_model=c.model_mm**2 * terms["model_t"] + c.model_deg**2 * terms["model_r"],
+        floor_intrinsics=(c.principal_point_px**2 * terms["principal_point"]
+                          + c.focal_rel**2 * terms["focal"]),
+    )
+    return parts
+
+
+def combine_uncertainty(terms: dict[str, np.ndarray], seen: dict[str, float],
+                        config: UncertaintyConfig) -> np.ndarray:
+    """The pose covariance (6x6, ROS order, camera axes): the residual-based term (each pattern
+    group's sigma as the residuals show it), the shared corner errors uneven light causes (the
+    frame's ``light_gradient`` times the gains of ``config``), plus the floors of ``config``, each
+    source's unit covariance times its variance (``uncertainty_sources``). Finite and positive
+    definite: a degenerate fit gives a huge diagonal (1 m, 180 deg), never zeros or infinities."""
+    cov = sum(uncertainty_sources(terms, seen, config).values())
+    cov = 0.5 * (cov + cov.T)
+    if not np.all(np.isfinite(cov)):
+        cov = np.diag([1.0, 1.0, 1.0, np.pi**2, np.pi**2, np.pi**2])
+    return cov
+
+
+#: The 95 % quantile of F(nu, nu_e) over a grid of log(nu) (the error's effective dimensions: 1-3
+#: for a zero-mean error, up to ~1e6 when a measured offset dominates) and 1 / nu_e (the degrees
+#: of freedom its variance was estimated from; 0: known). F(nu, inf) = chi2(nu) / nu.
+_F_LOG_NU = np.linspace(np.log(0.5), np.log(1e6), 90)
+_F_INV_DOF = np.linspace(0.0, 0.5, 26)
+
+
+def _f_quantile_table() -> np.ndarray:
+    # scipy.stats' f.ppf(q, a, b) is fdtri(a, b, q) and chi2.ppf(q, nu) 2 * gammaincinv(nu / 2, q)
+    # (bit-identical): not importing scipy.stats keeps its start-up cost off every command.
+    from scipy.special import fdtri, gammaincinv
+
+    nu = np.exp(_F_LOG_NU)[:, None]
+    inv = _F_INV_DOF[None, :]
+    with np.errstate(divide="ignore"):
+        dof = np.where(inv > 0, 1.0 / np.where(inv > 0, inv, 1.0), np.inf)
+    return np.where(np.isinf(dof), 2.0 * gammaincinv(nu / 2, 0.95) / nu,
+                    fdtri(nu, np.where(np.isinf(dof), 1.0, dof), 0.95))
+
+
+_F_Q95 = _f_quantile_table()
+
+
+#: ``_F_Q95`` and its grid as Python floats: ``_f_quantile95`` runs six times a pose, on scalars,
+#: where Python's float arithmetic is cheaper than numpy's scalar indexing.
+_F_Q95_ROWS = _F_Q95.tolist()
+_F_X0, _F_DX = float(_F_LOG_NU[0]), float(_F_LOG_NU[1] - _F_LOG_NU[0])
+_F_DY = float(_F_INV_DOF[1] - _F_INV_DOF[0])
+
+
+def _f_quantile95(nu: float, dof: float) -> float:
+    """Bilinear lookup of the 95 % quantile of F(nu, dof) (dof >= 2; inf: chi2(nu) / nu)."""
+    x = (math.log(min(max(nu, 0.5), 1e6)) - _F_X0) / _F_DX
+    y = min(1.0 / max(dof, 2.0), 0.5) / _F_DY
+    i = min(int(x), len(_F_LOG_NU) - 2)
+    j = min(int(y), len(_F_INV_DOF) - 2)
+    fx, fy = x - i, y - j
+    q0, q1 = _F_Q95_ROWS[i], _F_Q95_ROWS[i + 1]
+    return float((q0[j] * (1 - fx) + q1[j] * fx) * (1 - fy) + (q0[j + 1] * (1 - fx) + q1[j + 1] * fx) * fy)
+
+
+def _bound95(block: np.ndarray, offset: np.ndarray, dof: float) -> float:
+    """95 % quantile of |m + e|, e ~ N(0, S) with ``block`` = S + m m^T: |m + e|^2 matched in mean
+    and variance by a scaled chi-square (Welch-Satterthwaite; for m = 0 that of |e| itself).
+    When S is known only to ``dof`` degrees of freedom, S is first widened to its predictive size
+    (by the ratio of the F to the chi-square quantile of its own effective dimensions: for m = 0
+    exactly the predictive F quantile); the offset is a measurement, not widened. The three
+    eigenvalues as Python floats (sums in numpy's order for three: left to right)."""
+    S = 0.5 * (block + block.T) - np.outer(offset, offset)
+    lam = [max(v, 0.0) for v in np.linalg.eigvalsh(S).tolist()]
+    total = sum(lam)
+    if math.isfinite(dof) and total > 0.0:
+        nu_s = total * total / sum(v * v for v in lam)
+        widen = _f_quantile95(nu_s, dof) / _f_quantile95(nu_s, math.inf)
+        lam = [v * widen for v in lam]
+        S = S * widen
+    mean = sum(lam) + float(offset @ offset)
+    if mean <= 0.0:
+        return 0.0
+    var = 2.0 * sum(v * v for v in lam) + float(4.0 * offset @ S @ offset)
+    nu = 2.0 * mean * mean / var if var > 1e-12 * mean * mean else 1e6
+    return math.sqrt(mean * _f_quantile95(nu, math.inf))
+
+
+def uncertainty_bounds(terms: dict[str, np.ndarray], seen: dict[str, float],
+                       config: UncertaintyConfig,
+                       covariance: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
+    """What ``error_bound95`` needs beyond the covariance: the measured offset and how well the
+    random part is known.
+
+    offset (6,), ROS order: the pose error that the tags' common radial offset the residuals
+        show (``seen["bias_common"]``) causes. The covariance (``combine_uncertainty``) carries
+        it as its square (the frame's mean squared error: a consumer does not know its sign);
+        for the bounds it is a mean, not a spread: a measured offset moves the pose by its
+        effect, not by 1.96 times it. Its sign is immaterial to a bound on the error's length.
+    dof (rotation, translation): effective degrees of freedom (Welch-Satterthwaite) of the
+        random part's variance in each block: each residual pattern group's sigma was pooled
+        from ``<group>_dof`` coefficients; the floors and light terms count as known."""
+    k = config.residual_inflation
+    unit = terms["bias_common"]  # a a^T (one mode shared by all tags): a from its largest column
+    j = int(np.argmax(np.diagonal(unit)))
+    offset = unit[:, j] / np.sqrt(max(float(unit[j, j]), 1e-300)) * k * seen.get("bias_common", 0.0)
+    if not np.all(np.isfinite(offset)):
+        offset = np.zeros(6)
+    diag = (np.diagonal(covariance) - offset * offset).tolist()
+    den = [0.0, 0.0]  # rotation, translation: sum of (part's trace)^2 / its dof
+    for group in _PATTERNS:
+        dof = seen.get(group + "_dof", np.inf)
+        if math.isfinite(dof) and dof > 0.0:
+            d = (np.diagonal(terms[group]) * (k * seen.get(group, 0.0)) ** 2).tolist()
+            den[0] += sum(d[3:]) ** 2 / dof
+            den[1] += sum(d[:3]) ** 2 / dof
+    total = [sum(diag[3:]), sum(diag[:3])]
+    dofs = [float(t * t / e) if e > 0.0 and t > 0.0 else float("inf") for t, e in zip(total, den)]
+    return offset, (dofs[0], dofs[1])
+
+
+def error_bound95(covariance: np.ndarray, offset: np.ndarray | None = None,
+                  dof: tuple[float, float] = (float("inf"), float("inf"))) -> tuple[float, float]:
+    """(rotation deg, translation mm): 95 % quantiles of the geodesic rotation error and of the
+    translation error's length under the covariance (first order).
+
+    Args:
+        covariance: 6x6, ROS order: the error's second moment (``combine_uncertainty``).
+        offset: (6,) the part of it that is a measured mean error (``uncertainty_bounds``):
+            the covariance holds ``S + offset offset^T`` with ``S`` the random part. None: 0.
+        dof: (rotation, translation) degrees of freedom the random part is known to; inf: known
+            (Gaussian), finite: the predictive (F) quantile.
+    """
+    m = np.zeros(6) if offset is None else np.asarray(offset, dtype=float)
+    out = []
+    for rows, scale, nu_e in ((slice(3, 6), np.degrees(1.0), dof[0]), (slice(0, 3), 1e3, dof[1])):
+        block = covariance[rows, rows]
+        if not np.all(np.isfinite(block)):
+            out.append(float("inf"))
+            continue
+        out.append(_bound95(block, m[rows], nu_e) * scale)
+    return out[0], out[1]

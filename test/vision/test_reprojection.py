@@ -1,0 +1,91 @@
+"""ficap_ros.vision.reprojection: the observation record, projection, residuals and their Jacobian
+(against finite differences of a left perturbation), and the median helper (against np.median)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given
+from hypothesis import strategies as st
+from scipy.spatial.transform import Rotation
+
+from ficap_ros.geometry.camera import CameraModel
+from ficap_ros.geometry.cap_model import nominal_model
+from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform
+from ficap_ros.vision.reprojection import (
+    TagObservations,
+    median,
+    project_px,
+    reprojection_errors_px,
+    residuals_and_jacobian,
+)
+
+MODEL = nominal_model()
+CAMERA = CameraModel.pinhole(1920, 1080, hfov_deg=60.0)
+T_TRUE = Transform(CAM_FROM_FORWARD * Rotation.from_euler("ZYX", [20.0, 5.0, 2.0], degrees=True),
+                   [0.01, -0.02, 0.5])
+
+
+def _observations(noise_px: float = 0.0, seed: int = 0) -> TagObservations:
+    rng = np.random.default_rng(seed)
+    ids = [int(i) for i in MODEL.ids[:8]]
+    corners = {i: CAMERA.project(T_TRUE.apply(MODEL.corners_of(i) / 1000.0)) + rng.normal(0.0, noise_px, (4, 2))
+               for i in ids}
+    return TagObservations.of(corners, MODEL, CAMERA.K)
+
+
+@given(st.lists(st.floats(allow_nan=False, allow_infinity=False, width=64), min_size=1, max_size=60))
+def test_median_equals_numpys(values: list[float]) -> None:
+    assert median(np.array(values)) == float(np.median(np.array(values)))
+
+
+@pytest.mark.filterwarnings("ignore::RuntimeWarning")  # numpy's median of nothing
+@given(st.lists(st.floats(allow_nan=True, allow_infinity=True), min_size=0, max_size=9))
+def test_median_of_non_finite_values_is_numpys(values: list[float]) -> None:
+    with np.errstate(all="ignore"):
+        ours, ref = median(np.array(values, dtype=float)), float(np.median(np.array(values, dtype=float)))
+    assert ours == ref or (np.isnan(ours) and np.isnan(ref))
+
+
+def test_observations_record() -> None:
+    obs = _observations()
+    assert obs.ids == tuple(sorted(obs.ids)) and len(obs) == 8
+    assert obs.image_px.shape == (8, 4, 2) and obs.model_m.shape == (8, 4, 3)
+    np.testing.assert_array_equal(obs.model_m[0], MODEL.corners_of(obs.ids[0]) / 1000.0)
+    keep = np.arange(8) % 3 == 0
+    sub = obs.subset(keep)
+    assert sub.ids == tuple(np.array(obs.ids)[keep]) and sub.K is obs.K
+    np.testing.assert_array_equal(sub.image_px, obs.image_px[keep])
+
+
+def test_exact_corners_reproject_exactly() -> None:
+    obs = _observations()
+    np.testing.assert_allclose(project_px(obs.K, T_TRUE, obs.model_m), obs.image_px, atol=1e-9)
+    assert reprojection_errors_px(obs.image_px, obs.K, T_TRUE, obs.model_m).max() < 1e-9
+    res, J = residuals_and_jacobian(T_TRUE, obs)
+    assert res.shape == (64,) and J.shape == (64, 6) and np.abs(res).max() < 1e-9
+
+
+def test_rms_errors_are_per_tag() -> None:
+    obs = _observations(0.3, seed=2)
+    err = reprojection_errors_px(obs.image_px, obs.K, T_TRUE, obs.model_m)
+    res, _ = residuals_and_jacobian(T_TRUE, obs)
+    np.testing.assert_allclose(err, np.sqrt(np.mean(res.reshape(8, 8) ** 2, axis=1) * 2.0), rtol=1e-12)
+
+
+@pytest.mark.parametrize("column", range(6))
+def test_jacobian_is_the_left_perturbation_derivative(column: int) -> None:
+    """Columns d_theta (rad, camera axes) then d_t (m): central differences of
+    ``(exp(d_theta) R, t + d_t)`` agree to the difference's own truncation error."""
+    obs = _observations(0.2, seed=3)
+    _, J = residuals_and_jacobian(T_TRUE, obs)
+    h = 1e-6
+    step = np.zeros(6)
+    step[column] = h
+
+    def at(x: np.ndarray) -> np.ndarray:
+        return residuals_and_jacobian(T_TRUE.turned(x[:3], T_TRUE.translation_m + x[3:]), obs)[0]
+
+    numeric = (at(step) - at(-step)) / (2 * h)
+    scale = np.abs(J[:, column]).max()
+    np.testing.assert_allclose(J[:, column], numeric, atol=1e-6 * scale)
