@@ -49,7 +49,7 @@ from scipy.spatial.transform import Rotation
 
 from ficap_ros.errors import BagError
 from ficap_ros.geometry.metrics import yaw_pitch_roll_deg
-from ficap_ros.geometry.transform import Transform, compose, inverse
+from ficap_ros.geometry.transform import Transform, inverse
 from ficap_ros.io.status import (
     FrameStatus,
     quality_values,
@@ -118,7 +118,7 @@ def head_pose(T_cam_cap: Transform, calibration: HeadCalibration) -> HeadPose:
     ``head_pose``, labels.mcap's and the head angles are one pose to the last bit.
     """
     R_frontal_cam = calibration.R_cam_frontal.inv()
-    turned = Transform(compose(T_cam_cap.rotation, calibration.R_cap_head), T_cam_cap.translation_m)
+    turned = T_cam_cap * Transform(calibration.R_cap_head, np.zeros(3))
     T_frontal_head = Transform(R_frontal_cam, np.zeros(3)) * turned
     return HeadPose(Transform(inverse(R_frontal_cam), np.zeros(3)) * T_frontal_head, T_frontal_head)
 

@@ -32,7 +32,7 @@ from ficap_ros.geometry.tag36h11 import (
     tag_cells,
     tag_homographies,
 )
-from ficap_ros.geometry.transform import Transform, compose, from_rotvec, inverse
+from ficap_ros.geometry.transform import Transform
 from ficap_ros.vision.corners import refine_tag_corners
 from ficap_ros.vision.detector import TagDetection, TagDetector
 from ficap_ros.vision.edges import refine_corners_edge_ok
@@ -98,9 +98,9 @@ def extrapolate_pose(
     """
     if T_prev2 is None:
         return T_prev
-    step = compose(T_prev.rotation, inverse(T_prev2.rotation)).as_rotvec() * dt_ratio
+    step = (T_prev * T_prev2.inv()).rvec * dt_ratio
     t = T_prev.translation_m + (T_prev.translation_m - T_prev2.translation_m) * dt_ratio
-    return Transform(compose(from_rotvec(step), T_prev.rotation), t)
+    return T_prev.turned(step, t)
 
 
 def view_angles_deg(model: CapModel, T_cam_cap: Transform) -> np.ndarray:
