@@ -8,8 +8,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from recordings import FRAMES
 from scipy.spatial.transform import Rotation
 
+from ficap_ros.cli import synth as synth_cmd
 from ficap_ros.cli.main import main
 from ficap_ros.geometry.metrics import rotation_from_ypr_deg
 from ficap_ros.geometry.transform import Transform
@@ -174,3 +176,12 @@ def test_a_folder_without_labels_csv_names_replay_output_folders(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("ficap: error:"), err
     assert "replay output folder" in err[0] and "without labels.csv" in err[0], err
+
+
+def test_evaluate_head_against_truth(drive: Path, replayed_calibrated: Path, tmp_path: Path) -> None:
+    out = tmp_path / "eval"
+    assert main(["evaluate", "--truth", str(replayed_calibrated), "--estimate",
+                 f"{drive}:{synth_cmd.TRUTH_HEAD_TOPIC}", "--out", str(out), "--no-plots"]) == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["n_paired"] == FRAMES
+    assert rep["geodesic_deg"]["median"] < 0.5 and rep["geodesic_deg"]["p95"] < 1.0

@@ -4,10 +4,12 @@ build refused unless --allow-partial, bad numbers refused by argparse naming the
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
 import numpy as np
 import pytest
 from cap_views import corner_rms_mm, perturbed_model, rigid_rms_mm
+from recordings import FRAMES, cut_copy, one_error_line
 
 from ficap_ros.cli.main import main
 from ficap_ros.geometry.camera import CameraModel
@@ -17,6 +19,7 @@ from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform
 from ficap_ros.io import messages
 from ficap_ros.io.bag_writer import BagWriter
 from ficap_ros.io.messages import ROSBAGS
+from ficap_ros.io.sources import open_frames
 from ficap_ros.tools.synth import REALISTIC, RenderConfig, render
 
 
@@ -136,3 +139,27 @@ def test_cli_bad_numbers_are_argparse_errors_naming_the_flag(tmp_path, capsys) -
         assert exc.value.code == 2, (flag, value)
         err = capsys.readouterr().err.strip().splitlines()[-1]
         assert f"argument {flag}:" in err, err
+
+
+def test_model_build_reads_a_cut_mcap(drive: Path, tmp_path: Path,
+                                      capsys: pytest.CaptureFixture[str]) -> None:
+    cut = cut_copy(drive, tmp_path / "cut", 0.9)
+    main(["model", "build", str(cut), "--out", str(tmp_path / "m.yaml"), "--quiet",
+          "--max-frames", "20"])
+    assert f"{cut}: LOST " in capsys.readouterr().err
+    frames = list(open_frames(cut).frames())
+    assert len(frames) >= 0.8 * FRAMES and all(f.image is not None for f in frames)
+
+
+def test_outputs_are_checked_before_any_input_is_read(replayed: Path, tmp_path: Path,
+                                                      monkeypatch: pytest.MonkeyPatch,
+                                                      capsys: pytest.CaptureFixture[str]) -> None:
+    import ficap_ros.io.sources as bag_io
+
+    def never(*a, **k):  # noqa: ANN002, ANN003, ANN202
+        raise AssertionError("inputs read before the output was checked")
+
+    monkeypatch.setattr(bag_io, "open_frames", never)
+    assert main(["model", "build", str(replayed), "--out",
+                 str(tmp_path / "nodir" / "m.yaml")]) == 1
+    one_error_line(capsys)

@@ -10,6 +10,7 @@ import cv2
 import numpy as np
 import pytest
 import yaml
+from recordings import FRAMES
 from rosbags.highlevel import AnyReader
 from scipy.spatial.transform import Rotation
 from synth_frames import MODEL
@@ -144,3 +145,11 @@ def test_resolution_and_jpeg_quality_types() -> None:
     for bad in ("0", "101", "high", "9.5"):
         with pytest.raises(argparse.ArgumentTypeError, match="1..100"):
             synth_cmd._jpeg_quality(bad)
+
+
+def test_synth_bag_contents(drive: Path) -> None:
+    with AnyReader([drive]) as reader:
+        counts = {c.topic: c.msgcount for c in reader.connections}
+    assert counts == {t: FRAMES for t in (
+        synth_cmd.IMAGE_TOPIC, synth_cmd.CAMERA_INFO_TOPIC, synth_cmd.TRUTH_CAP_TOPIC,
+        synth_cmd.TRUTH_HEAD_TOPIC, synth_cmd.TRUTH_HEAD_CAMERA_TOPIC, synth_cmd.TRUTH_FRONTAL_TOPIC)}

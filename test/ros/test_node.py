@@ -18,10 +18,11 @@ from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CompressedImage
 from std_srvs.srv import Trigger
 
-from ficap_ros.errors import ConfigError
+from ficap_ros.errors import ConfigError, ModelError
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.metrics import angle_deg
 from ficap_ros.io import messages
+from ficap_ros.io.calibration_file import load_calibration
 from ficap_ros.ros import msgs as ros_msgs
 from ficap_ros.ros.node import FicapNode
 
@@ -225,7 +226,7 @@ def test_shipped_params_file_applies_under_a_namespace_and_new_name(tmp_path) ->
 def test_calibration_file_loaded_at_start_and_cleared(harness_factory, tmp_path) -> None:
     from scipy.spatial.transform import Rotation
 
-    from ficap_ros.io.calibration_file import load_calibration, save_calibration
+    from ficap_ros.io.calibration_file import save_calibration
     from ficap_ros.vision.calibration import CalibrationResult
 
     path = tmp_path / "calib.yaml"
@@ -237,3 +238,48 @@ def test_calibration_file_loaded_at_start_and_cleared(harness_factory, tmp_path)
     resp = h.call(h.clear, Trigger.Request())
     assert resp.success and not h.node.calibration.calibrated
     assert not load_calibration(path).calibrated
+
+
+def test_node_survives_binary_files_and_never_overwrites_them(binary_files: dict[str, Path],
+                                                              tmp_path: Path) -> None:
+    from node_harness import Harness
+    from std_srvs.srv import Trigger
+
+    bad = binary_files["bin"]
+    before = bad.read_bytes()
+    with pytest.raises(ModelError):  # the node cannot run without its model: one line, no traceback
+        Harness(overrides={"model_file": str(bad)})
+    h = Harness(overrides={"calibration.file": str(bad), "camera_info_file": str(bad)})
+    try:
+        assert not h.node.calibration.calibrated
+        resp = h.call(h.clear, Trigger.Request())
+        assert not resp.success and "NOT updated" in resp.message
+        assert bad.read_bytes() == before
+    finally:
+        h.close()
+
+
+def test_node_calibrate_says_when_the_file_was_not_saved(tmp_path: Path) -> None:
+    from node_harness import Harness
+    from scipy.spatial.transform import Rotation
+    from std_srvs.srv import Trigger
+
+    from ficap_ros.vision.calibration import CalibrationResult
+
+    blocker = tmp_path / "file"
+    blocker.write_text("x")
+    target = blocker / "calib.yaml"  # its folder is a file: cannot be written
+    h = Harness(overrides={"calibration.file": str(target)})
+    try:
+        R = Rotation.from_euler("xyz", [2.0, -5.0, 1.0], degrees=True)
+        # The solver is the one the e2e tests exercise; here only the file handling is at stake.
+        h.node._run_calibration = lambda: CalibrationResult(R, 60, 0.3, "frontal")  # type: ignore[method-assign]
+        resp = h.call(h.calibrate, Trigger.Request())
+        assert not resp.success and "NOT saved" in resp.message
+        assert h.node.calibration.calibrated  # in use for this session
+        blocker.unlink()
+        blocker.mkdir()  # now the folder exists: the same call saves and succeeds
+        resp = h.call(h.calibrate, Trigger.Request())
+        assert resp.success and load_calibration(target).calibrated
+    finally:
+        h.close()
