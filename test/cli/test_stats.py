@@ -28,30 +28,6 @@ def test_stats_from_bag(bag_with_a_corrupt_frame: Path, tmp_path: Path,
     assert ">=4 tags" in capsys.readouterr().out
 
 
-def test_reliability_histogram_labels_each_bar_with_its_frames(
-        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """The bars are a density (bins differ in width), so 30 frames in one 0.02 bin stand 1500
-    high: each non-empty bar is labelled with its frame count, and the title gives the totals."""
-    from ficap_ros.tools import evaluation
-
-    reliability = np.array([0.55] * 3 + [0.99] * 30 + [np.nan] * 2)
-    stats = evaluation.detection_stats(
-        np.array([5] * 33 + [0, 0]), tuple((1, 2, 3, 4, 5) for _ in range(33)) + ((), ()),
-        reliability, np.isfinite(reliability), np.zeros(35, dtype=bool), tuple(range(23)))
-    figures = {}
-
-    def keep(fig, path):  # noqa: ANN001, ANN202
-        figures[path.name] = fig
-        return path
-
-    monkeypatch.setattr(evaluation, "_png", keep)
-    evaluation.plot_stats(stats, tmp_path)
-    ax = figures["reliability_histogram.png"].axes[0]
-    assert sorted(t.get_text() for t in ax.texts) == ["3", "30"]
-    assert "33 frames with a pose of 35" in ax.get_title()
-    assert "35 frames" in figures["tag_detection_rate.png"].axes[0].get_title()
-
-
 def test_a_text_file_is_called_neither_a_bag_nor_a_video(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """`ficap stats notes.txt` was 'video notes.txt needs --intrinsics': it is no video. A real
