@@ -6,6 +6,9 @@ from types import SimpleNamespace
 
 import numpy as np
 
+from ficap_ros import stamps
+from ficap_ros.io import sources as bag_io
+from ficap_ros.ros import msgs as ros_msgs
 from ficap_ros.stamps import (
     END_OF_TIME_NS,
     last_window_ns,
@@ -38,3 +41,7 @@ def test_windows() -> None:
     assert last_window_ns(5 * 10**9, 3.0) == (2 * 10**9, 5 * 10**9)
     s = np.array([1, 2, 3, 4])
     assert window_mask(s, (2, 3)).tolist() == [False, True, True, False]  # both ends included
+
+
+def test_stamp_helpers_are_one_implementation() -> None:
+    assert ros_msgs.stamp_to_ns is stamps.stamp_to_ns is bag_io.stamp_to_ns

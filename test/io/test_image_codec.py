@@ -177,7 +177,11 @@ def test_jpeg_and_png_decode_to_grey() -> None:
 
 
 def test_the_pixel_budget_and_its_environment_variable(monkeypatch: pytest.MonkeyPatch) -> None:
-    from ficap_ros.io.image_codec import DEFAULT_MAX_PIXELS, check_pixel_budget, max_pixels
+    from ficap_ros.io.image_codec import (
+        DEFAULT_MAX_PIXELS,
+        check_pixel_budget,
+        max_pixels,
+    )
 
     for text, budget in (("", DEFAULT_MAX_PIXELS), ("5000", 5000), (" 77 ", 77),
                          ("-5", DEFAULT_MAX_PIXELS), ("0", DEFAULT_MAX_PIXELS),
