@@ -3,8 +3,8 @@ written by test/helpers/make_bad_inputs.py), files that are not text, and random
 (hypothesis). Each gives a one-line error, a recovered result or a labelled skip, never a
 traceback.
 
-This module and test_package.py are the test modules that mirror no module of ficap_ros: bad
-inputs cross every reader and verb, and one corpus serves them all.
+It mirrors no module of ficap_ros (test_package.py's ``UNMIRRORED`` says why): bad inputs cross
+every reader and verb, and one corpus serves them all.
 """
 
 from __future__ import annotations
