@@ -260,9 +260,18 @@ def test_ctrl_c_during_parallel_replay_prints_one_line(tmp_path: Path) -> None:
 
     master, slave = pty.openpty()
     fcntl.ioctl(slave, termios.TIOCSWINSZ, struct.pack("HHHH", 30, 120, 0, 0))  # 120 columns
-    proc = subprocess.Popen([*FICAP, "replay", str(bag), "--out", str(out), "--jobs", "2"],
-                            stdout=subprocess.DEVNULL, stderr=slave, cwd=ROOT,
-                            start_new_session=True)
+    # A command started from a background job inherits SIGINT ignored (a shell's asynchronous
+    # lists ignore it): the child must get the terminal's default, as a user's command does.
+    ignored = signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+    if ignored:
+        signal.signal(signal.SIGINT, signal.default_int_handler)  # SIG_DFL in the child after exec
+    try:
+        proc = subprocess.Popen([*FICAP, "replay", str(bag), "--out", str(out), "--jobs", "2"],
+                                stdout=subprocess.DEVNULL, stderr=slave, cwd=ROOT,
+                                start_new_session=True)
+    finally:
+        if ignored:
+            signal.signal(signal.SIGINT, signal.SIG_IGN)
     os.close(slave)
     seen = b""
     try:
