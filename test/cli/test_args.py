@@ -39,8 +39,7 @@ def test_non_finite_and_huge_arguments_are_refused(argv: list[str],
 ])
 def test_negative_or_zero_tolerances_are_bad_arguments(argv: list[str],
                                                        capsys: pytest.CaptureFixture[str]) -> None:
-    """Exit 2 naming the flag, like NaN (calibrate took -5 ms and said 'no reference pose within
-    -5 ms'; evaluate and kit exited 1)."""
+    """Exit 2 naming the flag, like NaN: a tolerance or a thickness must be positive."""
     with pytest.raises(SystemExit) as exc:
         main(argv)
     assert exc.value.code == 2

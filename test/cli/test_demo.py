@@ -34,12 +34,12 @@ def test_demo_offline_honours_its_options(capsys: pytest.CaptureFixture[str]) ->
 
 def test_demo_does_not_reuse_a_sample_drive_of_an_earlier_renderer(tmp_path, monkeypatch) -> None:
     # The sample drive is rendered once per set of options and cached; a renderer that draws
-    # other pixels (the neutral light became mostly a lamp at the camera) needs its own key, or
-    # `make demo` keeps playing the drive an earlier renderer left in the cache.
+    # other pixels has its own key (RENDER_VERSION), or `make demo` would keep playing the drive
+    # an earlier renderer left in the cache.
     from ficap_ros.cli import demo, synth
 
     monkeypatch.setenv("FICAP_CACHE", str(tmp_path))
-    old = tmp_path / "sample_drive_540p_neutral_240_30.0_1_90_3.0_chain2"  # before the lamp
+    old = tmp_path / "sample_drive_540p_neutral_240_30.0_1_90_3.0_chain2"  # RENDER_VERSION 2
     old.mkdir()
     (old / "metadata.yaml").write_text("rosbag2_bagfile_information: {}\n")
     rendered = []

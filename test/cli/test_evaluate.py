@@ -96,7 +96,7 @@ def test_a_malformed_estimate_row_is_named_by_its_line(tmp_path: Path,
 def test_a_row_cut_short_is_named_by_its_line_not_a_traceback(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A row without its stamp (the stamp column last, the row one field short) is a malformed
-    row too, one line naming it; it was a TypeError traceback from int(None)."""
+    row too: one line naming it and the missing stamp_ns."""
     truth_csv, _, _ = truth_labels(tmp_path)
     est = tmp_path / "est.csv"
     est.write_text("qw,qx,qy,qz,stamp_ns\n1,0,0,0,1\n1,0,0,0\n")

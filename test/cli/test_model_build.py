@@ -128,8 +128,8 @@ def test_cli_builds_from_a_synth_drive(tmp_path, capsys) -> None:
 
 
 def test_cli_bad_numbers_are_argparse_errors_naming_the_flag(tmp_path, capsys) -> None:  # noqa: ANN001
-    """Exit 2 with the flag named (they were exit 1 naming BuildConfig's fields, and --fps nan
-    was taken), before any input is read."""
+    """Exit 2 with the flag named (not BuildConfig's field), before any input is read; a NaN
+    frame rate is one of them."""
     for flag, value in (("--every", "0"), ("--max-frames", "1"), ("--min-tags", "0"),
                         ("--min-frames-per-tag", "-1"), ("--max-nfev", "0"),
                         ("--assembly-sigma-mm", "nan"), ("--assembly-sigma-mm", "-1"), ("--fps", "nan")):

@@ -30,8 +30,8 @@ def test_stats_from_bag(bag_with_a_corrupt_frame: Path, tmp_path: Path,
 
 def test_a_text_file_is_called_neither_a_bag_nor_a_video(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    """`ficap stats notes.txt` was 'video notes.txt needs --intrinsics': it is no video. A real
-    video without --intrinsics still asks for them."""
+    """`ficap stats notes.txt` says the file is neither a bag nor a video, not that a video needs
+    --intrinsics; a real video without --intrinsics asks for them."""
     notes = tmp_path / "notes.txt"
     notes.write_text("not a recording\n")
     video = tmp_path / "v.avi"

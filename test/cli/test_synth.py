@@ -44,7 +44,7 @@ def test_cli_rejects_bad_camera_knobs(tmp_path, capsys) -> None:
 
 
 def test_naive_peer_is_biased_inward_on_default_synth_frames(tmp_path) -> None:
-    """Issue 10: default ``ficap synth`` frames show what real cameras do to corners: the naive
+    """Default ``ficap synth`` frames show what real cameras do to corners: the naive
     peer's (OpenCV sub-pixel) corners sit >= 0.2 px toward the tag centre."""
     from ficap_ros.cli.main import main
     from ficap_ros.geometry.metrics import corner_errors_px

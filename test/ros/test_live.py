@@ -203,8 +203,8 @@ def test_camera_info_rules_live_and_offline(harness_factory, tmp_path: Path, cas
 def test_camera_info_choice_live_and_offline(harness_factory, tmp_path: Path) -> None:  # noqa: F811
     """CameraInfo stamped around the images, two intrinsics (A true, B 4 % longer focal): the node
     and a bag pick the same one per image (camera_info.pick_camera_info: the nearest within 1 ms, else
-    the last at or before the image), so their poses agree. Before, the node took the latest
-    received and bags the last at or before: images 0 and 1 disagreed."""
+    the last at or before the image), so their poses agree. Images 0 and 1 tell the rule from
+    "the latest received" and from "the last at or before" alone."""
     a = default_scene("540p").camera
     b = dataclasses.replace(a, K=a.K * [[1.04], [1.04], [1.0]])
     ms = 1_000_000

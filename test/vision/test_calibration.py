@@ -77,8 +77,7 @@ def test_reference_recovers_both_rotations(seed: int) -> None:
     n = 300
     # Naturalistic head motion: yaw +-40, pitch +-15, roll +-8 deg.
     ypr = rng.uniform([-40, -15, -8], [40, 15, 8], size=(n, 3))
-    # (Pitch mirrored: the same rotations this test drew before head angles became REP-103; the
-    # sign does not matter to the calibration, so the seeded sample is kept.)
+    # (Pitch drawn with the opposite sign: the calibration does not depend on it.)
     R_ref_head_true = Rotation.concatenate([rotation_from_ypr_deg(a[0], -a[1], a[2]) for a in ypr])
     R_cam_cap = R_cam_ref * R_ref_head_true * R_cap_head.inv() * _noise(rng, n, 0.3)
     R_ref_head = R_ref_head_true * _noise(rng, n, 2.0)  # 2 deg per axis reference noise
