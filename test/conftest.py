@@ -14,7 +14,9 @@ os.environ["ROS_DOMAIN_ID"] = str(int(os.environ.get("ROS_DOMAIN_ID") or 60) + _
 
 from pathlib import Path  # noqa: E402
 
+import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+from recordings import CORRUPT_BAG_FRAMES, CORRUPT_FRAME, FPS, FRAMES  # noqa: E402
 
 #: Real photos the detection tests need, kept in the repository (test/data/README.md: sources and
 #: licences) so a fresh clone tests without the workplace's ../shared; benchmarks read the full sets.
@@ -38,6 +40,88 @@ def mapping_photos(real_apriltag_dir: Path) -> tuple[Path, dict[str, set[int]]]:
         if parts:
             truth[parts[0]] = set(map(int, parts[1:]))
     return root, truth
+
+
+# -- recordings several test modules read (each built once per test process) ----------------------
+@pytest.fixture(scope="session")
+def drive(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A ``ficap synth`` drive: 540p, ``FRAMES`` frames at ``FPS`` (the 3 s frontal segment, then
+    mirror and cluster glances), seed 3, with its exact truth topics."""
+    from ficap_ros.cli.main import main
+
+    bag = tmp_path_factory.mktemp("synth") / "drive"
+    assert main(["synth", "--out", str(bag), "--resolution", "540p", "--frames", str(FRAMES),
+                 "--fps", str(FPS), "--seed", "3", "--quiet"]) == 0
+    return bag
+
+
+@pytest.fixture(scope="session")
+def replayed(drive: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``ficap replay`` of ``drive`` (uncalibrated): labels.mcap, labels.csv, summary.json."""
+    from ficap_ros.cli.main import main
+
+    out = tmp_path_factory.mktemp("replay") / "out"
+    assert main(["replay", str(drive), "--out", str(out), "--quiet"]) == 0
+    return out
+
+
+@pytest.fixture(scope="session")
+def replayed_calibrated(drive: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """``ficap replay`` of ``drive`` calibrated on its first 2.9 s (looking straight ahead)."""
+    from ficap_ros.cli.main import main
+
+    out = tmp_path_factory.mktemp("replay_calibrated") / "out"
+    assert main(["replay", str(drive), "--out", str(out), "--calibrate-frontal", "0:2.9",
+                 "--quiet"]) == 0
+    return out
+
+
+@pytest.fixture(scope="session")
+def rendered_frames():
+    """``CORRUPT_BAG_FRAMES`` rendered 540p frames of a drive (seed 5) and their scene."""
+    from ficap_ros.geometry.cap_model import nominal_model
+    from ficap_ros.tools import synth
+
+    scene = synth.default_scene("540p")
+    frames = synth.naturalistic_drive(CORRUPT_BAG_FRAMES, 30.0, 5, scene)
+    model = nominal_model()
+    return [synth.render(model, scene.camera, f.T_cam_cap, seed=f.index).image for f in frames], scene
+
+
+@pytest.fixture(scope="session")
+def bag_with_a_corrupt_frame(rendered_frames, tmp_path_factory: pytest.TempPathFactory) -> Path:  # noqa: ANN001
+    """A single .mcap of ``rendered_frames`` as JPEG CompressedImage with CameraInfo, 30 fps;
+    frame ``CORRUPT_FRAME``'s JPEG is cut short (undecodable)."""
+    import cv2
+
+    from ficap_ros.io import messages
+    from ficap_ros.io.bag_writer import BagWriter
+    from ficap_ros.io.messages import ROSBAGS
+    from ficap_ros.io.sources import CAMERA_INFO_TYPE, COMPRESSED_TYPE
+
+    images, scene = rendered_frames
+    path = tmp_path_factory.mktemp("bags") / "drive.mcap"
+    with BagWriter(path, storage="mcap", layout="file") as w:
+        w.add_topic("/cam/image/compressed", COMPRESSED_TYPE)
+        w.add_topic("/cam/camera_info", CAMERA_INFO_TYPE)
+        for i, img in enumerate(images):
+            s = 1_700_000_000_000_000_000 + i * 33_333_333
+            head = messages.header(ROSBAGS, s, "cam")
+            w.write("/cam/camera_info", s, messages.camera_info(ROSBAGS, head, scene.camera))
+            data = (cv2.imencode(".jpg", img)[1].tobytes() if i != CORRUPT_FRAME
+                    else b"\xff\xd8 truncated")
+            w.write("/cam/image/compressed", s, messages.compressed_image(ROSBAGS, head, data))
+    return path
+
+
+@pytest.fixture
+def binary_files(tmp_path: Path) -> dict[str, Path]:
+    """Files that are not text: random bytes (``bin``) and UTF-16 YAML (``utf16``)."""
+    rng = np.random.default_rng(13)
+    files = {"bin": tmp_path / "bin.yaml", "utf16": tmp_path / "utf16.yaml"}
+    files["bin"].write_bytes(rng.integers(0, 256, 300, dtype=np.uint8).tobytes())
+    files["utf16"].write_text("R_cap_head_q_wxyz: [1, 0, 0, 0]\n", encoding="utf-16")
+    return files
 
 
 # Property tests (hypothesis): derandomized, so a failure reproduces on every run and

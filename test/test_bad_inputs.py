@@ -1,25 +1,50 @@
-"""The bad-input corpus (test/data/bad_inputs, written by test/make_bad_inputs.py) against every
-reader and verb that takes each file: a one-line error, a recovered result or a labelled skip,
-never a traceback.
+"""Bad inputs against every reader and verb that takes them: the corpus (test/data/bad_inputs,
+written by test/helpers/make_bad_inputs.py), files that are not text, and random and damaged files
+(hypothesis). Each gives a one-line error, a recovered result or a labelled skip, never a
+traceback.
+
+It mirrors no module of ficap_ros (test_package.py's ``UNMIRRORED`` says why): bad inputs cross
+every reader and verb, and one corpus serves them all.
 """
 
 from __future__ import annotations
 
 import json
+import shutil
+import tempfile
 from pathlib import Path
 
 import numpy as np
 import pytest
+import yaml
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from mutations import mutated
+from recordings import one_error_line
 
 from ficap_ros.cli.args import EXIT_FRAMES_LOST
 from ficap_ros.cli.main import main
-from ficap_ros.errors import FicapError
-from ficap_ros.geometry.camera import load_camera_yaml
-from ficap_ros.geometry.cap_model import load_model
+from ficap_ros.errors import (
+    BagError,
+    CalibrationError,
+    FicapError,
+    IntrinsicsError,
+    ModelError,
+)
+from ficap_ros.geometry.camera import CameraModel, load_camera_yaml
+from ficap_ros.geometry.cap_model import load_model, nominal_model
+from ficap_ros.io import messages
+from ficap_ros.io.bag_writer import BagWriter
 from ficap_ros.io.calibration_file import load_calibration
 from ficap_ros.io.image_codec import decode_compressed
 from ficap_ros.io.labels import read_labels
-from ficap_ros.io.sources import open_bag_reader, open_frames
+from ficap_ros.io.messages import ROSBAGS
+from ficap_ros.io.sources import (
+    CAMERA_INFO_TYPE,
+    IMAGE_TYPE,
+    open_bag_reader,
+    open_frames,
+)
 
 CORPUS = Path(__file__).resolve().parent / "data" / "bad_inputs"
 BAGS = sorted([p for p in CORPUS.glob("*.mcap")] + [p for p in CORPUS.iterdir() if p.is_dir()])
@@ -241,3 +266,138 @@ def test_a_100_byte_mcap_is_named_truncated_in_one_line(
         assert len(err) == 1 and err[0].startswith("ficap: error:"), err
         assert str(cut) in err[0] and "truncated" in err[0], err
         assert "not a complete MCAP file" in err[0] and "magic" not in err[0], err
+
+
+# -- files that are not text -----------------------------------------------------------------------
+@pytest.mark.parametrize("kind", ["bin", "utf16"])
+def test_loaders_refuse_binary_and_non_utf8_files(binary_files: dict[str, Path], kind: str) -> None:
+    path = binary_files[kind]
+    for loader, error in ((load_calibration, CalibrationError), (load_camera_yaml, IntrinsicsError),
+                          (load_model, ModelError), (read_labels, BagError)):
+        with pytest.raises(error) as info:
+            loader(path)
+        assert "\n" not in str(info.value) and str(path) in str(info.value)
+
+
+def test_cli_verbs_refuse_binary_files(drive: Path, replayed: Path, binary_files: dict[str, Path],
+                                       tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    bad = str(binary_files["bin"])
+    out = str(tmp_path / "o")
+    for option in ("--calibration", "--intrinsics", "--model"):
+        assert main(["replay", str(drive), "--out", out, option, bad, "--quiet"]) == 1
+        assert bad in one_error_line(capsys)
+    labels_mcap = str(replayed / "labels.mcap")
+    assert main(["evaluate", "--truth", labels_mcap, "--estimate", labels_mcap,
+                 "--out", out]) == 1
+    one_error_line(capsys)
+    assert main(["calibrate", labels_mcap, "--frontal", "0:2", "--out",
+                 str(tmp_path / "c.yaml")]) == 1
+    one_error_line(capsys)
+    assert not (tmp_path / "o").exists()
+
+
+# -- random and damaged files (hypothesis): only FicapError, or a result --------------------------
+CAM = CameraModel(64, 48, np.array([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]]),
+                  np.array([0.1, -0.05, 0.0, 0.0, 0.0]), "plumb_bob")
+IMAGE = np.random.default_rng(1).integers(0, 256, (48, 64), dtype=np.uint8)
+CAMERA_YAML = yaml.safe_dump(CAM.to_camera_yaml())
+CALIBRATION_YAML = ("format: ficap_calibration/1\nquaternion_order: wxyz\ncalibrated: true\n"
+                    "R_cap_head_q_wxyz: [0.99, 0.01, -0.1, 0.02]\n"
+                    "R_cam_frontal_q_wxyz: [0.5, -0.5, 0.5, -0.5]\n")
+LABELS_CSV = (
+    "frame,stamp_ns,frame_id,tags_detected,tags_used,rms_px,reliability,cap_qw,cap_qx,cap_qy,"
+    "cap_qz,cap_x_m,cap_y_m,cap_z_m,head_qw,head_qx,head_qy,head_qz,head_yaw_deg,"
+    "head_pitch_deg,head_roll_deg,calibrated,detected_ids,reason\n"
+    "0,1000,cam,2,2,0.1,0.9,1,0,0,0,0,0,0.6,1,0,0,0,0,0,0,0,3 7,\n"
+    "1,2000,cam,0,0,,,,,,,,,,,,,,,,,0,,no tag\n")
+
+
+def _write(tmp: Path, name: str, data: bytes) -> Path:
+    path = tmp / name
+    path.write_bytes(data)
+    return path
+
+
+@pytest.fixture(scope="module")
+def scratch() -> Path:
+    path = Path(tempfile.mkdtemp(prefix="ficap-fuzz-"))
+    yield path
+    shutil.rmtree(path, ignore_errors=True)
+
+
+@given(data=st.one_of(st.binary(max_size=2000), mutated(CAMERA_YAML.encode())))
+def test_camera_yaml_raises_only_ficap_errors(scratch: Path, data: bytes) -> None:
+    try:
+        load_camera_yaml(_write(scratch, "camera.yaml", data))
+    except FicapError:
+        pass
+
+
+@given(data=st.one_of(st.binary(max_size=2000), mutated(CALIBRATION_YAML.encode())))
+def test_calibration_yaml_raises_only_ficap_errors(scratch: Path, data: bytes) -> None:
+    try:
+        cal = load_calibration(_write(scratch, "calibration.yaml", data))
+    except FicapError:
+        return
+    assert isinstance(cal.calibrated, bool)
+
+
+@given(data=mutated(nominal_model().to_yaml().encode()))
+def test_model_yaml_raises_only_ficap_errors(scratch: Path, data: bytes) -> None:
+    try:
+        load_model(_write(scratch, "model.yaml", data))
+    except FicapError:
+        pass
+
+
+@given(data=st.one_of(st.binary(max_size=2000), mutated(LABELS_CSV.encode())))
+def test_labels_csv_raises_only_ficap_errors(scratch: Path, data: bytes) -> None:
+    try:
+        labels = read_labels(_write(scratch, "labels.csv", data))
+    except FicapError:
+        return
+    assert len(labels.stamp_ns) == len(labels.reliability)
+
+
+@pytest.fixture(scope="module")
+def fuzz_bag(scratch: Path) -> Path:
+    path = scratch / "bag"
+    with BagWriter(path) as w:
+        w.add_topic("/cam/image_raw", IMAGE_TYPE)
+        w.add_topic("/cam/camera_info", CAMERA_INFO_TYPE)
+        for i in range(4):
+            head = messages.header(ROSBAGS, i + 1, "cam")
+            w.write("/cam/camera_info", i + 1, messages.camera_info(ROSBAGS, head, CAM))
+            w.write("/cam/image_raw", i + 1, messages.image(ROSBAGS, head, IMAGE, "mono8"))
+    return path
+
+
+def _read_all(path: Path) -> None:
+    try:
+        source = open_frames(path)
+        for frame in source.frames():
+            assert (frame.image is None) == (frame.error is not None)
+        if source.loss is not None:
+            assert "\n" not in source.loss.describe(source.start_ns)
+    except FicapError:
+        pass
+
+
+@settings(max_examples=40)
+@given(data=st.data())
+def test_bag_metadata_raises_only_ficap_errors(fuzz_bag: Path, scratch: Path, data: st.DataObject
+                                               ) -> None:
+    meta = (fuzz_bag / "metadata.yaml").read_bytes()
+    target = scratch / "meta_bag"
+    shutil.rmtree(target, ignore_errors=True)
+    shutil.copytree(fuzz_bag, target)
+    (target / "metadata.yaml").write_bytes(data.draw(mutated(meta)))
+    _read_all(target)
+
+
+@settings(max_examples=40)
+@given(data=st.data())
+def test_mcap_bytes_raise_only_ficap_errors(fuzz_bag: Path, scratch: Path, data: st.DataObject
+                                            ) -> None:
+    mcap = next(fuzz_bag.glob("*.mcap")).read_bytes()
+    _read_all(_write(scratch, "fuzzed.mcap", data.draw(mutated(mcap))))

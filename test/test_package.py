@@ -1,7 +1,8 @@
 """The package as a whole: its layering (subpackages stacked bottom up, each importing only from
-those below it; only the ROS skin imports rclpy; no private library internals) and its
-dependencies (package.xml names a rosdep key for every third-party module the package imports, and
-the pinned requirements files a pip package for each, so an apt/colcon install and `make` both work).
+those below it; only the ROS skin imports rclpy; no private library internals), its dependencies
+(package.xml names a rosdep key for every third-party module the package imports, and the pinned
+requirements files a pip package for each, so an apt/colcon install and `make` both work), and its
+tests mirroring it (ficap_ros/<sub>/<module>.py is tested in test/<sub>/test_<module>.py).
 """
 
 from __future__ import annotations
@@ -128,3 +129,38 @@ def test_every_import_has_a_rosdep_key_and_a_pinned_pip_package() -> None:
         key, pip = MODULES[module]
         assert key is None or key in keys, f"{module}: package.xml lacks <exec_depend>{key}"
         assert pip.lower() in pinned, f"{module}: no pinned {pip} in the requirements files"
+
+
+# -- the tests mirror the package ------------------------------------------------------------------
+TESTS = ROOT / "test"
+#: Test modules that mirror no module of ficap_ros, and why (at most three).
+UNMIRRORED = {
+    "test_package.py": "the package as a whole: its layers, dependencies and tests",
+    "test_bad_inputs.py": "bad inputs cross every reader and verb, and one corpus serves them all",
+    "ros/test_launch.py": "the launch files (launch/*.launch.py) are no module of ficap_ros",
+}
+
+
+def _test_module_of(module: Path) -> str:
+    """ficap_ros/<sub>/<name>.py -> <sub>/test_<name>.py (relative to test/)."""
+    rel = module.relative_to(PACKAGE)
+    return str(rel.with_name(f"test_{rel.name}"))
+
+
+def _modules() -> list[Path]:
+    return sorted(p for p in PACKAGE.rglob("*.py") if p.stem not in ("__init__", "__main__"))
+
+
+def test_every_module_has_its_test_module() -> None:
+    missing = [_test_module_of(m) for m in _modules() if not (TESTS / _test_module_of(m)).is_file()]
+    assert not missing, f"modules without their test module: {missing}"
+
+
+def test_every_test_module_mirrors_a_module_or_is_a_stated_exception() -> None:
+    assert len(UNMIRRORED) <= 3
+    mirrors = {_test_module_of(m) for m in _modules()}
+    found = {str(p.relative_to(TESTS)) for p in TESTS.rglob("test_*.py")}
+    stray = sorted(found - mirrors - set(UNMIRRORED))
+    assert not stray, f"test modules that mirror no module: {stray}"
+    assert set(UNMIRRORED) <= found  # an exception that is gone is no exception
+    assert not list((TESTS / "helpers").glob("test_*.py"))  # helpers hold no tests

@@ -5,7 +5,12 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
+from hypothesis import given
+from hypothesis import strategies as st
 
+from ficap_ros import stamps
+from ficap_ros.io import sources as bag_io
+from ficap_ros.ros import msgs as ros_msgs
 from ficap_ros.stamps import (
     END_OF_TIME_NS,
     last_window_ns,
@@ -38,3 +43,45 @@ def test_windows() -> None:
     assert last_window_ns(5 * 10**9, 3.0) == (2 * 10**9, 5 * 10**9)
     s = np.array([1, 2, 3, 4])
     assert window_mask(s, (2, 3)).tolist() == [False, True, True, False]  # both ends included
+
+
+def test_stamp_helpers_are_one_implementation() -> None:
+    assert ros_msgs.stamp_to_ns is stamps.stamp_to_ns is bag_io.stamp_to_ns
+
+
+def _pairs_by_brute_force(truth: list[int], est: list[int], tol: int) -> list[tuple[int, int]]:
+    """The documented rule, spelled out: each truth's nearest estimate (the earlier on a tie) within
+    ``tol``; an estimate wanted by several truths goes to the closest (the first on a tie)."""
+    wanted = {}
+    for i, t in enumerate(truth):
+        if not est:
+            break
+        j = min(range(len(est)), key=lambda k: (abs(est[k] - t), k))
+        if abs(est[j] - t) <= tol:
+            wanted.setdefault(j, []).append((abs(est[j] - t), i))
+    return sorted((min(claims)[1], j) for j, claims in wanted.items())
+
+
+@given(st.lists(st.integers(0, 10_000), max_size=40),
+       st.lists(st.integers(0, 10_000), max_size=40, unique=True), st.integers(0, 600))
+def test_pairs_follow_the_rule_one_to_one_within_the_tolerance(
+        truth: list[int], est: list[int], tol: int) -> None:
+    est = sorted(est)
+    i_t, i_e = pair_by_stamp(np.array(truth, dtype=np.int64), np.array(est, dtype=np.int64), tol)
+    pairs = list(zip(i_t.tolist(), i_e.tolist()))
+    assert pairs == _pairs_by_brute_force(truth, est, tol)
+    assert len(set(i_e.tolist())) == len(pairs) and np.all(np.diff(i_t) > 0)
+    if pairs:
+        assert np.abs(np.array(truth)[i_t] - np.array(est)[i_e]).max() <= tol
+
+
+@given(st.lists(st.integers(-10**12, 10**12), max_size=30), st.integers(0, 10**12),
+       st.floats(0.0, 100.0), st.floats(0.0, 100.0))
+def test_windows_hold_exactly_the_stamps_between_their_ends(
+        stamps: list[int], start_ns: int, a_s: float, b_s: float) -> None:
+    lo_s, hi_s = min(a_s, b_s), max(a_s, b_s)
+    window = window_from_start_ns(start_ns, (lo_s, hi_s))
+    assert window == (start_ns + int(lo_s * 1e9), start_ns + int(hi_s * 1e9))
+    mask = window_mask(np.array(stamps, dtype=np.int64), window)
+    assert mask.tolist() == [window[0] <= s <= window[1] for s in stamps]
+    assert last_window_ns(start_ns, hi_s) == (start_ns - int(hi_s * 1e9), start_ns)

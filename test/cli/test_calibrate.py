@@ -6,6 +6,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from recordings import one_error_line, true_R_cap_head
 from scipy.spatial.transform import Rotation
 
 from ficap_ros.cli.main import main
@@ -14,7 +15,7 @@ from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform
 from ficap_ros.io import messages
 from ficap_ros.io.bag_writer import BagWriter
 from ficap_ros.io.calibration_file import load_calibration
-from ficap_ros.io.labels import FrameRecord, labels_csv_text
+from ficap_ros.io.labels import FrameRecord, labels_csv_text, read_labels
 from ficap_ros.io.messages import ROSBAGS
 from ficap_ros.vision.calibration import HeadCalibration
 from ficap_ros.vision.pose import CapPose
@@ -154,3 +155,27 @@ def test_replay_frontal_window_too_short_says_what_to_do() -> None:
     msg = str(exc.value)
     assert "\n" not in msg and "has 3" in msg and "--calibrate-frontal" in msg, msg
     assert "--min-frames" in msg, msg
+
+
+def test_calibrate_frontal_from_labels(drive: Path, replayed_calibrated: Path, tmp_path: Path) -> None:
+    from ficap_ros.io.calibration_file import load_calibration
+
+    out = tmp_path / "cal.yaml"
+    assert main(["calibrate", str(replayed_calibrated), "--frontal", "0:2.9", "--min-frames", "10",
+                 "--out", str(out)]) == 0
+    cal = load_calibration(out)
+    err = np.degrees((cal.R_cap_head.inv() * true_R_cap_head(drive)).magnitude())
+    assert cal.calibrated and err < 0.5
+    # The file drives a replay: same head poses as the in-replay frontal calibration.
+    out2 = tmp_path / "withcal"
+    assert main(["replay", str(drive), "--out", str(out2), "--calibration", str(out),
+                 "--quiet"]) == 0
+    a, b = read_labels(replayed_calibrated), read_labels(out2)
+    diff = np.degrees((a.head_rotations().inv() * b.head_rotations()).magnitude())
+    assert diff.max() < 1e-3
+
+
+def test_a_folder_as_output_is_one_line(replayed: Path, tmp_path: Path,
+                                       capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["calibrate", str(replayed), "--frontal", "0:2", "--out", str(tmp_path)]) == 1
+    one_error_line(capsys)

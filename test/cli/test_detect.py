@@ -3,8 +3,12 @@
 from __future__ import annotations
 
 import json
+from pathlib import Path
 
+import cv2
 import numpy as np
+import pytest
+from recordings import one_error_line
 
 from ficap_ros.cli.main import main as cli_main
 
@@ -29,3 +33,22 @@ def test_cli_corrupt_image_exits_1_with_one_line(tmp_path, capsys):
     assert cli_main(["detect", str(bad)]) == 1
     err = capsys.readouterr().err.strip()
     assert err.startswith("ficap: error:") and "\n" not in err
+
+
+def test_detect_reports_good_images_beside_a_bad_one(real_apriltag_dir: Path, tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    good = str(real_apriltag_dir / "apriltags_jl" / "tagtest.jpg")
+    bad = tmp_path / "bad.png"
+    bad.write_bytes(b"\x89PNG\r\n\x1a\nnot really")
+    assert cli_main(["detect", good, str(bad)]) == 1
+    captured = capsys.readouterr()
+    assert captured.out.startswith(f"{good}: 3 tag(s)")
+    assert captured.err.strip().count("\n") == 0 and str(bad) in captured.err
+
+
+def test_an_image_above_the_pixel_budget_is_one_line(tmp_path: Path,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
+    big = tmp_path / "big.png"
+    cv2.imwrite(str(big), np.zeros((6000, 8000), np.uint8))  # 48 MP, a few kB as PNG
+    assert cli_main(["detect", str(big)]) == 1
+    assert "budget" in one_error_line(capsys)

@@ -1,4 +1,5 @@
-"""ficap evaluate: an estimator with a known injected error gets that error reported."""
+"""ficap evaluate: an estimator with a known injected error gets that error reported; bad inputs
+and malformed rows are one line naming the file and line."""
 
 from __future__ import annotations
 
@@ -8,69 +9,21 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from scipy.spatial.transform import Rotation
+from head_series import YAW_OFFSET_DEG, N, estimate_of, truth_labels
+from recordings import FRAMES
 
+from ficap_ros.cli import synth as synth_cmd
 from ficap_ros.cli.main import main
-from ficap_ros.geometry.metrics import rotation_from_ypr_deg
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.io import messages
 from ficap_ros.io.bag_writer import BagWriter
-from ficap_ros.io.labels import FrameRecord, labels_csv_text
 from ficap_ros.io.messages import ROSBAGS
-from ficap_ros.stamps import pair_by_stamp
-from ficap_ros.tools.evaluation import evaluate, load_series
-from ficap_ros.vision.calibration import HeadCalibration
-from ficap_ros.vision.pose import CapPose
-
-N = 400
-FPS = 30.0
-T0_NS = 1_700_000_000_000_000_000
-YAW_OFFSET_DEG = 3.0
-NOISE_DEG = 0.3
-
-
-def _truth(tmp_path: Path) -> tuple[Path, Rotation, np.ndarray]:
-    """labels.csv of a random head motion (cap = head, R_cam_frontal default), every 5th without pose."""
-    rng = np.random.default_rng(7)
-    ypr = np.column_stack([rng.uniform(-50, 50, N), rng.uniform(-20, 15, N), rng.uniform(-8, 8, N)])
-    R_frontal_head = Rotation.from_euler("ZYX", ypr * [1, -1, 1], degrees=True)
-    cal = HeadCalibration()
-    stamps = T0_NS + np.round(np.arange(N) * 1e9 / FPS).astype(np.int64)
-    records = []
-    for i in range(N):
-        if i % 5 == 4:
-            records.append(FrameRecord.processed(i, int(stamps[i]), "cam", None, (), "no tag", cal))
-            continue
-        R_cam_cap = cal.R_cam_frontal * R_frontal_head[i]
-        pose = CapPose(Transform(R_cam_cap, [0.0, 0.1, 0.5]), 6, 6, (1, 2, 3, 4, 5, 6), 0.3,
-                       np.eye(6) * 1e-6, 0.9, "joint")
-        records.append(FrameRecord.processed(i, int(stamps[i]), "cam", pose, (1, 2, 3, 4, 5, 6), "", cal))
-    path = tmp_path / "labels.csv"
-    path.write_text(labels_csv_text(records))
-    return path, R_frontal_head, stamps
-
-
-def _estimate(R_truth: Rotation, seed: int = 3) -> Rotation:
-    """Truth turned by a constant yaw offset (about F's z) plus isotropic noise."""
-    rng = np.random.default_rng(seed)
-    noise = Rotation.from_rotvec(np.radians(rng.normal(0.0, NOISE_DEG, (len(R_truth), 3))))
-    return noise * rotation_from_ypr_deg(YAW_OFFSET_DEG, 0.0, 0.0) * R_truth
-
-
-def test_labels_truth_round_trip(tmp_path: Path) -> None:
-    path, R, stamps = _truth(tmp_path)
-    series = load_series(str(path))
-    keep = np.arange(N) % 5 != 4
-    assert len(series) == keep.sum()
-    np.testing.assert_array_equal(series.stamp_ns, stamps[keep])
-    err = np.degrees((series.rotations.inv() * R[keep]).magnitude())
-    assert err.max() < 1e-5
 
 
 @pytest.mark.parametrize("kind", ["bag", "csv"])
 def test_evaluate_reports_injected_yaw_error(tmp_path: Path, kind: str) -> None:
-    truth_csv, R, stamps = _truth(tmp_path)
-    R_est = _estimate(R)
+    truth_csv, R, stamps = truth_labels(tmp_path)
+    R_est = estimate_of(R)
     # Estimator stamps jitter by up to 4 ms; one estimate every frame, including truth gaps.
     jitter = np.random.default_rng(5).integers(-4_000_000, 4_000_000, N)
     est_stamps = stamps + jitter
@@ -111,17 +64,8 @@ def test_evaluate_reports_injected_yaw_error(tmp_path: Path, kind: str) -> None:
     assert (out / "error_histogram.png").read_bytes()[:4] == b"\x89PNG"
 
 
-def test_evaluate_zero_error_and_dt_gate(tmp_path: Path) -> None:
-    truth_csv, R, stamps = _truth(tmp_path)
-    truth = load_series(str(truth_csv))
-    res = evaluate(truth, truth, max_dt_ms=1.0)
-    assert res.n_paired == len(truth) and float(res.geodesic_deg.max()) < 1e-5
-    i_t, i_e = pair_by_stamp(np.array([0, 100, 200]), np.array([5, 130, 131, 400]), 20)
-    assert i_t.tolist() == [0] and i_e.tolist() == [0]
-
-
 def test_evaluate_bad_inputs(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    truth_csv, _, _ = _truth(tmp_path)
+    truth_csv, _, _ = truth_labels(tmp_path)
     bad = tmp_path / "bad.csv"
     bad.write_text("a,b\n1,2\n")
     cases = [
@@ -140,7 +84,7 @@ def test_evaluate_bad_inputs(tmp_path: Path, capsys: pytest.CaptureFixture[str])
 
 def test_a_malformed_estimate_row_is_named_by_its_line(tmp_path: Path,
                                                        capsys: pytest.CaptureFixture[str]) -> None:
-    truth_csv, _, _ = _truth(tmp_path)
+    truth_csv, _, _ = truth_labels(tmp_path)
     est = tmp_path / "est.csv"
     est.write_text("stamp_ns,yaw_deg,pitch_deg,roll_deg\n1,0,0,0\n2,unknown,0,0\n")
     assert main(["evaluate", "--truth", str(truth_csv), "--estimate", str(est),
@@ -152,8 +96,8 @@ def test_a_malformed_estimate_row_is_named_by_its_line(tmp_path: Path,
 def test_a_row_cut_short_is_named_by_its_line_not_a_traceback(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """A row without its stamp (the stamp column last, the row one field short) is a malformed
-    row too, one line naming it; it was a TypeError traceback from int(None)."""
-    truth_csv, _, _ = _truth(tmp_path)
+    row too: one line naming it and the missing stamp_ns."""
+    truth_csv, _, _ = truth_labels(tmp_path)
     est = tmp_path / "est.csv"
     est.write_text("qw,qx,qy,qz,stamp_ns\n1,0,0,0,1\n1,0,0,0\n")
     assert main(["evaluate", "--truth", str(truth_csv), "--estimate", str(est),
@@ -166,7 +110,7 @@ def test_a_row_cut_short_is_named_by_its_line_not_a_traceback(
 def test_a_folder_without_labels_csv_names_replay_output_folders(
         tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     """The user most likely meant a replay output folder: say that and that labels.csv is missing."""
-    truth_csv, _, _ = _truth(tmp_path)
+    truth_csv, _, _ = truth_labels(tmp_path)
     folder = tmp_path / "run"
     folder.mkdir()
     assert main(["evaluate", "--truth", str(folder), "--estimate", str(truth_csv),
@@ -174,3 +118,12 @@ def test_a_folder_without_labels_csv_names_replay_output_folders(
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("ficap: error:"), err
     assert "replay output folder" in err[0] and "without labels.csv" in err[0], err
+
+
+def test_evaluate_head_against_truth(drive: Path, replayed_calibrated: Path, tmp_path: Path) -> None:
+    out = tmp_path / "eval"
+    assert main(["evaluate", "--truth", str(replayed_calibrated), "--estimate",
+                 f"{drive}:{synth_cmd.TRUTH_HEAD_TOPIC}", "--out", str(out), "--no-plots"]) == 0
+    rep = json.loads((out / "report.json").read_text())
+    assert rep["n_paired"] == FRAMES
+    assert rep["geodesic_deg"]["median"] < 0.5 and rep["geodesic_deg"]["p95"] < 1.0

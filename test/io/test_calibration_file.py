@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from hypothesis import given, settings
@@ -94,3 +96,26 @@ def test_a_file_that_is_not_a_calibration_is_never_replaced(tmp_path) -> None:
     with pytest.raises(OutputError, match="not overwritten"):
         save_calibration(foreign, HeadCalibration())
     assert foreign.read_text() == "shopping: [milk]\n"
+
+
+def test_calibrated_no_loads_as_uncalibrated(tmp_path: Path) -> None:
+    path = tmp_path / "cal.yaml"
+    for text, expected in (('"no"', False), ("false", False), ('"yes"', True), ("true", True)):
+        path.write_text(f"R_cap_head_q_wxyz: [1, 0, 0, 0]\ncalibrated: {text}\n")
+        assert load_calibration(path).calibrated is expected
+    path.write_text("R_cap_head_q_wxyz: [1, 0, 0, 0]\ncalibrated: maybe\n")
+    with pytest.raises(CalibrationError, match="true or false"):
+        load_calibration(path)
+
+
+def test_save_calibration_never_replaces_a_foreign_file(binary_files: dict[str, Path],
+                                                        tmp_path: Path) -> None:
+    before = binary_files["bin"].read_bytes()
+    with pytest.raises(OutputError, match="not overwritten"):
+        save_calibration(binary_files["bin"], HeadCalibration())
+    assert binary_files["bin"].read_bytes() == before
+    with pytest.raises(OutputError):
+        save_calibration(tmp_path, HeadCalibration())  # a folder
+    good = tmp_path / "cal.yaml"
+    save_calibration(good, HeadCalibration())
+    save_calibration(good, HeadCalibration())  # a calibration replaces a calibration

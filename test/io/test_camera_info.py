@@ -9,7 +9,7 @@ from hypothesis import given
 from hypothesis import strategies as st
 from sensor_msgs.msg import CameraInfo
 
-from ficap_ros.errors import IntrinsicsError
+from ficap_ros.errors import FicapError, IntrinsicsError
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.io import messages
 from ficap_ros.io.camera_info import (
@@ -119,3 +119,31 @@ def test_camera_from_info_of_rclpy_messages() -> None:
     with pytest.raises(IntrinsicsError, match="distortion model"):
         camera_from_info(info_at(distortion_model="weird_lens"))
 
+
+def test_camera_info_with_only_p_one_rule_for_node_and_bags() -> None:
+    from rosbags.typesys import Stores, get_typestore
+    from sensor_msgs.msg import CameraInfo
+
+    p = [400.0, 0.0, 320.0, 0.0, 0.0, 410.0, 240.0, 0.0, 0.0, 0.0, 1.0, 0.0]
+    ros = CameraInfo(width=640, height=480, distortion_model="plumb_bob", d=[0.1] * 5,
+                     k=[0.0] * 9, p=p)
+    t = get_typestore(Stores.ROS2_JAZZY).types
+    stamp = t["builtin_interfaces/msg/Time"](sec=0, nanosec=0)
+    bag = t["sensor_msgs/msg/CameraInfo"](
+        header=t["std_msgs/msg/Header"](stamp=stamp, frame_id="c"), height=480, width=640,
+        distortion_model="plumb_bob", d=np.full(5, 0.1), k=np.zeros(9), r=np.eye(3).ravel(),
+        p=np.array(p), binning_x=0, binning_y=0,
+        roi=t["sensor_msgs/msg/RegionOfInterest"](x_offset=0, y_offset=0, height=0, width=0,
+                                                  do_rectify=False))
+
+    node_cam = camera_from_info(ros)
+    bag_cam = camera_from_info(bag)
+    for cam in (node_cam, bag_cam):
+        np.testing.assert_allclose(cam.K, [[400, 0, 320], [0, 410, 240], [0, 0, 1]])
+        assert cam.distortion_model == "none"
+    ros.p = [0.0] * 12
+    with pytest.raises(IntrinsicsError, match="all zero"):
+        camera_from_info(ros)
+    ros.k = [float("nan")] * 9
+    with pytest.raises(FicapError):
+        camera_from_info(ros)

@@ -7,17 +7,19 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import yaml
+from recordings import cut_copy, small_bag
 
 from ficap_ros.errors import BagError, ImageError
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.io import messages
 from ficap_ros.io.bag_writer import BagWriter
-from ficap_ros.io.image_codec import decode_compressed, decode_image
 from ficap_ros.io.messages import ROSBAGS
 from ficap_ros.io.sources import (
     CAMERA_INFO_TYPE,
     COMPRESSED_TYPE,
     IMAGE_TYPE,
+    open_bag_reader,
     open_frames,
 )
 
@@ -59,38 +61,6 @@ def _write_bag(path: Path, storage: str = "mcap", layout: str = "folder", n: int
     return images
 
 
-# -- codec ---------------------------------------------------------------------------------------
-def test_decode_image_encodings() -> None:
-    rng = np.random.default_rng(0)
-    bgr = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
-    grey = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
-    rgb = bgr[:, :, ::-1].copy()
-    bgra = cv2.cvtColor(bgr, cv2.COLOR_BGR2BGRA)
-    rgba = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGBA)
-    for enc, arr in (("bgr8", bgr), ("rgb8", rgb), ("bgra8", bgra), ("rgba8", rgba)):
-        out = decode_image(enc, H, W, arr.strides[0], arr.tobytes(), False)
-        assert np.abs(out.astype(int) - grey).max() <= 1, enc
-    # Padded rows (step > width) and 16-bit in both byte orders.
-    padded = np.zeros((H, W + 8), np.uint8)
-    padded[:, :W] = grey
-    np.testing.assert_array_equal(decode_image("mono8", H, W, W + 8, padded.tobytes()), grey)
-    m16 = grey.astype(np.uint16) * 257
-    np.testing.assert_array_equal(decode_image("mono16", H, W, 2 * W, m16.astype("<u2").tobytes(), 0), m16)
-    np.testing.assert_array_equal(decode_image("mono16", H, W, 2 * W, m16.astype(">u2").tobytes(), 1), m16)
-    # Bayer RGGB of a flat colour demosaics to a flat grey close to the colour's luminance.
-    bayer = np.zeros((H, W), np.uint8)
-    bayer[0::2, 0::2], bayer[0::2, 1::2], bayer[1::2, 0::2], bayer[1::2, 1::2] = 200, 100, 100, 40
-    out = decode_image("bayer_rggb8", H, W, W, bayer.tobytes())
-    expect = 0.299 * 200 + 0.587 * 100 + 0.114 * 40
-    assert abs(float(np.median(out)) - expect) < 3
-    with pytest.raises(ImageError, match="encoding"):
-        decode_image("32FC1", H, W, 4 * W, b"\x00" * 4 * W * H)
-    with pytest.raises(ImageError, match="bytes"):
-        decode_image("mono8", H, W, W, b"\x00" * 10)
-    with pytest.raises(ImageError):
-        decode_compressed(b"not an image")
-
-
 # -- bag round trips -----------------------------------------------------------------------------
 @pytest.mark.parametrize("storage,layout,compressed", [
     ("sqlite3", "folder", False), ("mcap", "folder", False), ("mcap", "folder", True),
@@ -117,8 +87,6 @@ def test_round_trip(tmp_path: Path, storage: str, layout: str, compressed: bool)
 
 
 def test_intrinsics_file_replaces_camera_info(tmp_path: Path) -> None:
-    import yaml
-
     path = tmp_path / "bag"
     _write_bag(path, info=False)
     with pytest.raises(BagError, match="CameraInfo"):
@@ -232,3 +200,65 @@ def test_sources_are_built_in_one_step(tmp_path: Path) -> None:
     assert isinstance(v, VideoSource) and v.kind is RecordingKind.VIDEO and len(list(v)) == 2
     with pytest.raises(BagError, match="--intrinsics"):
         VideoSource(video, None)
+
+
+@pytest.mark.parametrize("fraction", [0.9, 0.5])
+def test_sqlite3_with_a_torn_tail_yields_the_frames_before_it(tmp_path: Path,
+                                                              fraction: float) -> None:
+    bag = tmp_path / "sq"
+    images = small_bag(bag, "sqlite3")
+    db = next(bag.glob("*.db3"))
+    before = db.read_bytes()
+    db.write_bytes(before[: int(len(before) * fraction)])
+    torn = db.read_bytes()
+    source = open_frames(bag)
+    frames = list(source.frames())
+    assert 0 < len(frames) < 40
+    for frame, image in zip(frames, images):
+        np.testing.assert_array_equal(frame.image, image)
+    assert source.loss is not None and source.loss.frames_lost == 40 - len(frames)
+    assert not source.loss.estimated
+    assert db.read_bytes() == torn  # the input is only read
+
+
+def test_video_cut_mid_frame(tmp_path: Path) -> None:
+    video = tmp_path / "v.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (160, 120))
+    for i in range(30):
+        writer.write(np.random.default_rng(i).integers(0, 256, (120, 160, 3), dtype=np.uint8))
+    writer.release()
+    data = video.read_bytes()
+    video.write_bytes(data[: int(len(data) * 0.9)])
+    intrinsics = tmp_path / "cam.yaml"
+    intrinsics.write_text(yaml.safe_dump(CameraModel.pinhole(160, 120, f_px=100.0)
+                                         .to_camera_yaml()))
+    source = open_frames(video, intrinsics=intrinsics)
+    n = len(list(source.raw_frames()))
+    assert 20 <= n < 30
+    assert source.loss is not None and source.loss.frames_lost == 30 - n
+    assert source.loss.until_ns == pytest.approx(29 / 25 * 1e9, abs=1)
+
+
+def test_video_above_the_pixel_budget(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    video = tmp_path / "v.avi"
+    writer = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 25.0, (160, 120))
+    for i in range(3):
+        writer.write(np.full((120, 160, 3), 40 * i, np.uint8))
+    writer.release()
+    intrinsics = tmp_path / "cam.yaml"
+    intrinsics.write_text(yaml.safe_dump(CameraModel.pinhole(160, 120, f_px=100.0)
+                                         .to_camera_yaml()))
+    monkeypatch.setenv("FICAP_MAX_PIXELS", str(160 * 120 - 1))
+    with pytest.raises(BagError, match="budget"):
+        list(open_frames(video, intrinsics=intrinsics).raw_frames())
+
+
+def test_folder_of_a_recorder_killed_before_metadata(drive: Path, tmp_path: Path) -> None:
+    cut = cut_copy(drive, tmp_path / "cut", 0.9)
+    (cut / "metadata.yaml").unlink()
+    reader = open_bag_reader(cut)
+    try:
+        assert reader.damage is not None
+        assert {c.topic for c in reader.connections} >= {"/camera/image_raw/compressed"}
+    finally:
+        reader.close()

@@ -12,7 +12,6 @@ import cv2
 import numpy as np
 import pytest
 
-from ficap_ros.cli.main import main
 from ficap_ros.errors import ConfigError
 from ficap_ros.geometry.cap_model import FACE_SIDE_MM, TAG_SIDE_MM, nominal_model
 from ficap_ros.tools.kit import (
@@ -250,16 +249,3 @@ def test_stl_shell_is_closed_and_on_the_cap(kit_a4) -> None:
         # Outward winding: signed volume positive.
         vol = np.einsum("ij,ij->i", plate[:, 0], np.cross(plate[:, 1], plate[:, 2])).sum() / 6.0
         assert vol == pytest.approx(40 * 40 * 2.0, rel=0.05)
-
-
-def test_assembly_sheet_and_cli(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    out = tmp_path / "kit"
-    assert main(["kit", "--out", str(out), "--paper", "letter", "--no-stl"]) == 0
-    printed = capsys.readouterr().out.split()
-    names = {Path(p).name for p in printed}
-    assert names == {"ficap_tags_letter.pdf", "ficap_tags_letter_p1.svg", "ficap_tags_letter_p2.svg",
-                     "ficap_assembly.png", "ficap_assembly.pdf"}
-    png = cv2.imread(str(out / "ficap_assembly.png"), cv2.IMREAD_GRAYSCALE)
-    assert png is not None and png.shape[1] > png.shape[0] > 1000  # landscape, 150 dpi
-    assert (png < 128).mean() > 0.01
-    assert (out / "ficap_assembly.pdf").read_bytes().startswith(b"%PDF")

@@ -1,46 +1,23 @@
-"""ficap synth -> ficap replay/stats/calibrate/evaluate on a rendered drive with exact ground truth."""
+"""ficap_ros.tools.replay on a rendered drive with exact ground truth: labels as accurate as they
+say, labels.mcap the same as labels.csv (and read by the MCAP project's own decoder), parallel
+progress frame by frame, the run's calibration applied to every record, the progress bar, --jobs
+capped at the cores available and the allocator setting."""
 
 from __future__ import annotations
 
+import io
 import json
 from pathlib import Path
 
 import numpy as np
 import pytest
+from recordings import FRAMES, true_R_cap_head
 from rosbags.highlevel import AnyReader
 from scipy.spatial.transform import Rotation
 
 from ficap_ros.cli import synth as synth_cmd
-from ficap_ros.cli.main import main
 from ficap_ros.io.labels import read_labels
 from ficap_ros.tools.evaluation import read_series_bag
-
-FRAMES = 45
-FPS = 5.0  # 9 s of drive: the 3 s frontal segment, then mirror and cluster glances
-
-
-@pytest.fixture(scope="module")
-def drive(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    bag = tmp_path_factory.mktemp("synth") / "drive"
-    assert main(["synth", "--out", str(bag), "--resolution", "540p", "--frames", str(FRAMES),
-                 "--fps", str(FPS), "--seed", "3", "--quiet"]) == 0
-    return bag
-
-
-@pytest.fixture(scope="module")
-def replayed(drive: Path, tmp_path_factory: pytest.TempPathFactory) -> Path:
-    out = tmp_path_factory.mktemp("replay") / "out"
-    assert main(["replay", str(drive), "--out", str(out), "--calibrate-frontal", "0:2.9",
-                 "--quiet"]) == 0
-    return out
-
-
-def _true_R_cap_head(bag: Path) -> Rotation:
-    import yaml
-
-    meta = yaml.safe_load((bag / "metadata.yaml").read_text())["rosbag2_bagfile_information"]
-    w, x, y, z = json.loads(meta["custom_data"]["ficap.R_cap_head_q_wxyz"])
-    return Rotation.from_quat([x, y, z, w])
 
 
 def _true_positions(bag: Path) -> np.ndarray:
@@ -53,16 +30,8 @@ def _true_positions(bag: Path) -> np.ndarray:
     return np.array(out)
 
 
-def test_synth_bag_contents(drive: Path) -> None:
-    with AnyReader([drive]) as reader:
-        counts = {c.topic: c.msgcount for c in reader.connections}
-    assert counts == {t: FRAMES for t in (
-        synth_cmd.IMAGE_TOPIC, synth_cmd.CAMERA_INFO_TOPIC, synth_cmd.TRUTH_CAP_TOPIC,
-        synth_cmd.TRUTH_HEAD_TOPIC, synth_cmd.TRUTH_HEAD_CAMERA_TOPIC, synth_cmd.TRUTH_FRONTAL_TOPIC)}
-
-
-def test_replay_recovers_ground_truth(drive: Path, replayed: Path) -> None:
-    labels = read_labels(replayed)
+def test_replay_recovers_ground_truth(drive: Path, replayed_calibrated: Path) -> None:
+    labels = read_labels(replayed_calibrated)
     truth = read_series_bag(drive, synth_cmd.TRUTH_CAP_TOPIC)
     assert len(labels) == FRAMES and labels.has_pose.all()
     np.testing.assert_array_equal(labels.stamp_ns, truth.stamp_ns)  # stamped with image stamps
@@ -70,9 +39,9 @@ def test_replay_recovers_ground_truth(drive: Path, replayed: Path) -> None:
     # The foundation's accuracy at 540p: cap orientation median well under 0.5 deg.
     assert np.median(err_deg) < 0.5 and np.percentile(err_deg, 95) < 1.0
     # Frontal calibration from the first 2.9 s recovers how the cap sits on the head.
-    summary = json.loads((replayed / "summary.json").read_text())
+    summary = json.loads((replayed_calibrated / "summary.json").read_text())
     w, x, y, z = summary["calibration"]["R_cap_head_q_wxyz"]
-    cal_err = np.degrees((Rotation.from_quat([x, y, z, w]).inv() * _true_R_cap_head(drive)).magnitude())
+    cal_err = np.degrees((Rotation.from_quat([x, y, z, w]).inv() * true_R_cap_head(drive)).magnitude())
     assert cal_err < 0.5
     assert summary["frames"] == FRAMES and summary["frames_skipped"] == 0
     assert summary["pct_ge4_tags"] == 100.0 and summary["throughput_fps"] > 0
@@ -86,9 +55,9 @@ def test_replay_recovers_ground_truth(drive: Path, replayed: Path) -> None:
     np.testing.assert_allclose(labels.reliability, 0.5 ** labels.rot_err95_deg, atol=2e-3)
 
 
-def test_labels_bag_matches_csv(replayed: Path) -> None:
-    labels = read_labels(replayed)
-    for path in (replayed / "labels.mcap", replayed):  # single file, and the folder as a bag
+def test_labels_bag_matches_csv(replayed_calibrated: Path) -> None:
+    labels = read_labels(replayed_calibrated)
+    for path in (replayed_calibrated / "labels.mcap", replayed_calibrated):  # single file, and the folder as a bag
         with AnyReader([path]) as reader:
             counts = {c.topic: c.msgcount for c in reader.connections}
             assert counts == {t: FRAMES for t in (
@@ -119,18 +88,18 @@ def _tf_matrix(tr) -> np.ndarray:  # noqa: ANN001 - a decoded geometry_msgs/Tran
     return m
 
 
-def test_labels_tf_decodes_with_mcap_ros2(replayed: Path) -> None:
+def test_labels_tf_decodes_with_mcap_ros2(replayed_calibrated: Path) -> None:
     """labels.mcap's /tf, /head_rpy_deg and /quality read by the MCAP project's own ROS 2 decoder
     (mcap-ros2-support, as Foxglove's tooling does), and the TF chain composes to the labels."""
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
 
-    labels = read_labels(replayed)
-    summary = json.loads((replayed / "summary.json").read_text())
+    labels = read_labels(replayed_calibrated)
+    summary = json.loads((replayed_calibrated / "summary.json").read_text())
     w, x, y, z = summary["calibration"]["R_cap_head_q_wxyz"]
     R_cap_head = Rotation.from_quat([x, y, z, w]).as_matrix()
     tf, rpy, quality, schemas = {}, {}, {}, {}
-    with open(replayed / "labels.mcap", "rb") as f:
+    with open(replayed_calibrated / "labels.mcap", "rb") as f:
         reader = make_reader(f, decoder_factories=[DecoderFactory()])
         for schema, channel, message, msg in reader.iter_decoded_messages(
                 topics=["/tf", "/head_rpy_deg", "/quality"]):
@@ -162,14 +131,6 @@ def test_labels_tf_decodes_with_mcap_ros2(replayed: Path) -> None:
         assert values["reliability"] == pytest.approx(labels.reliability[k], abs=1e-4)
 
 
-def test_jobs_2_identical_to_jobs_1(drive: Path, replayed: Path, tmp_path: Path) -> None:
-    out = tmp_path / "j2"
-    assert main(["replay", str(drive), "--out", str(out), "--calibrate-frontal", "0:2.9",
-                 "--jobs", "2", "--quiet"]) == 0
-    assert (out / "labels.csv").read_bytes() == (replayed / "labels.csv").read_bytes()
-    assert (out / "labels.mcap").read_bytes() == (replayed / "labels.mcap").read_bytes()
-
-
 def test_jobs_2_progress_moves_frame_by_frame(drive: Path) -> None:
     """With --jobs the results come back a whole segment at a time, but the bar is fed the
     workers' shared frame counter: it moves through intermediate counts, never backwards."""
@@ -185,92 +146,6 @@ def test_jobs_2_progress_moves_frame_by_frame(drive: Path) -> None:
     assert len(frames) == FRAMES and seen[-1] == FRAMES
     assert all(a <= b for a, b in zip(seen, seen[1:]))
     assert len({n for n in seen if 0 < n < FRAMES}) >= 2  # not one jump from 0 to the segment
-
-
-def test_evaluate_head_against_truth(drive: Path, replayed: Path, tmp_path: Path) -> None:
-    out = tmp_path / "eval"
-    assert main(["evaluate", "--truth", str(replayed), "--estimate",
-                 f"{drive}:{synth_cmd.TRUTH_HEAD_TOPIC}", "--out", str(out), "--no-plots"]) == 0
-    rep = json.loads((out / "report.json").read_text())
-    assert rep["n_paired"] == FRAMES
-    assert rep["geodesic_deg"]["median"] < 0.5 and rep["geodesic_deg"]["p95"] < 1.0
-
-
-def test_stats_from_labels_and_bag_agree(drive: Path, replayed: Path, tmp_path: Path,
-                                         capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["stats", str(replayed), "--out", str(tmp_path / "s1")]) == 0
-    from_labels = json.loads((tmp_path / "s1" / "stats.json").read_text())
-    summary = json.loads((replayed / "summary.json").read_text())
-    assert from_labels["frames"] == summary["frames"]
-    assert from_labels["frames_ge4_tags"] == summary["frames_ge4_tags"]
-    assert sum(from_labels["reliability_histogram"]["counts"]) == summary["frames_with_pose"]
-    rates = from_labels["tag_detection_rate"]
-    assert len(rates) == 23 and all(0.0 <= v <= 1.0 for v in rates.values())
-    labels = read_labels(replayed)
-    assert sum(rates.values()) * FRAMES == pytest.approx(labels.tags_detected.sum())
-    assert (tmp_path / "s1" / "reliability_histogram.png").read_bytes()[:4] == b"\x89PNG"
-
-
-def test_calibrate_frontal_from_labels(drive: Path, replayed: Path, tmp_path: Path) -> None:
-    from ficap_ros.io.calibration_file import load_calibration
-
-    out = tmp_path / "cal.yaml"
-    assert main(["calibrate", str(replayed), "--frontal", "0:2.9", "--min-frames", "10",
-                 "--out", str(out)]) == 0
-    cal = load_calibration(out)
-    err = np.degrees((cal.R_cap_head.inv() * _true_R_cap_head(drive)).magnitude())
-    assert cal.calibrated and err < 0.5
-    # The file drives a replay: same head poses as the in-replay frontal calibration.
-    out2 = tmp_path / "withcal"
-    assert main(["replay", str(drive), "--out", str(out2), "--calibration", str(out),
-                 "--quiet"]) == 0
-    a, b = read_labels(replayed), read_labels(out2)
-    diff = np.degrees((a.head_rotations().inv() * b.head_rotations()).magnitude())
-    assert diff.max() < 1e-3
-
-
-def test_ctrl_c_leaves_no_partial_output(drive: Path, tmp_path: Path,
-                                         monkeypatch: pytest.MonkeyPatch) -> None:
-    import ficap_ros.tools.replay as replay_mod
-
-    calls = {"n": 0}
-    real = replay_mod._process_one
-
-    def interrupted(raw):  # noqa: ANN001, ANN202
-        calls["n"] += 1
-        if calls["n"] == 3:
-            raise KeyboardInterrupt
-        return real(raw)
-
-    monkeypatch.setattr(replay_mod, "_process_one", interrupted)
-    out = tmp_path / "out"
-    assert main(["replay", str(drive), "--out", str(out), "--quiet"]) == 130
-    assert list(tmp_path.iterdir()) == []  # no output, no temporary folder left beside it
-    # A previous output survives an interrupted re-run whole (replaced as a unit, or not at all).
-    monkeypatch.setattr(replay_mod, "_process_one", real)
-    assert main(["replay", str(drive), "--out", str(out), "--quiet"]) == 0
-    before = {p.name: p.read_bytes() for p in out.iterdir()}
-    calls["n"] = 0
-    monkeypatch.setattr(replay_mod, "_process_one", interrupted)
-    assert main(["replay", str(drive), "--out", str(out), "--quiet"]) == 130
-    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
-    assert [p.name for p in tmp_path.iterdir()] == ["out"]
-
-
-def test_replay_bad_inputs(drive: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    blocked = tmp_path / "file"
-    blocked.write_text("x")
-    cases = [
-        [str(tmp_path / "missing"), "--out", str(tmp_path / "o")],
-        [str(drive), "--out", str(blocked / "sub")],  # output under a file: not creatable
-        [str(drive), "--out", str(tmp_path / "o"), "--image-topic", "/nope"],
-        [str(drive), "--out", str(tmp_path / "o"), "--camera-info-topic", "/nope"],
-        [str(blocked), "--out", str(tmp_path / "o")],  # not a bag, not a video
-    ]
-    for args in cases:
-        assert main(["replay", *args, "--quiet"]) == 1
-        err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and err[0].startswith("ficap: error:"), err
 
 
 def test_keep_freed_memory_takes_on_glibc() -> None:
@@ -325,3 +200,33 @@ def test_records_take_the_runs_calibration_and_say_what_was_lost(drive: Path, tm
     posed = next(r for r in out.records if r.pose is not None)
     R_frontal_head = cal.R_cam_frontal.inv() * posed.T_cam_cap.rotation * cal.R_cap_head
     assert np.degrees((posed.T_frontal_head.rotation.inv() * R_frontal_head).magnitude()) < 1e-9
+
+
+def test_progress_is_per_frame_and_quiet_off_a_terminal() -> None:
+    from ficap_ros.tools.replay import Progress
+
+    class Tty(io.StringIO):
+        def isatty(self) -> bool:
+            return True
+
+    tty = Tty()
+    bar = Progress(5, "frames", tty)
+    for n in range(1, 6):
+        bar.update(1)
+        assert bar.n == n
+    bar.close()
+    assert "5/5" in tty.getvalue() and "frame/s" in tty.getvalue()
+    plain = io.StringIO()  # a log file: nothing
+    bar = Progress(5, "frames", plain)
+    bar.update(5)
+    bar.close()
+    assert plain.getvalue() == ""
+
+
+def test_jobs_are_capped_at_the_cores_available() -> None:
+    from ficap_ros.tools.replay import available_cores, capped_jobs
+
+    cores = available_cores()
+    assert capped_jobs(cores + 14) == (cores, f"--jobs {cores + 14} capped at {cores}, "
+                                              "the cores available")
+    assert capped_jobs(1) == (1, "")

@@ -10,9 +10,11 @@ from ficap_ros.errors import CalibrationError
 from ficap_ros.geometry.metrics import angle_deg, rotation_from_ypr_deg
 from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform
 from ficap_ros.vision.calibration import (
+    CalibrationRecorder,
     calibrate_frontal,
     calibrate_reference,
     frontal_from_camera_mount,
+    reference_pairs,
 )
 
 
@@ -75,8 +77,7 @@ def test_reference_recovers_both_rotations(seed: int) -> None:
     n = 300
     # Naturalistic head motion: yaw +-40, pitch +-15, roll +-8 deg.
     ypr = rng.uniform([-40, -15, -8], [40, 15, 8], size=(n, 3))
-    # (Pitch mirrored: the same rotations this test drew before head angles became REP-103; the
-    # sign does not matter to the calibration, so the seeded sample is kept.)
+    # (Pitch drawn with the opposite sign: the calibration does not depend on it.)
     R_ref_head_true = Rotation.concatenate([rotation_from_ypr_deg(a[0], -a[1], a[2]) for a in ypr])
     R_cam_cap = R_cam_ref * R_ref_head_true * R_cap_head.inv() * _noise(rng, n, 0.3)
     R_ref_head = R_ref_head_true * _noise(rng, n, 2.0)  # 2 deg per axis reference noise
@@ -113,3 +114,30 @@ def test_frontal_frame_from_camera_mount_axes() -> None:
     # Camera yawed to the left: vehicle forward appears to the right of the image centre (+x).
     fwd_cam = frontal_from_camera_mount(_mount(yaw_left_deg=15.0)).apply([1.0, 0.0, 0.0])
     assert fwd_cam[0] > 0 and np.degrees(np.arctan2(fwd_cam[0], fwd_cam[2])) == pytest.approx(15.0)
+
+
+T0 = 10**9
+DT = 33_333_333
+
+
+def test_recorder_pairs_one_to_one_as_the_cli() -> None:
+    """References at twice the camera rate: each cap pose pairs with one reference (the nearest),
+    in the recorder (live) exactly as in ``reference_pairs`` (``ficap calibrate``)."""
+    rng = np.random.default_rng(3)
+    cap_ns = T0 + np.arange(40) * DT
+    ref_ns = T0 + np.arange(80) * 16_666_667 + 1_000_000
+    R_cap = Rotation.from_rotvec(rng.normal(0, 0.3, (40, 3)))
+    R_ref = Rotation.from_rotvec(rng.normal(0, 0.3, (80, 3)))
+    rec = CalibrationRecorder()
+    for s, r in zip(cap_ns, R_cap):
+        rec.add_cap(int(s), r, 1.0)
+    for s, r in zip(ref_ns, R_ref):
+        rec.add_reference(int(s), r.as_quat())
+    i_cap, i_ref = reference_pairs(cap_ns, ref_ns, 20_000_000)
+    assert i_cap.size == 40 and len(set(i_ref.tolist())) == 40  # one-to-one
+    assert np.abs(ref_ns[i_ref] - cap_ns[i_cap]).max() < 1_000_100  # the nearest, 1 ms late
+    q_cap, q_ref = rec.pairs(20_000_000)
+    assert np.array_equal(q_cap, R_cap[i_cap].as_quat())
+    assert np.array_equal(q_ref, R_ref[i_ref].as_quat())
+    q_cap, _ = rec.pairs(20_000_000, max_pairs=7)
+    assert len(q_cap) == 7

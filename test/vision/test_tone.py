@@ -68,3 +68,22 @@ def test_scalar_inverse_clips_and_agrees_with_the_array_inverse(y: float) -> Non
 def test_unknown_tone_is_a_config_error() -> None:
     with pytest.raises(ConfigError, match="tone"):
         tone_curve(np.array([0.5]), "sepia")
+
+
+@pytest.mark.parametrize("tone, gamma", [("srgb", 2.2), ("gamma", 1.8), ("gamma", 2.2), ("filmic", 2.2),
+                                         ("linear", 2.2)])
+def test_tone_curves_monotone_and_fix_black_and_white(tone: str, gamma: float) -> None:
+    v = np.linspace(0.0, 1.0, 100_001)
+    y = tone_curve(v, tone, gamma)
+    assert y[0] == 0.0 and abs(y[-1] - 1.0) < 1e-12
+    assert np.all(np.diff(y) > 0.0)  # strictly increasing
+    assert np.all(tone_curve(np.array([-0.5, 2.0]), tone, gamma) == [0.0, 1.0])  # clipped
+    if tone != "linear":
+        assert tone_curve(np.array([0.18]), tone, gamma)[0] > 0.18  # lifts the mid-tones
+    if tone == "srgb":
+        assert np.allclose(srgb_to_linear(y), v, atol=1e-9)
+        assert abs(tone_curve(np.array([0.5]), "srgb")[0] - 0.735357) < 1e-5  # IEC 61966-2-1
+    if tone == "filmic":
+        # An S-curve on the sRGB value: flatter than sRGB in the toe and the shoulder.
+        s = tone_curve(v, "srgb")
+        assert np.all(y[1:5000] < s[1:5000]) and np.all(y[-5000:-1] > s[-5000:-1])

@@ -97,7 +97,7 @@ def test_ray_fleet_identical_resumable_and_reports_damage(
     assert main(["replay", str(fleet_in / "bob/cut.mcap"), "--out", str(cut_ref), "--quiet"]) == 3
     out = tmp_path / "out"
     args = ["replay", str(fleet_in), "--out", str(out), "--ray", "--jobs", "2", "--quiet"]
-    # The cut recording yields its frames before the cut (issue 13's recovery): "damaged", and
+    # The cut recording yields its frames before the cut (io.salvage): "damaged", and
     # the fleet exits 3 as a single replay of it would.
     assert main(args) == 3
     printed = capsys.readouterr().out

@@ -1,0 +1,199 @@
+"""ficap_ros.io.image_codec: every raw encoding decoded to grey (padded rows, both byte orders, Bayer
+mosaics, YUV), JPEG and PNG payloads, the pixel budget, and bad data (random or damaged) raising
+only ``ImageError``."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+from mutations import mutated
+
+from ficap_ros.errors import ImageError
+from ficap_ros.io.image_codec import ENCODINGS, decode_compressed, decode_image
+
+W, H = 64, 48
+IMAGE = np.random.default_rng(1).integers(0, 256, (48, 64), dtype=np.uint8)
+JPEG = cv2.imencode(".jpg", IMAGE)[1].tobytes()
+PNG = cv2.imencode(".png", IMAGE)[1].tobytes()
+
+
+def test_decode_image_encodings() -> None:
+    rng = np.random.default_rng(0)
+    bgr = rng.integers(0, 256, (H, W, 3), dtype=np.uint8)
+    grey = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
+    rgb = bgr[:, :, ::-1].copy()
+    bgra = cv2.cvtColor(bgr, cv2.COLOR_BGR2BGRA)
+    rgba = cv2.cvtColor(bgr, cv2.COLOR_BGR2RGBA)
+    for enc, arr in (("bgr8", bgr), ("rgb8", rgb), ("bgra8", bgra), ("rgba8", rgba)):
+        out = decode_image(enc, H, W, arr.strides[0], arr.tobytes(), False)
+        assert np.abs(out.astype(int) - grey).max() <= 1, enc
+    # Padded rows (step > width) and 16-bit in both byte orders.
+    padded = np.zeros((H, W + 8), np.uint8)
+    padded[:, :W] = grey
+    np.testing.assert_array_equal(decode_image("mono8", H, W, W + 8, padded.tobytes()), grey)
+    m16 = grey.astype(np.uint16) * 257
+    np.testing.assert_array_equal(decode_image("mono16", H, W, 2 * W, m16.astype("<u2").tobytes(), 0), m16)
+    np.testing.assert_array_equal(decode_image("mono16", H, W, 2 * W, m16.astype(">u2").tobytes(), 1), m16)
+    # Bayer RGGB of a flat colour demosaics to a flat grey close to the colour's luminance.
+    bayer = np.zeros((H, W), np.uint8)
+    bayer[0::2, 0::2], bayer[0::2, 1::2], bayer[1::2, 0::2], bayer[1::2, 1::2] = 200, 100, 100, 40
+    out = decode_image("bayer_rggb8", H, W, W, bayer.tobytes())
+    expect = 0.299 * 200 + 0.587 * 100 + 0.114 * 40
+    assert abs(float(np.median(out)) - expect) < 3
+    with pytest.raises(ImageError, match="encoding"):
+        decode_image("32FC1", H, W, 4 * W, b"\x00" * 4 * W * H)
+    with pytest.raises(ImageError, match="bytes"):
+        decode_image("mono8", H, W, W, b"\x00" * 10)
+    with pytest.raises(ImageError):
+        decode_compressed(b"not an image")
+
+
+@settings(suppress_health_check=[HealthCheck.too_slow])
+@given(encoding=st.one_of(st.sampled_from(ENCODINGS), st.text(max_size=12)),
+       height=st.integers(-3, 70), width=st.integers(-3, 70), step=st.integers(-3, 300),
+       data=st.binary(max_size=6000), big_endian=st.booleans())
+def test_decode_image_raises_only_image_error(encoding: str, height: int, width: int, step: int,
+                                              data: bytes, big_endian: bool) -> None:
+    try:
+        img = decode_image(encoding, height, width, step, data, big_endian)
+    except ImageError:
+        return
+    assert img.shape == (height, width)
+
+
+@given(data=st.one_of(st.binary(max_size=3000), mutated(JPEG), mutated(PNG)))
+def test_decode_compressed_raises_only_image_error(data: bytes) -> None:
+    try:
+        img = decode_compressed(data, "jpeg")
+    except ImageError:
+        return
+    assert img.ndim == 2 and img.dtype == np.uint8
+
+
+def test_the_pixel_budget_follows_ficap_max_pixels(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("FICAP_MAX_PIXELS", "1000")
+    with pytest.raises(ImageError, match="budget"):
+        decode_image("mono8", 48, 64, 64, bytes(48 * 64))
+
+
+def _bgr(seed: int = 2) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, 256, (H, W, 3), dtype=np.uint8)
+
+
+def _raw(encoding: str, bgr: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(the raw array of ``bgr`` in ``encoding``, the grey image a correct decoder gives)."""
+    grey = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY)
+    if encoding in ("mono8", "8uc1"):
+        return grey, grey
+    if encoding in ("mono16", "16uc1"):
+        return grey.astype(np.uint16) * 257, grey.astype(np.uint16) * 257
+    if encoding in ("bgr8", "8uc3"):
+        return bgr, grey
+    if encoding == "rgb8":
+        return bgr[..., ::-1].copy(), grey
+    if encoding in ("bgra8", "8uc4"):
+        return cv2.cvtColor(bgr, cv2.COLOR_BGR2BGRA), grey
+    if encoding == "rgba8":
+        return cv2.cvtColor(bgr, cv2.COLOR_BGR2RGBA), grey
+    if encoding.endswith("16") and not encoding.startswith(("mono", "bayer")):
+        eight, _ = _raw(encoding[:-2] + "8", bgr)
+        return eight.astype(np.uint16) * 257, grey.astype(np.uint16) * 257
+    if encoding in ("yuv422", "uyvy", "yuv422_yuy2", "yuyv"):
+        # A flat colour: every Y sample is its luma, U and V its chroma (BT.601, as OpenCV).
+        y = np.full((H, W), grey[0, 0], np.uint8)
+        c = np.full((H, W), 128, np.uint8)
+        pairs = np.stack([c, y], axis=-1) if encoding in ("yuv422", "uyvy") else np.stack([y, c], axis=-1)
+        return pairs, y
+    raise AssertionError(encoding)
+
+
+@pytest.mark.parametrize("encoding", [e for e in ENCODINGS if not e.startswith("bayer_")])
+@pytest.mark.parametrize("pad", [0, 6])
+def test_every_encoding_decodes_to_its_grey_with_padded_rows(encoding: str, pad: int) -> None:
+    """Each raw encoding (channels, order, depth, little-endian) to the grey OpenCV would make."""
+    bgr = _bgr()
+    if encoding in ("yuv422", "uyvy", "yuv422_yuy2", "yuyv"):
+        bgr[:] = bgr[0, 0]
+    arr, want = _raw(encoding, bgr)
+    rows = arr.reshape(H, -1).view(np.uint8) if arr.dtype == np.uint16 else arr.reshape(H, -1)
+    step = rows.shape[1] + pad
+    data = np.full((H, step), 99, np.uint8)  # padding bytes that must be ignored
+    data[:, : rows.shape[1]] = rows
+    out = decode_image(encoding.upper() if pad else encoding, H, W, step, data.tobytes())
+    assert out.shape == (H, W)
+    # 16-bit samples stay 16 bit (``as_gray`` scales them), colour ones too.
+    assert out.dtype == (np.uint16 if encoding.endswith("16") or encoding == "16uc1" else np.uint8)
+    tolerance = 257 if out.dtype == np.uint16 else 1
+    assert np.abs(out.astype(int) - want.astype(int)).max() <= tolerance, encoding
+
+
+def test_a_last_row_without_its_padding_and_bad_sizes() -> None:
+    grey = _bgr()[..., 0].copy()
+    padded = np.zeros((H, W + 4), np.uint8)
+    padded[:, :W] = grey
+    short = padded.tobytes()[:-4]  # the last row's padding left off, as some drivers send
+    np.testing.assert_array_equal(decode_image("mono8", H, W, W + 4, short), grey)
+    with pytest.raises(ImageError, match="more than"):
+        decode_image("mono8", H, W, W, grey.tobytes() + b"\0")
+    with pytest.raises(ImageError, match="no pixels"):
+        decode_image("mono8", 0, W, W, b"")
+    with pytest.raises(ImageError, match="smaller than a bgr8 row"):
+        decode_image("bgr8", H, W, W, bytes(3 * W * H))
+    with pytest.raises(ImageError, match="not integers"):
+        decode_image("mono8", "tall", W, W, grey.tobytes())
+    with pytest.raises(ImageError, match="unsupported image encoding"):
+        decode_image("32FC1", H, W, 4 * W, bytes(4 * W * H))
+    # A numpy array is a byte buffer too (rclpy's data field is one).
+    np.testing.assert_array_equal(decode_image("mono8", H, W, W, grey.reshape(-1)), grey)
+
+
+def test_encoding_layouts() -> None:
+    from ficap_ros.io.image_codec import encoding_layout
+
+    assert encoding_layout("MONO8") == (1, 1) and encoding_layout("rgba16") == (4, 2)
+    assert encoding_layout(" yuyv ") == (2, 1) and encoding_layout("bayer_gbrg16") == (1, 2)
+    assert len(ENCODINGS) == len(set(ENCODINGS)) and "bayer_rggb8" in ENCODINGS
+    with pytest.raises(ImageError):
+        encoding_layout("hsv8")
+
+
+def test_jpeg_and_png_decode_to_grey() -> None:
+    colour = cv2.GaussianBlur(_bgr(), (5, 5), 0)
+    grey = cv2.cvtColor(colour, cv2.COLOR_BGR2GRAY)
+    png = cv2.imencode(".png", colour)[1].tobytes()
+    out = decode_compressed(png, "png")
+    assert out.dtype == np.uint8 and out.shape == (H, W)
+    assert np.abs(out.astype(int) - grey).max() <= 1  # lossless, then OpenCV's own grey
+    jpg = cv2.imencode(".jpg", grey, [cv2.IMWRITE_JPEG_QUALITY, 95])[1]
+    out = decode_compressed(jpg)  # a numpy buffer, no format given: OpenCV sniffs the codec
+    assert np.abs(out.astype(int) - grey).mean() < 3
+    with pytest.raises(ImageError, match="cannot decode compressed jpeg image"):
+        decode_compressed(b"\xff\xd8 not a jpeg", "jpeg")
+    with pytest.raises(ImageError, match="empty"):
+        decode_compressed(b"")
+
+
+def test_the_pixel_budget_and_its_environment_variable(monkeypatch: pytest.MonkeyPatch) -> None:
+    from ficap_ros.io.image_codec import (
+        DEFAULT_MAX_PIXELS,
+        check_pixel_budget,
+        max_pixels,
+    )
+
+    for text, budget in (("", DEFAULT_MAX_PIXELS), ("5000", 5000), (" 77 ", 77),
+                         ("-5", DEFAULT_MAX_PIXELS), ("0", DEFAULT_MAX_PIXELS),
+                         ("lots", DEFAULT_MAX_PIXELS)):
+        monkeypatch.setenv("FICAP_MAX_PIXELS", text)
+        assert max_pixels() == budget, text
+    monkeypatch.delenv("FICAP_MAX_PIXELS")
+    assert max_pixels() == DEFAULT_MAX_PIXELS == 40_000_000
+    check_pixel_budget(100, 50, budget=5000)  # exactly the budget: taken
+    with pytest.raises(ImageError, match=r"frame is 100x51 \(0.0 MP\), above the 0.0 MP budget"):
+        check_pixel_budget(100, 51, "frame", budget=5000)
+    png = cv2.imencode(".png", np.zeros((60, 100), np.uint8))[1].tobytes()
+    monkeypatch.setenv("FICAP_MAX_PIXELS", "5999")
+    with pytest.raises(ImageError, match="budget"):
+        decode_compressed(png)  # checked on the decoded size
