@@ -24,7 +24,7 @@ import yaml
 from ficap_ros.errors import IntrinsicsError
 from ficap_ros.files import read_text
 
-__all__ = ["CameraModel", "DISTORTION_MODELS", "load_camera_yaml"]
+__all__ = ["CameraModel", "CameraTiming", "DISTORTION_MODELS", "ROW_ORDERS", "load_camera_yaml"]
 
 #: Largest image side accepted in intrinsics: beyond any camera, so a larger value is a typo or a
 #: hostile file (the pixel budget of ``image_codec`` bounds the images themselves).
@@ -37,6 +37,62 @@ DISTORTION_MODELS: dict[str, int] = {
     "rational_polynomial": 8,
     "equidistant": 4,
 }
+
+
+#: Orders in which a rolling shutter reads its rows (``CameraTiming.row_order``).
+ROW_ORDERS = ("top_to_bottom", "bottom_to_top")
+
+
+@dataclass(frozen=True)
+class CameraTiming:
+    """When a camera's pixels see the scene, relative to the image's stamp.
+
+    Convention: ``stamp + stamp_offset_ms`` is the middle of the middle row's exposure (the
+    instant a global-shutter image shows, and the instant poses are reported at). A rolling
+    shutter exposes row ``y`` (pixel-centre coordinate, OpenCV's convention) centred on that
+    instant plus ``row_time_s(y)``: ``(y + 0.5 - H / 2) / H * readout_ms``, rows read in
+    ``row_order``; every row integrates light for ``exposure_ms`` around its centre.
+
+    Attributes:
+        exposure_ms: each row's exposure time, ms; 0 = not known (no motion blur modelled).
+        readout_ms: time between the first and the last row's exposure centres, ms; 0 = a
+            global shutter.
+        row_order: ``top_to_bottom`` or ``bottom_to_top`` (``ROW_ORDERS``).
+        stamp_offset_ms: added to a stamp to reach the middle row's mid-exposure: 0 for drivers
+            that stamp it; ``(exposure_ms + readout_ms) / 2`` for a stamp at the start of the
+            first row's exposure; negative for a stamp at the end of the frame.
+    """
+
+    exposure_ms: float = 0.0
+    readout_ms: float = 0.0
+    row_order: str = "top_to_bottom"
+    stamp_offset_ms: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.row_order not in ROW_ORDERS:
+            raise IntrinsicsError(f"row_order must be one of {', '.join(ROW_ORDERS)}, "
+                                  f"got {self.row_order!r}")
+        for name in ("exposure_ms", "readout_ms"):
+            value = getattr(self, name)
+            if not (math.isfinite(value) and 0.0 <= value <= 1000.0):
+                raise IntrinsicsError(f"{name} must be in [0, 1000] ms, got {value}")
+        if not (math.isfinite(self.stamp_offset_ms) and abs(self.stamp_offset_ms) <= 1000.0):
+            raise IntrinsicsError(f"stamp_offset_ms must be in [-1000, 1000] ms, "
+                                  f"got {self.stamp_offset_ms}")
+
+    @property
+    def rolling(self) -> bool:
+        """Whether rows are exposed at different times (a rolling shutter)."""
+        return self.readout_ms > 0.0
+
+    def row_time_s(self, y_px: np.ndarray, height_px: int) -> np.ndarray:
+        """Time of row ``y_px`` (pixel-centre coordinates, any shape) relative to the middle
+        row's mid-exposure, s: negative for rows exposed earlier."""
+        y = np.asarray(y_px, dtype=np.float64)
+        frac = (y + 0.5 - 0.5 * height_px) / float(height_px)
+        if self.row_order == "bottom_to_top":
+            frac = -frac
+        return frac * (self.readout_ms * 1e-3)
 
 
 @dataclass(frozen=True, eq=False)

@@ -153,3 +153,28 @@ def test_camera_yaml_round_trip_of_a_plumb_bob_file(tmp_path) -> None:
     np.testing.assert_allclose(back.K, cam.K)
     np.testing.assert_allclose(back.D, cam.D)
     assert back.distortion_model == "plumb_bob"
+
+
+def test_camera_timing_row_times_follow_the_stamp_convention() -> None:
+    """The middle row is the stamp's instant; rows read top to bottom over ``readout_ms`` are
+    spread evenly around it, and a global shutter (readout 0) exposes every row at the stamp."""
+    from ficap_ros.geometry.camera import CameraTiming
+
+    rs = CameraTiming(exposure_ms=16.7, readout_ms=22.0)
+    h = 540
+    t = rs.row_time_s(np.array([-0.5, h / 2 - 0.5, h - 0.5]), h)
+    np.testing.assert_allclose(t, [-0.011, 0.0, 0.011], atol=1e-15)
+    assert rs.rolling and not CameraTiming(exposure_ms=16.7).rolling
+    flipped = CameraTiming(readout_ms=22.0, row_order="bottom_to_top").row_time_s(np.array([0.0]), h)
+    np.testing.assert_allclose(flipped, -rs.row_time_s(np.array([0.0]), h))
+    np.testing.assert_array_equal(CameraTiming().row_time_s(np.arange(4.0), 4), np.zeros(4))
+
+
+@pytest.mark.parametrize("kwargs", [{"readout_ms": -1.0}, {"exposure_ms": float("nan")},
+                                    {"row_order": "sideways"}, {"stamp_offset_ms": 1e9}])
+def test_camera_timing_refuses_impossible_values(kwargs) -> None:
+    from ficap_ros.errors import IntrinsicsError
+    from ficap_ros.geometry.camera import CameraTiming
+
+    with pytest.raises(IntrinsicsError):
+        CameraTiming(**kwargs)
