@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import sys
 
+import cv2
 import numpy as np
 
 from _lib import cli, report
@@ -40,8 +41,6 @@ def measure(resolution: str, lighting: str, stride: int) -> dict[str, np.ndarray
     procs = {m.name: m.processor() for m in METHODS}
     err: dict[str, list[float]] = {m.name: [] for m in METHODS}
     for f in frames:
-        import cv2
-
         gray = cv2.imdecode(f.jpeg, cv2.IMREAD_GRAYSCALE)
         for name, proc in procs.items():
             r = proc.process(gray, camera, f.stamp_ns)
@@ -75,8 +74,6 @@ def main(argv: list[str] | None = None) -> int:
     ap = cli.parser(__doc__, quick="every 60th frame (30 a condition) instead of every 12th (150)")
     ap.add_argument("--stride", type=int, default=None, help="render every N-th frame of the drive (default 12)")
     args = ap.parse_args(argv)
-    import cv2
-
     cv2.setNumThreads(1)
     run = report.Run()
     stride = args.stride or (60 if args.quick else 12)

@@ -20,7 +20,13 @@ import numpy as np
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.geometry.transform import Transform
-from ficap_ros.tools.synth import RENDER_VERSION, RenderConfig, default_scene, naturalistic_drive, render
+from ficap_ros.tools.synth import (
+    RENDER_VERSION,
+    RenderConfig,
+    default_scene,
+    naturalistic_drive,
+    render,
+)
 
 FRAME_NS = 33_333_333  # 30 fps
 
