@@ -29,7 +29,7 @@ SECTIONS: dict[str, str] = {
     "accuracy": "Accuracy on synth drives (the paper's Table 1)",
     "blender_pose": "Accuracy on blender_dev (independent path-traced renders)",
     "corners": "Corners on blender_dev and synth",
-    "uncertainty": "Uncertainty: coverage and sharpness of the 95 % bounds",
+    "uncertainty": "Calibrated uncertainty: coverage and sharpness of the 95 % bounds",
     "calibration": "Head calibration against a reference (the paper's Table 2)",
     "model_build": "As-built cap model",
     "visibility": "Visibility and camera placement (the paper's section 6)",
