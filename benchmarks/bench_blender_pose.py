@@ -57,10 +57,11 @@ def plot(results: dict[str, dict[str, dict[str, np.ndarray]]]) -> str:
             vals = [q(results[n][m.name][key], 50) for n in names]
             ax.bar(x + (k - 1) * 0.27, vals, 0.27, label=m.name)
         ax.set_yscale("log")
+        ax.set_ylim(top=ax.get_ylim()[1] * 5)  # room for the legend above the bars
         ax.set_xticks(x, [n.replace("dev_", "") for n in names], rotation=40, ha="right", fontsize=8)
         ax.set_ylabel(label)
         ax.grid(True, axis="y", alpha=0.3)
-    axes[0].legend(fontsize=8)
+    axes[0].legend(fontsize=8, ncol=3, loc="upper left")
     fig.suptitle("Pose error on blender_dev (nominal cap model)")
     fig.tight_layout()
     return report.save_figure(fig, "blender_pose")

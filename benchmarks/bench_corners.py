@@ -133,10 +133,11 @@ def plot(labels: list[str], stats: list[dict[str, CornerStats]]) -> str:
     for k, name in enumerate(METHODS):
         ax.bar(x + (k - 1.5) * 0.2, [s[name].values()[0] for s in stats], 0.2, label=name)
     ax.set_yscale("log")
+    ax.set_ylim(top=8.0)  # room for the legend above the bars
     ax.set_xticks(x, labels, rotation=40, ha="right", fontsize=7)
     ax.set_ylabel("corner error, median (px)")
     ax.grid(True, axis="y", alpha=0.3)
-    ax.legend(fontsize=8)
+    ax.legend(fontsize=8, ncol=4, loc="upper left")
     ax.set_title("Corner error by set and condition (clean tags within 70 deg)")
     fig.tight_layout()
     return report.save_figure(fig, "corners")

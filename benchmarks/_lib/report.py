@@ -162,7 +162,7 @@ def regenerate_index() -> None:
         text = path.read_text()
         # Images sit beside the section files: from docs/ they are under benchmarks/.
         parts.append(re.sub(r"\]\(\./", "](benchmarks/", text).strip())
-        anchor = re.sub(r"[^a-z0-9 -]", "", title.lower()).replace(" ", "-")
+        anchor = re.sub(r"[^a-z0-9 _-]", "", title.lower()).replace(" ", "-")
         contents.append(f"- [{title}](#{anchor}) (`benchmarks/bench_{name}.py`)")
     text = INDEX_HEAD + "\n" + "\n".join(contents) + "\n\n" + "\n\n".join(parts) + "\n"
     tmp = INDEX.with_suffix(".md.tmp")
