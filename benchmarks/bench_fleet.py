@@ -21,6 +21,7 @@ import numpy as np
 
 from _lib import cli, report
 from _lib.timing import ficap_command, run_child
+from ficap_ros.tools.replay import SEGMENT_FRAMES
 from ficap_ros.tools.synth import RENDER_VERSION
 
 ENGINES = {
@@ -44,13 +45,13 @@ def fleet(cache: Path, recordings: int, frames: int) -> Path:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = cli.parser(__doc__, quick="2 recordings of 30 frames, 1 round (full: 4 of 90, 2 rounds)")
+    ap = cli.parser(__doc__, quick="2 recordings of 150 frames, 1 round (full: 4 of 300, 2 rounds)")
     ap.add_argument("--recordings", type=int, default=None, help="recordings in the fleet (default 4)")
-    ap.add_argument("--frames", type=int, default=None, help="frames per recording (default 90)")
+    ap.add_argument("--frames", type=int, default=None, help="frames per recording (default 300)")
     ap.add_argument("--rounds", type=int, default=None, help="alternated rounds (default 2)")
     args = ap.parse_args(argv)
     recordings = args.recordings or (2 if args.quick else 4)
-    frames = args.frames or (30 if args.quick else 90)
+    frames = args.frames or (150 if args.quick else 300)
     rounds = args.rounds or (1 if args.quick else 2)
     env = cli.ros_environment()
     run = report.Run()
@@ -76,12 +77,17 @@ def main(argv: list[str] | None = None) -> int:
     table = report.md_table(["engine", "recordings", "frames", "wall s (median, start-up included)", "frames/s",
                              "CPU s (command and the processes it waited for)", "wall vs --jobs 1"], rows)
     ray1 = float(np.median(wall["Ray embedded, --jobs 1"])) - base
-    body = (f"{table}\n\nOn this 2-core machine shared with other jobs a second worker buys what the "
-            "other core has free. Ray's fixed cost here is its start and its workers' imports "
-            f"(Ray with one worker against `--jobs 1`: {ray1:+.1f} s wall; the CPU column leaves out Ray's "
-            "daemons, which the command does not wait for); on a cluster "
-            "(`--ray-address`) the 128-frame segments of every recording spread over its nodes, with "
-            "labels byte-identical to `--jobs 1` (docs/fleet.md).")
+    jobs2 = base / float(np.median(wall["processes, --jobs 2"]))
+    ray2 = base / float(np.median(wall["Ray embedded, --jobs 2"]))
+    body = (f"{table}\n\nA recording is cut into segments of {SEGMENT_FRAMES} frames (tracking restarts at "
+            "each), and the segments go to the workers, so a recording shorter than a segment gains "
+            f"nothing from a second worker. Here two workers run {jobs2:.2f}x as fast as one with "
+            f"processes and {ray2:.2f}x with Ray, on a 2-core machine shared with other jobs (a second "
+            "worker buys what the other core has free). Ray's fixed cost is its start and its workers' "
+            f"imports (Ray with one worker against `--jobs 1`: {ray1:+.1f} s wall; the CPU column leaves "
+            "out Ray's daemons, which the command does not wait for). On a cluster (`--ray-address`) "
+            "the segments of every recording spread over its nodes, with labels byte-identical to "
+            "`--jobs 1` (docs/fleet.md).")
     what = ("What it measures: a fleet replay's wall time and throughput with the process engine "
             f"and an embedded Ray, 1 and 2 workers, over {recordings} synth 540p recordings of "
             f"{frames} frames (the whole command, start-up included; engines alternated, medians).")
