@@ -14,10 +14,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="detector backend (default: opencv)")
     parser.add_argument("--refine", choices=("edge", "subpix", "apriltag", "none"), default="edge",
                         help="corner refinement (default: edge)")
-    parser.add_argument("--photometric", action="store_true",
+    parser.add_argument("--photometric", action=argparse.BooleanOptionalAction, default=True,
                         help="with edge refinement: fit each tag's pattern, blurred in linear light and "
-                             "through a tone curve, to its pixels (more accurate on noisy frames, "
-                             "~ms per tag; docs/detection.md)")
+                             "through a tone curve, to its pixels (default; more accurate on noisy "
+                             "frames); --no-photometric: the cell-edge fit's corners (docs/detection.md)")
 
 
 def run(args: argparse.Namespace) -> int:

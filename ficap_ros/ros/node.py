@@ -57,6 +57,7 @@ from ficap_ros.ros.live_calibration import LiveCalibration, compute_calibration
 from ficap_ros.ros.mailbox import Mailbox
 from ficap_ros.ros.spin import run_node
 from ficap_ros.vision.calibration import CalibrationResult, HeadCalibration
+from ficap_ros.vision.jit import warm_up
 
 __all__ = ["FicapNode", "main"]
 
@@ -76,6 +77,8 @@ class FicapNode(Node):
 
         # Core objects: the pipeline, the intrinsics, the calibration (swapped whole, under a lock).
         self._processor = live.frame_processor(cfg)
+        # The compiled kernels loaded (or compiled) now: no frame waits for them.
+        self.kernels_warm_up_s = warm_up()
         self._cameras = CameraInfoCache.with_file(cfg.camera_info_file)
         if self._cameras.static_error:
             self.get_logger().error(self._cameras.static_error)
@@ -99,7 +102,8 @@ class FicapNode(Node):
         self.get_logger().info(
             f"ficap_node ready: {cfg.image_transport} images on {self._image_sub.topic_name}, "
             f"pose method {cfg.pose_method}, "
-            f"{'calibrated' if self.calibration.calibrated else 'not calibrated'}")
+            f"{'calibrated' if self.calibration.calibrated else 'not calibrated'}, "
+            f"kernels ready in {self.kernels_warm_up_s:.1f} s")
 
     def _subscribe(self, cfg: ros_params.NodeConfig) -> None:
         """The image, CameraInfo and reference subscriptions (callback groups: frames and side

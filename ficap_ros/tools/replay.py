@@ -410,7 +410,7 @@ def replay(
         summary_extra: more fields for summary.json (the fleet's fingerprint).
         detector: detector settings (default ``DetectorConfig()``): ``process_frames``'s; an
             ``engine`` carries its own, and this only records them (summary.json's
-            ``photometric``).
+            ``photometric``, false when the corners are not the photometric fit's).
 
     Raises:
         BagError: unreadable input. OutputError: an output that is or holds the input, a folder
@@ -464,8 +464,8 @@ def _replay_into(
         "image_topic": source.image_topic,
         "camera_info_topic": source.camera_info_topic,
         "method": pose.method,
-        # Only when on (the default runs' summaries name no detector setting).
-        **({"photometric": True} if detector is not None and detector.edge_photometric else {}),
+        # Only when off (the default runs' summaries name no detector setting).
+        **({"photometric": False} if detector is not None and not detector.photometric_corners else {}),
         "jobs": jobs,
         **_summary(frames, elapsed),
         # A damaged input: frames_lost is None when the container cannot say how many.

@@ -11,8 +11,8 @@ stage (``refine_tag_corners``) removes that bias with the tag's own pattern:
 2. ``fit_tag_edges``: the tag's homography fitted to every black/white cell boundary at once,
    with one free shift per boundary direction.
 3. Tags the fit refused, or whose cells then read wrong, are fitted again from other starts.
-4. Optionally (``DetectorConfig.edge_photometric``) the photometric fit of the whole pattern
-   (``fit_tags_photometric``, ``ficap_ros.vision.photometric``).
+4. The photometric fit of the whole pattern (``fit_tags_photometric``,
+   ``ficap_ros.vision.photometric``; ``DetectorConfig.edge_photometric``, on by default).
 5. Tags too small or oblique to measure their own shift take the line estimator's bias measured
    on the fitted tags of the same call (``_line_bias``).
 """
@@ -664,7 +664,7 @@ def _solve_grouped(
     return sol, solved, resid
 
 
-# --- Step 4 (optional): the photometric fit -------------------------------------------------
+# --- Step 4: the photometric fit ------------------------------------------------------------
 def fit_tags_photometric(
     gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray, **kwargs: Any,
 ) -> tuple[np.ndarray, np.ndarray]:

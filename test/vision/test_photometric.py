@@ -1,4 +1,4 @@
-"""The tag-level photometric corner fit (``DetectorConfig(edge_photometric=True)``).
+"""The tag-level photometric corner fit (the corner stage's last step: ``DetectorConfig()``).
 
 On ``ficap synth`` frames rendered through the realistic chain (lens PSF in linear light, shot and
 read noise, clipping, a tone curve, JPEG) with exact truth: the fit, run as the corner stage's last
@@ -20,8 +20,8 @@ from ficap_ros.vision.corners import fit_tags_photometric
 from ficap_ros.vision.detector import DetectorConfig, TagDetector
 from ficap_ros.vision.tracking import view_angles_deg
 
-EDGE = TagDetector(DetectorConfig())
-PHOTO = TagDetector(DetectorConfig(edge_photometric=True))
+EDGE = TagDetector(DetectorConfig(edge_photometric=False))
+PHOTO = TagDetector(DetectorConfig())
 
 
 @pytest.mark.parametrize(
