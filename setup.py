@@ -8,7 +8,7 @@ package_name = "ficap_ros"
 
 setup(
     name=package_name,
-    version="0.2.0",
+    version="0.3.0",
     packages=find_packages(exclude=["test", "test.*", "benchmarks"]),
     package_data={package_name: ["py.typed", "data/*"]},
     data_files=[
