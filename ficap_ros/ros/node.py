@@ -160,6 +160,7 @@ class FicapNode(Node):
         self._config = cfg = ros_params.NodeConfig.from_values(ros_params.current_values(self))
         self._mount = cfg.mount
         self._processor.pose_config = cfg.pose_config
+        self._processor.timing = live.camera_timing(cfg)
         if any(p.name == "camera_mount" for p in params):
             self._calibration.set_mount(self._mount)  # else the frontal frame stays
 
