@@ -37,8 +37,8 @@ from ficap_ros.vision.calibration import HeadCalibration
 from ficap_ros.vision.detector import TagDetection
 from ficap_ros.vision.pipeline import FrameProcessor
 
-__all__ = ["LiveFrame", "frame_processor", "camera_timing", "failed_frame", "process_image",
-           "reference_q_xyzw"]
+__all__ = ["LiveFrame", "frame_processor", "apply_settings", "camera_timing", "failed_frame",
+           "process_image", "reference_q_xyzw"]
 
 
 @dataclass(frozen=True)
@@ -92,6 +92,13 @@ def frame_processor(config: Any) -> FrameProcessor:
     return FrameProcessor(model=load_model(config.model_file) if config.model_file else nominal_model(),
                           detector=config.detector_config, pose=config.pose_config,
                           tracking=config.tracking, timing=camera_timing(config))
+
+
+def apply_settings(processor: FrameProcessor, config: Any) -> None:
+    """Apply the settings a running pipeline takes from the next frame on (the node's parameters
+    changed): the pose settings and the camera's timing (``camera_timing``)."""
+    processor.pose_config = config.pose_config
+    processor.timing = camera_timing(config)
 
 
 def camera_timing(config: Any) -> CameraTiming:
