@@ -25,7 +25,7 @@ from ficap_ros.cli.main import main
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.io import messages
 from ficap_ros.io.bag_writer import BagWriter
-from ficap_ros.io.labels import read_labels
+from ficap_ros.io.labels import LABEL_COLUMNS, read_labels
 from ficap_ros.io.messages import ROSBAGS
 from ficap_ros.io.sources import (
     CAMERA_INFO_TYPE,
@@ -51,7 +51,7 @@ def test_replay_counts_the_corrupt_frame(bag_with_a_corrupt_frame: Path, tmp_pat
     assert labels.skipped.tolist() == [i == BAD for i in range(N)]
     assert not labels.has_pose[BAD] and labels.has_pose.sum() == N - 1
     row = (out / "labels.csv").read_text().splitlines()[1 + BAD].split(",")
-    assert row[6:20] == [""] * 14 and row[-1].startswith("undecodable")
+    assert row[6:20] == [""] * 14 and row[LABEL_COLUMNS.index("reason")].startswith("undecodable")
 
 
 def test_replay_video(rendered_frames, tmp_path: Path) -> None:  # noqa: ANN001

@@ -60,9 +60,10 @@ def test_labels_bag_matches_csv(replayed_calibrated: Path) -> None:
     for path in (replayed_calibrated / "labels.mcap", replayed_calibrated):  # single file, and the folder as a bag
         with AnyReader([path]) as reader:
             counts = {c.topic: c.msgcount for c in reader.connections}
-            assert counts == {t: FRAMES for t in (
+            assert counts == {**{t: FRAMES for t in (
                 "/head_pose", "/head_pose/with_covariance", "/cap_pose", "/head_pose/frontal",
-                "/head_rpy_deg", "/quality", "/status", "/tf")}
+                "/head_rpy_deg", "/quality", "/status", "/tf")},
+                "/head_twist": int(np.isfinite(labels.head_twist).all(axis=1).sum())}
             conns = [c for c in reader.connections if c.topic == "/cap_pose"]
             stamps, quats = [], []
             for conn, t, raw in reader.messages(connections=conns):
