@@ -64,8 +64,8 @@ class RenderConfig:
         motion_subframes: sub-frames averaged over the exposure when rendering motion; 0 = auto
             (odd, enough that no corner moves more than half a pixel between two; at most 31).
             With a rolling shutter: the sub-steps of each row's exposure (auto: as many, not
-            necessarily odd), or without motion blur the samples over the readout (auto: half
-            a pixel of corner travel apart).
+            necessarily odd), or without motion blur the samples over the readout (auto: a
+            quarter pixel of corner travel apart; ``synth.shutter.substeps``).
         readout_ms: rolling shutter (``synth.shutter``, when the pose is a function of time):
             time between the first and the last row's exposure centres, ms; 0 = a global shutter.
         row_order: ``top_to_bottom`` or ``bottom_to_top`` (``geometry.camera.ROW_ORDERS``).

@@ -13,8 +13,8 @@ read top to bottom over the readout ``R``. The scene is rendered at sub-step tim
    weights sum to 1 and their mean time is exactly ``t(y)``, wherever the row falls on the grid.
 3. A sample is rendered only over the band of rows whose weights use it (``raster.render_scene``
    with ``rows``), and the sample at the stamp (``tau = 0``) over the whole image, which gives the
-   frame's visible fractions at the stamp. The cost is about ``(m + 1) * (1 + E / R)`` whole
-   images, whatever the number of rows.
+   frame's visible fractions at the stamp. Each row takes ``m + 1`` samples, so a frame costs
+   about ``m + 1`` whole images (and the stamp's), however finely its rows' times are spread.
 
 Linear light adds, so a row's radiance is the weighted sum of its samples' radiance; the lens,
 sensor and ISP then act on the assembled image (``render``). Undistorted cameras only: the rows'
@@ -95,23 +95,30 @@ def _corner_speed_px_s(model: CapModel, camera: CameraModel,
 
 def substeps(model: CapModel, camera: CameraModel, pose_at: Callable[[float], Transform],
              cfg: RenderConfig, timing: CameraTiming) -> tuple[float, int]:
-    """(step_s, m) of a rolling-shutter frame: with motion blur, ``m`` sub-steps over the
-    exposure (``cfg.motion_subframes``, or enough that no corner moves more than half a pixel
-    between two; at most ``MAX_SUBSTEPS``), ``step_s = E / m``; without, one instant per row and
-    samples ``cfg.motion_subframes`` per readout, or a quarter pixel of travel apart (each row
-    interpolates two samples whatever their spacing, so a finer grid costs only calls, no
-    pixels)."""
+    """(step_s, m) of a rolling-shutter frame.
+
+    With motion blur, ``m`` sub-steps over the exposure ``E`` (``cfg.motion_subframes``, or
+    enough that no corner moves more than half a pixel between two; at most ``MAX_SUBSTEPS``, and
+    no more than ``MAX_SAMPLES`` allows), ``step_s = E / m``. A row that needs one sub-step (motion
+    too slow to blur, or no blur) is one instant, interpolated between the two samples around it:
+    those are ``cfg.motion_subframes`` per readout (one per exposure with blur), or a quarter pixel
+    of corner travel apart (each row takes two samples however close they are, so a finer grid
+    costs calls, not pixels).
+    """
     exposure_s, readout_s = timing.exposure_ms * 1e-3, timing.readout_ms * 1e-3
     span_s = exposure_s + readout_s
     lowest_s = span_s / (MAX_SAMPLES - MAX_SUBSTEPS - 2)
     speed = 0.0 if cfg.motion_subframes else _corner_speed_px_s(model, camera, pose_at, span_s)
     if exposure_s > 0.0:
         m = int(cfg.motion_subframes) or int(math.ceil(2.0 * speed * exposure_s))
-        m = min(max(m, 1), MAX_SUBSTEPS)
-        return max(exposure_s / m, lowest_s), m
-    if cfg.motion_subframes:
+        m = min(max(m, 1), MAX_SUBSTEPS, max(int(exposure_s / lowest_s), 1))
+        if m > 1:
+            return exposure_s / m, m
+        if cfg.motion_subframes:
+            return max(exposure_s, lowest_s), 1
+    elif cfg.motion_subframes:
         return max(readout_s / int(cfg.motion_subframes), lowest_s), 1
-    return (max(0.25 / speed, lowest_s) if speed > 0.0 else readout_s), 1
+    return (max(0.25 / speed, lowest_s) if speed > 0.0 else max(readout_s, lowest_s)), 1
 
 
 def rolling_exposure(
