@@ -6,11 +6,14 @@ from __future__ import annotations
 import argparse
 import math
 
-__all__ = ["EXIT_FRAMES_LOST", "int_at_least", "positive_int", "non_negative_int", "finite_float",
+__all__ = ["EXIT_FRAMES_LOST", "POSE_METHOD_CHOICES", "int_at_least", "positive_int", "non_negative_int", "finite_float",
            "positive_float", "non_negative_float", "time_window"]
 
 #: Exit code of a verb that finished but lost frames to a damaged (cut, corrupt) input.
 EXIT_FRAMES_LOST = 3
+#: ``--method``'s choices: ``ficap_ros.vision.pose.POSE_METHODS`` (named here so that ``--help``
+#: does not import the pipeline; a test keeps them equal).
+POSE_METHOD_CHOICES = ("joint", "paper", "naive")
 
 
 def int_at_least(text: str, least: int) -> int:

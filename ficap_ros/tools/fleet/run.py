@@ -16,6 +16,7 @@ from typing import Any, Callable, Sequence
 
 from ficap_ros.errors import ConfigError, FicapError, one_line
 from ficap_ros.geometry.cap_model import CapModel
+from ficap_ros.io.frames import OutputFrames
 from ficap_ros.io.labels import read_labels
 from ficap_ros.io.sources import FrameSource
 from ficap_ros.tools import replay as replay_mod
@@ -55,6 +56,7 @@ class _Labelling:
     namespace: str
     jobs: int
     detector: DetectorConfig | None
+    frames: OutputFrames | None = None
 
     def replay_one(self, item: _Todo, engine: RayEngine | None,
                    bar: FleetProgress) -> RecordingResult:
@@ -69,7 +71,7 @@ class _Labelling:
                 source, self.out / rec.rel, self.model, self.pose, self.calibration,
                 self.calibrate_window_s, self.jobs, self.namespace, progress=False,
                 engine=lambda raws: bar.counted(process(raws)),
-                summary_extra={"fingerprint": fp}, detector=self.detector)
+                summary_extra={"fingerprint": fp}, detector=self.detector, frames=self.frames)
         except Exception as err:  # noqa: BLE001 - one recording's failure must not stop the fleet
             return RecordingResult(str(rec.path), str(rec.rel), "failed",
                                    wall_s=round(time.perf_counter() - t, 3),
@@ -98,6 +100,7 @@ def run_fleet(
     summary_files: bool = True,
     ray_engine: RayEngine | None = None,
     detector: DetectorConfig | None = None,
+    frames: OutputFrames | None = None,
 ) -> FleetResult:
     """Replay every recording into ``out / rec.rel`` (see the package docstring).
 
@@ -113,6 +116,7 @@ def run_fleet(
             its own ``detector``.
         detector: detector settings (default ``DetectorConfig()``); give the same to
             ``label_settings`` so the fingerprint holds them.
+        frames: the output frames (``replay.replay``'s; give the same to ``label_settings``).
 
     Returns:
         One result per recording, in the given order. A failing recording does not stop the others.
@@ -126,7 +130,7 @@ def run_fleet(
     t0 = time.perf_counter()
     results, todo = _plan(recordings, out, settings, force, open_source)
     labelling = _Labelling(out, model, pose, calibration, calibrate_window_s, namespace, jobs,
-                           detector)
+                           detector, frames)
     bar = FleetProgress(sum(src.count for _, _, src, _ in todo), len(recordings), len(results),
                         sum(r.status == "failed" for r in results.values()), progress)
     fleet = FleetResult(engine="processes", workers=jobs)
