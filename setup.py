@@ -36,6 +36,7 @@ setup(
         "console_scripts": [
             "ficap = ficap_ros.cli.main:main",
             "ficap_node = ficap_ros.ros.node:main",
+            "ficap_lifecycle_node = ficap_ros.ros.lifecycle:main",
         ],
     },
 )

@@ -2,9 +2,9 @@
 
 Each verb lives in ``ficap_ros/cli/<verb>.py`` and provides ``HELP``, ``add_arguments(parser)``
 and ``run(args) -> int``; heavy imports happen inside ``run`` so ``ficap --help`` stays quick.
-Errors a user can cause print one line (``ficap: error: ...``) and exit 1. Exit codes: 0 done,
-1 error, 2 bad arguments (argparse), 3 done but frames were lost to a damaged input (the summary
-line says how many and when), 130 interrupted.
+Errors a user can cause, and a missing optional package, print one line (``ficap: error: ...``)
+and exit 1. Exit codes: 0 done, 1 error, 2 bad arguments (argparse), 3 done but frames were lost
+to a damaged input (the summary line says how many and when), 130 interrupted.
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import importlib
 import sys
 from typing import Sequence
 
-from ficap_ros.errors import FicapError
+from ficap_ros.errors import FicapError, missing_module
 
 #: Verb -> module under ficap_ros.cli, in the order ``--help`` lists them.
 VERBS: dict[str, str] = {
@@ -69,6 +69,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             return int(args._run(args) or 0)
     except FicapError as err:
         print(f"ficap: error: {err}", file=sys.stderr)
+        return 1
+    except ModuleNotFoundError as err:  # an optional package a verb or input needs
+        print(f"ficap: error: {missing_module(err)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print("ficap: interrupted", file=sys.stderr)

@@ -342,8 +342,8 @@ def test_poses_come_back_with_stamps_and_accuracy(rendered_drive, harness_factor
     markers, debug = [], []
     h.peer.create_subscription(MarkerArray, "markers", h._rec(markers), 10)
     h.peer.create_subscription(Image, "debug_image", h._rec(debug), 10)
-    h.wait_for(lambda: h.node._pub_markers.get_subscription_count() > 0
-               and h.node._pub_debug.get_subscription_count() > 0, what="viz subscribers")
+    h.wait_for(lambda: h.node._out.markers.get_subscription_count() > 0
+               and h.node._out.debug.get_subscription_count() > 0, what="viz subscribers")
     statuses = _play(h, scene, frames)
     h.wait_for(lambda: len(h.cap) >= len(frames), timeout=5.0, what="all cap poses")
     # Visualisation while subscribed: tag outlines + 3 head axes, and a colour debug image.
@@ -486,8 +486,8 @@ def test_output_frame_through_camera_mount(rendered_drive, harness_factory) -> N
         h.peer.create_subscription(PoseStamped, "head_pose/frontal", h._rec(frontal), 50)
         h.peer.create_subscription(Vector3Stamped, "head_rpy_deg", h._rec(rpy), 50)
         h.peer.create_subscription(JointState, "quality", h._rec(quality), 50)
-        h.wait_for(lambda: h.node._pub_quality.get_subscription_count() > 0
-                   and h.node._pubs["rpy"].get_subscription_count() > 0, what="subscribers")
+        h.wait_for(lambda: h.node._out.quality.get_subscription_count() > 0
+                   and h.node._out.pubs["rpy_deg"].get_subscription_count() > 0, what="subscribers")
         _play(h, scene, few)
         h.wait_for(lambda: len(cov) >= len(few) and len(quality) >= len(few)
                    and len(rpy) >= len(few), timeout=5.0, what="outputs")

@@ -1,0 +1,104 @@
+"""What the node publishes per image (ficap_ros.ros.outputs), on real DDS: the per-tag detections
+in apriltag_ros' message and conventions with their fits by name, the head angles in radians and
+the quality's SI bounds; without apriltag_msgs one log line; the lifecycle's removal of it all."""
+
+from __future__ import annotations
+
+import math
+import sys
+
+import numpy as np
+import pytest
+import rclpy
+from apriltag_msgs.msg import AprilTagDetectionArray
+from geometry_msgs.msg import Vector3Stamped
+from node_harness import header_at, info_at
+from rclpy.context import Context
+from sensor_msgs.msg import JointState
+
+from ficap_ros.geometry.cap_model import nominal_model
+from ficap_ros.io import messages
+from ficap_ros.ros import msgs as ros_msgs
+from ficap_ros.ros.outputs import NodeOutputs
+
+
+def test_detections_rpy_and_quality_of_a_posed_image(harness_factory, posed_frames) -> None:
+    scene, frames = posed_frames
+    h = harness_factory()
+    dets, fits, rpy_deg, rpy_rad, quality = [], [], [], [], []
+    h.peer.create_subscription(AprilTagDetectionArray, "detections", h._rec(dets), 10)
+    h.peer.create_subscription(JointState, "detections/fit", h._rec(fits), 10)
+    h.peer.create_subscription(Vector3Stamped, "head_rpy_deg", h._rec(rpy_deg), 10)
+    h.peer.create_subscription(Vector3Stamped, "head_rpy", h._rec(rpy_rad), 10)
+    h.peer.create_subscription(JointState, "quality", h._rec(quality), 10)
+    out = h.node._out
+    h.wait_for(lambda: all(p.get_subscription_count() > 0 for p in (
+        out.detections, out.fit, out.pubs["rpy_deg"], out.pubs["rpy_rad"], out.quality)),
+        what="subscribers")
+    truth, image = frames[0]
+    status = h.publish_and_wait(messages.image(ros_msgs.RCLPY, header_at(truth.stamp_ns), image,
+                                               "mono8"), info_at(scene.camera, truth.stamp_ns))
+    h.wait_for(lambda: all((dets, fits, rpy_deg, rpy_rad, quality)), what="outputs")
+    values = {kv.key: kv.value for kv in status.values}
+    with h.lock:
+        det, fit = dets[0], fits[0]
+        assert ros_msgs.stamp_to_ns(det.header.stamp) == truth.stamp_ns
+        assert det.header.frame_id == "rear_cam_optical"
+        assert len(det.detections) == int(values["tags_detected"]) >= 4
+        named = dict(zip(fit.name, fit.position))
+        model = nominal_model()
+        for d in det.detections:
+            assert d.family == "tag36h11" and d.goodness == 0.0
+            # AprilTag's corners: p_i = OpenCV c_[1,0,3,2][i] + 0.5 px; the truth's projection.
+            truth_px = scene.camera.project(truth.T_cam_cap.apply(model.corners_of(d.id) / 1000.0))
+            expected = truth_px[[1, 0, 3, 2]] + 0.5
+            got = np.array([[c.x, c.y] for c in d.corners])
+            assert np.abs(got - expected).max() < 0.25, d.id  # the offset is 0.5
+            H = np.reshape(d.homography, (3, 3))
+            c = H @ [0.0, 0.0, 1.0]
+            assert np.allclose(c[:2] / c[2], [d.centre.x, d.centre.y])
+            assert named[f"tag{d.id}/used"] == 1.0  # every tag of a clean frame
+            assert 0.0 <= named[f"tag{d.id}/residual_px"] < 0.5
+        assert len(fit.name) == 2 * len(det.detections)
+        # Head angles: radians beside degrees; quality's bounds in SI beside deg and mm.
+        d, r = rpy_deg[0].vector, rpy_rad[0].vector
+        assert np.allclose(np.radians([d.x, d.y, d.z]), [r.x, r.y, r.z], rtol=1e-12, atol=1e-15)
+        assert rpy_rad[0].header.frame_id == rpy_deg[0].header.frame_id == "ficap_frontal"
+        q = dict(zip(quality[0].name, quality[0].position))
+        assert q["rot_err95_rad"] == pytest.approx(math.radians(q["rot_err95_deg"]), rel=1e-12)
+        assert q["trans_err95_m"] == pytest.approx(q["trans_err95_mm"] / 1000.0, rel=1e-12)
+        assert q["latency_s"] == pytest.approx(q["latency_ms"] / 1000.0, rel=1e-12)
+
+
+@pytest.fixture
+def node():
+    context = Context()
+    rclpy.init(context=context)
+    n = rclpy.create_node("outputs_test", context=context)
+    yield n
+    n.destroy_node()
+    rclpy.try_shutdown(context=context)
+
+
+def _published(node) -> set[str]:  # noqa: ANN001
+    return {name for name, _ in node.get_publisher_names_and_types_by_node("outputs_test", "/")}
+
+
+def test_without_apriltag_msgs_one_line_and_the_fits_still(monkeypatch, node, capfd) -> None:
+    monkeypatch.setitem(sys.modules, "apriltag_msgs", None)
+    monkeypatch.setitem(sys.modules, "apriltag_msgs.msg", None)
+    out = NodeOutputs(node)
+    assert out.detections is None and out.fit is not None
+    err = capfd.readouterr().err
+    assert err.count("no detections topic") == 1 and "Traceback" not in err
+    assert "/detections/fit" in _published(node) and "/detections" not in _published(node)
+
+
+def test_destroy_removes_every_publisher(node) -> None:
+    before = _published(node)
+    out = NodeOutputs(node)
+    made = _published(node) - before
+    assert {"/head_pose", "/head_rpy", "/head_rpy_deg", "/quality", "/status", "/detections",
+            "/detections/fit", "/tf"} <= made
+    out.destroy()
+    assert _published(node) == before
