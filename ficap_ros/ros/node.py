@@ -224,13 +224,15 @@ class FicapNodeSteps:
         if frame.failed:
             self._report_error(header, frame.message)
             return
-        latency_ms = (time.monotonic_ns() - received_ns) / 1e6
-        self._out.frame(header, frame, self._config.frames, self._processor.model, latency_ms,
-                        self._mailbox.dropped)
         rec = frame.record
-        self._stats.frame(rec.tags_detected, latency_ms)
+        # Buffered for ~/calibrate before its outputs go out: a client that saw this frame's
+        # status finds it in the next calibration.
         if rec.pose is not None:
             self._recorder.add_cap(rec.stamp_ns, rec.pose.T_cam_cap.rotation, rec.pose.reliability)
+        latency_ms = (time.monotonic_ns() - received_ns) / 1e6
+        self._stats.frame(rec.tags_detected, latency_ms)
+        self._out.frame(header, frame, self._config.frames, self._processor.model, latency_ms,
+                        self._mailbox.dropped)
 
     # -- diagnostics -----------------------------------------------------------------------------
     def _on_diagnostics_timer(self: Any) -> None:
