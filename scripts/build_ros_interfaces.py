@@ -26,12 +26,14 @@ import subprocess
 import sys
 import tempfile
 import time
+from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 VENDORED = ROOT / "ficap_ros" / "interfaces"
 
-#: Package -> (version of the vendored definitions, message dependencies), in build order.
+#: Package -> (version of the vendored definitions, message dependencies); none needs another, so
+#: they are built side by side.
 PACKAGES: dict[str, tuple[str, tuple[str, ...]]] = {
     "tf2_msgs": ("0.36.4", ("builtin_interfaces", "geometry_msgs")),
     "apriltag_msgs": ("2.0.1", ("std_msgs",)),
@@ -147,8 +149,11 @@ def main(argv: list[str] | None = None) -> int:
                              "build the message packages)")
     t0 = time.monotonic()
     with tempfile.TemporaryDirectory(prefix="ficap_ros_interfaces.") as tmp:
-        for name in PACKAGES:
-            build(name, venv, Path(tmp), args.jobs)
+        # CMake's configure and the generators are mostly single-threaded: both packages at once.
+        with ThreadPoolExecutor(max_workers=len(PACKAGES)) as pool:
+            jobs = max(1, args.jobs // len(PACKAGES))
+            for done in [pool.submit(build, name, venv, Path(tmp), jobs) for name in PACKAGES]:
+                done.result()
     check(venv)
     print(f"build_ros_interfaces: {', '.join(PACKAGES)} installed into {venv} "
           f"in {time.monotonic() - t0:.0f} s")
