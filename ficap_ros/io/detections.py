@@ -27,7 +27,6 @@ import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Iterable, Sequence
 
-import cv2
 import numpy as np
 
 from ficap_ros.geometry.camera import CameraModel
@@ -98,26 +97,34 @@ def apriltag_corners(corners_px: np.ndarray) -> np.ndarray:
     return np.asarray(corners_px, dtype=np.float64)[list(_APRILTAG_ORDER)] + _APRILTAG_OFFSET_PX
 
 
-def _homography(p: np.ndarray) -> np.ndarray:
-    """Tag coordinates -> AprilTag pixels, the 3x3 with H[2][2] = 1, from p0..p3."""
-    return cv2.getPerspectiveTransform(_TAG_XY.astype(np.float32),
-                                       p.astype(np.float32)).astype(np.float64)
+def _homographies(p: np.ndarray) -> np.ndarray:
+    """Tag coordinates -> AprilTag pixels, (N, 3, 3) with H[2][2] = 1, from each tag's p0..p3
+    (N, 4, 2): the four correspondences' 8x8 linear system, solved for all tags at once."""
+    n = len(p)
+    A = np.zeros((n, 8, 8))
+    x, y = _TAG_XY[:, 0], _TAG_XY[:, 1]
+    u, v = p[:, :, 0], p[:, :, 1]
+    A[:, 0::2, 0], A[:, 0::2, 1], A[:, 0::2, 2] = x, y, 1.0
+    A[:, 1::2, 3], A[:, 1::2, 4], A[:, 1::2, 5] = x, y, 1.0
+    A[:, 0::2, 6], A[:, 0::2, 7] = -u * x, -u * y
+    A[:, 1::2, 6], A[:, 1::2, 7] = -v * x, -v * y
+    h = np.linalg.solve(A, p.reshape(n, 8)[..., None])[..., 0]
+    return np.concatenate([h, np.ones((n, 1))], axis=1).reshape(n, 3, 3)
 
 
 def apriltag_array(c: messages.MessageClasses, head: Any, fits: TagFits) -> Any:
     """``apriltag_msgs/AprilTagDetectionArray`` of a frame's detections (module docstring)."""
     point, detection = c.types["apriltag_msgs/msg/Point"], c.types["apriltag_msgs/msg/AprilTagDetection"]
+    p = fits.corners_px[:, list(_APRILTAG_ORDER)] + _APRILTAG_OFFSET_PX  # apriltag_corners, each
+    H = _homographies(p) if len(fits) else np.zeros((0, 3, 3))
     out = []
     for k in range(len(fits)):
-        p = apriltag_corners(fits.corners_px[k])
-        H = _homography(p)
-        centre = H[:2, 2] / H[2, 2]
         out.append(detection(
             family=TAG_FAMILY, id=int(fits.ids[k]), hamming=int(fits.hamming[k]), goodness=0.0,
             decision_margin=float(fits.decision_margin[k]),
-            centre=point(x=float(centre[0]), y=float(centre[1])),
-            corners=[point(x=float(x), y=float(y)) for x, y in p],
-            homography=c.floats(H)))
+            centre=point(x=float(H[k, 0, 2]), y=float(H[k, 1, 2])),  # H (0, 0, 1); H[2][2] = 1
+            corners=[point(x=float(x), y=float(y)) for x, y in p[k]],
+            homography=c.floats(H[k])))
     return c.types["apriltag_msgs/msg/AprilTagDetectionArray"](header=head, detections=out)
 
 

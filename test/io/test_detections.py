@@ -113,6 +113,31 @@ def test_apriltag_corners_go_back(c: np.ndarray) -> None:
     np.testing.assert_allclose(p[[1, 0, 3, 2]] - 0.5, c, rtol=0, atol=1e-9)
 
 
+@given(st.lists(st.tuples(st.floats(50.0, 1800.0), st.floats(50.0, 1000.0), st.floats(8.0, 200.0),
+                          st.floats(0.0, 6.28), st.floats(-0.3, 0.3)), min_size=1, max_size=5))
+def test_each_homography_maps_the_tag_square_onto_its_corners(tags) -> None:  # noqa: ANN001
+    """The message's homography takes tag coordinates (-1, 1), (1, 1), (1, -1), (-1, -1) to p0..p3
+    and (0, 0) to the centre, for every tag of the array at once."""
+    corners = []
+    for cx, cy, side, angle, skew in tags:
+        R = np.array([[np.cos(angle), -np.sin(angle)], [np.sin(angle), np.cos(angle)]])
+        square = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * side / 2
+        square[:, 0] *= np.where(square[:, 1] < 0, 1 - skew, 1 + skew)  # seen obliquely
+        corners.append(square @ R.T + [cx, cy])
+    n = len(corners)
+    fits = TagFits(np.arange(n), np.array(corners), np.ones(n, bool), np.zeros(n), np.zeros(n, int),
+                   np.zeros(n))
+    msg = apriltag_array(ROSBAGS, messages.header(ROSBAGS, 0, "cam"), fits)
+    for k, d in enumerate(msg.detections):
+        H = np.reshape(d.homography, (3, 3))
+        assert H[2, 2] == 1.0
+        xy = np.array([[-1.0, 1.0], [1.0, 1.0], [1.0, -1.0], [-1.0, -1.0], [0.0, 0.0]])
+        m = (H @ np.c_[xy, np.ones(5)].T).T
+        got = m[:, :2] / m[:, 2:]
+        np.testing.assert_allclose(got[:4], apriltag_corners(fits.corners_px[k]), atol=1e-6)
+        np.testing.assert_allclose(got[4], [d.centre.x, d.centre.y], atol=1e-9)
+
+
 def _fits() -> TagFits:
     corners = np.arange(16, dtype=np.float64).reshape(2, 4, 2) + 0.123456
     return TagFits(np.array([3, 11]), corners, np.array([True, False]), np.array([0.25, np.nan]),
