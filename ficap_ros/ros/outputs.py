@@ -2,11 +2,11 @@
 
 Per image, stamped with it (topics relative, remappable; units SI beside the human ones):
     ``head_pose``, ``head_pose/with_covariance``, ``cap_pose``, ``head_pose/frontal``,
-    ``head_rpy_deg`` (degrees), ``head_rpy`` (radians), ``/tf`` (and the mount on ``/tf_static``)
-    for a posed image reliable enough (``publish_min_reliability``); ``quality`` (JointState of
-    named numbers) and ``status`` (DiagnosticArray) for every image; ``detections``
-    (apriltag_msgs/AprilTagDetectionArray) and ``detections/fit`` (JointState) for every processed
-    image; ``markers`` and ``debug_image`` while someone subscribes. ``/diagnostics`` is the
+    ``head_rpy_deg`` (degrees), ``head_rpy`` (radians), ``/tf`` for a posed image reliable enough
+    (``publish_min_reliability``); the mount on ``/tf_static`` from the first processed image;
+    ``quality`` (JointState of named numbers) and ``status`` (DiagnosticArray) for every image;
+    ``detections`` (apriltag_msgs/AprilTagDetectionArray) and ``detections/fit`` (JointState) for
+    every processed image; ``markers`` and ``debug_image`` while someone subscribes. ``/diagnostics`` is the
     node's 1 Hz health (its timer publishes it here).
 
 Without apriltag_msgs (a ROS install lacking ``ros-jazzy-apriltag-msgs``) ``detections`` is left
@@ -81,7 +81,7 @@ class NodeOutputs:
         if frame.publish_pose:
             for name, out in pose_outputs(ros_msgs.RCLPY, stamp_ns, rec, frames).items():
                 self.pubs[name].publish(out)
-            self.tf.publish(rec, frames)
+        self.tf.publish(rec, frames, with_pose=frame.publish_pose)
         self.status_of(header, frame, latency_ms, dropped, frames.output_frame)
         if rec.tags is not None:
             cam = Header(stamp=header.stamp, frame_id=header.frame_id)

@@ -90,9 +90,10 @@ class TfOutput:
                                            messages.header(ros_msgs.RCLPY, stamp_ns, t.parent),
                                            t.child, t.T) for t in transforms]
 
-    def publish(self, record: FrameRecord, frames: OutputFrames) -> None:
-        """The TF of one image: its mount on ``/tf_static`` when that changed (a new camera
-        frame or mount), the posed frame's transforms on ``/tf``, stamped with the image."""
+    def publish(self, record: FrameRecord, frames: OutputFrames, with_pose: bool = True) -> None:
+        """The TF of one processed image: its mount on ``/tf_static`` when that changed (a new
+        camera frame or mount), and with ``with_pose`` (its pose is published) the posed frame's
+        transforms on ``/tf``, stamped with the image."""
         if self._send_dynamic is None or self._send_static is None:
             return
         static = static_transforms(frames, record.frame_id)
@@ -100,7 +101,7 @@ class TfOutput:
         if key and key != self._static_sent:
             self._send_static(self._stamped(record.stamp_ns, static))
             self._static_sent = key
-        dynamic = frame_transforms(record, frames)
+        dynamic = frame_transforms(record, frames) if with_pose else ()
         if dynamic:
             self._send_dynamic(self._stamped(record.stamp_ns, dynamic))
 

@@ -139,9 +139,11 @@ def test_tf2_ros_is_used_where_it_is_importable(monkeypatch, node) -> None:
     out = TfOutput(node)
     assert out.backend == "tf2_ros"
     frames = OutputFrames("base_link", Transform.from_xyz_q_xyzw(MOUNT))
+    out.publish(_record(), frames, with_pose=False)  # the mount before any pose
+    assert len(sent["static"]) == 1 and not sent["dynamic"]
     out.publish(_record(), frames)
     out.publish(_record(), frames)
-    assert len(sent["dynamic"]) == 2 and len(sent["static"]) == 1
+    assert len(sent["dynamic"]) == 2 and len(sent["static"]) == 1  # sent once
     (static,) = sent["static"][0]
     assert (static.header.frame_id, static.child_frame_id) == ("base_link", "cam")
     assert [(t.header.frame_id, t.child_frame_id) for t in sent["dynamic"][0]] == [
