@@ -18,7 +18,7 @@ from typing import TYPE_CHECKING, Any, Sequence
 import numpy as np
 
 from ficap_ros.errors import ConfigError
-from ficap_ros.geometry.transform import Transform, rotate_covariance
+from ficap_ros.geometry.transform import Transform, rotate_covariance, rotate_twist
 from ficap_ros.io import messages
 
 if TYPE_CHECKING:
@@ -149,18 +149,23 @@ def pose_outputs(c: messages.MessageClasses, stamp_ns: int, record: FrameRecord,
     """The pose messages of a posed frame, by output: ``head`` (PoseStamped), ``head_cov``
     (PoseWithCovarianceStamped), ``cap`` (PoseStamped), in ``output_frame`` through the mount or
     else the image's frame; ``head_frontal`` (PoseStamped), ``rpy_deg`` and ``rpy_rad``
-    (Vector3Stamped: x roll, y pitch, z yaw) in the frontal frame (``frames.frontal``).
+    (Vector3Stamped: x roll, y pitch, z yaw) in the frontal frame (``frames.frontal``); ``twist``
+    (TwistStamped: the head's twist, m/s and rad/s, in the frame of ``head``) only when the
+    estimator measures the velocity (``FrameRecord.head_twist_cam``).
 
-    Without a move the record's transforms go out as they are (labels.mcap's values to the bit).
+    The head's origin is the cap's and it turns with the cap, so its twist is the cap's whatever
+    the head calibration; a fixed mount turns both vectors and adds no motion. Without a move the
+    record's transforms and twist go out as they are (labels.mcap's values to the bit).
     """
     pose, T_cam_head, T_frontal_head = record.pose, record.T_cam_head, record.T_frontal_head
     assert pose is not None and T_cam_head is not None and T_frontal_head is not None
     out = messages.header(c, stamp_ns, frames.output_frame or record.frame_id)
-    T_head, T_cap, cov = T_cam_head, pose.T_cam_cap, pose.covariance
+    T_head, T_cap, cov, twist = T_cam_head, pose.T_cam_cap, pose.covariance, record.head_twist_cam
     if frames.moved:
         assert frames.mount is not None
         T_head, T_cap = frames.mount * T_cam_head, frames.mount * pose.T_cam_cap
         cov = rotate_covariance(pose.covariance, frames.mount.rotation)
+        twist = None if twist is None else rotate_twist(twist, frames.mount.rotation)
     # The head in F: through the mount (the camera's place in F too), or the record's (the
     # camera at F's origin).
     frontal = messages.header(c, stamp_ns, frames.frontal)
@@ -172,4 +177,5 @@ def pose_outputs(c: messages.MessageClasses, stamp_ns: int, record: FrameRecord,
         "head_frontal": messages.pose_stamped(c, frontal, T_frontal),
         "rpy_deg": messages.rpy_deg(c, frontal, T_frontal_head.rotation),
         "rpy_rad": messages.rpy_rad(c, frontal, T_frontal_head.rotation),
+        **({"twist": messages.twist_stamped(c, out, twist)} if twist is not None else {}),
     }

@@ -8,9 +8,9 @@ Subscribes (relative names, remappable):
 Publishes (stamp = the image's; poses in the image's frame, or in ``output_frame`` through the
 ``camera_mount`` transform; ``ficap_ros.ros.outputs`` lists them all):
     ``head_pose``, ``head_pose/with_covariance``, ``cap_pose``, ``head_pose/frontal``,
-    ``head_rpy_deg`` and ``head_rpy`` (degrees, radians), ``/tf`` and ``/tf_static``, ``quality``,
-    ``status``, ``detections``, ``detections/fit``, ``/diagnostics`` (1 Hz health), ``markers``
-    and ``debug_image`` (while someone subscribes).
+    ``head_rpy_deg`` and ``head_rpy`` (degrees, radians), ``head_twist``, ``/tf`` and
+    ``/tf_static``, ``quality``, ``status``, ``detections``, ``detections/fit``, ``/diagnostics``
+    (1 Hz health), ``markers`` and ``debug_image`` (while someone subscribes).
 Services:
     ``~/calibrate`` (std_srvs/Trigger), ``~/clear_calibration`` (std_srvs/Trigger).
 
@@ -148,7 +148,7 @@ class FicapNodeSteps:
         self._values = ros_params.current_values(self)
         self._config = cfg = ros_params.NodeConfig.from_values(self._values)
         self._mount = cfg.mount
-        self._processor.pose_config = cfg.pose_config
+        live.apply_settings(self._processor, cfg)
         if any(p.name == "camera_mount" for p in params):
             self._calibration.set_mount(self._mount)  # else the frontal frame stays
 

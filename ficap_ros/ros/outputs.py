@@ -3,11 +3,13 @@
 Per image, stamped with it (topics relative, remappable; units SI beside the human ones):
     ``head_pose``, ``head_pose/with_covariance``, ``cap_pose``, ``head_pose/frontal``,
     ``head_rpy_deg`` (degrees), ``head_rpy`` (radians), ``/tf`` for a posed image reliable enough
-    (``publish_min_reliability``); the mount on ``/tf_static`` from the first processed image;
-    ``quality`` (JointState of named numbers) and ``status`` (DiagnosticArray) for every image;
-    ``detections`` (apriltag_msgs/AprilTagDetectionArray) and ``detections/fit`` (JointState) for
-    every processed image; ``markers`` and ``debug_image`` while someone subscribes. ``/diagnostics`` is the
-    node's 1 Hz health (its timer publishes it here).
+    (``publish_min_reliability``), with ``head_twist`` (m/s, rad/s) when the estimator measures
+    the head's velocity (``ficap_ros.io.frames.pose_outputs``); the mount on ``/tf_static`` from
+    the first processed image; ``quality`` (JointState of named numbers) and ``status``
+    (DiagnosticArray) for every image; ``detections`` (apriltag_msgs/AprilTagDetectionArray) and
+    ``detections/fit`` (JointState) for every processed image; ``markers`` and ``debug_image``
+    while someone subscribes. ``/diagnostics`` is the node's 1 Hz health (its timer publishes it
+    here).
 
 Without apriltag_msgs (a ROS install lacking ``ros-jazzy-apriltag-msgs``) ``detections`` is left
 out, said in one log line at start; TF: ``ficap_ros.ros.tf``.
@@ -18,7 +20,12 @@ from __future__ import annotations
 from typing import Any
 
 from diagnostic_msgs.msg import DiagnosticArray
-from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped, Vector3Stamped
+from geometry_msgs.msg import (
+    PoseStamped,
+    PoseWithCovarianceStamped,
+    TwistStamped,
+    Vector3Stamped,
+)
 from rclpy.node import Node
 from sensor_msgs.msg import Image, JointState
 from std_msgs.msg import Header
@@ -61,7 +68,8 @@ class NodeOutputs:
                      "cap": pub(PoseStamped, "cap_pose", 10),
                      "head_frontal": pub(PoseStamped, "head_pose/frontal", 10),
                      "rpy_deg": pub(Vector3Stamped, "head_rpy_deg", 10),
-                     "rpy_rad": pub(Vector3Stamped, "head_rpy", 10)}
+                     "rpy_rad": pub(Vector3Stamped, "head_rpy", 10),
+                     "twist": pub(TwistStamped, "head_twist", 10)}
         self.quality = pub(JointState, "quality", 10)
         self.status = pub(DiagnosticArray, "status", 10)
         self.diagnostics = pub(DiagnosticArray, "/diagnostics", 10)

@@ -23,12 +23,13 @@ from collections import Counter
 from dataclasses import dataclass, field, replace
 from itertools import islice
 from pathlib import Path
-from typing import IO, Any, Callable, Iterable, Iterator
+from typing import IO, Any, Callable, Iterable, Iterator, Mapping
 
 import numpy as np
 
 from ficap_ros.errors import BagError, ImageError
 from ficap_ros.files import write_output_file
+from ficap_ros.geometry.camera import CameraTiming
 from ficap_ros.geometry.cap_model import CapModel
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.io.calibration_file import q_wxyz
@@ -47,7 +48,8 @@ from ficap_ros.vision.pipeline import FrameProcessor
 from ficap_ros.vision.pose import PoseConfig
 
 __all__ = ["Progress", "ReplayedFrame", "process_frames", "frontal_calibration",
-           "ReplayOutput", "replay", "check_output_dir", "available_cores", "capped_jobs"]
+           "ReplayOutput", "replay", "recording_timing", "check_output_dir", "available_cores",
+           "capped_jobs"]
 
 
 def Progress(total: int, label: str = "frames", stream: IO[str] | None = None,  # noqa: N802
@@ -147,9 +149,12 @@ def _process_one(raw: RawFrame) -> ReplayedFrame:
 SEGMENT_FRAMES = 128
 
 
-def _process_segment(raws: list[RawFrame]) -> list[ReplayedFrame]:
+def _process_segment(raws: list[RawFrame], timing: CameraTiming | None = None) -> list[ReplayedFrame]:
+    """One segment of a recording whose camera has ``timing`` (None: not known), tracking
+    afresh from its first frame."""
     assert _PROCESSOR is not None
     _PROCESSOR.reset_tracking()
+    _PROCESSOR.timing = timing or CameraTiming()
     out = []
     for raw in raws:
         out.append(_process_one(raw))
@@ -201,8 +206,10 @@ def _quiet_pool(ctx: Any, jobs: int, initargs: tuple) -> Any:
 def process_frames(
     raws: Iterable[RawFrame], model: CapModel, pose: PoseConfig, jobs: int = 1,
     on_progress: Callable[[int], None] | None = None, detector: DetectorConfig | None = None,
+    timing: CameraTiming | None = None,
 ) -> Iterator[ReplayedFrame]:
-    """Run the pipeline over raw frames, in order, in ``jobs`` processes (at most one per core).
+    """Run the pipeline over raw frames, in order, in ``jobs`` processes (at most one per core),
+    with the camera's ``timing`` (``recording_timing``; None: not known).
 
     Undecodable frames come back with an ``UNDECODABLE`` record saying why.
     ``on_progress`` is called with the number of frames processed so far, frame by frame (with
@@ -217,6 +224,7 @@ def process_frames(
         while segment := list(islice(it, SEGMENT_FRAMES)):
             assert _PROCESSOR is not None
             _PROCESSOR.reset_tracking()
+            _PROCESSOR.timing = timing or CameraTiming()
             for raw in segment:
                 yield _process_one(raw)
                 done += 1
@@ -237,7 +245,7 @@ def process_frames(
                 segment = list(islice(it, SEGMENT_FRAMES))
                 if not segment:
                     break
-                pending.append(pool.apply_async(_process_segment, (segment,)))
+                pending.append(pool.apply_async(_process_segment, (segment, timing)))
             if not pending:
                 break
             head = pending.pop(0)
@@ -392,6 +400,7 @@ def replay(
     summary_extra: dict[str, Any] | None = None,
     detector: DetectorConfig | None = None,
     frames: OutputFrames | None = None,
+    timing: Mapping[str, Any] | None = None,
 ) -> ReplayOutput:
     """Process every frame of ``source`` and write labels.mcap, labels.csv, detections.csv and
     summary.json.
@@ -421,19 +430,26 @@ def replay(
         frames: the output frames (``ficap_ros.io.frames.OutputFrames``: ``camera_mount`` and
             ``output_frame`` as the node's; default none). A mount also sets the frontal frame of
             the head angles, as the node's does.
+        timing: ``CameraTiming`` fields given for the camera (the command line's), over the
+            recording's own timing (``recording_timing``); summary.json's ``camera_timing``
+            records the timing used and its source. An ``engine`` must process with the same
+            (``recording_timing`` of the source and these fields).
 
     Raises:
         BagError: unreadable input. OutputError: an output that is or holds the input, a folder
         ficap did not write, or not writable. CalibrationError: bad frontal window.
+        IntrinsicsError: a timing field out of range.
     """
     from ficap_ros.files import OutputFolder
 
     out = Path(out_dir)
+    camera_timing = recording_timing(source, timing)  # a bad field fails before any output
     folder = OutputFolder(out, inputs=[source.path])  # refuses an input or a foreign folder
     try:
         output = _replay_into(folder.tmp, out, source, model, pose, calibration,
                               calibrate_window_s, jobs, namespace, progress, progress_stream,
-                              engine, summary_extra, detector, frames or OutputFrames())
+                              engine, summary_extra, detector, frames or OutputFrames(),
+                              camera_timing)
     except BaseException:
         folder.discard()
         raise
@@ -448,8 +464,10 @@ def _replay_into(
     engine: Callable[[Iterable[RawFrame]], Iterable[ReplayedFrame]] | None,
     summary_extra: dict[str, Any] | None, detector: DetectorConfig | None = None,
     frames: OutputFrames = OutputFrames(),
+    camera_timing: tuple[CameraTiming, str] = (CameraTiming(), "not known"),
 ) -> ReplayOutput:
     jobs = capped_jobs(jobs)[0]
+    timing, timing_source = camera_timing
     bar = Progress(source.count, "frames", progress_stream, enabled=progress)
     t0 = time.perf_counter()
     replayed: list[ReplayedFrame] = []
@@ -460,7 +478,7 @@ def _replay_into(
                 replayed.append(item)
                 bar.update()
         else:
-            replayed.extend(process_frames(raws, model, pose, jobs, detector=detector,
+            replayed.extend(process_frames(raws, model, pose, jobs, detector=detector, timing=timing,
                                          on_progress=lambda n: bar.update(n - bar.n)))
     finally:
         bar.close()
@@ -479,6 +497,7 @@ def _replay_into(
         # Only when on (the default runs' summaries name no detector setting).
         **({"photometric": True} if detector is not None and detector.edge_photometric else {}),
         "jobs": jobs,
+        "camera_timing": {**timing.to_dict(), "source": timing_source},
         **_summary(replayed, elapsed),
         # A damaged input: frames_lost is None when the container cannot say how many.
         "damaged": loss is not None,
@@ -504,6 +523,23 @@ def _replay_into(
     files = [out / "labels.mcap", out / "metadata.yaml", out / "labels.csv",
              out / "detections.csv", out / "summary.json"]
     return ReplayOutput(records, summary, files, loss)
+
+
+def recording_timing(source: FrameSource, given: Mapping[str, Any] | None = None,
+                     ) -> tuple[CameraTiming, str]:
+    """The camera timing a recording is processed with, and where it comes from (summary.json's
+    ``camera_timing.source``): the ``given`` fields (``CameraTiming``'s names: the command
+    line's) over the recording's own (``FrameSource.timing``: its intrinsics file's, else its
+    bag's metadata), else ``CameraTiming()``, "not known".
+
+    Raises:
+        IntrinsicsError: a given field out of range.
+    """
+    base = source.timing or CameraTiming()
+    if not given:
+        return base, source.timing_source or "not known"
+    origin = "command line" + (f" over {source.timing_source}" if source.timing_source else "")
+    return replace(base, **dict(given)), origin
 
 
 def _calibration(frames: list[ReplayedFrame], start_ns: int, given: HeadCalibration | None,

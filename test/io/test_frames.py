@@ -73,6 +73,31 @@ def test_pose_outputs_are_the_records_head_pose() -> None:
     assert np.trace(cov) == pytest.approx(np.trace(pose.covariance))  # rotated, not rescaled
 
 
+def test_the_head_twist_is_the_caps_in_the_poses_frame() -> None:
+    """The head shares the cap's origin and turns with it: ``twist`` is the cap's velocity
+    whatever the head calibration, in the frame of ``head``; into output_frame both vectors turn
+    by the mount's rotation (its translation adds nothing); no measured velocity, no twist and the
+    same poses."""
+    from dataclasses import replace
+
+    w = np.array([0.12, -0.03, 0.01, 0.5, -3.9, 0.2])
+    still = _record(Transform(Rotation.from_euler("xyz", [170.0, 5.0, -20.0], degrees=True),
+                              [0.01, 0.05, 0.6]), Rotation.from_euler("y", 10.0, degrees=True))
+    assert still.pose is not None
+    moving = replace(still, pose=replace(still.pose, velocity=w))
+    without = pose_outputs(ROSBAGS, 1_234_000_000_567, still, OutputFrames())
+    out = pose_outputs(ROSBAGS, 1_234_000_000_567, moving, OutputFrames())
+    assert "twist" not in without and set(out) == set(without) | {"twist"}
+    assert all(repr(out[k]) == repr(without[k]) for k in without)
+    assert out["twist"].header == out["head"].header
+    np.testing.assert_array_equal(messages.twist_to_array(out["twist"]), w)
+    moved = pose_outputs(ROSBAGS, 10, moving, OutputFrames("base_link", MOUNT))["twist"]
+    assert moved.header.frame_id == "base_link"
+    R = MOUNT.rotation.as_matrix()
+    np.testing.assert_allclose(messages.twist_to_array(moved),
+                               np.concatenate([R @ w[:3], R @ w[3:]]), atol=1e-15)
+
+
 def test_camera_mount_parsing_and_the_frame_rule() -> None:
     assert camera_mount_transform([0.0] * 7) is None  # all zeros: not set
     T = parse_camera_mount("0.1, 0 1.2 0.5 -0.5 0.5 -0.5")
