@@ -112,10 +112,36 @@ def test_destroy_removes_every_publisher(node) -> None:
     before = _published(node)
     out = NodeOutputs(node)
     made = _published(node) - before
-    assert {"/head_pose", "/head_rpy", "/head_rpy_deg", "/quality", "/status", "/detections",
-            "/detections/fit", "/tf"} <= made
+    assert {"/head_pose", "/head_rpy", "/head_rpy_deg", "/head_twist", "/quality", "/status",
+            "/detections", "/detections/fit", "/tf"} <= made
     out.destroy()
     assert _published(node) == before
+
+
+def test_the_readme_output_table_has_every_output_with_its_type(node) -> None:
+    """The README's node table names every topic NodeOutputs advertises (and /tf_static), each
+    row with its message type and what it holds."""
+    import re
+
+    readme = (Path(__file__).resolve().parents[2] / "README.md").read_text()
+    table = readme[readme.index("| output | type | what, in which unit |"):]
+    table = table[:table.index("\n\n")]
+    rows: dict[str, str] = {}
+    for line in table.splitlines()[2:]:
+        first, kind, what = (c.strip() for c in line.strip("|").split(" | ", 2))
+        for name in re.findall(r"`([^`]+)`", first):
+            rows["/" + name.lstrip("/")] = f"{kind} {what}"
+    before = _published(node)
+    out = NodeOutputs(node)
+    advertised = (_published(node) - before) | {"/tf_static"}
+    out.destroy()
+    assert advertised <= set(rows), f"outputs missing from README: {sorted(advertised - set(rows))}"
+    for name in advertised:
+        kind, what = rows[name].split(" ", 1)
+        assert "/" in kind and len(what) > 10, name
+    for name, unit in (("/head_rpy", "radians"), ("/head_rpy_deg", "degrees"),
+                       ("/head_twist", "m/s"), ("/quality", "rot_err95_rad"), ("/tf", "metres")):
+        assert unit in rows[name], (name, unit)
 
 
 def _recording(bag: Path) -> list[dict]:
