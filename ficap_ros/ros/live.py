@@ -32,7 +32,8 @@ from ficap_ros.vision.calibration import HeadCalibration
 from ficap_ros.vision.detector import TagDetection
 from ficap_ros.vision.pipeline import FrameProcessor
 
-__all__ = ["LiveFrame", "frame_processor", "failed_frame", "process_image", "reference_q_xyzw"]
+__all__ = ["LiveFrame", "frame_processor", "failed_frame", "process_image", "reference_q_xyzw",
+           "refusal_before_queueing"]
 
 
 @dataclass(frozen=True)
@@ -92,6 +93,25 @@ def failed_frame(stamp_ns: int, frame_id: str, reason: str,
     """An image that could not be processed (ERROR status, ``reason`` as its message)."""
     rec = FrameRecord.unprocessed(0, stamp_ns, frame_id, reason, FrameStatus.FAILED, calibration)
     return LiveFrame(rec, *record_status(rec))
+
+
+def refusal_before_queueing(msg: Any) -> str:
+    """Why an image message is refused before it is queued ('' when it is not): a size above the
+    pixel budget, from a raw image's fields or a compressed image's header
+    (``image_codec.check_compressed``), so a hostile frame never costs the decode's memory.
+    Microseconds; decoding finds everything else."""
+    from ficap_ros.io.image_codec import check_compressed, check_pixel_budget
+
+    try:
+        if hasattr(msg, "format"):
+            check_compressed(messages.as_bytes(msg.data))
+        else:
+            check_pixel_budget(int(msg.width), int(msg.height))
+    except FicapError as err:
+        return str(err)
+    except (TypeError, ValueError, OverflowError) as err:
+        return f"malformed image message: {err}"
+    return ""
 
 
 def process_image(msg: Any, processor: FrameProcessor, cameras: CameraInfoCache,

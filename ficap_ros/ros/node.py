@@ -194,6 +194,10 @@ class FicapNode(Node):
 
     # -- inputs ----------------------------------------------------------------------------------
     def _on_image(self, msg: Image | CompressedImage) -> None:
+        # An image above the pixel budget is refused from its header, before it is queued.
+        if reason := live.refusal_before_queueing(msg):
+            self._report_error(msg.header, reason)
+            return
         self._mailbox.put((msg, time.monotonic_ns()))
 
     def _on_camera_info(self, msg: CameraInfo) -> None:
