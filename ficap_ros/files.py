@@ -36,7 +36,7 @@ from typing import Any, Callable, Iterable
 
 from ficap_ros.errors import FicapError, OutputError
 
-__all__ = ["read_bytes", "read_text", "load_yaml", "parse_yaml", "MAX_CONFIG_BYTES",
+__all__ = ["read_bytes", "read_text", "load_yaml", "parse_yaml", "MAX_CONFIG_BYTES", "MAX_TABLE_BYTES",
            "write_atomic", "write_output_file", "check_output_file", "check_not_input",
            "check_not_in_recording", "check_replaceable", "check_output_folder", "OutputLock",
            "OutputFile", "OutputFolder", "FICAP_OUTPUT_FILES", "is_ficap_output",
@@ -45,6 +45,8 @@ __all__ = ["read_bytes", "read_text", "load_yaml", "parse_yaml", "MAX_CONFIG_BYT
 #: Largest configuration file read (calibration, intrinsics, cap model, params): a hundred times
 #: the largest such file ficap writes; a larger one is refused before it is read.
 MAX_CONFIG_BYTES = 1 << 20
+#: Largest table read (a labels CSV: a row per frame, days of frames).
+MAX_TABLE_BYTES = 1 << 30
 #: Deepest nesting of mappings and lists a YAML configuration may have (ficap's have 3).
 MAX_YAML_DEPTH = 32
 #: Most digits of an integer in a YAML configuration (an int64 has 19).

@@ -339,7 +339,15 @@ class _McapFile:
             if frame.opcode == Opcode.FOOTER:
                 footer = True
                 break
+            if frame.opcode == 0:  # reserved: zeros (a file extended or overwritten with them)
+                self.damage = self.damage or (f"{self.path.name} holds no record at byte "
+                                              f"{frame.offset} of {size} (zeros)")
+                break
             huge = frame.length > MAX_RECORD_BYTES
+            if huge:
+                self.damage = self.damage or (
+                    f"a record of {self.path.name} at byte {frame.offset} claims {frame.length} "
+                    f"bytes, more than any recording writes (a corrupt length)")
             if frame.opcode == Opcode.CHUNK:
                 whole = frame.complete and not huge
                 record = os.pread(fd, min(frame.end, size, frame.offset + _RECORD_HEADER.size
@@ -348,9 +356,6 @@ class _McapFile:
             elif frame.complete and not huge and frame.opcode in _DATA_OPCODES:
                 yield from self._record(os.pread(fd, frame.end - frame.offset, frame.offset))
             if huge:
-                self.damage = self.damage or (
-                    f"a record of {self.path.name} at byte {frame.offset} claims {frame.length} "
-                    f"bytes, more than any recording writes (a corrupt length)")
                 break
             if not frame.complete:
                 self.damage = self.damage or (
@@ -404,6 +409,9 @@ class _McapFile:
                complete: bool) -> Iterator[tuple[int, int, bytes]]:
         """The records of a chunk's decompressed bytes (of a cut chunk: up to the one cut)."""
         for frame in _frames(records, 0):
+            if frame.opcode == 0:  # reserved: zeros where records should be
+                self.damage = self.damage or "a chunk holds an invalid record (zeros)"
+                return
             if not frame.complete:
                 if complete:
                     self.damage = self.damage or "a record inside a chunk is cut short"

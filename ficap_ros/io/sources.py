@@ -132,6 +132,8 @@ class Loss:
         count = ("an unknown number of frames" if self.frames_lost is None else
                  f"{'at least ' if self.estimated else ''}{self.frames_lost} frame"
                  f"{'' if self.frames_lost == 1 else 's'}")
+        if self.frames_lost == 0 and not self.estimated:
+            return f"DAMAGED, but every frame it lists was read ({self.detail})"
         if not (self.after_ns and start_ns):
             span = "from the start, before any frame could be read"
         else:
