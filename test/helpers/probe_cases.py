@@ -11,8 +11,10 @@ from __future__ import annotations
 
 import hashlib
 import os
+import signal
 import subprocess
 import sys
+import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -177,3 +179,26 @@ def extend_sparse(path: Path, size: int) -> None:
     """Grow ``path`` to ``size`` bytes with a hole (no data written, no disk used)."""
     with open(path, "r+b") as handle:
         handle.truncate(size)
+
+
+def kill_pool_workers(stop: threading.Event, times: int, killed: list[int]) -> None:
+    """Kill this process's pool workers (spawned children, not the resource tracker) as they
+    appear, ``times`` kills in all."""
+    me = os.getpid()
+    while not stop.is_set() and len(killed) < times:
+        for stat in Path("/proc").glob("[0-9]*/stat"):
+            try:
+                ppid = int(stat.read_text().rsplit(")", 1)[1].split()[1])
+                cmd = (stat.parent / "cmdline").read_bytes()
+            except (OSError, IndexError, ValueError):
+                continue
+            pid = int(stat.parent.name)
+            if ppid == me and b"spawn_main" in cmd and pid not in killed:
+                time.sleep(0.3)  # let it take a segment
+                try:
+                    os.kill(pid, signal.SIGKILL)
+                except ProcessLookupError:
+                    continue
+                killed.append(pid)
+                break
+        time.sleep(0.05)
