@@ -38,8 +38,9 @@ def sample_recording(progress: bool = True, **options: object) -> Path:
            + f"_chain{RENDER_VERSION}")
     bag = cache / f"sample_drive_{key}"
     if not (bag / "metadata.yaml").exists():
-        from ficap_ros.files import OutputLock
+        from ficap_ros.files import OutputLock, check_not_in_recording
 
+        check_not_in_recording(bag, "sample recording")  # $FICAP_CACHE inside a recording
         # One demo renders it; another one started meanwhile waits and then uses it.
         with OutputLock(bag, "sample recording", wait=True):
             if not (bag / "metadata.yaml").exists():

@@ -262,3 +262,19 @@ def test_folder_of_a_recorder_killed_before_metadata(drive: Path, tmp_path: Path
         assert {c.topic for c in reader.connections} >= {"/camera/image_raw/compressed"}
     finally:
         reader.close()
+
+
+def test_a_loss_is_told_in_recording_time() -> None:
+    """Seconds from the first frame; without any frame read, never an epoch taken for seconds;
+    a damaged container that lost no frame says so."""
+    from ficap_ros.io.sources import Loss
+
+    start = 1_700_000_000_000_000_000
+    assert Loss("cut", 3, False, start + 2_000_000_000, start + 2_100_000_000).describe(start) == \
+        "LOST 3 frames between 2.000 s and 2.100 s (cut)"
+    line = Loss("cut", None, False, 0, start + 267_000_000).describe(0)
+    assert line == "LOST an unknown number of frames from the start, before any frame could be " \
+                   "read (cut)" and "1700000000" not in line
+    assert Loss("index", 0, False, start, start).describe(start) == \
+        "DAMAGED, but every frame it lists was read (index)"
+    assert Loss("cut", None, False, 0, start).to_dict(0)["until_s"] is None
