@@ -1,10 +1,9 @@
 """Files in and out: the one rule every reader and writer of ficap_ros follows.
 
-Reading (``read_bytes``, ``read_text``, ``load_yaml``): a user's file (calibration, intrinsics,
-cap model, manifest, labels) is read only when it is a regular file no larger than its kind's
-limit (a FIFO, a device such as /dev/zero or a folder is refused before a byte is read), as UTF-8
-text; YAML goes through a loader without aliases (no "billion laughs") and with a depth limit.
-Every failure is the caller's ``FicapError`` subclass with one line naming the file.
+Reading (``read_bytes``, ``read_text``, ``load_yaml``): a user's file is read only when it is a
+regular file no larger than its kind's limit (a FIFO, /dev/zero or a folder is refused before a
+byte is read), as UTF-8 text; YAML through a loader without aliases (no "billion laughs") and
+with a depth limit. Every failure is the caller's ``FicapError`` with one line naming the file.
 
 Writing: every file and folder any verb writes is an ``OutputFile`` or an ``OutputFolder``, whose
 construction checks everything before any processing (``check_output_file``,
@@ -117,14 +116,8 @@ def read_bytes(path: str | os.PathLike[str], what: str, error: type[FicapError],
 def read_text(path: str | os.PathLike[str], what: str, error: type[FicapError],
               limit: int = MAX_CONFIG_BYTES) -> str:
     """The text of a user's file (``read_bytes``, decoded as UTF-8), or ``error`` with one line
-    (missing, not a regular file, too large, binary, not UTF-8).
-
-    Args:
-        path: the file.
-        what: what it should be, for the message ("calibration", "intrinsics" ...).
-        error: the ``FicapError`` subclass to raise.
-        limit: largest size accepted, bytes.
-    """
+    (missing, not a regular file, more than ``limit`` bytes, binary, not UTF-8); ``what`` names
+    its kind in the message ("calibration", "intrinsics" ...)."""
     p = Path(path)
     data = read_bytes(p, what, error, limit)
     if b"\x00" in data:
@@ -166,7 +159,7 @@ def _guarded_loader() -> type:
     return Loader
 
 
-_LOADER: type | None = None
+_LOADER: type | None = None  # built on first use (PyYAML is imported then)
 
 
 def parse_yaml(text: str, source: str, error: type[FicapError]) -> Any:
@@ -339,18 +332,10 @@ def check_output_file(path: str | os.PathLike[str], inputs: Iterable[Any] = (),
 def check_replaceable(out: str | os.PathLike[str], subfolders: bool = False) -> None:
     """Refuse to replace (or add files to) an existing folder that ficap did not write.
 
-    An existing ``out`` may be replaced when it is an empty folder or holds only files ficap
-    writes (``is_ficap_output``), and when its ``metadata.yaml``, if any, describes a rosbag2
-    whose only file is ficap's ``labels.mcap``. Anything else (a recording, a folder of the
-    user's files) is refused.
-
-    Args:
-        out: the folder.
-        subfolders: the folder may hold folders (a fleet's ``--out``: one per recording); then
-            every file under it is checked the same way, at any depth.
-
-    Raises:
-        OutputError: ``out`` is a file, or a folder ficap did not write.
+    An existing ``out`` may be replaced when it is empty or holds only files ficap writes
+    (``is_ficap_output``), its ``metadata.yaml`` (if any) a rosbag2 of ficap's ``labels.mcap``
+    only; a recording or a folder of the user's files is refused (``OutputError``, as a file).
+    ``subfolders``: it may hold folders (a fleet's ``--out``), checked alike at any depth.
     """
     p = Path(out)
     if not p.exists():
@@ -413,9 +398,8 @@ class OutputLock:
     """An exclusive lock on an output target held by one process at a time.
 
     The lock file ``.ficap-lock.NAME`` beside the target (its folder is created) carries the
-    holder's pid; the kernel
-    lets go of the lock when that process dies, however it died. Taking it never waits unless
-    ``wait`` (the demo's shared sample recording): a second writer is refused in one line.
+    holder's pid; the kernel lets go of the lock when that process dies, however it died. Taking
+    it never waits unless ``wait`` (the demo's shared sample): a second writer is refused.
 
     Raises:
         OutputError: another process writes the target, or its folder is not writable.
@@ -484,15 +468,13 @@ def write_atomic(path: str | os.PathLike[str], text: str | bytes) -> None:
     A crash or Ctrl-C never leaves a half-written file at ``path``.
 
     Raises:
-        OSError: the folder is not writable, the disk is full (``OutputFile`` turns these into
-            one-line ``OutputError``).
+        OSError: the folder is not writable, the disk is full (``OutputFile`` makes these one line).
     """
     path = Path(path)
     data = text.encode() if isinstance(text, str) else text
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent or ".")
     try:
-        # mkstemp creates the file 0600; give the result the permissions a plain open() would.
-        os.fchmod(fd, 0o666 & ~_umask())
+        os.fchmod(fd, 0o666 & ~_umask())  # mkstemp's 0600: the permissions open() would give
         with os.fdopen(fd, "wb") as handle:
             handle.write(data)
             handle.flush()
@@ -561,13 +543,12 @@ _LOCK = ".lock"
 def remove_stale_temporaries(out: str | os.PathLike[str]) -> list[Path]:
     """Remove the temporary folders of ``out`` left by runs that were killed outright (SIGKILL).
 
-    Each run's ``.ficap-NAME.XXXX`` folder has a ``.ficap-NAME.XXXX.lock`` file beside it that the
-    run holds an exclusive ``flock`` on while it lives; the kernel lets go of it when the process
-    (and any worker forked with it) is gone, however it died. A lock this function can take, on a
-    file still linked under its name, is therefore a dead run's: its folder goes, then the lock
-    file. A live run's lock cannot be taken, and a folder without a lock file (an older ficap's, or
-    one whose lock file is being created) is left alone, so another live run's temporary is never
-    deleted. The previous outputs renamed aside during a commit (``.old-PID``) are not touched.
+    Each run's ``.ficap-NAME.XXXX`` folder has a ``.ficap-NAME.XXXX.lock`` file beside it, which
+    the run holds an exclusive ``flock`` on while it lives (the kernel lets go when the process is
+    gone, however it died). A lock taken here, on a file still linked under its name, is a dead
+    run's: its folder goes, then the lock file. A live run's lock cannot be taken; a folder without
+    a lock file (an older ficap's, or one being created) and the previous outputs renamed aside
+    during a commit (``.old-PID``) are left alone.
 
     Returns:
         The folders removed.
@@ -585,9 +566,7 @@ def remove_stale_temporaries(out: str | os.PathLike[str]) -> list[Path]:
                 fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
             except OSError:
                 continue  # a live run holds it
-            # The same file still under that name: not one unlinked by a run that finished and a
-            # new file that happens to reuse the name.
-            here, held = os.stat(lock), os.fstat(fd)
+            here, held = os.stat(lock), os.fstat(fd)  # still the file under that name
             if (here.st_dev, here.st_ino) != (held.st_dev, held.st_ino):
                 continue
             folder = lock.with_name(lock.name[: -len(_LOCK)])
@@ -604,25 +583,18 @@ def remove_stale_temporaries(out: str | os.PathLike[str]) -> list[Path]:
 class OutputFolder:
     """An output folder built beside its target and swapped in as a unit.
 
-    ``with OutputFolder(out, inputs) as tmp:`` write every file into ``tmp`` (or through
-    ``write``); on a clean exit ``out`` is replaced by it (the old folder, if any, is renamed away
-    first and removed after), on an exception (Ctrl-C included) ``tmp`` is removed and ``out`` is
-    left as it was.
-
-    The checks run in ``__init__`` so a command fails before hours of processing
-    (``check_output_folder``), the target's ``OutputLock`` is taken, and the temporary folder is
-    created at once beside the target.
+    ``with OutputFolder(out, inputs) as tmp:`` write every file into ``tmp`` (or ``write``); on a
+    clean exit ``out`` is replaced by it (the old folder renamed away first, removed after), on an
+    exception (Ctrl-C included) ``tmp`` is removed and ``out`` left as it was. ``__init__`` checks
+    (``check_output_folder``), takes the target's ``OutputLock`` and creates the temporary folder
+    beside the target, so a command fails before hours of processing (``OutputError``, one line).
 
     Args:
         out: the folder (a symbolic link stands for its target).
         inputs: the verb's inputs.
-        merge: keep the files of an existing ``out`` that this run does not write (``stats``,
-            ``evaluate`` and ``kit`` add their files to a folder of ficap's); they are linked
-            into the new folder before the swap, unchanged.
+        merge: keep the files of an existing ``out`` this run does not write (``stats``,
+            ``evaluate``, ``kit`` add theirs to a folder of ficap's), linked in before the swap.
         subfolders: ``out`` may hold folders of ficap's (``check_replaceable``).
-
-    Raises:
-        OutputError: any of the above, with one line.
     """
 
     def __init__(self, out: str | os.PathLike[str], inputs: Iterable[Any] = (),
@@ -639,8 +611,7 @@ class OutputFolder:
         self._target_lock = OutputLock(self.out, "output folder")
         try:
             remove_stale_temporaries(self.out)
-            # The lock file comes first and names the folder: a folder without a locked lock file
-            # beside it is never taken for stale (it may be one being created right now).
+            # The lock file first, naming the folder (see remove_stale_temporaries).
             fd, lock = tempfile.mkstemp(prefix=f".ficap-{self.out.name}.", suffix=_LOCK,
                                         dir=parent)
             self._lock_fd, self._lock = fd, Path(lock)

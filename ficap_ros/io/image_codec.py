@@ -13,7 +13,7 @@ on: a tag there can be found, decoded and fitted with small residuals at the wro
 covariance built from the residuals can tell (the frame's bounds would claim a tenth of a degree
 for a pose degrees off). No widening of the bounds is honest either: how far the corners moved is
 not knowable from the frame. So the decoder's own warnings are read for every frame
-(``native_log.call_capturing_stderr`` around the decode, a few microseconds) and a JPEG libjpeg
+(``native_log.call_capturing_stderr`` around the decode: a few system calls) and a JPEG libjpeg
 warns about is refused as damaged (``DamagedImageError``): the frame is labelled with the reason
 and without a pose, and the node publishes no pose for it.
 """

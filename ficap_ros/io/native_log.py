@@ -57,7 +57,7 @@ def call_capturing_stderr(fn: Callable[..., Any], *args: Any) -> tuple[Any, byte
     the image it decodes) is then known per call, not only on the terminal. The swap is process
     wide, so calls are serialised (a lock) and anything another thread printed meanwhile is in
     the bytes returned: the caller passes on what is not its own (``os.write(2, ...)``). Costs a
-    few system calls (microseconds). Without a file descriptor 2 the call runs as it is.
+    few system calls. Without a file descriptor 2 the call runs as it is.
     """
     with _CAPTURE_LOCK:
         read_fd, write_fd = _capture_pipe()

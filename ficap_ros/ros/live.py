@@ -99,7 +99,7 @@ def refusal_before_queueing(msg: Any) -> str:
     """Why an image message is refused before it is queued ('' when it is not): a size above the
     pixel budget, from a raw image's fields or a compressed image's header
     (``image_codec.check_compressed``), so a hostile frame never costs the decode's memory.
-    Microseconds; decoding finds everything else."""
+    A header read; decoding finds everything else."""
     from ficap_ros.io.image_codec import check_compressed, check_pixel_budget
 
     try:
