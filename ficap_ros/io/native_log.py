@@ -1,11 +1,14 @@
-"""Messages that C libraries print straight to stderr (libjpeg, libpng, FFmpeg), throttled.
+"""Messages that C libraries print straight to stderr (libjpeg, libpng, FFmpeg): per call, or
+throttled.
 
-OpenCV's JPEG decoder lets libjpeg print "Corrupt JPEG data: ..." on file descriptor 2 for every
-damaged frame, and FFmpeg prints "[mjpeg @ 0x...] ..." lines; ``cv2.setLogLevel`` does not reach
-them. A stream of corrupt JPEGs printed ~500 such lines. ``ThrottledStderr`` puts a pipe on file
-descriptor 2 for its lifetime: a thread forwards every line to the real stderr unchanged, except
-the lines of those libraries, which go to ``emit`` at most once per ``throttle_s`` per kind, with
-the number held back. The CLI emits them as ``ficap: warning: ...``; the node through its logger.
+OpenCV's decoders let libjpeg print "Corrupt JPEG data: ..." on file descriptor 2 for a damaged
+frame, libpng its warnings, and FFmpeg "[mjpeg @ 0x...] ..." lines; ``cv2.setLogLevel`` does not
+reach them, and no OpenCV call returns them. ``call_capturing_stderr`` gives one call's lines to
+its caller (the image decoder reads libjpeg's verdict on each frame that way).
+``ThrottledStderr`` puts a pipe on file descriptor 2 for its lifetime: a thread forwards every
+line to the real stderr unchanged, except those libraries' lines, which go to ``emit`` at most
+once per ``throttle_s`` per kind, with the number held back. The CLI emits them as
+``ficap: warning: ...``; the node through its logger.
 """
 
 from __future__ import annotations
