@@ -244,8 +244,7 @@ def test_a_killed_worker_is_retried_and_never_hangs(drive: Path, kills: int) -> 
     from ficap_ros.errors import WorkerError
     from ficap_ros.geometry.cap_model import nominal_model
     from ficap_ros.io.sources import open_frames
-    from ficap_ros.tools.replay import process_frames
-    from ficap_ros.tools.replay import available_cores
+    from ficap_ros.tools.replay import available_cores, process_frames
     from ficap_ros.vision.pose import PoseConfig
 
     if available_cores() < 2:

@@ -53,7 +53,11 @@ def test_an_unknown_loss_is_never_counted_as_zero(tmp_path: Path) -> None:
     import json
 
     from ficap_ros.tools.fleet.manifest import Recording
-    from ficap_ros.tools.fleet.summary import FleetResult, recording_result, write_fleet_summary
+    from ficap_ros.tools.fleet.summary import (
+        FleetResult,
+        recording_result,
+        write_fleet_summary,
+    )
 
     summary = {"frames": 10, "frames_skipped": 0, "damaged": True, "frames_lost": None}
     r = recording_result(Recording(Path("a.mcap"), Path("a")), "done", summary, [0.9], 1.0)
