@@ -81,8 +81,12 @@ def frame_processor(config: Any) -> FrameProcessor:
     tracking).
 
     Raises:
-        ModelError: an unreadable ``model_file``. ConfigError: bad detector settings.
+        ModelError: an unreadable ``model_file``. ConfigError: bad detector settings, or a
+        ``FICAP_MAX_PIXELS`` that is no number of pixels.
     """
+    from ficap_ros.io.image_codec import max_pixels
+
+    max_pixels()  # a bad FICAP_MAX_PIXELS refuses the start, not every frame
     return FrameProcessor(model=load_model(config.model_file) if config.model_file else nominal_model(),
                           detector=config.detector_config, pose=config.pose_config,
                           tracking=config.tracking)
