@@ -29,10 +29,17 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest
 
+# Every benchmark in turn (each writes its section of docs/benchmarks.md); BENCH_ARGS=--quick is
+# the fast mode. A caller's ROS_DOMAIN_ID is kept (the node benchmarks start rclpy).
+BENCH_ARGS ?=
 bench: $(STAMP)
-	$(PY) benchmarks/run_all.py
+	@set -e; start=$$(date +%s); for script in benchmarks/bench_*.py; do \
+		echo "== $$script $(BENCH_ARGS)"; t0=$$(date +%s); \
+		ROS_DOMAIN_ID=$${ROS_DOMAIN_ID:-70} $(PY) $$script $(BENCH_ARGS) > /dev/null; \
+		echo "== $$script: $$(( $$(date +%s) - t0 )) s"; \
+	done; echo "== make bench: $$(( $$(date +%s) - start )) s"
 
-# Blender as a Python module, for benchmarks/cycles_render.py only (the package never imports bpy;
+# Blender as a Python module, for datasets/cycles_render.py only (the package never imports bpy;
 # `make test` does not need it). CPython 3.11, manylinux x86_64; the wheel brings numpy 1.26.
 bpy-venv:
 	test -x .venv-bpy/bin/python || python3.11 -m venv .venv-bpy

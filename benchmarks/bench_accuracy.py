@@ -1,179 +1,121 @@
-"""The paper's Table 1: cap-rotation error on rendered naturalistic drives, ours vs paper vs naive peer.
+"""Accuracy on rendered drives by condition: ours, the paper's pose method and the naive peer
+beside the paper's Table 1.
 
-One naturalistic drive (``ficap_ros.tools.synth.naturalistic_drive``, seed 0, 30 fps, ``--frames`` frames,
-every ``--stride``-th frame rendered) at 540p and 1080p x neutral/high/low lighting. Every frame is
-processed by three pipelines on the same image: ours with the ``joint`` and the ``paper`` pose method
-(opencv tuned + edge-fit corners), and the naive peer (OpenCV sub-pixel corners + one SQPnP/LM).
-Error: Phi3 = arccos(|q1.q2|) (the paper's metric, half the geodesic angle) and the geodesic angle,
-of the cap orientation against the rendered truth.
-
-Usage: .venv/bin/python benchmarks/bench_accuracy.py [--frames 1800] [--stride 1] [--record]
+One naturalistic drive (``ficap_ros.tools.synth.naturalistic_drive``, seed 0, 30 fps, 60 s) at 540p and
+1080p under neutral, high and low light, rendered through the realistic camera chain (lens PSF
+in linear light, shot and read noise, clipping, sRGB, JPEG as ``ficap synth`` writes it). Every
+rendered frame goes through three pipelines on the same image: ours (``FrameProcessor`` defaults,
+tracking across the rendered frames), ours with the paper's pose method (section 3.2: per-tag
+IPPE, Kabsch, corner rejection) and the naive peer (OpenCV sub-pixel corners, one SQPnP + LM).
+Error: Phi3 = arccos(|q1.q2|) of the cap orientation against the rendered truth (the paper's
+metric, half the geodesic angle), the geodesic angle itself, and the cap origin's translation
+error (mm). Writes docs/benchmarks/accuracy.md and accuracy.png.
 """
 
 from __future__ import annotations
 
-import argparse
 import sys
-import time
-from pathlib import Path
 
 import cv2
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import (  # noqa: E402
-    DOC,
-    ROOT,
-    Progress,
-    load_avg,
-    machine_line,
-    md_table,
-    record_section,
-)
+from _lib import cli, report
+from _lib.methods import OURS, OURS_PAPER, PEER
+from _lib.stats import q
+from _lib.synthdata import drive_frames
+from ficap_ros.geometry.metrics import angle_deg
+from ficap_ros.tools.synth import RenderConfig
 
-from ficap_ros.geometry.cap_model import nominal_model  # noqa: E402
-from ficap_ros.geometry.metrics import angle_deg  # noqa: E402
-from ficap_ros.tools.synth import (  # noqa: E402
-    RenderConfig,
-    default_scene,
-    naturalistic_drive,
-    render,
-)
-from ficap_ros.vision.detector import DetectorConfig  # noqa: E402
-from ficap_ros.vision.pipeline import FrameProcessor  # noqa: E402
-from ficap_ros.vision.pose import PoseConfig  # noqa: E402
-
-#: Paper Table 1 (Phi3, deg): mean, median, p95.
+#: The paper's Table 1 (Phi3, deg): median, p95.
 PAPER = {
-    ("540p", "neutral"): (1.17, 1.18, 1.95), ("540p", "high"): (1.45, 1.61, 2.10),
-    ("540p", "low"): (1.17, 0.95, 2.87), ("1080p", "neutral"): (0.39, 0.36, 0.66),
-    ("1080p", "high"): (1.12, 1.15, 1.46), ("1080p", "low"): (0.93, 1.01, 1.30),
+    ("540p", "neutral"): (1.18, 1.95), ("540p", "high"): (1.61, 2.10), ("540p", "low"): (0.95, 2.87),
+    ("1080p", "neutral"): (0.36, 0.66), ("1080p", "high"): (1.15, 1.46), ("1080p", "low"): (1.01, 1.30),
 }
-METHODS = {
-    "ficap joint": (DetectorConfig(), PoseConfig(method="joint")),
-    "ficap paper": (DetectorConfig(), PoseConfig(method="paper")),
-    "naive peer": (DetectorConfig(corner_refine="subpix"), PoseConfig(method="naive")),
-}
+METHODS = (OURS, OURS_PAPER, PEER)
+DRIVE_FRAMES = 1800
 
 
-def stats(err: np.ndarray) -> tuple[float, float, float]:
-    e = err[np.isfinite(err)]
-    if e.size == 0:
-        return (float("nan"),) * 3
-    return float(e.mean()), float(np.median(e)), float(np.percentile(e, 95))
+def measure(resolution: str, lighting: str, stride: int) -> tuple[dict[str, np.ndarray], dict[str, np.ndarray]]:
+    """Geodesic rotation error (deg) and translation error (mm) per method, per rendered frame
+    (NaN without a pose)."""
+    camera, frames = drive_frames(resolution, DRIVE_FRAMES // stride, step=stride,
+                                  config=RenderConfig(lighting=lighting))
+    procs = {m.name: m.processor() for m in METHODS}
+    err: dict[str, list[float]] = {m.name: [] for m in METHODS}
+    trans: dict[str, list[float]] = {m.name: [] for m in METHODS}
+    for f in frames:
+        gray = cv2.imdecode(f.jpeg, cv2.IMREAD_GRAYSCALE)
+        for name, proc in procs.items():
+            pose = proc.process(gray, camera, f.stamp_ns).pose
+            if pose is None:
+                err[name].append(np.nan), trans[name].append(np.nan)
+                continue
+            err[name].append(float(angle_deg(pose.T_cam_cap.rotation, f.T_cam_cap.rotation)))
+            trans[name].append(1e3 * float(np.linalg.norm(pose.T_cam_cap.translation_m - f.T_cam_cap.translation_m)))
+    return {k: np.array(v) for k, v in err.items()}, {k: np.array(v) for k, v in trans.items()}
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--frames", type=int, default=1800, help="drive length in frames at 30 fps (default 1800)")
-    ap.add_argument("--stride", type=int, default=1, help="render every N-th frame (default 1)")
-    ap.add_argument("--resolutions", default="540p,1080p")
-    ap.add_argument("--lightings", default="neutral,high,low")
-    ap.add_argument("--record", action="store_true", help="write the table into docs/benchmarks.md")
-    ap.add_argument("--save-worst", type=Path, default=None,
-                    help="folder for PNGs of each condition's worst 'ficap joint' frame")
-    args = ap.parse_args()
+def plot(errors: dict[tuple[str, str], dict[str, np.ndarray]]) -> str:
+    plt = report.pyplot()
+    conds = list(errors)
+    fig, axes = plt.subplots(2, 3, figsize=(12, 6.4), squeeze=False)
+    for ax, cond in zip(axes.ravel(), conds):
+        for name, e in errors[cond].items():
+            e = np.sort(e[np.isfinite(e)] / 2.0)
+            if e.size:
+                ax.plot(e, np.arange(1, e.size + 1) / e.size, label=name)
+        ax.axvline(PAPER[cond][0], color="grey", ls=":", label="paper's median")
+        ax.set_xscale("log")
+        ax.set_title(f"{cond[0]} {cond[1]} light")
+        ax.set_xlabel("Phi3 error (deg)")
+        ax.grid(True, alpha=0.3)
+    axes[0][0].set_ylabel("fraction of frames")
+    axes[0][0].legend(fontsize=7)
+    fig.suptitle("Cap orientation error on synth drives (CDF)")
+    fig.tight_layout()
+    return report.save_figure(fig, "accuracy")
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = cli.parser(__doc__, quick="every 60th frame (30 a condition) instead of every 12th (150)")
+    ap.add_argument("--stride", type=int, default=None, help="render every N-th frame of the drive (default 12)")
+    args = ap.parse_args(argv)
     cv2.setNumThreads(1)
-    model = nominal_model()
-    load_before = load_avg()
-    rows, md_rows, all_err = [], [], {}
-    t_start = time.time()
-    for res in args.resolutions.split(","):
-        scene = default_scene(res)
-        drive = naturalistic_drive(args.frames, fps=30.0, seed=0, scene=scene)[:: args.stride]
-        procs = {name: FrameProcessor(model, det, pose) for name, (det, pose) in METHODS.items()}
-        for light in args.lightings.split(","):
-            cfg = RenderConfig(lighting=light)
-            err = {name: np.full(len(drive), np.nan) for name in METHODS}
-            worst = (-1.0, None, None)
-            prog = Progress(len(drive), f"{res} {light}")
-            for k, d in enumerate(drive):
-                frame = render(model, scene.camera, d.T_cam_cap, cfg, seed=d.index)
-                for name, proc in procs.items():
-                    r = proc.process(frame.image, scene.camera, d.stamp_ns)
-                    if r.pose is not None:
-                        err[name][k] = float(angle_deg(r.pose.T_cam_cap.rotation, d.T_cam_cap.rotation))
-                if args.save_worst is not None and np.nan_to_num(err["ficap joint"][k], nan=99) > worst[0]:
-                    worst = (float(np.nan_to_num(err["ficap joint"][k], nan=99)), frame, d)
-                prog.update()
-            if args.save_worst is not None and worst[1] is not None:
-                args.save_worst.mkdir(parents=True, exist_ok=True)
-                cv2.imwrite(str(args.save_worst / f"worst_{res}_{light}_f{worst[2].index}.png"), worst[1].image)
-            paper = PAPER.get((res, light), (float("nan"),) * 3)
-            peer_geo = stats(err["naive peer"])
-            for name in METHODS:
-                geo = stats(err[name])
-                phi = tuple(v / 2 for v in geo)
-                n_pose = int(np.isfinite(err[name]).sum())
-                bar = ""
-                if name != "naive peer":
-                    ok = geo[1] <= 0.5 * peer_geo[1] and geo[2] <= 0.5 * peer_geo[2]
-                    bar = "yes" if ok else "**NO**"
-                rows.append((res, light, name, phi, geo, n_pose, len(drive)))
-                md_rows.append([res, light, name, f"{phi[0]:.3f} / {phi[1]:.3f} / {phi[2]:.3f}",
-                                f"{geo[0]:.3f} / {geo[1]:.3f} / {geo[2]:.3f}",
-                                f"{paper[0]:.2f} / {paper[1]:.2f} / {paper[2]:.2f}",
-                                f"{n_pose}/{len(drive)}", bar])
-                print(f"{res:6} {light:8} {name:12} phi3 {phi[0]:.3f}/{phi[1]:.3f}/{phi[2]:.3f}  "
-                      f"geodesic {geo[0]:.3f}/{geo[1]:.3f}/{geo[2]:.3f}  pose {n_pose}/{len(drive)}  {bar}",
-                      file=sys.stderr)
-                all_err[(res, light, name)] = err[name]
-    elapsed = time.time() - t_start
-    n = len(naturalistic_drive(args.frames, fps=30.0, seed=0)[:: args.stride])
-    body = [
-        f"Machine: {machine_line()}; {load_avg()} at the end ({load_before} at the start); "
-        f"{elapsed / 60:.1f} min.",
-        "",
-        f"One naturalistic drive (seed 0) of {args.frames} frames at 30 fps ({args.frames / 30:.0f} s), "
-        + (f"every {args.stride}th frame rendered: {n} frames per condition"
-           if args.stride > 1 else f"all {n} frames rendered")
-        + " (`ficap_ros.tools.synth.render`, default camera and image chain: PSF, sensor noise, sRGB). Same frames for every method. "
-        "Errors of the cap orientation against the rendered truth, mean / median / p95 in degrees: "
-        "Phi3 = arccos(|q1.q2|) (the paper's metric, half the geodesic angle) and the geodesic angle. "
-        "'bar' = median and p95 at most half the naive peer's.",
-        "",
-        md_table(["res", "lighting", "method", "Phi3 mean / median / p95", "geodesic mean / median / p95",
-                  "paper Table 1 (Phi3)", "frames with pose", "bar (<= 1/2 peer)"], md_rows),
-    ]
-    if args.stride > 1:
-        body.append("")
-        body.append("Fewer frames than the paper's 1800 per condition because rendering takes 0.1-0.5 s "
-                    "per frame on this machine; run with `--stride 1` for the full sequence.")
-    text = "\n".join(body)
-    print(text)
-    png = ROOT / "docs" / "bench_accuracy.png"
-    try:
-        import matplotlib
-
-        matplotlib.use("Agg")
-        import matplotlib.pyplot as plt
-
-        res_list, lights = args.resolutions.split(","), args.lightings.split(",")
-        fig, axes = plt.subplots(len(res_list), len(lights), figsize=(4 * len(lights), 3.2 * len(res_list)),
-                                 squeeze=False)
-        for i, res in enumerate(res_list):
-            for j, light in enumerate(lights):
-                ax = axes[i][j]
-                for name in METHODS:
-                    e = np.sort(all_err[(res, light, name)] / 2)
-                    e = e[np.isfinite(e)]
-                    if e.size:
-                        ax.plot(e, np.arange(1, e.size + 1) / e.size, label=name)
-                ax.set_xscale("log")
-                ax.set_title(f"{res} {light}")
-                ax.set_xlabel("Phi3 error (deg)")
-                ax.grid(True, alpha=0.3)
-        axes[0][0].set_ylabel("fraction of frames")
-        axes[0][0].legend(fontsize=8)
-        fig.tight_layout()
-        if args.record:
-            fig.savefig(png, dpi=80)
-        plt.close(fig)
-    except ImportError:
-        pass
-    if args.record:
-        record_section("Accuracy (paper Table 1)", text + f"\n\nCDF plot: `{png.relative_to(ROOT)}`.")
-        print(f"recorded in {DOC}", file=sys.stderr)
+    run = report.Run()
+    stride = args.stride or (60 if args.quick else 12)
+    errors, rows, bar_ok = {}, [], []
+    for res in ("540p", "1080p"):
+        for light in ("neutral", "high", "low"):
+            err, trans = measure(res, light, stride)
+            errors[(res, light)] = err
+            ours, peer = err[OURS.name], err[PEER.name]
+            ok = q(ours, 50) <= 0.5 * q(peer, 50) and q(ours, 95) <= 0.5 * q(peer, 95)
+            bar_ok.append(ok)
+            cells = [f"{q(err[m.name], 50) / 2:.3f} / {q(err[m.name], 95) / 2:.3f}" for m in METHODS]
+            posed = "/".join(str(int(np.isfinite(err[m.name]).sum())) for m in METHODS)
+            geo = [f"{q(err[m.name], 50):.3f} / {q(err[m.name], 95):.3f}" for m in (OURS, PEER)]
+            mm = [f"{q(trans[m.name], 50):.2f}" for m in (OURS, PEER)]
+            rows.append([res, light, *cells, f"{PAPER[(res, light)][0]:.2f} / {PAPER[(res, light)][1]:.2f}",
+                         *geo, " / ".join(mm), f"{posed} of {len(ours)}", "yes" if ok else "**no**"])
+            print(" | ".join(str(c) for c in rows[-1]), file=sys.stderr, flush=True)
+    table = report.md_table(["res", "light", "ficap (Phi3 median / p95, deg)", "ficap, paper's pose",
+                             "naive peer", "paper's Table 1", "ficap geodesic median / p95 (deg)",
+                             "naive peer geodesic", "translation median, ficap / peer (mm)",
+                             "frames with a pose (ficap/paper/peer)", "ficap <= half the peer"], rows)
+    n = DRIVE_FRAMES // stride
+    body = (f"{table}\n\n{plot(errors)}\n\n"
+            f"Ours meets half the naive peer's median and p95 in {sum(bar_ok)} of {len(bar_ok)} conditions. "
+            "The paper's pose method, re-implemented, is a reproduction baseline: its per-tag poses "
+            "and corner rejection lose to one joint fit over every corner. The paper's figures come "
+            "from real drives and are shown for scale, not as a like-for-like comparison.")
+    what = ("What it measures: cap-orientation error (Phi3, the paper's metric: half the geodesic "
+            f"angle) on {n} frames per condition (every {stride}th frame of a 60 s naturalistic drive, "
+            "seed 0) rendered at 540p and 1080p under neutral, high and low light through the "
+            "realistic camera chain (PSF, sensor noise, sRGB, JPEG q95); ours, ours with the "
+            "paper's pose method and the naive peer (OpenCV sub-pixel corners + one SQPnP/LM) on the "
+            "same images.")
+    report.write_section("accuracy", what, report.how("bench_accuracy.py", "every 60th frame"),
+                         body, run, report.command(), args.quick, args.no_doc)
     return 0
 
 

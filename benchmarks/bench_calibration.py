@@ -16,24 +16,20 @@ error on the remaining frames: geodesic angle of the head orientation (face trac
 the head's forward direction (laser) against the truth, and against the noisy reference (what the
 paper could measure).
 
-Usage: .venv/bin/python benchmarks/bench_calibration.py [--sessions 10] [--record]
+Writes docs/benchmarks/calibration.md.
 """
 
 from __future__ import annotations
 
-import argparse
 import sys
-from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import load_avg, machine_line, md_table, record_section  # noqa: E402
-
-from ficap_ros.errors import CalibrationError  # noqa: E402
-from ficap_ros.geometry.metrics import angle_deg, rotation_from_ypr_deg  # noqa: E402
-from ficap_ros.vision.calibration import calibrate_reference  # noqa: E402
+from _lib import cli, report
+from ficap_ros.errors import CalibrationError
+from ficap_ros.geometry.metrics import angle_deg, rotation_from_ypr_deg
+from ficap_ros.vision.calibration import calibrate_reference
 
 PAPER = {"first 10": (4.93, 3.8, 11.64), "first 100": (3.64, 2.86, 8.64), "first 500": (3.34, 2.86, 7.03),
          "random 100": (2.91, 2.30, 6.92)}
@@ -75,16 +71,17 @@ def laser_reference(r_ref_head: Rotation, sigma_deg: float, rng: np.random.Gener
     return Rotation.from_euler("ZY", np.stack([yaw, -pitch], 1), degrees=True)
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--sessions", type=int, default=10)
+def main(argv: list[str] | None = None) -> int:
+    ap = cli.parser(__doc__, quick="3 sessions instead of 10")
+    ap.add_argument("--sessions", type=int, default=None, help="simulated sessions (default 10)")
     ap.add_argument("--seconds", type=float, default=90.0)
     ap.add_argument("--fps", type=float, default=30.0)
     ap.add_argument("--cap-noise-deg", type=float, default=0.02)
     ap.add_argument("--ref-noise-deg", type=float, default=2.5)
     ap.add_argument("--laser-noise-deg", type=float, default=0.3)
-    ap.add_argument("--record", action="store_true")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    args.sessions = args.sessions or (3 if args.quick else 10)
+    run = report.Run()
     n = int(args.seconds * args.fps)
     rows = []
     for source in ("face tracker", "laser (2-DOF)"):
@@ -132,20 +129,23 @@ def main() -> int:
             rows.append([source, k, st, sr, f"{p[0]:.2f} / {p[1]:.2f} / {p[2]:.2f}",
                          f"{args.sessions - fails[k]}/{args.sessions}"])
             print(rows[-1], file=sys.stderr)
-    text = "\n".join([
-        f"Machine: {machine_line()}; {load_avg()}.", "",
-        f"{args.sessions} simulated sessions of {args.seconds:.0f} s at {args.fps:.0f} fps (look-around at a "
-        f"screen); cap orientation = truth + {args.cap_noise_deg} deg/axis noise (pipeline error, not rendered "
-        f"here); face-tracker reference noise {args.ref_noise_deg} deg/axis; laser: 2-DOF pointing, "
-        f"{args.laser_noise_deg} deg/axis, roll unknown. Error = geodesic angle of the head orientation "
-        "(face tracker) or angle of the forward direction (laser), mean / median / p95 deg, on the frames "
-        "not used for calibration. 'sessions calibrated' < all: calibrate_reference refused (too little motion).",
-        "",
-        md_table(["reference", "calibration frames", "error vs truth", "error vs the reference",
-                  "paper Table 2 (laser, real)", "sessions calibrated"], rows)])
-    print(text)
-    if args.record:
-        record_section("Calibration (paper Table 2)", text)
+    table = report.md_table(["reference", "calibration frames", "error vs truth", "error vs the reference",
+                             "paper's Table 2 (laser, real)", "sessions calibrated"], rows)
+    body = (f"{table}\n\nError = geodesic angle of the head orientation (face tracker) or angle of the "
+            "forward direction (laser), mean / median / p95 deg, on the frames not used for "
+            "calibration. 'sessions calibrated' below all: `calibrate_reference` refused (too little "
+            "motion in the chosen frames). The error against the reference is what the paper could "
+            "measure; against the truth, what the calibration is worth: with 100 or more frames "
+            "spread over the session it is well below the reference's own noise.")
+    what = (f"What it measures: the head-pose error after calibrating the cap on the head against a "
+            f"reference (`ficap calibrate --reference`'s solver), on {args.sessions} simulated lab "
+            f"sessions like the paper's ({args.seconds:.0f} s at {args.fps:.0f} fps looking at random "
+            "points of a screen, each with its own cap-on-head rotation); the cap orientation is the "
+            f"truth plus {args.cap_noise_deg} deg/axis noise (no images rendered here). References: a "
+            f"face tracker (3-DOF, {args.ref_noise_deg} deg/axis) and the paper's laser (2-DOF "
+            f"pointing, {args.laser_noise_deg} deg/axis, roll unknown).")
+    report.write_section("calibration", what, report.how("bench_calibration.py", "3 sessions"), body, run,
+                         report.command(), args.quick, args.no_doc)
     return 0
 
 

@@ -9,8 +9,8 @@ Two sources with exact truth:
 
 Builders compared on the same detections (``ficap model build``'s: OpenCV search + edge refinement):
 
-* ``side only (before)``: the printed 32 mm side is the only scale reference (edge offset held at
-  0, size free, gauge-only priors): the builder before issue 12;
+* ``printed side only``: the printed 32 mm side is the only scale reference (edge offset held at
+  0, size free, gauge-only priors);
 * ``offset, size free``: the edge offset fitted, the size left to the images (``--size images``);
 * ``offset, size anchored``: the edge offset fitted, the cap's size anchored to the nominal layout
   (``--size nominal``);
@@ -28,12 +28,11 @@ model): on blender_dev the true cap frame is 0.2 mm / 0.2 deg from it, an offset
 the true one shares and no builder can see (a cap frame's convention, not a placement error). And ``ficap model build``'s own verdict: its replay check
 (no truth) and whether it would write the model.
 
-Usage: .venv/bin/python benchmarks/bench_model_build.py [--synth-seeds 2] [--record]
+Writes docs/benchmarks/model_build.md.
 """
 
 from __future__ import annotations
 
-import argparse
 import sys
 import tempfile
 from dataclasses import dataclass
@@ -41,26 +40,24 @@ from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import load_avg, machine_line, md_table, record_section  # noqa: E402
-
-from ficap_ros.geometry.camera import CameraModel  # noqa: E402
-from ficap_ros.geometry.cap_model import CapModel, nominal_model  # noqa: E402
-from ficap_ros.geometry.metrics import corner_errors_px  # noqa: E402
-from ficap_ros.geometry.transform import Transform  # noqa: E402
-from ficap_ros.tools.model_build import (  # noqa: E402
+from _lib import cli, devsets, report
+from ficap_ros.geometry.camera import CameraModel
+from ficap_ros.geometry.cap_model import CapModel, nominal_model
+from ficap_ros.geometry.metrics import corner_errors_px
+from ficap_ros.geometry.transform import Transform
+from ficap_ros.tools.model_build import (
     BuildConfig,
     align_model,
     build_model,
     depth_change_limit,
-    replay_check,  # noqa: E402
+    replay_check,
     size_ratio,
 )
-from ficap_ros.vision.detector import DetectorConfig, TagDetection, TagDetector  # noqa: E402
-from ficap_ros.vision.pipeline import FrameProcessor  # noqa: E402
+from ficap_ros.vision.detector import DetectorConfig, TagDetection, TagDetector
+from ficap_ros.vision.pipeline import FrameProcessor
 
 BUILDERS = {
-    "side only (before)": BuildConfig(fit_edge_offset=False, anchor_size=False, assembly_sigma_mm=50.0,
+    "printed side only": BuildConfig(fit_edge_offset=False, anchor_size=False, assembly_sigma_mm=50.0,
                                       assembly_sigma_deg=30.0, size="fixed"),
     "offset, size free": BuildConfig(anchor_size=False, size="fixed"),
     "offset, size anchored": BuildConfig(size="fixed"),
@@ -84,22 +81,20 @@ def rigid_rms_mm(model: CapModel, truth: CapModel) -> float:
     return float(np.sqrt(np.mean(np.sum(d * d, axis=-1))))
 
 
-def blender_recording() -> Recording | None:
-    from blender_dev import available, load_set
-
-    if not available():
-        print("blender_dev not found: skipping it", file=sys.stderr)
+def blender_recording(data: Path, max_frames: int | None) -> Recording | None:
+    if not devsets.present(data, ("dev_1080p_neutral_asbuilt",)):
+        print("blender_dev's as-built set not found (--data): skipping it", file=sys.stderr)
         return None
-    s = load_set("dev_1080p_neutral_asbuilt")
+    s = devsets.load_set(data, "dev_1080p_neutral_asbuilt", max_frames)
     return Recording(s.name, s.camera, [f.image for f in s.frames], [f.T_cam_cap for f in s.frames],
                      [f.corners_px for f in s.frames], s.true_model)
 
 
-def synth_recording(seed: int, workdir: Path) -> Recording:
+def synth_recording(seed: int, workdir: Path, frames: int) -> Recording:
     """A ``ficap synth --model`` drive of a cap whose plates are moved/turned like blender_dev's."""
     from scipy.spatial.transform import Rotation
 
-    from ficap_ros.cli import main
+    from ficap_ros.cli.main import main
     from ficap_ros.io.sources import decode_raw, open_frames
 
     rng = np.random.default_rng(seed)
@@ -115,7 +110,7 @@ def synth_recording(seed: int, workdir: Path) -> Recording:
     truth.save(model_path)
     bag = workdir / f"drive_{seed}"
     if main(["synth", "--out", str(bag), "--model", str(model_path), "--resolution", "1080p",
-             "--frames", "40", "--fps", "1", "--seed", str(seed), "--quiet"]) != 0:
+             "--frames", str(frames), "--fps", "1", "--seed", str(seed), "--quiet"]) != 0:
         raise SystemExit("ficap synth failed")
     truth_poses = _truth_poses(bag)
     images, poses, cams, corners_px = [], [], None, []
@@ -133,9 +128,8 @@ def synth_recording(seed: int, workdir: Path) -> Recording:
 
 def _truth_poses(bag: Path) -> dict[int, Transform]:
     """The synth bag's true cap poses (PoseStamped, camera optical frame) by stamp."""
-    from scipy.spatial.transform import Rotation
-
     from ficap_ros.cli.synth import TRUTH_CAP_TOPIC
+    from ficap_ros.io.messages import pose_to_transform
     from ficap_ros.io.sources import open_bag_reader
     from ficap_ros.stamps import stamp_to_ns
 
@@ -145,9 +139,7 @@ def _truth_poses(bag: Path) -> dict[int, Transform]:
         out = {}
         for conn, _, raw in reader.messages(connections=conns):
             msg = reader.deserialize(raw, conn.msgtype)
-            p, o = msg.pose.position, msg.pose.orientation
-            out[stamp_to_ns(msg.header.stamp)] = Transform(Rotation.from_quat([o.x, o.y, o.z, o.w]),
-                                                           [p.x, p.y, p.z])
+            out[stamp_to_ns(msg.header.stamp)] = pose_to_transform(msg)
     finally:
         reader.close()
     return out
@@ -212,22 +204,22 @@ def evaluate(rec: Recording) -> tuple[list[list[object]], list[list[object]], di
     return build_rows, replay_rows, info
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+def main(argv: list[str] | None = None) -> int:
+    ap = cli.parser(__doc__, quick="one synth drive of 15 frames and the first 10 blender_dev frames")
     ap.add_argument("--synth-seeds", type=int, default=2, help="synth drives to render (default 2)")
-    ap.add_argument("--no-blender", action="store_true", help="skip blender_dev")
-    ap.add_argument("--record", action="store_true", help="write the tables into docs/benchmarks.md")
-    ap.add_argument("--section", default="As-built model (bench_model_build.py)",
-                    help="name of the docs/benchmarks.md section to write")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    import cv2
+
+    cv2.setNumThreads(1)
+    run = report.Run()
+    seeds, frames = (1, 15) if args.quick else (args.synth_seeds, 40)
     recordings = []
-    if not args.no_blender:
-        rec = blender_recording()
-        if rec is not None:
-            recordings.append(rec)
-    with tempfile.TemporaryDirectory() as tmp:
-        for seed in range(args.synth_seeds):
-            recordings.append(synth_recording(100 + seed, Path(tmp)))
+    rec = blender_recording(args.data, 10 if args.quick else None)
+    if rec is not None:
+        recordings.append(rec)
+    with tempfile.TemporaryDirectory(prefix="bench_model_build.") as tmp:
+        for seed in range(seeds):
+            recordings.append(synth_recording(100 + seed, Path(tmp), frames))
         build_rows, replay_rows, notes = [], [], []
         for rec in recordings:
             b, r, info = evaluate(rec)
@@ -239,21 +231,23 @@ def main() -> int:
                          "the true built corners after rigid alignment; the true cap frame is "
                          f"{info['frame_offset'][0]:.2f} mm / {info['frame_offset'][1]:.3f} deg from its "
                          "nominal-aligned frame")
-    build_table = md_table(["recording", "builder", "corners vs truth, rigid rms mm", "size vs truth %",
-                            "edge offset px", "reproj. rms px",
-                            "replay check: Δt median mm / distance", "check reproj. nominal / built px",
-                            "`ficap model build`"], build_rows)
-    replay_table = md_table(["recording", "model", "frames", "translation error mm median / p95",
-                             "rotation error deg median / p95", "same, nominal-aligned frame: mm",
-                             "deg"], replay_rows)
-    body = (f"{machine_line()}; {load_avg()}.\n\n"
-            "`benchmarks/bench_model_build.py` (see its docstring): as-built model from the recording's\n"
-            "own frames, built corners against the true built cap, and each frame replayed\n"
-            "(`FrameProcessor`, the replay path) with the nominal, the built and the true model.\n\n"
-            + "\n".join(f"- {n}" for n in notes) + "\n\n" + build_table + "\n\n" + replay_table + "\n")
-    print(body)
-    if args.record:
-        record_section(args.section, body)
+    build_table = report.md_table(["recording", "builder", "corners vs truth, rigid rms mm", "size vs truth %",
+                                   "edge offset px", "reproj. rms px", "replay check: dt median mm / distance",
+                                   "check reproj. nominal / built px", "`ficap model build`"], build_rows)
+    replay_table = report.md_table(["recording", "model", "frames", "translation error mm median / p95",
+                                    "rotation error deg median / p95", "same, nominal-aligned frame: mm",
+                                    "deg"], replay_rows)
+    body = ("\n".join(f"- {n}" for n in notes) + "\n\nThe builders on the same detections:\n\n" + build_table
+            + "\n\nEvery frame replayed (`FrameProcessor`, the replay path) with the nominal, each built "
+            "and the true model, errors against the true cap pose and against the true pose of the "
+            "cap's nominal-aligned frame (where a perfect builder puts its model):\n\n" + replay_table)
+    what = ("What it measures: the as-built cap model (`ficap model build`: bundle adjustment of each "
+            "tag as a rigid 32 mm square) from a recording's own frames, against the true built "
+            "corners, on blender_dev's as-built set (every plate moved/turned ~1 mm / ~1 deg) and on "
+            "`ficap synth --model` drives of a perturbed cap; then the replay's pose error with the "
+            "nominal, the built and the true model.")
+    report.write_section("model_build", what, report.how("bench_model_build.py", "fewer frames"), body, run,
+                         report.command(), args.quick, args.no_doc)
     return 0
 
 

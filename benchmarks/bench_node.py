@@ -5,7 +5,7 @@ runs in its own process; this process publishes rendered consecutive drive frame
 for ``--seconds`` per rate and records ``cap_pose``. Latency = arrival of the pose - publish time of
 its image (matched by stamp), p50/p99. A rate is sustained when at least 99 % of the published
 frames come back with a pose (the node's one-slot mailbox drops frames it cannot keep up with).
-DDS stays on loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, ROS_DOMAIN_ID 16 unless set).
+DDS stays on loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST; the caller's ROS_DOMAIN_ID, 70 unless set).
 
 ``--transports default,LARGE_DATA`` repeats the runs with Fast DDS's builtin-transports setting
 (``FASTDDS_BUILTIN_TRANSPORTS``, Fast DDS >= 2.13): ``DEFAULT`` sends a sample bigger than the
@@ -15,8 +15,7 @@ image is 2 MB); ``LARGE_DATA`` moves user data to shared memory / TCP; ``shm_lar
 JPEG (quality 95) ``CompressedImage`` on ``image/compressed`` to a node started with
 ``image_transport:=compressed`` (default transports).
 
-Usage: .venv/bin/python benchmarks/bench_node.py [--rates 15,30,60,120] [--seconds 5]
-       [--transports default,LARGE_DATA] [--record]
+Writes docs/benchmarks/node.md.
 """
 
 from __future__ import annotations
@@ -34,25 +33,28 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-os.environ.setdefault("ROS_DOMAIN_ID", "16")
+from _lib import cli, report
+from _lib.cli import ROOT
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import ROOT, load_avg, machine_line, md_table, record_section  # noqa: E402
+QUICK = {"rates": "15,30", "seconds": 3.0, "resolutions": "540p", "transports": "default"}
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--rates", default="15,30,60,120")
-    ap.add_argument("--seconds", type=float, default=5.0)
+def main(argv: list[str] | None = None) -> int:
+    ap = cli.parser(__doc__, quick="540p, 15 and 30 Hz, 3 s each, default transports")
+    ap.add_argument("--rates", default="10,30,60")
+    ap.add_argument("--seconds", type=float, default=4.0)
     ap.add_argument("--resolutions", default="540p,1080p")
     ap.add_argument("--frames", type=int, default=90, help="distinct consecutive rendered frames, looped")
-    ap.add_argument("--transports", default="default",
+    ap.add_argument("--transports", default="default,shm_large,compressed",
                     help="comma-separated: default, compressed (JPEG on image/compressed), shm_large or a "
                          "FASTDDS_BUILTIN_TRANSPORTS value such as LARGE_DATA")
-    ap.add_argument("--record", action="store_true")
     ap.add_argument("--rows-json", type=Path, default=None, help=argparse.SUPPRESS)
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    if args.quick:
+        for k, v in QUICK.items():
+            setattr(args, k, v)
+    cli.ros_environment()
+    run = report.Run()
     transports = args.transports.split(",")
     if len(transports) == 1:
         rows = measure(args, transports[0])
@@ -63,7 +65,7 @@ def main() -> int:
         with tempfile.TemporaryDirectory() as tmp:
             for tr in transports:
                 out = Path(tmp) / f"{tr}.json"
-                cmd = [sys.executable, __file__, "--transports", tr, "--rates", args.rates, "--seconds",
+                cmd = [sys.executable, __file__, "--no-doc", "--transports", tr, "--rates", args.rates, "--seconds",
                        str(args.seconds), "--resolutions", args.resolutions, "--frames", str(args.frames),
                        "--rows-json", str(out)]
                 subprocess.run(cmd, check=True)
@@ -71,16 +73,20 @@ def main() -> int:
     if args.rows_json is not None:
         args.rows_json.write_text(json.dumps(rows))
         return 0
-    text = "\n".join([
-        f"Machine: {machine_line()}; {load_avg()} at the end. Node process with default parameters "
-        "(opencv + edge, joint pose, tracking), raw mono8 images (or JPEG, 'compressed') from another "
-        "process over loopback DDS (Fast DDS), each transport setting in fresh processes, "
-        f"{args.seconds:.0f} s per rate.", "",
-        md_table(["res", "DDS transports", "input Hz", "frames sent", "frames with pose", "latency p50 ms", "p99 ms",
-                  "sustained (>= 99 %)", "node peak RSS MB"], rows)])
-    print(text)
-    if args.record:
-        record_section("Node latency and rate (rclpy, loopback)", text)
+    table = report.md_table(["res", "DDS transports", "input Hz", "frames sent", "frames with pose", "latency p50 ms",
+                             "p99 ms", "sustained (>= 99 %)", "node peak RSS MB"], rows)
+    body = (f"{table}\n\nThe publisher and the node share the machine's 2 cores with other jobs. 'shm_large': "
+            "`config/fastdds_shm_large.xml` (shared memory only, 32 MB segments) for every participant: "
+            "over Fast DDS's default transports a raw 1080p image (2 MB) travels as UDP fragments that "
+            "best-effort delivery loses. 'compressed': JPEG q95 on `image/compressed` to a node "
+            "started with `image_transport:=compressed`.")
+    what = ("What it measures: `ficap_node` (default parameters, its own process) fed rendered "
+            f"consecutive drive frames at fixed rates for {args.seconds:g} s each over loopback DDS: "
+            "the share of frames that come back with a pose (the one-slot mailbox drops what the node "
+            "cannot keep up with), the latency from publishing an image to receiving its `cap_pose`, "
+            "and the node's peak memory; per transport setting, each in fresh processes.")
+    report.write_section("node", what, report.how("bench_node.py", "540p, 2 rates, default transports"), body, run,
+                         report.command(), args.quick, args.no_doc)
     return 0
 
 

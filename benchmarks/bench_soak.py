@@ -15,15 +15,13 @@ every 5 s). At the end: RSS growth from the first minute to the last, frames los
 any status: the one-slot mailbox drops frames it cannot keep up with), and how many lines the node
 printed on stderr (libjpeg's per-frame messages go through its throttled logger).
 
-DDS stays on loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST, ROS_DOMAIN_ID 16 unless set).
+DDS stays on loopback (ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST; the caller's ROS_DOMAIN_ID, 70 unless set).
 
-Usage: nice -n 10 .venv/bin/python benchmarks/bench_soak.py [--minutes 10] [--rate 30]
-       [--corrupt 0.05] [--resolution 540p] [--record]
+Writes docs/benchmarks/soak.md.
 """
 
 from __future__ import annotations
 
-import argparse
 import os
 import subprocess
 import sys
@@ -35,11 +33,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-os.environ["ROS_AUTOMATIC_DISCOVERY_RANGE"] = "LOCALHOST"
-os.environ.setdefault("ROS_DOMAIN_ID", "16")
-
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import load_avg, machine_line, md_table, record_section  # noqa: E402
+from _lib import cli, report
 
 
 def _rss_mb(pid: int) -> float:
@@ -58,17 +52,17 @@ def _damage(jpeg: bytes, kind: str, rng: np.random.Generator) -> bytes:
     return rng.integers(0, 256, 2000, dtype=np.uint8).tobytes()  # not a JPEG at all
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__,
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--minutes", type=float, default=10.0)
+def main(argv: list[str] | None = None) -> int:
+    ap = cli.parser(__doc__, quick="1 minute (full: 10)")
+    ap.add_argument("--minutes", type=float, default=None, help="minutes (default 10)")
     ap.add_argument("--rate", type=float, default=30.0)
     ap.add_argument("--corrupt", type=float, default=0.05)
     ap.add_argument("--resolution", default="540p")
     ap.add_argument("--frames", type=int, default=60, help="distinct rendered frames, looped")
-    ap.add_argument("--note", default="", help="appended to the recorded section's first line")
-    ap.add_argument("--record", action="store_true")
-    args = ap.parse_args()
+    args = ap.parse_args(argv)
+    args.minutes = args.minutes or (1.0 if args.quick else 10.0)
+    cli.ros_environment()
+    run = report.Run()
 
     import rclpy
     from diagnostic_msgs.msg import DiagnosticArray
@@ -196,16 +190,10 @@ def main() -> int:
     growth = float(np.median(last_min) - np.median(first_min)) if first_min and last_min else 0.0
     libjpeg_lines = sum(1 for ln in stderr_lines if "Corrupt JPEG" in ln or "Premature end" in ln)
     decode_lines = sum(1 for ln in stderr_lines if "cannot decode" in ln)
-    text = "\n".join([
-        f"Machine: {machine_line()}; {load_avg()} at the end{args.note}. Node process "
-        f"(`image_transport:=compressed`, default parameters) fed {args.resolution} JPEG "
-        f"(quality 95) at {args.rate:.0f} Hz for {args.minutes:g} min over loopback DDS; "
-        f"{100 * args.corrupt:.0f} % of the frames damaged (a third each: cut to 2/3 of their "
-        "bytes, 2 kB of the scan zeroed, garbage). Per minute: frames sent, statuses received, good frames with a pose, damaged "
-        "frames answered (ERROR or a pose from the decoded part), latency from publish to status, "
-        "node peak RSS of the 5 s samples.", "",
-        md_table(["minute", "sent", "statuses", "good with pose", "damaged answered",
-                  "latency p50 ms", "p99 ms", "node RSS MB"], rows), "",
+    table = report.md_table(["minute", "sent", "statuses", "good with pose", "damaged answered",
+                             "latency p50 ms", "p99 ms", "node RSS MB"], rows)
+    body = "\n".join([
+        table, "",
         f"Node RSS {np.median(first_min):.0f} MB (median of minute 1) -> "
         f"{np.median(last_min):.0f} MB (last minute): growth {growth:+.1f} MB over "
         f"{args.minutes:g} min. Frames lost (sent, no status): {lost_total} of {len(stamps)} "
@@ -213,9 +201,14 @@ def main() -> int:
         f"{int(damaged.sum())} damaged frames ({int((damaged & (kinds == 'zeroed')).sum())} with "
         f"libjpeg warnings): {len(stderr_lines)} lines in all, {libjpeg_lines} of libjpeg's "
         f"(through the throttled logger), {decode_lines} throttled 'cannot decode' warnings."])
-    print(text)
-    if args.record:
-        record_section("Soak: node at 30 Hz with corrupt frames", text)
+    what = (f"What it measures: `ficap_node` (`image_transport:=compressed`, otherwise defaults) fed "
+            f"{args.resolution} JPEG (q95) at {args.rate:.0f} Hz for {args.minutes:g} min over loopback "
+            f"DDS, {100 * args.corrupt:.0f} % of the frames damaged (a third each: cut to 2/3 of their "
+            "bytes, 2 kB of the scan zeroed, garbage). Per minute: frames sent, statuses received, "
+            "good frames with a pose, damaged frames answered (ERROR or a pose from the decoded "
+            "part), latency from publish to status, the node's peak RSS of 5 s samples.")
+    report.write_section("soak", what, report.how("bench_soak.py", "1 minute"), body, run, report.command(),
+                         args.quick, args.no_doc)
     return 0
 
 

@@ -1,262 +1,256 @@
-"""Speed and recall: ficap vs AprilTag 3 (pupil-apriltags) vs OpenCV ArUco defaults, and bag replay.
+"""Speed: the whole ``ficap replay`` command against AprilTag 3 decimate 1, on continuous 1080p drives.
 
-Per frame, one process, one thread (cv2.setNumThreads(1), nthreads=1): JPEG decode, detection, pose
-and total ms at 540p and 1080p on consecutive rendered drive frames (a glance included, JPEG q95 as
-``ficap synth`` writes), with each detector's recall (tags at least 99.9 % visible in the render)
-and false detections on the same frames, and recall on the real photos of
-``/work/shared/data/real_apriltag/swatbotics_mapping_feb_2014`` (hand-labelled ids). "raw" = detect +
-pose (an uncompressed image in memory, as the node gets from a raw Image topic), all in CPU time
-(``time.process_time``: the machine is shared). Then where the time
-goes (each stage's own CPU time in the default pipeline at 1080p), and the wall-clock throughput
-of ``ficap replay`` with ``--jobs 1`` and ``--jobs 2`` on a ``ficap synth`` bag.
+Two continuous 30 fps 1080p drives, JPEG (q95) CompressedImage in MCAP bags:
 
-Usage: .venv/bin/python benchmarks/bench_speed.py [--frames 150] [--replay-frames 150] [--record]
+* synth: a ``ficap synth`` drive (seed 0, a mirror glance included), rendered once into the cache;
+* blender_dev: ``dev_1080p_drive30`` (60 path-traced frames through a left-mirror glance) played
+  ``--loops`` times over (each loop starts with a jump of the head, as after a cut).
+
+Ours: the real command, ``python -m ficap_ros.cli replay BAG --out DIR --jobs 1 --quiet``, in a
+child process; its CPU time (user + sys from ``os.wait4``: start-up, imports, bag reading, JPEG
+decode, pipeline, label writing, everything) per frame. AprilTag 3: pupil-apriltags decimate 1,
+one thread, with our joint pose, on the same JPEG payloads in this process, decode included
+(``cv2.imdecode`` grey); its start-up and bag reading are not counted (the ratio favours it).
+Beside them the JPEG decode alone. Everything runs on one core (this process's affinity, which
+the child inherits); the command's runs and the other rounds alternate (``--rounds``), so a change
+of the shared machine's load falls on all; each figure is the median of its rounds. Then one
+instrumented pass of ours in this process: each stage's own CPU time (the package's public
+functions, timed wherever they are called). Writes docs/benchmarks/speed.md and speed.png.
 """
 
 from __future__ import annotations
 
-import argparse
+import csv
+import json
 import os
-import subprocess
+import shutil
 import sys
 import tempfile
 import time
+from dataclasses import dataclass, field
 from pathlib import Path
 
-import cv2
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import Progress, load_avg, machine_line, md_table, record_section  # noqa: E402
-from bench_fleet import FRAME_NS, stage_table, stage_times  # noqa: E402
+from _lib import cli, devsets, report
+from _lib.methods import AT3, OURS
+from _lib.synthdata import cached_synth_bag, looped_bag
+from _lib.timing import OwnTime, ficap_command, run_child
 
-from ficap_ros.geometry.cap_model import nominal_model  # noqa: E402
-from ficap_ros.tools.synth import (  # noqa: E402
-    RenderConfig,
-    default_scene,
-    naturalistic_drive,
-    render,
+#: Stages of the instrumented pass: (module, public function, label); a stage's own time leaves
+#: out the listed stages it calls.
+STAGES = (
+    ("ficap_ros.vision.detector", "TagDetector.detect", "search (ArUco, rejected quads read again)"),
+    ("ficap_ros.vision.corners", "refine_tag_corners", "corner stage (unbias, cell-edge fit)"),
+    ("ficap_ros.vision.edges", "refine_corners_edge_ok", "tracked tags: line refinement"),
+    ("ficap_ros.vision.tracking", "predict_tags", "tracked tags: prediction and verification"),
+    ("ficap_ros.vision.tracking", "verify_tags", "tracked tags: prediction and verification"),
+    ("ficap_ros.vision.occlusion", "partly_hidden", "partly-hidden check"),
+    ("ficap_ros.vision.pose", "estimate_cap_pose", "pose and its uncertainty"),
+    ("ficap_ros.vision.pipeline", "FrameProcessor.process", "tracker and pipeline bookkeeping"),
 )
-from ficap_ros.vision.detector import DetectorConfig, TagDetector  # noqa: E402
-from ficap_ros.vision.pipeline import FrameProcessor  # noqa: E402
-
-SWAT = Path("/work/shared/data/real_apriltag/swatbotics_mapping_feb_2014")
 
 
-class ArucoDefaults:
-    """OpenCV ArUco with OpenCV's default parameters (no corner refinement)."""
+@dataclass
+class Drive:
+    """One bag's frames in memory and the rounds measured on it (ms per frame, per round)."""
 
-    def __init__(self) -> None:
-        d = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_APRILTAG_36h11)
-        self.det = cv2.aruco.ArucoDetector(d, cv2.aruco.DetectorParameters())
+    label: str
+    bag: Path
+    raws: list = field(default_factory=list)
+    command_cpu_s: list[float] = field(default_factory=list)
+    command_wall_s: list[float] = field(default_factory=list)
+    at3_ms: list[float] = field(default_factory=list)
+    decode_ms: list[float] = field(default_factory=list)
+    at3_tags: float = float("nan")
+    ours_tags: float = float("nan")
+    summary: dict = field(default_factory=dict)
 
-    def ids(self, gray: np.ndarray) -> list[int]:
-        _c, ids, _r = self.det.detectMarkers(gray)
-        return [] if ids is None else [int(i) for i in ids.reshape(-1)]
+    def load(self) -> None:
+        from ficap_ros.io.sources import open_frames
+
+        self.raws = [(np.frombuffer(r.payload, np.uint8), r.camera, r.stamp_ns)
+                     for r in open_frames(self.bag).raw_frames()]
+
+    @property
+    def frames(self) -> int:
+        return len(self.raws)
+
+    def ours_ms(self) -> float:
+        return 1e3 * float(np.median(self.command_cpu_s)) / self.frames
 
 
+def command_round(d: Drive, out: Path) -> None:
+    shutil.rmtree(out, ignore_errors=True)
+    r = run_child(ficap_command("replay", str(d.bag), "--out", str(out), "--jobs", "1", "--quiet"), ok=(0, 3))
+    d.command_cpu_s.append(r.cpu_s)
+    d.command_wall_s.append(r.wall_s)
+    d.summary = json.loads((out / "summary.json").read_text())
+    with open(out / "labels.csv", newline="") as f:
+        d.ours_tags = float(np.mean([int(row["tags_detected"]) for row in csv.DictReader(f)]))
+    print(f"  {d.label}: ficap replay CPU {r.cpu_s:.2f} s = {1e3 * r.cpu_s / d.frames:.2f} ms/frame",
+          file=sys.stderr, flush=True)
 
 
-#: CPU seconds spent in the pipeline's pose estimates (``_time_poses`` adds to it).
-_POSE_CPU_S = [0.0]
+def at3_round(d: Drive) -> None:
+    import cv2
+
+    proc = AT3.processor()
+    tags = []
+    t0 = time.process_time()
+    for buf, camera, stamp in d.raws:
+        r = proc.process(cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE), camera, stamp)
+        tags.append(len(r.detections))
+    d.at3_ms.append(1e3 * (time.process_time() - t0) / d.frames)
+    d.at3_tags = float(np.mean(tags))
+    print(f"  {d.label}: AprilTag 3 {d.at3_ms[-1]:.1f} ms/frame", file=sys.stderr, flush=True)
 
 
-def _time_poses() -> None:
-    """Count the CPU time of every pose estimate the pipeline makes (the final pose, and the
-    completion's and second look's)."""
-    import ficap_ros.vision.pipeline as pipeline_module
-    import ficap_ros.vision.tracking as tracking_module
+def decode_round(d: Drive) -> None:
+    import cv2
 
-    def timer(estimate):  # noqa: ANN001, ANN202
-        def timed(*args, **kwargs):  # noqa: ANN002, ANN003, ANN202
+    t0 = time.process_time()
+    for buf, _camera, _stamp in d.raws:
+        cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+    d.decode_ms.append(1e3 * (time.process_time() - t0) / d.frames)
+
+
+def instrumented(d: Drive) -> tuple[dict[str, float], float, float]:
+    """Own ms per frame of each stage, the decode's and the pass's total, ours in this process."""
+    import cv2
+
+    present = []
+    for mod, attr, label in STAGES:
+        import importlib
+
+        owner = importlib.import_module(mod)
+        for part in attr.split(".")[:-1]:
+            owner = getattr(owner, part, None)
+        if owner is not None and attr.split(".")[-1] in getattr(owner, "__dict__", {}):
+            present.append((mod, attr, label))
+        else:
+            print(f"  (stage {mod}.{attr} not found: not timed)", file=sys.stderr)
+    proc = OURS.processor()
+    decode = 0.0
+    with OwnTime(present) as timer:
+        t_start = time.process_time()
+        for buf, camera, stamp in d.raws:
             t0 = time.process_time()
-            try:
-                return estimate(*args, **kwargs)
-            finally:
-                _POSE_CPU_S[0] += time.process_time() - t0
-        return timed
-
-    for module in (pipeline_module, tracking_module):  # the final pose; the completion's, second look's
-        if hasattr(module, "estimate_cap_pose"):
-            module.estimate_cap_pose = timer(module.estimate_cap_pose)
+            gray = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+            decode += time.process_time() - t0
+            proc.process(gray, camera, stamp)
+        total = time.process_time() - t_start
+    return timer.ms_per(d.frames), 1e3 * decode / d.frames, 1e3 * total / d.frames
 
 
-def pipelines() -> dict[str, object]:
-    """name -> FrameProcessor (detection + joint pose) or a detector-only object."""
-    model = nominal_model()
-    out = {
-        "ficap (tracking, search_decimate 2)": FrameProcessor(model, DetectorConfig(search_decimate=2)),
-        "ficap (tracking)": FrameProcessor(model),
-        "ficap (no tracking) [before]": FrameProcessor(model, tracking=False),
-        "AprilTag 3 decimate 1 + joint pose": FrameProcessor(
-            model, DetectorConfig(backend="apriltag", corner_refine="apriltag", quad_decimate=1.0), tracking=False),
-        "AprilTag 3 decimate 2 + joint pose": FrameProcessor(
-            model, DetectorConfig(backend="apriltag", corner_refine="apriltag", quad_decimate=2.0), tracking=False),
-        "OpenCV ArUco defaults (detect only)": ArucoDefaults(),
-    }
-    return out
+def plot(drives: list[Drive], stages: dict[str, tuple[dict[str, float], float, float]]) -> str:
+    plt = report.pyplot()
+    fig, ax = plt.subplots(figsize=(9, 4.2))
+    labels, x = [], 0
+    for d in drives:
+        own, dec, total = stages[d.label]
+        ours = d.ours_ms()
+        parts = [("JPEG decode", dec, "tab:gray"), ("pipeline", total - dec, "tab:blue"),
+                 ("start-up, bag, labels", max(ours - total, 0.0), "tab:cyan")]
+        bottom = 0.0
+        for name, v, c in parts:
+            ax.barh(x, v, left=bottom, color=c, label=name if x == 0 else None)
+            bottom += v
+        labels.append(f"{d.label}: ficap replay")
+        x += 1
+        at3 = float(np.median(d.at3_ms))
+        dec_alone = float(np.median(d.decode_ms))
+        ax.barh(x, dec_alone, color="tab:gray")
+        ax.barh(x, at3 - dec_alone, left=dec_alone, color="tab:orange",
+                label="AprilTag 3 detect + pose" if x == 1 else None)
+        labels.append(f"{d.label}: AprilTag 3 ({at3 / ours:.1f}x ours)")
+        x += 1
+    ax.set_yticks(range(len(labels)), labels, fontsize=8)
+    ax.invert_yaxis()
+    ax.set_xlabel("CPU ms per frame (one core, median of rounds)")
+    ax.legend(fontsize=8)
+    ax.grid(True, axis="x", alpha=0.3)
+    fig.suptitle("Whole replay command vs AprilTag 3 decimate 1, continuous 1080p")
+    fig.tight_layout()
+    return report.save_figure(fig, "speed")
 
 
-def frame_table(n_frames: int) -> tuple[list[list[object]], dict]:
-    model = nominal_model()
-    rows, headline = [], {}
-    for res in ("540p", "1080p"):
-        scene = default_scene(res)
-        # 1.5 s of a glance to a mirror and back (frames 600.. of the seed-0 drive), consecutive.
-        drive = naturalistic_drive(600 + n_frames, fps=30.0, seed=0, scene=scene)[600:]
-        jpegs, truth = [], []
-        prog = Progress(len(drive), f"render {res}")
-        for d in drive:
-            f = render(model, scene.camera, d.T_cam_cap, RenderConfig(), seed=d.index)
-            ok, buf = cv2.imencode(".jpg", f.image, [cv2.IMWRITE_JPEG_QUALITY, 95])
-            jpegs.append(buf)
-            truth.append((set(f.visible_ids(0.999)), set(f.corners_px)))
-            prog.update()
-        for name, proc in pipelines().items():
-            dec_ms, det_ms, pose_ms, tot_ms = [], [], [], []
-            hits = n_true = fp = searched = 0
-            for k, (buf, (vis, front)) in enumerate(zip(jpegs, truth)):
-                t0 = time.process_time()
-                gray = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
-                t1 = time.process_time()
-                if isinstance(proc, FrameProcessor):
-                    pose_before = _POSE_CPU_S[0]
-                    r = proc.process(gray, scene.camera, (k + 1) * FRAME_NS)
-                    searched += r.search != "tracked"
-                    ids = {d.tag_id for d in r.detections}
-                    pose_ms.append((_POSE_CPU_S[0] - pose_before) * 1e3)
-                else:
-                    ids = set(proc.ids(gray))
-                    pose_ms.append(float("nan"))
-                t2 = time.process_time()
-                det_ms.append((t2 - t1) * 1e3 - (0.0 if np.isnan(pose_ms[-1]) else pose_ms[-1]))
-                dec_ms.append((t1 - t0) * 1e3)
-                tot_ms.append((t2 - t0) * 1e3)
-                hits += len(ids & vis)
-                n_true += len(vis)
-                fp += len(ids - front)
-            tot = float(np.mean(tot_ms))
-            raw = tot - float(np.mean(dec_ms))
-            rows.append([res, name, f"{np.mean(dec_ms):.2f}", f"{np.mean(det_ms):.2f}",
-                         "-" if np.isnan(pose_ms).all() else f"{np.nanmean(pose_ms):.2f}",
-                         f"{raw:.2f}", f"{1000 / raw:.0f}", f"{np.median(np.subtract(tot_ms, dec_ms)):.2f}",
-                         f"{tot:.2f}", f"{1000 / tot:.0f}", f"{hits / max(n_true, 1):.3f}", fp,
-                         searched if isinstance(proc, FrameProcessor) else "-"])
-            headline[(res, name)] = (tot, raw, hits / max(n_true, 1))
-            print(f"{res} {name:40} " + " ".join(str(c) for c in rows[-1][2:]), file=sys.stderr)
-        if res == "1080p":
-            headline["profile"] = stage_table({"1080p": stage_times(jpegs, scene.camera, FRAME_NS)})
-    return rows, headline
+def main(argv: list[str] | None = None) -> int:
+    ap = cli.parser(__doc__, quick="a 5 s synth drive, blender_dev's drive played 3 times, 2 rounds "
+                                   "(full: 20 s, 10 times, 3 rounds)")
+    ap.add_argument("--rounds", type=int, default=None, help="alternated rounds (default 3)")
+    ap.add_argument("--seconds", type=float, default=None, help="synth drive length, s (default 20)")
+    ap.add_argument("--loops", type=int, default=None, help="times blender_dev's drive is played (default 10)")
+    ap.add_argument("--core", type=int, default=None, help="the one core everything runs on (default: the "
+                                                           "last this process may use)")
+    args = ap.parse_args(argv)
+    rounds = args.rounds or (2 if args.quick else 3)
+    seconds = args.seconds or (5.0 if args.quick else 20.0)
+    loops = args.loops or (3 if args.quick else 10)
+    import cv2
 
+    from ficap_ros.tools.replay import keep_freed_memory
 
-def swat_table() -> list[list[object]]:
-    if not (SWAT / "groundtruth.txt").exists():
-        return []
-    truth = {}
-    for line in (SWAT / "groundtruth.txt").read_text().splitlines():
-        parts = line.split()
-        if parts:
-            truth[parts[0]] = {int(v) for v in parts[1:]}
-    dets = {
-        "ficap detector (opencv tuned + edge)": TagDetector(DetectorConfig()),
-        "ficap detector, search_decimate 2": TagDetector(DetectorConfig(search_decimate=2)),
-        "AprilTag 3 decimate 1": TagDetector(DetectorConfig(backend="apriltag", corner_refine="apriltag")),
-        "AprilTag 3 decimate 2": TagDetector(DetectorConfig(backend="apriltag", corner_refine="apriltag",
-                                                            quad_decimate=2.0)),
-    }
-    rows = []
-    images = {name: cv2.imread(str(SWAT / name), cv2.IMREAD_GRAYSCALE) for name in truth}
-    n_true = sum(len(v) for v in truth.values())
-    for name, det in list(dets.items()) + [("OpenCV ArUco defaults", ArucoDefaults())]:
-        hits = fp = 0
-        t0 = time.process_time()
-        for img_name, ids_true in truth.items():
-            ids = set(det.ids(images[img_name])) if isinstance(det, ArucoDefaults) else {
-                d.tag_id for d in det.detect(images[img_name])}
-            hits += len(ids & ids_true)
-            fp += len(ids - ids_true)
-        ms = (time.process_time() - t0) * 1e3 / len(truth)
-        rows.append([name, f"{hits}/{n_true}", f"{hits / n_true:.3f}", fp, f"{ms:.1f}"])
-        print("swat", rows[-1], file=sys.stderr)
-    return rows
-
-
-#: Runs argv[1:] and prints the peak resident memory (KiB) of the largest process it waited for
-#: (with --jobs N: the largest of the main process and its workers).
-_PEAK_RSS_PROBE = (
-    "import resource, subprocess, sys; subprocess.run(sys.argv[1:], check=True); "
-    "print(resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)"
-)
-
-
-def replay_table(n_frames: int) -> list[list[object]]:
-    ficap = [sys.executable, "-m", "ficap_ros.cli"]
-    env = dict(os.environ, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST", ROS_DOMAIN_ID=os.environ.get("ROS_DOMAIN_ID", "16"))
-    rows = []
-    with tempfile.TemporaryDirectory() as tmp:
-        for res in ("540p", "1080p"):
-            bag = Path(tmp) / f"drive_{res}"
-            subprocess.run(ficap + ["synth", "--out", str(bag), "--resolution", res, "--frames", str(n_frames),
-                                    "--quiet"], check=True, env=env)
-            for jobs in (1, 2):
-                out = Path(tmp) / f"out_{res}_{jobs}"
-                t0 = time.perf_counter()
-                # A wrapper process per run, so its RUSAGE_CHILDREN peak is this run's alone.
-                probe = subprocess.run(
-                    [sys.executable, "-c", _PEAK_RSS_PROBE, *ficap, "replay", str(bag), "--out", str(out),
-                     "--jobs", str(jobs), "--quiet"], check=True, env=env, capture_output=True, text=True)
-                s = time.perf_counter() - t0
-                peak_mb = int(probe.stdout.strip().splitlines()[-1]) / 1024
-                rows.append([res, jobs, n_frames, f"{s:.1f}", f"{n_frames / s:.1f}", f"{peak_mb:.0f}"])
-                print("replay", rows[-1], file=sys.stderr)
-    return rows
-
-
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--frames", type=int, default=150, help="consecutive frames per resolution (default 150)")
-    ap.add_argument("--replay-frames", type=int, default=150, help="frames of the replayed bag (0: skip)")
-    ap.add_argument("--record", action="store_true")
-    args = ap.parse_args()
+    core = args.core if args.core is not None else max(os.sched_getaffinity(0))
+    os.sched_setaffinity(0, {core})  # the command's children inherit it
     cv2.setNumThreads(1)
-    _time_poses()
-    load0 = load_avg()
-    rows, head = frame_table(args.frames)
-    swat = swat_table()
-    rep = replay_table(args.replay_frames) if args.replay_frames > 0 else []
-    parts = [f"Machine: {machine_line()}; {load0} at the start, {load_avg()} at the end. One process, "
-             "one thread (cv2.setNumThreads(1), AprilTag nthreads=1).", "",
-             f"### Per frame ({args.frames} consecutive rendered 30 fps drive frames per resolution, a mirror "
-             "glance included, JPEG q95 decoded with cv2.imdecode grey)", "",
-             "Mean CPU ms/frame (`time.process_time`: the machine is shared); 'pose' = every pose estimate of the "
-             "frame (the completion's and a second look's included), 'detect' = the rest of the pipeline. Recall: detected / tags at least 99.9 % visible in the render; false = ids "
-             "detected that are not on a front-facing face. 'AprilTag 3 ... + joint pose' is pupil-apriltags "
-             "1-thread detection (library corners) with our pose; ArUco defaults = "
-             "cv2.aruco.DetectorParameters() untouched.", "",
-             md_table(["res", "pipeline", "decode", "detect", "pose", "raw", "raw fps", "raw median", "total",
-                       "fps", "recall", "false", "searched"], rows),
-             "", "'raw' = detect + pose (mean ms; an uncompressed image, as from a raw Image topic); 'total' adds "
-             "the JPEG decode (a compressed bag); 'searched' = frames the pipeline had to search (the rest were "
-             "tracked: verified where the last poses predicted the tags)."]
-    for res in ("540p", "1080p"):
-        at3_tot, at3_raw, at3_rec = head[(res, "AprilTag 3 decimate 1 + joint pose")]
-        for name in ("ficap (tracking)", "ficap (tracking, search_decimate 2)"):
-            tot, raw, rec = head[(res, name)]
-            parts += ["", f"{res}: {name}: raw {raw:.1f} ms/frame ({1000 / raw:.0f} fps), with JPEG decode "
-                      f"{tot:.1f} ms/frame = {at3_tot / tot:.1f}x faster than AprilTag 3 decimate 1 (+ the same pose) "
-                      f"on the same frames, recall {rec:.3f} vs {at3_rec:.3f}."]
-    parts += ["", "### Where the time goes (`ficap (tracking)` over the 1080p frames again: own CPU time of each "
-              "stage, ms per frame; `bench_fleet.stage_times`)", "", head["profile"]]
-    if swat:
-        parts += ["", "### Recall on real photos (swatbotics mapping_feb_2014, 72 images, hand-labelled ids)", "",
-                  md_table(["detector", "found", "recall", "false", "CPU ms/image (816x612)"], swat)]
-    if rep:
-        parts += ["", "### `ficap replay` throughput (wall clock incl. start-up, `ficap synth` MCAP bag, JPEG)", "",
-                  md_table(["res", "--jobs", "frames", "seconds", "frames/s", "peak RSS MB (largest process)"], rep)]
-    text = "\n".join(parts)
-    print(text)
-    if args.record:
-        record_section("Speed", text)
+    keep_freed_memory()  # the allocator setting the command makes for itself, for AprilTag 3's rounds too
+    run = report.Run()
+    drives = [Drive("synth", cached_synth_bag(args.cache, "1080p", int(round(seconds * 30))))]
+    if devsets.present(args.data, ("dev_1080p_drive30",)):
+        src = devsets.root_of(args.data) / "dev_1080p_drive30"
+        drives.append(Drive(f"blender_dev drive30 x{loops}", looped_bag(args.cache, src, loops)))
+    else:
+        print("blender_dev's dev_1080p_drive30 not found (--data): synth only", file=sys.stderr)
+    for d in drives:
+        d.load()
+    stages = {}
+    with tempfile.TemporaryDirectory(prefix="bench_speed.") as tmp:
+        for rnd in range(rounds):
+            for d in drives:
+                command_round(d, Path(tmp) / "out")
+                at3_round(d)
+                decode_round(d)
+        for d in drives:
+            stages[d.label] = instrumented(d)
+    rows = []
+    for d in drives:
+        ours, at3, dec = d.ours_ms(), float(np.median(d.at3_ms)), float(np.median(d.decode_ms))
+        rows.append([d.label, d.frames, f"{ours:.1f}", f"{at3:.1f}", f"**{at3 / ours:.1f}x**", f"{dec:.2f}",
+                     f"{at3 - dec:.1f} / {ours - dec:.1f} = {(at3 - dec) / (ours - dec):.1f}x",
+                     f"{d.summary.get('frames_with_pose', 0)}/{d.frames}", f"{d.ours_tags:.1f} / {d.at3_tags:.1f}",
+                     f"{d.frames / np.median(d.command_wall_s):.0f}"])
+    table = report.md_table(["drive", "frames", "ficap replay ms/frame (whole command)",
+                             "AprilTag 3 ms/frame (decode + detect + pose)", "AprilTag 3 / ficap",
+                             "JPEG decode alone ms/frame", "without the decode: AprilTag 3 / ficap",
+                             "frames with a pose (ficap)", "tags/frame: ficap / AprilTag 3",
+                             "ficap replay frames/s (wall)"], rows)
+    labels = list(dict.fromkeys(label for *_m, label in STAGES))
+    srows = []
+    for label in ["JPEG decode (cv2.imdecode, grey)"] + labels + ["pass total (decode + pipeline)",
+                                                                    "the command's rest (start-up, bag, labels)"]:
+        row = [label]
+        for d in drives:
+            own, dec, total = stages[d.label]
+            v = {"JPEG decode (cv2.imdecode, grey)": dec, "pass total (decode + pipeline)": total,
+                 "the command's rest (start-up, bag, labels)": d.ours_ms() - total}.get(label, own.get(label, 0.0))
+            row += [f"{v:.2f}", f"{100 * v / d.ours_ms():.0f} %"]
+        srows.append(row)
+    stage_table = report.md_table(["stage (own CPU time)"] + [c for d in drives for c in (f"{d.label} ms/frame",
+                                                                                          "of the command")], srows)
+    body = (f"{table}\n\n{plot(drives, stages)}\n\n"
+            f"Rounds: {rounds}, alternated (command, AprilTag 3, decode alone) drive by drive; one core "
+            f"(affinity {{{core}}}). Where our time goes, from one instrumented pass in this process "
+            "(each stage's own CPU time, without the listed stages it calls; the command's rest is "
+            "its median CPU time less this pass's total):\n\n" + stage_table)
+    what = ("What it measures: CPU time per frame of the whole `ficap replay --jobs 1` command "
+            "(start-up, bag reading, JPEG decode, pipeline, label writing) against AprilTag 3 "
+            "decimate 1 with our pose on the same JPEGs (decode included, start-up not), with the "
+            "JPEG decode alone beside them, on a continuous 1080p `ficap synth` drive and on "
+            "blender_dev's continuous 1080p drive played several times over; one core, interleaved "
+            "rounds, medians.")
+    report.write_section("speed", what, report.how("bench_speed.py", "shorter drives, 2 rounds"), body, run,
+                         report.command(), args.quick, args.no_doc)
     return 0
 
 

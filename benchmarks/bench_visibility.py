@@ -16,39 +16,26 @@ node); with a stride every frame is searched independently (``tracking=False``).
 Sweep: camera distance behind the back of the cap x height above the cap centre, camera aimed at
 the frontal cap (``scene_at``); every ``--sweep-stride``th frame of a ``--sweep-frames`` drive (the
 same head motion at every grid point), searched independently. ``--hd-distances`` /
-``--hd-heights`` repeat part of the grid at 1080p. Writes docs/visibility_sweep.png with ``--record``.
+``--hd-heights`` repeat part of the grid at 1080p. Heat maps of the 540p sweep go to docs/benchmarks/visibility.png.
 
-Usage: .venv/bin/python benchmarks/bench_visibility.py [--frames 1800] [--stride 1]
-    [--sweep-frames 1800] [--sweep-stride 20] [--record]
-
-The section records which commit the imported ``ficap_ros`` modules match (``code_state``). To
-measure committed code while the editable package is being changed, export it and run from outside
-the repo: ``git archive HEAD ficap_ros | tar -x -C /tmp/snap; cd /tmp; PYTHONPATH=/tmp/snap
-nice -n 10 /work/main/.venv/bin/python /work/main/benchmarks/bench_visibility.py --record``.
+Writes docs/benchmarks/visibility.md and visibility.png.
 """
 
 from __future__ import annotations
 
 import argparse
-import hashlib
-import io
-import subprocess
 import sys
-import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-from _common import ROOT, Progress, load_avg, machine_line, md_table, record_section  # noqa: E402
-
-from ficap_ros.geometry.camera import CameraModel  # noqa: E402
-from ficap_ros.geometry.cap_model import CapModel, nominal_model, write_atomic  # noqa: E402
-from ficap_ros.geometry.metrics import angle_deg  # noqa: E402
-from ficap_ros.geometry.transform import CAM_FROM_FORWARD  # noqa: E402
-from ficap_ros.tools.synth import (  # noqa: E402
+from _lib import cli, report
+from ficap_ros.geometry.camera import CameraModel
+from ficap_ros.geometry.cap_model import CapModel, nominal_model
+from ficap_ros.geometry.metrics import angle_deg
+from ficap_ros.geometry.transform import CAM_FROM_FORWARD
+from ficap_ros.tools.synth import (
     RESOLUTIONS,
     DriveFrame,
     DriveScene,
@@ -58,47 +45,10 @@ from ficap_ros.tools.synth import (  # noqa: E402
     naturalistic_drive,
     render,
 )
-from ficap_ros.vision.pipeline import FrameProcessor  # noqa: E402
+from ficap_ros.vision.pipeline import FrameProcessor
 
 CAP_RADIUS_M = 0.092  # back of the cap to the cap origin (default_scene: 0.45 m + 0.092)
-SECTION = "Visibility (paper section 6)"
-PNG = ROOT / "docs" / "visibility_sweep.png"
 PAPER_GE1_PCT, PAPER_GE4_PCT = 99.8, 99.2  # 246,643 frames, 68 min real drive (section 6)
-
-
-def code_state() -> str:
-    """Which commit the imported ``ficap_ros`` modules match, by git blob hash.
-
-    The package is installed editable and may be edited while a benchmark runs; call this right
-    after the imports so the section says which code produced it.
-    """
-    import ficap_ros
-
-    def git(*cmd: str) -> str:
-        return subprocess.run(["git", *cmd], cwd=ROOT, capture_output=True, text=True).stdout
-
-    head = git("rev-parse", "--short", "HEAD").strip() or "unknown"
-    blobs = {}  # path -> blob sha1 at HEAD ("<mode> blob <sha>\t<path>")
-    for line in git("ls-tree", "-r", "HEAD", "ficap_ros").splitlines():
-        meta, _, path = line.partition("\t")
-        blobs[path] = meta.split()[2]
-    pkg = Path(ficap_ros.__file__).resolve().parent
-    changed, n = [], 0
-    for name, mod in sorted(sys.modules.items()):
-        f = getattr(mod, "__file__", None)
-        if not (name == "ficap_ros" or name.startswith("ficap_ros.")) or not f:
-            continue
-        n += 1
-        data = Path(f).read_bytes()
-        sha = hashlib.sha1(b"blob %d\0" % len(data) + data).hexdigest()
-        rel = "ficap_ros/" + Path(f).resolve().relative_to(pkg).as_posix()
-        if blobs.get(rel) != sha:
-            changed.append(rel)
-    where = "the repo" if pkg.parent == ROOT else "an export outside the repo"
-    if not changed:
-        return f"the {n} `ficap_ros` modules it imported (from {where}) are identical to commit {head}"
-    return (f"`ficap_ros` imported from {where} DIFFERS from commit {head} in {', '.join(changed)} "
-            "(uncommitted code)")
 
 
 def scene_at(distance_m: float, height_m: float, resolution: tuple[int, int]) -> DriveScene:
@@ -165,7 +115,6 @@ def run(scene: DriveScene, drive: list[DriveFrame], tracking: bool, label: str,
     proc = FrameProcessor(model, tracking=tracking)
     cfg = RenderConfig()
     det, used, err, seen = [], [], [], []
-    prog = Progress(len(drive), label)
     for d in drive:
         f = render(model, scene.camera, d.T_cam_cap, cfg, seed=d.index)
         r = proc.process(f.image, scene.camera, d.stamp_ns)
@@ -173,7 +122,7 @@ def run(scene: DriveScene, drive: list[DriveFrame], tracking: bool, label: str,
         used.append(0 if r.pose is None else r.pose.tags_used)
         err.append(np.nan if r.pose is None else angle_deg(r.pose.T_cam_cap.rotation, d.T_cam_cap.rotation))
         seen.append(renderer_visible(f, model, args))
-        prog.update()
+    print(f"  {label}: {len(det)} frames", file=sys.stderr, flush=True)
     return Counts(np.array(det), np.array(used), np.array(err, dtype=np.float64), np.array(seen))
 
 
@@ -218,13 +167,9 @@ def recommendation(grid: dict[tuple[float, float], Counts], dists: list[float], 
     return "; ".join(out)
 
 
-def plot(grid: dict[tuple[float, float], Counts], dists: list[float], heights: list[float]) -> bytes:
+def plot(grid: dict[tuple[float, float], Counts], dists: list[float], heights: list[float]) -> str:
     """Heat maps (distance x height) of the 540p sweep: >= 4 tags share, median / p95 error, tags used."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
+    plt = report.pyplot()
     panels = [
         ("frames with >= 4 tags detected (%)", lambda c: c.pct(c.detected, 4), "viridis", "{:.1f}", (90.0, 100.0)),
         ("mean tags used by the pose", lambda c: float(c.used.mean()), "viridis", "{:.1f}", None),
@@ -252,14 +197,16 @@ def plot(grid: dict[tuple[float, float], Counts], dists: list[float], heights: l
         fig.colorbar(im, ax=ax, shrink=0.85)
     fig.suptitle("Camera placement sweep, 540p 60 deg hfov, detector results (FrameProcessor)", fontsize=11)
     fig.tight_layout()
-    buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=80)
-    plt.close(fig)
-    return buf.getvalue()
+    return report.save_figure(fig, "visibility")
 
 
-def main() -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+QUICK = {"frames": 150, "sweep_stride": 180, "distances": "0.45,0.9", "heights": "0.0,0.1",
+         "hd_distances": "", "hd_heights": ""}
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = cli.parser(__doc__, quick="150 frames at the default placement, a 2 x 2 sweep of 10 frames a "
+                                   "point, no 1080p points")
     ap.add_argument("--frames", type=int, default=1800, help="default placement: drive length, 30 fps frames")
     ap.add_argument("--stride", type=int, default=1, help="default placement: every Nth frame (1 = tracking)")
     ap.add_argument("--sweep-frames", type=int, default=1800, help="sweep: drive length, 30 fps frames")
@@ -272,11 +219,14 @@ def main() -> int:
     ap.add_argument("--min-visible", type=float, default=0.999)
     ap.add_argument("--max-angle-deg", type=float, default=75.0)
     ap.add_argument("--min-side-px", type=float, default=12.0, help="shortest projected tag side counted")
-    ap.add_argument("--record", action="store_true", help="write the section and docs/visibility_sweep.png")
-    args = ap.parse_args()
-    t_start = time.time()
-    load_start, machine, code = load_avg(), machine_line(), code_state()
-    print(f"{machine}; {code}", file=sys.stderr)
+    args = ap.parse_args(argv)
+    if args.quick:
+        for k, v in QUICK.items():
+            setattr(args, k, v)
+    import cv2
+
+    cv2.setNumThreads(1)
+    run_info = report.Run()
     dists, heights = floats(args.distances), floats(args.heights)
     hd_dists, hd_heights = floats(args.hd_distances), floats(args.hd_heights)
 
@@ -298,7 +248,7 @@ def main() -> int:
         ["paper (real drive, 68 min, 60 fps)", 246643, f"{PAPER_GE1_PCT} %", f"{PAPER_GE4_PCT} %", "-", "-", "-",
          "-"],
     ]
-    print(md_table(["count", "frames", ">= 1 tag", ">= 4 tags", "with pose", "tags median / min",
+    print(report.md_table(["count", "frames", ">= 1 tag", ">= 4 tags", "with pose", "tags median / min",
                     "mean tags used", "error median / p95 / max (deg)"], rows), file=sys.stderr)
 
     # Sweep (frames not consecutive: every frame searched over the whole image).
@@ -316,51 +266,43 @@ def main() -> int:
                 print("  " + " | ".join(str(v) for v in sweep_rows[-1]), file=sys.stderr)
     sweep_drive = naturalistic_drive(args.sweep_frames, fps=30.0, seed=args.seed)[::args.sweep_stride]
     sweep_glance = sum(d.target != "frontal" for d in sweep_drive)
-    minutes = (time.time() - t_start) / 60.0
     flat = all(c.pct(c.detected, 4) == 100.0 for c in grid.values())
 
-    text = "\n".join([
-        f"Machine: {machine} (at the start); {load_start} at the start, {load_avg()} at the end; "
-        f"{minutes:.1f} min (run with `nice -n 10`). Code: {code}.", "",
-        "Every count is a detector result: frames rendered by `ficap_ros.tools.synth.render` (default `RenderConfig`: "
-        "neutral light, the default image chain (PSF, sensor noise, sRGB), head and neck occluders, no headrest, seat, hands or other people) are run "
-        "through `ficap_ros.vision.pipeline.FrameProcessor` with default settings; 'with pose' = the pipeline returned a "
-        "cap pose; error = geodesic angle between the estimated and the rendered cap orientation "
-        "(`ficap_ros.geometry.metrics.angle_deg`, twice the paper's Phi3); 'tags used' = tags kept by the pose. "
-        "'Renderer visibility' (tags at least "
-        f"{100 * args.min_visible:.1f} % visible, facing the camera within {args.max_angle_deg:.0f} deg, every side "
-        f">= {args.min_side_px:.0f} px) is the renderer's upper bound with no detector in it.", "",
-        f"Default placement (`default_scene`, 540p, 60 deg hfov, 0.45 m behind the back of the cap, 6 cm above its "
-        f"centre, looking straight forward): naturalistic drive seed {args.seed}, "
+    what = ("What it measures: how often the detector finds at least 1 and at least 4 tags, how often "
+            "there is a pose and its error (geodesic, twice Phi3), on rendered drives (`ficap synth`'s "
+            "renderer, neutral light, the default chain, head and neck occluders; no headrest, seat, "
+            "hands or passengers), at the default camera placement and over a sweep of camera "
+            "distance x height; every count is a detector result (`FrameProcessor`, defaults). "
+            "'Renderer visibility' (tags at least "
+            f"{100 * args.min_visible:.1f} % visible, facing within {args.max_angle_deg:.0f} deg, every "
+            f"side >= {args.min_side_px:.0f} px) is the upper bound with no detector in it.")
+    body = "\n".join([
+        f"Default placement (`default_scene`, 540p, 60 deg hfov, 0.45 m behind the back of the cap, 6 cm "
+        f"above its centre, looking straight forward): naturalistic drive seed {args.seed}, "
         + (f"{dflt.n} consecutive frames ({args.frames / 30:.0f} s at 30 fps) with tracking on"
-           if tracking else f"every {args.stride}th of {args.frames} frames, each searched independently")
+           if tracking else f"every {args.stride}th of {args.frames} frames, each searched alone")
         + f"; {int(glance.sum())} of the {dflt.n} frames are in mirror / cluster glances or moving to them "
-        f"(|yaw| up to {yaw.max():.0f} deg, pitch {pitch.min():.0f} to {pitch.max():+.0f} deg). The paper's numbers "
-        f"come from 68 min of real driving, with occlusions this renderer does not have; {args.frames / 30:.0f} s "
-        "of simulated driving cannot show a 0.2 % effect.", "",
-        md_table(["count", "frames", ">= 1 tag", ">= 4 tags", "with pose", "tags median / min", "mean tags used",
-                  "error median / p95 / max (deg)"], rows), "",
-        f"Sweep: camera distance behind the back of the cap x camera height above the cap centre, 60 deg hfov, "
-        f"camera aimed at the frontal cap (`scene_at`; the default placement is 0.45 m / +0.06 m looking straight "
-        f"forward, so it is not exactly a grid point). Per grid point: every {args.sweep_stride}th frame of a "
-        f"{args.sweep_frames}-frame naturalistic drive (seed {args.seed}, {args.sweep_frames / 30:.0f} s; the same "
-        f"{len(sweep_drive)} head poses at every point, {sweep_glance} of them in glances), each frame searched "
-        "independently (`tracking=False`). A subset is repeated at 1080p. This is a small sample: one share step is "
-        f"{100 / max(len(sweep_drive), 1):.1f} %.", "",
-        md_table(["res", "distance (m)", "height (m)", "frames", ">= 1 tag", ">= 4 tags", "with pose",
-                  "error median (deg)", "error p95 (deg)", "mean tags used", "renderer >= 4"], sweep_rows), "",
-        f"Heat maps of the 540p sweep: `docs/{PNG.name}` (![sweep]({PNG.name})).", "",
-        "Where to mount the camera (from this sweep, simulation only): " + recommendation(grid, dists, heights) + ".",
-        ("Every grid point detected >= 4 tags in every sampled frame: the renderer has no headrest, seat, hands "
-         "or passengers, so the shares cannot tell mount positions apart here; the error and the tags used do. "
-         if flat else "")
+        f"(|yaw| up to {yaw.max():.0f} deg, pitch {pitch.min():.0f} to {pitch.max():+.0f} deg). The "
+        "paper's figures come from 68 min of real driving, with occlusions this renderer does not have.", "",
+        report.md_table(["count", "frames", ">= 1 tag", ">= 4 tags", "with pose", "tags median / min",
+                         "mean tags used", "error median / p95 / max (deg)"], rows), "",
+        f"Sweep: camera distance behind the back of the cap x height above the cap centre, 60 deg hfov, "
+        f"aimed at the frontal cap. Per point: every {args.sweep_stride}th frame of a "
+        f"{args.sweep_frames}-frame drive (the same {len(sweep_drive)} head poses at every point, "
+        f"{sweep_glance} in glances), each searched alone; part of the grid again at 1080p. One share "
+        f"step is {100 / max(len(sweep_drive), 1):.1f} %.", "",
+        report.md_table(["res", "distance (m)", "height (m)", "frames", ">= 1 tag", ">= 4 tags", "with pose",
+                         "error median (deg)", "error p95 (deg)", "mean tags used", "renderer >= 4"],
+                        sweep_rows), "",
+        plot(grid, dists, heights), "",
+        "Where to mount the camera (from this sweep, simulation only): " + recommendation(grid, dists, heights)
+        + ". " + ("Every grid point detected >= 4 tags in every sampled frame: without headrest, seat "
+                  "or hands the shares cannot tell mount positions apart; the error and the tags used "
+                  "do. " if flat else "")
         + "In a car the camera also has to see the cap past the headrest, which this sweep does not model.",
     ])
-    print(text)
-    if args.record:
-        write_atomic(PNG, plot(grid, dists, heights))
-        record_section(SECTION, text)
-        print(f"recorded in docs/benchmarks.md and {PNG.relative_to(ROOT)}", file=sys.stderr)
+    report.write_section("visibility", what, report.how("bench_visibility.py", "a short drive and a 2 x 2 sweep"),
+                         body, run_info, report.command(), args.quick, args.no_doc)
     return 0
 
 

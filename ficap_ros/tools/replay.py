@@ -22,12 +22,13 @@ from collections import Counter
 from dataclasses import dataclass, field, replace
 from itertools import islice
 from pathlib import Path
-from typing import IO, Any, Callable, Iterable, Iterator
+from typing import IO, Any, Callable, Iterable, Iterator, Mapping
 
 import numpy as np
 
 from ficap_ros.errors import BagError, ImageError
 from ficap_ros.files import write_atomic
+from ficap_ros.geometry.camera import CameraTiming
 from ficap_ros.geometry.cap_model import CapModel
 from ficap_ros.io.calibration_file import q_wxyz
 from ficap_ros.io.labels import (
@@ -43,8 +44,8 @@ from ficap_ros.vision.pipeline import FrameProcessor
 from ficap_ros.vision.pose import PoseConfig
 
 __all__ = ["Progress", "ReplayedFrame", "process_frames", "frontal_calibration",
-           "ReplayOutput", "replay", "check_window", "available_cores", "capped_jobs",
-           "SEGMENT_FRAMES", "MAX_WINDOW_S"]
+           "ReplayOutput", "replay", "recording_timing", "check_window", "available_cores",
+           "capped_jobs", "SEGMENT_FRAMES", "MAX_WINDOW_S"]
 
 
 def Progress(total: int, label: str = "frames", stream: IO[str] | None = None,  # noqa: N802
@@ -143,9 +144,12 @@ def _process_one(raw: RawFrame) -> ReplayedFrame:
 SEGMENT_FRAMES = 128
 
 
-def _process_segment(raws: list[RawFrame]) -> list[ReplayedFrame]:
+def _process_segment(raws: list[RawFrame], timing: CameraTiming | None = None) -> list[ReplayedFrame]:
+    """One segment of a recording whose camera has ``timing`` (None: not known), tracking
+    afresh from its first frame."""
     assert _PROCESSOR is not None
     _PROCESSOR.reset_tracking()
+    _PROCESSOR.timing = timing or CameraTiming()
     out = []
     for raw in raws:
         out.append(_process_one(raw))
@@ -183,8 +187,9 @@ class _SegmentPool:
     retries happened (tracking restarts at each segment's first frame).
     """
 
-    def __init__(self, jobs: int, initargs: tuple, counter: Any) -> None:
-        self.jobs, self.initargs, self.counter = jobs, initargs, counter
+    def __init__(self, jobs: int, initargs: tuple, counter: Any,
+                 timing: CameraTiming | None = None) -> None:
+        self.jobs, self.initargs, self.counter, self.timing = jobs, initargs, counter, timing
         self.pool = self._new()
 
     def _new(self) -> Any:
@@ -204,10 +209,10 @@ class _SegmentPool:
         import threading
 
         if threading.current_thread() is not threading.main_thread():
-            return self.pool.submit(_process_segment, segment)
+            return self.pool.submit(_process_segment, segment, self.timing)
         previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
         try:
-            return self.pool.submit(_process_segment, segment)
+            return self.pool.submit(_process_segment, segment, self.timing)
         finally:
             signal.signal(signal.SIGINT, previous)
 
@@ -240,12 +245,14 @@ class _SegmentPool:
 
 
 def _parallel_frames(it: Iterator[RawFrame], jobs: int, initargs: tuple, counter: Any,
-                     on_progress: Callable[[int], None] | None) -> Iterator[ReplayedFrame]:
-    """``process_frames`` over ``jobs`` worker processes, in order (``_SegmentPool``)."""
+                     on_progress: Callable[[int], None] | None,
+                     timing: CameraTiming | None) -> Iterator[ReplayedFrame]:
+    """``process_frames`` over ``jobs`` worker processes, in order (``_SegmentPool``), with the
+    camera's ``timing``."""
     from concurrent.futures import BrokenExecutor
     from concurrent.futures import TimeoutError as FutureTimeout
 
-    pool = _SegmentPool(jobs, initargs, counter)
+    pool = _SegmentPool(jobs, initargs, counter, timing)
     done = 0
     try:
         # Bounded look-ahead: one segment per worker in flight plus one, in order, so the bag is
@@ -282,8 +289,10 @@ def _parallel_frames(it: Iterator[RawFrame], jobs: int, initargs: tuple, counter
 def process_frames(
     raws: Iterable[RawFrame], model: CapModel, pose: PoseConfig, jobs: int = 1,
     on_progress: Callable[[int], None] | None = None, detector: DetectorConfig | None = None,
+    timing: CameraTiming | None = None,
 ) -> Iterator[ReplayedFrame]:
-    """Run the pipeline over raw frames, in order, in ``jobs`` processes (at most one per core).
+    """Run the pipeline over raw frames, in order, in ``jobs`` processes (at most one per core),
+    with the camera's ``timing`` (``recording_timing``; None: not known).
 
     Undecodable frames come back with an ``UNDECODABLE`` record saying why.
     ``on_progress`` is called with the number of frames processed so far, frame by frame (with
@@ -301,6 +310,7 @@ def process_frames(
         while segment := list(islice(it, SEGMENT_FRAMES)):
             assert _PROCESSOR is not None
             _PROCESSOR.reset_tracking()
+            _PROCESSOR.timing = timing or CameraTiming()
             for raw in segment:
                 yield _process_one(raw)
                 done += 1
@@ -311,7 +321,7 @@ def process_frames(
 
     counter = multiprocessing.get_context("spawn").Value("q", 0)
     yield from _parallel_frames(it, jobs, (model, pose, True, counter, detector), counter,
-                                on_progress)
+                                on_progress, timing)
 
 
 # -- calibration ---------------------------------------------------------------------------------
@@ -443,6 +453,7 @@ def replay(
     summary_extra: dict[str, Any] | None = None,
     detector: DetectorConfig | None = None,
     inputs: Iterable[str | Path | None] = (),
+    timing: Mapping[str, Any] | None = None,
 ) -> ReplayOutput:
     """Process every frame of ``source`` and write labels.mcap, labels.csv and summary.json.
 
@@ -470,22 +481,28 @@ def replay(
             ``engine`` carries its own, and this only records them (summary.json's
             ``photometric``).
         inputs: the run's other input files (model, calibration, intrinsics): never written.
+        timing: ``CameraTiming`` fields given for the camera (the command line's), over the
+            recording's own timing (``recording_timing``); summary.json's ``camera_timing``
+            records the timing used and its source. An ``engine`` must process with the same
+            (``recording_timing`` of the source and these fields).
 
     Raises:
         BagError: unreadable input, or no frame of it usable. OutputError: an output that is or
         holds an input, lies in a recording, a folder ficap did not write, not writable, or
         written by another ficap process now. CalibrationError: bad frontal window.
-        WorkerError: a worker process died twice on one segment.
+        IntrinsicsError: a timing field out of range. WorkerError: a worker process died twice
+        on one segment.
     """
     from ficap_ros.files import OutputFolder
 
     out = Path(out_dir)
+    camera_timing = recording_timing(source, timing)  # a bad field fails before any output
     folder = OutputFolder(out, inputs=[source.path, *inputs])  # every check, and the lock
     try:
         check_window(source, calibrate_window_s)
         output = _replay_into(folder.tmp, out, source, model, pose, calibration,
                               calibrate_window_s, jobs, namespace, progress, progress_stream,
-                              engine, summary_extra, detector)
+                              engine, summary_extra, detector, camera_timing)
         _check_usable(source, output.summary)
     except BaseException:
         folder.discard()
@@ -531,8 +548,10 @@ def _replay_into(
     jobs: int, namespace: str, progress: bool, progress_stream: IO[str] | None,
     engine: Callable[[Iterable[RawFrame]], Iterable[ReplayedFrame]] | None,
     summary_extra: dict[str, Any] | None, detector: DetectorConfig | None = None,
+    camera_timing: tuple[CameraTiming, str] = (CameraTiming(), "not known"),
 ) -> ReplayOutput:
     jobs = capped_jobs(jobs)[0]
+    timing, timing_source = camera_timing
     bar = Progress(source.count, "frames", progress_stream, enabled=progress)
     t0 = time.perf_counter()
     frames: list[ReplayedFrame] = []
@@ -543,7 +562,7 @@ def _replay_into(
                 frames.append(item)
                 bar.update()
         else:
-            frames.extend(process_frames(raws, model, pose, jobs, detector=detector,
+            frames.extend(process_frames(raws, model, pose, jobs, detector=detector, timing=timing,
                                          on_progress=lambda n: bar.update(n - bar.n)))
     finally:
         bar.close()
@@ -561,6 +580,7 @@ def _replay_into(
         # Only when on (the default runs' summaries name no detector setting).
         **({"photometric": True} if detector is not None and detector.edge_photometric else {}),
         "jobs": jobs,
+        "camera_timing": {**timing.to_dict(), "source": timing_source},
         **_summary(frames, elapsed),
         # A damaged input: frames_lost is None when the container cannot say how many.
         "damaged": loss is not None,
@@ -589,6 +609,23 @@ def _write(path: Path, text: str) -> None:
         write_atomic(path, text)
     except OSError as err:
         raise OutputError(f"cannot write {path.name}: {err.strerror or err}") from err
+
+
+def recording_timing(source: FrameSource, given: Mapping[str, Any] | None = None,
+                     ) -> tuple[CameraTiming, str]:
+    """The camera timing a recording is processed with, and where it comes from (summary.json's
+    ``camera_timing.source``): the ``given`` fields (``CameraTiming``'s names: the command
+    line's) over the recording's own (``FrameSource.timing``: its intrinsics file's, else its
+    bag's metadata), else ``CameraTiming()``, "not known".
+
+    Raises:
+        IntrinsicsError: a given field out of range.
+    """
+    base = source.timing or CameraTiming()
+    if not given:
+        return base, source.timing_source or "not known"
+    origin = "command line" + (f" over {source.timing_source}" if source.timing_source else "")
+    return replace(base, **dict(given)), origin
 
 
 def _calibration(frames: list[ReplayedFrame], start_ns: int, given: HeadCalibration | None,

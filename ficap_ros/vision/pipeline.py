@@ -11,7 +11,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ficap_ros.geometry.camera import CameraModel
+from ficap_ros.geometry.camera import CameraModel, CameraTiming
 from ficap_ros.geometry.cap_model import CapModel, nominal_model
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.vision.detector import DetectorConfig, TagDetection, TagDetector, as_gray
@@ -93,12 +93,17 @@ class FrameProcessor:
         tracking: follow the cap from frame to frame (``tracking.Tracker``: frames of one camera
             in time order, as the node and the bag tools feed them); ``False``: every frame searched.
         track: tracking settings.
+        timing: when the camera's rows see the scene relative to the stamps (exposure, rolling
+            shutter readout, stamp offset; ``CameraTiming()``: not known). Like ``pose_config``
+            it may be replaced as a whole between frames (the node does when its
+            ``camera.*`` parameters change; replay sets each recording's).
     """
 
     def __init__(self, model: CapModel | None = None, detector: DetectorConfig | None = None,
                  pose: PoseConfig | None = None, tracking: bool = True,
-                 track: TrackConfig | None = None) -> None:
+                 track: TrackConfig | None = None, timing: CameraTiming | None = None) -> None:
         self.model = model or nominal_model()
+        self.timing = timing or CameraTiming()
         self.detector = TagDetector(detector)
         self.pose_config = pose or PoseConfig()
         self.tracker = Tracker(self.model, self.detector, track) if tracking else None

@@ -142,6 +142,9 @@ class CapPose:
         method: the estimator's name.
         rot_err95_deg: predicted 95 % bound of the geodesic rotation error of ``T_cam_cap``, deg.
         trans_err95_mm: predicted 95 % bound of the length of its translation error, mm.
+        velocity: the cap's velocity at the stamp where the estimator measures it, else None:
+            (6,) ROS twist order in the camera's axes: the cap origin's linear velocity, m/s,
+            then the angular velocity, rad/s.
     """
 
     T_cam_cap: Transform
@@ -154,6 +157,7 @@ class CapPose:
     method: str
     rot_err95_deg: float = float("nan")
     trans_err95_mm: float = float("nan")
+    velocity: np.ndarray | None = None
 
     @property
     def rotation_sigma_deg(self) -> float:

@@ -12,7 +12,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 from ficap_ros.errors import ConfigError, FicapError, OutputError, one_line
 from ficap_ros.files import OutputLock, check_output_folder
@@ -57,21 +57,24 @@ class _Labelling:
     jobs: int
     detector: DetectorConfig | None
     inputs: tuple[Any, ...] = ()
+    timing: Mapping[str, Any] | None = None
 
     def replay_one(self, item: _Todo, engine: RayEngine | None,
                    bar: FleetProgress) -> RecordingResult:
         """One recording into ``out / rec.rel``: its result, ``failed`` on any error."""
         _, rec, source, fp = item
         t = time.perf_counter()
-        process = engine.process if engine is not None else (
-            lambda raws: replay_mod.process_frames(raws, self.model, self.pose, self.jobs,
-                                                   detector=self.detector))
         try:
+            timing = replay_mod.recording_timing(source, self.timing)[0]
+            process = (lambda raws: engine.process(raws, timing)) if engine is not None else (
+                lambda raws: replay_mod.process_frames(raws, self.model, self.pose, self.jobs,
+                                                       detector=self.detector, timing=timing))
             output = replay_mod.replay(
                 source, self.out / rec.rel, self.model, self.pose, self.calibration,
                 self.calibrate_window_s, self.jobs, self.namespace, progress=False,
                 engine=lambda raws: bar.counted(process(raws)),
-                summary_extra={"fingerprint": fp}, detector=self.detector, inputs=self.inputs)
+                summary_extra={"fingerprint": fp}, detector=self.detector, inputs=self.inputs,
+                timing=self.timing)
         except Exception as err:  # noqa: BLE001 - one recording's failure must not stop the fleet
             return RecordingResult(str(rec.path), str(rec.rel), "failed",
                                    wall_s=round(time.perf_counter() - t, 3),
@@ -101,6 +104,7 @@ def run_fleet(
     ray_engine: RayEngine | None = None,
     detector: DetectorConfig | None = None,
     inputs: Sequence[Any] = (),
+    timing: Mapping[str, Any] | None = None,
 ) -> FleetResult:
     """Replay every recording into ``out / rec.rel`` (see the package docstring).
 
@@ -118,6 +122,8 @@ def run_fleet(
             ``label_settings`` so the fingerprint holds them.
         inputs: the run's configuration files (model, calibration, intrinsics, manifest): no
             output may be one.
+        timing: camera timing fields over each recording's own (``replay.recording_timing``);
+            give the same to ``label_settings``.
 
     Returns:
         One result per recording, in the given order. A failing recording does not stop the others.
@@ -135,7 +141,7 @@ def run_fleet(
             raise OutputError(f"cannot write output folder {out}: {err.strerror or err}") from err
         return _run(recordings, out, open_source, model, pose, settings, calibration,
                     calibrate_window_s, namespace, jobs, ray_address, use_ray, retries, force,
-                    progress, summary_files, ray_engine, detector, tuple(inputs))
+                    progress, summary_files, ray_engine, detector, tuple(inputs), timing)
 
 
 def _run(recordings: Sequence[Recording], out: Path, open_source: Callable[[Path], FrameSource],
@@ -143,12 +149,13 @@ def _run(recordings: Sequence[Recording], out: Path, open_source: Callable[[Path
          calibration: HeadCalibration | None, calibrate_window_s: tuple[float, float] | None,
          namespace: str, jobs: int, ray_address: str | None, use_ray: bool, retries: int,
          force: bool, progress: bool, summary_files: bool, ray_engine: RayEngine | None,
-         detector: DetectorConfig | None, inputs: tuple[Any, ...]) -> FleetResult:
+         detector: DetectorConfig | None, inputs: tuple[Any, ...],
+         timing: Mapping[str, Any] | None) -> FleetResult:
     """``run_fleet`` once its output is checked and locked."""
     t0 = time.perf_counter()
     results, todo = _plan(recordings, out, settings, force, open_source)
     labelling = _Labelling(out, model, pose, calibration, calibrate_window_s, namespace, jobs,
-                           detector, inputs)
+                           detector, inputs, timing)
     bar = FleetProgress(sum(src.count for _, _, src, _ in todo), len(recordings), len(results),
                         sum(r.status == "failed" for r in results.values()), progress)
     fleet = FleetResult(engine="processes", workers=jobs)

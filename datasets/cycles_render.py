@@ -4,14 +4,14 @@
 path-traced check set that must not be tuned to. This script makes *our own* path-traced sets, with
 their own poses and seeds, so that calibration can see the physics the analytic renderer lacks
 (Monte Carlo noise at a few samples per pixel, real light fall-off and inter-reflection, the
-renderer's pixel filter). It reads blender_dev only for the what-if set at its poses
-(``AS_DEV``), a check of the renderer like bench_shading's "synth as" rows; nothing is fitted to it.
+renderer's pixel filter). It reads blender_dev (``--dev-data``) only for the what-if set at its
+poses (``AS_DEV``), a check of the renderer; nothing is fitted to it.
 
 Two processes, two venvs (the package never imports bpy):
   1. the project venv plans a set (poses from ``synth.naturalistic_drive``, cap corners from
      ``cap_model.nominal_model``, tag textures from ``cv2.aruco.generateImageMarker``, lights)
      into ``<out>/_work/<set>/plan.json``;
-  2. ``.venv-bpy/bin/python benchmarks/cycles_render.py _bpy plan.json`` (Blender as a Python
+  2. ``.venv-bpy/bin/python datasets/cycles_render.py _bpy plan.json`` (Blender as a Python
      module) path-traces each frame's *linear* radiance to ``frame_XXX.npy`` and ray-casts every
      tag corner for visibility (``vis.json``); nothing else;
   3. the project venv applies ``ficap_ros.tools.synth``'s camera chain (flare, Gaussian lens PSF in
@@ -19,19 +19,18 @@ Two processes, two venvs (the package never imports bpy):
      JPEG 95) and writes the set with ``ficap_ros.io.bag_writer``: ``<set>/metadata.yaml``,
      ``<set>/<set>.mcap`` (/rear_camera/image_raw/compressed, /rear_camera/camera_info,
      /ground_truth/cap_pose, /ground_truth/head_pose) and ``<set>/ground_truth.json`` with
-     blender_dev's fields, so ``benchmarks/blender_dev.py`` reads it unchanged
-     (``FICAP_DEV_ROOT=<out>`` points it and every benchmark that uses it at these sets).
+     blender_dev's fields, so the benchmarks' blender_dev reader (``benchmarks/_lib/devsets.py``)
+     reads it unchanged.
 
 The bpy venv on a fresh machine (Blender 5.0.1 as a module, CPython 3.11, manylinux x86_64; it
 brings its own numpy 1.26):
     python3.11 -m venv .venv-bpy && .venv-bpy/bin/pip install bpy==5.0.1
 (``make bpy-venv`` does this). Usage (project venv):
-    .venv/bin/python benchmarks/cycles_render.py [--out /work/cycles_sets] [--sets cyc_540p_neutral,...]
-        [--frames N] [--check | --finish-only | --noise | --esf]
-    FICAP_DEV_ROOT=/work/cycles_sets .venv/bin/python benchmarks/bench_shading.py --no-synth-drives
-(the measurements of docs/benchmarks.md, "Cycles calibration renders"). The sets' order for
-``FICAP_DEV_ROOT`` is ``<out>/sets.txt``; the what-if sets (``_sky``, ``_noisy``, ``cyc_as_dev_*``)
-are diagnoses, not calibration data.
+    .venv/bin/python datasets/cycles_render.py [--out out/cycles_sets] [--sets cyc_540p_neutral,...]
+        [--frames N] [--check | --finish-only]
+What the sets showed is in docs/studies.md ("Path-traced calibration sets"). The set order is
+``<out>/sets.txt``; the what-if sets (``_sky``, ``_noisy``, ``cyc_as_dev_*``) are diagnoses, not
+calibration data.
 Deterministic: poses, lights, Cycles' sampling seed and the sensor noise are functions of the set.
 
 Scene (physical choices, nothing fitted to blender_dev): the 23 nominal 40 mm plates (quiet zone
@@ -62,7 +61,12 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 BPY_PYTHON = ROOT / ".venv-bpy" / "bin" / "python"
-DEFAULT_OUT = Path("/work/cycles_sets")
+#: Default output folder (``/out/`` is ignored by git).
+DEFAULT_OUT = ROOT / "out" / "cycles_sets"
+#: blender_dev next to the clone (or next to its parent: a git worktree one level further down).
+DEFAULT_DEV = next((p / "shared" / "data" / "blender_dev" for p in (ROOT.parent, ROOT.parent.parent)
+                    if (p / "shared" / "data" / "blender_dev").is_dir()),
+                   ROOT.parent / "shared" / "data" / "blender_dev")
 SAMPLES = 8
 #: Seconds between the frames of a set (a 30 fps naturalistic drive sampled every 60th frame).
 FRAME_STEP = 60
@@ -77,15 +81,15 @@ SET_SPECS: dict[str, tuple[int, int, str, float, str, int]] = {
     "cyc_1080p_high": (1920, 1080, "high", 0.65, "srgb", 705),
     # What-if (not a calibration set): 540p neutral's poses and chain, but daylight through the
     # windows (sky) as the main light and the lamp at a fifth: how much of the path-tracing noise
-    # is the light's directness (docs/benchmarks.md, "Cycles calibration renders").
+    # is the light's directness.
     "cyc_540p_neutral_sky": (960, 540, "neutral", 0.60, "gamma18", 701),
     # What-if (not a calibration set): cyc_540p_neutral's own renders with extra per-pixel noise
     # in the linear radiance (``EXTRA_NOISE``), standing in for a path tracer's Monte Carlo noise
     # at fewer effective samples: does the noise move the shift along the foreshortening?
     "cyc_540p_neutral_noisy": (960, 540, "neutral", 0.60, "gamma18", 701),
     # What-if (a check of the renderer, not a calibration set): this scene and chain at
-    # blender_dev 540p neutral's true cap poses (read from its ground_truth.json, as
-    # bench_shading's "synth as" rows do), to tell the poses from the renderer.
+    # blender_dev 540p neutral's true cap poses (read from its ground_truth.json), to tell the
+    # poses from the renderer.
     "cyc_as_dev_540p_neutral": (960, 540, "neutral", 0.60, "gamma18", 706),
 }
 #: What-if sets at a blender_dev set's cap poses: name -> blender_dev set.
@@ -152,7 +156,7 @@ def _tag_texture(tag_id: int, cell_px: int = 16) -> np.ndarray:
     return np.kron(refl, np.ones((cell_px, cell_px), np.float32))
 
 
-def make_plan(name: str, n_frames: int, work: Path) -> dict:
+def make_plan(name: str, n_frames: int, work: Path, dev_root: Path = DEFAULT_DEV) -> dict:
     from ficap_ros.geometry.cap_model import nominal_model
     from ficap_ros.tools.synth import (
         HEAD_CENTRE_M,
@@ -169,10 +173,7 @@ def make_plan(name: str, n_frames: int, work: Path) -> dict:
     if name in AS_DEV:
         import dataclasses
 
-        sys.path.insert(0, str(ROOT / "benchmarks"))
-        import blender_dev
-
-        dev = json.loads((blender_dev.BLENDER_DEV / AS_DEV[name] / "ground_truth.json").read_text())
+        dev = json.loads((dev_root / AS_DEV[name] / "ground_truth.json").read_text())
         from ficap_ros.geometry.transform import Transform
 
         drive = [dataclasses.replace(d, index=int(g["motion_frame"]),
@@ -396,7 +397,7 @@ def finish_set(name: str, plan: dict, out: Path) -> dict:
                                                 if lighting in METER_ON_RENDER else
                                                 f"white facing the sun at {WHITE_LEVEL[lighting]:.2f} of full well"),
                                    "flare": flare},
-                   "script": "benchmarks/cycles_render.py"},
+                   "script": "datasets/cycles_render.py"},
         "frames": frames_gt,
     }
     (set_dir / "ground_truth.json").write_text(json.dumps(truth, indent=1))
@@ -404,173 +405,46 @@ def finish_set(name: str, plan: dict, out: Path) -> dict:
 
 
 def check(name: str, out: Path) -> None:
-    """Detected corners vs projected truth on the set (a flipped axis or half-pixel shows here)."""
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    import blender_dev
-
+    """Detected corners vs projected truth on the written set (a flipped axis or half-pixel shows)."""
+    from ficap_ros.geometry.transform import Transform
+    from ficap_ros.io.sources import decode_raw, open_frames
     from ficap_ros.vision.detector import TagDetector
 
-    ds = blender_dev.load_set(name, out)
+    truth = json.loads((out / name / "ground_truth.json").read_text())
+    corners_mm = np.asarray(truth["cap_corners_mm"], dtype=np.float64).reshape(-1, 4, 3)
+    by_stamp = {int(f["stamp_ns"]): f for f in truth["frames"]}
     det = TagDetector()
     errs = []
-    for f in ds.frames:
-        got = {d.tag_id: d.corners_px for d in det.detect(f.image)}
-        for t in f.clean_ids():
-            if t in got:
-                errs.append(got[t] - f.corners_px[t])
+    frames = 0
+    for raw in open_frames(out / name).raw_frames():
+        gt = by_stamp.get(int(raw.stamp_ns))
+        if gt is None:
+            continue
+        frames += 1
+        T = Transform.from_matrix(np.asarray(gt["T_cam_cap"]))
+        px = raw.camera.project(T.apply(corners_mm.reshape(-1, 3) / 1000.0)).reshape(-1, 4, 2)
+        clean = {int(t["id"]) for t in gt["tags"]
+                 if t["facing"] and t["corners_visible"] == 4 and t["view_angle_deg"] <= 70.0}
+        got = {d.tag_id: d.corners_px for d in det.detect(decode_raw(raw))}
+        errs += [got[t] - px[t] for t in sorted(clean) if t in got]
     e = np.concatenate(errs) if errs else np.zeros((0, 2))
     dist = np.linalg.norm(e, axis=1)
-    print(f"{name}: {len(ds.frames)} frames, {len(errs)} clean tags detected; corner error median "
+    print(f"{name}: {frames} frames, {len(errs)} clean tags detected; corner error median "
           f"{np.median(dist):.3f} px, mean dx {e[:, 0].mean():+.3f} dy {e[:, 1].mean():+.3f} px, "
           f"rms {np.sqrt((dist ** 2).mean()):.3f}", flush=True)
 
 
-def flat_noise(frames, max_frames: int = 10, max_view_deg: float = 50.0, margin_px: float = 1.5) -> dict:
-    """Grey-level noise on the tags' flat white and black areas: pixels whose neighbourhood
-    (+-``margin_px``, mapped through the true corners' homography) is all one colour of the
-    printed face; sd of horizontal neighbour differences / sqrt(2), and the median level.
-    ``frames``: blender_dev.DevFrame's (image, corners_px, clean_ids)."""
-    import cv2
-
-    diffs: dict[bool, list] = {True: [], False: []}
-    levels: dict[bool, list] = {True: [], False: []}
-    for f in list(frames)[:max_frames]:
-        im = f.image.astype(np.float64)
-        h, w = im.shape
-        for t in f.clean_ids(max_view_deg):
-            c = f.corners_px[t]
-            Hi = np.linalg.inv(cv2.getPerspectiveTransform(
-                np.float32([[1, 1], [9, 1], [9, 9], [1, 9]]), np.float32(c)))
-            bits = _face_white(t)
-            x0, y0 = np.maximum(np.floor(c.min(0)).astype(int) - 4, 1)
-            x1, y1 = np.minimum(np.ceil(c.max(0)).astype(int) + 5, [w - 1, h - 1])
-            xs, ys = np.meshgrid(np.arange(x0, x1, dtype=np.float64), np.arange(y0, y1, dtype=np.float64))
-            col, ok = None, np.ones(xs.shape, bool)
-            for dx in (-margin_px, 0.0, margin_px):
-                for dy in (-margin_px, 0.0, margin_px):
-                    p = np.stack([xs + dx, ys + dy, np.ones_like(xs)], -1) @ Hi.T
-                    u, v = p[..., 0] / p[..., 2], p[..., 1] / p[..., 2]
-                    inside = (u >= 0.02) & (u < 9.98) & (v >= 0.02) & (v < 9.98)
-                    cc = np.where(inside, bits[np.clip(v.astype(int), 0, 9), np.clip(u.astype(int), 0, 9)], False)
-                    ok &= inside
-                    if col is None:
-                        col = cc
-                    else:
-                        ok &= cc == col
-            patch = im[y0:y1, x0:x1]
-            for white in (True, False):
-                m = ok & (col == white)
-                diffs[white].append((patch[:, 1:] - patch[:, :-1])[m[:, 1:] & m[:, :-1]])
-                levels[white].append(patch[m])
-    out = {}
-    for white, label in ((True, "white"), (False, "black")):
-        dd, ll = np.concatenate(diffs[white]), np.concatenate(levels[white])
-        out[label] = (float(np.median(ll)) if ll.size else float("nan"),
-                      float(dd.std() / math.sqrt(2)) if dd.size else float("nan"), int(dd.size))
-    return out
-
-
-def noise_table(roots: dict[str, Path], synth_as_too: bool = True) -> str:
-    """Flat-area grey noise of every set under ``roots`` (label -> folder), and of ``synth.render``
-    at each set's poses, camera, light, PSF and tone (as bench_realism's synth column)."""
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    import blender_dev
-    from bench_realism import tone_of
-
-    from ficap_ros.tools.synth import RenderConfig, render
-
-    rows = ["| set | renderer | white level | white noise sd | black level | black noise sd | pixel pairs white / black |",
-            "|---|---|---|---|---|---|---|"]
-
-    def row(name: str, who: str, r: dict) -> str:
-        return (f"| {name} | {who} | {r['white'][0]:.0f} | {r['white'][1]:.2f} | {r['black'][0]:.0f} | "
-                f"{r['black'][1]:.2f} | {r['white'][2]} / {r['black'][2]} |")
-
-    for label, root in roots.items():
-        names = sorted(p.name for p in root.iterdir() if (p / "ground_truth.json").is_file())
-        for name in names:
-            if name.endswith(("asbuilt", "drive30")):
-                continue
-            ds = blender_dev.load_set(name, root)
-            rows.append(row(name, label, flat_noise(ds.frames)))
-            print(rows[-1], file=sys.stderr, flush=True)
-            if synth_as_too:
-                import dataclasses
-
-                tone, gamma = tone_of(ds.tone)
-                cfg = RenderConfig(lighting=ds.lighting, tone=tone, gamma=gamma,
-                                   psf_sigma_px=ds.psf_sigma_px, jpeg_quality=95)
-                frames = [dataclasses.replace(f, image=render(ds.true_model, ds.camera, f.T_cam_cap, cfg,
-                                                              seed=f.index + 1).image)
-                          for f in ds.frames[:10]]
-                rows.append(row(name, "synth at its poses", flat_noise(frames)))
-                print(rows[-1], file=sys.stderr, flush=True)
-    return "\n".join(rows)
-
-
-def edge_spread(ds, max_view_deg: float = 35.0, gamma: float = 1.8) -> tuple[float, float, int]:  # noqa: ANN001
-    """Effective blur of a set: the median profile across the outer edges of near-frontal clean
-    tags (truth-aligned, linearised with ``value ** gamma``, 0.25-0.75 along each edge), fitted by
-    an error function: (sigma px, offset px, profiles)."""
-    import cv2
-    from scipy.optimize import curve_fit
-    from scipy.special import erf
-
-    offsets = np.arange(-2.0, 2.01, 0.1)
-    profiles = []
-    for f in ds.frames:
-        lin = (f.image.astype(np.float32) / 255.0) ** gamma
-        for t in f.clean_ids(max_view_deg):
-            c = f.corners_px[t]
-            for k in range(4):
-                a, b = c[k], c[(k + 1) % 4]
-                e = (b - a) / np.linalg.norm(b - a)
-                n = np.array([-e[1], e[0]])
-                if n @ ((a + b) / 2 - c.mean(0)) < 0:
-                    n = -n  # outward: black border -> white quiet zone
-                for s in np.linspace(0.25, 0.75, 6):
-                    pts = (a + s * (b - a))[None] + offsets[:, None] * n[None]
-                    profiles.append(cv2.remap(lin, pts[:, :1].astype(np.float32), pts[:, 1:].astype(np.float32),
-                                              cv2.INTER_LINEAR)[:, 0])
-    P = np.array(profiles)
-    lo, hi = P[:, :5].mean(1, keepdims=True), P[:, -5:].mean(1, keepdims=True)
-    m = np.median((P - lo) / (hi - lo), axis=0)
-
-    def model(d, a, b, d0, sigma):  # noqa: ANN001, ANN202
-        return a + (b - a) * 0.5 * (1 + erf((d - d0) / (math.sqrt(2) * sigma)))
-
-    popt, _ = curve_fit(model, offsets, m, p0=[0.0, 1.0, 0.0, 0.7])
-    return float(popt[3]), float(popt[2]), len(P)
-
-
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", type=Path, default=DEFAULT_OUT)
+    ap.add_argument("--out", type=Path, default=DEFAULT_OUT, help="output folder (default: out/cycles_sets)")
+    ap.add_argument("--dev-data", type=Path, default=DEFAULT_DEV,
+                    help="blender_dev, for the what-if set at its poses (default: ../shared/data/blender_dev)")
     ap.add_argument("--sets", default=",".join(SET_SPECS))
     ap.add_argument("--frames", type=int, default=None, help="frames per set (default: DEFAULT_FRAMES)")
     ap.add_argument("--check", action="store_true", help="only check the written sets' corners")
     ap.add_argument("--finish-only", action="store_true",
                     help="re-run only the camera chain and the set's files on the rendered radiance")
-    ap.add_argument("--esf", action="store_true",
-                    help="only the edge spread of blender_dev 540p neutral and the Cycles 540p neutral sets")
-    ap.add_argument("--noise", action="store_true",
-                    help="only the flat-area noise table: blender_dev, these sets, synth at their poses")
     args = ap.parse_args()
-    if args.esf:
-        sys.path.insert(0, str(ROOT / "benchmarks"))
-        import blender_dev
-
-        for root, name in ((blender_dev.BLENDER_DEV, "dev_540p_neutral"), (args.out, "cyc_as_dev_540p_neutral"),
-                           (args.out, "cyc_540p_neutral")):
-            sigma, offset, n = edge_spread(blender_dev.load_set(name, root))
-            print(f"| {name} | {n} | {sigma:.3f} | {offset:+.3f} |")
-        return 0
-    if args.noise:
-        sys.path.insert(0, str(ROOT / "benchmarks"))
-        import blender_dev
-
-        print(noise_table({"blender_dev": blender_dev.BLENDER_DEV, "cycles": args.out}))
-        return 0
     import cv2
 
     cv2.setNumThreads(1)  # leave the other core to whoever shares the machine
@@ -589,15 +463,15 @@ def main() -> int:
             finish_set(name, json.loads((work / "plan.json").read_text()), args.out)
             check(name, args.out)
             continue
-        plan = make_plan(name, n, work)
+        plan = make_plan(name, n, work, args.dev_data)
         t0 = time.perf_counter()
         subprocess.run([str(BPY_PYTHON), str(Path(__file__).resolve()), "_bpy", str(work / "plan.json")],
                        check=True)
         print(f"{name}: rendered {n} frames in {time.perf_counter() - t0:.0f} s", flush=True)
         finish_set(name, plan, args.out)
         check(name, args.out)
-    if not (args.check or args.noise):
-        # FICAP_DEV_ROOT=<out> reads the sets in this order (blender_dev.py).
+    if not args.check:
+        # The sets in their order.
         (args.out / "sets.txt").write_text("\n".join(
             n for n in SET_SPECS if (args.out / n / "ground_truth.json").is_file()) + "\n")
     return 0
