@@ -24,6 +24,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from mutations import mutated
 from probe_cases import (
+    BAD_NUMBERS,
+    QUICK_REFUSALS,
+    Probe,
     Run,
     camera_info_with,
     check_run,
@@ -33,6 +36,7 @@ from probe_cases import (
     jpeg_bag,
     run_cli,
     sha256s,
+    walk_cases,
 )
 from recordings import CORRUPT_BAG_FRAMES, one_error_line, small_bag
 
@@ -430,62 +434,6 @@ def test_mcap_bytes_raise_only_ficap_errors(fuzz_bag: Path, scratch: Path, data:
 # (``probe_cases.check_run``). The inputs are built here, small or sparse.
 
 
-class Probe:
-    """The probe's inputs in one folder (built once per test process)."""
-
-    def __init__(self, root: Path, rendered_frames) -> None:  # noqa: ANN001
-        import cv2
-
-        from ficap_ros.geometry.cap_model import nominal_model
-
-        images, scene = rendered_frames
-        self.root, self.camera = root, scene.camera
-        self.jpegs = [cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()
-                      for img in images]
-        self.bag = jpeg_bag(root / "in" / "bag", self.jpegs, self.camera)
-        self.single = jpeg_bag(root / "in" / "single" / "drive.mcap", self.jpegs, self.camera,
-                               layout="file")
-        self.model = root / "in" / "model.yaml"
-        nominal_model().save(self.model)
-        self.labels = root / "in" / "labels"
-        assert main(["replay", str(self.bag), "--out", str(self.labels), "--quiet"]) == 0
-        self.files = root / "cfg"
-        self.files.mkdir()
-        self._configs()
-        self.fifo = root / "cfg" / "calibration.fifo"
-        os.mkfifo(self.fifo)
-
-    def _configs(self) -> None:
-        texts = {
-            "cal_bigint.yaml": "R_cap_head_q_wxyz: [1, 0, 0, " + "9" * 5000 + "]\n",
-            "cal_deep.yaml": "R_cap_head_q_wxyz: " + "[" * 100_000 + "]" * 100_000 + "\n",
-            "cal_laughs.yaml": "a: &a [1, 0, 0, 0]\nb: &b [*a, *a, *a, *a, *a, *a, *a, *a]\n"
-                               "c: &c [*b, *b, *b, *b, *b, *b, *b, *b]\nR_cap_head_q_wxyz: *a\n",
-            "cal_q1e308.yaml": "R_cap_head_q_wxyz: [1.0e+308, 1.0e+308, 0, 0]\n",
-            "cal_qbool.yaml": "R_cap_head_q_wxyz: [true, false, 0, 0]\n",
-            "model_id587.yaml": "tags: [{id: 587, corners_mm: [[0, 0, 80], [32, 0, 80], "
-                                "[32, 32, 80], [0, 32, 80]]}]\n",
-            "model_far.yaml": "tags: [{id: 3, corners_mm: [[0, 0, 80], [1.0e+308, 0, 80], "
-                              "[32, 32, 80], [0, 32, 80]]}]\n",
-        }
-        for name, text in texts.items():
-            (self.files / name).write_text(text)
-        data = self.camera.to_camera_yaml()
-        for name, fx, d in (("intr_fx1e308.yaml", 1e308, [0.0] * 5),
-                            ("intr_fx_tiny.yaml", 1e-300, [0.0] * 5),
-                            ("intr_d1e10.yaml", None, [1e10, 0.0, 0.0, 0.0, 0.0]),
-                            ("intr_d6.yaml", None, [0.1, 0.0, 0.0, 0.0, 0.0, 0.2])):
-            k = list(data["camera_matrix"]["data"])
-            if fx is not None:
-                k[0] = k[4] = fx
-            (self.files / name).write_text(yaml.safe_dump(
-                {**data, "camera_matrix": {**data["camera_matrix"], "data": k},
-                 "distortion_coefficients": {"rows": 1, "cols": len(d), "data": d}}))
-
-    def inputs(self) -> list[Path]:
-        return [self.root / "in", self.files]
-
-
 @pytest.fixture(scope="module")
 def probe(tmp_path_factory: pytest.TempPathFactory, rendered_frames) -> Probe:  # noqa: ANN001
     return Probe(tmp_path_factory.mktemp("probe"), rendered_frames)
@@ -518,57 +466,6 @@ def _case(probe: Probe, tmp_path: Path, argv: list, code: int, says: str,
     return line
 
 
-#: (id, argv with {bag} {single} {model} {cfg} {fifo} {out} in it, exit code, what the line says)
-QUICK_REFUSALS = [
-    ("model-build-over-its-input", ["model", "build", "{single}/drive.mcap", "--allow-partial",
-                                    "--out", "{single}/drive.mcap"], 1, "input"),
-    ("model-over-a-bags-metadata", ["model", "--out", "{bag}/metadata.yaml"], 1,
-     "lies inside the recording"),
-    ("model-build-report-into-a-bag", ["model", "build", "{bag}", "--out", "{out}.yaml",
-                                       "--report", "{single}/metadata.yaml"], 1, "recording"),
-    ("model-build-plot-over-a-recording", ["model", "build", "{bag}", "--out", "{out}.yaml",
-                                           "--plot", "{single}/drive.mcap"], 1, "recording"),
-    ("model-build-out-equals-report", ["model", "build", "{bag}", "--out", "{out}.yaml",
-                                       "--report", "{out}.yaml"], 1, "name one file"),
-    ("calibration-fifo", ["replay", "{bag}", "--out", "{out}", "--calibration", "{fifo}"], 1,
-     "not a regular file"),
-    ("calibration-dev-zero", ["replay", "{bag}", "--out", "{out}", "--calibration", "/dev/zero"],
-     1, "/dev/zero is not a regular file"),
-    ("model-dev-zero", ["replay", "{bag}", "--out", "{out}", "--model", "/dev/zero"], 1,
-     "not a regular file"),
-    ("intrinsics-dev-zero", ["replay", "{bag}", "--out", "{out}", "--intrinsics", "/dev/zero"], 1,
-     "not a regular file"),
-    ("calibration-5000-digits", ["replay", "{bag}", "--out", "{out}", "--calibration",
-                                 "{cfg}/cal_bigint.yaml"], 1, "an integer of 5000 digits"),
-    ("calibration-100k-deep", ["replay", "{bag}", "--out", "{out}", "--calibration",
-                               "{cfg}/cal_deep.yaml"], 1, "nested deeper than"),
-    ("calibration-billion-laughs", ["replay", "{bag}", "--out", "{out}", "--calibration",
-                                    "{cfg}/cal_laughs.yaml"], 1, "aliases"),
-    ("calibration-quaternion-1e308", ["replay", "{bag}", "--out", "{out}", "--calibration",
-                                      "{cfg}/cal_q1e308.yaml"], 1, "must be of unit length"),
-    ("calibration-quaternion-booleans", ["replay", "{bag}", "--out", "{out}", "--calibration",
-                                         "{cfg}/cal_qbool.yaml"], 1, "must be 4 numbers"),
-    ("model-tag-id-587", ["replay", "{bag}", "--out", "{out}", "--model",
-                          "{cfg}/model_id587.yaml"], 1, "not a tag36h11 id"),
-    ("model-corner-1e308", ["replay", "{bag}", "--out", "{out}", "--model",
-                            "{cfg}/model_far.yaml"], 1, "from the cap origin"),
-    ("intrinsics-6-plumb-bob-coefficients", ["replay", "{bag}", "--out", "{out}",
-                                             "--intrinsics", "{cfg}/intr_d6.yaml"], 1,
-     "plumb_bob takes 5 coefficients"),
-    ("intrinsics-fx-1e308", ["replay", "{bag}", "--out", "{out}", "--intrinsics",
-                             "{cfg}/intr_fx1e308.yaml"], 1, "are not sane"),
-    ("intrinsics-fx-1e-300", ["replay", "{bag}", "--out", "{out}", "--intrinsics",
-                              "{cfg}/intr_fx_tiny.yaml"], 1, "are not sane"),
-    ("intrinsics-d-1e10", ["replay", "{bag}", "--out", "{out}", "--intrinsics",
-                           "{cfg}/intr_d1e10.yaml"], 1, "exceed 1000"),
-    ("frontal-window-after-the-end", ["replay", "{bag}", "--out", "{out}",
-                                      "--calibrate-frontal", "100:110"], 1,
-     "starts after the recording ends"),
-    ("detect-a-folder", ["detect", "{bag}"], 1, "is a folder"),
-    ("detect-dev-zero", ["detect", "/dev/zero"], 1, "not a regular file"),
-]
-
-
 @pytest.mark.parametrize("argv, code, says", [c[1:] for c in QUICK_REFUSALS],
                          ids=[c[0] for c in QUICK_REFUSALS])
 def test_probe_cases_refused_before_any_processing(probe: Probe, tmp_path: Path, argv: list[str],
@@ -578,27 +475,6 @@ def test_probe_cases_refused_before_any_processing(probe: Probe, tmp_path: Path,
              "cfg": probe.files, "fifo": probe.fifo, "out": tmp_path / "out"}
     _case(probe, tmp_path, [a.format(**names) for a in argv], code, says, capsys=capsys)
     assert not (tmp_path / "out").exists() and not (tmp_path / "out.yaml").exists()
-
-
-#: Numbers whose range bounds the memory or time they imply (argparse: exit 2, one error line).
-BAD_NUMBERS = [
-    ["synth", "--out", "{out}", "--frames", "99999999999999999999"],
-    ["synth", "--out", "{out}", "--seed", "-1"],
-    ["synth", "--out", "{out}", "--psf-sigma-px", "1e20"],
-    ["synth", "--out", "{out}", "--defocus-px", "1e4"],
-    ["synth", "--out", "{out}", "--fps", "1e308"],
-    ["demo", "--offline", "--frames", "99999999999999999999"],
-    ["demo", "--offline", "--seed", "-1"],
-    ["replay", "{bag}", "--out", "{out}", "--calibrate-frontal", "0:1e308"],
-    ["calibrate", "labels.csv", "--frontal", "0:1e308", "--out", "{out}.yaml"],
-    ["calibrate", "labels.csv", "--reference", "b:/t", "--max-dt-ms", "1e308", "--out", "c.yaml"],
-    ["calibrate", "labels.csv", "--reference", "b:/t", "--random", "3", "--seed", "-1",
-     "--out", "c.yaml"],
-    ["evaluate", "--truth", "a.csv", "--estimate", "b.csv", "--max-dt-ms", "1e308"],
-    ["kit", "--out", "{out}", "--shell-thickness-mm", "1000"],
-    ["replay", "{bag}", "--out", "{out}", "--retries", "1000000"],
-    ["model", "build", "{bag}", "--out", "{out}.yaml", "--max-frames", "99999999999"],
-]
 
 
 @pytest.mark.parametrize("argv", BAD_NUMBERS, ids=lambda a: "-".join(a[:1] + a[-2:]))
@@ -782,30 +658,6 @@ def test_probe_damaged_jpegs_are_never_labelled_with_confidence(
     assert flagged == 10
 
 
-def _walk_cases(probe: Probe) -> list[tuple[str, list[str], Path]]:
-    """(name, argv with OUT where the output goes, an input the output is pointed at) for every
-    output flag of every verb that writes (``detect`` writes nothing; ``demo`` writes only its
-    own cache of rendered samples)."""
-    bag, mcap, labels, model = probe.bag, probe.single, probe.labels / "labels.csv", probe.model
-    truth, estimate = f"{probe.labels}/labels.csv", str(labels)
-    return [
-        ("replay", ["replay", str(bag), "--out", "OUT", "--model", str(model)], bag),
-        ("replay-file", ["replay", str(mcap), "--out", "OUT"], mcap),
-        ("stats", ["stats", str(bag), "--out", "OUT"], bag),
-        ("stats-labels", ["stats", str(probe.labels), "--out", "OUT"], probe.labels),
-        ("calibrate", ["calibrate", str(labels), "--frontal", "0:1", "--out", "OUT"], labels),
-        ("evaluate", ["evaluate", "--truth", truth, "--estimate", estimate, "--out", "OUT"],
-         labels),
-        ("model", ["model", "--model", str(model), "--out", "OUT"], model),
-        ("model-build", ["model", "build", str(mcap), "--out", "OUT"], mcap),
-        ("model-build-report", ["model", "build", str(bag), "--out", "m.yaml", "--report", "OUT"],
-         bag),
-        ("model-build-plot", ["model", "build", str(bag), "--out", "m.yaml", "--plot", "OUT"],
-         bag),
-        ("synth", ["synth", "--model", str(model), "--out", "OUT", "--frames", "2"], model),
-        ("kit", ["kit", "--model", str(model), "--out", "OUT"], model),
-    ]
-
 
 def test_every_output_flag_pointed_at_an_input_leaves_it_unchanged(
         probe: Probe, tmp_path: Path, capsys: pytest.CaptureFixture[str],
@@ -817,7 +669,7 @@ def test_every_output_flag_pointed_at_an_input_leaves_it_unchanged(
     monkeypatch.chdir(tmp_path)
     before = sha256s(probe.inputs())
     refused = 0
-    for name, argv, target in _walk_cases(probe):
+    for name, argv, target in walk_cases(probe):
         folder = target if target.is_dir() else target.parent
         outs = [target, target.parent] + [m for m in [folder / "metadata.yaml"] if m.exists()]
         if target.is_dir():
@@ -830,44 +682,5 @@ def test_every_output_flag_pointed_at_an_input_leaves_it_unchanged(
             assert "Traceback" not in err[0]
             refused += 1
         assert sha256s(probe.inputs()) == before, name
-    assert refused >= 3 * len(_walk_cases(probe))
+    assert refused >= 3 * len(walk_cases(probe))
     assert not (tmp_path / "m.yaml").exists()
-
-
-def test_probe_a_zeroed_page_inside_a_sqlite3_bag(probe: Probe, tmp_path: Path,
-                                                   capsys: pytest.CaptureFixture[str]) -> None:
-    """A page of zeros anywhere after the schema (rosbags' apsw raises CorruptError there, at
-    open or mid-read): the frames before it are labelled and the loss said in one line (exit 3),
-    or nothing readable is one error line; never a traceback."""
-    camera = CameraModel.pinhole(160, 120, f_px=120.0)
-    with BagWriter(tmp_path / "good", storage="sqlite3") as w:  # images span overflow pages
-        w.add_topic("/cam/image_raw", IMAGE_TYPE)
-        w.add_topic("/cam/camera_info", CAMERA_INFO_TYPE)
-        for i in range(20):
-            head = messages.header(ROSBAGS, 1_700_000_000_000_000_000 + i * 33_333_333, "cam")
-            noise = np.random.default_rng(i).integers(0, 256, (120, 160), dtype=np.uint8)
-            w.write("/cam/camera_info", head.stamp.sec * 10**9 + head.stamp.nanosec,
-                    messages.camera_info(ROSBAGS, head, camera))
-            w.write("/cam/image_raw", head.stamp.sec * 10**9 + head.stamp.nanosec,
-                    messages.image(ROSBAGS, head, noise, "mono8"))
-    good = next((tmp_path / "good").glob("*.db3")).read_bytes()
-    page = int.from_bytes(good[16:18], "big")
-    pages = len(good) // page
-    salvaged = 0
-    for k in sorted({3, pages // 3, pages // 2, pages - 2}):
-        bag = tmp_path / f"zero{k}"
-        shutil.copytree(tmp_path / "good", bag)
-        db = next(bag.glob("*.db3"))
-        data = bytearray(good)
-        data[k * page: (k + 1) * page] = bytes(page)
-        db.write_bytes(bytes(data))
-        code = main(["replay", str(bag), "--out", str(tmp_path / f"o{k}"), "--quiet"])
-        captured = capsys.readouterr()
-        assert "Traceback" not in captured.err and code in (0, 1, 3), (k, code, captured)
-        if code == 3:
-            assert "LOST" in captured.out and not captured.err.strip()
-            salvaged += 1
-        if code == 1:
-            assert len(captured.err.strip().splitlines()) == 1
-        assert db.read_bytes() == bytes(data)
-    assert salvaged >= 1  # rosbags' CorruptError mid-read: the frames before it kept

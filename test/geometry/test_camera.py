@@ -245,6 +245,10 @@ def test_camera_yaml_round_trip_with_timing(timing) -> None:
     ("camera_timing: {row_order: 1}", "row_order must be a string"),
     ("camera_timing: {row_order: left_to_right}", "row_order must be one of"),
     ("camera_timing: {stamp_offset_ms: .nan}", "stamp_offset_ms must be in"),
+    ("camera_timing: {readout_ms: 1.0e+308}", "readout_ms must be a number of ms"),
+    ("camera_timing: {readout_ms: " + "9" * 5000 + "}", "an integer of 5000 digits"),
+    ("camera_timing: " + "[" * 10_000 + "]" * 10_000, "nested deeper than"),
+    ("t: &t {readout_ms: 1}\ncamera_timing: *t", "aliases"),
 ])
 def test_malformed_camera_timing_is_one_clear_error(tmp_path, block: str, message: str) -> None:
     from ficap_ros.geometry.camera import load_camera_timing

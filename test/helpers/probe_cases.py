@@ -4,7 +4,8 @@
 tracebacks print) and measures what the issue's rules bound: wall time and peak memory (the
 child's own ``ru_maxrss`` and its workers', reported through a file so stderr stays the verb's).
 The builders make the damaged and hostile inputs small, or sparse where a case needs a large file
-(holes cost neither disk nor time).
+(holes cost neither disk nor time). ``Probe`` builds the probe's inputs in one folder; the case
+tables (``QUICK_REFUSALS``, ``BAD_NUMBERS``, ``walk_cases``) are what test_bad_inputs.py runs.
 """
 
 from __future__ import annotations
@@ -22,8 +23,11 @@ from typing import Iterable, Sequence
 
 import cv2
 import numpy as np
+import yaml
 
+from ficap_ros.cli.main import main
 from ficap_ros.geometry.camera import CameraModel
+from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.io import messages
 from ficap_ros.io.bag_writer import BagWriter
 from ficap_ros.io.messages import ROSBAGS
@@ -202,3 +206,153 @@ def kill_pool_workers(stop: threading.Event, times: int, killed: list[int]) -> N
                 killed.append(pid)
                 break
         time.sleep(0.05)
+
+
+# -- the probe's inputs and cases -------------------------------------------------------------------
+class Probe:
+    """The probe's inputs in one folder (built once per test process)."""
+
+    def __init__(self, root: Path, rendered_frames) -> None:  # noqa: ANN001
+        images, scene = rendered_frames
+        self.root, self.camera = root, scene.camera
+        self.jpegs = [cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()
+                      for img in images]
+        self.bag = jpeg_bag(root / "in" / "bag", self.jpegs, self.camera)
+        self.single = jpeg_bag(root / "in" / "single" / "drive.mcap", self.jpegs, self.camera,
+                               layout="file")
+        self.model = root / "in" / "model.yaml"
+        nominal_model().save(self.model)
+        self.labels = root / "in" / "labels"
+        assert main(["replay", str(self.bag), "--out", str(self.labels), "--quiet"]) == 0
+        self.files = root / "cfg"
+        self.files.mkdir()
+        self._configs()
+        self.fifo = root / "cfg" / "calibration.fifo"
+        os.mkfifo(self.fifo)
+
+    def _configs(self) -> None:
+        texts = {
+            "cal_bigint.yaml": "R_cap_head_q_wxyz: [1, 0, 0, " + "9" * 5000 + "]\n",
+            "cal_deep.yaml": "R_cap_head_q_wxyz: " + "[" * 100_000 + "]" * 100_000 + "\n",
+            "cal_laughs.yaml": "a: &a [1, 0, 0, 0]\nb: &b [*a, *a, *a, *a, *a, *a, *a, *a]\n"
+                               "c: &c [*b, *b, *b, *b, *b, *b, *b, *b]\nR_cap_head_q_wxyz: *a\n",
+            "cal_q1e308.yaml": "R_cap_head_q_wxyz: [1.0e+308, 1.0e+308, 0, 0]\n",
+            "cal_qbool.yaml": "R_cap_head_q_wxyz: [true, false, 0, 0]\n",
+            "model_id587.yaml": "tags: [{id: 587, corners_mm: [[0, 0, 80], [32, 0, 80], "
+                                "[32, 32, 80], [0, 32, 80]]}]\n",
+            "model_far.yaml": "tags: [{id: 3, corners_mm: [[0, 0, 80], [1.0e+308, 0, 80], "
+                              "[32, 32, 80], [0, 32, 80]]}]\n",
+        }
+        for name, text in texts.items():
+            (self.files / name).write_text(text)
+        data = self.camera.to_camera_yaml()
+        for name, fx, d in (("intr_fx1e308.yaml", 1e308, [0.0] * 5),
+                            ("intr_fx_tiny.yaml", 1e-300, [0.0] * 5),
+                            ("intr_d1e10.yaml", None, [1e10, 0.0, 0.0, 0.0, 0.0]),
+                            ("intr_d6.yaml", None, [0.1, 0.0, 0.0, 0.0, 0.0, 0.2])):
+            k = list(data["camera_matrix"]["data"])
+            if fx is not None:
+                k[0] = k[4] = fx
+            (self.files / name).write_text(yaml.safe_dump(
+                {**data, "camera_matrix": {**data["camera_matrix"], "data": k},
+                 "distortion_coefficients": {"rows": 1, "cols": len(d), "data": d}}))
+
+    def inputs(self) -> list[Path]:
+        return [self.root / "in", self.files]
+
+
+#: (id, argv with {bag} {single} {model} {cfg} {fifo} {out} in it, exit code, what the line says)
+QUICK_REFUSALS = [
+    ("model-build-over-its-input", ["model", "build", "{single}/drive.mcap", "--allow-partial",
+                                    "--out", "{single}/drive.mcap"], 1, "input"),
+    ("model-over-a-bags-metadata", ["model", "--out", "{bag}/metadata.yaml"], 1,
+     "lies inside the recording"),
+    ("model-build-report-into-a-bag", ["model", "build", "{bag}", "--out", "{out}.yaml",
+                                       "--report", "{single}/metadata.yaml"], 1, "recording"),
+    ("model-build-plot-over-a-recording", ["model", "build", "{bag}", "--out", "{out}.yaml",
+                                           "--plot", "{single}/drive.mcap"], 1, "recording"),
+    ("model-build-out-equals-report", ["model", "build", "{bag}", "--out", "{out}.yaml",
+                                       "--report", "{out}.yaml"], 1, "name one file"),
+    ("calibration-fifo", ["replay", "{bag}", "--out", "{out}", "--calibration", "{fifo}"], 1,
+     "not a regular file"),
+    ("calibration-dev-zero", ["replay", "{bag}", "--out", "{out}", "--calibration", "/dev/zero"],
+     1, "/dev/zero is not a regular file"),
+    ("model-dev-zero", ["replay", "{bag}", "--out", "{out}", "--model", "/dev/zero"], 1,
+     "not a regular file"),
+    ("intrinsics-dev-zero", ["replay", "{bag}", "--out", "{out}", "--intrinsics", "/dev/zero"], 1,
+     "not a regular file"),
+    ("calibration-5000-digits", ["replay", "{bag}", "--out", "{out}", "--calibration",
+                                 "{cfg}/cal_bigint.yaml"], 1, "an integer of 5000 digits"),
+    ("calibration-100k-deep", ["replay", "{bag}", "--out", "{out}", "--calibration",
+                               "{cfg}/cal_deep.yaml"], 1, "nested deeper than"),
+    ("calibration-billion-laughs", ["replay", "{bag}", "--out", "{out}", "--calibration",
+                                    "{cfg}/cal_laughs.yaml"], 1, "aliases"),
+    ("calibration-quaternion-1e308", ["replay", "{bag}", "--out", "{out}", "--calibration",
+                                      "{cfg}/cal_q1e308.yaml"], 1, "must be of unit length"),
+    ("calibration-quaternion-booleans", ["replay", "{bag}", "--out", "{out}", "--calibration",
+                                         "{cfg}/cal_qbool.yaml"], 1, "must be 4 numbers"),
+    ("model-tag-id-587", ["replay", "{bag}", "--out", "{out}", "--model",
+                          "{cfg}/model_id587.yaml"], 1, "not a tag36h11 id"),
+    ("model-corner-1e308", ["replay", "{bag}", "--out", "{out}", "--model",
+                            "{cfg}/model_far.yaml"], 1, "from the cap origin"),
+    ("intrinsics-6-plumb-bob-coefficients", ["replay", "{bag}", "--out", "{out}",
+                                             "--intrinsics", "{cfg}/intr_d6.yaml"], 1,
+     "plumb_bob takes 5 coefficients"),
+    ("intrinsics-fx-1e308", ["replay", "{bag}", "--out", "{out}", "--intrinsics",
+                             "{cfg}/intr_fx1e308.yaml"], 1, "are not sane"),
+    ("intrinsics-fx-1e-300", ["replay", "{bag}", "--out", "{out}", "--intrinsics",
+                              "{cfg}/intr_fx_tiny.yaml"], 1, "are not sane"),
+    ("intrinsics-d-1e10", ["replay", "{bag}", "--out", "{out}", "--intrinsics",
+                           "{cfg}/intr_d1e10.yaml"], 1, "exceed 1000"),
+    ("frontal-window-after-the-end", ["replay", "{bag}", "--out", "{out}",
+                                      "--calibrate-frontal", "100:110"], 1,
+     "starts after the recording ends"),
+    ("detect-a-folder", ["detect", "{bag}"], 1, "is a folder"),
+    ("detect-dev-zero", ["detect", "/dev/zero"], 1, "not a regular file"),
+]
+
+
+#: Numbers whose range bounds the memory or time they imply (argparse: exit 2, one error line).
+BAD_NUMBERS = [
+    ["synth", "--out", "{out}", "--frames", "99999999999999999999"],
+    ["synth", "--out", "{out}", "--seed", "-1"],
+    ["synth", "--out", "{out}", "--psf-sigma-px", "1e20"],
+    ["synth", "--out", "{out}", "--defocus-px", "1e4"],
+    ["synth", "--out", "{out}", "--fps", "1e308"],
+    ["demo", "--offline", "--frames", "99999999999999999999"],
+    ["demo", "--offline", "--seed", "-1"],
+    ["replay", "{bag}", "--out", "{out}", "--calibrate-frontal", "0:1e308"],
+    ["calibrate", "labels.csv", "--frontal", "0:1e308", "--out", "{out}.yaml"],
+    ["calibrate", "labels.csv", "--reference", "b:/t", "--max-dt-ms", "1e308", "--out", "c.yaml"],
+    ["calibrate", "labels.csv", "--reference", "b:/t", "--random", "3", "--seed", "-1",
+     "--out", "c.yaml"],
+    ["evaluate", "--truth", "a.csv", "--estimate", "b.csv", "--max-dt-ms", "1e308"],
+    ["kit", "--out", "{out}", "--shell-thickness-mm", "1000"],
+    ["replay", "{bag}", "--out", "{out}", "--retries", "1000000"],
+    ["model", "build", "{bag}", "--out", "{out}.yaml", "--max-frames", "99999999999"],
+]
+
+
+def walk_cases(probe: Probe) -> list[tuple[str, list[str], Path]]:
+    """(name, argv with OUT where the output goes, an input the output is pointed at) for every
+    output flag of every verb that writes (``detect`` writes nothing; ``demo`` writes only its
+    own cache of rendered samples)."""
+    bag, mcap, labels, model = probe.bag, probe.single, probe.labels / "labels.csv", probe.model
+    truth, estimate = f"{probe.labels}/labels.csv", str(labels)
+    return [
+        ("replay", ["replay", str(bag), "--out", "OUT", "--model", str(model)], bag),
+        ("replay-file", ["replay", str(mcap), "--out", "OUT"], mcap),
+        ("stats", ["stats", str(bag), "--out", "OUT"], bag),
+        ("stats-labels", ["stats", str(probe.labels), "--out", "OUT"], probe.labels),
+        ("calibrate", ["calibrate", str(labels), "--frontal", "0:1", "--out", "OUT"], labels),
+        ("evaluate", ["evaluate", "--truth", truth, "--estimate", estimate, "--out", "OUT"],
+         labels),
+        ("model", ["model", "--model", str(model), "--out", "OUT"], model),
+        ("model-build", ["model", "build", str(mcap), "--out", "OUT"], mcap),
+        ("model-build-report", ["model", "build", str(bag), "--out", "m.yaml", "--report", "OUT"],
+         bag),
+        ("model-build-plot", ["model", "build", str(bag), "--out", "m.yaml", "--plot", "OUT"],
+         bag),
+        ("synth", ["synth", "--model", str(model), "--out", "OUT", "--frames", "2"], model),
+        ("kit", ["kit", "--model", str(model), "--out", "OUT"], model),
+    ]

@@ -132,6 +132,10 @@ def test_the_recordings_own_camera_timing(tmp_path: Path) -> None:
     _write_bag(bad, custom={TIMING_METADATA_KEY: json.dumps({"readout_ms": -2.0})})
     with pytest.raises(BagError, match=r"ficap.camera_timing: readout_ms must be in \[0, 1000\]"):
         open_frames(bad)
+    deep = tmp_path / "deep"  # JSON nested past Python's recursion limit: one line, no RecursionError
+    _write_bag(deep, custom={TIMING_METADATA_KEY: "[" * 100_000 + "]" * 100_000})
+    with pytest.raises(BagError, match=r"bag .*deep: "):
+        open_frames(deep)
     yml.write_text(yaml.safe_dump({**CAM.to_camera_yaml(), "camera_timing": {"exposure_ms": "x"}}))
     with pytest.raises(IntrinsicsError, match="exposure_ms must be a number"):
         open_frames(plain, intrinsics=yml)
