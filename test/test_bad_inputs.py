@@ -528,8 +528,8 @@ def test_probe_memory_is_checked_before_it_is_spent(probe: Probe, tmp_path: Path
     huge = huge_jpeg_header()
     bag = jpeg_bag(tmp_path / "huge", [probe.jpegs[0], huge, probe.jpegs[1]], probe.camera)
     _case(probe, tmp_path, ["replay", bag, "--out", tmp_path / "o1"], 0, "1 skipped")
-    reasons = [r[-1] for r in csv.reader((tmp_path / "o1" / "labels.csv").open())]
-    assert "JPEG image is 30000x30000 (900.0 MP), above the 40.0 MP budget" in reasons[2]
+    reasons = read_labels(tmp_path / "o1").reasons
+    assert "JPEG image is 30000x30000 (900.0 MP), above the 40.0 MP budget" in reasons[1]
     (tmp_path / "huge.jpg").write_bytes(huge)
     _case(probe, tmp_path, ["detect", tmp_path / "huge.jpg"], 1, "30000x30000")
 
@@ -646,7 +646,7 @@ def test_probe_damaged_jpegs_are_never_labelled_with_confidence(
     source = list(range(CORRUPT_BAG_FRAMES)) + sources
     flagged = 0
     for row, (k, has_pose) in enumerate(zip(source, labels.has_pose)):
-        reason = rows[row][-1]
+        reason = labels.reasons[row]
         if row < CORRUPT_BAG_FRAMES:
             assert has_pose, rows[row]  # a good frame is never taken for damaged
             continue
@@ -656,7 +656,6 @@ def test_probe_damaged_jpegs_are_never_labelled_with_confidence(
             error = np.degrees((Rotation.from_quat(q[[1, 2, 3, 0]]) * truth[k].inv()).magnitude())
             assert error <= labels.rot_err95_deg[row] or "damaged" in reason, rows[row]
     assert flagged == 10
-
 
 
 def test_every_output_flag_pointed_at_an_input_leaves_it_unchanged(
