@@ -102,3 +102,36 @@ def test_a_fleet_whose_workers_keep_dying_fails_them_and_ends(fleet_in: Path, tm
     failed = [line for line in out if ": failed: a worker process died twice on frames 0-" in line]
     assert len(failed) == 2, out
     assert out[-1].startswith("2 recordings: 0 done, 0 skipped (current), 0 damaged, 2 failed")
+
+
+def test_a_fleet_whose_worker_is_killed_once_finishes_with_the_same_labels(
+        fleet_in: Path, tmp_path: Path, capsys) -> None:  # noqa: ANN001
+    """Without Ray, --jobs 2 with one worker killed (SIGKILL) mid-run: its segment runs again in
+    a new pool, every recording is done, and the labels are those of --jobs 1."""
+    import threading
+    import time
+
+    import pytest
+    from probe_cases import kill_pool_workers
+
+    from ficap_ros.tools.replay import available_cores
+
+    if available_cores() < 2:
+        pytest.skip("--jobs 2 needs two cores")
+    recs = [str(fleet_in / "alice/d1"), str(fleet_in / "bob/d2")]
+    assert main(["replay", *recs, "--out", str(tmp_path / "one"), "--quiet"]) == 0
+    stop, killed = threading.Event(), []
+    killer = threading.Thread(target=kill_pool_workers, args=(stop, 1, killed), daemon=True)
+    killer.start()
+    t0 = time.monotonic()
+    try:
+        code = main(["replay", *recs, "--out", str(tmp_path / "two"), "--jobs", "2", "--quiet"])
+    finally:
+        stop.set()
+        killer.join(timeout=10)
+    out = capsys.readouterr().out.splitlines()
+    assert code == 0 and len(killed) == 1 and time.monotonic() - t0 < 120.0, out
+    assert out[-1].startswith("2 recordings: 2 done, 0 skipped (current), 0 damaged, 0 failed")
+    for name in ("d1", "d2"):
+        assert (tmp_path / "two" / name / "labels.csv").read_bytes() == \
+            (tmp_path / "one" / name / "labels.csv").read_bytes()
