@@ -6,11 +6,13 @@ import argparse
 from typing import Any
 
 from ficap_ros.cli.args import (
+    POSE_METHOD_CHOICES,
     ROW_ORDERS,
     duration_ms,
-    non_negative_int,
+    finite_float,
+    frame_rate,
+    int_in,
     offset_ms,
-    positive_float,
     positive_int,
     time_window,
 )
@@ -39,11 +41,13 @@ def add_input_arguments(parser: argparse.ArgumentParser, many: bool = False) -> 
                              "node's image_is_rectified; default: raw images, K and D)")
     parser.add_argument("--intrinsics", metavar="CAMERA_YAML",
                         help="camera_calibration YAML; required for a video, overrides CameraInfo")
-    parser.add_argument("--fps", type=positive_float,
-                        help="video frame rate (default: the container's)")
+    parser.add_argument("--fps", type=frame_rate,
+                        help="video frame rate, 0.01 to 1000 Hz (default: the container's)")
     parser.add_argument("--model", help="as-built cap model YAML (default: nominal)")
-    parser.add_argument("--method", choices=("joint", "paper"), default="joint",
-                        help="cap pose estimator (default: joint)")
+    parser.add_argument("--method", choices=POSE_METHOD_CHOICES, default="joint",
+                        help="cap pose estimator, the node's pose.method: joint (PnP over all "
+                             "corners, tag-level outlier rejection), paper (per-tag + Kabsch + "
+                             "outlier trimming) or naive (the baseline; default: joint)")
     parser.add_argument("--jobs", type=positive_int, default=1,
                         help="worker processes, capped at the cores available (default 1; "
                              "output identical to --jobs 1)")
@@ -65,6 +69,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "calibrate R_cap_head from them and apply it to every frame")
     parser.add_argument("--namespace", default="",
                         help="topic namespace in labels.mcap (default: none, as the node: /head_pose ...)")
+    parser.add_argument("--camera-mount", type=finite_float, nargs=7,
+                        metavar=("X", "Y", "Z", "QX", "QY", "QZ", "QW"),
+                        help="the camera's optical frame in --output-frame (or in the frontal frame "
+                             "without one): metres and a unit quaternion, static_transform_publisher's "
+                             "order, as the node's camera_mount; on /tf_static in labels.mcap, and "
+                             "the frontal frame of the head angles takes its parent's axes")
+    parser.add_argument("--output-frame", default="", metavar="FRAME",
+                        help="frame of labels.mcap's poses (e.g. base_link), reached through "
+                             "--camera-mount, as the node's output_frame (default: the image's)")
     timing = parser.add_argument_group(
         "camera timing", "when the camera's rows see the scene (the node's camera.* parameters); "
         "each one given replaces that field of the recording's own timing (a camera_timing "
@@ -91,8 +104,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help="run on an embedded local Ray (loopback only; --jobs CPUs)")
     fleet.add_argument("--ray-address", metavar="ADDR",
                        help="run on an existing Ray cluster (e.g. auto, HEAD:6379)")
-    fleet.add_argument("--retries", type=non_negative_int, default=2, metavar="N",
-                       help="Ray: re-runs of a segment whose worker died (default 2)")
+    fleet.add_argument("--retries", type=int_in(0, 10), default=2, metavar="N",
+                       help="Ray: re-runs of a segment whose worker died, 0 to 10 (default 2)")
     fleet.add_argument("--force", action="store_true",
                        help="redo recordings whose outputs are already current")
     fleet.add_argument("--videos", action="store_true",
@@ -110,6 +123,18 @@ def open_source(args: argparse.Namespace, path: object = None):  # noqa: ANN201 
 
     return open_frames(args.input if path is None else path, args.image_topic,
                        args.camera_info_topic, args.intrinsics, args.fps, args.rectified)
+
+
+def output_frames(args: argparse.Namespace):  # noqa: ANN201 - io.frames.OutputFrames
+    """``--output-frame`` and ``--camera-mount`` (``ficap_ros.io.frames``' rule, the node's).
+
+    Raises:
+        ConfigError: an output frame without a mount, or a mount that is not a unit quaternion.
+    """
+    from ficap_ros.io.frames import OutputFrames, camera_mount_transform
+
+    mount = camera_mount_transform(args.camera_mount) if args.camera_mount else None
+    return OutputFrames(args.output_frame, mount)
 
 
 def _is_fleet(args: argparse.Namespace) -> bool:
@@ -134,18 +159,24 @@ def cap_jobs(args: argparse.Namespace) -> int:
     return jobs
 
 
+def side_files(args: argparse.Namespace) -> list[str | None]:
+    """The configuration files a run reads besides its recordings (never outputs)."""
+    return [args.model, args.intrinsics, getattr(args, "calibration", None),
+            getattr(args, "manifest", None)]
+
+
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from ficap_ros.cli.args import EXIT_FRAMES_LOST
-    from ficap_ros.errors import BagError
-    from ficap_ros.files import check_output_folder, check_replaceable
+    from ficap_ros.files import check_output_folder
     from ficap_ros.geometry.cap_model import load_model, nominal_model
-    from ficap_ros.tools.replay import check_output_dir, keep_freed_memory, replay
+    from ficap_ros.tools.replay import keep_freed_memory, replay
     from ficap_ros.vision.detector import DetectorConfig
     from ficap_ros.vision.pose import PoseConfig
 
     keep_freed_memory()  # this process decodes and processes the frames (--jobs 1)
+    frames = output_frames(args)
     model = load_model(args.model) if args.model else nominal_model()
     detector = DetectorConfig(edge_photometric=args.photometric)
     calibration = None
@@ -158,17 +189,15 @@ def run(args: argparse.Namespace) -> int:
 
         raise ConfigError("give at least one INPUT or --manifest FILE")
     if _is_fleet(args):
-        # The fleet's --out holds a folder per recording: every file in it must be ficap's.
-        check_replaceable(args.out, subfolders=True)
-        check_output_dir(Path(args.out))
-        return _run_fleet(args, model, calibration, detector)
+        return _run_fleet(args, model, calibration, detector, frames)
     args.input = args.input[0]
-    check_output_folder(Path(args.out), [args.input])  # before any processing
+    # Before any processing: never an input, a recording or a folder ficap did not write.
+    check_output_folder(Path(args.out), [args.input, *side_files(args)])
     jobs = cap_jobs(args)
     source = open_source(args)
     out = replay(source, args.out, model, PoseConfig(method=args.method), calibration,
                  args.calibrate_frontal, jobs, args.namespace, progress=not args.quiet,
-                 detector=detector, timing=timing_fields(args))
+                 detector=detector, frames=frames, inputs=side_files(args), timing=timing_fields(args))
     s = out.summary
     line = (f"{s['frames']} frames, {s['frames_with_pose']} with a pose "
             f"({s['pct_with_pose']:.1f} %), >=1 tag {s['pct_ge1_tag']:.1f} %, >=4 tags "
@@ -177,43 +206,47 @@ def run(args: argparse.Namespace) -> int:
     if out.loss is not None:
         line += f"; {out.loss.describe(source.start_ns)}"
     print(line)
-    if s["frames"] and not s["frames_decoded"]:
-        reasons = s["skipped_reasons"]
-        top = max(reasons, key=reasons.get) if reasons else "no image decoded"
-        raise BagError(f"none of the {s['frames']} frames could be used ({top})")
-    if s["frames"] == 0:
-        raise BagError(f"{args.input} holds no image on {source.image_topic or 'its video track'}")
     return EXIT_FRAMES_LOST if out.loss is not None else 0
 
 
-def _run_fleet(args: argparse.Namespace, model, calibration, detector) -> int:  # noqa: ANN001
+def _run_fleet(args: argparse.Namespace, model, calibration, detector, frames) -> int:  # noqa: ANN001
+    from ficap_ros.files import check_output_folder
+    from ficap_ros.tools.fleet.manifest import find_recordings
+
+    # The fleet's --out holds a folder per recording: every file in it must be ficap's, none an
+    # input (run_fleet checks again and holds its lock for the whole run).
+    check_output_folder(args.out, side_files(args), subfolders=True)
+    recordings = find_recordings(args.input, args.manifest, args.out, videos=args.videos)
+    return _fleet(args, recordings, model, calibration, detector, frames)
+
+
+def _fleet(args: argparse.Namespace, recordings, model, calibration, detector, frames) -> int:  # noqa: ANN001
     from pathlib import Path
 
     from ficap_ros.tools.fleet.fingerprints import label_settings
-    from ficap_ros.tools.fleet.manifest import find_recordings
     from ficap_ros.tools.fleet.run import run_fleet
     from ficap_ros.vision.pose import PoseConfig
 
-    recordings = find_recordings(args.input, args.manifest, args.out, videos=args.videos)
     pose = PoseConfig(method=args.method)
     settings = label_settings(model, pose, calibration, args.calibrate_frontal, args.namespace,
                               args.image_topic, args.camera_info_topic, args.intrinsics, args.fps,
-                              args.rectified, detector, timing_fields(args))
+                              args.rectified, detector, frames, timing_fields(args))
     single = len(recordings) == 1 and str(recordings[0].rel) == "."
     fleet = run_fleet(
         recordings, args.out, lambda path: open_source(args, path), model, pose, settings,
         calibration, args.calibrate_frontal, args.namespace, args.jobs, args.ray_address,
         args.ray, args.retries, args.force, progress=not args.quiet, summary_files=not single,
-        detector=detector, timing=timing_fields(args))
+        detector=detector, frames=frames, inputs=side_files(args), timing=timing_fields(args))
     for r in fleet.results:
         if r.status == "failed":
             print(f"{r.rel}: failed: {r.error}")
         elif r.status == "damaged":
-            print(f"{r.rel}: damaged: {r.frames} frames recovered, {r.frames_lost} lost")
-    frames = sum(r.frames for r in fleet.results if r.status in ("done", "damaged"))
+            lost = "an unknown number" if r.frames_lost is None else r.frames_lost
+            print(f"{r.rel}: damaged: {r.frames} frames recovered, {lost} lost")
+    n_frames = sum(r.frames for r in fleet.results if r.status in ("done", "damaged"))
     print(f"{len(fleet.results)} recordings: {fleet.count('done')} done, "
           f"{fleet.count('skipped')} skipped (current), {fleet.count('damaged')} damaged, "
-          f"{fleet.count('failed')} failed; {frames} frames in {fleet.wall_s:.1f} s "
+          f"{fleet.count('failed')} failed; {n_frames} frames in {fleet.wall_s:.1f} s "
           f"({fleet.engine}, {fleet.workers} workers) -> {Path(args.out) / ('' if single else 'fleet_summary.csv')}")
     # 1: a recording has no labels; 3 (as a single replay of a damaged input): frames were lost.
     return 1 if fleet.count("failed") else 3 if fleet.count("damaged") else 0

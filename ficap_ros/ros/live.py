@@ -1,8 +1,8 @@
 """What ``ficap_node`` does with one image, without ROS: build its pipeline from the settings,
 decode the message, choose its intrinsics, run the pipeline, and make the frame's record
-(``ficap_ros.io.labels.FrameRecord``, the labels' own) with what the node adds to it (status level
-and message, whether its pose is published, the image and tags to draw). The node only subscribes,
-publishes and serves.
+(``ficap_ros.io.labels.FrameRecord``, the labels' own, with its detections' fits) with what the
+node adds to it (status level and message, whether its pose is published, the image and tags to
+draw). The node only subscribes, publishes and serves.
 
 Messages are read duck-typed (``ficap_ros.io.messages``), so tests and tools can drive this with
 rosbags messages as well as rclpy's.
@@ -25,6 +25,7 @@ from ficap_ros.geometry.camera import (
 from ficap_ros.geometry.cap_model import load_model, nominal_model
 from ficap_ros.io import messages
 from ficap_ros.io.camera_info import CameraInfoCache
+from ficap_ros.io.detections import tag_fits
 from ficap_ros.io.labels import FrameRecord
 from ficap_ros.io.status import (
     FrameStatus,
@@ -38,7 +39,7 @@ from ficap_ros.vision.detector import TagDetection
 from ficap_ros.vision.pipeline import FrameProcessor
 
 __all__ = ["LiveFrame", "frame_processor", "apply_settings", "camera_timing", "failed_frame",
-           "process_image", "reference_q_xyzw"]
+           "process_image", "reference_q_xyzw", "refusal_before_queueing"]
 
 
 @dataclass(frozen=True)
@@ -71,8 +72,9 @@ class LiveFrame:
         return self.record.status is FrameStatus.FAILED
 
     def quality_values(self, latency_ms: float) -> dict[str, float]:
-        """The ``quality`` topic's numbers: labels.mcap's, and the latency."""
-        return {**quality_values(self.record), "latency_ms": float(latency_ms)}
+        """The ``quality`` topic's numbers: labels.mcap's, and the latency (ms and s)."""
+        return {**quality_values(self.record), "latency_ms": float(latency_ms),
+                "latency_s": float(latency_ms) / 1000.0}
 
     def status_values(self, latency_ms: float, dropped_frames: int) -> dict[str, Any]:
         """The ``status`` topic's values: labels.mcap's, how the tags were found, the latency
@@ -87,18 +89,32 @@ def frame_processor(config: Any) -> FrameProcessor:
 
     Raises:
         ModelError: an unreadable ``model_file``. ConfigError: bad detector settings, or a
-        malformed ``camera_timing`` in ``camera_info_file``.
+        ``FICAP_MAX_PIXELS`` that is no number of pixels, or a malformed ``camera_timing`` in
+        ``camera_info_file``.
     """
+    from ficap_ros.io.image_codec import max_pixels
+
+    max_pixels()  # a bad FICAP_MAX_PIXELS refuses the start, not every frame
     return FrameProcessor(model=load_model(config.model_file) if config.model_file else nominal_model(),
                           detector=config.detector_config, pose=config.pose_config,
                           tracking=config.tracking, timing=camera_timing(config))
 
 
-def apply_settings(processor: FrameProcessor, config: Any) -> None:
+def apply_settings(processor: FrameProcessor, config: Any) -> str:
     """Apply the settings a running pipeline takes from the next frame on (the node's parameters
-    changed): the pose settings and the camera's timing (``camera_timing``)."""
+    changed): the pose settings and the camera's timing (``camera_timing``).
+
+    Returns:
+        '' when applied; else one line saying why the camera's timing was kept (the
+        ``camera_info_file`` changed under the running node into one whose ``camera_timing`` is
+        malformed): a running node never dies of a file's content.
+    """
     processor.pose_config = config.pose_config
-    processor.timing = camera_timing(config)
+    try:
+        processor.timing = camera_timing(config)
+    except FicapError as err:
+        return f"camera timing kept: {err}"
+    return ""
 
 
 def camera_timing(config: Any) -> CameraTiming:
@@ -129,6 +145,25 @@ def failed_frame(stamp_ns: int, frame_id: str, reason: str,
     return LiveFrame(rec, *record_status(rec))
 
 
+def refusal_before_queueing(msg: Any) -> str:
+    """Why an image message is refused before it is queued ('' when it is not): a size above the
+    pixel budget, from a raw image's fields or a compressed image's header
+    (``image_codec.check_compressed``), so a hostile frame never costs the decode's memory.
+    A header read; decoding finds everything else."""
+    from ficap_ros.io.image_codec import check_compressed, check_pixel_budget
+
+    try:
+        if hasattr(msg, "format"):
+            check_compressed(messages.as_bytes(msg.data))
+        else:
+            check_pixel_budget(int(msg.width), int(msg.height))
+    except FicapError as err:
+        return str(err)
+    except (TypeError, ValueError, OverflowError) as err:
+        return f"malformed image message: {err}"
+    return ""
+
+
 def process_image(msg: Any, processor: FrameProcessor, cameras: CameraInfoCache,
                   calibration: HeadCalibration, config: Any) -> LiveFrame:
     """One Image or CompressedImage message through the pipeline (errors become a failed frame).
@@ -151,7 +186,8 @@ def process_image(msg: Any, processor: FrameProcessor, cameras: CameraInfoCache,
     except FicapError as err:
         return failed_frame(stamp_ns, header.frame_id, str(err), calibration)
     rec = FrameRecord.of(result, 0, stamp_ns, header.frame_id, calibration,
-                         processor.pose_config.method)
+                         processor.pose_config.method,
+                         tag_fits(result.detections, result.pose, processor.model, camera))
     return LiveFrame(rec, *record_status(rec, config.warn_reliability), str(result.search),
                      result.detections, image, camera,
                      publish_pose=(rec.pose is not None

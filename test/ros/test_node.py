@@ -10,6 +10,9 @@ Every test gets its own rclpy Context on the ROS_DOMAIN_ID conftest sets; every 
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -108,6 +111,58 @@ def test_undecodable_jpeg_gives_error_status(harness_factory) -> None:
     st = h.publish_and_wait(bad, info_at(cam, t))
     assert level_of(st) == ros_msgs.LEVEL_ERROR and "decode" in st.message
     assert h.node._image_sub.topic_name == "/image/compressed"
+
+
+def test_damaged_jpegs_never_give_a_pose(harness_factory, rendered_frames) -> None:
+    """JPEGs with 50 bytes of their entropy-coded data changed decode (libjpeg only warns): the
+    node reports each as damaged (ERROR, no pose published), between good frames it poses; a
+    header claiming 30000x30000 pixels is refused before the frame is queued."""
+    import cv2
+    from probe_cases import flip_bytes, huge_jpeg_header
+
+    images, scene = rendered_frames
+    h = harness_factory(overrides={"image_transport": "compressed", "warn_throttle_s": 0.0,
+                                   "tracking": False})
+    jpegs = [cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()
+             for img in images]
+    t = 3_000_000_000
+    for k in range(10):
+        good = t + 2 * k * 10_000_000
+        msg = CompressedImage(header=header_at(good), format="jpeg", data=jpegs[k % len(jpegs)])
+        st = h.publish_and_wait(msg, info_at(scene.camera, good))
+        assert level_of(st) != ros_msgs.LEVEL_ERROR, st.message
+        with h.lock:
+            posed = len(h.head)
+        bad = good + 10_000_000
+        st = h.publish_and_wait(CompressedImage(
+            header=header_at(bad), format="jpeg", data=flip_bytes(jpegs[k % len(jpegs)], 50, k)),
+            info_at(scene.camera, bad))
+        assert level_of(st) == ros_msgs.LEVEL_ERROR and "damaged JPEG" in st.message, st.message
+        time.sleep(0.05)
+        with h.lock:
+            assert len(h.head) == posed
+            assert bad not in {ros_msgs.stamp_to_ns(m.header.stamp) for m in h.head}
+    huge = t + 500_000_000
+    queued = h.node._mailbox.received
+    st = h.publish_and_wait(CompressedImage(header=header_at(huge), format="jpeg",
+                                            data=huge_jpeg_header()), info_at(scene.camera, huge))
+    assert level_of(st) == ros_msgs.LEVEL_ERROR and "30000x30000" in st.message
+    assert h.node._mailbox.received == queued  # refused before it reached the mailbox
+
+
+def test_camera_info_opencv_would_refuse_is_a_clear_status(harness_factory) -> None:
+    """Six plumb_bob coefficients (cv2.error on the first frame without the camera model's
+    door): an ERROR status naming the problem, not an internal error."""
+    h = harness_factory(overrides={"warn_throttle_s": 0.0})
+    cam = CameraModel.pinhole(64, 48, hfov_deg=60.0)
+    t = 4_000_000_000
+    info = info_at(cam, t)
+    info.distortion_model = "plumb_bob"
+    info.d = [0.1, 0.0, 0.0, 0.0, 0.0, 0.2]
+    grey = np.zeros((48, 64), np.uint8)
+    st = h.publish_and_wait(messages.image(ros_msgs.RCLPY, header_at(t), grey, "mono8"), info)
+    assert level_of(st) == ros_msgs.LEVEL_ERROR
+    assert "takes 5 coefficients" in st.message and "internal" not in st.message
 
 
 def test_parameters_out_of_range_are_rejected(harness_factory) -> None:
@@ -257,6 +312,37 @@ def test_node_survives_binary_files_and_never_overwrites_them(binary_files: dict
         h.close()
 
 
+def test_node_survives_a_calibration_file_turned_hostile(tmp_path: Path) -> None:
+    """calibration.file replaced while the node runs by 100k-deep nesting or a 5000-digit
+    integer: ~/calibrate and ~/clear_calibration answer (not saved, the file kept), the node
+    keeps processing."""
+    from node_harness import Harness
+    from std_srvs.srv import Trigger
+
+    from ficap_ros.vision.calibration import CalibrationResult
+
+    path = tmp_path / "calibration.yaml"
+    h = Harness(overrides={"calibration.file": str(path), "warn_throttle_s": 0.0})
+    try:
+        h.node._run_calibration = lambda: CalibrationResult(  # type: ignore[method-assign]
+            Rotation.from_euler("z", 3.0, degrees=True), 60, 0.3, "frontal")
+        assert h.call(h.calibrate, Trigger.Request()).success
+        for hostile in ("R_cap_head_q_wxyz: " + "[" * 100_000 + "]" * 100_000 + "\n",
+                        "R_cap_head_q_wxyz: [1, 0, 0, " + "9" * 5000 + "]\n"):
+            path.write_text(hostile)
+            resp = h.call(h.calibrate, Trigger.Request())
+            assert not resp.success and "NOT saved" in resp.message, resp.message
+            resp = h.call(h.clear, Trigger.Request())
+            assert not resp.success and "NOT updated" in resp.message, resp.message
+            assert path.read_text() == hostile
+        cam = CameraModel.pinhole(64, 48, hfov_deg=60.0)
+        st = h.publish_and_wait(messages.image(ros_msgs.RCLPY, header_at(5), np.zeros(
+            (48, 64), np.uint8), "mono8"), info_at(cam, 5))
+        assert level_of(st) != ros_msgs.LEVEL_ERROR
+    finally:
+        h.close()
+
+
 def test_node_calibrate_says_when_the_file_was_not_saved(tmp_path: Path) -> None:
     from node_harness import Harness
     from scipy.spatial.transform import Rotation
@@ -347,8 +433,8 @@ def test_poses_come_back_with_stamps_and_accuracy(rendered_drive, harness_factor
     markers, debug = [], []
     h.peer.create_subscription(MarkerArray, "markers", h._rec(markers), 10)
     h.peer.create_subscription(Image, "debug_image", h._rec(debug), 10)
-    h.wait_for(lambda: h.node._pub_markers.get_subscription_count() > 0
-               and h.node._pub_debug.get_subscription_count() > 0, what="viz subscribers")
+    h.wait_for(lambda: h.node._out.markers.get_subscription_count() > 0
+               and h.node._out.debug.get_subscription_count() > 0, what="viz subscribers")
     statuses = _play(h, scene, frames)
     h.wait_for(lambda: len(h.cap) >= len(frames), timeout=5.0, what="all cap poses")
     # Visualisation while subscribed: tag outlines + 3 head axes, and a colour debug image.
@@ -491,8 +577,8 @@ def test_output_frame_through_camera_mount(rendered_drive, harness_factory) -> N
         h.peer.create_subscription(PoseStamped, "head_pose/frontal", h._rec(frontal), 50)
         h.peer.create_subscription(Vector3Stamped, "head_rpy_deg", h._rec(rpy), 50)
         h.peer.create_subscription(JointState, "quality", h._rec(quality), 50)
-        h.wait_for(lambda: h.node._pub_quality.get_subscription_count() > 0
-                   and h.node._pubs["rpy"].get_subscription_count() > 0, what="subscribers")
+        h.wait_for(lambda: h.node._out.quality.get_subscription_count() > 0
+                   and h.node._out.pubs["rpy_deg"].get_subscription_count() > 0, what="subscribers")
         _play(h, scene, few)
         h.wait_for(lambda: len(cov) >= len(few) and len(quality) >= len(few)
                    and len(rpy) >= len(few), timeout=5.0, what="outputs")
@@ -539,3 +625,48 @@ def test_output_frame_through_camera_mount(rendered_drive, harness_factory) -> N
         for run in (cam, base):
             C = np.array(run["cov"][t].pose.covariance).reshape(6, 6)
             assert np.all(np.isfinite(C)) and np.linalg.eigvalsh(C).min() > 0
+
+
+# -- the command line and the logs -----------------------------------------------------------------
+def _node_process(*args: str, code: str | None = None) -> subprocess.CompletedProcess[str]:
+
+    argv = [sys.executable, "-c", code] if code else [sys.executable, "-m", "ficap_ros.ros.node"]
+    return subprocess.run([*argv, *args], capture_output=True, text=True, timeout=120,
+                          env=dict(os.environ))
+
+
+def test_help_prints_the_interface_and_does_not_start() -> None:
+    run = _node_process("--help")
+    assert run.returncode == 0 and run.stdout.startswith("usage: ficap_node [--ros-args")
+    for name in ("detections", "head_rpy", "/tf", "camera_info_topic", "pose.method"):
+        assert name in run.stdout
+    assert "ready" not in run.stderr and "Traceback" not in run.stderr
+
+
+def test_the_apriltag_backend_without_its_package_is_one_line() -> None:
+    code = ("import sys; sys.modules['pupil_apriltags'] = None; from ficap_ros.ros.node import main; "
+            "raise SystemExit(main(sys.argv[1:]))")
+    run = _node_process("--ros-args", "-p", "detector.backend:=apriltag", code=code)
+    assert run.returncode == 1 and "Traceback" not in run.stderr, run.stderr
+    ours = [ln for ln in run.stderr.splitlines() if ln.startswith("ficap_node:")]
+    assert len(ours) == 1 and "pip install pupil-apriltags" in ours[0]
+
+
+def test_parameter_changes_are_logged(harness_factory, capfd) -> None:
+    h = harness_factory()
+    capfd.readouterr()
+    assert h.node.set_parameters([Parameter("pose.method", value="paper")])[0].successful
+    assert not h.node.set_parameters([Parameter("pose.min_tags", value=0)])[0].successful
+    err = capfd.readouterr().err
+    assert "parameter pose.method: 'joint' -> 'paper'" in err
+    assert "pose.min_tags" not in err  # refused: nothing changed
+
+
+def test_a_calibration_file_in_a_missing_folder_warns_and_makes_no_folder(harness_factory,
+                                                                          tmp_path, capfd) -> None:
+    target = tmp_path / "tpyo" / "cal.yaml"
+    h = harness_factory(overrides={"calibration.file": str(target)})
+    assert "does not exist" in capfd.readouterr().err
+    resp = h.call(h.clear, Trigger.Request())  # nothing calibrated: nothing written
+    assert resp.success and "nothing to clear" in resp.message
+    assert not (tmp_path / "tpyo").exists()
