@@ -11,10 +11,11 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
-from ficap_ros.geometry.camera import CameraModel
+from ficap_ros.geometry.camera import CameraModel, CameraTiming
 from ficap_ros.geometry.cap_model import CapModel, nominal_model
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.vision.detector import DetectorConfig, TagDetection, TagDetector, as_gray
+from ficap_ros.vision.motion import MotionPrior
 from ficap_ros.vision.occlusion import partly_hidden
 from ficap_ros.vision.pose import (
     CapPose,
@@ -93,12 +94,16 @@ class FrameProcessor:
         tracking: follow the cap from frame to frame (``tracking.Tracker``: frames of one camera
             in time order, as the node and the bag tools feed them); ``False``: every frame searched.
         track: tracking settings.
+        timing: the camera's exposure and readout (``CameraTiming``; None: a global shutter of
+            unknown exposure). A rolling shutter's poses are solved with the cap's velocity over
+            the readout (``estimate_cap_pose``); the tracker's past poses are its velocity prior.
     """
 
     def __init__(self, model: CapModel | None = None, detector: DetectorConfig | None = None,
                  pose: PoseConfig | None = None, tracking: bool = True,
-                 track: TrackConfig | None = None) -> None:
+                 track: TrackConfig | None = None, timing: CameraTiming | None = None) -> None:
         self.model = model or nominal_model()
+        self.timing = timing or CameraTiming()
         self.detector = TagDetector(detector)
         self.pose_config = pose or PoseConfig()
         self.tracker = Tracker(self.model, self.detector, track) if tracking else None
@@ -128,11 +133,12 @@ class FrameProcessor:
         find_hidden = cfg.hidden_check and cfg.corner_refine == "edge" and pose_config.method == "joint"
         solve_started: list[float] = []
 
-        def solve(tags: tuple[TagDetection, ...], start: Transform | None) -> PoseResult:
+        def solve(tags: tuple[TagDetection, ...], start: Transform | None,
+                  prior: MotionPrior | None = None) -> PoseResult:
             solve_started.append(time.perf_counter())
             hidden = hidden_tag_ids(gray, tags) if find_hidden else frozenset()
             return estimate_cap_pose(tags, self.model, camera, pose_config, start=start,
-                                     hidden_ids=hidden)
+                                     hidden_ids=hidden, timing=self.timing, prior=prior)
 
         if self.tracker is not None:
             frame = self.tracker.track(gray, camera, int(stamp_ns), pose_config, solve)

@@ -52,6 +52,7 @@ __all__ = [
     "UncertaintyConfig",
     "CORNER_ESTIMATORS",
     "tag_noise_px",
+    "tag_noise_from_residuals",
     "reweighted",
     "light_gradient_px",
     "uncertainty_terms",
@@ -213,10 +214,11 @@ def tag_noise_px(obs: TagObservations, T: Transform) -> np.ndarray:
     residuals; a tag's 8 residuals are a noisy estimate of it (and the fit absorbed a share), so
     the frame's median is added as a prior: a tag with residuals at the median gets sqrt(2) times
     them, one far above the median its own."""
-    return _tag_noise(residuals_and_jacobian(T, obs)[0], len(obs))
+    return tag_noise_from_residuals(residuals_and_jacobian(T, obs)[0], len(obs))
 
 
-def _tag_noise(res: np.ndarray, n_tags: int) -> np.ndarray:
+def tag_noise_from_residuals(res: np.ndarray, n_tags: int) -> np.ndarray:
+    """``tag_noise_px`` from the corners' residuals (8 * tags,) of any fit, px."""
     rms = np.sqrt(np.mean(res.reshape(n_tags, 8) ** 2, axis=1))
     floor = max(median(rms), 1e-6)
     return np.sqrt(rms**2 + floor**2)
@@ -232,7 +234,7 @@ def reweighted(obs: TagObservations, T: Transform) -> tuple[Transform, np.ndarra
     if n_tags < 4:
         return T, np.ones(n_tags)
     res, J = residuals_and_jacobian(T, obs)
-    sigma = _tag_noise(res, n_tags)
+    sigma = tag_noise_from_residuals(res, n_tags)
     w = np.repeat(1.0 / sigma**2, 8)
     try:
         dx = -np.linalg.solve(J.T @ (w[:, None] * J), J.T @ (w * res))
@@ -309,6 +311,8 @@ def uncertainty_terms(
     obs: TagObservations, T: Transform, tag_sigma_px: np.ndarray | None = None,
     edge_shift_px: np.ndarray | None = None,
     at: tuple[np.ndarray, np.ndarray] | None = None,
+    prior_information: np.ndarray | None = None,
+    motion_term: np.ndarray | None = None,
 ) -> tuple[dict[str, np.ndarray], dict[str, float]]:
     """What the covariance is built from.
 
@@ -322,7 +326,15 @@ def uncertainty_terms(
         edge_shift_px: per tag, the edge shift its cell fit measured (NaN: not fitted); None:
             unknown (``light_gradient`` 0).
         at: ``residuals_and_jacobian(T, obs)`` when the caller has it already: the same residuals
-            and Jacobian, not computed twice.
+            and Jacobian, not computed twice. A moving cap's fit (rolling shutter) passes its own:
+            the Jacobian has the pose's six columns first and the velocity's after them.
+        prior_information: a moving cap's fit with the velocity among its unknowns: what its
+            prior adds to the normal matrix (columns of ``at``'s Jacobian; px units,
+            ``motion.MovingFit.prior_information``), so the velocity is marginalised out of the
+            pose's terms.
+        motion_term: a moving cap's fit: the pose covariance (6x6, ROS order) its velocity
+            prior's own error causes (``motion.MovingFit.motion_term``), the term
+            ``motion_prior``.
 
     Returns:
         terms: per error source, the pose covariance (6x6, ROS order) that one unit of its sigma
@@ -349,7 +361,7 @@ def uncertainty_terms(
     else:
         rel = np.asarray(tag_sigma_px, dtype=float) / max(median(tag_sigma_px), 1e-12)
     w = np.repeat(1.0 / rel**2, 8)  # weights per residual coordinate
-    M, A = _propagation(J, w)
+    M, A = _propagation(J, w, prior_information)
     # Rows in ROS order up front: every term below is then in ROS order as computed.
     A_ros = A[_ROS_ORDER]
     B = _tag_basis(obs.image_px)
@@ -360,18 +372,25 @@ def uncertainty_terms(
     seen["bias_common"] = _common_offset_px(common, w, J, A, mean_scale, seen["scale"], n_tags)
     seen["light_gradient"] = (0.0 if edge_shift_px is None
                               else light_gradient_px(edge_shift_px, obs.image_px.mean(axis=1)))
+    if motion_term is not None:
+        terms["motion_prior"] = motion_term
     return terms, seen
 
 
-def _propagation(J: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(M, A) of the weighted fit with Jacobian ``J`` (2n, 6) and weights ``w`` (2n,):
-    ``M = (J^T W J)^-1`` and ``A = M J^T W`` (6, 2n), the pose change per corner coordinate
+def _propagation(J: np.ndarray, w: np.ndarray,
+                 info: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """(M, A) of the weighted fit with Jacobian ``J`` (2n, k: the pose's 6 columns first) and
+    weights ``w`` (2n,): ``M = (J^T W J + info)^-1`` (``info``: a prior's information on the
+    unknowns, None: none) and ``A = M J^T W`` (k, 2n), the unknowns' change per corner coordinate
     displacement. A singular fit gives an infinite M (``combine_uncertainty`` turns it into
     "unknown")."""
+    H = J.T @ (w[:, None] * J)
+    if info is not None:
+        H = H + info
     try:
-        M = np.linalg.inv(J.T @ (w[:, None] * J))
+        M = np.linalg.inv(H)
     except np.linalg.LinAlgError:
-        M = np.full((6, 6), np.inf)
+        M = np.full(H.shape, np.inf)
     return M, M @ (J.T * w)
 
 
@@ -453,7 +472,7 @@ def _residual_sigmas(res: np.ndarray, J: np.ndarray, M: np.ndarray, B: np.ndarra
     """
     n_tags = len(rel)
     coef = np.einsum("tjm,tj->tm", B, -res.reshape(n_tags, 8))
-    Jt = J.reshape(n_tags, 8, 6)
+    Jt = J.reshape(n_tags, 8, -1)
     # Batched matmuls, not three-operand einsums (those loop over every index).
     hat = (Jt @ M) @ Jt.transpose(0, 2, 1) / rel[:, None, None] ** 2
     leverage = (B * (hat @ B)).sum(axis=1)
@@ -511,6 +530,8 @@ def uncertainty_sources(terms: dict[str, np.ndarray], seen: dict[str, float],
         floor_intrinsics=(c.principal_point_px**2 * terms["principal_point"]
                           + c.focal_rel**2 * terms["focal"]),
     )
+    if "motion_prior" in terms:
+        parts["motion_prior"] = terms["motion_prior"]
     return parts
 
 

@@ -129,3 +129,33 @@ def test_a_frame_result_and_pose_settings_replaced_between_frames() -> None:
     assert proc.effective_pose_config.method == "paper"
     assert FrameProcessor(MODEL, tracking=False).process(np.full((540, 960), 90, np.uint8),
                                                          scene.camera).reason
+
+
+def test_tracked_frames_give_the_cap_velocity() -> None:
+    """Consecutive 30 fps frames through a glance: the first frame (searched, nothing before it)
+    has no velocity; the tracked ones have the velocity of their poses' finite difference, near
+    the true one and within what its covariance says."""
+    from ficap_ros.geometry.camera import CameraTiming
+    from ficap_ros.tools.synth import naturalistic_motion
+
+    scene = default_scene("540p")
+    motion = naturalistic_motion(12.0, seed=2, scene=scene)
+    times = np.arange(3.0, 12.0, 1 / 30)
+    speeds = [angle_deg(motion.T_cam_cap_at(t - 0.005).rotation, motion.T_cam_cap_at(t + 0.005).rotation)
+              / 0.01 for t in times]
+    t_fast = float(times[int(np.argmax(speeds))])
+    proc = FrameProcessor(MODEL, timing=CameraTiming(exposure_ms=8.0))
+    assert proc.timing.exposure_ms == 8.0 and not proc.timing.rolling
+    for k in range(-3, 2):
+        t = t_fast + k / 30
+        frame = render(MODEL, scene.camera, motion.T_cam_cap_at(t), RenderConfig(lighting="neutral"), seed=k + 10)
+        r = proc.process(frame.image, scene.camera, int(round(t * 1e9)))
+        if k == -3:
+            assert r.pose.velocity is None and r.pose.velocity_covariance is None
+            continue
+        a, b = motion.T_cam_cap_at(t - 1e-4), motion.T_cam_cap_at(t + 1e-4)
+        w_true = (b * a.inv()).rvec / 2e-4
+        w_err = r.pose.velocity[3:] - w_true
+        sigma = np.sqrt(np.diag(r.pose.velocity_covariance)[3:])
+        assert np.degrees(np.linalg.norm(w_true)) > 50.0
+        assert np.degrees(np.abs(w_err)).max() < 25.0 and np.all(np.abs(w_err) < 4.0 * sigma)
