@@ -35,7 +35,12 @@ from scipy.optimize import leastsq
 from ficap_ros.errors import ConfigError
 from ficap_ros.geometry.camera import CameraModel, CameraTiming
 from ficap_ros.geometry.transform import Transform
-from ficap_ros.vision.reprojection import TagObservations, residuals_and_jacobian_moving
+from ficap_ros.vision.reprojection import (
+    TagObservations,
+    moving_points_m,
+    project_px,
+    residuals_and_jacobian_moving,
+)
 from ficap_ros.vision.uncertainty import (
     UncertaintyConfig,
     combine_uncertainty,
@@ -46,7 +51,8 @@ from ficap_ros.vision.uncertainty import (
 )
 
 __all__ = ["MotionConfig", "PastPose", "VelocityPrior", "MotionPrior", "MovingFit", "MovingPose",
-           "corner_times_s", "moving_pose", "static_velocity"]
+           "blur_modes", "blur_px", "corner_times_s", "moving_pose", "prior_blur_modes",
+           "static_velocity"]
 
 #: Reorders the pose solver's (d_theta, d_t) into ROS (t, theta) order.
 _POSE_TO_ROS = np.array([3, 4, 5, 0, 1, 2])
@@ -58,9 +64,11 @@ class MotionConfig:
 
     The default jerk and acceleration are the root mean square over a glance under the
     minimum-jerk profile that reaches 250 deg/s in 0.35 s (fast mirror glances); linear sizes are
-    the cap origin's, about 0.15 m from the neck pivot, plus the centripetal part. They are what a
-    finite difference of poses may be off by, not what every frame shows: slow frames are far
-    better than the prior says.
+    the cap origin's, a few centimetres off the axis the head turns about, plus the centripetal
+    part. They are what a finite difference of poses may be off by in such a glance. With three
+    past poses the jerk is measured instead (the third divided difference through them and the
+    pose being solved), at least ``jerk_floor`` times these sizes: slow frames then get the small
+    prior error they have.
 
     Attributes:
         angular_jerk_rad_s3, linear_jerk_m_s3: the third derivative of the cap's orientation
@@ -69,6 +77,8 @@ class MotionConfig:
             velocity from one past pose.
         angular_speed_rad_s, linear_speed_m_s: the velocity itself, for a frame with no past pose
             (a prior around rest).
+        jerk_floor: the least measured jerk, as a fraction of the sizes above (the jerk changes
+            between the past poses and this frame).
         max_age_s: past poses older than this are not used.
     """
 
@@ -78,12 +88,13 @@ class MotionConfig:
     linear_accel_m_s2: float = 2.0
     angular_speed_rad_s: float = 4.0
     linear_speed_m_s: float = 0.6
+    jerk_floor: float = 0.2
     max_age_s: float = 0.2
 
     def __post_init__(self) -> None:
         values = (self.angular_jerk_rad_s3, self.linear_jerk_m_s3, self.angular_accel_rad_s2,
                   self.linear_accel_m_s2, self.angular_speed_rad_s, self.linear_speed_m_s,
-                  self.max_age_s)
+                  self.jerk_floor, self.max_age_s)
         if not all(math.isfinite(v) and v > 0.0 for v in values):
             raise ConfigError("motion sizes must be finite and > 0")
 
@@ -124,7 +135,7 @@ class MotionPrior:
     """What the frames before say about this frame's velocity (module docstring).
 
     Attributes:
-        past: up to two past poses, the most recent first (older ones and those beyond
+        past: up to three past poses, the most recent first (older ones and those beyond
             ``config.max_age_s`` are ignored).
         config: the head's motion sizes.
     """
@@ -134,10 +145,10 @@ class MotionPrior:
 
     @property
     def usable(self) -> tuple[PastPose, ...]:
-        """The past poses the prior uses: at most two, each older than the one before."""
+        """The past poses the prior uses: at most three, each older than the one before."""
         out: list[PastPose] = []
         for p in self.past:
-            if len(out) == 2 or not 0.0 < p.age_s <= self.config.max_age_s:
+            if len(out) == 3 or not 0.0 < p.age_s <= self.config.max_age_s:
                 break
             if out and p.age_s <= out[-1].age_s:
                 break
@@ -175,15 +186,31 @@ class MotionPrior:
             coefs = (c1, c2)
             w = c0 * phi0 + c2 * (T2 * T1.inv()).rvec
             v = c0 * T.translation_m + c1 * T1.translation_m + c2 * T2.translation_m
-            model = (np.array([c.linear_jerk_m_s3] * 3 + [c.angular_jerk_rad_s3] * 3)
-                     * (h1 * (h1 + h2) / 6.0))
+            jerk = np.array([c.linear_jerk_m_s3] * 3 + [c.angular_jerk_rad_s3] * 3)
+            if len(past) == 3:
+                jerk = np.hypot(_measured_jerk(T, past), c.jerk_floor * jerk)
+            model = jerk * (h1 * (h1 + h2) / 6.0)
         cov = np.diag(model**2)
-        for coef, p in zip(coefs, past):
+        for coef, p in zip(coefs, past[:2]):
             cov = cov + coef * coef * np.asarray(p.covariance, dtype=float)
         d_mean = np.zeros((6, 6))
         d_mean[0:3, 3:6] = c0 * np.eye(3)  # v by d_t
         d_mean[3:6, 0:3] = c0 * _left_jacobian_inverse(phi0)  # w by d_theta
         return VelocityPrior(np.concatenate([v, w]), d_mean, 0.5 * (cov + cov.T))
+
+
+def _measured_jerk(T: Transform, past: tuple[PastPose, ...]) -> np.ndarray:
+    """(6,) the magnitude of each twist component's second derivative (the jerk of position and
+    orientation): six times the third divided difference through the pose ``T`` (at 0) and the
+    three past poses (rotations as vectors in the tangent at the most recent past pose)."""
+    T1 = past[0].T_cam_cap
+    times = [0.0] + [-p.age_s for p in past]
+    values = [np.concatenate([Ti.translation_m, (Ti * T1.inv()).rvec])
+              for Ti in [T] + [p.T_cam_cap for p in past]]
+    for level in range(1, 4):  # Newton's divided differences, in place
+        values = [(values[i] - values[i + 1]) / (times[i] - times[i + level])
+                  for i in range(len(values) - 1)]
+    return np.abs(6.0 * values[0])
 
 
 def _left_jacobian_inverse(phi: np.ndarray) -> np.ndarray:
@@ -433,12 +460,53 @@ class MovingPose:
     trans_err95_mm: float
 
 
+def blur_px(obs: TagObservations, T: Transform, velocity: np.ndarray, exposure_s: float) -> np.ndarray:
+    """(tags, 2) each tag's image motion over the exposure, px: where its corners' centre is at
+    the end of the exposure minus where it is at its start (a cap at pose ``T`` at the stamp
+    moving at ``velocity``; each corner's exposure centred on its row's time, ``obs.time_s``)."""
+    n = len(obs)
+    times = np.zeros((n, 4)) if obs.time_s is None else obs.time_s
+    ends = []
+    for half in (-0.5 * exposure_s, 0.5 * exposure_s):
+        p = moving_points_m(T.rotation_matrix, T.translation_m, velocity, obs.model_m, times + half)
+        ends.append(project_px(obs.K, Transform.identity(), p).reshape(n, 4, 2).mean(axis=1))
+    return ends[1] - ends[0]
+
+
+def blur_modes(corners_px: np.ndarray, blur: np.ndarray) -> dict[str, np.ndarray]:
+    """The corner errors motion blur shares among the tags (``uncertainty_terms``'
+    ``shared_modes``), per px of each tag's motion ``blur`` (tags, 2: ``blur_px``), for the
+    tags' corners ``corners_px`` (tags, 4, 2): ``blur``, each tag's corners moved toward its
+    centre along its motion by its length times the cosine between the motion and the
+    centre-to-corner direction (an edge across the motion moves by the full length, one along it
+    not at all); ``blur_shift``, each tag's corners moved along its motion by its length."""
+    lever = corners_px - corners_px.mean(axis=1, keepdims=True)
+    unit = lever / np.maximum(np.linalg.norm(lever, axis=2, keepdims=True), 1e-9)
+    length = np.linalg.norm(blur, axis=1)
+    direction = blur / np.maximum(length, 1e-12)[:, None]
+    along = np.einsum("tkj,tj->tk", unit, direction)  # cosines (tags, 4)
+    shrink = -(along * length[:, None])[:, :, None] * direction[:, None, :]
+    shift = np.repeat(blur[:, None, :], 4, axis=1)
+    return {"blur": shrink.reshape(-1), "blur_shift": shift.reshape(-1)}
+
+
+def prior_blur_modes(prior: MotionPrior | None, obs: TagObservations, T: Transform,
+                     timing: CameraTiming | None) -> dict[str, np.ndarray] | None:
+    """A global-shutter frame's ``blur_modes`` at the prior's velocity at pose ``T``; None when
+    the exposure or the velocity (a past pose) is not known."""
+    if prior is None or not prior.from_past or timing is None or timing.exposure_ms <= 0.0:
+        return None
+    return blur_modes(obs.image_px, blur_px(obs, T, prior.at(T).mean, timing.exposure_ms * 1e-3))
+
+
 def moving_pose(fit: MovingFit, used: TagObservations, T: Transform, edge_shift_px: np.ndarray,
-                config: UncertaintyConfig, with_uncertainty: bool) -> MovingPose:
+                config: UncertaintyConfig, with_uncertainty: bool,
+                exposure_s: float = 0.0) -> MovingPose:
     """The reported pose of a moving cap's solution ``T`` on the tags ``used``: each tag weighted
     by its corner noise (``config.weight_tags``, four tags or more), its rms, its covariance (the
     velocity marginalised out and the prior's error in: ``uncertainty_terms``) and bounds, and the
-    velocity with its covariance. ``edge_shift_px``: the tags' cell-fit edge shifts."""
+    velocity with its covariance. ``edge_shift_px``: the tags' cell-fit edge shifts;
+    ``exposure_s``: the exposure (0: not known), for the motion blur's term."""
     res, _ = fit.corner_residuals(used, T)
     tag_sigma = tag_noise_from_residuals(res, len(used))
     weighted = config.weight_tags and len(used) >= 4
@@ -450,10 +518,13 @@ def moving_pose(fit: MovingFit, used: TagObservations, T: Transform, edge_shift_
     rot95 = trans95 = float("nan")
     if with_uncertainty:
         weights = tag_sigma if weighted else None
+        assert fit.velocity is not None
+        modes = (blur_modes(used.image_px, blur_px(used, T, fit.velocity, exposure_s))
+                 if exposure_s > 0.0 else None)
         terms, seen = uncertainty_terms(
             used, T, weights, edge_shift_px, at=(res, J),
             prior_information=fit.prior_information(T),
-            motion_term=fit.motion_term(used, T, weights))
+            motion_term=fit.motion_term(used, T, weights), shared_modes=modes)
         covariance = combine_uncertainty(terms, seen, config)
         rot95, trans95 = error_bound95(covariance,
                                        *uncertainty_bounds(terms, seen, config, covariance))

@@ -55,14 +55,17 @@ from ficap_ros.vision.motion import (
     MovingFit,
     corner_times_s,
     moving_pose,
+    prior_blur_modes,
     static_velocity,
 )
 from ficap_ros.vision.reprojection import (
     TagObservations,
+    edge_shifts_px,
     median,
     reprojection_errors_px,
     residuals_and_jacobian,
     residuals_and_jacobian_rt,
+    undistorted_corners,
 )
 from ficap_ros.vision.uncertainty import (
     UncertaintyConfig,
@@ -540,21 +543,6 @@ def _resolve_duplicates(
     return unique
 
 
-def _undistorted_groups(ours: Sequence[TagDetection],
-                        camera: CameraModel) -> dict[int, list[np.ndarray]]:
-    """The undistorted corners (4, 2) of the model's detected tags, per id (a list: an id may be
-    detected twice); corners that do not undistort to finite pixels are left out."""
-    groups: dict[int, list[np.ndarray]] = {}
-    if ours:
-        # One undistortion call for every corner of the frame.
-        undistorted = camera.undistort_px(np.concatenate([d.corners_px for d in ours])).reshape(-1, 4, 2)
-        finite = np.isfinite(undistorted).all(axis=(1, 2))
-        for det, corners, ok in zip(ours, undistorted, finite):
-            if ok:
-                groups.setdefault(det.tag_id, []).append(corners)
-    return groups
-
-
 def _solve(obs: TagObservations, config: PoseConfig, start: Transform | None,
            hidden_ids: Container[int], fit: MovingFit | None = None) -> _Solution | str:
     """The configured estimator's solution, or the reason there is none. ``fit``: the moving
@@ -565,28 +553,22 @@ def _solve(obs: TagObservations, config: PoseConfig, start: Transform | None,
     return _SOLVERS[config.method](obs, config)
 
 
-def _edge_shifts_px(ours: Sequence[TagDetection], ids: Sequence[int]) -> np.ndarray:
-    """The cell fit's edge shift of each of the tags ``ids``, px (NaN: not fitted, or the id was
-    detected twice)."""
-    shifts: dict[int, float] = {}
-    for det in ours:
-        shifts[det.tag_id] = float("nan") if det.tag_id in shifts else float(det.edge_shift_px)
-    return np.array([shifts.get(i, float("nan")) for i in ids])
-
-
 def _uncertainty(used: TagObservations, T: Transform, tag_sigma_px: np.ndarray | None,
                  edge_shift_px: np.ndarray, at: tuple[np.ndarray, np.ndarray],
-                 config: UncertaintyConfig) -> tuple[np.ndarray, float, float]:
+                 config: UncertaintyConfig,
+                 blur: dict[str, np.ndarray] | None = None) -> tuple[np.ndarray, float, float]:
     """(covariance, rot_err95_deg, trans_err95_mm) of the pose ``T`` fitted to ``used``."""
-    terms, seen = uncertainty_terms(used, T, tag_sigma_px, edge_shift_px, at=at)
+    terms, seen = uncertainty_terms(used, T, tag_sigma_px, edge_shift_px, at=at, shared_modes=blur)
     covariance = combine_uncertainty(terms, seen, config)
     rot95, trans95 = error_bound95(covariance, *uncertainty_bounds(terms, seen, config, covariance))
     return covariance, rot95, trans95
 
 
 def _cap_pose(solution: _Solution, ours: Sequence[TagDetection], tags_detected: int,
-              config: PoseConfig, with_uncertainty: bool) -> CapPose:
-    """The reported pose of a solution: tag weights (``joint``), its rms and uncertainty."""
+              config: PoseConfig, with_uncertainty: bool,
+              blur: dict[str, np.ndarray] | None = None) -> CapPose:
+    """The reported pose of a solution: tag weights (``joint``), its rms and uncertainty
+    (``blur``: the motion blur's shared corner errors, ``motion.blur_modes``)."""
     uncertainty = config.uncertainty if config.uncertainty is not None else UncertaintyConfig()
     used_n = len(solution.used)
     T = solution.T
@@ -597,8 +579,8 @@ def _cap_pose(solution: _Solution, ours: Sequence[TagDetection], tags_detected: 
     rms = float(np.sqrt(np.mean(res**2) * 2.0))
     if with_uncertainty:
         covariance, rot95, trans95 = _uncertainty(solution.used, T, tag_sigma,
-                                                  _edge_shifts_px(ours, solution.used.ids), (res, J),
-                                                  uncertainty)
+                                                  edge_shifts_px(ours, solution.used.ids), (res, J),
+                                                  uncertainty, blur)
     else:
         covariance = np.full((6, 6), np.nan)
         rot95 = trans95 = float("nan")
@@ -617,12 +599,13 @@ def _cap_pose(solution: _Solution, ours: Sequence[TagDetection], tags_detected: 
 
 
 def _moving_cap_pose(solution: _Solution, fit: MovingFit, ours: Sequence[TagDetection],
-                     tags_detected: int, config: PoseConfig, with_uncertainty: bool) -> CapPose:
+                     tags_detected: int, config: PoseConfig, with_uncertainty: bool,
+                     exposure_s: float) -> CapPose:
     """The reported pose of a moving cap's solution (rolling shutter, ``motion.moving_pose``)."""
     uncertainty = config.uncertainty if config.uncertainty is not None else UncertaintyConfig()
     used = solution.used
-    m = moving_pose(fit, used, solution.T, _edge_shifts_px(ours, used.ids), uncertainty,
-                    with_uncertainty)
+    m = moving_pose(fit, used, solution.T, edge_shifts_px(ours, used.ids), uncertainty,
+                    with_uncertainty, exposure_s)
     return CapPose(
         T_cam_cap=m.T_cam_cap, tags_detected=tags_detected, tags_used=len(used),
         used_ids=used.ids, rms_px=m.rms_px, covariance=m.covariance,
@@ -671,7 +654,7 @@ def estimate_cap_pose(
     """
     config = config or PoseConfig()
     ours = [d for d in detections if d.tag_id in model]
-    groups = _undistorted_groups(ours, camera)
+    groups = undistorted_corners(ours, camera)
     tags_detected = len(groups)
     if tags_detected == 0:
         return PoseResult(None, 0, "no tag of the model detected")
@@ -692,8 +675,10 @@ def estimate_cap_pose(
         return PoseResult(None, tags_detected, "pose puts the cap behind the camera")
     if fit is not None:
         return PoseResult(_moving_cap_pose(solution, fit, ours, tags_detected, config,
-                                           with_uncertainty), tags_detected, "")
-    pose = _cap_pose(solution, ours, tags_detected, config, with_uncertainty)
+                                           with_uncertainty, timing.exposure_ms * 1e-3),  # type: ignore[union-attr]
+                          tags_detected, "")
+    blur = prior_blur_modes(prior, solution.used, solution.T, timing)
+    pose = _cap_pose(solution, ours, tags_detected, config, with_uncertainty, blur)
     velocity = None if prior is None else static_velocity(prior, pose.T_cam_cap, pose.covariance)
     if velocity is not None:
         pose = replace(pose, velocity=velocity[0], velocity_covariance=velocity[1])

@@ -11,15 +11,19 @@ of the pose is in the camera (parent) frame, as ROS's PoseWithCovariance expects
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 
+from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.cap_model import CapModel
 from ficap_ros.geometry.transform import Transform
+from ficap_ros.vision.detector import TagDetection
 
 __all__ = [
     "TagObservations",
+    "undistorted_corners",
+    "edge_shifts_px",
     "project_px",
     "reprojection_errors_px",
     "residuals_and_jacobian",
@@ -72,6 +76,30 @@ class TagObservations:
 
     def __len__(self) -> int:
         return len(self.ids)
+
+
+def undistorted_corners(ours: Sequence[TagDetection],
+                        camera: CameraModel) -> dict[int, list[np.ndarray]]:
+    """The undistorted corners (4, 2) of the model's detected tags, per id (a list: an id may be
+    detected twice); corners that do not undistort to finite pixels are left out."""
+    groups: dict[int, list[np.ndarray]] = {}
+    if ours:
+        # One undistortion call for every corner of the frame.
+        undistorted = camera.undistort_px(np.concatenate([d.corners_px for d in ours])).reshape(-1, 4, 2)
+        finite = np.isfinite(undistorted).all(axis=(1, 2))
+        for det, corners, ok in zip(ours, undistorted, finite):
+            if ok:
+                groups.setdefault(det.tag_id, []).append(corners)
+    return groups
+
+
+def edge_shifts_px(ours: Sequence[TagDetection], ids: Sequence[int]) -> np.ndarray:
+    """The cell fit's edge shift of each of the tags ``ids``, px (NaN: not fitted, or the id was
+    detected twice)."""
+    shifts: dict[int, float] = {}
+    for det in ours:
+        shifts[det.tag_id] = float("nan") if det.tag_id in shifts else float(det.edge_shift_px)
+    return np.array([shifts.get(i, float("nan")) for i in ids])
 
 
 def median(values: np.ndarray) -> float:

@@ -232,8 +232,8 @@ class _TrackState:
     dt_prev_ns: int  # stamp_ns minus the earlier frame's stamp (0: unknown)
     n_tags: int
     camera: CameraModel
-    # The posed frames' (stamp_ns, pose, covariance), newest first, while consecutive: the
-    # velocity prior of the next frame (``Tracker.motion_prior``).
+    # The last three posed frames' (stamp_ns, pose, covariance), newest first, while
+    # consecutive: the velocity prior of the next frame (``Tracker.motion_prior``).
     history: tuple[tuple[int, Transform, np.ndarray], ...] = ()
 
 
@@ -468,7 +468,7 @@ class Tracker:
     def motion_prior(self, camera: CameraModel, stamp_ns: int,
                      pose: PoseConfig) -> MotionPrior | None:
         """The velocity prior of a frame at ``stamp_ns``: the last posed frames' poses (at most
-        two, consecutive and stamped), or None when no frame before can inform it."""
+        three, consecutive and stamped), or None when no frame before can inform it."""
         tr = self._usable_track(camera, stamp_ns)
         if tr is None or not stamp_ns or not tr.history:
             return None
@@ -550,7 +550,7 @@ class Tracker:
             prev = None
         history = ((stamp_ns, T_cam_cap, cap_pose.covariance),)
         if prev is not None and timed:
-            history += prev.history[:1]
+            history += prev.history[:2]
         self._track = _TrackState(
             T_cam_cap, None if prev is None else prev.T_cam_cap, stamp_ns,
             stamp_ns - prev.stamp_ns if prev is not None and timed else 0,

@@ -118,6 +118,14 @@ class UncertaintyConfig:
             oblique face unevenly; set it for such a camera.
         weight_tags: weight each tag in the ``joint`` pose by its corner noise
             (``tag_noise_px``): one weighted Gauss-Newton step from the unweighted optimum.
+        motion_blur_gain: shared shrink of the tags along their image motion over the exposure,
+            per px of that motion (the mode ``blur`` of ``motion.blur_modes``, known when the
+            camera's exposure is): a tag smeared along its motion and then bent by the tone curve
+            has its edges across the motion pulled toward the black, in every tag alike, so the
+            pose absorbs it.
+        motion_blur_shift_gain: shared shift of the tags along their motion, per px of it (the
+            mode ``blur_shift``): edges fitted on a smeared tag settle off its mid-exposure
+            place, alike in every tag, which the pose takes for a turn.
     """
 
     corner_noise_px: float = 0.002
@@ -132,13 +140,16 @@ class UncertaintyConfig:
     light_gradient_tilt_gain: float = 0.35
     tilt_shift_px: float = 0.0
     weight_tags: bool = True
+    motion_blur_gain: float = 0.0
+    motion_blur_shift_gain: float = 0.0
 
     def __post_init__(self) -> None:
         if not (np.isfinite(self.residual_inflation) and self.residual_inflation >= 1.0):
             raise ConfigError("residual_inflation must be >= 1")
         values = (self.corner_noise_px, self.corner_bias_px, self.corner_bias_common_px,
                   self.model_mm, self.model_deg, self.principal_point_px, self.focal_rel,
-                  self.light_gradient_gain, self.light_gradient_tilt_gain, self.tilt_shift_px)
+                  self.light_gradient_gain, self.light_gradient_tilt_gain, self.tilt_shift_px,
+                  self.motion_blur_gain, self.motion_blur_shift_gain)
         if not all(np.isfinite(v) and v >= 0 for v in values):
             raise ConfigError("uncertainty sigmas and gains must be finite and >= 0")
         if self.corner_noise_px <= 0:
@@ -313,6 +324,7 @@ def uncertainty_terms(
     at: tuple[np.ndarray, np.ndarray] | None = None,
     prior_information: np.ndarray | None = None,
     motion_term: np.ndarray | None = None,
+    shared_modes: dict[str, np.ndarray] | None = None,
 ) -> tuple[dict[str, np.ndarray], dict[str, float]]:
     """What the covariance is built from.
 
@@ -335,6 +347,9 @@ def uncertainty_terms(
         motion_term: a moving cap's fit: the pose covariance (6x6, ROS order) its velocity
             prior's own error causes (``motion.MovingFit.motion_term``), the term
             ``motion_prior``.
+        shared_modes: further corner errors shared by the tags, by name: (2n,) each corner's
+            displacement (px) per unit of the source (``motion.blur_modes``); each becomes the
+            term of its name.
 
     Returns:
         terms: per error source, the pose covariance (6x6, ROS order) that one unit of its sigma
@@ -374,6 +389,9 @@ def uncertainty_terms(
                               else light_gradient_px(edge_shift_px, obs.image_px.mean(axis=1)))
     if motion_term is not None:
         terms["motion_prior"] = motion_term
+    for name, mode in (shared_modes or {}).items():
+        a_mode = A_ros @ mode
+        terms[name] = np.outer(a_mode, a_mode)
     return terms, seen
 
 
@@ -532,6 +550,9 @@ def uncertainty_sources(terms: dict[str, np.ndarray], seen: dict[str, float],
     )
     if "motion_prior" in terms:
         parts["motion_prior"] = terms["motion_prior"]
+    if "blur" in terms:
+        parts["motion_blur"] = (c.motion_blur_gain**2 * terms["blur"]
+                                + c.motion_blur_shift_gain**2 * terms["blur_shift"])
     return parts
 
 

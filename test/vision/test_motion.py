@@ -191,3 +191,23 @@ def test_corner_times_are_the_distorted_rows_times() -> None:
     undistorted = {7: camera.undistort_px(seen[7])}
     times = corner_times_s(undistorted, camera, ROLLING)[7]
     np.testing.assert_allclose(times, ROLLING.row_time_s(seen[7][:, 1], 540), atol=1e-8)
+
+
+def test_three_past_poses_measure_the_jerk() -> None:
+    """A cap whose position is a cubic in time and whose turn rate grows linearly: with three
+    past poses the prior's model error is the measured jerk's truncation (exact for a cubic),
+    not the glance's sizes; at rest it falls to the floor."""
+    cfg = MotionConfig()
+    jerk = np.array([2.0, -3.0, 1.0])  # m/s^3
+    h = 1 / 30
+
+    def cubic(s: float) -> Transform:
+        return Transform(T0.rotation, T0.translation_m + jerk * s**3 / 6.0)
+
+    prior = MotionPrior(tuple(PastPose(k * h, cubic(-k * h), SMALL_COV * 1e-8) for k in (1, 2, 3)),
+                        cfg)
+    sd = np.sqrt(np.diag(prior.at(T0).covariance))
+    floor = cfg.jerk_floor * np.array([cfg.linear_jerk_m_s3] * 3 + [cfg.angular_jerk_rad_s3] * 3)
+    expected = np.hypot(np.concatenate([np.abs(jerk), np.zeros(3)]), floor) * h * 2 * h / 6
+    np.testing.assert_allclose(sd, expected, rtol=1e-4)
+    assert sd[3] < 0.5 * MotionPrior(prior.past[:2], cfg).at(T0).covariance[3, 3] ** 0.5
