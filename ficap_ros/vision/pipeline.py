@@ -23,6 +23,8 @@ from ficap_ros.vision.pose import (
     PoseResult,
     estimate_cap_pose,
 )
+from ficap_ros.vision.reprojection import TagObservations, undistorted_corners
+from ficap_ros.vision.shutter import TimingEvidence, frame_evidence
 from ficap_ros.vision.tracking import Search, TrackConfig, TrackedFrame, Tracker
 from ficap_ros.vision.uncertainty import UncertaintyConfig
 
@@ -40,6 +42,9 @@ class FrameResult:
         search: how the tags were found (``tracking.Search``, a ``str``): ``tracked``, ``region``
             or ``image``.
         detect_ms, pose_ms: time spent finding the tags and solving the pose, ms.
+        timing_evidence: what the frame says of the camera's readout when the timing does not
+            model one (``shutter.frame_evidence``: a moving cap with a velocity from the frames
+            before); None otherwise. ``shutter.combine_evidence`` turns many into an estimate.
     """
 
     detections: tuple[TagDetection, ...]
@@ -48,6 +53,7 @@ class FrameResult:
     search: Search = Search.IMAGE
     detect_ms: float = 0.0
     pose_ms: float = 0.0
+    timing_evidence: TimingEvidence | None = None
 
     @property
     def detected_ids(self) -> tuple[int, ...]:
@@ -146,5 +152,24 @@ class FrameProcessor:
             detections = tuple(d for d in self.detector.detect(gray) if d.tag_id in self.model)
             frame = TrackedFrame(detections, solve(detections, None), Search.IMAGE)
         t1, t2 = solve_started[0], time.perf_counter()
+        evidence = None
+        if frame.result.pose is not None and not self.timing.rolling:
+            evidence = _timing_evidence(frame.result.pose, frame.detections, self.model, camera)
         return FrameResult(frame.detections, frame.result.pose, frame.result.reason, frame.search,
-                           (t1 - t0) * 1e3, (t2 - t1) * 1e3)
+                           (t1 - t0) * 1e3, (t2 - t1) * 1e3, evidence)
+
+
+def _timing_evidence(pose: CapPose, detections: tuple[TagDetection, ...], model: CapModel,
+                     camera: CameraModel) -> TimingEvidence | None:
+    """A global-shutter pose's evidence of a readout (``shutter.frame_evidence``): its tags'
+    corners (each used id seen once) against the pose and its velocity; None without one."""
+    if pose.velocity is None:
+        return None
+    used = [d for d in detections if d.tag_id in pose.used_ids]
+    once = {d.tag_id: d for d in used if sum(e.tag_id == d.tag_id for e in used) == 1}
+    corners = {i: c[0] for i, c in undistorted_corners(list(once.values()), camera).items()}
+    if len(corners) < 4:
+        return None
+    obs = TagObservations.of(corners, model, camera.K)
+    rows = np.concatenate([once[i].corners_px[:, 1] for i in obs.ids])
+    return frame_evidence(obs, pose.T_cam_cap, pose.velocity, camera, rows)

@@ -152,7 +152,11 @@ def test_tracked_frames_give_the_cap_velocity() -> None:
         r = proc.process(frame.image, scene.camera, int(round(t * 1e9)))
         if k == -3:
             assert r.pose.velocity is None and r.pose.velocity_covariance is None
+            assert r.timing_evidence is None  # no velocity: nothing said of the readout
             continue
+        # A global shutter: the frame's readout evidence is none within its error.
+        ev = r.timing_evidence
+        assert ev is not None and abs(ev.readout_s) < 4.0 * np.sqrt(ev.readout_var_s2)
         a, b = motion.T_cam_cap_at(t - 1e-4), motion.T_cam_cap_at(t + 1e-4)
         w_true = (b * a.inv()).rvec / 2e-4
         w_err = r.pose.velocity[3:] - w_true
