@@ -16,7 +16,16 @@ from pathlib import Path  # noqa: E402
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
-from recordings import CORRUPT_BAG_FRAMES, CORRUPT_FRAME, FPS, FRAMES  # noqa: E402
+from recordings import (  # noqa: E402
+    CORRUPT_BAG_FRAMES,
+    CORRUPT_FRAME,
+    FPS,
+    FRAMES,
+    RS_EXPOSURE_MS,
+    RS_FRAMES,
+    RS_READOUT_MS,
+    RS_SEED,
+)
 
 #: Real photos the detection tests need, kept in the repository (test/data/README.md: sources and
 #: licences) so a fresh clone tests without the workplace's ../shared; benchmarks read the full sets.
@@ -52,6 +61,21 @@ def drive(tmp_path_factory: pytest.TempPathFactory) -> Path:
     bag = tmp_path_factory.mktemp("synth") / "drive"
     assert main(["synth", "--out", str(bag), "--resolution", "540p", "--frames", str(FRAMES),
                  "--fps", str(FPS), "--seed", "3", "--quiet"]) == 0
+    return bag
+
+
+@pytest.fixture(scope="session")
+def glance_rs_drive(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A ``ficap synth`` rolling-shutter glance drive (recordings.RS_*): 540p, the rows read top
+    to bottom, each exposed with motion blur, the truth the pose at the stamp (the middle row's
+    mid-exposure); its timing in the bag's metadata."""
+    from ficap_ros.cli.main import main
+
+    bag = tmp_path_factory.mktemp("synth_rs") / "glances"
+    assert main(["synth", "--out", str(bag), "--resolution", "540p", "--frames", str(RS_FRAMES),
+                 "--fps", "30", "--seed", str(RS_SEED), "--motion", "glances", "--frontal-s", "0.2",
+                 "--readout-ms", str(RS_READOUT_MS), "--exposure-ms", str(RS_EXPOSURE_MS),
+                 "--motion-blur", "--quiet"]) == 0
     return bag
 
 

@@ -37,7 +37,7 @@ from ficap_ros.io import messages
 from ficap_ros.io.bag_writer import BagWriter
 from ficap_ros.io.calibration_file import load_calibration
 from ficap_ros.io.image_codec import decode_compressed
-from ficap_ros.io.labels import read_labels
+from ficap_ros.io.labels import LABEL_COLUMNS, read_labels
 from ficap_ros.io.messages import ROSBAGS
 from ficap_ros.io.sources import (
     CAMERA_INFO_TYPE,
@@ -125,7 +125,7 @@ def test_duplicated_and_foreign_ids_are_kept_out_of_the_pose(tmp_path: Path) -> 
     out = tmp_path / "out"
     assert main(["replay", str(VALID_BAG), "--out", str(out), "--quiet"]) == 0
     rows = (out / "labels.csv").read_text().splitlines()[1:]
-    ids = [r.split(",")[-2] for r in rows]
+    ids = [r.split(",")[LABEL_COLUMNS.index("used_ids")] for r in rows]
     assert ids[1] == ""  # 300 and 586 are not cap tags
     assert ids[2] == "3"
 

@@ -6,11 +6,14 @@ from __future__ import annotations
 import argparse
 import math
 
-__all__ = ["EXIT_FRAMES_LOST", "int_at_least", "positive_int", "non_negative_int", "finite_float",
-           "positive_float", "non_negative_float", "time_window"]
+__all__ = ["EXIT_FRAMES_LOST", "ROW_ORDERS", "int_at_least", "positive_int", "non_negative_int", "finite_float",
+           "positive_float", "non_negative_float", "duration_ms", "offset_ms", "time_window"]
 
 #: Exit code of a verb that finished but lost frames to a damaged (cut, corrupt) input.
 EXIT_FRAMES_LOST = 3
+#: ``--row-order``'s choices: ``geometry.camera.ROW_ORDERS``, named here so that parsing the
+#: command line does not import the geometry (and OpenCV).
+ROW_ORDERS = ("top_to_bottom", "bottom_to_top")
 
 
 def int_at_least(text: str, least: int) -> int:
@@ -59,6 +62,24 @@ def non_negative_float(text: str) -> float:
     if not value >= 0:
         raise argparse.ArgumentTypeError(f"expected a number >= 0, got {value}")
     return value
+
+
+def _ms_within(text: str, low: float, high: float) -> float:
+    value = finite_float(text)
+    if not low <= value <= high:
+        raise argparse.ArgumentTypeError(f"expected a number of ms in [{low:g}, {high:g}], got {value:g}")
+    return value
+
+
+def duration_ms(text: str) -> float:
+    """argparse type for a camera's exposure or readout time: ms in [0, 1000]
+    (``geometry.camera.CameraTiming``'s range)."""
+    return _ms_within(text, 0.0, 1000.0)
+
+
+def offset_ms(text: str) -> float:
+    """argparse type for a stamp offset: ms in [-1000, 1000] (``CameraTiming``'s range)."""
+    return _ms_within(text, -1000.0, 1000.0)
 
 
 def time_window(text: str) -> tuple[float, float]:

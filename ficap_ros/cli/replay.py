@@ -3,9 +3,13 @@
 from __future__ import annotations
 
 import argparse
+from typing import Any
 
 from ficap_ros.cli.args import (
+    ROW_ORDERS,
+    duration_ms,
     non_negative_int,
+    offset_ms,
     positive_float,
     positive_int,
     time_window,
@@ -61,6 +65,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "calibrate R_cap_head from them and apply it to every frame")
     parser.add_argument("--namespace", default="",
                         help="topic namespace in labels.mcap (default: none, as the node: /head_pose ...)")
+    timing = parser.add_argument_group(
+        "camera timing", "when the camera's rows see the scene (the node's camera.* parameters); "
+        "each one given replaces that field of the recording's own timing (a camera_timing "
+        "mapping in --intrinsics, a ficap synth bag's metadata); summary.json records the timing "
+        "used and where it came from")
+    timing.add_argument("--exposure-ms", type=duration_ms, metavar="MS",
+                        help="each row's exposure time, ms (0 = not known)")
+    timing.add_argument("--readout-ms", type=duration_ms, metavar="MS",
+                        help="rolling shutter: time between the first and the last row's "
+                             "exposure centres, ms (0 = a global shutter)")
+    timing.add_argument("--row-order", choices=ROW_ORDERS,
+                        help="order in which a rolling shutter reads its rows")
+    timing.add_argument("--stamp-offset-ms", type=offset_ms, metavar="MS",
+                        help="added to each stamp to reach the middle row's mid-exposure, ms "
+                             "(the poses are reported at the stamp plus it)")
     fleet = parser.add_argument_group(
         "fleet", "several recordings: one output folder each under --out (mirroring the inputs) "
                  "and fleet_summary.csv/.json/.png; recordings whose outputs match this run's "
@@ -78,6 +97,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help="redo recordings whose outputs are already current")
     fleet.add_argument("--videos", action="store_true",
                        help="also take video files found in searched folders (needs --intrinsics)")
+
+
+def timing_fields(args: argparse.Namespace) -> dict[str, Any]:
+    """The camera timing fields given on the command line (``CameraTiming``'s names)."""
+    names = ("exposure_ms", "readout_ms", "row_order", "stamp_offset_ms")
+    return {n: getattr(args, n) for n in names if getattr(args, n, None) is not None}
 
 
 def open_source(args: argparse.Namespace, path: object = None):  # noqa: ANN201 - FrameSource
@@ -143,7 +168,7 @@ def run(args: argparse.Namespace) -> int:
     source = open_source(args)
     out = replay(source, args.out, model, PoseConfig(method=args.method), calibration,
                  args.calibrate_frontal, jobs, args.namespace, progress=not args.quiet,
-                 detector=detector)
+                 detector=detector, timing=timing_fields(args))
     s = out.summary
     line = (f"{s['frames']} frames, {s['frames_with_pose']} with a pose "
             f"({s['pct_with_pose']:.1f} %), >=1 tag {s['pct_ge1_tag']:.1f} %, >=4 tags "
@@ -173,13 +198,13 @@ def _run_fleet(args: argparse.Namespace, model, calibration, detector) -> int:  
     pose = PoseConfig(method=args.method)
     settings = label_settings(model, pose, calibration, args.calibrate_frontal, args.namespace,
                               args.image_topic, args.camera_info_topic, args.intrinsics, args.fps,
-                              args.rectified, detector)
+                              args.rectified, detector, timing_fields(args))
     single = len(recordings) == 1 and str(recordings[0].rel) == "."
     fleet = run_fleet(
         recordings, args.out, lambda path: open_source(args, path), model, pose, settings,
         calibration, args.calibrate_frontal, args.namespace, args.jobs, args.ray_address,
         args.ray, args.retries, args.force, progress=not args.quiet, summary_files=not single,
-        detector=detector)
+        detector=detector, timing=timing_fields(args))
     for r in fleet.results:
         if r.status == "failed":
             print(f"{r.rel}: failed: {r.error}")

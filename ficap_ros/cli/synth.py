@@ -7,7 +7,13 @@ import json
 from pathlib import Path
 from typing import TYPE_CHECKING
 
-from ficap_ros.cli.args import non_negative_float, positive_float, positive_int
+from ficap_ros.cli.args import (
+    ROW_ORDERS,
+    duration_ms,
+    non_negative_float,
+    positive_float,
+    positive_int,
+)
 
 if TYPE_CHECKING:
     import numpy as np
@@ -15,7 +21,7 @@ if TYPE_CHECKING:
 
     from ficap_ros.geometry.cap_model import CapModel
     from ficap_ros.io.bag_writer import BagWriter
-    from ficap_ros.tools.synth import DriveFrame, DriveScene, RenderConfig
+    from ficap_ros.tools.synth import DriveFrame, DriveMotion, DriveScene, RenderConfig
 
 HELP = ("render a naturalistic drive of the cap into a rosbag2 MCAP bag: CompressedImage (JPEG), "
         "CameraInfo and ground-truth cap and head poses")
@@ -27,6 +33,9 @@ TRUTH_CAP_TOPIC = "/ficap/truth/cap_pose"
 TRUTH_HEAD_TOPIC = "/ficap/truth/head_pose"
 TRUTH_HEAD_CAMERA_TOPIC = "/ficap/truth/head_pose_camera"
 TRUTH_FRONTAL_TOPIC = "/ficap/truth/frontal"
+TRUTH_TWIST_TOPIC = "/ficap/truth/cap_twist"
+#: Head motions of ``--motion`` (``synth.MOTIONS``, named here so parsing needs no OpenCV).
+MOTIONS = ("naturalistic", "glances")
 CAMERA_FRAME = "camera_optical_frame"
 FRONTAL_FRAME = "frontal"
 #: First stamp of a synth bag (2023-11-14 22:13:20 UTC): a realistic epoch, fixed so bags are
@@ -77,6 +86,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
     parser.add_argument("--frontal-s", type=non_negative_float, default=3.0,
                         help="initial looking-straight-ahead segment, s (default 3)")
+    parser.add_argument("--motion", choices=MOTIONS, default="naturalistic",
+                        help="head motion: naturalistic (looking ahead, glances now and then) or "
+                             "glances (glances back to back, every turn peaking at 150-250 deg/s) "
+                             "(default naturalistic)")
     parser.add_argument("--jpeg-quality", type=_jpeg_quality, default=95,
                         help="JPEG quality, 1..100 (default 95)")
     cam = parser.add_argument_group(
@@ -98,6 +111,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                      help="sensor gain (default auto: keeps the lighting's brightness)")
     cam.add_argument("--motion-blur", action="store_true",
                      help="integrate the head motion over the exposure (truth = mid-exposure pose)")
+    cam.add_argument("--readout-ms", type=duration_ms, default=0.0, metavar="MS",
+                     help="rolling shutter: rows exposed one after another, the first and the last "
+                          "row's exposure centres MS apart, the middle row's at the stamp (truth = "
+                          "the pose at the stamp); without --motion-blur each row is an instant "
+                          "(default 0: a global shutter)")
+    cam.add_argument("--row-order", choices=ROW_ORDERS, default="top_to_bottom",
+                     help="order in which the rolling shutter reads its rows (default top_to_bottom)")
     cam.add_argument("--no-noise", action="store_true", help="no shot or read noise")
     parser.add_argument("--model", help="cap model YAML to render (default: nominal)")
     parser.add_argument("--quiet", action="store_true", help="no progress output")
@@ -115,11 +135,13 @@ def run(args: argparse.Namespace) -> int:
     # Built here so a bad knob fails before anything is written.
     config = RenderConfig(lighting=args.lighting, background_seed=args.seed, psf_sigma_px=args.psf_sigma_px,
                           defocus_radius_px=args.defocus_px, tone=args.tone, gamma=args.gamma,
-                          exposure_ms=args.exposure_ms, gain=args.gain, noise=not args.no_noise)
+                          exposure_ms=args.exposure_ms, gain=args.gain, noise=not args.no_noise,
+                          readout_ms=args.readout_ms, row_order=args.row_order)
     model = load_model(args.model) if args.model else nominal_model()
     info = write_synth_bag(out, model, args.resolution, args.lighting, args.frames, args.fps,
                            args.seed, args.jpeg_quality, progress=not args.quiet,
-                           frontal_s=args.frontal_s, config=config, motion_blur=args.motion_blur)
+                           frontal_s=args.frontal_s, config=config, motion_blur=args.motion_blur,
+                           motion=args.motion)
     print(f"{args.frames} frames {info['width']}x{info['height']} {args.lighting} -> {out} "
           f"({info['fps_rendered']:.1f} frames/s rendered)")
     return 0
@@ -129,13 +151,16 @@ def write_synth_bag(
     out: str | Path, model: CapModel, resolution: str | tuple[int, int] = "540p",
     lighting: str = "neutral", frames: int = 300, fps: float = 30.0, seed: int = 0,
     jpeg_quality: int = 95, progress: bool = True, frontal_s: float = 3.0,
-    config: RenderConfig | None = None, motion_blur: bool = False,
+    config: RenderConfig | None = None, motion_blur: bool = False, motion: str = "naturalistic",
 ) -> dict[str, float]:
-    """Render ``ficap_ros.tools.synth.naturalistic_drive`` into a rosbag2 MCAP folder at ``out``.
+    """Render a drive (``synth.drive_motion(motion, ...)``: ``naturalistic`` or ``glances``) into
+    a rosbag2 MCAP folder at ``out``.
 
     ``config`` (a ``synth.RenderConfig``; default: the realistic chain for ``lighting``) sets the
     camera; with ``motion_blur`` each frame integrates the motion over its exposure, centred on
-    the frame's stamp (the truth is the pose at the stamp).
+    the frame's stamp (the truth is the pose at the stamp); with ``config.readout_ms`` a rolling
+    shutter exposes each row at its own time (``CameraTiming``'s convention: the middle row's
+    mid-exposure at the stamp, the truth the pose at the stamp), blurred or not.
 
     Topics (all stamped START_NS + the drive's stamp; header stamp = bag receive time):
         ``/camera/image_raw/compressed`` CompressedImage (JPEG), frame ``camera_optical_frame``;
@@ -145,13 +170,17 @@ def write_synth_bag(
             frame F (orientation R_frontal_head, position the cap origin in F), what
             ``ficap evaluate`` compares against labels.csv's head_q*;
         ``/ficap/truth/head_pose_camera`` PoseStamped: true T_cam_head (as the node's head_pose);
-        ``/ficap/truth/frontal`` std_msgs/Bool: inside the initial looking-ahead segment.
+        ``/ficap/truth/frontal`` std_msgs/Bool: inside the initial looking-ahead segment;
+        ``/ficap/truth/cap_twist`` TwistStamped: the cap's true velocity at the stamp, as
+            ``CapPose.velocity`` (camera axes: the cap origin's m/s, then rad/s).
     The scene's true R_cap_head and R_cam_frontal go into the bag's custom metadata
-    (``ficap.R_cap_head_q_wxyz`` ...).
+    (``ficap.R_cap_head_q_wxyz`` ...), and the camera's timing (``ficap.camera_timing``, what
+    ``ficap replay`` reads: ``CameraTiming.to_dict``; all zeros for still frames).
 
     Returns:
         dict with width, height, frames, fps_rendered.
     """
+    import dataclasses
     import time
 
     from ficap_ros.io.bag_writer import BagWriter
@@ -159,20 +188,22 @@ def write_synth_bag(
     from ficap_ros.tools.replay import Progress
 
     scene = synth.default_scene(resolution)
-    motion = synth.naturalistic_motion(frames / fps, seed, scene, frontal_s=frontal_s)
-    drive = [motion.frame(i, fps) for i in range(frames)]
-    config = _render_config(config, lighting, seed)
+    drive_motion = synth.drive_motion(motion, frames / fps, seed, scene, frontal_s=frontal_s)
+    drive = [drive_motion.frame(i, fps) for i in range(frames)]
+    config = dataclasses.replace(_render_config(config, lighting, seed), motion_blur=motion_blur)
+    moving = motion_blur or config.readout_ms > 0.0
     bar = Progress(len(drive), "frames rendered", enabled=progress)
     t0 = time.perf_counter()
     with BagWriter(out, storage="mcap", layout="folder") as bag:
         _write_metadata(bag, scene, config, {
             "lighting": lighting, "frames": frames, "fps": fps, "seed": seed,
-            "jpeg_quality": jpeg_quality, "frontal_s": frontal_s, "motion_blur": motion_blur})
+            "jpeg_quality": jpeg_quality, "frontal_s": frontal_s, "motion_blur": motion_blur,
+            "motion": motion})
         _add_topics(bag)
         for f in drive:
-            pose = motion.around(f.stamp_ns / 1e9) if motion_blur else f.T_cam_cap
+            pose = drive_motion.around(f.stamp_ns / 1e9) if moving else f.T_cam_cap
             rendered = synth.render(model, scene.camera, pose, config, seed=seed * 100003 + f.index)
-            _write_frame(bag, scene, f, rendered.image, jpeg_quality)
+            _write_frame(bag, scene, f, rendered.image, jpeg_quality, drive_motion)
             bar.update()
     bar.close()
     elapsed = time.perf_counter() - t0
@@ -200,10 +231,14 @@ def _q_wxyz_json(r: Rotation) -> str:
 
 def _write_metadata(bag: BagWriter, scene: DriveScene, config: RenderConfig,
                     options: dict[str, object]) -> None:
-    """The bag's custom metadata: the scene's true rotations and how the drive was rendered
-    (``options``: lighting, frames, fps, seed, jpeg_quality, frontal_s, motion_blur)."""
+    """The bag's custom metadata: the scene's true rotations, the camera's timing and how the
+    drive was rendered (``options``: lighting, frames, fps, seed, jpeg_quality, frontal_s,
+    motion_blur, motion)."""
+    from ficap_ros.io.sources import TIMING_METADATA_KEY
+
     camera = scene.camera
     exposure_ms, gain = config.exposure_and_gain()
+    bag.set_custom_data(TIMING_METADATA_KEY, json.dumps(config.timing.to_dict()))
     bag.set_custom_data("ficap.R_cap_head_q_wxyz", _q_wxyz_json(scene.R_cap_head))
     bag.set_custom_data("ficap.R_cam_frontal_q_wxyz", _q_wxyz_json(scene.R_cam_frontal))
     bag.set_custom_data("ficap.synth", json.dumps(
@@ -213,7 +248,8 @@ def _write_metadata(bag: BagWriter, scene: DriveScene, config: RenderConfig,
          "psf_sigma_px": config.psf_sigma_for(camera.height_px),
          "defocus_radius_px": config.defocus_radius_px, "tone": config.tone, "gamma": config.gamma,
          "exposure_ms": exposure_ms, "gain": gain, "noise": config.noise,
-         "motion_blur": bool(options["motion_blur"])}))
+         "motion_blur": bool(options["motion_blur"]), "motion": options["motion"],
+         "readout_ms": config.readout_ms, "row_order": config.row_order}))
 
 
 def _add_topics(bag: BagWriter) -> None:
@@ -225,11 +261,13 @@ def _add_topics(bag: BagWriter) -> None:
     bag.add_topic(TRUTH_HEAD_TOPIC, "geometry_msgs/msg/PoseStamped")
     bag.add_topic(TRUTH_HEAD_CAMERA_TOPIC, "geometry_msgs/msg/PoseStamped")
     bag.add_topic(TRUTH_FRONTAL_TOPIC, "std_msgs/msg/Bool")
+    bag.add_topic(TRUTH_TWIST_TOPIC, "geometry_msgs/msg/TwistStamped")
 
 
 def _write_frame(bag: BagWriter, scene: DriveScene, f: DriveFrame, image: np.ndarray,
-                 jpeg_quality: int) -> None:
-    """One frame's messages: CameraInfo, the JPEG image and the true poses, at the frame's stamp."""
+                 jpeg_quality: int, motion: DriveMotion) -> None:
+    """One frame's messages: CameraInfo, the JPEG image, the true poses and the true twist, at
+    the frame's stamp."""
     import cv2
     import numpy as np
 
@@ -241,6 +279,7 @@ def _write_frame(bag: BagWriter, scene: DriveScene, f: DriveFrame, image: np.nda
         header,
         jazzy_typestore,
         pose_stamped,
+        twist_stamped,
     )
 
     stamp = START_NS + f.stamp_ns
@@ -259,3 +298,5 @@ def _write_frame(bag: BagWriter, scene: DriveScene, f: DriveFrame, image: np.nda
     bag.write(TRUTH_HEAD_CAMERA_TOPIC, stamp, pose_stamped(ROSBAGS, in_camera, T_cam_head))
     bag.write(TRUTH_FRONTAL_TOPIC, stamp,
               jazzy_typestore().types["std_msgs/msg/Bool"](data=bool(f.frontal)))
+    bag.write(TRUTH_TWIST_TOPIC, stamp,
+              twist_stamped(ROSBAGS, in_camera, motion.cap_velocity_at(f.stamp_ns / 1e9)))

@@ -24,7 +24,8 @@ import yaml
 from ficap_ros.errors import IntrinsicsError
 from ficap_ros.files import read_text
 
-__all__ = ["CameraModel", "CameraTiming", "DISTORTION_MODELS", "ROW_ORDERS", "load_camera_yaml"]
+__all__ = ["CameraModel", "CameraTiming", "DISTORTION_MODELS", "ROW_ORDERS", "TIMING_KEY",
+           "load_camera_yaml", "load_camera_timing"]
 
 #: Largest image side accepted in intrinsics: beyond any camera, so a larger value is a typo or a
 #: hostile file (the pixel budget of ``image_codec`` bounds the images themselves).
@@ -41,6 +42,10 @@ DISTORTION_MODELS: dict[str, int] = {
 
 #: Orders in which a rolling shutter reads its rows (``CameraTiming.row_order``).
 ROW_ORDERS = ("top_to_bottom", "bottom_to_top")
+#: The camera YAML's optional mapping of ``CameraTiming`` fields (camera_calibration's parsers
+#: ignore keys they do not know, so such a file still loads in ``camera_info_manager``).
+TIMING_KEY = "camera_timing"
+_TIMING_FIELDS = ("exposure_ms", "readout_ms", "row_order", "stamp_offset_ms")
 
 
 @dataclass(frozen=True)
@@ -79,6 +84,42 @@ class CameraTiming:
         if not (math.isfinite(self.stamp_offset_ms) and abs(self.stamp_offset_ms) <= 1000.0):
             raise IntrinsicsError(f"stamp_offset_ms must be in [-1000, 1000] ms, "
                                   f"got {self.stamp_offset_ms}")
+
+    @classmethod
+    def from_mapping(cls, values: Any, what: str = "camera timing") -> CameraTiming:
+        """From a mapping of field names (``to_dict``'s; missing ones take their defaults).
+
+        Raises:
+            IntrinsicsError: not a mapping, an unknown key, a value of the wrong type or out of
+                range (the message names ``what``).
+        """
+        if not isinstance(values, dict):
+            raise IntrinsicsError(f"{what} must be a mapping of {', '.join(_TIMING_FIELDS)}")
+        unknown = sorted(set(map(str, values)) - set(_TIMING_FIELDS))
+        if unknown:
+            raise IntrinsicsError(f"{what}: unknown key {unknown[0]!r} (expected "
+                                  f"{', '.join(_TIMING_FIELDS)})")
+        kw: dict[str, Any] = {}
+        for name, value in values.items():
+            if name == "row_order":
+                if not isinstance(value, str):
+                    raise IntrinsicsError(f"{what}: row_order must be a string, got {value!r}")
+                kw[name] = value
+            elif isinstance(value, (int, float)) and not isinstance(value, bool) and \
+                    not abs(value) >= 1e300:  # NaN goes on to the range check
+                kw[name] = float(value)
+            else:
+                raise IntrinsicsError(f"{what}: {name} must be a number of ms, got {value!r}")
+        try:
+            return cls(**kw)
+        except IntrinsicsError as err:
+            raise IntrinsicsError(f"{what}: {err}") from None
+
+    def to_dict(self) -> dict[str, Any]:
+        """The fields as plain values (the camera YAML's ``camera_timing``, summary.json's,
+        a synth bag's metadata): ``from_mapping`` reads it back to an equal timing."""
+        return {"exposure_ms": float(self.exposure_ms), "readout_ms": float(self.readout_ms),
+                "row_order": self.row_order, "stamp_offset_ms": float(self.stamp_offset_ms)}
 
     @property
     def rolling(self) -> bool:
@@ -258,10 +299,13 @@ class CameraModel:
             self.distortion_model,
         )
 
-    def to_camera_yaml(self, name: str = "camera") -> dict[str, Any]:
-        """The camera_calibration (ROS ``camera_info_manager``) YAML form."""
+    def to_camera_yaml(self, name: str = "camera",
+                       timing: CameraTiming | None = None) -> dict[str, Any]:
+        """The camera_calibration (ROS ``camera_info_manager``) YAML form; with ``timing``, also
+        its ``camera_timing`` mapping (``load_camera_timing`` reads it back)."""
         d = self.D.tolist()
         p = np.hstack([self.K, np.zeros((3, 1))])
+        extra = {} if timing is None else {TIMING_KEY: timing.to_dict()}
         return {
             "image_width": self.width_px,
             "image_height": self.height_px,
@@ -271,11 +315,12 @@ class CameraModel:
             "distortion_coefficients": {"rows": 1, "cols": len(d) or 5, "data": d or [0.0] * 5},
             "rectification_matrix": {"rows": 3, "cols": 3, "data": np.eye(3).reshape(-1).tolist()},
             "projection_matrix": {"rows": 3, "cols": 4, "data": p.reshape(-1).tolist()},
+            **extra,
         }
 
 
-def load_camera_yaml(path: str | Path) -> CameraModel:
-    """Read intrinsics in the camera_calibration YAML format; raises ``IntrinsicsError``."""
+def _read_camera_yaml(path: str | Path) -> dict[str, Any]:
+    """A camera_calibration YAML file as its mapping; raises ``IntrinsicsError``."""
     text = read_text(path, "intrinsics", IntrinsicsError)
     try:
         data = yaml.safe_load(text)
@@ -283,6 +328,12 @@ def load_camera_yaml(path: str | Path) -> CameraModel:
         raise IntrinsicsError(f"intrinsics {path} is not valid YAML") from err
     if not isinstance(data, dict):
         raise IntrinsicsError(f"intrinsics {path} is not a camera_calibration YAML mapping")
+    return data
+
+
+def load_camera_yaml(path: str | Path) -> CameraModel:
+    """Read intrinsics in the camera_calibration YAML format; raises ``IntrinsicsError``."""
+    data = _read_camera_yaml(path)
     try:
         k = data["camera_matrix"]["data"]
         d = data.get("distortion_coefficients", {}).get("data", []) or []
@@ -292,3 +343,16 @@ def load_camera_yaml(path: str | Path) -> CameraModel:
         )
     except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as err:
         raise IntrinsicsError(f"intrinsics {path}: missing or malformed field {err}") from err
+
+
+def load_camera_timing(path: str | Path) -> CameraTiming | None:
+    """The ``camera_timing`` mapping of a camera YAML (``CameraModel.to_camera_yaml``), or None
+    when the file has none (its timing is not known).
+
+    Raises:
+        IntrinsicsError: an unreadable file or a malformed ``camera_timing``.
+    """
+    data = _read_camera_yaml(path)
+    if data.get(TIMING_KEY) is None:
+        return None
+    return CameraTiming.from_mapping(data[TIMING_KEY], f"intrinsics {path}: {TIMING_KEY}")

@@ -23,7 +23,8 @@ from scipy.spatial.transform import Rotation
 
 from ficap_ros.errors import ConfigError
 
-__all__ = ["Transform", "CAM_FROM_FORWARD", "rotate_covariance", "compose", "inverse", "from_rotvec"]
+__all__ = ["Transform", "CAM_FROM_FORWARD", "rotate_covariance", "rotate_twist", "compose", "inverse",
+           "from_rotvec"]
 
 #: A quaternion (x, y, z, w) as four Python floats.
 Quat = tuple[float, float, float, float]
@@ -329,3 +330,11 @@ def rotate_covariance(covariance: np.ndarray, rotation: Rotation) -> np.ndarray:
     B[:3, :3] = R
     B[3:, 3:] = R
     return B @ np.asarray(covariance, dtype=np.float64).reshape(6, 6) @ B.T
+
+
+def rotate_twist(twist: np.ndarray, rotation: Rotation) -> np.ndarray:
+    """A (6,) twist (ROS order: linear, then angular velocity, in the parent frame's axes)
+    re-expressed in a parent frame rotated by ``rotation`` (R_new_old): both vectors turn with the
+    axes (a fixed frame's rotation adds no motion: what a static mount does)."""
+    v = np.asarray(twist, dtype=np.float64).reshape(6)
+    return np.concatenate([rotation.apply(v[:3]), rotation.apply(v[3:])])

@@ -11,6 +11,10 @@ Frames and quaternions (CSV columns are w, x, y, z; ROS messages store x, y, z, 
         geodesic rotation angle (deg) and the translation length (mm), from the covariance
         (``ficap_ros.vision.pose``: residuals, corner bias, cap model, intrinsics); ``reliability`` is
         derived from rot_err95_deg. They do not include the head calibration's own uncertainty.
+    head_v*_m_s, head_w*_rad_s (the last six columns): the head's twist at the stamp in the
+        frontal frame F's axes (the velocity of the head origin, which is the cap origin, in m/s;
+        its angular velocity in rad/s, ``R(t + dt) = exp([w] dt) R(t)``); empty (NaN) where the
+        pose estimator does not measure it (``CapPose.velocity`` None) or there is no pose.
 
 labels.mcap holds the live node's topics (``ficap_ros.ros.node``), with the same messages, each stamped
 with the image stamp (header and bag receive time), frame = the image's frame_id; names relative to
@@ -27,6 +31,8 @@ with the image stamp (header and bag receive time), frame = the image's frame_id
         (``ficap_ros.io.status.record_status``): OK with a pose, WARN without one or below reliability
         0.5, ERROR for an undecodable image; values tags_detected, tags_used, rms_px, reliability,
         calibrated and, with a pose, yaw_deg, pitch_deg, roll_deg (R_frontal_head).
+    ``head_twist`` TwistStamped: the head's twist (``ficap_ros.ros.twist``: the cap origin's
+        linear velocity and the angular velocity, camera axes), for images whose pose has one.
     ``/tf`` (never namespaced) tf2_msgs/TFMessage per posed image: ``ficap_frontal`` -> the camera
         frame (R_frontal_cam, the frontal frame's orientation; origin at the camera), camera ->
         ``ficap_cap`` (T_cam_cap), ``ficap_cap`` -> ``ficap_head`` (R_cap_head), so a 3-D view
@@ -49,7 +55,7 @@ from scipy.spatial.transform import Rotation
 
 from ficap_ros.errors import BagError
 from ficap_ros.geometry.metrics import yaw_pitch_roll_deg
-from ficap_ros.geometry.transform import Transform, inverse
+from ficap_ros.geometry.transform import Transform, inverse, rotate_twist
 from ficap_ros.io.status import (
     FrameStatus,
     quality_values,
@@ -63,6 +69,7 @@ from ficap_ros.vision.pose import CapPose
 
 __all__ = [
     "LABEL_COLUMNS",
+    "TWIST_COLUMNS",
     "DEFAULT_NAMESPACE",
     "DEFAULT_CAMERA_FRAME",
     "UNCALIBRATED",
@@ -77,6 +84,9 @@ __all__ = [
     "label_topics",
 ]
 
+#: The head twist's CSV columns (the last six): linear velocity, then angular velocity, in F.
+TWIST_COLUMNS: tuple[str, ...] = (
+    "head_vx_m_s", "head_vy_m_s", "head_vz_m_s", "head_wx_rad_s", "head_wy_rad_s", "head_wz_rad_s")
 #: CSV columns, in order.
 LABEL_COLUMNS: tuple[str, ...] = (
     "frame", "stamp_ns", "tags_detected", "tags_used", "rms_px", "reliability",
@@ -84,6 +94,7 @@ LABEL_COLUMNS: tuple[str, ...] = (
     "cap_qw", "cap_qx", "cap_qy", "cap_qz", "cap_x_m", "cap_y_m", "cap_z_m",
     "head_qw", "head_qx", "head_qy", "head_qz", "head_yaw_deg", "head_pitch_deg", "head_roll_deg",
     "calibrated", "method", "detected_ids", "used_ids", "reason",
+    *TWIST_COLUMNS,
 )
 DEFAULT_NAMESPACE = ""
 #: frame_id of labels whose images carry none.
@@ -234,6 +245,21 @@ class FrameRecord:
         return None if self.pose is None else np.asarray(self.pose.covariance, dtype=np.float64).reshape(6, 6)
 
     @property
+    def head_twist_cam(self) -> np.ndarray | None:
+        """The head's twist at the stamp, (6,) ROS order in the camera's axes, or None when the
+        estimator does not measure it: the cap's (``CapPose.velocity``), since the head's origin
+        is the cap's and both turn together."""
+        if self.pose is None or self.pose.velocity is None:
+            return None
+        return np.asarray(self.pose.velocity, dtype=np.float64).reshape(6)
+
+    @property
+    def head_twist_frontal(self) -> np.ndarray | None:
+        """``head_twist_cam`` in the frontal frame F's axes (labels.csv's twist columns)."""
+        twist = self.head_twist_cam
+        return None if twist is None else rotate_twist(twist, self.R_frontal_cam)
+
+    @property
     def R_frontal_cam(self) -> Rotation:
         """Orientation of the camera in the frontal frame F."""
         return self.calibration.R_cam_frontal.inv()
@@ -259,8 +285,14 @@ def _csv_row(rec: FrameRecord) -> list[str]:
         _f(rec.rms_px, 4), _f(rec.reliability, 4), _f(rec.rot_err95_deg, 4),
         _f(rec.trans_err95_mm, 3), *cap, *head, "1" if rec.calibrated else "0",
         rec.method, " ".join(map(str, rec.detected_ids)), " ".join(map(str, rec.used_ids)),
-        status_reason(rec),
+        status_reason(rec), *_twist_fields(rec),
     ]
+
+
+def _twist_fields(rec: FrameRecord) -> list[str]:
+    """The twist columns: m/s and rad/s to 6 decimals, empty without a measured twist."""
+    twist = rec.head_twist_frontal
+    return [""] * 6 if twist is None else [_f(v, 6) for v in twist]
 
 
 def labels_csv_text(records: Iterable[FrameRecord]) -> str:
@@ -288,6 +320,8 @@ class Labels:
         calibrated: (N,) bool.
         detected_ids: per row, the detected tag ids.
         reasons: per row, why there is no pose ("" with one).
+        head_twist: (N, 6) the head's twist in F (m/s, rad/s; ``TWIST_COLUMNS``), NaN where not
+            measured (and in files without those columns).
     """
 
     stamp_ns: np.ndarray
@@ -305,6 +339,7 @@ class Labels:
     reasons: tuple[str, ...]
     rot_err95_deg: np.ndarray | None = None
     trans_err95_mm: np.ndarray | None = None
+    head_twist: np.ndarray | None = None
 
     def __len__(self) -> int:
         return int(self.stamp_ns.size)
@@ -400,6 +435,7 @@ def read_labels(path: str | Path) -> Labels:
             reasons=tuple((r.get("reason") or "") for r in rows),
             rot_err95_deg=col("rot_err95_deg"),
             trans_err95_mm=col("trans_err95_mm"),
+            head_twist=np.stack([col(c) for c in TWIST_COLUMNS], axis=-1).reshape(-1, 6),
         )
     except (ValueError, KeyError, TypeError) as err:
         raise BagError(f"{path}: malformed labels row: {_first_bad_field(rows) or err}") from err
@@ -410,7 +446,8 @@ def _first_bad_field(rows: list[dict[str, str]]) -> str:
     the header as row 1, as the field-count check does), or '' when no field is to blame."""
     numbers = {"tags_detected", "tags_used", "rms_px", "reliability", "rot_err95_deg",
                "trans_err95_mm", *(f"{p}_q{a}" for p in ("cap", "head") for a in "wxyz"),
-               *(f"cap_{a}_m" for a in "xyz"), *(f"head_{a}_deg" for a in ("yaw", "pitch", "roll"))}
+               *(f"cap_{a}_m" for a in "xyz"), *(f"head_{a}_deg" for a in ("yaw", "pitch", "roll")),
+               *TWIST_COLUMNS}
     for n, r in enumerate(rows):
         for name, value in r.items():
             try:
@@ -425,7 +462,7 @@ def _first_bad_field(rows: list[dict[str, str]]) -> str:
 
 def label_topics(namespace: str = DEFAULT_NAMESPACE) -> dict[str, str]:
     """Topic name per label stream: cap_pose, head_pose, head_pose_cov, head_frontal, head_rpy,
-    quality, status, tf (``/tf`` is global, as in ROS: never namespaced)."""
+    quality, status, tf (``/tf`` is global, as in ROS: never namespaced), head_twist."""
     ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
     return {
         "cap_pose": f"{ns}/cap_pose",
@@ -436,6 +473,7 @@ def label_topics(namespace: str = DEFAULT_NAMESPACE) -> dict[str, str]:
         "quality": f"{ns}/quality",
         "status": f"{ns}/status",
         "tf": "/tf",
+        "head_twist": f"{ns}/head_twist",
     }
 
 
@@ -518,6 +556,7 @@ def write_labels_bag(path: str | Path, records: Sequence[FrameRecord],
         header,
         pose_stamped,
         pose_with_covariance_stamped,
+        twist_stamped,
     )
 
     topics = label_topics(namespace)
@@ -530,6 +569,7 @@ def write_labels_bag(path: str | Path, records: Sequence[FrameRecord],
         bag.add_topic(topics["quality"], "sensor_msgs/msg/JointState")
         bag.add_topic(topics["status"], "diagnostic_msgs/msg/DiagnosticArray")
         bag.add_topic(topics["tf"], "tf2_msgs/msg/TFMessage")
+        bag.add_topic(topics["head_twist"], "geometry_msgs/msg/TwistStamped")
         for rec in records:
             if rec.T_cam_cap is not None and rec.T_frontal_head is not None:
                 in_camera = header(ROSBAGS, rec.stamp_ns, rec.frame_id)
@@ -547,5 +587,8 @@ def write_labels_bag(path: str | Path, records: Sequence[FrameRecord],
                                        rec.T_frontal_head))
                 bag.write(topics["head_rpy"], rec.stamp_ns, _rpy_msg(rec))
                 bag.write(topics["tf"], rec.stamp_ns, _tf_msg(rec))
+                if rec.head_twist_cam is not None:
+                    bag.write(topics["head_twist"], rec.stamp_ns,
+                              twist_stamped(ROSBAGS, in_camera, rec.head_twist_cam))
             bag.write(topics["quality"], rec.stamp_ns, _quality_msg(rec))
             bag.write(topics["status"], rec.stamp_ns, _status_msg(rec))

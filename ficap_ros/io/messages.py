@@ -26,7 +26,8 @@ from ficap_ros.geometry.transform import Transform
 from ficap_ros.io.image_codec import decode_compressed, decode_image, encoding_layout
 
 __all__ = ["MessageClasses", "ROSBAGS", "jazzy_typestore", "as_bytes", "time", "header", "pose",
-           "pose_stamped", "pose_with_covariance_stamped", "rpy_deg", "named_values",
+           "pose_stamped", "pose_with_covariance_stamped", "rpy_deg", "named_values", "twist_stamped",
+           "twist_to_array",
            "camera_info", "image",
            "compressed_image", "image_to_array", "compressed_to_array", "orientation",
            "pose_to_transform", "UNKNOWN_COVARIANCE"]
@@ -140,6 +141,16 @@ def rpy_deg(c: MessageClasses, head: Any, R_frontal_head: Rotation) -> Any:
         header=head, vector=c.types["geometry_msgs/msg/Vector3"](x=roll, y=pitch, z=yaw))
 
 
+def twist_stamped(c: MessageClasses, head: Any, twist: np.ndarray) -> Any:
+    """``geometry_msgs/TwistStamped`` of a (6,) twist in ROS order: the linear velocity (m/s),
+    then the angular velocity (rad/s), both in the axes of ``head``'s frame."""
+    v = [float(x) for x in np.asarray(twist, dtype=np.float64).reshape(6)]
+    vector = c.types["geometry_msgs/msg/Vector3"]
+    return c.types["geometry_msgs/msg/TwistStamped"](
+        header=head, twist=c.types["geometry_msgs/msg/Twist"](
+            linear=vector(x=v[0], y=v[1], z=v[2]), angular=vector(x=v[3], y=v[4], z=v[5])))
+
+
 def named_values(c: MessageClasses, head: Any, values: Mapping[str, float]) -> Any:
     """Per-frame numbers as a ``sensor_msgs/JointState``: ``name[i]`` labels ``position[i]``.
 
@@ -220,6 +231,13 @@ def orientation(msg: Any) -> Any:
     p = msg.pose
     p = p.pose if hasattr(p, "pose") else p  # WithCovariance / Odometry
     return p.orientation
+
+
+def twist_to_array(msg: Any) -> np.ndarray:
+    """A Twist or TwistStamped as (6,): linear (m/s), then angular (rad/s)."""
+    t = msg.twist if hasattr(msg, "twist") else msg
+    return np.array([t.linear.x, t.linear.y, t.linear.z, t.angular.x, t.angular.y, t.angular.z],
+                    dtype=np.float64)
 
 
 def pose_to_transform(msg: Any) -> Transform:

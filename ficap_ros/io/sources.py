@@ -27,8 +27,13 @@ from typing import Any, Iterator
 
 import numpy as np
 
-from ficap_ros.errors import BagError, FicapError, ImageError, one_line
-from ficap_ros.geometry.camera import CameraModel, load_camera_yaml
+from ficap_ros.errors import BagError, FicapError, ImageError, IntrinsicsError, one_line
+from ficap_ros.geometry.camera import (
+    CameraModel,
+    CameraTiming,
+    load_camera_timing,
+    load_camera_yaml,
+)
 from ficap_ros.io.camera_info import (
     CAMERA_INFO_MAX_STAMP_DIFF_NS,
     camera_from_info,
@@ -55,11 +60,15 @@ __all__ = [
     "decode_raw",
     "jazzy_typestore",
     "open_bag_reader",
+    "TIMING_METADATA_KEY",
 ]
 
 IMAGE_TYPE = "sensor_msgs/msg/Image"
 COMPRESSED_TYPE = "sensor_msgs/msg/CompressedImage"
 CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
+#: The key of a bag's ``custom_data`` (metadata.yaml) holding its camera's timing as JSON
+#: (``CameraTiming.to_dict``): ``ficap synth`` writes it.
+TIMING_METADATA_KEY = "ficap.camera_timing"
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv", ".h264")
 
 
@@ -265,6 +274,9 @@ class FrameSource:
         camera_info_topic: the CameraInfo topic used ("" when intrinsics come from a file).
         count: number of images (exact for bags, the container's estimate for videos).
         start_ns: stamp of the first image (0 when empty).
+        timing: the camera's timing as the inputs say (the intrinsics file's ``camera_timing``,
+            else a bag folder's metadata ``ficap.camera_timing``), or None: not known.
+        timing_source: where ``timing`` comes from: ``intrinsics``, ``bag metadata`` or ''.
     """
 
     kind: RecordingKind
@@ -278,6 +290,11 @@ class FrameSource:
         self._intrinsics: CameraModel | None = (
             intrinsics if isinstance(intrinsics, CameraModel) or intrinsics is None
             else load_camera_yaml(intrinsics))
+        self.timing: CameraTiming | None = None
+        self.timing_source = ""
+        if not (isinstance(intrinsics, CameraModel) or intrinsics is None):
+            self.timing = load_camera_timing(intrinsics)
+            self.timing_source = "intrinsics" if self.timing is not None else ""
         if not self.path.exists():
             raise BagError(f"{self.path} does not exist")
         self._damage: Any = None  # salvage.Damage of the container, if damaged
@@ -337,6 +354,9 @@ class BagSource(FrameSource):
         self._rectified = bool(rectified)
         self._max_stamp_diff_ns = int(camera_info_max_stamp_diff_ns)
         self._load_bag(image_topic, camera_info_topic)
+        if self.timing is None:
+            self.timing = _bag_timing(self.path)
+            self.timing_source = "bag metadata" if self.timing is not None else ""
         self._info_ns = [s for s, _ in self._info]
         self.start_ns = _first_stamp(self)
 
@@ -467,6 +487,28 @@ class BagSource(FrameSource):
         out.sort(key=lambda item: item[0])
         return out
 
+
+
+def _bag_timing(path: Path) -> CameraTiming | None:
+    """The camera timing a bag folder's metadata.yaml holds under ``TIMING_METADATA_KEY``
+    (None: none, or not a folder with a readable metadata.yaml).
+
+    Raises:
+        BagError: the key is there but does not hold a valid timing.
+    """
+    import json
+
+    import yaml
+
+    try:
+        meta = yaml.safe_load((path / "metadata.yaml").read_text(encoding="utf-8"))
+        text = meta["rosbag2_bagfile_information"]["custom_data"][TIMING_METADATA_KEY]
+    except (OSError, ValueError, yaml.YAMLError, KeyError, TypeError):
+        return None
+    try:
+        return CameraTiming.from_mapping(json.loads(text), f"metadata {TIMING_METADATA_KEY}")
+    except (ValueError, TypeError, IntrinsicsError) as err:
+        raise BagError(f"bag {path}: {one_line(err)}") from err
 
 
 class VideoSource(FrameSource):

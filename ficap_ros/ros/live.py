@@ -15,8 +15,13 @@ from typing import Any
 
 import numpy as np
 
-from ficap_ros.errors import FicapError
-from ficap_ros.geometry.camera import CameraModel
+from ficap_ros.errors import ConfigError, FicapError, IntrinsicsError
+from ficap_ros.geometry.camera import (
+    CameraModel,
+    CameraTiming,
+    load_camera_timing,
+    load_camera_yaml,
+)
 from ficap_ros.geometry.cap_model import load_model, nominal_model
 from ficap_ros.io import messages
 from ficap_ros.io.camera_info import CameraInfoCache
@@ -32,7 +37,8 @@ from ficap_ros.vision.calibration import HeadCalibration
 from ficap_ros.vision.detector import TagDetection
 from ficap_ros.vision.pipeline import FrameProcessor
 
-__all__ = ["LiveFrame", "frame_processor", "failed_frame", "process_image", "reference_q_xyzw"]
+__all__ = ["LiveFrame", "frame_processor", "apply_settings", "camera_timing", "failed_frame",
+           "process_image", "reference_q_xyzw"]
 
 
 @dataclass(frozen=True)
@@ -77,14 +83,43 @@ class LiveFrame:
 
 def frame_processor(config: Any) -> FrameProcessor:
     """The pipeline of the node's settings (``ros.params.NodeConfig``: cap model, detector, pose,
-    tracking).
+    tracking, the camera's timing: ``camera_timing``).
 
     Raises:
-        ModelError: an unreadable ``model_file``. ConfigError: bad detector settings.
+        ModelError: an unreadable ``model_file``. ConfigError: bad detector settings, or a
+        malformed ``camera_timing`` in ``camera_info_file``.
     """
     return FrameProcessor(model=load_model(config.model_file) if config.model_file else nominal_model(),
                           detector=config.detector_config, pose=config.pose_config,
-                          tracking=config.tracking)
+                          tracking=config.tracking, timing=camera_timing(config))
+
+
+def apply_settings(processor: FrameProcessor, config: Any) -> None:
+    """Apply the settings a running pipeline takes from the next frame on (the node's parameters
+    changed): the pose settings and the camera's timing (``camera_timing``)."""
+    processor.pose_config = config.pose_config
+    processor.timing = camera_timing(config)
+
+
+def camera_timing(config: Any) -> CameraTiming:
+    """The camera's timing under the node's settings: the ``camera.*`` parameters when any is
+    set (``NodeConfig.camera_timing``), else the ``camera_timing`` mapping of
+    ``camera_info_file``, else ``CameraTiming()`` (not known).
+
+    Raises:
+        ConfigError: the file's intrinsics read but its ``camera_timing`` is malformed (a file
+        that does not read at all is the CameraInfo cache's error, reported there).
+    """
+    if config.camera_timing is not None or not config.camera_info_file:
+        return config.camera_timing or CameraTiming()
+    try:
+        return load_camera_timing(config.camera_info_file) or CameraTiming()
+    except IntrinsicsError as err:
+        try:
+            load_camera_yaml(config.camera_info_file)
+        except IntrinsicsError:
+            return CameraTiming()
+        raise ConfigError(str(err)) from None
 
 
 def failed_frame(stamp_ns: int, frame_id: str, reason: str,

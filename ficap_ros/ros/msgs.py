@@ -166,7 +166,10 @@ def pose_outputs(header: Header, record: FrameRecord, output_frame: str, frontal
                  mount: Transform | None) -> dict[str, object]:
     """The node's pose messages of a posed frame, by publisher: ``head``, ``head_cov``, ``cap``
     (in ``output_frame`` through ``mount``, else the image's frame), ``head_frontal`` and ``rpy``
-    (the head in the frontal frame: ``output_frame``, else ``frontal_frame``)."""
+    (the head in the frontal frame: ``output_frame``, else ``frontal_frame``), and ``twist``
+    (``ros.twist.head_twist``, like ``head``) when the estimator measures the velocity."""
+    from ficap_ros.ros.twist import head_twist
+
     pose, T_cam_head, T_frontal_head = record.pose, record.T_cam_head, record.T_frontal_head
     assert pose is not None and T_cam_head is not None and T_frontal_head is not None
     out = Header(stamp=header.stamp, frame_id=output_frame or header.frame_id)
@@ -184,4 +187,5 @@ def pose_outputs(header: Header, record: FrameRecord, output_frame: str, frontal
         "head_frontal": messages.pose_stamped(RCLPY, frontal, mount * T_cam_head if mount is not None
                                               else T_frontal_head),
         "rpy": messages.rpy_deg(RCLPY, frontal, T_frontal_head.rotation),
+        **({"twist": twist} if (twist := head_twist(header, record, output_frame, mount)) else {}),
     }

@@ -10,7 +10,8 @@ Publishes (stamp = the image's; poses in the image's frame, or in ``output_frame
     ``head_pose/with_covariance`` (PoseWithCovarianceStamped, the estimator's covariance in ROS
     order, rotated into the output frame), ``cap_pose`` (PoseStamped, uncalibrated),
     ``head_pose/frontal`` (PoseStamped: the head in the frontal frame F), ``head_rpy_deg``
-    (Vector3Stamped: x roll, y pitch, z yaw of the head in F, degrees, REP-103), ``quality``
+    (Vector3Stamped: x roll, y pitch, z yaw of the head in F, degrees, REP-103), ``head_twist``
+    (TwistStamped: the head's velocity when the estimator measures it, ``ros.twist``), ``quality``
     (JointState: numeric per-frame tag counts, reliability, rms and error bounds by name), ``status``
     (DiagnosticArray, one per frame), ``/diagnostics`` (1 Hz health), ``markers`` (MarkerArray, in the
     camera frame) and ``debug_image`` (Image) only while someone subscribes.
@@ -53,6 +54,7 @@ from ficap_ros.io.status import PeriodStats
 from ficap_ros.ros import live
 from ficap_ros.ros import msgs as ros_msgs
 from ficap_ros.ros import params as ros_params
+from ficap_ros.ros import twist as ros_twist
 from ficap_ros.ros.live_calibration import LiveCalibration, compute_calibration
 from ficap_ros.ros.mailbox import Mailbox
 from ficap_ros.ros.spin import run_node
@@ -137,7 +139,8 @@ class FicapNode(Node):
                       "head_cov": pub(PoseWithCovarianceStamped, "head_pose/with_covariance", 10),
                       "cap": pub(PoseStamped, "cap_pose", 10),
                       "head_frontal": pub(PoseStamped, "head_pose/frontal", 10),
-                      "rpy": pub(Vector3Stamped, "head_rpy_deg", 10)}
+                      "rpy": pub(Vector3Stamped, "head_rpy_deg", 10),
+                      "twist": ros_twist.create_publisher(self)}
         self._pub_quality = pub(JointState, "quality", 10)
         self._pub_status = pub(DiagnosticArray, "status", 10)
         self._pub_diag = pub(DiagnosticArray, "/diagnostics", 10)
@@ -159,7 +162,7 @@ class FicapNode(Node):
     def _after_set_parameters(self, params: list[Parameter]) -> None:
         self._config = cfg = ros_params.NodeConfig.from_values(ros_params.current_values(self))
         self._mount = cfg.mount
-        self._processor.pose_config = cfg.pose_config
+        live.apply_settings(self._processor, cfg)
         if any(p.name == "camera_mount" for p in params):
             self._calibration.set_mount(self._mount)  # else the frontal frame stays
 

@@ -20,6 +20,7 @@ from rcl_interfaces.msg import (
 )
 
 from ficap_ros.errors import ConfigError
+from ficap_ros.geometry.camera import ROW_ORDERS, CameraTiming
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.io.camera_info import CAMERA_INFO_MAX_STAMP_DIFF_NS
 from ficap_ros.io.status import WARN_RELIABILITY
@@ -80,6 +81,17 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               "one at or before the image (bags: the same rule).", range=(0.0, 1000.0)),
     ParamSpec("image_is_rectified", False, "The image is rectified: use CameraInfo P, no "
               "distortion."),
+    ParamSpec("camera.exposure_ms", 0.0, "Each row's exposure time, ms (0 = not known: no motion "
+              "blur modelled). While every camera.* parameter is at its default, the camera_timing "
+              "mapping of camera_info_file applies, if it has one.", range=(0.0, 1000.0)),
+    ParamSpec("camera.readout_ms", 0.0, "Rolling shutter: time between the first and the last "
+              "row's exposure centres, ms (0 = a global shutter).", range=(0.0, 1000.0)),
+    ParamSpec("camera.row_order", "top_to_bottom", "Order in which a rolling shutter reads its "
+              "rows.", choices=ROW_ORDERS),
+    ParamSpec("camera.stamp_offset_ms", 0.0, "Added to an image's stamp to reach the middle row's "
+              "mid-exposure (the instant the poses are reported at), ms: 0 for drivers that stamp "
+              "it, (exposure + readout) / 2 for a stamp at the start of the first row's exposure, "
+              "negative for one at the end of the frame.", range=(-1000.0, 1000.0)),
     ParamSpec("output_frame", "", "frame_id of the pose outputs ('' = the image's frame_id); "
               "needs camera_mount, which moves the poses into it."),
     ParamSpec("camera_mount", [0.0] * 7, "The camera's optical frame (the image's frame_id) in "
@@ -261,6 +273,10 @@ class NodeConfig:
     camera_info_file: str
     camera_info_max_stamp_diff_ms: float
     image_is_rectified: bool
+    camera_exposure_ms: float
+    camera_readout_ms: float
+    camera_row_order: str
+    camera_stamp_offset_ms: float
     output_frame: str
     camera_mount: tuple[float, ...]
     frontal_frame: str
@@ -317,6 +333,15 @@ class NodeConfig:
     def mount(self) -> Transform | None:
         """``camera_mount`` as T_parent_cam (None: not set)."""
         return camera_mount_transform(self.camera_mount)
+
+    @property
+    def camera_timing(self) -> CameraTiming | None:
+        """The ``camera.*`` parameters as the camera's timing, or None while every one is at its
+        default (a parameter cannot be unset: "not set", so a camera_info_file's timing may
+        apply, ``live.camera_timing``)."""
+        timing = CameraTiming(self.camera_exposure_ms, self.camera_readout_ms,
+                              self.camera_row_order, self.camera_stamp_offset_ms)
+        return None if timing == CameraTiming() else timing
 
     @property
     def effective_calibration_mode(self) -> CalibrationMode:

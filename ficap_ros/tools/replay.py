@@ -22,12 +22,13 @@ from collections import Counter
 from dataclasses import dataclass, field, replace
 from itertools import islice
 from pathlib import Path
-from typing import IO, Any, Callable, Iterable, Iterator
+from typing import IO, Any, Callable, Iterable, Iterator, Mapping
 
 import numpy as np
 
 from ficap_ros.errors import BagError, ImageError
 from ficap_ros.files import write_output_file
+from ficap_ros.geometry.camera import CameraTiming
 from ficap_ros.geometry.cap_model import CapModel
 from ficap_ros.io.calibration_file import q_wxyz
 from ficap_ros.io.labels import (
@@ -44,7 +45,8 @@ from ficap_ros.vision.pose import PoseConfig
 from ficap_ros.vision.shutter import TimingEvidence, combine_evidence
 
 __all__ = ["Progress", "ReplayedFrame", "process_frames", "frontal_calibration",
-           "ReplayOutput", "replay", "check_output_dir", "available_cores", "capped_jobs"]
+           "ReplayOutput", "replay", "recording_timing", "check_output_dir", "available_cores",
+           "capped_jobs"]
 
 
 def Progress(total: int, label: str = "frames", stream: IO[str] | None = None,  # noqa: N802
@@ -145,9 +147,12 @@ def _process_one(raw: RawFrame) -> ReplayedFrame:
 SEGMENT_FRAMES = 128
 
 
-def _process_segment(raws: list[RawFrame]) -> list[ReplayedFrame]:
+def _process_segment(raws: list[RawFrame], timing: CameraTiming | None = None) -> list[ReplayedFrame]:
+    """One segment of a recording whose camera has ``timing`` (None: not known), tracking
+    afresh from its first frame."""
     assert _PROCESSOR is not None
     _PROCESSOR.reset_tracking()
+    _PROCESSOR.timing = timing or CameraTiming()
     out = []
     for raw in raws:
         out.append(_process_one(raw))
@@ -199,8 +204,10 @@ def _quiet_pool(ctx: Any, jobs: int, initargs: tuple) -> Any:
 def process_frames(
     raws: Iterable[RawFrame], model: CapModel, pose: PoseConfig, jobs: int = 1,
     on_progress: Callable[[int], None] | None = None, detector: DetectorConfig | None = None,
+    timing: CameraTiming | None = None,
 ) -> Iterator[ReplayedFrame]:
-    """Run the pipeline over raw frames, in order, in ``jobs`` processes (at most one per core).
+    """Run the pipeline over raw frames, in order, in ``jobs`` processes (at most one per core),
+    with the camera's ``timing`` (``recording_timing``; None: not known).
 
     Undecodable frames come back with an ``UNDECODABLE`` record saying why.
     ``on_progress`` is called with the number of frames processed so far, frame by frame (with
@@ -215,6 +222,7 @@ def process_frames(
         while segment := list(islice(it, SEGMENT_FRAMES)):
             assert _PROCESSOR is not None
             _PROCESSOR.reset_tracking()
+            _PROCESSOR.timing = timing or CameraTiming()
             for raw in segment:
                 yield _process_one(raw)
                 done += 1
@@ -235,7 +243,7 @@ def process_frames(
                 segment = list(islice(it, SEGMENT_FRAMES))
                 if not segment:
                     break
-                pending.append(pool.apply_async(_process_segment, (segment,)))
+                pending.append(pool.apply_async(_process_segment, (segment, timing)))
             if not pending:
                 break
             head = pending.pop(0)
@@ -391,6 +399,7 @@ def replay(
     engine: Callable[[Iterable[RawFrame]], Iterable[ReplayedFrame]] | None = None,
     summary_extra: dict[str, Any] | None = None,
     detector: DetectorConfig | None = None,
+    timing: Mapping[str, Any] | None = None,
 ) -> ReplayOutput:
     """Process every frame of ``source`` and write labels.mcap, labels.csv and summary.json.
 
@@ -416,19 +425,25 @@ def replay(
         detector: detector settings (default ``DetectorConfig()``): ``process_frames``'s; an
             ``engine`` carries its own, and this only records them (summary.json's
             ``photometric``).
+        timing: ``CameraTiming`` fields given for the camera (the command line's), over the
+            recording's own timing (``recording_timing``); summary.json's ``camera_timing``
+            records the timing used and its source. An ``engine`` must process with the same
+            (``recording_timing`` of the source and these fields).
 
     Raises:
         BagError: unreadable input. OutputError: an output that is or holds the input, a folder
         ficap did not write, or not writable. CalibrationError: bad frontal window.
+        IntrinsicsError: a timing field out of range.
     """
     from ficap_ros.files import OutputFolder
 
     out = Path(out_dir)
+    camera_timing = recording_timing(source, timing)  # a bad field fails before any output
     folder = OutputFolder(out, inputs=[source.path])  # refuses an input or a foreign folder
     try:
         output = _replay_into(folder.tmp, out, source, model, pose, calibration,
                               calibrate_window_s, jobs, namespace, progress, progress_stream,
-                              engine, summary_extra, detector)
+                              engine, summary_extra, detector, camera_timing)
     except BaseException:
         folder.discard()
         raise
@@ -442,8 +457,10 @@ def _replay_into(
     jobs: int, namespace: str, progress: bool, progress_stream: IO[str] | None,
     engine: Callable[[Iterable[RawFrame]], Iterable[ReplayedFrame]] | None,
     summary_extra: dict[str, Any] | None, detector: DetectorConfig | None = None,
+    camera_timing: tuple[CameraTiming, str] = (CameraTiming(), "not known"),
 ) -> ReplayOutput:
     jobs = capped_jobs(jobs)[0]
+    timing, timing_source = camera_timing
     bar = Progress(source.count, "frames", progress_stream, enabled=progress)
     t0 = time.perf_counter()
     frames: list[ReplayedFrame] = []
@@ -454,7 +471,7 @@ def _replay_into(
                 frames.append(item)
                 bar.update()
         else:
-            frames.extend(process_frames(raws, model, pose, jobs, detector=detector,
+            frames.extend(process_frames(raws, model, pose, jobs, detector=detector, timing=timing,
                                          on_progress=lambda n: bar.update(n - bar.n)))
     finally:
         bar.close()
@@ -472,6 +489,7 @@ def _replay_into(
         # Only when on (the default runs' summaries name no detector setting).
         **({"photometric": True} if detector is not None and detector.edge_photometric else {}),
         "jobs": jobs,
+        "camera_timing": {**timing.to_dict(), "source": timing_source},
         **_summary(frames, elapsed),
         # A damaged input: frames_lost is None when the container cannot say how many.
         "damaged": loss is not None,
@@ -490,6 +508,23 @@ def _replay_into(
     write_output_file(tmp / "summary.json", json.dumps(summary, indent=2) + "\n")
     files = [out / "labels.mcap", out / "metadata.yaml", out / "labels.csv", out / "summary.json"]
     return ReplayOutput(records, summary, files, loss)
+
+
+def recording_timing(source: FrameSource, given: Mapping[str, Any] | None = None,
+                     ) -> tuple[CameraTiming, str]:
+    """The camera timing a recording is processed with, and where it comes from (summary.json's
+    ``camera_timing.source``): the ``given`` fields (``CameraTiming``'s names: the command
+    line's) over the recording's own (``FrameSource.timing``: its intrinsics file's, else its
+    bag's metadata), else ``CameraTiming()``, "not known".
+
+    Raises:
+        IntrinsicsError: a given field out of range.
+    """
+    base = source.timing or CameraTiming()
+    if not given:
+        return base, source.timing_source or "not known"
+    origin = "command line" + (f" over {source.timing_source}" if source.timing_source else "")
+    return replace(base, **dict(given)), origin
 
 
 def _calibration(frames: list[ReplayedFrame], start_ns: int, given: HeadCalibration | None,

@@ -100,9 +100,12 @@ class FrameProcessor:
         tracking: follow the cap from frame to frame (``tracking.Tracker``: frames of one camera
             in time order, as the node and the bag tools feed them); ``False``: every frame searched.
         track: tracking settings.
-        timing: the camera's exposure and readout (``CameraTiming``; None: a global shutter of
-            unknown exposure). A rolling shutter's poses are solved with the cap's velocity over
-            the readout (``estimate_cap_pose``); the tracker's past poses are its velocity prior.
+        timing: when the camera's rows see the scene relative to the stamps (exposure, rolling
+            shutter readout, stamp offset; ``CameraTiming()``: not known). A rolling shutter's
+            poses are solved with the cap's velocity over the readout (``estimate_cap_pose``), the
+            tracker's past poses its velocity prior. Like ``pose_config`` it may be replaced as a
+            whole between frames (the node does when its ``camera.*`` parameters change; replay
+            sets each recording's).
     """
 
     def __init__(self, model: CapModel | None = None, detector: DetectorConfig | None = None,

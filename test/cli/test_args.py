@@ -120,3 +120,20 @@ def test_time_window_edges() -> None:
     for bad in ("3:1", "a:b", "1:1", "-1:2", ":", "nan:1", "0:inf"):
         with pytest.raises(argparse.ArgumentTypeError):
             time_window(bad)
+
+
+def test_camera_timing_arguments_are_the_timings_ranges() -> None:
+    """``duration_ms`` and ``offset_ms`` take what ``CameraTiming`` takes; the row orders are
+    the geometry's (named in cli.args so parsing needs no OpenCV)."""
+    from ficap_ros.cli.args import ROW_ORDERS, duration_ms, offset_ms
+    from ficap_ros.geometry import camera
+
+    assert ROW_ORDERS == camera.ROW_ORDERS
+    assert duration_ms("0") == 0.0 and duration_ms("1000") == 1000.0 and duration_ms("16.7") == 16.7
+    assert offset_ms("-1000") == -1000.0 and offset_ms("19.35") == 19.35
+    for fn, bad in ((duration_ms, "-0.1"), (duration_ms, "1000.5"), (duration_ms, "nan"),
+                    (offset_ms, "-1001"), (offset_ms, "inf"), (offset_ms, "x")):
+        with pytest.raises(argparse.ArgumentTypeError):
+            fn(bad)
+    for value in ("0", "1000", "16.7"):
+        camera.CameraTiming(exposure_ms=duration_ms(value), readout_ms=duration_ms(value))

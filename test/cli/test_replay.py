@@ -25,7 +25,7 @@ from ficap_ros.cli.main import main
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.io import messages
 from ficap_ros.io.bag_writer import BagWriter
-from ficap_ros.io.labels import read_labels
+from ficap_ros.io.labels import LABEL_COLUMNS, read_labels
 from ficap_ros.io.messages import ROSBAGS
 from ficap_ros.io.sources import (
     CAMERA_INFO_TYPE,
@@ -51,7 +51,7 @@ def test_replay_counts_the_corrupt_frame(bag_with_a_corrupt_frame: Path, tmp_pat
     assert labels.skipped.tolist() == [i == BAD for i in range(N)]
     assert not labels.has_pose[BAD] and labels.has_pose.sum() == N - 1
     row = (out / "labels.csv").read_text().splitlines()[1 + BAD].split(",")
-    assert row[6:20] == [""] * 14 and row[-1].startswith("undecodable")
+    assert row[6:20] == [""] * 14 and row[LABEL_COLUMNS.index("reason")].startswith("undecodable")
 
 
 def test_replay_video(rendered_frames, tmp_path: Path) -> None:  # noqa: ANN001
@@ -316,3 +316,32 @@ def test_jobs_capped_at_available_cores(drive: Path, tmp_path: Path,
                  "--quiet"]) == 0
     assert f"capped at {cores}" in capsys.readouterr().err
     assert json.loads((out / "summary.json").read_text())["jobs"] == cores
+
+
+def test_camera_timing_flags_reach_every_recording(tmp_path: Path,
+                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    """--exposure-ms/--readout-ms/--row-order/--stamp-offset-ms: each replaces its field of the
+    recording's own timing; summary.json records the timing used and its source, a fleet's
+    fingerprint the fields given; values out of range are argparse's (exit 2, naming the flag)."""
+    for name in ("a", "b"):
+        small_bag(tmp_path / "in" / name, "mcap", n=3)
+    flags = ["--readout-ms", "22", "--row-order", "bottom_to_top", "--stamp-offset-ms", "-4.5"]
+    assert main(["replay", str(tmp_path / "in" / "a"), "--out", str(tmp_path / "one"),
+                 "--quiet", *flags]) == 0
+    want = {"exposure_ms": 0.0, "readout_ms": 22.0, "row_order": "bottom_to_top",
+            "stamp_offset_ms": -4.5, "source": "command line"}
+    assert json.loads((tmp_path / "one" / "summary.json").read_text())["camera_timing"] == want
+    assert main(["replay", str(tmp_path / "in"), "--out", str(tmp_path / "fleet"), "--quiet",
+                 "--exposure-ms", "8", *flags]) == 0
+    for name in ("a", "b"):
+        summary = json.loads((tmp_path / "fleet" / name / "summary.json").read_text())
+        assert summary["camera_timing"] == {**want, "exposure_ms": 8.0}
+        assert summary["fingerprint"]["settings"]["camera_timing"] == {
+            "exposure_ms": 8.0, "readout_ms": 22.0, "row_order": "bottom_to_top",
+            "stamp_offset_ms": -4.5}
+    capsys.readouterr()
+    for flag, value in (("--readout-ms", "-1"), ("--exposure-ms", "2000"),
+                        ("--stamp-offset-ms", "nan"), ("--row-order", "sideways")):
+        with pytest.raises(SystemExit) as exc:
+            main(["replay", str(tmp_path / "in" / "a"), "--out", str(tmp_path / "x"), flag, value])
+        assert exc.value.code == 2 and f"argument {flag}:" in capsys.readouterr().err

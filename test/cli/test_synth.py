@@ -96,7 +96,8 @@ def test_the_bag_holds_the_drive_its_truth_and_how_it_was_rendered(
             got.setdefault(conn.topic, []).append((log_ns, msg))
     assert {t: len(v) for t, v in got.items()} == {t: 3 for t in (
         synth_cmd.IMAGE_TOPIC, synth_cmd.CAMERA_INFO_TOPIC, synth_cmd.TRUTH_CAP_TOPIC,
-        synth_cmd.TRUTH_HEAD_TOPIC, synth_cmd.TRUTH_HEAD_CAMERA_TOPIC, synth_cmd.TRUTH_FRONTAL_TOPIC)}
+        synth_cmd.TRUTH_HEAD_TOPIC, synth_cmd.TRUTH_HEAD_CAMERA_TOPIC, synth_cmd.TRUTH_FRONTAL_TOPIC,
+        synth_cmd.TRUTH_TWIST_TOPIC)}
     for f, (log_ns, head), (_, frontal), (_, info) in zip(
             drive, got[synth_cmd.TRUTH_HEAD_TOPIC], got[synth_cmd.TRUTH_FRONTAL_TOPIC],
             got[synth_cmd.CAMERA_INFO_TOPIC]):
@@ -118,6 +119,11 @@ def test_the_bag_holds_the_drive_its_truth_and_how_it_was_rendered(
     assert options["resolution"] == [320, 180] and options["jpeg_quality"] == 70
     assert options["seed"] == 4 and options["frames"] == 3 and options["tone"] == "srgb"
     assert options["psf_sigma_px"] == pytest.approx(0.7 * np.sqrt(180 / 1080))
+    assert (options["motion"], options["motion_blur"], options["readout_ms"]) == (
+        "naturalistic", False, 0.0)
+    # Still frames: no blur, a global shutter (the timing ficap replay reads).
+    assert json.loads(custom["ficap.camera_timing"]) == {
+        "exposure_ms": 0.0, "readout_ms": 0.0, "row_order": "top_to_bottom", "stamp_offset_ms": 0.0}
 
 
 def test_an_existing_out_is_refused_and_left_alone(tmp_path: Path,
@@ -152,4 +158,78 @@ def test_synth_bag_contents(drive: Path) -> None:
         counts = {c.topic: c.msgcount for c in reader.connections}
     assert counts == {t: FRAMES for t in (
         synth_cmd.IMAGE_TOPIC, synth_cmd.CAMERA_INFO_TOPIC, synth_cmd.TRUTH_CAP_TOPIC,
-        synth_cmd.TRUTH_HEAD_TOPIC, synth_cmd.TRUTH_HEAD_CAMERA_TOPIC, synth_cmd.TRUTH_FRONTAL_TOPIC)}
+        synth_cmd.TRUTH_HEAD_TOPIC, synth_cmd.TRUTH_HEAD_CAMERA_TOPIC, synth_cmd.TRUTH_FRONTAL_TOPIC,
+        synth_cmd.TRUTH_TWIST_TOPIC)}
+
+
+def _topic(bag: Path, topic: str) -> list:
+    with AnyReader([bag]) as reader:
+        conns = [c for c in reader.connections if c.topic == topic]
+        return [(log_ns, reader.deserialize(raw, conn.msgtype))
+                for conn, log_ns, raw in reader.messages(connections=conns)]
+
+
+def test_a_rolling_shutter_glance_drive(glance_rs_drive: Path) -> None:
+    """``--motion glances --readout-ms --exposure-ms --motion-blur``: the frames are the glance
+    drive's, each rendered through the rolling shutter (its images are ``render``'s of the
+    drive's pose function with that timing, byte for byte); the timing and the true twist are in
+    the bag, the truth is the pose at the stamp, and the glance is as fast as asked."""
+    from recordings import RS_EXPOSURE_MS, RS_FRAMES, RS_READOUT_MS, RS_SEED
+
+    from ficap_ros.io.messages import pose_to_transform, twist_to_array
+    from ficap_ros.tools.synth import drive_motion
+
+    custom = yaml.safe_load((glance_rs_drive / "metadata.yaml").read_text())[
+        "rosbag2_bagfile_information"]["custom_data"]
+    timing = {"exposure_ms": RS_EXPOSURE_MS, "readout_ms": RS_READOUT_MS,
+              "row_order": "top_to_bottom", "stamp_offset_ms": 0.0}
+    assert json.loads(custom["ficap.camera_timing"]) == timing
+    options = json.loads(custom["ficap.synth"])
+    assert (options["motion"], options["motion_blur"], options["readout_ms"],
+            options["row_order"]) == ("glances", True, RS_READOUT_MS, "top_to_bottom")
+    scene = default_scene("540p")
+    motion = drive_motion("glances", RS_FRAMES / 30.0, RS_SEED, scene, frontal_s=0.2)
+    caps, twists = _topic(glance_rs_drive, synth_cmd.TRUTH_CAP_TOPIC), \
+        _topic(glance_rs_drive, synth_cmd.TRUTH_TWIST_TOPIC)
+    assert len(caps) == len(twists) == RS_FRAMES
+    speeds = []
+    for i, ((log_ns, cap), (_, twist)) in enumerate(zip(caps, twists)):
+        t = i / 30.0
+        assert log_ns == synth_cmd.START_NS + round(t * 1e9)
+        assert twist.header.frame_id == synth_cmd.CAMERA_FRAME
+        T = pose_to_transform(cap)
+        assert angle_deg(T.rotation, motion.T_cam_cap_at(t).rotation) < 1e-6
+        np.testing.assert_allclose(twist_to_array(twist), motion.cap_velocity_at(t), atol=1e-9)
+        speeds.append(np.degrees(np.linalg.norm(twist_to_array(twist)[3:])))
+    assert max(speeds) > 200.0 and sum(s > 90.0 for s in speeds) >= 5
+    # One fast frame's image is the renderer's, with that timing, as the bag says.
+    i = int(np.argmax(speeds))
+    cfg = RenderConfig(background_seed=RS_SEED, exposure_ms=RS_EXPOSURE_MS,
+                       readout_ms=RS_READOUT_MS, **REALISTIC)
+    want = render(MODEL, scene.camera, motion.around(i / 30.0), cfg, seed=RS_SEED * 100003 + i)
+    ok, jpg = cv2.imencode(".jpg", want.image, [cv2.IMWRITE_JPEG_QUALITY, 95])
+    image = _topic(glance_rs_drive, synth_cmd.IMAGE_TOPIC)[i][1]
+    assert bytes(image.data) == jpg.tobytes()
+
+
+def test_rolling_shutter_flags(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--readout-ms without --motion-blur: rows are instants (the timing says exposure 0);
+    --row-order is recorded; bad values are argparse's."""
+    bag = tmp_path / "bag"
+    assert main(["synth", "--out", str(bag), "--resolution", "320x180", "--frames", "2",
+                 "--frontal-s", "0", "--motion", "glances", "--readout-ms", "30",
+                 "--row-order", "bottom_to_top", "--quiet"]) == 0
+    custom = yaml.safe_load((bag / "metadata.yaml").read_text())[
+        "rosbag2_bagfile_information"]["custom_data"]
+    assert json.loads(custom["ficap.camera_timing"]) == {
+        "exposure_ms": 0.0, "readout_ms": 30.0, "row_order": "bottom_to_top",
+        "stamp_offset_ms": 0.0}
+    capsys.readouterr()
+    for flag, value in (("--readout-ms", "-1"), ("--readout-ms", "1001"), ("--row-order", "up"),
+                        ("--motion", "sneeze")):
+        with pytest.raises(SystemExit) as exc:
+            main(["synth", "--out", str(tmp_path / "x"), "--frames", "1", flag, value, "--quiet"])
+        assert exc.value.code == 2 and f"argument {flag}:" in capsys.readouterr().err
+    from ficap_ros.tools import synth
+
+    assert synth_cmd.MOTIONS == synth.MOTIONS

@@ -178,3 +178,61 @@ def test_camera_timing_refuses_impossible_values(kwargs) -> None:
 
     with pytest.raises(IntrinsicsError):
         CameraTiming(**kwargs)
+
+
+@st.composite
+def timings(draw: st.DrawFn):
+    from ficap_ros.geometry.camera import ROW_ORDERS, CameraTiming
+
+    ms = st.floats(0.0, 1000.0, allow_nan=False)
+    return CameraTiming(draw(ms), draw(ms), draw(st.sampled_from(ROW_ORDERS)),
+                        draw(st.floats(-1000.0, 1000.0, allow_nan=False)))
+
+
+@given(timings())
+def test_camera_timing_round_trips_through_its_mapping(timing) -> None:
+    from ficap_ros.geometry.camera import CameraTiming
+
+    assert CameraTiming.from_mapping(timing.to_dict()) == timing
+    # JSON and YAML carry it as plain values.
+    assert CameraTiming.from_mapping(yaml.safe_load(yaml.safe_dump(timing.to_dict()))) == timing
+
+
+@given(timings())
+def test_camera_yaml_round_trip_with_timing(timing) -> None:
+    """``to_camera_yaml(timing=...)`` writes the optional ``camera_timing`` mapping that
+    ``load_camera_timing`` reads back; the intrinsics read as before; a file without the mapping
+    has no timing (None: not known)."""
+    from ficap_ros.geometry.camera import load_camera_timing
+
+    cam = CameraModel(960, 540, [700, 0, 480, 0, 701, 270, 0, 0, 1], [-0.2, 0.05, 0, 0, 0],
+                      "plumb_bob")
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "camera.yaml"
+        path.write_text(yaml.safe_dump(cam.to_camera_yaml("rear", timing)))
+        assert load_camera_yaml(path) == cam
+        assert load_camera_timing(path) == timing
+        path.write_text(yaml.safe_dump(cam.to_camera_yaml("rear")))
+        assert load_camera_timing(path) is None
+        assert "camera_timing" not in cam.to_camera_yaml()
+
+
+@pytest.mark.parametrize("block, message", [
+    ("camera_timing: 16.7", "must be a mapping"),
+    ("camera_timing: {exposure: 16.7}", "unknown key 'exposure'"),
+    ("camera_timing: {exposure_ms: fast}", "exposure_ms must be a number of ms"),
+    ("camera_timing: {readout_ms: true}", "readout_ms must be a number of ms"),
+    ("camera_timing: {readout_ms: -3}", r"readout_ms must be in \[0, 1000\] ms"),
+    ("camera_timing: {row_order: 1}", "row_order must be a string"),
+    ("camera_timing: {row_order: left_to_right}", "row_order must be one of"),
+    ("camera_timing: {stamp_offset_ms: .nan}", "stamp_offset_ms must be in"),
+])
+def test_malformed_camera_timing_is_one_clear_error(tmp_path, block: str, message: str) -> None:
+    from ficap_ros.geometry.camera import load_camera_timing
+
+    cam = CameraModel.pinhole(960, 540, f_px=700.0)
+    path = tmp_path / "camera.yaml"
+    path.write_text(yaml.safe_dump(cam.to_camera_yaml()) + block + "\n")
+    with pytest.raises(IntrinsicsError, match=message) as err:
+        load_camera_timing(path)
+    assert str(path) in str(err.value) and "\n" not in str(err.value)

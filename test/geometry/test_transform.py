@@ -19,6 +19,7 @@ from ficap_ros.geometry.transform import (
     from_rotvec,
     inverse,
     rotate_covariance,
+    rotate_twist,
 )
 
 
@@ -247,3 +248,25 @@ def test_transform_algebra() -> None:
     # The forward body frame's x is the optical axis, its z is the camera's -y (up).
     np.testing.assert_allclose(CAM_FROM_FORWARD.apply([1, 0, 0]), [0, 0, 1], atol=1e-12)
     np.testing.assert_allclose(CAM_FROM_FORWARD.apply([0, 0, 1]), [0, -1, 0], atol=1e-12)
+
+
+@given(rotvec=rotvecs, a=rotvecs, lin=translations, t0=translations)
+def test_a_rotated_twist_moves_points_as_the_rotated_frame_sees_them(rotvec, a, lin, t0) -> None:
+    """``rotate_twist``: the velocity of a moving pose, seen from a frame turned and shifted by a
+    fixed transform, is the twist with both vectors turned: the motion over a short step agrees
+    to first order, and the covariance's rule (blockdiag(R, R)) holds."""
+    R = Rotation.from_rotvec(rotvec)
+    w = np.asarray(a) * 0.5
+    twist = np.concatenate([lin, w])
+    dt = 1e-6
+    start = Transform(Rotation.from_rotvec(a), t0)
+    step = Transform(Rotation.from_rotvec(w * dt) * start.rotation, t0 + np.asarray(lin) * dt)
+    mount = Transform(R, np.array([0.3, -1.0, 2.0]))
+    seen_start, seen_step = mount * start, mount * step
+    turned = rotate_twist(twist, R)
+    np.testing.assert_allclose((seen_step.translation_m - seen_start.translation_m) / dt,
+                               turned[:3], atol=1e-6 * (1 + np.abs(turned[:3]).max()))
+    spin = (seen_step.rotation * seen_start.rotation.inv()).as_rotvec() / dt
+    np.testing.assert_allclose(spin, turned[3:], atol=1e-5 * (1 + np.abs(w).max()))
+    B = np.kron(np.eye(2), R.as_matrix())
+    np.testing.assert_allclose(turned, B @ twist, atol=1e-12 * (1 + np.abs(twist).max()))

@@ -26,6 +26,13 @@ from ficap_ros.io.sources import CAMERA_INFO_TYPE, IMAGE_TYPE
 #: mirror and cluster glances.
 FRAMES = 45
 FPS = 5.0
+#: The ``glance_rs_drive`` fixture: 30 frames at 30 fps of a glance drive (0.2 s looking ahead,
+#: then a right-mirror glance peaking near 240 deg/s), seed 11, through a rolling shutter reading
+#: its rows top to bottom over 20 ms, each exposed 8 ms with motion blur.
+RS_FRAMES = 30
+RS_SEED = 11
+RS_READOUT_MS = 20.0
+RS_EXPOSURE_MS = 8.0
 #: Frames of ``bag_with_a_corrupt_frame``, and the one whose JPEG is cut short.
 CORRUPT_BAG_FRAMES = 5
 CORRUPT_FRAME = 2

@@ -33,9 +33,11 @@ _rotations = _quaternions.map(Rotation.from_quat)
 def _poses(draw: st.DrawFn) -> CapPose:
     T = Transform(draw(_rotations), draw(st.lists(st.floats(-2.0, 2.0), min_size=3, max_size=3)))
     used = tuple(sorted(draw(st.sets(st.integers(0, 22), min_size=1, max_size=23))))
+    velocity = draw(st.one_of(st.none(), st.lists(st.floats(-10.0, 10.0), min_size=6,
+                                                  max_size=6).map(np.array)))
     return CapPose(T, len(used), len(used), used, draw(st.floats(0.0, 5.0)), np.eye(6) * 1e-8,
                    draw(st.floats(0.0, 1.0)), "joint", draw(st.floats(0.0, 30.0)),
-                   draw(st.floats(0.0, 500.0)))
+                   draw(st.floats(0.0, 500.0)), velocity)
 
 
 #: Reasons with the characters CSV must quote (comma, quote), never read as an undecodable one.
@@ -88,6 +90,13 @@ def test_labels_csv_round_trip(tmp_path_factory: pytest.TempPathFactory,
         assert np.abs(lab.q_frontal_head_wxyz[k] - r.T_frontal_head.q_wxyz).max() <= 5e-10
         ypr = yaw_pitch_roll_deg(r.T_frontal_head.rotation)
         assert np.abs(lab.head_ypr_deg[k] - ypr).max() <= 5e-5
+        if r.pose.velocity is None:
+            assert np.isnan(lab.head_twist[k]).all()
+        else:  # in F's axes, to the 6 decimals the CSV keeps
+            want = np.concatenate([r.R_frontal_cam.apply(r.pose.velocity[:3]),
+                                   r.R_frontal_cam.apply(r.pose.velocity[3:])])
+            assert np.abs(lab.head_twist[k] - want).max() <= 5e-7
+    assert all(np.isnan(lab.head_twist[k]).all() for k, r in enumerate(records) if r.pose is None)
 
 
 def test_head_pose_is_the_cap_pose_turned_and_seen_from_the_frontal_frame() -> None:
@@ -124,3 +133,59 @@ def test_a_record_takes_a_calibration_found_later() -> None:
     assert yaw_pitch_roll_deg(later.T_frontal_head.rotation)[0] == pytest.approx(yaw0 - 30.0,
                                                                                  abs=1e-9)
     assert FrameRecord.processed(0, 0, "cam", None, ()).head is None
+
+
+def _posed(index: int, velocity: np.ndarray | None) -> FrameRecord:
+    pose = CapPose(Transform(CAM_FROM_FORWARD * Rotation.from_euler("z", 20.0 * index, degrees=True),
+                             [0.01 * index, 0.0, 0.6]),
+                   4, 4, (1, 2, 3, 4), 0.1, np.eye(6) * 1e-7, 0.9, "joint", 0.3, 0.5, velocity)
+    cal = HeadCalibration(Rotation.from_euler("y", 8.0, degrees=True),
+                          Rotation.from_euler("x", -10.0, degrees=True) * CAM_FROM_FORWARD, True)
+    return FrameRecord.processed(index, 1_000 + index, "cam", pose, (1, 2, 3, 4), calibration=cal)
+
+
+def test_the_head_twist_adds_columns_and_a_topic_and_changes_nothing_else(tmp_path) -> None:
+    """A measured velocity adds the six twist columns' values (F's axes) and a ``head_twist``
+    message (camera axes, the image's frame and stamp); every other column and every other
+    topic's messages are the same bytes as without it; the columns are the last six."""
+    from ficap_ros.io.labels import TWIST_COLUMNS, label_topics, write_labels_bag
+    from ficap_ros.io.messages import twist_to_array
+    from ficap_ros.io.sources import open_bag_reader
+
+    assert LABEL_COLUMNS[-6:] == TWIST_COLUMNS == (
+        "head_vx_m_s", "head_vy_m_s", "head_vz_m_s", "head_wx_rad_s", "head_wy_rad_s",
+        "head_wz_rad_s")
+    w = np.array([0.12, -0.03, 0.01, 0.5, -3.9, 0.2])
+    with_twist = [_posed(0, w), _posed(1, None), _posed(2, -w),
+                  FrameRecord.processed(3, 1_003, "cam", None, (), "no tags")]
+    without = [replace(r, pose=replace(r.pose, velocity=None)) if r.pose is not None else r
+               for r in with_twist]
+    rows_with = [line.split(",") for line in labels_csv_text(with_twist).splitlines()]
+    rows_without = [line.split(",") for line in labels_csv_text(without).splitlines()]
+    assert [r[:-6] for r in rows_with] == [r[:-6] for r in rows_without]
+    assert all(r[-6:] == [""] * 6 for r in rows_without[1:])
+    assert rows_with[2][-6:] == [""] * 6 and rows_with[4][-6:] == [""] * 6
+    F = with_twist[0].R_frontal_cam
+    assert [float(v) for v in rows_with[1][-6:]] == pytest.approx(
+        np.concatenate([F.apply(w[:3]), F.apply(w[3:])]), abs=5e-7)
+
+    def topics(records: list[FrameRecord], name: str) -> dict[str, list]:
+        write_labels_bag(tmp_path / name / "labels.mcap", records)
+        reader = open_bag_reader(tmp_path / name / "labels.mcap")
+        out: dict[str, list] = {c.topic: [] for c in reader.connections}
+        for conn, log_ns, raw in reader.messages():
+            out[conn.topic].append((log_ns, bytes(raw), reader.deserialize(raw, conn.msgtype)))
+        reader.close()
+        return out
+
+    got, base = topics(with_twist, "with"), topics(without, "without")
+    twist_topic = label_topics()["head_twist"]
+    assert twist_topic == "/head_twist" and set(got) == set(base) and twist_topic in base
+    for topic in base:
+        if topic != twist_topic:
+            assert [m[:2] for m in got[topic]] == [m[:2] for m in base[topic]], topic
+    assert base[twist_topic] == []
+    assert [m[0] for m in got[twist_topic]] == [1_000, 1_002]
+    for (_, _, msg), want in zip(got[twist_topic], (w, -w)):
+        assert msg.header.frame_id == "cam"
+        np.testing.assert_array_equal(twist_to_array(msg), want)

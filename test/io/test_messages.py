@@ -62,6 +62,8 @@ def _same_cdr(live: object, offline: object, msgtype: str) -> None:
                                  "mono16"), "sensor_msgs/msg/Image"),
     (lambda c, h: messages.compressed_image(c, h, b"\x89PNG-not-really", "png"),
      "sensor_msgs/msg/CompressedImage"),
+    (lambda c, h: messages.twist_stamped(c, h, [0.1, -0.2, 0.03, 2.5, -0.4, 0.01]),
+     "geometry_msgs/msg/TwistStamped"),
 ])
 def test_one_builder_gives_the_same_message_live_and_offline(builder, msgtype: str) -> None:
     live, offline = _both(builder)
@@ -119,6 +121,17 @@ def test_pose_message_pose_round_trip(T: Transform, stamp_ns: int, frame: str,
         assert (o.x, o.y, o.z, o.w) == tuple(float(v) for v in T.q_xyzw)
         assert stamp_to_ns(back_msg.header.stamp) == stamp_ns
         assert back_msg.header.frame_id == frame
+
+
+@given(twist=st.lists(st.floats(-1e3, 1e3, allow_nan=False), min_size=6, max_size=6),
+       live=st.booleans())
+def test_twist_message_round_trip(twist: list[float], live: bool) -> None:
+    """(6,) twist -> TwistStamped -> CDR -> (6,): linear then angular, exactly, both classes."""
+    c = RCLPY if live else ROSBAGS
+    msg = messages.twist_stamped(c, messages.header(c, STAMP_NS, "cam"), np.array(twist))
+    back = _serialized_and_back(c, msg, "geometry_msgs/msg/TwistStamped")
+    np.testing.assert_array_equal(messages.twist_to_array(back), twist)
+    np.testing.assert_array_equal(messages.twist_to_array(back.twist), twist)
 
 
 def test_named_values_keep_nan_on_both_sides() -> None:

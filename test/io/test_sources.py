@@ -36,10 +36,13 @@ def _grey(i: int) -> np.ndarray:
 
 def _write_bag(path: Path, storage: str = "mcap", layout: str = "folder", n: int = 5,
                compressed: bool = False, info: bool = True, bad_frame: int | None = None,
-               extra_image_topic: bool = False) -> list[np.ndarray]:
+               extra_image_topic: bool = False, custom: dict[str, str] | None = None,
+               ) -> list[np.ndarray]:
     images = [_grey(i) for i in range(n)]
     topic = "/cam/image_raw/compressed" if compressed else "/cam/image_raw"
     with BagWriter(path, storage=storage, layout=layout) as w:
+        for key, value in (custom or {}).items():
+            w.set_custom_data(key, value)
         w.add_topic(topic, COMPRESSED_TYPE if compressed else IMAGE_TYPE)
         if info:
             w.add_topic("/cam/camera_info", CAMERA_INFO_TYPE)
@@ -95,6 +98,43 @@ def test_intrinsics_file_replaces_camera_info(tmp_path: Path) -> None:
     yml.write_text(yaml.safe_dump(CAM.to_camera_yaml()))
     frames = list(open_frames(path, intrinsics=yml))
     assert len(frames) == 5 and all(f.camera.width_px == W for f in frames)
+
+
+def test_the_recordings_own_camera_timing(tmp_path: Path) -> None:
+    """``FrameSource.timing``: the --intrinsics file's ``camera_timing``, else a bag folder's
+    metadata ``ficap.camera_timing`` (``ficap synth`` writes it), else None (not known); a
+    malformed one is one clear error."""
+    import json
+
+    from ficap_ros.errors import IntrinsicsError
+    from ficap_ros.geometry.camera import CameraTiming
+    from ficap_ros.io.sources import TIMING_METADATA_KEY
+
+    in_bag = CameraTiming(exposure_ms=16.7, readout_ms=22.0)
+    path = tmp_path / "bag"
+    _write_bag(path, custom={TIMING_METADATA_KEY: json.dumps(in_bag.to_dict())})
+    src = open_frames(path)
+    assert (src.timing, src.timing_source) == (in_bag, "bag metadata")
+    in_file = CameraTiming(exposure_ms=4.0, row_order="bottom_to_top", stamp_offset_ms=-3.0)
+    yml = tmp_path / "cam.yaml"
+    yml.write_text(yaml.safe_dump(CAM.to_camera_yaml("cam", in_file)))
+    src = open_frames(path, intrinsics=yml)
+    assert (src.timing, src.timing_source) == (in_file, "intrinsics")
+    yml.write_text(yaml.safe_dump(CAM.to_camera_yaml("cam")))
+    assert open_frames(path, intrinsics=yml).timing == in_bag  # the file says nothing of it
+    plain = tmp_path / "plain"
+    _write_bag(plain)
+    assert (open_frames(plain).timing, open_frames(plain).timing_source) == (None, "")
+    single = tmp_path / "single.mcap"
+    _write_bag(single, layout="file", custom={TIMING_METADATA_KEY: json.dumps(in_bag.to_dict())})
+    assert open_frames(single).timing is None  # only a bag folder's metadata is read
+    bad = tmp_path / "bad"
+    _write_bag(bad, custom={TIMING_METADATA_KEY: json.dumps({"readout_ms": -2.0})})
+    with pytest.raises(BagError, match=r"ficap.camera_timing: readout_ms must be in \[0, 1000\]"):
+        open_frames(bad)
+    yml.write_text(yaml.safe_dump({**CAM.to_camera_yaml(), "camera_timing": {"exposure_ms": "x"}}))
+    with pytest.raises(IntrinsicsError, match="exposure_ms must be a number"):
+        open_frames(plain, intrinsics=yml)
 
 
 def test_undecodable_frame_is_reported_not_fatal(tmp_path: Path) -> None:

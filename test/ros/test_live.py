@@ -16,6 +16,8 @@ from scipy.spatial.transform import Rotation
 from std_srvs.srv import Trigger
 
 from ficap_ros.cli.main import main
+from ficap_ros.errors import ConfigError
+from ficap_ros.geometry.camera import CameraModel, CameraTiming
 from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.geometry.metrics import angle_deg, rotation_from_ypr_deg
 from ficap_ros.geometry.transform import Transform
@@ -28,6 +30,7 @@ from ficap_ros.io.sources import open_frames
 from ficap_ros.io.status import ERROR, OK, WARN, FrameStatus
 from ficap_ros.ros import msgs as ros_msgs
 from ficap_ros.ros.live import (
+    camera_timing,
     failed_frame,
     frame_processor,
     process_image,
@@ -95,12 +98,42 @@ def test_the_node_settings_build_its_pipeline() -> None:
     from ficap_ros.vision.detector import DetectorConfig
 
     cfg = SimpleNamespace(model_file="", detector_config=DetectorConfig(edge_photometric=True),
-                          pose_config=PoseConfig(method="paper"), tracking=False)
+                          pose_config=PoseConfig(method="paper"), tracking=False,
+                          camera_timing=None, camera_info_file="")
     proc = frame_processor(cfg)
+    assert proc.timing == CameraTiming()
     assert proc.tracker is None and proc.detector.config.edge_photometric
     assert proc.pose_config.method == "paper" and proc.model.ids == nominal_model().ids
     # The pose settings resolved for photometric corners: that profile's uncertainty.
     assert proc.effective_pose_config.uncertainty.light_gradient_tilt_gain == 0.1
+
+
+def test_the_camera_timing_comes_from_the_parameters_else_the_camera_file(tmp_path: Path) -> None:
+    """``camera_timing``: the ``camera.*`` parameters when any is set, else the camera_info_file's
+    ``camera_timing`` mapping, else not known; a malformed mapping in a file whose intrinsics read
+    refuses to start, an unreadable file is the CameraInfo cache's error (reported there)."""
+    import yaml
+
+    from ficap_ros.ros.params import PARAMETERS, NodeConfig
+
+    camera = CameraModel.pinhole(960, 540, hfov_deg=60.0)
+    in_file = CameraTiming(exposure_ms=8.0, readout_ms=20.0, stamp_offset_ms=14.0)
+    path = tmp_path / "camera.yaml"
+    path.write_text(yaml.safe_dump(camera.to_camera_yaml("rear", in_file)))
+
+    def config(**values: object) -> NodeConfig:
+        return NodeConfig.from_values({**{p.name: p.default for p in PARAMETERS}, **values})
+
+    assert camera_timing(config()) == CameraTiming()
+    assert camera_timing(config(camera_info_file=str(path))) == in_file
+    given = {"camera.readout_ms": 22.0, "camera.row_order": "bottom_to_top"}
+    assert camera_timing(config(camera_info_file=str(path), **given)) == CameraTiming(
+        readout_ms=22.0, row_order="bottom_to_top")
+    assert frame_processor(config(camera_info_file=str(path))).timing == in_file
+    path.write_text(yaml.safe_dump({**camera.to_camera_yaml(), "camera_timing": {"readout": 3}}))
+    with pytest.raises(ConfigError, match="unknown key 'readout'"):
+        camera_timing(config(camera_info_file=str(path)))
+    assert camera_timing(config(camera_info_file=str(tmp_path / "missing.yaml"))) == CameraTiming()
 
 
 def test_reference_quaternions_are_checked_and_normalised() -> None:

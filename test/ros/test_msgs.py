@@ -105,3 +105,25 @@ def test_pose_outputs_are_the_records_head_pose() -> None:
     assert np.allclose([p.x, p.y, p.z], (mount * rec.T_cam_head).translation_m, atol=1e-12)
     cov = np.reshape(out["head_cov"].pose.covariance, (6, 6))
     assert np.trace(cov) == pytest.approx(np.trace(pose.covariance))  # rotated, not rescaled
+
+
+def test_pose_outputs_carry_the_twist_only_when_measured() -> None:
+    """``pose_outputs`` adds ``twist`` (``ros.twist.head_twist``) for a pose with a velocity and
+    nothing for one without; the poses are the same either way."""
+    from dataclasses import replace
+
+    from ficap_ros.io.labels import FrameRecord
+    from ficap_ros.vision.pose import CapPose
+
+    T_cam_cap = Transform(Rotation.from_euler("xyz", [160.0, 15.0, -5.0], degrees=True), [0.02, 0.05, 0.6])
+    pose = CapPose(T_cam_cap, 5, 5, (1, 2, 3, 4, 5), 0.1, np.eye(6) * 1e-6, 0.9, "joint")
+    header = Header(frame_id="cam")
+    without = ros_msgs.pose_outputs(header, FrameRecord.processed(0, 10, "cam", pose, (1,)), "",
+                                    "ficap_frontal", None)
+    moving = replace(pose, velocity=np.array([0.1, 0.0, -0.02, 0.3, -3.5, 0.1]))
+    with_twist = ros_msgs.pose_outputs(header, FrameRecord.processed(0, 10, "cam", moving, (1,)),
+                                       "", "ficap_frontal", None)
+    assert "twist" not in without and set(with_twist) == set(without) | {"twist"}
+    assert all(with_twist[k] == without[k] for k in without)
+    assert with_twist["twist"].header.frame_id == "cam"
+    assert with_twist["twist"].twist.angular.y == -3.5

@@ -28,7 +28,7 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
 from ficap_ros.errors import ConfigError, ModelError
-from ficap_ros.geometry.camera import CameraModel
+from ficap_ros.geometry.camera import CameraModel, CameraTiming
 from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.geometry.metrics import angle_deg
 from ficap_ros.io import messages
@@ -118,7 +118,8 @@ def test_parameters_out_of_range_are_rejected(harness_factory) -> None:
                         ("camera_mount", [0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 3.0]),
                         ("output_frame", "base_link"),  # no camera_mount: refused
                         ("warn_reliability", 1.5),
-                        ("pose.method", "magic"), ("calibration.mode", "guess")]:
+                        ("pose.method", "magic"), ("calibration.mode", "guess"),
+                        ("camera.readout_ms", -1.0), ("camera.row_order", "sideways")]:
         res = node.set_parameters([Parameter(name, value=value)])[0]
         assert not res.successful, (name, value)
         assert node.get_parameter(name).value != value
@@ -132,6 +133,10 @@ def test_parameters_out_of_range_are_rejected(harness_factory) -> None:
     # In-range values apply to the running pipeline.
     assert node.set_parameters([Parameter("pose.method", value="paper")])[0].successful
     assert node._processor.pose_config.method == "paper"
+    # The camera's timing too: the next frame is processed with it.
+    assert node.set_parameters([Parameter("camera.readout_ms", value=22.0),
+                                Parameter("camera.exposure_ms", value=16.7)])[0].successful
+    assert node._processor.timing == CameraTiming(exposure_ms=16.7, readout_ms=22.0)
     # A camera pitched down 10 deg (REP-103: +10 about base_link's y): built from its axes.
     p = np.radians(10.0)
     R_base_cam = np.column_stack([[0.0, -1.0, 0.0], [-np.sin(p), 0.0, -np.cos(p)],

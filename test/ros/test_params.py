@@ -88,3 +88,33 @@ def test_detector_photometric_reaches_the_detector() -> None:
     off = NodeConfig.from_values(_defaults(**{"detector.photometric": True, "detector.corner_refine": "subpix"}))
     with pytest.raises(ConfigError, match="photometric"):
         off.detector_config
+
+
+def test_camera_timing_parameters() -> None:
+    """``camera.*``: the camera's timing (None while all are at their defaults: not set), each
+    validated against its declared range or choices, none read-only (they may follow the camera)."""
+    from ficap_ros.geometry.camera import ROW_ORDERS, CameraTiming
+    from ficap_ros.ros.params import descriptor, validate_parameter
+
+    assert NodeConfig.from_values(_defaults()).camera_timing is None
+    cfg = NodeConfig.from_values(_defaults(**{"camera.exposure_ms": 16, "camera.readout_ms": 22.0,
+                                              "camera.row_order": "bottom_to_top",
+                                              "camera.stamp_offset_ms": -19.3}))
+    assert cfg.camera_timing == CameraTiming(16.0, 22.0, "bottom_to_top", -19.3)
+    assert isinstance(cfg.camera_exposure_ms, float)
+    specs = {p.name: p for p in PARAMETERS if p.name.startswith("camera.")}
+    assert set(specs) == {"camera.exposure_ms", "camera.readout_ms", "camera.row_order",
+                          "camera.stamp_offset_ms"}
+    assert not any(p.read_only for p in specs.values())
+    assert specs["camera.row_order"].choices == ROW_ORDERS
+    for name, lo, hi in (("camera.exposure_ms", 0.0, 1000.0), ("camera.readout_ms", 0.0, 1000.0),
+                         ("camera.stamp_offset_ms", -1000.0, 1000.0)):
+        r = descriptor(specs[name]).floating_point_range[0]
+        assert (r.from_value, r.to_value) == (lo, hi)
+        assert validate_parameter(name, hi) == "" and validate_parameter(name, lo) == ""
+        assert "within" in validate_parameter(name, hi + 1.0)
+        assert "within" in validate_parameter(name, lo - 1.0)
+        assert "finite" in validate_parameter(name, float("nan"))
+        # Every value the parameter accepts is a valid timing.
+        CameraTiming(**{name.split(".")[1]: lo}), CameraTiming(**{name.split(".")[1]: hi})
+    assert "one of" in validate_parameter("camera.row_order", "left_to_right")

@@ -64,9 +64,10 @@ def test_labels_bag_matches_csv(replayed_calibrated: Path) -> None:
     for path in (replayed_calibrated / "labels.mcap", replayed_calibrated):  # single file, and the folder as a bag
         with AnyReader([path]) as reader:
             counts = {c.topic: c.msgcount for c in reader.connections}
-            assert counts == {t: FRAMES for t in (
+            assert counts == {**{t: FRAMES for t in (
                 "/head_pose", "/head_pose/with_covariance", "/cap_pose", "/head_pose/frontal",
-                "/head_rpy_deg", "/quality", "/status", "/tf")}
+                "/head_rpy_deg", "/quality", "/status", "/tf")},
+                "/head_twist": int(np.isfinite(labels.head_twist).all(axis=1).sum())}
             conns = [c for c in reader.connections if c.topic == "/cap_pose"]
             stamps, quats = [], []
             for conn, t, raw in reader.messages(connections=conns):
@@ -234,3 +235,57 @@ def test_jobs_are_capped_at_the_cores_available() -> None:
     assert capped_jobs(cores + 14) == (cores, f"--jobs {cores + 14} capped at {cores}, "
                                               "the cores available")
     assert capped_jobs(1) == (1, "")
+
+
+def test_the_camera_timing_given_over_the_recordings_own(tmp_path: Path,
+                                                         monkeypatch: pytest.MonkeyPatch) -> None:
+    """``recording_timing``: the given fields over the recording's own timing, else not known;
+    every frame is processed with it (jobs 1 in this process; a worker's segments carry it), and
+    summary.json records it with its source."""
+    import yaml
+    from recordings import small_bag
+
+    from ficap_ros.geometry.camera import CameraModel, CameraTiming
+    from ficap_ros.geometry.cap_model import nominal_model
+    from ficap_ros.io.sources import open_frames
+    from ficap_ros.tools import replay as replay_mod
+    from ficap_ros.vision.pipeline import FrameProcessor
+    from ficap_ros.vision.pose import PoseConfig
+
+    bag = tmp_path / "bag"
+    small_bag(bag, "mcap", n=6)
+    src = open_frames(bag)
+    assert replay_mod.recording_timing(src) == (CameraTiming(), "not known")
+    assert replay_mod.recording_timing(src, {"readout_ms": 22.0}) == (
+        CameraTiming(readout_ms=22.0), "command line")
+    yml = tmp_path / "cam.yaml"
+    own = CameraTiming(exposure_ms=8.0, readout_ms=30.0, stamp_offset_ms=19.0)
+    yml.write_text(yaml.safe_dump(CameraModel.pinhole(64, 48, f_px=50.0).to_camera_yaml("c", own)))
+    with_file = open_frames(bag, intrinsics=yml)
+    assert replay_mod.recording_timing(with_file) == (own, "intrinsics")
+    given = {"readout_ms": 22.0, "stamp_offset_ms": 0.0}
+    timing, source = replay_mod.recording_timing(with_file, given)
+    assert timing == CameraTiming(exposure_ms=8.0, readout_ms=22.0) and source == \
+        "command line over intrinsics"
+
+    seen: list[CameraTiming] = []
+    process = FrameProcessor.process
+
+    def spy(self, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202
+        seen.append(self.timing)
+        return process(self, *args, **kwargs)
+
+    monkeypatch.setattr(FrameProcessor, "process", spy)
+    out = replay_mod.replay(with_file, tmp_path / "out", nominal_model(), PoseConfig(),
+                            progress=False, timing=given)
+    assert seen == [timing] * 6
+    recorded = json.loads((tmp_path / "out" / "summary.json").read_text())["camera_timing"]
+    assert recorded == {**timing.to_dict(), "source": "command line over intrinsics"}
+    assert out.summary["camera_timing"] == recorded
+    # A worker's segment sets the timing it is sent before its first frame.
+    replay_mod._init_worker(nominal_model(), PoseConfig(), single_thread=False)
+    seen.clear()
+    replay_mod._process_segment(list(src.raw_frames())[:2], own)
+    assert seen == [own, own] and replay_mod._PROCESSOR.timing == own
+    replay_mod._process_segment(list(src.raw_frames())[:1])
+    assert seen[-1] == CameraTiming()

@@ -163,3 +163,18 @@ def test_tracked_frames_give_the_cap_velocity() -> None:
         sigma = np.sqrt(np.diag(r.pose.velocity_covariance)[3:])
         assert np.degrees(np.linalg.norm(w_true)) > 50.0
         assert np.degrees(np.abs(w_err)).max() < 25.0 and np.all(np.abs(w_err) < 4.0 * sigma)
+
+
+def test_the_camera_timing_is_a_setting_of_the_processor() -> None:
+    """``timing`` is held as given (``CameraTiming()``, not known, by default) and, like
+    ``pose_config``, replaced as a whole between frames."""
+    from ficap_ros.geometry.camera import CameraTiming
+
+    assert FrameProcessor(MODEL).timing == CameraTiming()
+    rs = CameraTiming(exposure_ms=16.7, readout_ms=22.0, stamp_offset_ms=-5.0)
+    proc = FrameProcessor(MODEL, tracking=False, timing=rs)
+    assert proc.timing is rs
+    proc.timing = CameraTiming(exposure_ms=4.0)
+    scene, frames = _frames("540p", 2, seed=3)
+    assert proc.process(frames[0][0].image, scene.camera).pose is not None
+    assert proc.timing == CameraTiming(exposure_ms=4.0)

@@ -11,7 +11,7 @@ import json
 import math
 from dataclasses import asdict
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 from ficap_ros import __version__
 from ficap_ros.errors import BagError
@@ -81,9 +81,10 @@ def label_settings(
     calibrate_window_s: tuple[float, float] | None = None, namespace: str = "",
     image_topic: str | None = None, camera_info_topic: str | None = None,
     intrinsics: str | Path | None = None, fps: float | None = None, rectified: bool = False,
-    detector: DetectorConfig | None = None,
+    detector: DetectorConfig | None = None, timing: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
-    """Every setting that changes the labels, as plain JSON values (files by content hash).
+    """Every setting that changes the labels, as plain JSON values (files by content hash;
+    ``timing``: camera timing fields given over the recordings' own, recorded when given).
 
     The pose settings are those the pipeline applies (``pipeline.pose_config_for``: an unset
     uncertainty is the corner estimator's profile), so runs whose labels agree agree here. Left
@@ -110,6 +111,7 @@ def label_settings(
         "fps": fps,
         "rectified": bool(rectified),
         "segment_frames": replay.SEGMENT_FRAMES,
+        **({"camera_timing": dict(sorted(timing.items()))} if timing else {}),
     }
 
 

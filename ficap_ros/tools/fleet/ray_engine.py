@@ -19,6 +19,7 @@ from itertools import islice
 from typing import Any, Callable, Iterable, Iterator
 
 from ficap_ros.errors import ConfigError
+from ficap_ros.geometry.camera import CameraTiming
 from ficap_ros.geometry.cap_model import CapModel
 from ficap_ros.io.sources import RawFrame
 from ficap_ros.tools import replay
@@ -33,15 +34,17 @@ _WORKER_KEY: Any = None
 
 
 def ray_segment(config: tuple[CapModel, PoseConfig, DetectorConfig | None],
-                raws: list[RawFrame]) -> list[replay.ReplayedFrame]:
-    """A Ray task: one segment through the pipeline (the worker keeps its FrameProcessor)."""
+                raws: list[RawFrame], timing: CameraTiming | None = None,
+                ) -> list[replay.ReplayedFrame]:
+    """A Ray task: one segment of a recording whose camera has ``timing`` through the pipeline
+    (the worker keeps its FrameProcessor)."""
     global _WORKER_KEY
     model, pose, detector = config
     key = settings_key(model, pose, detector)
     if key != _WORKER_KEY:
         replay._init_worker(model, pose, single_thread=True, detector=detector)
         _WORKER_KEY = key
-    return replay._process_segment(raws)
+    return replay._process_segment(raws, timing)
 
 
 class RayEngine:
@@ -53,7 +56,7 @@ class RayEngine:
         num_cpus: CPUs of the embedded Ray (default: the machine's).
         retries: times a segment is re-run when its worker or node dies.
         model, pose: what every task processes with (shipped once through the object store).
-        segment_fn: the task, ``fn((model, pose, detector), raws) -> processed frames``
+        segment_fn: the task, ``fn((model, pose, detector), raws, timing) -> processed frames``
             (default: the pipeline; tests pass one that fails).
         detector: detector settings of every task (default ``DetectorConfig()``).
     """
@@ -111,8 +114,9 @@ class RayEngine:
         #: What its tasks label with (``fingerprints.settings_key``).
         self.settings_key = settings_key(model, pose, detector)
 
-    def process(self, raws: Iterable[RawFrame]) -> Iterator[Any]:
-        """``replay``'s engine: processed frames of ``raws``, in order (thread-safe)."""
+    def process(self, raws: Iterable[RawFrame], timing: CameraTiming | None = None) -> Iterator[Any]:
+        """``replay``'s engine: processed frames of ``raws`` (of a camera with ``timing``; None:
+        not known), in order (thread-safe)."""
         ray = self._ray
         it = iter(raws)
         pending: deque[Any] = deque()
@@ -129,7 +133,7 @@ class RayEngine:
                         self._slots.release()
                         done_reading = True
                         break
-                    pending.append(self._task.remote(self._config, segment))
+                    pending.append(self._task.remote(self._config, segment, timing))
                 if not pending:
                     return
                 ref = pending.popleft()

@@ -12,7 +12,7 @@ import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Callable, Sequence
+from typing import Any, Callable, Mapping, Sequence
 
 from ficap_ros.errors import ConfigError, FicapError, one_line
 from ficap_ros.geometry.cap_model import CapModel
@@ -55,21 +55,23 @@ class _Labelling:
     namespace: str
     jobs: int
     detector: DetectorConfig | None
+    timing: Mapping[str, Any] | None = None
 
     def replay_one(self, item: _Todo, engine: RayEngine | None,
                    bar: FleetProgress) -> RecordingResult:
         """One recording into ``out / rec.rel``: its result, ``failed`` on any error."""
         _, rec, source, fp = item
         t = time.perf_counter()
-        process = engine.process if engine is not None else (
-            lambda raws: replay_mod.process_frames(raws, self.model, self.pose, self.jobs,
-                                                   detector=self.detector))
         try:
+            timing = replay_mod.recording_timing(source, self.timing)[0]
+            process = (lambda raws: engine.process(raws, timing)) if engine is not None else (
+                lambda raws: replay_mod.process_frames(raws, self.model, self.pose, self.jobs,
+                                                       detector=self.detector, timing=timing))
             output = replay_mod.replay(
                 source, self.out / rec.rel, self.model, self.pose, self.calibration,
                 self.calibrate_window_s, self.jobs, self.namespace, progress=False,
                 engine=lambda raws: bar.counted(process(raws)),
-                summary_extra={"fingerprint": fp}, detector=self.detector)
+                summary_extra={"fingerprint": fp}, detector=self.detector, timing=self.timing)
         except Exception as err:  # noqa: BLE001 - one recording's failure must not stop the fleet
             return RecordingResult(str(rec.path), str(rec.rel), "failed",
                                    wall_s=round(time.perf_counter() - t, 3),
@@ -98,6 +100,7 @@ def run_fleet(
     summary_files: bool = True,
     ray_engine: RayEngine | None = None,
     detector: DetectorConfig | None = None,
+    timing: Mapping[str, Any] | None = None,
 ) -> FleetResult:
     """Replay every recording into ``out / rec.rel`` (see the package docstring).
 
@@ -113,6 +116,8 @@ def run_fleet(
             its own ``detector``.
         detector: detector settings (default ``DetectorConfig()``); give the same to
             ``label_settings`` so the fingerprint holds them.
+        timing: camera timing fields over each recording's own (``replay.recording_timing``);
+            give the same to ``label_settings``.
 
     Returns:
         One result per recording, in the given order. A failing recording does not stop the others.
@@ -126,7 +131,7 @@ def run_fleet(
     t0 = time.perf_counter()
     results, todo = _plan(recordings, out, settings, force, open_source)
     labelling = _Labelling(out, model, pose, calibration, calibrate_window_s, namespace, jobs,
-                           detector)
+                           detector, timing)
     bar = FleetProgress(sum(src.count for _, _, src, _ in todo), len(recordings), len(results),
                         sum(r.status == "failed" for r in results.values()), progress)
     fleet = FleetResult(engine="processes", workers=jobs)

@@ -26,6 +26,9 @@ formed the way a camera forms an image, in this order (``RenderConfig`` holds ev
    frame averages sub-frames rendered over the exposure (``exposure_ms``; an odd count, at most
    half a pixel of corner travel between two, so only fast motion costs more); its ground truth is
    the pose at mid-exposure. ``naturalistic_motion(...).around(t)`` gives that function for a drive.
+   A **rolling shutter** (``readout_ms``, ``row_order``; ``shutter``) exposes each row over its
+   own window, centred ``(y + 0.5 - H / 2) / H * readout`` after the stamp (the middle row's
+   mid-exposure, whose pose is the truth), with or without the blur (``motion_blur``).
 4. **Sensor** (``camera_chain``): charge = radiance x exposure / nominal exposure x full well
    (``full_well_e``), shot noise (Poisson, Gaussian limit), clipping at full well, read noise
    (``read_noise_e``), then ``gain`` (auto: the lighting's, scaled for a non-nominal exposure) into
@@ -51,11 +54,13 @@ midpoint or a gradient peak inherit on real images. ``tone="linear", psf_sigma_p
 idealised images the geometry tests want.
 
 Motion (``drive``): ``naturalistic_drive`` gives a list of ``DriveFrame`` with the true head and
-cap poses of a drive that looks ahead, then glances at the mirrors and the instrument cluster.
+cap poses of a drive that looks ahead, then glances at the mirrors and the instrument cluster;
+``glance_motion`` strings such glances back to back, each turn peaking at 150-250 deg/s.
 
 Modules: ``config`` (RenderConfig, RenderedFrame), ``lighting``, ``scene`` (what is drawn),
-``raster`` (drawing it into radiance), ``camera_chain`` (lens, sensor, ISP), ``render`` (the
-chain), ``drive`` (head motion). This package exports their public names.
+``raster`` (drawing it into radiance), ``camera_chain`` (lens, sensor, ISP), ``shutter`` (a
+rolling shutter's rows), ``render`` (the chain), ``drive`` (head motion). This package exports
+their public names.
 """
 
 from __future__ import annotations
@@ -69,11 +74,15 @@ from ficap_ros.tools.synth.config import (
     default_psf_sigma_px,
 )
 from ficap_ros.tools.synth.drive import (
+    GLANCE_PEAK_DEG_S,
+    MOTIONS,
     RESOLUTIONS,
     DriveFrame,
     DriveMotion,
     DriveScene,
     default_scene,
+    drive_motion,
+    glance_motion,
     naturalistic_drive,
     naturalistic_motion,
 )
@@ -102,6 +111,10 @@ __all__ = [
     "default_scene",
     "naturalistic_drive",
     "naturalistic_motion",
+    "glance_motion",
+    "drive_motion",
+    "MOTIONS",
+    "GLANCE_PEAK_DEG_S",
     "DriveMotion",
     "TONES",
     "tone_curve",

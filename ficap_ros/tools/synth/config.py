@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ficap_ros.errors import ConfigError
-from ficap_ros.geometry.camera import CameraModel
+from ficap_ros.geometry.camera import ROW_ORDERS, CameraModel, CameraTiming
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.tools.synth.lighting import LIGHTINGS, LIGHTS
 from ficap_ros.tools.synth.scene import HEAD_CENTRE_M, HEAD_SEMI_AXES_M
@@ -63,6 +63,15 @@ class RenderConfig:
         gamma: the exponent of the ``gamma`` tone curve (2.2 = ``value ** (1 / 2.2)``).
         motion_subframes: sub-frames averaged over the exposure when rendering motion; 0 = auto
             (odd, enough that no corner moves more than half a pixel between two; at most 31).
+            With a rolling shutter: the sub-steps of each row's exposure (auto: as many, not
+            necessarily odd), or without motion blur the samples over the readout (auto: a
+            quarter pixel of corner travel apart; ``synth.shutter.substeps``).
+        readout_ms: rolling shutter (``synth.shutter``, when the pose is a function of time):
+            time between the first and the last row's exposure centres, ms; 0 = a global shutter.
+        row_order: ``top_to_bottom`` or ``bottom_to_top`` (``geometry.camera.ROW_ORDERS``).
+        motion_blur: with a pose function, each row integrates the motion over the exposure;
+            False: each row sees the pose at its own instant (a rolling shutter without blur; a
+            global shutter then renders the pose at 0).
         jpeg_quality: JPEG round trip at this quality (1..100), or None.
         color: BGR output (hair and interior tinted) instead of grey.
         supersample: supersampling factor per axis for faces (1..8); faces whose tag edge is
@@ -86,6 +95,9 @@ class RenderConfig:
     tone: str = "srgb"
     gamma: float = 2.2
     motion_subframes: int = 0
+    readout_ms: float = 0.0
+    row_order: str = "top_to_bottom"
+    motion_blur: bool = True
     jpeg_quality: int | None = None
     color: bool = False
     supersample: int = 4
@@ -119,6 +131,11 @@ class RenderConfig:
         finite("full_well_e", 0.0, strict=True)
         finite("read_noise_e", 0.0)
         finite("gamma", 0.0, strict=True)
+        finite("readout_ms", 0.0)
+        if float(self.readout_ms) > 1000.0:
+            raise ConfigError(f"readout_ms must be at most 1000, got {self.readout_ms}")
+        if self.row_order not in ROW_ORDERS:
+            raise ConfigError(f"row_order must be one of {', '.join(ROW_ORDERS)}, got {self.row_order!r}")
         if not 0 <= int(self.motion_subframes) <= 255:
             raise ConfigError(f"motion_subframes must be in 0..255, got {self.motion_subframes}")
         if self.jpeg_quality is not None and not 1 <= int(self.jpeg_quality) <= 100:
@@ -133,6 +150,14 @@ class RenderConfig:
     def psf_sigma_for(self, height_px: int) -> float:
         """The Gaussian PSF sigma used for an image of this height, px."""
         return default_psf_sigma_px(height_px) if self.psf_sigma_px is None else float(self.psf_sigma_px)
+
+    @property
+    def timing(self) -> CameraTiming:
+        """The camera timing of frames rendered from a pose function, stamped at the middle row's
+        mid-exposure: the exposure (0 without motion blur: rows are instants), the readout and
+        the row order."""
+        exposure_ms = self.exposure_and_gain()[0] if self.motion_blur else 0.0
+        return CameraTiming(exposure_ms, float(self.readout_ms), self.row_order)
 
     def exposure_and_gain(self) -> tuple[float, float]:
         """(exposure_ms, gain) actually used (auto values resolved)."""

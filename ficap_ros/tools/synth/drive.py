@@ -22,8 +22,9 @@ from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.metrics import rotation_from_ypr_deg
 from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform
 
-__all__ = ["RESOLUTIONS", "DriveScene", "DriveFrame", "default_scene", "DriveMotion",
-           "naturalistic_motion", "naturalistic_drive"]
+__all__ = ["RESOLUTIONS", "MOTIONS", "GLANCE_PEAK_DEG_S", "DriveScene", "DriveFrame",
+           "default_scene", "DriveMotion", "naturalistic_motion", "glance_motion", "drive_motion",
+           "naturalistic_drive"]
 
 #: Named resolutions of ``default_scene``.
 RESOLUTIONS: dict[str, tuple[int, int]] = {
@@ -181,6 +182,19 @@ class DriveMotion:
         p, _ = self.pose_vector_at(t_s)
         return self.scene.cap_pose(rotation_from_ypr_deg(*p[:3]), p[3:])
 
+    def cap_velocity_at(self, t_s: float, h_s: float = 1e-4) -> np.ndarray:
+        """The cap's true velocity at ``t_s`` as ``CapPose.velocity`` gives it: (6,), ROS twist
+        order in the camera's axes: the cap origin's linear velocity (m/s), then the angular
+        velocity (rad/s: ``R(t + dt) = exp([w] dt) R(t)``); central differences over ``h_s``."""
+        a, b = self.T_cam_cap_at(t_s - h_s), self.T_cam_cap_at(t_s + h_s)
+        v = (b.translation_m - a.translation_m) / (2.0 * h_s)
+        w = (b.rotation * a.rotation.inv()).as_rotvec() / (2.0 * h_s)
+        return np.concatenate([v, w])
+
+    def angular_speed_deg_s(self, t_s: float) -> float:
+        """The head's (and cap's) angular speed at ``t_s``, deg/s."""
+        return float(np.degrees(np.linalg.norm(self.cap_velocity_at(t_s)[3:])))
+
     def around(self, t_s: float) -> Callable[[float], Transform]:
         """The pose function ``render`` integrates over an exposure centred on ``t_s``:
         ``dt`` (s from mid-exposure) -> T_cam_cap."""
@@ -256,6 +270,83 @@ def naturalistic_motion(
         pose, t = target, t + move + dwell
     return DriveMotion(scene=scene, frontal_s=float(frontal_s), segments=tuple(segments),
                        sway=(amps, freqs, phases))
+
+
+#: Peak head angular speeds of ``glance_motion``'s turns, deg/s (drawn uniformly per turn).
+GLANCE_PEAK_DEG_S = (150.0, 250.0)
+
+
+def _turn_s(pose_from: np.ndarray, pose_to: np.ndarray, peak_deg_s: float) -> float:
+    """How long a minimum-jerk turn between two poses (yaw, pitch, roll deg, ...) takes to peak
+    at ``peak_deg_s``: its path sampled at unit duration, the fastest geodesic rate scaled."""
+    s = _min_jerk(np.linspace(0.0, 1.0, 201))
+    path = [rotation_from_ypr_deg(*(pose_from[:3] + (pose_to[:3] - pose_from[:3]) * float(k)))
+            for k in s]
+    rate = max(np.degrees((b * a.inv()).magnitude()) for a, b in zip(path, path[1:])) * 200.0
+    return max(float(rate) / peak_deg_s, 1e-3)
+
+
+def glance_motion(
+    duration_s: float, seed: int = 0, scene: DriveScene | None = None, frontal_s: float = 3.0,
+    peak_deg_s: tuple[float, float] = GLANCE_PEAK_DEG_S,
+) -> DriveMotion:
+    """Glance-heavy head motion: the hardest stretches of a drive for the labels, back to back.
+
+    After ``frontal_s`` seconds looking straight ahead (natural sway, as ``naturalistic_motion``),
+    glances follow each other: a turn to a target of ``naturalistic_motion``'s (each block of four
+    visits the left and right mirrors, the rear-view mirror and the cluster), 0.2-0.6 s there, the
+    turn back and 0.3-0.8 s looking ahead (a degree or two off centre). Every turn follows the
+    minimum-jerk profile and peaks at an angular speed drawn uniformly from ``peak_deg_s``: the
+    side mirrors' turns take 0.4-0.7 s, the rear-view mirror's and the cluster's 0.1-0.3 s.
+
+    Args:
+        duration_s, seed, scene, frontal_s: as ``naturalistic_motion``.
+        peak_deg_s: (low, high) peak angular speed of the turns, deg/s.
+    """
+    if not duration_s >= 0 or not frontal_s >= 0 or not 0 < peak_deg_s[0] <= peak_deg_s[1]:
+        raise ConfigError("glance_motion needs duration_s >= 0, frontal_s >= 0 and "
+                          "0 < peak_deg_s[0] <= peak_deg_s[1]")
+    scene = scene or default_scene()
+    rng = np.random.default_rng(seed)
+    freqs = rng.uniform(0.08, 0.5, (6, 2))
+    phases = rng.uniform(0.0, 2 * math.pi, (6, 2))
+    amps = np.concatenate([rng.uniform(0.1, 0.3, (3, 2)), rng.uniform(0.0005, 0.002, (3, 2))])
+    pose = np.zeros(6)
+    t = frontal_s
+    segments: list[tuple[float, float, np.ndarray, np.ndarray, str]] = [(0.0, t, pose, pose, "frontal")]
+    labels = ["left_mirror", "right_mirror", "rear_mirror", "cluster"]
+    bag: list[str] = []
+    while t < duration_s:
+        for label in (None, "frontal"):
+            if label is None:
+                bag = bag or list(rng.permutation(labels))
+                label = str(bag.pop())
+                target, dwell = _glance_target(label, rng), rng.uniform(0.2, 0.6)
+            else:
+                target = np.array([rng.normal(0, 1.0), rng.normal(0, 1.0), rng.normal(0, 0.5),
+                                   rng.normal(0, 0.003), rng.normal(0, 0.003), 0.0])
+                dwell = rng.uniform(0.3, 0.8)
+            move = _turn_s(pose, target, rng.uniform(*peak_deg_s))
+            segments.append((t, t + move, pose, target, label))
+            segments.append((t + move, t + move + dwell, target, target, label))
+            pose, t = target, t + move + dwell
+    return DriveMotion(scene=scene, frontal_s=float(frontal_s), segments=tuple(segments),
+                       sway=(amps, freqs, phases))
+
+
+#: Head motions of a drive by name (``drive_motion``).
+MOTIONS = ("naturalistic", "glances")
+
+
+def drive_motion(kind: str, duration_s: float, seed: int = 0, scene: DriveScene | None = None,
+                 frontal_s: float = 3.0) -> DriveMotion:
+    """The head motion named ``kind`` (``MOTIONS``): ``naturalistic_motion`` or
+    ``glance_motion``."""
+    if kind == "naturalistic":
+        return naturalistic_motion(duration_s, seed, scene, frontal_s)
+    if kind == "glances":
+        return glance_motion(duration_s, seed, scene, frontal_s)
+    raise ConfigError(f"unknown head motion {kind!r}; expected one of {', '.join(MOTIONS)}")
 
 
 def naturalistic_drive(

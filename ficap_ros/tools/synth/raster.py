@@ -377,25 +377,38 @@ def _visible_fractions(model: CapModel, order: list[int], id_buf: np.ndarray,
     return visible
 
 
-def _canvas(width: int, height: int, cfg: RenderConfig, light: Light) -> np.ndarray:
-    """The car interior's radiance (or a flat grey), float32 (H, W, C), writable."""
+def _canvas(width: int, height: int, cfg: RenderConfig, light: Light,
+            rows: tuple[int, int]) -> np.ndarray:
+    """The car interior's radiance (or a flat grey) over image rows [r0, r1), float32
+    (r1 - r0, W, C), writable."""
     channels = 3 if cfg.color else 1
+    r0, r1 = rows
     if cfg.background:
-        img = background(width, height, cfg.background_seed, cfg.color) * np.float32(light.background)
+        img = (background(width, height, cfg.background_seed, cfg.color)[r0:r1]
+               * np.float32(light.background))
     else:
-        img = np.full((height, width, channels), 0.06 * light.background, np.float32)
+        img = np.full((r1 - r0, width, channels), 0.06 * light.background, np.float32)
     return np.ascontiguousarray(img, dtype=np.float32)
 
 
 def render_scene(
     model: CapModel, k: np.ndarray, width: int, height: int, T_cam_cap: Transform,
-    cfg: RenderConfig,
+    cfg: RenderConfig, rows: tuple[int, int] | None = None,
 ) -> tuple[np.ndarray, dict[int, float], list[int]]:
     """Float32 (H, W, C) linear radiance (share of the full well at the lighting's nominal
     exposure) of the ideal pinhole (K, no distortion), before flare and spotlights; visible
-    fractions; front-facing ids, far to near."""
+    fractions; front-facing ids, far to near.
+
+    ``rows`` = (r0, r1): only image rows r0 <= y < r1, an (r1 - r0, W, C) band (what a rolling
+    shutter's sub-step needs: ``synth.shutter``): the pinhole's principal point moves up by r0,
+    so the band holds those rows of the whole image; visible fractions are then of the band.
+    """
     light = LIGHTS[cfg.lighting]
-    img = _canvas(width, height, cfg, light)
+    r0, r1 = (0, height) if rows is None else (int(rows[0]), int(rows[1]))
+    img = _canvas(width, height, cfg, light, (r0, r1))
+    if r0:
+        k = k.copy()
+        k[1, 2] -= r0
     hair_tint = (np.array([0.75, 0.9, 1.15], np.float32) if cfg.color else np.ones(1, np.float32))
     occluders: list[HeadMaps] = []
     if cfg.head:

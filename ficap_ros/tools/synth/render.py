@@ -2,7 +2,8 @@
 
 The steps, in the order a camera forms an image (``ficap_ros.tools.synth``'s docstring has the
 model): the scene's linear radiance by the ideal pinhole (``raster``), averaged over the exposure's
-sub-frames when the pose is a function of time (motion blur), the lighting's spotlights and flare,
+sub-frames when the pose is a function of time (motion blur; each row over its own window with a
+rolling shutter: ``shutter``), the lighting's spotlights and flare,
 the lens (distortion remap, PSF), the sensor and the ISP (``camera_chain``).
 """
 
@@ -28,6 +29,7 @@ from ficap_ros.tools.synth.camera_chain import (
 from ficap_ros.tools.synth.config import RenderConfig, RenderedFrame
 from ficap_ros.tools.synth.lighting import LIGHTS, spotlights
 from ficap_ros.tools.synth.raster import render_scene
+from ficap_ros.tools.synth.shutter import rolling_exposure
 
 __all__ = ["render"]
 
@@ -94,9 +96,12 @@ def _exposure(
     model: CapModel, camera: CameraModel, canvas: _Canvas, T_mid: Transform,
     pose_at: Callable[[float], Transform] | None, cfg: RenderConfig, exposure_ms: float,
 ) -> tuple[np.ndarray, dict[int, float], list[int]]:
-    """The scene's radiance over the exposure (the mean of the sub-frames' when the pose moves),
-    and the visible fractions and front ids at mid-exposure."""
-    times = [0.0] if pose_at is None else list(
+    """The scene's radiance over the exposure (the mean of the sub-frames' when the pose moves;
+    each row's own window with a rolling shutter, ``shutter.rolling_exposure``), and the visible
+    fractions and front ids at mid-exposure."""
+    if pose_at is not None and cfg.readout_ms > 0.0:
+        return rolling_exposure(model, camera, pose_at, cfg)
+    times = [0.0] if pose_at is None or not cfg.motion_blur else list(
         _subframe_times_s(model, camera, pose_at, exposure_ms / 1000.0, cfg.motion_subframes))
     scene: np.ndarray | None = None
     for t in times:
@@ -159,7 +164,10 @@ def render(
         T_cam_cap: cap pose in the camera optical frame (metres), or, for motion blur, a function
             of time (s, 0 = mid-exposure) returning the pose then: the frame integrates the pose
             over the exposure (``config.exposure_ms``) and its ground truth is the pose at 0.
-            ``DriveMotion.around`` gives one for a naturalistic drive.
+            ``DriveMotion.around`` gives one for a naturalistic drive. With
+            ``config.readout_ms`` (a rolling shutter) each row is exposed at its own time
+            (``config.timing``; 0 = the middle row's mid-exposure, the truth), and without
+            ``config.motion_blur`` each row (or a global shutter's frame) is one instant.
         config: rendering options (default ``RenderConfig()``).
         seed: seeds noise and spotlights (the background uses ``config.background_seed``).
 

@@ -161,7 +161,7 @@ def test_ray_retries_a_dead_worker_and_fails_only_the_broken_recording(
     # A worker process that dies on its first task: Ray re-runs the segment, the labels are whole.
     marker = str(tmp_path / "died")
 
-    def dies_once(config, raws):  # runs in a Ray worker (pickled by value)
+    def dies_once(config, raws, timing):  # runs in a Ray worker (pickled by value)
         import os as _os
         from pathlib import Path as _Path
 
@@ -170,7 +170,7 @@ def test_ray_retries_a_dead_worker_and_fails_only_the_broken_recording(
         if not _Path(marker).exists():
             _Path(marker).touch()
             _os._exit(1)
-        return ray_segment(config, raws)
+        return ray_segment(config, raws, timing)
 
     engine = RayEngine(model, pose, retries=2, segment_fn=dies_once)
     fleet = run_fleet(recs[:1], tmp_path / "retried", open_frames, model, pose, settings,
@@ -182,12 +182,12 @@ def test_ray_retries_a_dead_worker_and_fails_only_the_broken_recording(
     # A segment whose processing raises (not a dead worker: no retry) fails its recording only.
     poison = next(iter(open_frames(recs[1].path).raw_frames())).payload
 
-    def breaks_on_d2(config, raws):
+    def breaks_on_d2(config, raws, timing):
         from ficap_ros.tools.fleet.ray_engine import ray_segment
 
         if any(r.payload == poison for r in raws):
             raise RuntimeError("pipeline bug on this segment")
-        return ray_segment(config, raws)
+        return ray_segment(config, raws, timing)
 
     engine = RayEngine(model, pose, retries=2, segment_fn=breaks_on_d2)
     fleet = run_fleet(recs, tmp_path / "isolated", open_frames, model, pose, settings,

@@ -111,3 +111,76 @@ def test_drive_arguments_are_checked() -> None:
     frames = naturalistic_drive(4, fps=2.0, frontal_s=1.0)
     assert [f.frontal for f in frames] == [True, True, False, False]
     assert [f.stamp_ns for f in frames] == [0, 500_000_000, 1_000_000_000, 1_500_000_000]
+
+
+def _turns(motion):
+    """(start, end, label) of every turn of a motion after its frontal segment."""
+    return [(a, b, label) for a, b, p0, p1, label in motion.segments[1:] if not np.allclose(p0, p1)]
+
+
+def test_glance_drives_turn_at_150_to_250_deg_s() -> None:
+    """``glance_motion``: glances back to back, every turn (to a target and back) peaking at
+    150-250 deg/s, the targets of a naturalistic drive visited in blocks of four; reproducible by
+    seed; ``drive_motion`` names it; the frontal segment stays still for calibration."""
+    from ficap_ros.tools.synth import (
+        GLANCE_PEAK_DEG_S,
+        MOTIONS,
+        drive_motion,
+        glance_motion,
+    )
+
+    scene = default_scene("540p")
+    motion = glance_motion(12.0, seed=7, scene=scene, frontal_s=1.0)
+    turns = _turns(motion)
+    assert len(turns) >= 12
+    assert {label for *_, label in turns} == {"frontal", "left_mirror", "right_mirror",
+                                              "rear_mirror", "cluster"}
+    peaks = np.array([max(motion.angular_speed_deg_s(t) for t in np.linspace(a, b, 41))
+                      for a, b, _ in turns])
+    lo, hi = GLANCE_PEAK_DEG_S
+    print(f"\nglance turns: {len(peaks)}, peak speeds {peaks.min():.0f}-{peaks.max():.0f} deg/s")
+    assert lo - 2.0 <= peaks.min() and peaks.max() <= hi + 2.0  # the sway adds under 2 deg/s
+    assert peaks.max() - peaks.min() > 0.5 * (hi - lo)  # drawn over the range
+    assert max(motion.angular_speed_deg_s(t) for t in np.linspace(0.0, 1.0, 21)) < 3.0
+    frames = [motion.frame(i, 30.0) for i in range(0, 360, 9)]
+    again = drive_motion("glances", 12.0, seed=7, scene=scene, frontal_s=1.0)
+    assert all(angle_deg(f.T_cam_cap.rotation, again.frame(f.index, 30.0).T_cam_cap.rotation) == 0
+               for f in frames)
+    assert MOTIONS == ("naturalistic", "glances")
+    named, plain = drive_motion("naturalistic", 9.0, 3, scene), naturalistic_motion(9.0, 3, scene)
+    assert all(np.array_equal(named.frame(i, 30.0).ypr_deg, plain.frame(i, 30.0).ypr_deg)
+               for i in range(0, 270, 13))
+    import pytest
+
+    from ficap_ros.errors import ConfigError
+
+    with pytest.raises(ConfigError, match="unknown head motion"):
+        drive_motion("sneeze", 1.0)
+    with pytest.raises(ConfigError):
+        glance_motion(1.0, peak_deg_s=(300.0, 200.0))
+
+
+def test_the_true_cap_velocity_is_the_motions_derivative() -> None:
+    """``cap_velocity_at``: the cap origin's velocity and the angular velocity in the camera's
+    axes (R(t + dt) = exp([w] dt) R(t)), CapPose.velocity's convention: stepping the pose by
+    it over a millisecond lands on the motion."""
+    from ficap_ros.tools.synth import glance_motion
+
+    motion = glance_motion(6.0, seed=2, frontal_s=0.5)
+    a, b, _ = _turns(motion)[0]
+    t = 0.5 * (a + b)  # mid-turn: fastest
+    twist = motion.cap_velocity_at(t)
+    assert np.degrees(np.linalg.norm(twist[3:])) > 140.0
+    dt = 1e-3
+    T0, T1 = motion.T_cam_cap_at(t), motion.T_cam_cap_at(t + dt)
+    predicted = Rotation.from_rotvec(twist[3:] * dt) * T0.rotation
+    assert angle_deg(predicted, T1.rotation) < 0.01 * np.degrees(np.linalg.norm(twist[3:]) * dt)
+    np.testing.assert_allclose(T0.translation_m + twist[:3] * dt, T1.translation_m, atol=2e-6)
+    # The origin swings about the neck pivot, and the lean moves it too.
+    h = 1e-5
+    lean, _ = motion.pose_vector_at(t)
+    lean_rate = (motion.pose_vector_at(t + h)[0] - motion.pose_vector_at(t - h)[0])[3:] / (2 * h)
+    R_cf = motion.scene.R_cam_frontal
+    lever = T0.translation_m - motion.scene.p_cam_neck_m - R_cf.apply(lean[3:])
+    np.testing.assert_allclose(twist[:3], np.cross(twist[3:], lever) + R_cf.apply(lean_rate),
+                               atol=1e-4)
