@@ -103,7 +103,10 @@ class FrameProcessor:
         timing: when the camera's rows see the scene relative to the stamps (exposure, rolling
             shutter readout, stamp offset; ``CameraTiming()``: not known). A rolling shutter's
             poses are solved with the cap's velocity over the readout (``estimate_cap_pose``), the
-            tracker's past poses its velocity prior. Like ``pose_config`` it may be replaced as a
+            tracker's past poses its velocity prior. The cap's velocity (``CapPose.velocity``)
+            is reported only when the timing states an exposure or a readout; with neither, the
+            outputs are those of an estimator without a motion model. Like ``pose_config`` it may
+            be replaced as a
             whole between frames (the node does when its ``camera.*`` parameters change; replay
             sets each recording's).
     """
@@ -155,11 +158,21 @@ class FrameProcessor:
             detections = tuple(d for d in self.detector.detect(gray) if d.tag_id in self.model)
             frame = TrackedFrame(detections, solve(detections, None), Search.IMAGE)
         t1, t2 = solve_started[0], time.perf_counter()
-        evidence = None
-        if frame.result.pose is not None and not self.timing.rolling:
-            evidence = _timing_evidence(frame.result.pose, frame.detections, self.model, camera)
-        return FrameResult(frame.detections, frame.result.pose, frame.result.reason, frame.search,
+        pose, evidence = frame.result.pose, None
+        if pose is not None and not self.timing.rolling:
+            evidence = _timing_evidence(pose, frame.detections, self.model, camera)
+        if pose is not None and not _timing_given(self.timing):
+            pose = replace(pose, velocity=None, velocity_covariance=None)
+        return FrameResult(frame.detections, pose, frame.result.reason, frame.search,
                            (t1 - t0) * 1e3, (t2 - t1) * 1e3, evidence)
+
+
+def _timing_given(timing: CameraTiming) -> bool:
+    """Whether the camera's timing is stated (an exposure or a readout): only then is the cap's
+    velocity reported (``CapPose.velocity``, the head twist). With none stated the outputs are the
+    timing-agnostic estimator's, identical whatever the frames before say of the motion; the
+    velocity then serves only the readout's evidence."""
+    return timing.exposure_ms > 0.0 or timing.readout_ms > 0.0
 
 
 def _timing_evidence(pose: CapPose, detections: tuple[TagDetection, ...], model: CapModel,

@@ -134,7 +134,8 @@ def test_a_frame_result_and_pose_settings_replaced_between_frames() -> None:
 def test_tracked_frames_give_the_cap_velocity() -> None:
     """Consecutive 30 fps frames through a glance: the first frame (searched, nothing before it)
     has no velocity; the tracked ones have the velocity of their poses' finite difference, near
-    the true one and within what its covariance says."""
+    the true one and within what its covariance says. Without a stated timing the same poses come
+    without a velocity, while the frames still give their readout evidence."""
     from ficap_ros.geometry.camera import CameraTiming
     from ficap_ros.tools.synth import naturalistic_motion
 
@@ -145,11 +146,16 @@ def test_tracked_frames_give_the_cap_velocity() -> None:
               / 0.01 for t in times]
     t_fast = float(times[int(np.argmax(speeds))])
     proc = FrameProcessor(MODEL, timing=CameraTiming(exposure_ms=8.0))
+    bare = FrameProcessor(MODEL)
     assert proc.timing.exposure_ms == 8.0 and not proc.timing.rolling
     for k in range(-3, 2):
         t = t_fast + k / 30
         frame = render(MODEL, scene.camera, motion.T_cam_cap_at(t), RenderConfig(lighting="neutral"), seed=k + 10)
         r = proc.process(frame.image, scene.camera, int(round(t * 1e9)))
+        b = bare.process(frame.image, scene.camera, int(round(t * 1e9)))
+        assert b.pose.velocity is None and b.pose.velocity_covariance is None
+        np.testing.assert_array_equal(b.pose.T_cam_cap.matrix, r.pose.T_cam_cap.matrix)
+        assert (b.timing_evidence is None) == (k == -3)
         if k == -3:
             assert r.pose.velocity is None and r.pose.velocity_covariance is None
             assert r.timing_evidence is None  # no velocity: nothing said of the readout
