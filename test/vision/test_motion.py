@@ -20,6 +20,7 @@ from ficap_ros.vision.motion import (
     MotionConfig,
     MotionPrior,
     PastPose,
+    blur_modes,
     corner_times_s,
     static_velocity,
 )
@@ -157,7 +158,8 @@ def test_rolling_shutter_bound_covers_noisy_corners() -> None:
 
 def test_global_shutter_velocity_is_the_prior_and_leaves_the_pose_alone() -> None:
     """A global shutter: the pose is the static fit's whatever the prior, and its velocity the
-    prior's finite difference at it, with the pose's covariance propagated in."""
+    prior's finite difference at it, with the pose's covariance propagated in. A known exposure
+    adds the motion blur's terms to the covariance (the defaults' gains); none known, nothing."""
     rng = np.random.default_rng(5)
     pose_at = constant_velocity(T0, GLANCE)
     dets = detections({i: CAMERA.project(T0.apply(MODEL.corners_of(i) / 1000.0))
@@ -167,12 +169,29 @@ def test_global_shutter_velocity_is_the_prior_and_leaves_the_pose_alone() -> Non
     for timing in (None, CameraTiming(exposure_ms=16.0)):
         pose = estimate_cap_pose(dets, MODEL, CAMERA, timing=timing, prior=prior).pose
         assert pose.T_cam_cap.matrix.tobytes() == plain.T_cam_cap.matrix.tobytes()
-        assert pose.covariance.tobytes() == plain.covariance.tobytes()
+        grown = np.linalg.eigvalsh(pose.covariance - plain.covariance)
+        if timing is None:
+            assert pose.covariance.tobytes() == plain.covariance.tobytes()
+        else:  # the glance smears each tag by several px over 16 ms: the bounds widen
+            assert grown.min() > -1e-15 and grown.max() > 0.1 * np.linalg.eigvalsh(plain.covariance).max()
+            assert pose.rot_err95_deg > plain.rot_err95_deg
         expected = static_velocity(prior, pose.T_cam_cap, pose.covariance)
         np.testing.assert_array_equal(pose.velocity, expected[0])
         assert np.all(np.linalg.eigvalsh(pose.velocity_covariance - prior.at(pose.T_cam_cap).covariance)
                       > -1e-12)
     assert static_velocity(MotionPrior(), T0, plain.covariance) is None
+
+
+def test_blur_modes_shrink_across_the_motion_and_shift_along_it() -> None:
+    """A square tag moving 4 px along x: ``blur`` moves the corners toward the centre along x
+    by the length times the cosine of their lever to the motion, ``blur_shift`` every corner by
+    the motion itself."""
+    square = np.array([[[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]]])
+    modes = blur_modes(square, np.array([[4.0, 0.0]]))
+    cos = np.sqrt(0.5)
+    np.testing.assert_allclose(modes["blur"].reshape(4, 2),
+                               [[4 * cos, 0.0], [-4 * cos, 0.0], [-4 * cos, 0.0], [4 * cos, 0.0]])
+    np.testing.assert_allclose(modes["blur_shift"].reshape(4, 2), [[4.0, 0.0]] * 4)
 
 
 def test_rolling_shutter_needs_the_joint_method() -> None:
