@@ -16,6 +16,7 @@ __all__ = [
     "CalibrationError",
     "BagError",
     "OutputError",
+    "WorkerError",
     "one_line",
 ]
 
@@ -50,6 +51,11 @@ class BagError(FicapError):
 
 class OutputError(FicapError):
     """An output cannot be written, or would overwrite an input or a folder ficap did not write."""
+
+
+class WorkerError(FicapError):
+    """A worker process died (killed, out of memory, a crash in a native library) or did not
+    start or answer in time, and retrying did not help."""
 
 
 def one_line(err: BaseException, typed: bool = False) -> str:

@@ -17,11 +17,12 @@ from ficap_ros.errors import (
     IntrinsicsError,
     ModelError,
     OutputError,
+    WorkerError,
     one_line,
 )
 
 KINDS = (ModelError, ImageError, IntrinsicsError, ConfigError, CalibrationError, BagError,
-         OutputError)
+         OutputError, WorkerError)
 
 
 def test_every_kind_is_a_ficap_error_and_exported() -> None:

@@ -1,7 +1,8 @@
-"""ficap_ros.files: the one rule every reader and writer follows. Text read as UTF-8 or refused in
-one line; single files written atomically; output folders built beside their target and swapped in
-whole; never an output over an input, into a recording or a folder ficap did not write (every verb
-that writes a folder obeys it); killed runs' temporaries removed, never a live run's."""
+"""ficap_ros.files: the one rule every reader and writer follows. User files read only when regular
+and small enough, text as UTF-8, YAML without aliases or deep nesting, or refused in one line;
+single files written atomically; output folders built beside their target and swapped in whole;
+never an output over an input, into a recording or a folder ficap did not write (every verb obeys
+it); one writer per output (a lock); killed runs' temporaries removed, never a live run's."""
 
 from __future__ import annotations
 
@@ -23,12 +24,17 @@ from ficap_ros import files
 from ficap_ros.cli.main import main
 from ficap_ros.errors import CalibrationError, ConfigError, OutputError
 from ficap_ros.files import (
+    OutputFile,
     OutputFolder,
+    OutputLock,
+    check_not_in_recording,
     check_not_input,
+    check_output_file,
     check_output_folder,
     check_replaceable,
     is_ficap_output,
-    prepare_output_folder,
+    load_yaml,
+    read_bytes,
     read_text,
     remove_stale_temporaries,
     write_atomic,
@@ -38,31 +44,36 @@ from ficap_ros.files import (
 
 def test_replay_removes_temporaries_of_killed_runs_only(drive: Path, tmp_path: Path) -> None:
     """A run killed outright (SIGKILL) leaves its .ficap-NAME.* folder; the next replay into the
-    same output removes it, but never a live run's (its lock is held) nor a folder it cannot
-    prove dead (no lock file: an older ficap's)."""
+    same output removes it, but never a folder it cannot prove dead (no lock file: an older
+    ficap's). While a live run writes the output, a second one is refused in one line and the
+    live run's temporary stays."""
     out = tmp_path / "out"
     start = ("import os, signal, sys; from ficap_ros.files import OutputFolder; "
              f"f = OutputFolder({str(out)!r}); (f.tmp / 'labels.csv').write_text('half'); "
              "print(f.tmp, flush=True); ")
-    # The live run starts first: a run removes dead runs' temporaries when it starts.
+    killed = subprocess.run(
+        [sys.executable, "-c", start + "os.kill(os.getpid(), signal.SIGKILL)"],
+        capture_output=True, text=True, timeout=60)
+    assert killed.returncode == -signal.SIGKILL
+    dead = Path(killed.stdout.strip())
+    legacy = tmp_path / ".ficap-out.abcd1234"
+    legacy.mkdir()
+    assert dead.is_dir()
+    assert main(["replay", str(drive), "--out", str(out), "--quiet"]) == 0
+    assert not dead.exists() and not Path(f"{dead}.lock").exists() and legacy.is_dir()
+    assert (out / "labels.csv").read_text().startswith("frame,")
     live = subprocess.Popen([sys.executable, "-c", start + "sys.stdin.read()"],
                             stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     try:
         alive = Path(live.stdout.readline().strip())
-        killed = subprocess.run(
-            [sys.executable, "-c", start + "os.kill(os.getpid(), signal.SIGKILL)"],
-            capture_output=True, text=True, timeout=60)
-        assert killed.returncode == -signal.SIGKILL
-        dead = Path(killed.stdout.strip())
-        legacy = tmp_path / ".ficap-out.abcd1234"
-        legacy.mkdir()
-        assert dead.is_dir() and alive.is_dir() and dead != alive
-        assert main(["replay", str(drive), "--out", str(out), "--quiet"]) == 0
-        assert not dead.exists() and not Path(f"{dead}.lock").exists()
-        assert alive.is_dir() and Path(f"{alive}.lock").exists() and legacy.is_dir()
-        assert (out / "labels.csv").read_text().startswith("frame,")
-        left = sorted(p.name for p in tmp_path.iterdir() if p.name.startswith(".ficap-out."))
-        assert left == sorted([alive.name, f"{alive.name}.lock", legacy.name]), left
+        second = subprocess.run([sys.executable, "-m", "ficap_ros.cli", "replay", str(drive),
+                                 "--out", str(out), "--quiet"], capture_output=True, text=True,
+                                timeout=120)
+        assert second.returncode == 1, second.stderr
+        lines = second.stderr.strip().splitlines()
+        assert len(lines) == 1 and "is being written by another ficap process (pid " in lines[0]
+        assert alive.is_dir() and Path(f"{alive}.lock").exists()
+        assert (out / "labels.csv").read_text().startswith("frame,")  # the first run's, intact
     finally:
         live.communicate("", timeout=60)
     assert live.returncode == 0  # it ends without committing: its own exit leaves its folder
@@ -87,18 +98,23 @@ def test_stats_evaluate_kit_and_fleet_never_write_into_a_recording_or_foreign_fo
                      ["replay", str(drive), str(replayed.parent), "--out", str(out), "--quiet"]):
             assert main(argv) == 1, (argv, capsys.readouterr())
             line = one_error_line(capsys)
-            assert "did not write" in line and str(out) in line, line
+            assert ("did not write" in line or "the input" in line) and str(out) in line, line
     assert digest(drive) == before and digest(tree / "alice" / "d1") == before
     assert sorted(p.name for p in foreign.iterdir()) == ["notes.txt"]
-    # A folder ficap wrote takes them all, and stays one ficap may replace.
+    # A folder ficap wrote takes them all (each keeps the others' files), and stays one ficap
+    # may replace; never the input's own folder.
     mine = tmp_path / "labels"
     shutil.copytree(replayed, mine)
-    assert main(["stats", str(mine), "--out", str(mine)]) == 0
-    assert main(["evaluate", "--truth", truth, "--estimate", str(mine / "labels.csv"),
+    assert main(["stats", str(replayed), "--out", str(mine)]) == 0
+    assert main(["evaluate", "--truth", truth, "--estimate", str(replayed / "labels.csv"),
                  "--out", str(mine)]) == 0
     assert main(["kit", "--out", str(mine), "--paper", "letter", "--no-stl"]) == 0
-    assert {"stats.json", "report.md", "timeseries.png", "ficap_tags_letter.pdf"} <= {
+    assert {"stats.json", "report.md", "timeseries.png", "ficap_tags_letter.pdf", "labels.csv"} <= {
         p.name for p in mine.iterdir()}
+    for argv in (["stats", str(mine), "--out", str(mine)],
+                 ["stats", str(mine), "--out", str(mine / "sub")]):
+        assert main(argv) == 1
+        assert "is, holds or lies inside the input" in one_error_line(capsys)
     assert main(["replay", str(drive), "--out", str(mine), "--quiet"]) == 0
     assert sorted(p.name for p in mine.iterdir()) == sorted(p.name for p in replayed.iterdir())
 
@@ -266,12 +282,9 @@ def test_a_folder_is_replaceable_only_when_ficap_wrote_it(tmp_path: Path) -> Non
         check_replaceable(fleet, subfolders=True)  # at any depth
 
 
-def test_prepare_and_check_output_folders(tmp_path: Path) -> None:
-    made = prepare_output_folder(tmp_path / "a" / "b")
-    assert made.is_dir() and made == tmp_path / "a" / "b"
-    (made / "notes.txt").write_text("mine")
-    with pytest.raises(OutputError, match="did not write"):
-        prepare_output_folder(made)
+def test_check_output_folders(tmp_path: Path) -> None:
+    made = tmp_path / "a" / "b"
+    assert check_output_folder(made) == made
     check_output_folder(tmp_path / "x" / "y" / "z")  # created later, from the first that exists
     assert not (tmp_path / "x").exists()  # the check creates nothing
     blocker = tmp_path / "file"
@@ -325,3 +338,152 @@ def test_stale_temporaries_go_live_ones_and_unlocked_ones_stay(tmp_path: Path) -
         os.close(fd)
     assert remove_stale_temporaries(out) == [live]  # let go: the run is gone
     assert remove_stale_temporaries(tmp_path / "other") == []
+
+
+# -- the guarded reader ---------------------------------------------------------------------------
+def test_only_regular_files_no_larger_than_their_limit_are_read(tmp_path: Path) -> None:
+    """A FIFO is refused without blocking, a device without reading it, a file over its limit
+    before a byte of it is read."""
+    fifo = tmp_path / "cal.fifo"
+    os.mkfifo(fifo)
+    with pytest.raises(CalibrationError, match="is not a regular file"):
+        read_text(fifo, "calibration", CalibrationError)  # would block for ever if opened plainly
+    with pytest.raises(CalibrationError, match="/dev/zero is not a regular file"):
+        read_bytes("/dev/zero", "calibration", CalibrationError)
+    big = tmp_path / "big.yaml"
+    with open(big, "wb") as handle:
+        handle.truncate(files.MAX_CONFIG_BYTES + 1)  # sparse: nothing written
+    with pytest.raises(CalibrationError, match=f"is {files.MAX_CONFIG_BYTES + 1} bytes, more than"):
+        read_text(big, "calibration", CalibrationError)
+    assert read_bytes(big, "x", CalibrationError, limit=files.MAX_CONFIG_BYTES + 1)[:4] == bytes(4)
+
+
+@pytest.mark.parametrize("text, says", [
+    ("a: &x [1, 2]\nb: *x\n", "line 2: aliases"),
+    # the classic billion laughs, stopped at its first alias before anything expands
+    ("a: &a [x, x, x, x, x, x, x, x, x]\nb: &b [*a, *a, *a, *a, *a, *a, *a, *a, *a]\n"
+     "c: &c [*b, *b, *b, *b, *b, *b, *b, *b, *b]\n", "aliases"),
+    ("x: " + "[" * 100_000 + "]" * 100_000 + "\n", "nested deeper than 32 levels"),
+    ("x: " + "9" * 5000 + "\n", "an integer of 5000 digits"),
+    ("x: [1, 2\n", "not valid YAML: line 2"),
+])
+def test_yaml_without_aliases_deep_nesting_or_huge_integers(tmp_path: Path, text: str,
+                                                           says: str) -> None:
+    import time
+
+    path = tmp_path / "config.yaml"
+    path.write_text(text)
+    t0 = time.perf_counter()
+    with pytest.raises(ConfigError, match=says) as info:
+        load_yaml(path, "config", ConfigError)
+    assert time.perf_counter() - t0 < 5.0
+    assert "\n" not in str(info.value) and str(info.value).startswith(f"config {path} ")
+
+
+def test_ordinary_yaml_reads_back(tmp_path: Path) -> None:
+    path = tmp_path / "config.yaml"
+    path.write_text("a: &anchor [1, 2.5, -3]\nb: {c: [[1, 2], [3, 4]], d: true}\nbig: "
+                    "9223372036854775807\n")
+    assert load_yaml(path, "config", ConfigError) == {
+        "a": [1, 2.5, -3], "b": {"c": [[1, 2], [3, 4]], "d": True}, "big": 2**63 - 1}
+
+
+# -- the output rule for single files, locks and links -------------------------------------------
+def test_no_output_inside_a_recording_or_over_one(tmp_path: Path) -> None:
+    bag = tmp_path / "bag"
+    bag.mkdir()
+    (bag / "metadata.yaml").write_text(
+        "rosbag2_bagfile_information:\n  relative_file_paths: [bag_0.mcap]\n")
+    (bag / "bag_0.mcap").write_bytes(b"\x89MCAP0\r\n")
+    for target in (bag / "metadata.yaml", bag / "model.yaml", bag / "deep" / "er" / "x.yaml"):
+        with pytest.raises(OutputError, match=f"lies inside the recording {bag}"):
+            check_not_in_recording(target)
+    disguised = tmp_path / "labels.yaml"  # a recording by content, whatever its name
+    disguised.write_bytes(b"SQLite format 3\x00" + bytes(100))
+    with pytest.raises(OutputError, match="is a recording; ficap never overwrites one"):
+        check_output_file(disguised)
+    (tmp_path / "drive.mp4").write_bytes(b"")  # a recording by its name
+    with pytest.raises(OutputError, match="is a recording"):
+        check_output_file(tmp_path / "drive.mp4")
+    mine = tmp_path / "labels"  # ficap's own labels bag is no recording: stats may go inside
+    mine.mkdir()
+    (mine / "metadata.yaml").write_text(
+        "rosbag2_bagfile_information:\n  relative_file_paths: [labels.mcap]\n")
+    check_not_in_recording(mine / "stats" / "x.png")
+
+
+def test_output_locks_refuse_other_processes_and_go_when_released(tmp_path: Path) -> None:
+    target = tmp_path / "model.yaml"
+    code = ("import sys; from ficap_ros.errors import OutputError; from ficap_ros.files import "
+            f"OutputFile\ntry:\n    OutputFile({str(target)!r}, what='cap model')\nexcept "
+            "OutputError as err:\n    print(err); sys.exit(3)\n")
+    with OutputFile(target, what="cap model") as out:
+        run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                             timeout=60)
+        assert run.returncode == 3, run.stderr
+        assert f"cap model {target} is being written by another ficap process (pid " \
+            f"{os.getpid()})" in run.stdout
+        with OutputLock(target):  # the same process nests
+            pass
+        out.write("tags: []\n")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["model.yaml"]  # no lock file left
+    run = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert run.returncode == 0, run.stdout
+
+
+def test_symlinked_outputs(tmp_path: Path) -> None:
+    """--out as a link to a folder writes the folder (the link stays, no .old link left); a link
+    that leads nowhere (a loop, a missing target) is refused before any processing."""
+    real = tmp_path / "real"
+    real.mkdir()
+    link = tmp_path / "link"
+    link.symlink_to(real, target_is_directory=True)
+    with OutputFolder(link) as tmp:
+        (tmp / "labels.csv").write_text("x")
+    assert link.is_symlink() and (real / "labels.csv").read_text() == "x"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["link", "real"]
+    loop = tmp_path / "loop"
+    loop.symlink_to(loop)
+    for check in (check_output_folder, check_output_file):
+        with pytest.raises(OutputError, match="symbolic link that leads nowhere"):
+            check(loop)
+    (tmp_path / "dangling").symlink_to(tmp_path / "nowhere")
+    with pytest.raises(OutputError, match="leads nowhere"):
+        OutputFolder(tmp_path / "dangling")
+
+
+def test_immutable_outputs_are_refused_before_any_processing(tmp_path: Path) -> None:
+    """chattr +i: renaming the folder (or replacing the file) would fail at the very end."""
+    if subprocess.run(["chattr", "+i", str(tmp_path)], capture_output=True).returncode != 0:
+        pytest.skip("chattr +i is not available here (needs CAP_LINUX_IMMUTABLE)")
+    subprocess.run(["chattr", "-i", str(tmp_path)], check=True)
+    out = tmp_path / "out"
+    out.mkdir()
+    model = tmp_path / "model.yaml"
+    model.write_text("tags: []\n")
+    subprocess.run(["chattr", "+i", str(out), str(model)], check=True)
+    try:
+        with pytest.raises(OutputError, match="immutable"):
+            check_output_folder(out)
+        with pytest.raises(OutputError, match="immutable"):
+            check_output_file(model)
+    finally:
+        subprocess.run(["chattr", "-i", str(out), str(model)], check=True)
+
+
+def test_a_merging_output_folder_keeps_the_files_it_does_not_write(tmp_path: Path) -> None:
+    out = tmp_path / "out"
+    with OutputFolder(out) as tmp:
+        (tmp / "stats.json").write_text("old stats")
+        (tmp / "report.md").write_text("old report")
+    inode = (out / "report.md").stat().st_ino
+    with OutputFolder(out, merge=True) as tmp:
+        (tmp / "stats.json").write_text("new stats")
+    assert (out / "stats.json").read_text() == "new stats"
+    assert (out / "report.md").read_text() == "old report"
+    assert (out / "report.md").stat().st_ino == inode  # linked, not copied
+    with pytest.raises(RuntimeError):
+        with OutputFolder(out, merge=True) as tmp:
+            (tmp / "stats.json").write_text("half")
+            raise RuntimeError("the verb failed")
+    assert (out / "stats.json").read_text() == "new stats"

@@ -92,6 +92,8 @@ MODULES: dict[str, tuple[str | None, str]] = {
     "tqdm": ("python3-tqdm", "tqdm"),
     "rosbags": ("python3-rosbags-pip", "rosbags"),
     "mcap": ("mcap-ros2-support", "mcap"),
+    # rosbags reads sqlite3 bags with apsw; the salvage reads damaged ones in place with it.
+    "apsw": ("python3-rosbags-pip", "rosbags"),
     # Compression codecs of recordings, brought by rosbags and mcap.
     "lz4": ("python3-rosbags-pip", "rosbags"),
     "zstandard": ("python3-rosbags-pip", "rosbags"),

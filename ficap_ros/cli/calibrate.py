@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 
-from ficap_ros.cli.args import finite_float, positive_float, positive_int, time_window
+from ficap_ros.cli.args import finite_float, max_dt_ms, positive_int, seed, time_window
 
 HELP = ("compute R_cap_head from labels: a frontal window (--frontal START:END) or a reference "
         "head-pose topic (--reference BAG:TOPIC with --first N or --random N)")
@@ -22,9 +22,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                       help="reference mode: use the first N pairs (the paper's First 10/100/500)")
     pick.add_argument("--random", type=positive_int, metavar="N",
                       help="reference mode: use N random pairs (the paper's Random 100)")
-    parser.add_argument("--seed", type=int, default=0, help="seed of --random (default 0)")
-    parser.add_argument("--max-dt-ms", type=positive_float, default=20.0,
-                        help="reference mode: largest stamp difference of a pair, ms (default 20)")
+    parser.add_argument("--seed", type=seed, default=0, help="seed of --random (default 0)")
+    parser.add_argument("--max-dt-ms", type=max_dt_ms, default=20.0,
+                        help="reference mode: largest stamp difference of a pair, ms (default 20; "
+                             "at most 60000)")
     parser.add_argument("--camera-mount", type=finite_float, nargs=7,
                         metavar=("X", "Y", "Z", "QX", "QY", "QZ", "QW"),
                         help="the camera's optical frame in the vehicle frame "
@@ -38,10 +39,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from ficap_ros.io.calibration_file import calibration_output
+
+    reference_bag = args.reference.rpartition(":")[0] if args.reference else None
+    # Before reading anything: checked (never an input or a recording) and locked.
+    with calibration_output(args.out, (args.labels, reference_bag)) as out:
+        return _calibrate(args, out)
+
+
+def _calibrate(args: argparse.Namespace, out) -> int:  # noqa: ANN001 - files.OutputFile
     import numpy as np
 
     from ficap_ros.errors import BagError, CalibrationError, ConfigError
-    from ficap_ros.files import check_file_target
     from ficap_ros.geometry.transform import Transform
     from ficap_ros.io.calibration_file import save_calibration
     from ficap_ros.io.labels import read_labels
@@ -54,7 +63,6 @@ def run(args: argparse.Namespace) -> int:
         reference_pairs,
     )
 
-    check_file_target(args.out, "calibration")  # before reading anything
     labels = read_labels(args.labels)
     pose_rows = np.nonzero(labels.has_pose)[0]
     if pose_rows.size == 0:
@@ -78,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
                 f"or lower --min-frames")
         R_cam_frontal = calibrated_frontal(None, mount)
         result = calibrate_frontal(R_cam_cap_all[sel], R_cam_frontal, min_frames=args.min_frames)
-        save_calibration(args.out, result, R_cam_frontal=R_cam_frontal)
+        save_calibration(out, result, R_cam_frontal=R_cam_frontal)
         detail = f"frontal window {args.frontal[0]:g}-{args.frontal[1]:g} s"
     else:
         from ficap_ros.tools.evaluation import load_series
@@ -100,7 +108,7 @@ def run(args: argparse.Namespace) -> int:
             keep = np.arange(i_lab.size)
         result = calibrate_reference(R_cam_cap_all[i_lab[keep]], ref.rotations[i_ref[keep]])
         # Without --camera-mount the reference frame becomes the frontal frame (as in the node).
-        save_calibration(args.out, result, R_cam_frontal=calibrated_frontal(result, mount))
+        save_calibration(out, result, R_cam_frontal=calibrated_frontal(result, mount))
         how = (f"first {args.first}" if args.first else
                f"random {args.random} (seed {args.seed})" if args.random else "all")
         detail = f"reference {args.reference}, {how} of {i_lab.size} pairs"

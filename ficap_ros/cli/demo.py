@@ -38,19 +38,25 @@ def sample_recording(progress: bool = True, **options: object) -> Path:
            + f"_chain{RENDER_VERSION}")
     bag = cache / f"sample_drive_{key}"
     if not (bag / "metadata.yaml").exists():
-        cache.mkdir(parents=True, exist_ok=True)
-        print(f"ficap demo: rendering the sample drive recording once into {bag} ...", flush=True)
-        write_synth_bag(bag, nominal_model(), progress=progress, **sample)
+        from ficap_ros.files import OutputLock, check_not_in_recording
+
+        check_not_in_recording(bag, "sample recording")  # $FICAP_CACHE inside a recording
+        # One demo renders it; another one started meanwhile waits and then uses it.
+        with OutputLock(bag, "sample recording", wait=True):
+            if not (bag / "metadata.yaml").exists():
+                print(f"ficap demo: rendering the sample drive recording once into {bag} ...",
+                      flush=True)
+                write_synth_bag(bag, nominal_model(), progress=progress, **sample)
     return bag
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    from ficap_ros.cli.args import positive_int
+    from ficap_ros.cli.args import frame_count, positive_int, seed
     from ficap_ros.cli.synth import _resolution
 
     parser.add_argument("--offline", action="store_true",
                         help="run the core on freshly rendered frames instead (no ROS)")
-    parser.add_argument("--frames", type=positive_int, default=None,
+    parser.add_argument("--frames", type=frame_count, default=None,
                         help=f"frames of the drive at 30 fps (default {SAMPLE['frames']}; "
                              "--offline 150); live, more than the 3 s (90 frames) of looking "
                              "ahead that the calibration uses")
@@ -60,7 +66,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="the paper's illumination conditions (default %(default)s)")
     parser.add_argument("--method", default="joint", choices=("joint", "paper", "naive"),
                         help="cap pose estimator (live: the node's pose.method; default %(default)s)")
-    parser.add_argument("--seed", type=int, default=SAMPLE["seed"],
+    parser.add_argument("--seed", type=seed, default=SAMPLE["seed"],
                         help="drive and noise seed (default %(default)s)")
     parser.add_argument("--every", type=positive_int, default=6,
                         help="print every Nth frame (default %(default)s)")

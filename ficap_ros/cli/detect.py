@@ -8,7 +8,7 @@ HELP = "detect every tag36h11 tag in images and print ids and corners (OpenCV or
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("images", nargs="+", metavar="IMAGE", help="image files")
+    parser.add_argument("images", nargs="+", metavar="IMAGE", help="JPEG or PNG image files")
     parser.add_argument("--json", action="store_true", help="print JSON instead of a table")
     parser.add_argument("--backend", choices=("opencv", "apriltag"), default="opencv",
                         help="detector backend (default: opencv)")
@@ -20,15 +20,35 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "~ms per tag; docs/detection.md)")
 
 
+#: Largest image file read: a 40 MP PNG (the pixel budget) stays well below it.
+MAX_IMAGE_BYTES = 512 << 20
+
+
+def read_image(path: str):  # noqa: ANN201 - a grey numpy image
+    """A JPEG or PNG file as a grey image: a regular file of at most ``MAX_IMAGE_BYTES``, its
+    size in its header within the pixel budget, not damaged (``image_codec.decode_compressed``).
+
+    Raises:
+        ImageError: naming the file.
+    """
+    from ficap_ros.errors import ImageError
+    from ficap_ros.files import read_bytes
+    from ficap_ros.io.image_codec import decode_compressed
+
+    data = read_bytes(path, "image", ImageError, MAX_IMAGE_BYTES)
+    try:
+        return decode_compressed(data)
+    except ImageError as err:
+        raise type(err)(f"image {path!r}: {err}") from None
+
+
 def run(args: argparse.Namespace) -> int:
     import json
-    import os
     import sys
 
     import cv2
 
-    from ficap_ros.errors import FicapError, ImageError
-    from ficap_ros.io.image_codec import check_pixel_budget
+    from ficap_ros.errors import FicapError
     from ficap_ros.vision.detector import DetectorConfig, TagDetector
 
     detector = TagDetector(DetectorConfig(backend=args.backend, corner_refine=args.refine,
@@ -39,13 +59,7 @@ def run(args: argparse.Namespace) -> int:
     # not the results of the others.
     for path in args.images:
         try:
-            if not os.path.isfile(path):  # before OpenCV, which prints its own WARN line for it
-                raise ImageError(f"cannot read image {path!r} (no such file)")
-            image = cv2.imread(path, cv2.IMREAD_GRAYSCALE)
-            if image is None:
-                raise ImageError(f"cannot read image {path!r} (missing, unreadable or not an image)")
-            check_pixel_budget(image.shape[1], image.shape[0], what=f"image {path!r}")
-            dets = detector.detect(image)
+            dets = detector.detect(read_image(path))
         except (FicapError, cv2.error) as err:
             failed += 1
             message = str(err).strip().splitlines()[-1] if str(err).strip() else type(err).__name__

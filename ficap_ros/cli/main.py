@@ -2,7 +2,8 @@
 
 Each verb lives in ``ficap_ros/cli/<verb>.py`` and provides ``HELP``, ``add_arguments(parser)``
 and ``run(args) -> int``; heavy imports happen inside ``run`` so ``ficap --help`` stays quick.
-Errors a user can cause print one line (``ficap: error: ...``) and exit 1. Exit codes: 0 done,
+Errors a user can cause print one line (``ficap: error: ...``) and exit 1, and so do a file
+system error or exhausted memory that no check foresaw (never a traceback). Exit codes: 0 done,
 1 error, 2 bad arguments (argparse), 3 done but frames were lost to a damaged input (the summary
 line says how many and when), 130 interrupted.
 """
@@ -14,7 +15,7 @@ import importlib
 import sys
 from typing import Sequence
 
-from ficap_ros.errors import FicapError
+from ficap_ros.errors import FicapError, one_line
 
 #: Verb -> module under ficap_ros.cli, in the order ``--help`` lists them.
 VERBS: dict[str, str] = {
@@ -64,17 +65,27 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
+        from ficap_ros.io.image_codec import max_pixels
+
+        max_pixels()  # a bad FICAP_MAX_PIXELS is one line before anything runs
         # libjpeg/FFmpeg print on fd 2 per damaged frame: throttled to a warning per kind.
         with ThrottledStderr():
             return int(args._run(args) or 0)
     except FicapError as err:
         print(f"ficap: error: {err}", file=sys.stderr)
         return 1
+    except MemoryError:
+        print("ficap: error: out of memory", file=sys.stderr)
+        return 1
+    except OSError as err:
+        if isinstance(err, BrokenPipeError):
+            return 0
+        where = f": {err.filename}" if err.filename else ""
+        print(f"ficap: error: {err.strerror or one_line(err)}{where}", file=sys.stderr)
+        return 1
     except KeyboardInterrupt:
         print("ficap: interrupted", file=sys.stderr)
         return 130
-    except BrokenPipeError:
-        return 0
 
 
 if __name__ == "__main__":

@@ -28,7 +28,7 @@ def run(args: argparse.Namespace) -> int:
 
     model = load_model(args.model) if args.model else nominal_model()
     if args.out:
-        model.save(args.out)
+        model.save(args.out, inputs=(args.model,))
     elif args.yaml:
         print(model.to_yaml(), end="")
     else:

@@ -17,16 +17,12 @@ import sys
 HELP = "build the as-built cap model from recordings (rosbag2/MCAP, or video with --intrinsics)"
 
 
-def _at_least_two(text: str) -> int:
-    """argparse type for --max-frames and --min-tags: the adjustment needs two of each."""
-    from ficap_ros.cli.args import int_at_least
-
-    return int_at_least(text, 2)
-
-
 def add_build_arguments(parser: argparse.ArgumentParser) -> None:
     # Bad numbers are argparse's (exit 2, naming the flag), as in every verb.
-    from ficap_ros.cli.args import positive_float, positive_int
+    from ficap_ros.cli.args import float_in, frame_rate, int_in, positive_int
+
+    # The adjustment needs two frames and two tags; its memory grows with the frames it holds.
+    max_frames, min_tags, counts = int_in(2, 100_000), int_in(2, 587), int_in(1, 100_000)
 
     parser.add_argument("inputs", nargs="+", metavar="INPUT",
                         help="rosbag2 folders, .mcap/.db3 files or videos (need --intrinsics)")
@@ -36,23 +32,23 @@ def add_build_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--intrinsics", help="camera YAML (required for videos; overrides CameraInfo)")
     parser.add_argument("--image-topic", help="image topic (default: the bag's only image topic)")
     parser.add_argument("--camera-info-topic", help="CameraInfo topic (default: auto)")
-    parser.add_argument("--fps", type=positive_float,
+    parser.add_argument("--fps", type=frame_rate,
                         help="video frame rate, Hz (default: the container's)")
     parser.add_argument("--every", type=positive_int, default=1, metavar="N",
                         help="use every N-th frame of each input (default 1)")
-    parser.add_argument("--max-frames", type=_at_least_two, default=400,
-                        help="at most this many frames in the adjustment (default 400)")
-    parser.add_argument("--min-tags", type=_at_least_two, default=4,
+    parser.add_argument("--max-frames", type=max_frames, default=400,
+                        help="at most this many frames in the adjustment, 2 to 100000 (default 400)")
+    parser.add_argument("--min-tags", type=min_tags, default=4,
                         help="frames with fewer tags are not used (default 4)")
-    parser.add_argument("--min-frames-per-tag", type=positive_int, default=3,
+    parser.add_argument("--min-frames-per-tag", type=counts, default=3,
                         help="every tag must be seen in this many used frames (default 3)")
     parser.add_argument("--backend", choices=("opencv", "apriltag"), default="opencv",
                         help="detector backend (default opencv)")
     parser.add_argument("--refine", choices=("edge", "subpix", "apriltag", "none"), default="edge",
                         help="corner refinement (default edge)")
-    parser.add_argument("--max-nfev", type=positive_int, default=100, metavar="N",
+    parser.add_argument("--max-nfev", type=counts, default=100, metavar="N",
                         help="solver budget in function evaluations (default 100)")
-    parser.add_argument("--assembly-sigma-mm", type=positive_float, default=1.0,
+    parser.add_argument("--assembly-sigma-mm", type=float_in(0.0, 100.0, low_open=True), default=1.0,
                         help="how far a plate may sit from its nominal place by hand, 1 sigma per "
                              "axis (default 1.0)")
     parser.add_argument("--size", choices=("auto", "nominal", "images", "tag-side"), default="auto",
@@ -78,12 +74,48 @@ def _progress(quiet: bool):  # type: ignore[no-untyped-def]
     return say
 
 
-def run_build(args: argparse.Namespace) -> int:
-    import json
-    from pathlib import Path
+def _outputs(args: argparse.Namespace) -> dict[str, object]:
+    """The model, report and plot files, each checked and locked under the output rule before
+    minutes of detection and adjustment (``files.OutputFile``): never an input, a recording or
+    inside one, and never two of them one file."""
+    from ficap_ros.errors import OutputError
+    from ficap_ros.files import OutputFile
 
-    from ficap_ros.files import check_file_target
-    from ficap_ros.geometry.cap_model import load_model, nominal_model, write_atomic
+    inputs = [*args.inputs, args.start_model, args.intrinsics]
+    named = {"model": args.out, "report": args.report, "plot": args.plot}
+    taken: dict[str, object] = {}
+    try:
+        for what, path in named.items():
+            if not path:
+                continue
+            out = OutputFile(path, inputs, what)
+            for other, earlier in taken.items():
+                if earlier.path == out.path:  # type: ignore[attr-defined]
+                    out.close()
+                    raise OutputError(f"--{'out' if what == 'model' else what} and "
+                                      f"--{'out' if other == 'model' else other} name one file "
+                                      f"{out.path}; give each its own")
+            taken[what] = out
+    except BaseException:
+        for out in taken.values():
+            out.close()  # type: ignore[attr-defined]
+        raise
+    return taken
+
+
+def run_build(args: argparse.Namespace) -> int:
+    outputs = _outputs(args)  # before anything is read
+    try:
+        return _build(args, outputs)
+    finally:
+        for out in outputs.values():
+            out.close()  # type: ignore[attr-defined]
+
+
+def _build(args: argparse.Namespace, outputs: dict) -> int:  # type: ignore[type-arg]
+    import json
+
+    from ficap_ros.geometry.cap_model import load_model, nominal_model
     from ficap_ros.io.sources import open_frames
     from ficap_ros.tools.model_build import (
         BuildConfig,
@@ -96,11 +128,6 @@ def run_build(args: argparse.Namespace) -> int:
     size = {"auto": {}, "nominal": {"size": "fixed"},
             "images": {"size": "fixed", "anchor_size": False},
             "tag-side": {"size": "fixed", "anchor_size": False, "fit_edge_offset": False}}[args.size]
-    # Before minutes of detection and adjustment: every output must be writable.
-    check_file_target(args.out, "model")
-    for extra, what in ((args.report, "report"), (args.plot, "plot")):
-        if extra:
-            check_file_target(extra, what)
     say = _progress(args.quiet)
     config = BuildConfig(min_tags_per_frame=args.min_tags, min_frames_per_tag=args.min_frames_per_tag,
                          max_frames=args.max_frames, max_nfev=args.max_nfev,
@@ -137,10 +164,10 @@ def run_build(args: argparse.Namespace) -> int:
     check = replay_check(frames, cameras, result.model, start, config, depth_change_limit(result, config))
     print(check.table())
     if args.report:
-        write_atomic(Path(args.report),
-                     json.dumps({**result.to_dict(), "replay_check": check.to_dict()}, indent=1) + "\n")
+        outputs["report"].write(
+            json.dumps({**result.to_dict(), "replay_check": check.to_dict()}, indent=1) + "\n")
     if args.plot:
-        _plot(result, Path(args.plot))
+        outputs["plot"].write(_plot(result))
     if check.problems:
         for p in check.problems:
             print(f"model build: {p}", file=sys.stderr)
@@ -154,19 +181,17 @@ def run_build(args: argparse.Namespace) -> int:
         print(f"model build: not writing {args.out}: the model is not to be trusted (see above); "
               "--allow-partial writes it anyway", file=sys.stderr)
         return 1
-    result.model.save(args.out)
+    result.model.save(outputs["model"])
     print(f"wrote {args.out}" + (" (partial: see the warnings)" if doubts else ""))
     return 0
 
 
-def _plot(result, path) -> None:  # type: ignore[no-untyped-def]
-    """Bar plot of per-tag centre offset (mm) and in-plane turn (deg)."""
+def _plot(result) -> bytes:  # type: ignore[no-untyped-def]
+    """Bar plot of per-tag centre offset (mm) and in-plane turn (deg), as PNG bytes."""
     import io
 
     import numpy as np
     from matplotlib.figure import Figure
-
-    from ficap_ros.geometry.cap_model import write_atomic
 
     ids = [d.tag_id for d in result.deviations]
     x = np.arange(len(ids))
@@ -184,4 +209,4 @@ def _plot(result, path) -> None:  # type: ignore[no-untyped-def]
     fig.tight_layout()
     buffer = io.BytesIO()
     fig.savefig(buffer, format="png", dpi=120)
-    write_atomic(path, buffer.getvalue())
+    return buffer.getvalue()

@@ -8,9 +8,9 @@ from typing import Any
 from ficap_ros.cli.args import (
     ROW_ORDERS,
     duration_ms,
-    non_negative_int,
+    frame_rate,
+    int_in,
     offset_ms,
-    positive_float,
     positive_int,
     time_window,
 )
@@ -39,8 +39,8 @@ def add_input_arguments(parser: argparse.ArgumentParser, many: bool = False) -> 
                              "node's image_is_rectified; default: raw images, K and D)")
     parser.add_argument("--intrinsics", metavar="CAMERA_YAML",
                         help="camera_calibration YAML; required for a video, overrides CameraInfo")
-    parser.add_argument("--fps", type=positive_float,
-                        help="video frame rate (default: the container's)")
+    parser.add_argument("--fps", type=frame_rate,
+                        help="video frame rate, 0.01 to 1000 Hz (default: the container's)")
     parser.add_argument("--model", help="as-built cap model YAML (default: nominal)")
     parser.add_argument("--method", choices=("joint", "paper"), default="joint",
                         help="cap pose estimator (default: joint)")
@@ -91,8 +91,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                        help="run on an embedded local Ray (loopback only; --jobs CPUs)")
     fleet.add_argument("--ray-address", metavar="ADDR",
                        help="run on an existing Ray cluster (e.g. auto, HEAD:6379)")
-    fleet.add_argument("--retries", type=non_negative_int, default=2, metavar="N",
-                       help="Ray: re-runs of a segment whose worker died (default 2)")
+    fleet.add_argument("--retries", type=int_in(0, 10), default=2, metavar="N",
+                       help="Ray: re-runs of a segment whose worker died, 0 to 10 (default 2)")
     fleet.add_argument("--force", action="store_true",
                        help="redo recordings whose outputs are already current")
     fleet.add_argument("--videos", action="store_true",
@@ -134,14 +134,19 @@ def cap_jobs(args: argparse.Namespace) -> int:
     return jobs
 
 
+def side_files(args: argparse.Namespace) -> list[str | None]:
+    """The configuration files a run reads besides its recordings (never outputs)."""
+    return [args.model, args.intrinsics, getattr(args, "calibration", None),
+            getattr(args, "manifest", None)]
+
+
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from ficap_ros.cli.args import EXIT_FRAMES_LOST
-    from ficap_ros.errors import BagError
-    from ficap_ros.files import check_output_folder, check_replaceable
+    from ficap_ros.files import check_output_folder
     from ficap_ros.geometry.cap_model import load_model, nominal_model
-    from ficap_ros.tools.replay import check_output_dir, keep_freed_memory, replay
+    from ficap_ros.tools.replay import keep_freed_memory, replay
     from ficap_ros.vision.detector import DetectorConfig
     from ficap_ros.vision.pose import PoseConfig
 
@@ -158,17 +163,15 @@ def run(args: argparse.Namespace) -> int:
 
         raise ConfigError("give at least one INPUT or --manifest FILE")
     if _is_fleet(args):
-        # The fleet's --out holds a folder per recording: every file in it must be ficap's.
-        check_replaceable(args.out, subfolders=True)
-        check_output_dir(Path(args.out))
         return _run_fleet(args, model, calibration, detector)
     args.input = args.input[0]
-    check_output_folder(Path(args.out), [args.input])  # before any processing
+    # Before any processing: never an input, a recording or a folder ficap did not write.
+    check_output_folder(Path(args.out), [args.input, *side_files(args)])
     jobs = cap_jobs(args)
     source = open_source(args)
     out = replay(source, args.out, model, PoseConfig(method=args.method), calibration,
                  args.calibrate_frontal, jobs, args.namespace, progress=not args.quiet,
-                 detector=detector, timing=timing_fields(args))
+                 detector=detector, inputs=side_files(args), timing=timing_fields(args))
     s = out.summary
     line = (f"{s['frames']} frames, {s['frames_with_pose']} with a pose "
             f"({s['pct_with_pose']:.1f} %), >=1 tag {s['pct_ge1_tag']:.1f} %, >=4 tags "
@@ -177,24 +180,27 @@ def run(args: argparse.Namespace) -> int:
     if out.loss is not None:
         line += f"; {out.loss.describe(source.start_ns)}"
     print(line)
-    if s["frames"] and not s["frames_decoded"]:
-        reasons = s["skipped_reasons"]
-        top = max(reasons, key=reasons.get) if reasons else "no image decoded"
-        raise BagError(f"none of the {s['frames']} frames could be used ({top})")
-    if s["frames"] == 0:
-        raise BagError(f"{args.input} holds no image on {source.image_topic or 'its video track'}")
     return EXIT_FRAMES_LOST if out.loss is not None else 0
 
 
 def _run_fleet(args: argparse.Namespace, model, calibration, detector) -> int:  # noqa: ANN001
+    from ficap_ros.files import check_output_folder
+    from ficap_ros.tools.fleet.manifest import find_recordings
+
+    # The fleet's --out holds a folder per recording: every file in it must be ficap's, none an
+    # input (run_fleet checks again and holds its lock for the whole run).
+    check_output_folder(args.out, side_files(args), subfolders=True)
+    recordings = find_recordings(args.input, args.manifest, args.out, videos=args.videos)
+    return _fleet(args, recordings, model, calibration, detector)
+
+
+def _fleet(args: argparse.Namespace, recordings, model, calibration, detector) -> int:  # noqa: ANN001
     from pathlib import Path
 
     from ficap_ros.tools.fleet.fingerprints import label_settings
-    from ficap_ros.tools.fleet.manifest import find_recordings
     from ficap_ros.tools.fleet.run import run_fleet
     from ficap_ros.vision.pose import PoseConfig
 
-    recordings = find_recordings(args.input, args.manifest, args.out, videos=args.videos)
     pose = PoseConfig(method=args.method)
     settings = label_settings(model, pose, calibration, args.calibrate_frontal, args.namespace,
                               args.image_topic, args.camera_info_topic, args.intrinsics, args.fps,
@@ -204,12 +210,13 @@ def _run_fleet(args: argparse.Namespace, model, calibration, detector) -> int:  
         recordings, args.out, lambda path: open_source(args, path), model, pose, settings,
         calibration, args.calibrate_frontal, args.namespace, args.jobs, args.ray_address,
         args.ray, args.retries, args.force, progress=not args.quiet, summary_files=not single,
-        detector=detector, timing=timing_fields(args))
+        detector=detector, inputs=side_files(args), timing=timing_fields(args))
     for r in fleet.results:
         if r.status == "failed":
             print(f"{r.rel}: failed: {r.error}")
         elif r.status == "damaged":
-            print(f"{r.rel}: damaged: {r.frames} frames recovered, {r.frames_lost} lost")
+            lost = "an unknown number" if r.frames_lost is None else r.frames_lost
+            print(f"{r.rel}: damaged: {r.frames} frames recovered, {lost} lost")
     frames = sum(r.frames for r in fleet.results if r.status in ("done", "damaged"))
     print(f"{len(fleet.results)} recordings: {fleet.count('done')} done, "
           f"{fleet.count('skipped')} skipped (current), {fleet.count('damaged')} damaged, "

@@ -4,15 +4,17 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING
 
 from ficap_ros.cli.args import (
     ROW_ORDERS,
     duration_ms,
-    non_negative_float,
-    positive_float,
-    positive_int,
+    float_in,
+    frame_count,
+    frame_rate,
+    seed,
 )
 
 if TYPE_CHECKING:
@@ -74,18 +76,30 @@ def _jpeg_quality(text: str) -> int:
     return value
 
 
+def _limited(name: str, low_open: bool = False):  # noqa: ANN202 - an argparse type
+    """argparse type for a camera knob, in [0, the RenderConfig limit ``name``]."""
+    def parse(text: str) -> float:
+        from ficap_ros.tools.synth import config
+
+        return float_in(0.0, float(getattr(config, name)), low_open=low_open)(text)
+
+    parse.__name__ = "number"
+    return parse
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--out", required=True, metavar="BAG", help="output rosbag2 folder")
     parser.add_argument("--resolution", type=_resolution, default="540p",
                         help="540p, 1080p (also 360p, 720p) or WxH (default 540p)")
     parser.add_argument("--lighting", choices=("neutral", "high", "low"), default="neutral",
                         help="the paper's illumination conditions (default neutral)")
-    parser.add_argument("--frames", type=positive_int, default=300, help="frames (default 300)")
-    parser.add_argument("--fps", type=positive_float, default=30.0,
-                        help="frame rate, Hz (default 30)")
-    parser.add_argument("--seed", type=int, default=0, help="random seed (default 0)")
-    parser.add_argument("--frontal-s", type=non_negative_float, default=3.0,
-                        help="initial looking-straight-ahead segment, s (default 3)")
+    parser.add_argument("--frames", type=frame_count, default=300,
+                        help="frames, at most 108000 (default 300)")
+    parser.add_argument("--fps", type=frame_rate, default=30.0,
+                        help="frame rate, Hz, 0.01 to 1000 (default 30)")
+    parser.add_argument("--seed", type=seed, default=0, help="random seed, 0 to 2^32-1 (default 0)")
+    parser.add_argument("--frontal-s", type=float_in(0.0, 3600.0), default=3.0,
+                        help="initial looking-straight-ahead segment, s, at most 3600 (default 3)")
     parser.add_argument("--motion", choices=MOTIONS, default="naturalistic",
                         help="head motion: naturalistic (looking ahead, glances now and then) or "
                              "glances (glances back to back, every turn peaking at 150-250 deg/s) "
@@ -95,19 +109,19 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     cam = parser.add_argument_group(
         "camera", "the image formation chain (linear light -> lens PSF -> motion blur -> sensor -> "
         "tone curve -> 8 bit -> JPEG; see ficap_ros.tools.synth)")
-    cam.add_argument("--psf-sigma-px", type=non_negative_float, default=None,
-                     help="Gaussian lens PSF sigma, px, in linear light (default 0.7 px at 1080p, "
-                     "times sqrt(height/1080); 0 = none)")
-    cam.add_argument("--defocus-px", type=non_negative_float, default=0.0,
-                     help="radius of a defocus disc PSF, px (default 0 = in focus)")
+    cam.add_argument("--psf-sigma-px", type=_limited("MAX_BLUR_PX"), default=None,
+                     help="Gaussian lens PSF sigma, px, in linear light, at most 50 (default 0.7 "
+                     "px at 1080p, times sqrt(height/1080); 0 = none)")
+    cam.add_argument("--defocus-px", type=_limited("MAX_BLUR_PX"), default=0.0,
+                     help="radius of a defocus disc PSF, px, at most 50 (default 0 = in focus)")
     cam.add_argument("--tone", choices=("srgb", "gamma", "filmic", "linear"), default="srgb",
                      help="the camera's tone curve (default srgb; linear = an idealised camera)")
-    cam.add_argument("--gamma", type=positive_float, default=2.2,
+    cam.add_argument("--gamma", type=_limited("MAX_GAMMA", low_open=True), default=2.2,
                      help="exponent of --tone gamma: value ** (1/GAMMA) (default 2.2)")
-    cam.add_argument("--exposure-ms", type=positive_float, default=None,
+    cam.add_argument("--exposure-ms", type=_limited("MAX_EXPOSURE_MS", low_open=True), default=None,
                      help="exposure time, ms (default: the lighting's auto-exposure: neutral 8, high 4, "
                      "low 20); the gain follows unless --gain is given")
-    cam.add_argument("--gain", type=positive_float, default=None,
+    cam.add_argument("--gain", type=_limited("MAX_GAIN", low_open=True), default=None,
                      help="sensor gain (default auto: keeps the lighting's brightness)")
     cam.add_argument("--motion-blur", action="store_true",
                      help="integrate the head motion over the exposure (truth = mid-exposure pose)")
@@ -125,23 +139,28 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     from ficap_ros.errors import BagError
+    from ficap_ros.files import OutputLock, check_output_folder
     from ficap_ros.geometry.cap_model import load_model, nominal_model
     from ficap_ros.tools.synth import RenderConfig
 
-    # NaN, infinite, negative or zero knobs are argparse's (exit 2, as every verb's numbers).
+    # Knobs out of range are argparse's (exit 2, as every verb's numbers).
     out = Path(args.out)
-    if out.exists():
+    if os.path.lexists(out):
         raise BagError(f"{out} exists already; choose a new --out")
+    # Before anything is rendered: never an input or inside a recording, and one writer at a
+    # time (the bag is written beside its place and renamed into it when complete).
+    check_output_folder(out, [args.model])
     # Built here so a bad knob fails before anything is written.
     config = RenderConfig(lighting=args.lighting, background_seed=args.seed, psf_sigma_px=args.psf_sigma_px,
                           defocus_radius_px=args.defocus_px, tone=args.tone, gamma=args.gamma,
                           exposure_ms=args.exposure_ms, gain=args.gain, noise=not args.no_noise,
                           readout_ms=args.readout_ms, row_order=args.row_order)
     model = load_model(args.model) if args.model else nominal_model()
-    info = write_synth_bag(out, model, args.resolution, args.lighting, args.frames, args.fps,
-                           args.seed, args.jpeg_quality, progress=not args.quiet,
-                           frontal_s=args.frontal_s, config=config, motion_blur=args.motion_blur,
-                           motion=args.motion)
+    with OutputLock(out, "output bag"):
+        info = write_synth_bag(out, model, args.resolution, args.lighting, args.frames, args.fps,
+                               args.seed, args.jpeg_quality, progress=not args.quiet,
+                               frontal_s=args.frontal_s, config=config,
+                               motion_blur=args.motion_blur, motion=args.motion)
     print(f"{args.frames} frames {info['width']}x{info['height']} {args.lighting} -> {out} "
           f"({info['fps_rendered']:.1f} frames/s rendered)")
     return 0

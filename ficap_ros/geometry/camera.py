@@ -8,6 +8,12 @@ Lens models, named as in ``sensor_msgs/CameraInfo``:
     ``plumb_bob`` (k1 k2 p1 p2 k3), ``rational_polynomial`` (k1 k2 p1 p2 k3 k4 k5 k6),
     ``equidistant`` (fisheye k1 k2 k3 k4, OpenCV's ``cv2.fisheye``), and ``none`` (rectified or ideal
     pinhole; what a rectified image with projection matrix P uses).
+
+``CameraModel`` is the door every intrinsics pass (CameraInfo, a camera YAML, a video's scaling):
+its construction validates them once (finite numbers; K of the form [fx s cx; 0 fy cy; 0 0 1]
+with focal lengths and principal point sane for the image size; as many distortion coefficients
+as the lens model takes, none beyond a real lens's magnitude), so no OpenCV call downstream meets
+values it refuses.
 """
 
 from __future__ import annotations
@@ -19,10 +25,9 @@ from typing import Any, Sequence
 
 import cv2
 import numpy as np
-import yaml
 
 from ficap_ros.errors import IntrinsicsError
-from ficap_ros.files import read_text
+from ficap_ros.files import load_yaml
 
 __all__ = ["CameraModel", "CameraTiming", "DISTORTION_MODELS", "ROW_ORDERS", "TIMING_KEY",
            "load_camera_yaml", "load_camera_timing"]
@@ -31,7 +36,15 @@ __all__ = ["CameraModel", "CameraTiming", "DISTORTION_MODELS", "ROW_ORDERS", "TI
 #: hostile file (the pixel budget of ``image_codec`` bounds the images themselves).
 MAX_SIDE_PX = 100_000
 
-#: Number of distortion coefficients each lens model takes (at least; extra zeros are allowed).
+#: Focal lengths accepted, as a multiple of the image's larger side: from a fisheye seeing far
+#: behind itself to a telephoto of a fraction of a degree.
+FOCAL_RANGE_SIDES = (0.01, 100.0)
+#: Largest magnitude of a distortion coefficient: real lenses stay within tens (a rational
+#: model's paired coefficients within hundreds).
+MAX_DISTORTION_COEFFICIENT = 1e3
+
+#: Number of distortion coefficients each lens model takes (fewer are padded with zeros; more
+#: only when the extra ones are zeros, which are dropped).
 DISTORTION_MODELS: dict[str, int] = {
     "none": 0,
     "plumb_bob": 5,
@@ -166,27 +179,9 @@ class CameraModel:
         d = np.asarray(self.D, dtype=np.float64).reshape(-1).copy()
         if not (np.all(np.isfinite(k)) and np.all(np.isfinite(d))):
             raise IntrinsicsError("camera intrinsics contain NaN or infinity")
-        fx, fy, cx, cy = k[0, 0], k[1, 1], k[0, 2], k[1, 2]
-        if fx <= 0.0 or fy <= 0.0:
-            raise IntrinsicsError(f"camera focal lengths must be positive, got fx={fx} fy={fy}")
-        if int(self.width_px) <= 0 or int(self.height_px) <= 0:
-            raise IntrinsicsError(
-                f"camera image size must be positive, got {self.width_px}x{self.height_px}"
-            )
-        if max(int(self.width_px), int(self.height_px)) > MAX_SIDE_PX:
-            raise IntrinsicsError(
-                f"camera image size {self.width_px}x{self.height_px} is beyond any camera "
-                f"(largest side {MAX_SIDE_PX} px)")
-        if not (0.0 < cx < self.width_px and 0.0 < cy < self.height_px):
-            raise IntrinsicsError(
-                f"principal point ({cx:.1f}, {cy:.1f}) lies outside the "
-                f"{self.width_px}x{self.height_px} image"
-            )
-        need = DISTORTION_MODELS[self.distortion_model]
-        if d.size < need:
-            d = np.concatenate([d, np.zeros(need - d.size)])
-        if self.distortion_model == "equidistant":
-            d = d[:4]
+        _check_size(self.width_px, self.height_px)
+        _check_matrix(k, int(self.width_px), int(self.height_px))
+        d = _distortion(d, self.distortion_model)
         k.setflags(write=False)
         d.setflags(write=False)
         object.__setattr__(self, "K", k)
@@ -319,13 +314,53 @@ class CameraModel:
         }
 
 
+def _check_size(width_px: Any, height_px: Any) -> None:
+    if int(width_px) <= 0 or int(height_px) <= 0:
+        raise IntrinsicsError(f"camera image size must be positive, got {width_px}x{height_px}")
+    if max(int(width_px), int(height_px)) > MAX_SIDE_PX:
+        raise IntrinsicsError(f"camera image size {width_px}x{height_px} is beyond any camera "
+                              f"(largest side {MAX_SIDE_PX} px)")
+
+
+def _check_matrix(k: np.ndarray, width_px: int, height_px: int) -> None:
+    """K is [fx s cx; 0 fy cy; 0 0 1], focal lengths within ``FOCAL_RANGE_SIDES`` of the larger
+    side, principal point inside the image, skew smaller than the focal length."""
+    fx, fy, cx, cy = k[0, 0], k[1, 1], k[0, 2], k[1, 2]
+    if k[1, 0] != 0.0 or not np.allclose(k[2], [0.0, 0.0, 1.0], rtol=0.0, atol=1e-9):
+        raise IntrinsicsError(f"camera matrix K must be [fx s cx; 0 fy cy; 0 0 1], got rows "
+                              f"{np.round(k[1:], 6).tolist()}")
+    side = max(width_px, height_px)
+    lo, hi = FOCAL_RANGE_SIDES[0] * side, FOCAL_RANGE_SIDES[1] * side
+    if not (lo <= fx <= hi and lo <= fy <= hi):
+        raise IntrinsicsError(f"camera focal lengths fx={fx:.6g} fy={fy:.6g} px are not sane for "
+                              f"a {width_px}x{height_px} image ({lo:g} to {hi:g} px)")
+    if not (0.0 < cx < width_px and 0.0 < cy < height_px):
+        raise IntrinsicsError(f"principal point ({cx:.1f}, {cy:.1f}) lies outside the "
+                              f"{width_px}x{height_px} image")
+    if abs(k[0, 1]) >= fx:
+        raise IntrinsicsError(f"camera skew {k[0, 1]:.6g} is not smaller than fx {fx:.6g}")
+
+
+def _distortion(d: np.ndarray, model: str) -> np.ndarray:
+    """The coefficients of ``model``: padded with zeros to its count, extra zeros dropped."""
+    need = DISTORTION_MODELS[model]
+    if d.size > need:
+        if np.any(d[need:]):
+            names = {"plumb_bob": " (k1 k2 p1 p2 k3)", "rational_polynomial": " (k1 k2 p1 p2 k3 "
+                     "k4 k5 k6)", "equidistant": " (k1 k2 k3 k4)"}.get(model, "")
+            raise IntrinsicsError(f"distortion model {model} takes {need} coefficients"
+                                  f"{names}, got {d.size}")
+        d = d[:need]
+    if np.any(np.abs(d) > MAX_DISTORTION_COEFFICIENT):
+        raise IntrinsicsError(f"distortion coefficients {d.tolist()} exceed "
+                              f"{MAX_DISTORTION_COEFFICIENT:g} in magnitude (no real lens)")
+    return np.concatenate([d, np.zeros(need - d.size)]) if d.size < need else d
+
+
 def _read_camera_yaml(path: str | Path) -> dict[str, Any]:
-    """A camera_calibration YAML file as its mapping; raises ``IntrinsicsError``."""
-    text = read_text(path, "intrinsics", IntrinsicsError)
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        raise IntrinsicsError(f"intrinsics {path} is not valid YAML") from err
+    """A camera_calibration YAML file as its mapping, read through the guarded loader
+    (``files.load_yaml``); raises ``IntrinsicsError`` naming the file."""
+    data = load_yaml(path, "intrinsics", IntrinsicsError)
     if not isinstance(data, dict):
         raise IntrinsicsError(f"intrinsics {path} is not a camera_calibration YAML mapping")
     return data
@@ -341,6 +376,8 @@ def load_camera_yaml(path: str | Path) -> CameraModel:
         return CameraModel.from_camera_info(
             int(data["image_width"]), int(data["image_height"]), k, d, model
         )
+    except IntrinsicsError as err:
+        raise IntrinsicsError(f"intrinsics {path}: {err}") from None
     except (KeyError, TypeError, ValueError, AttributeError, OverflowError) as err:
         raise IntrinsicsError(f"intrinsics {path}: missing or malformed field {err}") from err
 

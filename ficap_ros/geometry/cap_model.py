@@ -24,7 +24,7 @@ import numpy as np
 import yaml
 
 from ficap_ros.errors import ModelError
-from ficap_ros.files import read_text, write_atomic, write_output_file
+from ficap_ros.files import OutputFile, load_yaml, write_atomic
 
 __all__ = [
     "TAG_SIDE_MM",
@@ -37,6 +37,14 @@ __all__ = [
     "load_model",
     "write_atomic",
 ]
+
+#: Ids of the tag36h11 family (0 to 586): a cap of other ids could never be detected.
+TAG_FAMILY_SIZE = 587
+#: Farthest a corner may lie from the cap origin, mm: the cap is a head's size; a model beyond
+#: this is a typo or a file of another unit.
+MAX_CORNER_MM = 1000.0
+#: Shortest side a tag may have in a model, mm (its four corners must span a square).
+MIN_TAG_SIDE_MM = 1.0
 
 #: Side of the tag's black square (8 cells of 4 mm), mm.
 TAG_SIDE_MM = 32.0
@@ -93,10 +101,21 @@ class CapModel:
             raise ModelError("cap model has no tags")
         if not np.all(np.isfinite(corners)):
             raise ModelError("cap model corners contain NaN or infinity")
+        far = float(np.max(np.abs(corners)))
+        if far > MAX_CORNER_MM:
+            raise ModelError(f"cap model corners lie up to {far:.6g} mm from the cap origin "
+                             f"(a cap lies within {MAX_CORNER_MM:g} mm; units must be mm)")
+        sides = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).min(axis=1)
+        if np.any(sides < MIN_TAG_SIDE_MM):
+            i = int(np.argmin(sides))
+            raise ModelError(f"cap model tag {self.ids[i]!r} has corners {sides[i]:.3g} mm apart "
+                             "(a tag's four corners span a square)")
         seen: dict[int, int] = {}
         for i, tag_id in enumerate(self.ids):
-            if not isinstance(tag_id, (int, np.integer)) or tag_id < 0:
-                raise ModelError(f"cap model tag id {tag_id!r} is not a non-negative integer")
+            if isinstance(tag_id, bool) or not isinstance(tag_id, (int, np.integer)) \
+                    or not 0 <= tag_id < TAG_FAMILY_SIZE:
+                raise ModelError(f"cap model tag id {tag_id!r} is not a tag36h11 id "
+                                 f"(0 to {TAG_FAMILY_SIZE - 1})")
             if int(tag_id) in seen:
                 raise ModelError(f"cap model has duplicate tag id {int(tag_id)}")
             seen[int(tag_id)] = i
@@ -194,9 +213,11 @@ class CapModel:
                 raise ModelError(f"{source}: tag entry {k} needs 'id' and 'corners_mm'")
             ids.append(tag["id"])
             corners.append(tag["corners_mm"])
+        if not all(_numbers(c) for c in corners):
+            raise ModelError(f"{source}: corners_mm must be 4 corners of 3 numbers per tag")
         try:
             array = np.asarray(corners, dtype=np.float64)
-        except (TypeError, ValueError) as err:
+        except (TypeError, ValueError, OverflowError) as err:
             raise ModelError(f"{source}: corners are not numbers: {err}") from err
         try:
             return cls(tuple(ids), array)
@@ -213,23 +234,35 @@ class CapModel:
         )
         return header + yaml.safe_dump(self.to_dict(), sort_keys=False, default_flow_style=None)
 
-    def save(self, path: str | os.PathLike[str]) -> None:
-        """Write the model as YAML, atomically.
+    def save(self, path: str | os.PathLike[str] | OutputFile, inputs: tuple[Any, ...] = ()) -> None:
+        """Write the model as YAML under the output rule (``files.OutputFile``: checked and
+        locked, written beside its target and renamed into place).
+
+        Args:
+            path: the file, or an ``OutputFile`` taken when the verb started.
+            inputs: the verb's inputs (never overwritten).
 
         Raises:
-            OutputError: ``path`` is a folder or its folder is missing or not writable.
+            OutputError: ``path`` breaks the output rule or cannot be written.
         """
-        write_output_file(path, self.to_yaml(), what="cap model")
+        if isinstance(path, OutputFile):
+            path.write(self.to_yaml())
+            return
+        with OutputFile(path, inputs, "cap model") as out:
+            out.write(self.to_yaml())
+
+
+def _numbers(corners: Any) -> bool:
+    """Four corners of three real numbers (booleans and text are no coordinates)."""
+    return (isinstance(corners, (list, tuple)) and len(corners) == 4 and all(
+        isinstance(p, (list, tuple)) and len(p) == 3 and all(
+            isinstance(v, (int, float)) and not isinstance(v, bool) for v in p) for p in corners))
 
 
 def load_model(path: str | os.PathLike[str]) -> CapModel:
-    """Load a cap model from YAML (or JSON, a subset of YAML); raises ``ModelError``."""
-    text = read_text(path, "cap model", ModelError)
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        raise ModelError(f"cap model {path} is not valid YAML: {str(err).splitlines()[0]}") from err
-    return CapModel.from_dict(data, source=str(path))
+    """Load a cap model from YAML (or JSON, a subset of YAML) through the guarded loader
+    (``files.load_yaml``); raises ``ModelError`` naming the file."""
+    return CapModel.from_dict(load_yaml(path, "cap model", ModelError), source=f"cap model {path}")
 
 
 def nominal_model() -> CapModel:

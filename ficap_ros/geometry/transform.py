@@ -21,10 +21,14 @@ from typing import Any, Sequence
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from ficap_ros.errors import ConfigError
+from ficap_ros.errors import ConfigError, FicapError
 
 __all__ = ["Transform", "CAM_FROM_FORWARD", "rotate_covariance", "rotate_twist", "compose", "inverse",
-           "from_rotvec"]
+           "from_rotvec", "real_numbers", "unit_quaternion", "UNIT_NORM_TOLERANCE"]
+
+#: How far from unit length a quaternion from a file or a parameter may be (the rounding of a
+#: hand-edited file); it is then normalised. Farther is a typo, refused.
+UNIT_NORM_TOLERANCE = 1e-3
 
 #: A quaternion (x, y, z, w) as four Python floats.
 Quat = tuple[float, float, float, float]
@@ -32,6 +36,42 @@ Quat = tuple[float, float, float, float]
 #: Below this rotation angle (rad) a rotation vector's quaternion uses the Taylor series of
 #: sin(angle / 2) / angle, as ``Rotation.from_rotvec`` does.
 _SMALL_ANGLE_RAD = 1e-3
+
+
+def real_numbers(values: Any, count: int, name: str,
+                 error: type[FicapError] = ConfigError) -> np.ndarray:
+    """``count`` finite real numbers from a file or a parameter (float64), or ``error`` naming
+    ``name``: booleans and text are not numbers here (YAML's ``true`` is no 1, ``"1"`` no 1)."""
+    items = list(values) if isinstance(values, (list, tuple, np.ndarray)) else None
+    if items is None or len(items) != count or not all(
+            isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, (bool, np.bool_))
+            for v in items):
+        raise error(f"{name} must be {count} numbers, got {str(values)[:60]}")
+    try:
+        out = np.array([float(v) for v in items], dtype=np.float64)
+    except OverflowError:
+        raise error(f"{name} holds a number too large for a float") from None
+    if not np.all(np.isfinite(out)):
+        raise error(f"{name} must be finite numbers, got {str(values)[:60]}")
+    return out
+
+
+def unit_quaternion(values: Any, name: str, order: str = "wxyz",
+                    error: type[FicapError] = ConfigError) -> Rotation:
+    """A rotation from a quaternion in a file or a parameter: 4 finite real numbers in ``order``
+    (``wxyz`` or ``xyzw``) of unit length to within ``UNIT_NORM_TOLERANCE``, then normalised.
+
+    Raises:
+        error: naming ``name``: not 4 finite numbers, or not of unit length (its norm, computed
+            without overflow).
+    """
+    q = real_numbers(values, 4, name, error)
+    scale = float(np.max(np.abs(q)))
+    norm = scale * float(np.linalg.norm(q / scale)) if scale > 0 else 0.0
+    if not abs(norm - 1.0) <= UNIT_NORM_TOLERANCE:
+        raise error(f"{name} must be of unit length, its norm is {norm:.6g}")
+    xyzw = q[[1, 2, 3, 0]] if order == "wxyz" else q
+    return Rotation.from_quat(xyzw / norm)
 
 
 def compose(a: Rotation, b: Rotation) -> Rotation:
@@ -219,13 +259,11 @@ class Transform:
         Raises:
             ConfigError: not 7 finite numbers, or a quaternion that is not unit length.
         """
-        v = np.asarray(values, dtype=np.float64).reshape(-1)
-        if v.size != 7 or not np.all(np.isfinite(v)):
-            raise ConfigError(f"{name} must be 7 finite numbers: x y z (m) qx qy qz qw")
-        norm = float(np.linalg.norm(v[3:]))
-        if abs(norm - 1.0) > 1e-3:
-            raise ConfigError(f"{name} quaternion (qx qy qz qw) must be unit length, norm {norm:.6g}")
-        return cls(Rotation.from_quat(v[3:] / norm), v[:3])
+        try:
+            v = real_numbers(list(np.asarray(values).reshape(-1)), 7, name)
+        except ConfigError:
+            raise ConfigError(f"{name} must be 7 finite numbers: x y z (m) qx qy qz qw") from None
+        return cls(unit_quaternion(v[3:], f"{name} quaternion (qx qy qz qw)", "xyzw"), v[:3])
 
     # -- views ------------------------------------------------------------------------------------
 

@@ -1,7 +1,8 @@
-"""Calibration files: a ``HeadCalibration`` (and how it was computed) as YAML, written atomically
-and read back. Quaternions are ``q_wxyz`` (w, x, y, z); the format is named in the file
-(``CALIBRATION_FORMAT``). The calibration itself (solvers, ``HeadCalibration``) is
-``ficap_ros.vision.calibration``'s.
+"""Calibration files: a ``HeadCalibration`` (and how it was computed) as YAML, written under the
+output rule (``ficap_ros.files.OutputFile``) and read back through the guarded loader
+(``files.load_yaml``). Quaternions are ``q_wxyz`` (w, x, y, z), unit length
+(``transform.unit_quaternion``); the format is named in the file (``CALIBRATION_FORMAT``). The
+calibration itself (solvers, ``HeadCalibration``) is ``ficap_ros.vision.calibration``'s.
 """
 
 from __future__ import annotations
@@ -9,16 +10,16 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import yaml
 from scipy.spatial.transform import Rotation
 
 from ficap_ros.errors import CalibrationError, OutputError
-from ficap_ros.files import read_text, write_output_file
-from ficap_ros.geometry.transform import CAM_FROM_FORWARD
+from ficap_ros.files import OutputFile, load_yaml
+from ficap_ros.geometry.transform import CAM_FROM_FORWARD, unit_quaternion
 from ficap_ros.vision.calibration import CalibrationResult, HeadCalibration
 
-__all__ = ["CALIBRATION_FORMAT", "save_calibration", "load_calibration", "q_wxyz"]
+__all__ = ["CALIBRATION_FORMAT", "calibration_output", "save_calibration", "load_calibration",
+           "q_wxyz"]
 
 #: Name and version written into calibration files.
 CALIBRATION_FORMAT = "ficap_calibration/1"
@@ -30,34 +31,46 @@ def q_wxyz(rotation: Rotation) -> list[float]:
     return [float(w), float(x), float(y), float(z)]
 
 
-def _from_q_wxyz(values: Any, name: str) -> Rotation:
+def _from_q_wxyz(values: Any, path: str | Path, name: str) -> Rotation:
+    return unit_quaternion(values, f"calibration {path}: field {name} (w, x, y, z)", "wxyz",
+                           CalibrationError)
+
+
+def _not_a_calibration(path: Path) -> str:
+    """Why the file at ``path`` must not be replaced by a calibration ('' when it is one)."""
     try:
-        q = np.asarray(values, dtype=np.float64).reshape(4)
-    except (TypeError, ValueError) as err:
-        raise CalibrationError(f"calibration field {name} must be 4 numbers (w, x, y, z)") from err
-    if not np.all(np.isfinite(q)) or np.linalg.norm(q) < 1e-6:
-        raise CalibrationError(f"calibration field {name} is not a valid quaternion")
-    return Rotation.from_quat([q[1], q[2], q[3], q[0]])
+        load_calibration(path)
+    except CalibrationError as err:
+        return f"a readable calibration ({err})"
+    return ""
+
+
+def calibration_output(path: str | Path, inputs: tuple[Any, ...] = ()) -> OutputFile:
+    """The calibration file a verb will write, checked and locked before it computes anything
+    (``files.OutputFile``; an existing file must be a calibration)."""
+    return OutputFile(path, inputs, "calibration", replaceable=_not_a_calibration)
 
 
 def save_calibration(
-    path: str | Path,
+    path: str | Path | OutputFile,
     calibration: HeadCalibration | CalibrationResult,
     result: CalibrationResult | None = None,
     R_cam_frontal: Rotation | None = None,
+    inputs: tuple[str | Path, ...] = (),
 ) -> None:
     """Write a calibration as YAML, atomically. Quaternions are ``q_wxyz`` (w, x, y, z).
 
     Args:
-        path: output file.
+        path: output file, or the ``calibration_output`` taken when the verb started.
         calibration: the runtime calibration, or a result (then ``R_cam_frontal`` gives the frontal
             frame, default ``CAM_FROM_FORWARD``).
         result: how it was computed (mode, frames used, spread, R_cam_reference), when known.
         R_cam_frontal: frontal frame for a ``CalibrationResult`` argument.
+        inputs: what it was computed from (never overwritten).
 
     Raises:
-        OutputError: ``path`` is a folder, an existing file that is not a calibration, or cannot
-            be written (one line).
+        OutputError: ``path`` breaks the output rule (``files.check_output_file``), is an existing
+            file that is not a calibration, or cannot be written (one line).
     """
     if isinstance(calibration, CalibrationResult):
         result = calibration
@@ -79,44 +92,40 @@ def save_calibration(
         data["spread_deg"] = float(result.spread_deg)
         if result.R_cam_reference is not None:
             data["R_cam_reference_q_wxyz"] = q_wxyz(result.R_cam_reference)
+    text = yaml.safe_dump(data, sort_keys=False)
+    if isinstance(path, OutputFile):
+        path.write(text)
+        return
     path = Path(path)
-    if path.is_file():
-        # Only a calibration replaces a calibration: an unreadable or foreign file at this path
-        # (a typo in calibration.file, a binary) is the user's, not ours to overwrite.
-        try:
-            load_calibration(path)
-        except CalibrationError as err:
-            raise OutputError(f"{path} exists and is not a readable calibration ({err}); "
-                              "not overwritten") from err
     if str(path.parent) and not path.parent.exists():
         try:
             path.parent.mkdir(parents=True, exist_ok=True)
         except OSError as err:
             raise OutputError(f"cannot create folder {path.parent}: {err.strerror or err}") from err
-    write_output_file(path, yaml.safe_dump(data, sort_keys=False), what="calibration")
+    # Only a calibration replaces a calibration: an unreadable or foreign file at this path (a
+    # typo in calibration.file, a binary) is the user's, not ours to overwrite.
+    with calibration_output(path, inputs) as out:
+        out.write(text)
 
 
 def load_calibration(path: str | Path) -> HeadCalibration:
-    """Read a calibration file written by ``save_calibration``.
+    """Read a calibration file written by ``save_calibration`` (the guarded loader: a regular
+    file of at most ``files.MAX_CONFIG_BYTES``, YAML without aliases; unit quaternions).
 
     Raises:
-        CalibrationError: missing, unreadable or malformed file.
+        CalibrationError: missing, unreadable or malformed file, naming the file and the field.
     """
-    text = read_text(path, "calibration", CalibrationError)
-    try:
-        data = yaml.safe_load(text)
-    except yaml.YAMLError as err:
-        raise CalibrationError(f"calibration {path} is not valid YAML") from err
+    data = load_yaml(path, "calibration", CalibrationError)
     if not isinstance(data, dict) or "R_cap_head_q_wxyz" not in data:
         raise CalibrationError(f"calibration {path} has no R_cap_head_q_wxyz")
     if str(data.get("quaternion_order", "wxyz")) != "wxyz":
         raise CalibrationError(f"calibration {path}: quaternion_order must be wxyz")
     R_cam_frontal = (
-        _from_q_wxyz(data["R_cam_frontal_q_wxyz"], "R_cam_frontal_q_wxyz")
+        _from_q_wxyz(data["R_cam_frontal_q_wxyz"], path, "R_cam_frontal_q_wxyz")
         if "R_cam_frontal_q_wxyz" in data else CAM_FROM_FORWARD
     )
     return HeadCalibration(
-        R_cap_head=_from_q_wxyz(data["R_cap_head_q_wxyz"], "R_cap_head_q_wxyz"),
+        R_cap_head=_from_q_wxyz(data["R_cap_head_q_wxyz"], path, "R_cap_head_q_wxyz"),
         R_cam_frontal=R_cam_frontal,
         calibrated=_flag(data.get("calibrated", True), f"calibration {path}: calibrated"),
     )

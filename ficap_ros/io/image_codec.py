@@ -2,17 +2,41 @@
 
 Pure numpy/OpenCV: no ROS import, so the bag tools, the node (through ``ros_msgs``) and tests share
 one decoder. Encodings are the ``sensor_msgs/image_encodings`` names.
+
+Memory is checked before it is spent: an image's size comes from its message fields or from its
+compressed header (``compressed_size``: a JPEG's frame header, a PNG's IHDR) and is held against
+the pixel budget (``check_pixel_budget``) before anything is decoded.
+
+A damaged JPEG is not an image. libjpeg decodes corrupt entropy-coded data anyway (it only warns,
+"Corrupt JPEG data: ..."), and what it makes of it is wrong by whole 8x8 blocks from the damage
+on: a tag there can be found, decoded and fitted with small residuals at the wrong place, and no
+covariance built from the residuals can tell (the frame's bounds would claim a tenth of a degree
+for a pose degrees off). No widening of the bounds is honest either: how far the corners moved is
+not knowable from the frame. So the decoder's own warnings are read for every frame
+(``native_log.call_capturing_stderr`` around the decode: a few system calls) and a JPEG libjpeg
+warns about is refused as damaged (``DamagedImageError``): the frame is labelled with the reason
+and without a pose, and the node publishes no pose for it.
 """
 
 from __future__ import annotations
 
+import os
+import re
+import struct
+
 import cv2
 import numpy as np
 
-from ficap_ros.errors import ImageError
+from ficap_ros.errors import ConfigError, ImageError
+from ficap_ros.io.native_log import call_capturing_stderr
 
-__all__ = ["ENCODINGS", "encoding_layout", "decode_image", "decode_compressed",
-           "check_pixel_budget", "max_pixels", "DEFAULT_MAX_PIXELS"]
+__all__ = ["ENCODINGS", "encoding_layout", "decode_image", "decode_compressed", "compressed_size",
+           "check_compressed",
+           "check_pixel_budget", "max_pixels", "DEFAULT_MAX_PIXELS", "DamagedImageError"]
+
+
+class DamagedImageError(ImageError):
+    """A compressed image whose decoder reported corrupt data (it decodes, but wrongly)."""
 
 #: Largest image accepted, in pixels (``FICAP_MAX_PIXELS`` overrides it). 40 MP holds every
 #: camera a cap is filmed with (1080p is 2.1 MP, 4K 8.3 MP, a 12 MP phone photo); detection's
@@ -22,15 +46,22 @@ DEFAULT_MAX_PIXELS = 40_000_000
 
 
 def max_pixels() -> int:
-    """The pixel budget: ``FICAP_MAX_PIXELS`` when set to a positive integer, else the default."""
-    import os
+    """The pixel budget: ``FICAP_MAX_PIXELS`` (a number of pixels, ``40000000`` or ``4e7``) when
+    set, else the default.
 
+    Raises:
+        ConfigError: ``FICAP_MAX_PIXELS`` is set but not a finite number >= 1.
+    """
     text = os.environ.get("FICAP_MAX_PIXELS", "").strip()
-    try:
-        value = int(text) if text else DEFAULT_MAX_PIXELS
-    except ValueError:
+    if not text:
         return DEFAULT_MAX_PIXELS
-    return value if value > 0 else DEFAULT_MAX_PIXELS
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not (value >= 1 and value < float("inf")):
+        raise ConfigError(f"FICAP_MAX_PIXELS={text!r} is not a number of pixels (e.g. 40000000)")
+    return int(value)
 
 
 def check_pixel_budget(width: int, height: int, what: str = "image",
@@ -155,15 +186,104 @@ def decode_image(
     return cv2.cvtColor(img, code)
 
 
+#: JPEG markers that start a frame header (SOF0-3, 5-7, 9-11, 13-15) and carry no length.
+_SOF = frozenset({0xC0, 0xC1, 0xC2, 0xC3, 0xC5, 0xC6, 0xC7, 0xC9, 0xCA, 0xCB, 0xCD, 0xCE, 0xCF})
+_STANDALONE = frozenset({0x01, *range(0xD0, 0xD9)})
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+
+
+def compressed_size(data: bytes | np.ndarray) -> tuple[str, int, int]:
+    """(format, width, height) of a compressed image from its header, without decoding it: a
+    JPEG's frame header (SOFn), a PNG's IHDR chunk.
+
+    Raises:
+        ImageError: neither JPEG nor PNG, or a header cut short or without a size.
+    """
+    head = memoryview(data).cast("B") if not isinstance(data, np.ndarray) else \
+        memoryview(np.ascontiguousarray(data).view(np.uint8).reshape(-1))
+    if bytes(head[:8]) == _PNG_SIGNATURE:
+        if len(head) < 24 or bytes(head[12:16]) != b"IHDR":
+            raise ImageError("PNG image without its header (IHDR)")
+        width, height = struct.unpack(">II", head[16:24])
+        return "png", width, height
+    if bytes(head[:2]) != b"\xff\xd8":
+        raise ImageError("compressed image is neither JPEG nor PNG")
+    pos = 2
+    while pos + 4 <= len(head):
+        if head[pos] != 0xFF:
+            raise ImageError(f"JPEG header is damaged (no marker at byte {pos})")
+        marker = head[pos + 1]
+        if marker == 0xFF:  # fill byte
+            pos += 1
+            continue
+        if marker in _STANDALONE:
+            pos += 2
+            continue
+        if marker in (0xD9, 0xDA):  # end of image, or scan data before any frame header
+            break
+        (length,) = struct.unpack(">H", head[pos + 2: pos + 4])
+        if marker in _SOF:
+            if pos + 9 > len(head) or length < 7:
+                break
+            height, width = struct.unpack(">HH", head[pos + 5: pos + 9])
+            if not (width and height):
+                raise ImageError(f"JPEG frame header gives no size ({width}x{height})")
+            return "jpeg", width, height
+        pos += 2 + length
+    raise ImageError("JPEG image without a frame header (cut short or damaged)")
+
+
+def check_compressed(data: bytes | np.ndarray) -> tuple[str, int, int]:
+    """``compressed_size`` held against the pixel budget: what ``decode_compressed`` checks
+    before decoding (and the node before it queues a frame).
+
+    Raises:
+        ImageError: no usable header, or a size above the budget.
+    """
+    try:
+        kind, width, height = compressed_size(data)
+    except ImageError as err:
+        raise ImageError(f"cannot decode compressed image ({len(data)} bytes): {err}") from None
+    check_pixel_budget(width, height, what=f"{kind.upper()} image")
+    return kind, width, height
+
+
+#: libjpeg's warnings that the data it decodes is corrupt (the decoded pixels are not the
+#: image's); its other warnings (an unknown JFIF revision, a bad ICC profile) leave them intact.
+_DAMAGE = re.compile(rb"^(Corrupt JPEG data(?!: bad ICC marker)|Premature end of JPEG file|"
+                     rb"Invalid SOS parameters|Inconsistent progression|"
+                     rb"Application transferred too many scanlines).*$", re.M)
+
+
+def _damage(messages: bytes) -> str:
+    """The first damage warning among a decode's stderr bytes, without its counts ('' when
+    none); every other line is passed on to fd 2 as it came."""
+    found = _DAMAGE.search(messages)
+    rest = _DAMAGE.sub(b"", messages).strip(b"\n")
+    if rest:
+        try:
+            os.write(2, rest + b"\n")
+        except OSError:
+            pass
+    if found is None:
+        return ""
+    text = found.group(0).decode(errors="replace").strip()
+    return re.sub(r"\s*\b(0x[0-9a-fA-F]+|\d+)\b", "", text)
+
+
 def decode_compressed(data: bytes | np.ndarray, fmt: str = "") -> np.ndarray:
-    """Decode a ``sensor_msgs/CompressedImage`` payload (JPEG, PNG, ...) to a uint8 grey image.
+    """Decode a ``sensor_msgs/CompressedImage`` payload (JPEG or PNG) to a uint8 grey image.
+
+    The size in its header is held against the pixel budget first; the decoder's warnings are
+    read (see the module docstring) and a damaged JPEG is refused.
 
     Args:
         data: the compressed bytes.
-        fmt: the message's ``format`` field (informational; OpenCV sniffs the codec).
+        fmt: the message's ``format`` field (informational; the header says the codec).
 
     Raises:
-        ImageError: empty or undecodable data.
+        DamagedImageError: libjpeg reported corrupt data. ImageError: empty, neither JPEG nor
+            PNG, above the pixel budget, or undecodable data.
     """
     try:
         buf = np.frombuffer(data, dtype=np.uint8) if not isinstance(data, np.ndarray) else data
@@ -171,14 +291,19 @@ def decode_compressed(data: bytes | np.ndarray, fmt: str = "") -> np.ndarray:
         raise ImageError(f"compressed image data is not a byte buffer: {err}") from None
     if buf.size == 0:
         raise ImageError("compressed image is empty")
+    buf = np.ascontiguousarray(buf.reshape(-1).view(np.uint8))
+    check_compressed(buf)
     try:
-        img = cv2.imdecode(np.ascontiguousarray(buf.reshape(-1).view(np.uint8)),
-                           cv2.IMREAD_GRAYSCALE)
+        img, messages = call_capturing_stderr(cv2.imdecode, buf, cv2.IMREAD_GRAYSCALE)
     except cv2.error as err:  # e.g. a header claiming more pixels than OpenCV allows
         raise ImageError(f"cannot decode compressed image ({buf.size} bytes): "
                          f"{str(err).strip().splitlines()[-1]}") from None
+    damage = _damage(messages)
     if img is None:
-        kind = f" {fmt}" if fmt else ""
-        raise ImageError(f"cannot decode compressed{kind} image ({buf.size} bytes)")
+        what = f" {fmt}" if fmt else ""
+        raise ImageError(f"cannot decode compressed{what} image ({buf.size} bytes)"
+                         + (f": {damage}" if damage else ""))
+    if damage:
+        raise DamagedImageError(f"damaged JPEG ({damage})")
     check_pixel_budget(img.shape[1], img.shape[0])
     return img

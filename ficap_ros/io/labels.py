@@ -373,12 +373,12 @@ def read_labels_text(path: str | Path) -> tuple[Path, str]:
     Raises:
         BagError: the file cannot be read.
     """
-    from ficap_ros.files import read_text
+    from ficap_ros.files import MAX_TABLE_BYTES, read_text
 
     path = Path(path)
     if path.is_dir():
         path = path / "labels.csv"
-    return path, read_text(path, "labels", BagError)
+    return path, read_text(path, "labels", BagError, MAX_TABLE_BYTES)
 
 
 def read_labels(path: str | Path) -> Labels:

@@ -1,11 +1,14 @@
-"""Messages that C libraries print straight to stderr (libjpeg, libpng, FFmpeg), throttled.
+"""Messages that C libraries print straight to stderr (libjpeg, libpng, FFmpeg): per call, or
+throttled.
 
-OpenCV's JPEG decoder lets libjpeg print "Corrupt JPEG data: ..." on file descriptor 2 for every
-damaged frame, and FFmpeg prints "[mjpeg @ 0x...] ..." lines; ``cv2.setLogLevel`` does not reach
-them. A stream of corrupt JPEGs printed ~500 such lines. ``ThrottledStderr`` puts a pipe on file
-descriptor 2 for its lifetime: a thread forwards every line to the real stderr unchanged, except
-the lines of those libraries, which go to ``emit`` at most once per ``throttle_s`` per kind, with
-the number held back. The CLI emits them as ``ficap: warning: ...``; the node through its logger.
+OpenCV's decoders let libjpeg print "Corrupt JPEG data: ..." on file descriptor 2 for a damaged
+frame, libpng its warnings, and FFmpeg "[mjpeg @ 0x...] ..." lines; ``cv2.setLogLevel`` does not
+reach them, and no OpenCV call returns them. ``call_capturing_stderr`` gives one call's lines to
+its caller (the image decoder reads libjpeg's verdict on each frame that way).
+``ThrottledStderr`` puts a pipe on file descriptor 2 for its lifetime: a thread forwards every
+line to the real stderr unchanged, except those libraries' lines, which go to ``emit`` at most
+once per ``throttle_s`` per kind, with the number held back. The CLI emits them as
+``ficap: warning: ...``; the node through its logger.
 """
 
 from __future__ import annotations
@@ -15,9 +18,9 @@ import re
 import sys
 import threading
 import time
-from typing import Callable
+from typing import Any, Callable
 
-__all__ = ["ThrottledStderr", "LIBRARY_LINE"]
+__all__ = ["ThrottledStderr", "LIBRARY_LINE", "call_capturing_stderr"]
 
 #: Lines of the C libraries under OpenCV (libjpeg, libpng, FFmpeg): at the start of a line.
 LIBRARY_LINE = re.compile(
@@ -27,6 +30,62 @@ LIBRARY_LINE = re.compile(
 
 
 _PIECE = re.compile(rb"(\r|\n)")
+
+#: The capture pipe of this process: (pid, read end, write end); a forked child makes its own.
+_CAPTURE: tuple[int, int, int] | None = None
+_CAPTURE_LOCK = threading.Lock()
+
+
+def _capture_pipe() -> tuple[int, int]:
+    """This process's capture pipe: non-blocking at both ends (a writer that fills it loses its
+    text rather than waiting on a reader that waits on the call), 1 MiB deep."""
+    global _CAPTURE
+    if _CAPTURE is None or _CAPTURE[0] != os.getpid():
+        import fcntl
+
+        read_fd, write_fd = os.pipe2(os.O_NONBLOCK | os.O_CLOEXEC)
+        try:
+            fcntl.fcntl(write_fd, fcntl.F_SETPIPE_SZ, 1 << 20)
+        except OSError:
+            pass  # the default depth (64 KiB) then
+        _CAPTURE = (os.getpid(), read_fd, write_fd)
+    return _CAPTURE[1], _CAPTURE[2]
+
+
+def call_capturing_stderr(fn: Callable[..., Any], *args: Any) -> tuple[Any, bytes]:
+    """``fn(*args)`` with file descriptor 2 on a pipe for its duration: (its result, what was
+    written to fd 2 meanwhile).
+
+    What the C libraries under OpenCV print about one call (libjpeg's "Corrupt JPEG data" for
+    the image it decodes) is then known per call, not only on the terminal. The swap is process
+    wide, so calls are serialised (a lock) and anything another thread printed meanwhile is in
+    the bytes returned: the caller passes on what is not its own (``os.write(2, ...)``). Costs a
+    few system calls. Without a file descriptor 2 the call runs as it is.
+    """
+    with _CAPTURE_LOCK:
+        read_fd, write_fd = _capture_pipe()
+        try:
+            saved = os.dup(2)
+        except OSError:
+            return fn(*args), b""
+        try:
+            os.dup2(write_fd, 2)
+            try:
+                result = fn(*args)
+            finally:
+                os.dup2(saved, 2)
+        finally:
+            os.close(saved)
+        chunks = []
+        while True:
+            try:
+                chunk = os.read(read_fd, 1 << 16)
+            except BlockingIOError:
+                break
+            if not chunk:
+                break
+            chunks.append(chunk)
+    return result, b"".join(chunks)
 
 
 class ThrottledStderr:

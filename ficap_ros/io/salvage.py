@@ -12,9 +12,10 @@ and offers the part of rosbags' ``AnyReader`` interface the bag tools use (``con
   decompressed as far as its bytes go (no compression, zstd and lz4 all decode a prefix) and its
   whole records are kept; the chunk header still says until when its messages ran, which bounds
   the lost time range.
-* sqlite3: the database is copied to a temporary file (the input is only read), cut to whole
-  pages with the header's page count set to match, and the messages table is read in rowid order
-  (the order the recorder inserted them) until the first unreadable page.
+* sqlite3: the database is read in place through a read-only SQLite VFS that shows it cut to
+  whole pages with the header's page count set to match (no copy, nothing read ahead), and the
+  messages table is read in rowid order (the order the recorder inserted them) until the first
+  unreadable page.
 
 Message definitions come from the file (MCAP schemas, rosbag2's ``message_definitions`` table)
 when the Jazzy typestore does not know a type.
@@ -22,12 +23,8 @@ when the Jazzy typestore does not know a type.
 
 from __future__ import annotations
 
-import mmap
 import os
-import shutil
-import sqlite3
 import struct
-import tempfile
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Iterator, Sequence
@@ -39,8 +36,10 @@ from mcap.records import Channel, Chunk, McapRecord, Message, Schema
 from mcap.stream_reader import MAGIC_SIZE, StreamReader, read_magic
 
 from ficap_ros.errors import BagError
+from ficap_ros.files import load_yaml
 
-__all__ = ["SalvageConnection", "Damage", "SalvageReader", "NothingSalvaged", "storage_files"]
+__all__ = ["SalvageConnection", "Damage", "SalvageReader", "NothingSalvaged", "storage_files",
+           "index_damage", "MAX_RECORD_BYTES"]
 
 
 class NothingSalvaged(BagError):
@@ -93,9 +92,7 @@ def _metadata(path: Path) -> tuple[dict[str, int] | None, int | None]:
     if not meta.is_file():
         return None, None
     try:
-        import yaml
-
-        info = yaml.safe_load(meta.read_text(encoding="utf-8"))["rosbag2_bagfile_information"]
+        info = load_yaml(meta, "metadata", BagError)["rosbag2_bagfile_information"]
         counts = {str(t["topic_metadata"]["name"]): int(t["message_count"])
                   for t in info["topics_with_message_count"]}
         end = int(info["starting_time"]["nanoseconds_since_epoch"]) + int(
@@ -113,6 +110,12 @@ def _metadata(path: Path) -> tuple[dict[str, int] | None, int | None]:
 _RECORD_HEADER = struct.Struct("<BQ")
 #: Records the salvage needs (the rest are indexes and summaries of what it walks anyway).
 _DATA_OPCODES = frozenset({Opcode.SCHEMA, Opcode.CHANNEL, Opcode.MESSAGE})
+#: Largest record the salvage reads, and the most a chunk may decompress to: a chunk holds the
+#: largest images a recorder writes (a 4K raw frame is 25 MB, the pixel budget's largest
+#: colour image 120 MB). A longer one has a corrupt length: reading it would copy the file.
+MAX_RECORD_BYTES = 128 << 20
+#: Bytes fed to a decompressor at a time (a cut chunk's prefix is decompressed as a stream).
+_PIECE_BYTES = 1 << 20
 
 
 class _Exact:
@@ -156,8 +159,8 @@ class _Frame:
 
 
 def _frames(data: Any, start: int) -> Iterator[_Frame]:
-    """The records of ``data`` (bytes or a read-only mmap) from ``start``, each length-checked
-    against the bytes there: a cut record is the last one.
+    """The records of ``data`` (a chunk's bytes) from ``start``, each length-checked against the
+    bytes there: a cut record is the last one.
 
     mcap's ``StreamReader`` assumes whole records (it reads a cut one's remaining fields as
     whatever bytes are left, then fails), so the salvage locates each record first and hands
@@ -175,7 +178,22 @@ def _frames(data: Any, start: int) -> Iterator[_Frame]:
         yield _Frame(pos, -1, 0, False)  # a record header cut short
 
 
-def _read_record(record: bytes) -> McapRecord:
+def _file_frames(fd: int, size: int, start: int) -> Iterator[_Frame]:
+    """``_frames`` over a file of ``size`` bytes: each record's header read on its own
+    (``os.pread``), so walking a file never holds more than one record of it."""
+    pos = start
+    while pos + _RECORD_HEADER.size <= size:
+        opcode, length = _RECORD_HEADER.unpack(os.pread(fd, _RECORD_HEADER.size, pos))
+        frame = _Frame(pos, opcode, length, pos + _RECORD_HEADER.size + length <= size)
+        yield frame
+        if not frame.complete:
+            return
+        pos = frame.end
+    if pos < size:
+        yield _Frame(pos, -1, 0, False)  # a record header cut short
+
+
+def _read_record(record: bytes | memoryview) -> McapRecord:
     """One whole record (header and body) by mcap's stream reader.
 
     Raises:
@@ -220,24 +238,72 @@ def _chunk_head(body: bytes) -> _ChunkHead | None:
     return _ChunkHead(end_ns, compression, length, stream.count)
 
 
-def _decompress_prefix(compression: str, data: bytes) -> bytes:
-    """As much of a chunk's records as a (possibly cut) compressed buffer holds."""
+def _decompressor(compression: str) -> Any:
+    if compression == "zstd":
+        try:
+            from compression import zstd  # Python 3.14
+        except ImportError:
+            from backports import zstd  # type: ignore[no-redef]
+        return zstd.ZstdDecompressor()
+    if compression == "lz4":
+        import lz4.frame
+
+        return lz4.frame.LZ4FrameDecompressor()
+    return None
+
+
+def _decompress_prefix(compression: str, data: bytes | memoryview) -> bytes | memoryview:
+    """As much of a chunk's records as a (possibly cut) compressed buffer holds, at most
+    ``MAX_RECORD_BYTES``: fed piece by piece, so neither a buffer that runs on past the chunk's
+    end (a corrupt length) nor one that expands without end is held whole."""
     if compression == "":
         return data
-    try:
-        if compression == "zstd":
-            try:
-                from compression import zstd  # Python 3.14
-            except ImportError:
-                from backports import zstd  # type: ignore[no-redef]
-            return zstd.ZstdDecompressor().decompress(data)
-        if compression == "lz4":
-            import lz4.frame
-
-            return lz4.frame.LZ4FrameDecompressor().decompress(data)
-    except Exception:  # noqa: BLE001 - a damaged compressed stream holds nothing usable
+    decompressor = _decompressor(compression)
+    if decompressor is None:
         return b""
-    return b""
+    view, out, budget = memoryview(data), [], MAX_RECORD_BYTES
+    try:
+        for start in range(0, len(view), _PIECE_BYTES):
+            piece = decompressor.decompress(view[start: start + _PIECE_BYTES], max_length=budget)
+            out.append(piece)
+            budget -= len(piece)
+            if decompressor.eof or budget <= 0:
+                break
+    except Exception:  # noqa: BLE001 - the damaged rest of a compressed stream holds nothing
+        pass
+    return b"".join(out)
+
+
+def index_damage(path: Path) -> str:
+    """Why an indexed MCAP file's chunk index cannot be trusted ('' when it can, or when the file
+    has no index: its reader then finds the damage itself).
+
+    rosbags reads an indexed file's chunks where its summary says, as long as it says: a corrupt
+    offset or size there would make it read (and copy) the rest of the file. Each chunk index is
+    checked against the file (inside it, sizes at most ``MAX_RECORD_BYTES``) and against the
+    chunk record's own header (one 9-byte read per chunk).
+    """
+    from mcap.reader import make_reader
+
+    try:
+        with open(path, "rb") as handle:
+            size = os.fstat(handle.fileno()).st_size
+            summary = make_reader(handle).get_summary()
+            for index in (summary.chunk_indexes if summary is not None else ()):
+                start, length = index.chunk_start_offset, index.chunk_length
+                if not (0 < start and start + length <= size and length > _RECORD_HEADER.size
+                        and index.compressed_size < length
+                        and index.uncompressed_size <= MAX_RECORD_BYTES):
+                    return (f"{path.name}: the chunk index of the chunk at byte {start} does not "
+                            "fit the file")
+                opcode, declared = _RECORD_HEADER.unpack(
+                    os.pread(handle.fileno(), _RECORD_HEADER.size, start))
+                if opcode != Opcode.CHUNK or declared != length - _RECORD_HEADER.size:
+                    return (f"{path.name}: the record at byte {start} is not the chunk its index "
+                            "names (a corrupt length or offset)")
+    except Exception:  # noqa: BLE001 - no readable summary: the reader decides
+        return ""
+    return ""
 
 
 class _McapFile:
@@ -254,29 +320,43 @@ class _McapFile:
     def messages(self) -> Iterator[tuple[int, int, bytes]]:
         """(channel id, log time, payload) of every complete message, in file order."""
         with open(self.path, "rb") as handle:
-            size = os.fstat(handle.fileno()).st_size
+            fd = handle.fileno()
+            size = os.fstat(fd).st_size
             if size < MAGIC_SIZE:
                 self.damage = f"{self.path.name} is empty or cut before its first record"
                 return
-            with mmap.mmap(handle.fileno(), 0, access=mmap.ACCESS_READ) as mm:
-                try:
-                    read_magic(ReadDataStream(_Exact(mm[:MAGIC_SIZE])))
-                except McapError:
-                    raise BagError(f"{self.path} is not an MCAP file") from None
-                yield from self._walk(mm, size)
+            try:
+                read_magic(ReadDataStream(_Exact(os.pread(fd, MAGIC_SIZE, 0))))
+            except McapError:
+                raise BagError(f"{self.path} is not an MCAP file") from None
+            yield from self._walk(fd, size)
 
-    def _walk(self, mm: mmap.mmap, size: int) -> Iterator[tuple[int, int, bytes]]:
-        """The data section's records up to the footer, or up to the first record cut short."""
+    def _walk(self, fd: int, size: int) -> Iterator[tuple[int, int, bytes]]:
+        """The data section's records up to the footer, or up to the first record cut short or
+        of a corrupt length (each record read on its own, at most ``MAX_RECORD_BYTES``)."""
         footer = False
-        for frame in _frames(mm, MAGIC_SIZE):
+        for frame in _file_frames(fd, size, MAGIC_SIZE):
             if frame.opcode == Opcode.FOOTER:
                 footer = True
                 break
+            if frame.opcode == 0:  # reserved: zeros (a file extended or overwritten with them)
+                self.damage = self.damage or (f"{self.path.name} holds no record at byte "
+                                              f"{frame.offset} of {size} (zeros)")
+                break
+            huge = frame.length > MAX_RECORD_BYTES
+            if huge:
+                self.damage = self.damage or (
+                    f"a record of {self.path.name} at byte {frame.offset} claims {frame.length} "
+                    f"bytes, more than any recording writes (a corrupt length)")
             if frame.opcode == Opcode.CHUNK:
-                yield from self._chunk(mm[frame.offset: frame.end], frame.complete, frame.offset,
-                                       size)
-            elif frame.complete and frame.opcode in _DATA_OPCODES:
-                yield from self._record(mm[frame.offset: frame.end])
+                whole = frame.complete and not huge
+                record = os.pread(fd, min(frame.end, size, frame.offset + _RECORD_HEADER.size
+                                          + MAX_RECORD_BYTES) - frame.offset, frame.offset)
+                yield from self._chunk(record, whole, frame.offset, size)
+            elif frame.complete and not huge and frame.opcode in _DATA_OPCODES:
+                yield from self._record(os.pread(fd, frame.end - frame.offset, frame.offset))
+            if huge:
+                break
             if not frame.complete:
                 self.damage = self.damage or (
                     f"{self.path.name} ends inside a record at byte {frame.offset} of "
@@ -311,7 +391,7 @@ class _McapFile:
             if isinstance(chunk, Chunk):
                 yield from self._inner(_decompress_prefix(chunk.compression, chunk.data), True)
                 return
-        body = record[_RECORD_HEADER.size:]
+        body = memoryview(record)[_RECORD_HEADER.size:]
         head = _chunk_head(body)
         if head is None:
             self.damage = (f"{self.path.name} ends inside a chunk header at byte {offset} of "
@@ -321,13 +401,17 @@ class _McapFile:
         whole = complete and len(payload) == head.records_length
         if not whole:
             self.lost_until_ns = head.message_end_ns
-            self.damage = (f"{self.path.name} ends inside a chunk at byte {offset} of {size} "
-                           "(no footer)")
+            self.damage = self.damage or (f"{self.path.name} ends inside a chunk at byte {offset} "
+                                          f"of {size} (no footer)")
         yield from self._inner(_decompress_prefix(head.compression, payload), whole)
 
-    def _inner(self, records: bytes, complete: bool) -> Iterator[tuple[int, int, bytes]]:
+    def _inner(self, records: bytes | memoryview,
+               complete: bool) -> Iterator[tuple[int, int, bytes]]:
         """The records of a chunk's decompressed bytes (of a cut chunk: up to the one cut)."""
         for frame in _frames(records, 0):
+            if frame.opcode == 0:  # reserved: zeros where records should be
+                self.damage = self.damage or "a chunk holds an invalid record (zeros)"
+                return
             if not frame.complete:
                 if complete:
                     self.damage = self.damage or "a record inside a chunk is cut short"
@@ -337,34 +421,86 @@ class _McapFile:
 
 
 # -- sqlite3 -------------------------------------------------------------------------------------
-def _sqlite_copy(path: Path, tmpdir: Path) -> tuple[Path, str]:
-    """A readable copy of a database cut short: whole pages, header page count to match."""
-    data = bytearray(path.read_bytes())
-    if len(data) < 100 or not data.startswith(b"SQLite format 3\x00"):
+#: Files the salvage's SQLite VFS serves: real path -> (bytes of its whole pages, their count).
+_CUT_FILES: dict[str, tuple[int, int]] = {}
+_VFS_NAME = "ficap-salvage"
+_VFS: Any = None
+
+
+def _salvage_vfs() -> str:
+    """A read-only SQLite VFS (apsw's, registered once) that shows a database cut short as its
+    whole pages, with the header's page count set to match: the input is read in place, never
+    copied, and a page past the cut is a corrupt page to SQLite, not zeros in a message."""
+    global _VFS
+    if _VFS is not None:
+        return _VFS_NAME
+    import apsw
+
+    class CutFile(apsw.VFSFile):
+        def __init__(self, name: Any, flags: list[int]) -> None:
+            path = name.filename() if isinstance(name, apsw.URIFilename) else str(name)
+            super().__init__("", name, flags)
+            self._size, self._pages = _CUT_FILES[path]
+
+        def xRead(self, amount: int, offset: int) -> bytes:  # noqa: N802 - apsw's name
+            if offset >= self._size:
+                return b""
+            data = super().xRead(min(amount, self._size - offset), offset)
+            if offset <= 28 and offset + len(data) >= 32:
+                head = bytearray(data)
+                head[28 - offset: 32 - offset] = struct.pack(">I", self._pages)
+                data = bytes(head)
+            return data
+
+        def xFileSize(self) -> int:  # noqa: N802 - apsw's name
+            return self._size
+
+    class CutVFS(apsw.VFS):
+        def __init__(self) -> None:
+            super().__init__(_VFS_NAME, "")
+
+        def xOpen(self, name: Any, flags: list[int]) -> Any:  # noqa: N802 - apsw's name
+            return CutFile(name, flags)
+
+    _VFS = CutVFS()
+    return _VFS_NAME
+
+
+def _sqlite_header(path: Path) -> tuple[int, int, str]:
+    """(bytes of the file's whole pages, their count, what is cut) from its header; only the
+    100-byte header is read."""
+    try:
+        with open(path, "rb") as handle:
+            size = os.fstat(handle.fileno()).st_size
+            head = handle.read(100)
+    except OSError as err:
+        raise BagError(f"cannot read {path}: {err.strerror or err}") from err
+    if len(head) < 100 or not head.startswith(b"SQLite format 3\x00"):
         raise BagError(f"{path} is not an SQLite database")
-    (page,) = struct.unpack(">H", data[16:18])
+    (page,) = struct.unpack(">H", head[16:18])
     page = 65536 if page == 1 else page
-    if page < 512:
+    if page < 512 or page & (page - 1):
         raise BagError(f"{path} has an invalid SQLite header")
-    (header_pages,) = struct.unpack(">I", data[28:32])
-    pages = len(data) // page
+    (header_pages,) = struct.unpack(">I", head[28:32])
+    pages = size // page
     detail = ""
-    if len(data) % page or (header_pages and pages < header_pages):
-        detail = (f"{path.name} is cut short ({len(data)} bytes, {pages} whole pages of "
+    if size % page or (header_pages and pages < header_pages):
+        detail = (f"{path.name} is cut short ({size} bytes, {pages} whole pages of "
                   f"{header_pages or '?'})")
-    del data[pages * page:]
-    data[28:32] = struct.pack(">I", pages)
-    copy = tmpdir / path.name
-    copy.write_bytes(bytes(data))
-    return copy, detail
+    return pages * page, pages, detail
 
 
 class _SqliteFile:
-    """One rosbag2 sqlite3 file read in rowid order up to the first unreadable page."""
+    """One rosbag2 sqlite3 file read in place (``_salvage_vfs``), in rowid order, up to the first
+    unreadable page."""
 
-    def __init__(self, path: Path, tmpdir: Path) -> None:
+    def __init__(self, path: Path) -> None:
+        import apsw
+
         self.path = path
-        self.copy, self.damage = _sqlite_copy(path, tmpdir)
+        size, pages, self.damage = _sqlite_header(path)
+        self._key = os.path.abspath(path)
+        _CUT_FILES[self._key] = (size, pages)
         self.lost_until_ns: int | None = None
         self.topics: dict[int, tuple[str, str]] = {}
         self.definitions: dict[str, tuple[str, str]] = {}
@@ -377,30 +513,39 @@ class _SqliteFile:
                         "SELECT topic_type, encoding, encoded_message_definition "
                         "FROM message_definitions"):
                     self.definitions[str(msgtype)] = (str(enc), str(text))
-            except sqlite3.Error:
+            except apsw.Error:
                 pass  # rosbag2 before Iron: no definitions table
-        except sqlite3.Error as err:
+        except apsw.Error as err:
             raise BagError(f"cannot read {path}: {err}") from err
         finally:
             con.close()
 
-    def _connect(self) -> sqlite3.Connection:
-        return sqlite3.connect(f"file:{self.copy}?mode=ro", uri=True)
+    def _connect(self) -> Any:
+        import apsw
+
+        try:
+            return apsw.Connection(f"file:{self._key}?mode=ro&immutable=1",
+                                   flags=apsw.SQLITE_OPEN_READONLY | apsw.SQLITE_OPEN_URI,
+                                   vfs=_salvage_vfs())
+        except apsw.Error as err:
+            raise BagError(f"cannot read {self.path}: {err}") from err
 
     def messages(self) -> Iterator[tuple[int, int, bytes]]:
+        import apsw
+
         con = self._connect()
         try:
-            rows = con.execute("SELECT topic_id, timestamp, data FROM messages ORDER BY id")
+            rows = iter(con.execute("SELECT topic_id, timestamp, data FROM messages ORDER BY id"))
             while True:
                 try:
-                    row = rows.fetchone()
-                except sqlite3.Error as err:
+                    row = next(rows)
+                except StopIteration:
+                    return
+                except apsw.Error as err:
                     self.damage = self.damage or f"{self.path.name}: {err}"
                     return
-                if row is None:
-                    return
                 yield int(row[0]), int(row[1]), bytes(row[2])
-        except sqlite3.Error as err:
+        except apsw.Error as err:
             self.damage = self.damage or f"{self.path.name}: {err}"
         finally:
             con.close()
@@ -421,7 +566,6 @@ class SalvageReader:
     def __init__(self, path: Path, typestore: Any) -> None:
         self.path = Path(path)
         self.typestore = typestore
-        self._tmpdir = Path(tempfile.mkdtemp(prefix="ficap-salvage-"))
         self._files: list[Any] = []
         self._conn_by_key: dict[tuple[int, int], SalvageConnection] = {}
         self.connections: list[SalvageConnection] = []
@@ -437,8 +581,7 @@ class SalvageReader:
         if not files:
             raise BagError(f"{self.path} holds no .mcap or .db3 file")
         for f in files:
-            self._files.append(_SqliteFile(f, self._tmpdir) if f.suffix.lower() == ".db3"
-                               else _McapFile(f))
+            self._files.append(_SqliteFile(f) if f.suffix.lower() == ".db3" else _McapFile(f))
         counts: dict[tuple[int, int], int] = {}
         self.last_good_ns = 0
         for n, f in enumerate(self._files):
@@ -514,7 +657,7 @@ class SalvageReader:
         return self.typestore.deserialize_cdr(raw, msgtype)
 
     def close(self) -> None:
-        shutil.rmtree(self._tmpdir, ignore_errors=True)
+        """Nothing to release: every file is opened per walk."""
 
     def __enter__(self) -> SalvageReader:
         return self

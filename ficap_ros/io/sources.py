@@ -28,6 +28,7 @@ from typing import Any, Iterator
 import numpy as np
 
 from ficap_ros.errors import BagError, FicapError, ImageError, IntrinsicsError, one_line
+from ficap_ros.files import VIDEO_SUFFIXES
 from ficap_ros.geometry.camera import (
     CameraModel,
     CameraTiming,
@@ -69,7 +70,6 @@ CAMERA_INFO_TYPE = "sensor_msgs/msg/CameraInfo"
 #: The key of a bag's ``custom_data`` (metadata.yaml) holding its camera's timing as JSON
 #: (``CameraTiming.to_dict``): ``ficap synth`` writes it.
 TIMING_METADATA_KEY = "ficap.camera_timing"
-VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv", ".h264")
 
 
 @dataclass(frozen=True)
@@ -136,13 +136,19 @@ class Loss:
     until_ns: int | None
 
     def describe(self, start_ns: int) -> str:
-        """One line for the command line: count, time range (s from ``start_ns``), cause."""
+        """One line for the command line: count, time range (s from ``start_ns``, the first
+        frame's stamp; without any frame read, from the start of the recording), cause."""
         count = ("an unknown number of frames" if self.frames_lost is None else
                  f"{'at least ' if self.estimated else ''}{self.frames_lost} frame"
                  f"{'' if self.frames_lost == 1 else 's'}")
-        t0 = (self.after_ns - start_ns) / 1e9 if self.after_ns else 0.0
-        span = (f"after {t0:.3f} s" if self.until_ns is None else
-                f"between {t0:.3f} s and {(self.until_ns - start_ns) / 1e9:.3f} s")
+        if self.frames_lost == 0 and not self.estimated:
+            return f"DAMAGED, but every frame it lists was read ({self.detail})"
+        if not (self.after_ns and start_ns):
+            span = "from the start, before any frame could be read"
+        else:
+            t0 = (self.after_ns - start_ns) / 1e9
+            span = (f"after {t0:.3f} s" if self.until_ns is None else
+                    f"between {t0:.3f} s and {(self.until_ns - start_ns) / 1e9:.3f} s")
         return f"LOST {count} {span} ({self.detail})"
 
     def to_dict(self, start_ns: int) -> dict[str, Any]:
@@ -152,9 +158,10 @@ class Loss:
             "estimated": self.estimated,
             "after_ns": self.after_ns,
             "until_ns": self.until_ns,
-            "after_s": round((self.after_ns - start_ns) / 1e9, 6) if self.after_ns else 0.0,
+            "after_s": (round((self.after_ns - start_ns) / 1e9, 6)
+                        if self.after_ns and start_ns else 0.0),
             "until_s": (round((self.until_ns - start_ns) / 1e9, 6)
-                        if self.until_ns is not None else None),
+                        if self.until_ns is not None and start_ns else None),
         }
 
 
@@ -185,15 +192,16 @@ def decode_raw(raw: RawFrame) -> np.ndarray:
 def _bag_errors() -> tuple[type[BaseException], ...]:
     import struct
 
+    import apsw
     from rosbags.highlevel import AnyReaderError
     from rosbags.rosbag2 import ReaderError
     from rosbags.serde import SerdeError
 
     # What rosbags' parsers raise on hostile bytes, besides their own errors: TypeError for an
     # MCAP file that ends after its magic, MemoryError for a flipped length field that asks for
-    # gigabytes.
-    return (AnyReaderError, ReaderError, SerdeError, sqlite3.Error, OSError, ValueError,
-            KeyError, IndexError, EOFError, AssertionError, TypeError, struct.error,
+    # gigabytes, apsw's errors for a damaged page of a sqlite3 bag (rosbags reads them by apsw).
+    return (AnyReaderError, ReaderError, SerdeError, sqlite3.Error, apsw.Error, OSError,
+            ValueError, KeyError, IndexError, EOFError, AssertionError, TypeError, struct.error,
             OverflowError, AttributeError, NotImplementedError, RuntimeError, MemoryError)
 
 
@@ -210,7 +218,12 @@ def open_bag_reader(path: Path, salvage: bool = True) -> Any:
     """
     from rosbags.highlevel import AnyReader
 
-    from ficap_ros.io.salvage import NothingSalvaged, SalvageReader, storage_files
+    from ficap_ros.io.salvage import (
+        NothingSalvaged,
+        SalvageReader,
+        index_damage,
+        storage_files,
+    )
 
     path = Path(path)
     if not path.exists():
@@ -219,6 +232,13 @@ def open_bag_reader(path: Path, salvage: bool = True) -> Any:
         if salvage and storage_files(path):
             return SalvageReader(path, jazzy_typestore())
         raise BagError(f"{path} is a folder without metadata.yaml, not a rosbag2 bag")
+    try:
+        storage = [f for f in storage_files(path) if f.suffix.lower() == ".mcap" and f.is_file()]
+    except OSError:
+        storage = []
+    if salvage and any(index_damage(f) for f in storage):
+        # A chunk index that does not fit its file: read the file front to back instead.
+        return SalvageReader(path, jazzy_typestore())
     try:
         reader = AnyReader([path], default_typestore=jazzy_typestore())
         reader.open()
@@ -274,6 +294,8 @@ class FrameSource:
         camera_info_topic: the CameraInfo topic used ("" when intrinsics come from a file).
         count: number of images (exact for bags, the container's estimate for videos).
         start_ns: stamp of the first image (0 when empty).
+        end_ns: when the recording ends as its container says (a bag's last message, a video's
+            frame count over its rate), 0 when it does not say.
         timing: the camera's timing as the inputs say (the intrinsics file's ``camera_timing``,
             else a bag folder's metadata ``ficap.camera_timing``), or None: not known.
         timing_source: where ``timing`` comes from: ``intrinsics``, ``bag metadata`` or ''.
@@ -287,6 +309,7 @@ class FrameSource:
         self.camera_info_topic = ""
         self.count = 0
         self.start_ns = 0
+        self.end_ns = 0
         self._intrinsics: CameraModel | None = (
             intrinsics if isinstance(intrinsics, CameraModel) or intrinsics is None
             else load_camera_yaml(intrinsics))
@@ -436,6 +459,7 @@ class BagSource(FrameSource):
             self.image_topic = image_topic
             self._msgtype = topics[image_topic]
             self.count = sum(c.msgcount for c in reader.connections if c.topic == image_topic)
+            self.end_ns = int(getattr(reader, "end_time", 0) or 0)
             self._damage = getattr(reader, "damage", None)
             if self._damage is not None:
                 expected = self._damage.expected_counts
@@ -464,18 +488,23 @@ class BagSource(FrameSource):
         out: list[tuple[int, CameraModel]] = []
         last_key: tuple | None = None
         last: CameraModel | None = None
+        seen, rejected = 0, ""  # CameraInfo messages read; why the first one was refused
         conns = [c for c in reader.connections if c.topic == topic]
         try:
             for conn, log_ns, raw in reader.messages(connections=conns):
+                seen += 1
                 try:
                     msg = reader.deserialize(raw, conn.msgtype)
                     key = camera_info_key(msg)
                     if key != last_key:  # cameras rarely change: keep one model per change
                         last = camera_from_info(msg, self._rectified)
                         last_key = key
-                except FicapError:
-                    continue  # an invalid CameraInfo (all zeros before calibration): skip it
-                except _bag_errors():
+                except FicapError as err:
+                    # An invalid CameraInfo (all zeros before calibration): skip it.
+                    rejected = rejected or str(err)
+                    continue
+                except _bag_errors() as err:
+                    rejected = rejected or f"undecodable message: {one_line(err)}"
                     continue
                 assert last is not None
                 out.append((stamp_to_ns(msg.header.stamp) or int(log_ns), last))
@@ -483,7 +512,9 @@ class BagSource(FrameSource):
             if not out:  # damage past some CameraInfo only costs the frames after it
                 raise BagError(f"bag {self.path} is corrupt: {one_line(err)}") from err
         if not out:
-            raise BagError(f"topic {topic} holds no valid CameraInfo; pass --intrinsics camera.yaml")
+            why = ("holds no CameraInfo message" if not seen else
+                   f"holds no valid CameraInfo ({seen} refused, the first: {rejected})")
+            raise BagError(f"topic {topic} of {self.path} {why}; pass --intrinsics camera.yaml")
         out.sort(key=lambda item: item[0])
         return out
 
@@ -491,24 +522,27 @@ class BagSource(FrameSource):
 
 def _bag_timing(path: Path) -> CameraTiming | None:
     """The camera timing a bag folder's metadata.yaml holds under ``TIMING_METADATA_KEY``
-    (None: none, or not a folder with a readable metadata.yaml).
+    (None: none, or not a folder with a metadata.yaml the guarded loader reads).
 
     Raises:
         BagError: the key is there but does not hold a valid timing.
     """
     import json
 
-    import yaml
+    from ficap_ros.files import load_yaml
 
+    meta_path = path / "metadata.yaml"
+    if not meta_path.is_file():
+        return None
     try:
-        meta = yaml.safe_load((path / "metadata.yaml").read_text(encoding="utf-8"))
+        meta = load_yaml(meta_path, "bag metadata", BagError)
         text = meta["rosbag2_bagfile_information"]["custom_data"][TIMING_METADATA_KEY]
-    except (OSError, ValueError, yaml.YAMLError, KeyError, TypeError):
+    except (BagError, KeyError, TypeError):
         return None
     try:
         return CameraTiming.from_mapping(json.loads(text), f"metadata {TIMING_METADATA_KEY}")
-    except (ValueError, TypeError, IntrinsicsError) as err:
-        raise BagError(f"bag {path}: {one_line(err)}") from err
+    except (ValueError, TypeError, RecursionError, IntrinsicsError) as err:
+        raise BagError(f"bag {path}: {one_line(err)}") from None
 
 
 class VideoSource(FrameSource):
@@ -533,9 +567,11 @@ class VideoSource(FrameSource):
         finally:
             cap.release()
         rate = fps if fps else container_fps
-        if not (rate and math.isfinite(rate) and rate > 0):
-            raise BagError(f"video {self.path} does not say its frame rate; pass --fps")
+        if not (rate and math.isfinite(rate) and 0.01 <= rate <= 1000.0):
+            raise BagError(f"video {self.path} does not say a usable frame rate "
+                           f"({rate:g}); pass --fps")
         self._fps = float(rate)
+        self.end_ns = int(round(self.count * 1e9 / self._fps)) if self.count else 0
 
     def raw_frames(self) -> Iterator[RawFrame]:
         yield from self._video_frames()

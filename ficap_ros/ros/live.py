@@ -38,7 +38,7 @@ from ficap_ros.vision.detector import TagDetection
 from ficap_ros.vision.pipeline import FrameProcessor
 
 __all__ = ["LiveFrame", "frame_processor", "apply_settings", "camera_timing", "failed_frame",
-           "process_image", "reference_q_xyzw"]
+           "process_image", "reference_q_xyzw", "refusal_before_queueing"]
 
 
 @dataclass(frozen=True)
@@ -87,18 +87,32 @@ def frame_processor(config: Any) -> FrameProcessor:
 
     Raises:
         ModelError: an unreadable ``model_file``. ConfigError: bad detector settings, or a
-        malformed ``camera_timing`` in ``camera_info_file``.
+        ``FICAP_MAX_PIXELS`` that is no number of pixels, or a malformed ``camera_timing`` in
+        ``camera_info_file``.
     """
+    from ficap_ros.io.image_codec import max_pixels
+
+    max_pixels()  # a bad FICAP_MAX_PIXELS refuses the start, not every frame
     return FrameProcessor(model=load_model(config.model_file) if config.model_file else nominal_model(),
                           detector=config.detector_config, pose=config.pose_config,
                           tracking=config.tracking, timing=camera_timing(config))
 
 
-def apply_settings(processor: FrameProcessor, config: Any) -> None:
+def apply_settings(processor: FrameProcessor, config: Any) -> str:
     """Apply the settings a running pipeline takes from the next frame on (the node's parameters
-    changed): the pose settings and the camera's timing (``camera_timing``)."""
+    changed): the pose settings and the camera's timing (``camera_timing``).
+
+    Returns:
+        '' when applied; else one line saying why the camera's timing was kept (the
+        ``camera_info_file`` changed under the running node into one whose ``camera_timing`` is
+        malformed): a running node never dies of a file's content.
+    """
     processor.pose_config = config.pose_config
-    processor.timing = camera_timing(config)
+    try:
+        processor.timing = camera_timing(config)
+    except FicapError as err:
+        return f"camera timing kept: {err}"
+    return ""
 
 
 def camera_timing(config: Any) -> CameraTiming:
@@ -127,6 +141,25 @@ def failed_frame(stamp_ns: int, frame_id: str, reason: str,
     """An image that could not be processed (ERROR status, ``reason`` as its message)."""
     rec = FrameRecord.unprocessed(0, stamp_ns, frame_id, reason, FrameStatus.FAILED, calibration)
     return LiveFrame(rec, *record_status(rec))
+
+
+def refusal_before_queueing(msg: Any) -> str:
+    """Why an image message is refused before it is queued ('' when it is not): a size above the
+    pixel budget, from a raw image's fields or a compressed image's header
+    (``image_codec.check_compressed``), so a hostile frame never costs the decode's memory.
+    A header read; decoding finds everything else."""
+    from ficap_ros.io.image_codec import check_compressed, check_pixel_budget
+
+    try:
+        if hasattr(msg, "format"):
+            check_compressed(messages.as_bytes(msg.data))
+        else:
+            check_pixel_budget(int(msg.width), int(msg.height))
+    except FicapError as err:
+        return str(err)
+    except (TypeError, ValueError, OverflowError) as err:
+        return f"malformed image message: {err}"
+    return ""
 
 
 def process_image(msg: Any, processor: FrameProcessor, cameras: CameraInfoCache,

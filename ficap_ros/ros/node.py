@@ -162,7 +162,9 @@ class FicapNode(Node):
     def _after_set_parameters(self, params: list[Parameter]) -> None:
         self._config = cfg = ros_params.NodeConfig.from_values(ros_params.current_values(self))
         self._mount = cfg.mount
-        live.apply_settings(self._processor, cfg)
+        kept = live.apply_settings(self._processor, cfg)
+        if kept:
+            self.get_logger().error(kept)
         if any(p.name == "camera_mount" for p in params):
             self._calibration.set_mount(self._mount)  # else the frontal frame stays
 
@@ -197,6 +199,10 @@ class FicapNode(Node):
 
     # -- inputs ----------------------------------------------------------------------------------
     def _on_image(self, msg: Image | CompressedImage) -> None:
+        # An image above the pixel budget is refused from its header, before it is queued.
+        if reason := live.refusal_before_queueing(msg):
+            self._report_error(msg.header, reason)
+            return
         self._mailbox.put((msg, time.monotonic_ns()))
 
     def _on_camera_info(self, msg: CameraInfo) -> None:

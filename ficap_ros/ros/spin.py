@@ -15,7 +15,7 @@ from rclpy.node import Node
 from ficap_ros.errors import FicapError
 from ficap_ros.io.native_log import ThrottledStderr
 
-__all__ = ["make_executor", "run_node"]
+__all__ = ["make_executor", "run_node", "params_files", "check_params_files"]
 
 
 def make_executor(context: Context | None = None) -> SingleThreadedExecutor:
@@ -36,14 +36,48 @@ def _rcl_message(err: BaseException) -> str:
     return re.sub(r",? at /\S+:\d+", "", text).strip()
 
 
+def params_files(args: list[str]) -> list[str]:
+    """The ``--params-file FILE`` arguments of a command line's ``--ros-args`` sections."""
+    files, in_ros = [], False
+    for i, arg in enumerate(args):
+        if arg == "--ros-args":
+            in_ros = True
+        elif arg == "--":
+            in_ros = False
+        elif in_ros and arg == "--params-file" and i + 1 < len(args):
+            files.append(args[i + 1])
+    return files
+
+
+def check_params_files(args: list[str]) -> None:
+    """Read every params file of the command line through the guarded loader
+    (``files.load_yaml``: a regular file, not too large, YAML without aliases or deep nesting)
+    before rcl parses it: a FIFO would block it for ever, a huge or hostile file cost it memory.
+
+    Raises:
+        ConfigError: naming the file.
+    """
+    from ficap_ros.errors import ConfigError
+    from ficap_ros.files import load_yaml
+
+    for path in params_files(args):
+        load_yaml(path, "params file", ConfigError)
+
+
 def run_node(make_node: Callable[[], Node], name: str, args: list[str] | None = None) -> int:
     """Run a node (Jazzy's idiom: spin until Ctrl-C or external shutdown); the exit code.
 
     Bad ``--ros-args`` (a params file, a remap) and ``FicapError``s at start are one line on
-    stderr after ``name:`` and exit 1.
+    stderr after ``name:`` and exit 1; params files are read through the guarded loader first
+    (``check_params_files``).
     """
     from rclpy.impl.implementation_singleton import rclpy_implementation
 
+    try:
+        check_params_files(sys.argv if args is None else args)
+    except FicapError as err:
+        print(f"{name}: {err}", file=sys.stderr)
+        return 1
     try:
         rclpy.init(args=args)
     except rclpy_implementation.RCLError as err:

@@ -282,18 +282,27 @@ def evaluate(truth: PoseSeries, estimate: PoseSeries, max_dt_ms: float = 20.0) -
 
 
 # -- report --------------------------------------------------------------------------------------
+def _write(path: Path, data: str | bytes) -> Path:
+    """One file of a checked output folder (an ``OutputFolder``'s temporary), atomically."""
+    from ficap_ros.errors import OutputError
+    from ficap_ros.files import write_atomic
+
+    try:
+        write_atomic(path, data)
+    except OSError as err:
+        raise OutputError(f"cannot write {path.name}: {err.strerror or err}") from err
+    return path
+
+
 def _png(fig: Any, path: Path) -> Path:
     """Lay out, write atomically as PNG, close; returns ``path``."""
     import matplotlib.pyplot as plt
-
-    from ficap_ros.files import write_output_file
 
     fig.tight_layout()
     buf = io.BytesIO()
     fig.savefig(buf, format="png", dpi=110)
     plt.close(fig)
-    write_output_file(path, buf.getvalue())
-    return path
+    return _write(path, buf.getvalue())
 
 
 def plot_report(result: EvaluationResult, out_dir: Path) -> list[Path]:
@@ -389,18 +398,20 @@ def report_markdown(result: EvaluationResult) -> str:
 
 
 def write_report(result: EvaluationResult, out_dir: str | Path, plots: bool = True) -> list[Path]:
-    """Write report.md, report.json and the PNG plots into ``out_dir`` (created), each atomically.
+    """Write report.md, report.json and the PNG plots into ``out_dir``, each atomically.
+
+    Args:
+        out_dir: a folder checked under the output rule: an ``OutputFolder``'s temporary
+            (``ficap evaluate`` swaps it in when the report is complete); created if missing.
 
     Raises:
-        OutputError: the folder is a recording or holds files ficap did not write
-            (``files.prepare_output_folder``), or is not writable.
+        OutputError: a file cannot be written.
     """
-    from ficap_ros.files import prepare_output_folder, write_output_file
-
-    out = prepare_output_folder(out_dir)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
     paths = plot_report(result, out) if plots else []
-    write_output_file(out / "report.json", json.dumps(_finite(result.summary()), indent=2) + "\n")
-    write_output_file(out / "report.md", report_markdown(result))
+    _write(out / "report.json", json.dumps(_finite(result.summary()), indent=2) + "\n")
+    _write(out / "report.md", report_markdown(result))
     return [out / "report.md", out / "report.json", *paths]
 
 
@@ -506,7 +517,8 @@ def detection_stats(
 
 
 def plot_stats(stats: DetectionStats, out_dir: Path) -> list[Path]:
-    """reliability_histogram.png and tag_detection_rate.png."""
+    """reliability_histogram.png and tag_detection_rate.png, into a checked output folder (an
+    ``OutputFolder``'s temporary)."""
     import matplotlib
 
     matplotlib.use("Agg")

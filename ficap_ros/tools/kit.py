@@ -24,7 +24,7 @@ from xml.sax.saxutils import escape
 import numpy as np
 
 from ficap_ros.errors import ConfigError
-from ficap_ros.files import prepare_output_folder
+from ficap_ros.files import OutputFolder
 from ficap_ros.geometry.cap_model import (
     FACE_SIDE_MM,
     ROWS,
@@ -573,15 +573,27 @@ def make_kit(
     model: CapModel | None = None,
     stl: bool = True,
     shell_thickness_mm: float = 2.0,
+    inputs: Iterable[str | Path | None] = (),
 ) -> KitResult:
-    """Write the whole kit into ``out_dir`` (created if missing; an existing folder must be empty
-    or ficap's, ``files.prepare_output_folder``).
+    """Write the whole kit into ``out_dir`` under the output rule (``files.OutputFolder``: new,
+    empty or ficap's, never a recording or an input; built beside it and swapped in whole, the
+    kit files of other papers already there kept), so a failure leaves no partial kit.
 
     Files: ``ficap_tags_<paper>.pdf``, ``ficap_tags_<paper>_p<k>.svg`` (one per page),
     ``ficap_assembly.png``/``.pdf``, and ``ficap_shell.stl`` when ``stl``.
+
+    Args:
+        inputs: the files the kit is made from (the model's), never overwritten.
     """
-    out = prepare_output_folder(out_dir)  # new, empty or ficap's: never a recording
-    model = model or nominal_model()
+    with OutputFolder(out_dir, inputs, merge=True) as tmp:
+        result = _make_kit(tmp, paper, model or nominal_model(), stl, shell_thickness_mm)
+    out = Path(out_dir)
+    return KitResult(out, tuple(out / p.name for p in result.files), result.pages)
+
+
+def _make_kit(out: Path, paper: str, model: CapModel, stl: bool,
+              shell_thickness_mm: float) -> KitResult:
+    """Every file of the kit into the (temporary) folder ``out``."""
     pages = layout_tag_sheets(model.ids, paper)
     files: list[Path] = []
     pdf = out / f"ficap_tags_{paper}.pdf"

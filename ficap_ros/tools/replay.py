@@ -27,7 +27,7 @@ from typing import IO, Any, Callable, Iterable, Iterator, Mapping
 import numpy as np
 
 from ficap_ros.errors import BagError, ImageError
-from ficap_ros.files import write_output_file
+from ficap_ros.files import write_atomic
 from ficap_ros.geometry.camera import CameraTiming
 from ficap_ros.geometry.cap_model import CapModel
 from ficap_ros.io.calibration_file import q_wxyz
@@ -45,8 +45,8 @@ from ficap_ros.vision.pose import PoseConfig
 from ficap_ros.vision.shutter import TimingEvidence, combine_evidence
 
 __all__ = ["Progress", "ReplayedFrame", "process_frames", "frontal_calibration",
-           "ReplayOutput", "replay", "recording_timing", "check_output_dir", "available_cores",
-           "capped_jobs"]
+           "ReplayOutput", "replay", "recording_timing", "check_window", "available_cores",
+           "capped_jobs", "SEGMENT_FRAMES", "MAX_WINDOW_S"]
 
 
 def Progress(total: int, label: str = "frames", stream: IO[str] | None = None,  # noqa: N802
@@ -181,24 +181,112 @@ def capped_jobs(requested: int) -> tuple[int, str]:
     return max(requested, 1), ""
 
 
-def _quiet_pool(ctx: Any, jobs: int, initargs: tuple) -> Any:
-    """A worker pool whose processes ignore Ctrl-C from their first instruction.
-
-    Ctrl-C reaches the whole process group; only the main process must handle it (stop the pool,
-    print one line). The initializer also ignores SIGINT, but a worker still importing numpy or
-    scipy when Ctrl-C comes has not run it yet: start the workers with SIGINT ignored (an
-    ignored signal stays ignored across exec, and Python keeps it so).
+class _SegmentPool:
+    """Worker processes for whole segments (``concurrent.futures.ProcessPoolExecutor``, spawned),
+    which notice a worker that dies: its segments fail with ``BrokenProcessPool`` instead of never
+    coming back. The pool is then replaced and every segment in flight submitted again, once: a
+    segment whose worker dies a second time (a frame that kills its decoder, memory that runs
+    out) fails the recording with one line (``WorkerError``). Results are the same whatever
+    retries happened (tracking restarts at each segment's first frame).
     """
-    import signal
-    import threading
 
-    if threading.current_thread() is not threading.main_thread():
-        return ctx.Pool(jobs, initializer=_init_worker, initargs=initargs)
-    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    def __init__(self, jobs: int, initargs: tuple, counter: Any,
+                 timing: CameraTiming | None = None) -> None:
+        self.jobs, self.initargs, self.counter, self.timing = jobs, initargs, counter, timing
+        self.pool = self._new()
+
+    def _new(self) -> Any:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        return ProcessPoolExecutor(self.jobs, mp_context=multiprocessing.get_context("spawn"),
+                                   initializer=_init_worker, initargs=self.initargs)
+
+    def submit(self, segment: list[RawFrame]) -> Any:
+        """Run ``segment`` in a worker. Workers are started by the submits, with SIGINT ignored
+        from their first instruction: Ctrl-C reaches the whole process group and only this
+        process must handle it (stop the pool, print one line); a worker still importing numpy
+        when it comes has not run its initializer yet (an ignored signal stays ignored across
+        exec, and Python keeps it so)."""
+        import signal
+        import threading
+
+        if threading.current_thread() is not threading.main_thread():
+            return self.pool.submit(_process_segment, segment, self.timing)
+        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        try:
+            return self.pool.submit(_process_segment, segment, self.timing)
+        finally:
+            signal.signal(signal.SIGINT, previous)
+
+    def restart(self, pending: list[list[Any]], done: int) -> None:
+        """A worker died: a new pool, every segment in flight submitted again (each
+        ``[segment, future, attempts]``), the progress counter back to the frames delivered."""
+        from ficap_ros.errors import WorkerError
+
+        self.stop()
+        for item in pending:
+            if item[2] >= 1:
+                first, last = item[0][0].index, item[0][-1].index
+                raise WorkerError(f"a worker process died twice on frames {first}-{last} "
+                                  "(killed, out of memory or crashed in a native library)")
+        with self.counter.get_lock():
+            self.counter.value = done
+        self.pool = self._new()
+        for item in pending:
+            item[1], item[2] = self.submit(item[0]), item[2] + 1
+
+    def stop(self) -> None:
+        """Cancel what waits and end the workers now (a segment in progress is not waited for:
+        ``ProcessPoolExecutor`` has no public way to end running workers before Python 3.14)."""
+        processes = list((getattr(self.pool, "_processes", None) or {}).values())
+        self.pool.shutdown(wait=False, cancel_futures=True)
+        for process in processes:
+            process.terminate()
+        for process in processes:
+            process.join(timeout=5.0)
+
+
+def _parallel_frames(it: Iterator[RawFrame], jobs: int, initargs: tuple, counter: Any,
+                     on_progress: Callable[[int], None] | None,
+                     timing: CameraTiming | None) -> Iterator[ReplayedFrame]:
+    """``process_frames`` over ``jobs`` worker processes, in order (``_SegmentPool``), with the
+    camera's ``timing``."""
+    from concurrent.futures import BrokenExecutor
+    from concurrent.futures import TimeoutError as FutureTimeout
+
+    pool = _SegmentPool(jobs, initargs, counter, timing)
+    done = 0
     try:
-        return ctx.Pool(jobs, initializer=_init_worker, initargs=initargs)
+        # Bounded look-ahead: one segment per worker in flight plus one, in order, so the bag is
+        # never read into memory ahead of the workers.
+        pending: list[list[Any]] = []
+        while True:
+            while len(pending) < jobs + 1:
+                segment = list(islice(it, SEGMENT_FRAMES))
+                if not segment:
+                    break
+                pending.append([segment, pool.submit(segment), 0])
+            if not pending:
+                break
+            try:
+                while True:
+                    try:
+                        frames = pending[0][1].result(timeout=0.1)
+                        break
+                    except FutureTimeout:
+                        if on_progress is not None:
+                            on_progress(counter.value)
+            except BrokenExecutor:
+                pool.restart(pending, done)
+                continue
+            pending.pop(0)
+            done += len(frames)
+            if on_progress is not None:
+                on_progress(counter.value)
+            yield from frames
     finally:
-        signal.signal(signal.SIGINT, previous)
+        pool.stop()
 
 
 def process_frames(
@@ -213,6 +301,9 @@ def process_frames(
     ``on_progress`` is called with the number of frames processed so far, frame by frame (with
     ``jobs > 1`` the workers count into a shared counter, read about 10 times a second while
     waiting for the next segment, so a bar moves smoothly although results come in segments).
+
+    Raises:
+        WorkerError: a worker process died twice on the same segment (``_SegmentPool``).
     """
     jobs = capped_jobs(jobs)[0]
     it = iter(raws)
@@ -231,36 +322,17 @@ def process_frames(
         return
     import multiprocessing
 
-    ctx = multiprocessing.get_context("spawn")
-    counter = ctx.Value("q", 0)
-    pool = _quiet_pool(ctx, jobs, (model, pose, True, counter, detector))
-    try:
-        # Bounded look-ahead: Pool.imap would read the whole bag into memory ahead of the
-        # workers, so keep one segment per worker in flight plus one, in order.
-        pending: list[Any] = []
-        while True:
-            while len(pending) < jobs + 1:
-                segment = list(islice(it, SEGMENT_FRAMES))
-                if not segment:
-                    break
-                pending.append(pool.apply_async(_process_segment, (segment, timing)))
-            if not pending:
-                break
-            head = pending.pop(0)
-            while not head.ready():
-                head.wait(0.1)
-                if on_progress is not None:
-                    on_progress(counter.value)
-            if on_progress is not None:
-                on_progress(counter.value)
-            yield from head.get()
-        pool.close()
-    finally:
-        pool.terminate()
-        pool.join()
+    counter = multiprocessing.get_context("spawn").Value("q", 0)
+    yield from _parallel_frames(it, jobs, (model, pose, True, counter, detector), counter,
+                                on_progress, timing)
 
 
 # -- calibration ---------------------------------------------------------------------------------
+#: Latest time a window may name, s from a recording's start: decades, and in nanoseconds still
+#: far inside an int64 stamp.
+MAX_WINDOW_S = 1e9
+
+
 def parse_window(text: str) -> tuple[float, float]:
     """``START:END`` in seconds -> (start_s, end_s); an empty START is 0, an empty END the end of
     the recording (``math.inf``). Raises ``ValueError`` with a one-line message."""
@@ -274,6 +346,9 @@ def parse_window(text: str) -> tuple[float, float]:
         raise ValueError(usage) from None
     if not math.isfinite(s) or (end.strip() and not math.isfinite(e)):
         raise ValueError(f"window {text!r}: START and END must be finite numbers of seconds")
+    if max(s, e if end.strip() else 0.0) > MAX_WINDOW_S:
+        raise ValueError(f"window {text!r}: START and END must be at most {MAX_WINDOW_S:g} s "
+                         "(longer than any recording)")
     if not (s >= 0 and e > s):
         raise ValueError(f"window {text!r} must have 0 <= START < END")
     return s, e
@@ -318,23 +393,6 @@ def frontal_calibration(
 
 
 # -- outputs -------------------------------------------------------------------------------------
-def check_output_dir(out: Path) -> None:
-    """Create ``out`` and check it is writable (fail before hours of processing).
-
-    Raises:
-        BagError: not creatable or not writable.
-    """
-    import tempfile
-
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        fd, probe = tempfile.mkstemp(prefix=".ficap-probe.", dir=out)
-        os.close(fd)
-        os.unlink(probe)
-    except OSError as err:
-        raise BagError(f"cannot write to output folder {out}: {err.strerror or err}") from err
-
-
 @dataclass
 class ReplayOutput:
     """What ``replay`` produced."""
@@ -399,12 +457,14 @@ def replay(
     engine: Callable[[Iterable[RawFrame]], Iterable[ReplayedFrame]] | None = None,
     summary_extra: dict[str, Any] | None = None,
     detector: DetectorConfig | None = None,
+    inputs: Iterable[str | Path | None] = (),
     timing: Mapping[str, Any] | None = None,
 ) -> ReplayOutput:
     """Process every frame of ``source`` and write labels.mcap, labels.csv and summary.json.
 
     The outputs are built in a temporary folder beside ``out_dir`` and replace it as a unit
-    (``ficap_ros.files.OutputFolder``): an error or Ctrl-C leaves ``out_dir`` as it was. A
+    (``ficap_ros.files.OutputFolder``, checked and locked before the first frame): an error or
+    Ctrl-C leaves ``out_dir`` as it was, and so does a recording that gives no usable frame. A
     damaged input yields labels for every frame before the damage; ``ReplayOutput.loss`` and
     summary.json's ``lost`` say what was lost.
 
@@ -425,30 +485,66 @@ def replay(
         detector: detector settings (default ``DetectorConfig()``): ``process_frames``'s; an
             ``engine`` carries its own, and this only records them (summary.json's
             ``photometric``).
+        inputs: the run's other input files (model, calibration, intrinsics): never written.
         timing: ``CameraTiming`` fields given for the camera (the command line's), over the
             recording's own timing (``recording_timing``); summary.json's ``camera_timing``
             records the timing used and its source. An ``engine`` must process with the same
             (``recording_timing`` of the source and these fields).
 
     Raises:
-        BagError: unreadable input. OutputError: an output that is or holds the input, a folder
-        ficap did not write, or not writable. CalibrationError: bad frontal window.
-        IntrinsicsError: a timing field out of range.
+        BagError: unreadable input, or no frame of it usable. OutputError: an output that is or
+        holds an input, lies in a recording, a folder ficap did not write, not writable, or
+        written by another ficap process now. CalibrationError: bad frontal window.
+        IntrinsicsError: a timing field out of range. WorkerError: a worker process died twice
+        on one segment.
     """
     from ficap_ros.files import OutputFolder
 
     out = Path(out_dir)
     camera_timing = recording_timing(source, timing)  # a bad field fails before any output
-    folder = OutputFolder(out, inputs=[source.path])  # refuses an input or a foreign folder
+    folder = OutputFolder(out, inputs=[source.path, *inputs])  # every check, and the lock
     try:
+        check_window(source, calibrate_window_s)
         output = _replay_into(folder.tmp, out, source, model, pose, calibration,
                               calibrate_window_s, jobs, namespace, progress, progress_stream,
                               engine, summary_extra, detector, camera_timing)
+        _check_usable(source, output.summary)
     except BaseException:
         folder.discard()
         raise
     folder.commit()
     return output
+
+
+def check_window(source: FrameSource, window_s: tuple[float, float] | None) -> None:
+    """Refuse, before any frame is processed, a frontal window that starts after the recording
+    ends (its length from the container, when it says; one second of slack for stamps).
+
+    Raises:
+        CalibrationError: naming the window and the recording's length.
+    """
+    from ficap_ros.errors import CalibrationError
+
+    if window_s is None or not source.end_ns:
+        return
+    length_s = (source.end_ns - source.start_ns) / 1e9
+    if window_s[0] > length_s + 1.0:
+        raise CalibrationError(f"the frontal window {window_s[0]:g}-{window_s[1]:g} s starts after "
+                               f"the recording ends ({length_s:.3f} s)")
+
+
+def _check_usable(source: FrameSource, summary: dict[str, Any]) -> None:
+    """Refuse to commit outputs of a recording that gave no usable frame (one line naming why)."""
+    loss = source.loss
+    lost = f"; {loss.describe(source.start_ns)}" if loss is not None else ""
+    if summary["frames"] == 0:
+        raise BagError(f"{source.path} holds no image on "
+                       f"{source.image_topic or 'its video track'}{lost}")
+    if not summary["frames_decoded"]:
+        reasons = summary["skipped_reasons"]
+        top = max(reasons, key=reasons.get) if reasons else "no image decoded"
+        raise BagError(f"none of the {summary['frames']} frames of {source.path} could be used "
+                       f"({top}){lost}")
 
 
 def _replay_into(
@@ -504,10 +600,20 @@ def _replay_into(
         **(summary_extra or {}),
     }
     write_labels_bag(tmp / "labels.mcap", records, namespace)
-    write_output_file(tmp / "labels.csv", labels_csv_text(records))
-    write_output_file(tmp / "summary.json", json.dumps(summary, indent=2) + "\n")
+    _write(tmp / "labels.csv", labels_csv_text(records))
+    _write(tmp / "summary.json", json.dumps(summary, indent=2) + "\n")
     files = [out / "labels.mcap", out / "metadata.yaml", out / "labels.csv", out / "summary.json"]
     return ReplayOutput(records, summary, files, loss)
+
+
+def _write(path: Path, text: str) -> None:
+    """One file of the (checked, temporary) output folder, atomically."""
+    from ficap_ros.errors import OutputError
+
+    try:
+        write_atomic(path, text)
+    except OSError as err:
+        raise OutputError(f"cannot write {path.name}: {err.strerror or err}") from err
 
 
 def recording_timing(source: FrameSource, given: Mapping[str, Any] | None = None,

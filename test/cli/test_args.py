@@ -122,6 +122,41 @@ def test_time_window_edges() -> None:
             time_window(bad)
 
 
+def test_bounded_numbers_and_seeds() -> None:
+    """Every numeric flag has a range: the memory or time it implies stays bounded, and no value
+    overflows what it is turned into (a seed numpy refuses, a window in nanoseconds)."""
+    import argparse
+
+    from ficap_ros.cli.args import (
+        MAX_FRAMES,
+        float_in,
+        frame_count,
+        int_in,
+        max_dt_ms,
+        seed,
+        time_window,
+    )
+
+    assert float_in(0.0, 20.0, low_open=True)("20") == 20.0
+    for text in ("0", "20.5", "nan", "1e308"):
+        with pytest.raises(argparse.ArgumentTypeError, match=r"expected"):
+            float_in(0.0, 20.0, low_open=True)(text)
+    assert int_in(2, 9)("9") == 9
+    with pytest.raises(argparse.ArgumentTypeError, match="at most 9"):
+        int_in(2, 9)("10")
+    assert seed("0") == 0 and seed(str(2**32 - 1)) == 2**32 - 1
+    for text in ("-1", str(2**32), "1.5"):
+        with pytest.raises(argparse.ArgumentTypeError):
+            seed(text)
+    assert frame_count(str(MAX_FRAMES)) == MAX_FRAMES
+    with pytest.raises(argparse.ArgumentTypeError):
+        frame_count("99999999999999999999")
+    with pytest.raises(argparse.ArgumentTypeError):
+        max_dt_ms("1e308")
+    with pytest.raises(argparse.ArgumentTypeError, match="at most 1e"):
+        time_window("0:1e308")
+
+
 def test_camera_timing_arguments_are_the_timings_ranges() -> None:
     """``duration_ms`` and ``offset_ms`` take what ``CameraTiming`` takes; the row orders are
     the geometry's (named in cli.args so parsing needs no OpenCV)."""

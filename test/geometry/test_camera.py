@@ -112,7 +112,16 @@ def test_camera_yaml_round_trip(scratch: Path, camera: CameraModel, name: str) -
     "k, d, model, message",
     [
         ([np.nan, 0, 480, 0, 500, 270, 0, 0, 1], [], "none", "NaN"),
-        ([0, 0, 0, 0, 0, 0, 0, 0, 0], [], "none", "focal lengths must be positive"),
+        ([0, 0, 0, 0, 0, 0, 0, 0, 0], [], "none", "K must be"),
+        ([0, 0, 480, 0, 0, 270, 0, 0, 1], [], "none", "focal lengths .* are not sane"),
+        ([1e308, 0, 480, 0, 1e308, 270, 0, 0, 1], [], "none", "focal lengths .* are not sane"),
+        ([1e-300, 0, 480, 0, 1e-300, 270, 0, 0, 1], [], "none", "focal lengths .* are not sane"),
+        ([500, 0, 480, 0, 500, 270, 0, 0, 1], [0.1, 0, 0, 0, 0, 0.2], "plumb_bob",
+         r"plumb_bob takes 5 coefficients \(k1 k2 p1 p2 k3\), got 6"),
+        ([500, 0, 480, 0, 500, 270, 0, 0, 1], [1e10, 0, 0, 0, 0], "plumb_bob",
+         "exceed 1000 in magnitude"),
+        ([500, 0, 480, 0, 500, 270, 0, 0, 1], [0.1, 0.2], "none", "none takes 0 coefficients"),
+        ([500, 0, 480, 0, 500, 270, 0, 0, 2], [], "none", "K must be"),
         ([500, 0, 480, 0, 500, 270, 0, 0, 1], [0.1], "kannala", "unknown distortion model"),
         ([500, 0, 2000, 0, 500, 270, 0, 0, 1], [], "none", "principal point"),
     ],
@@ -120,6 +129,16 @@ def test_camera_yaml_round_trip(scratch: Path, camera: CameraModel, name: str) -
 def test_bad_intrinsics(k, d, model, message) -> None:
     with pytest.raises(IntrinsicsError, match=message):
         CameraModel(960, 540, k, d, model)
+
+
+def test_extra_zero_coefficients_are_dropped_and_few_padded() -> None:
+    """A CameraInfo D may carry trailing zeros (8 for plumb_bob): the model keeps as many as it
+    takes; fewer are padded with zeros."""
+    k = [500.0, 0, 480, 0, 500, 270, 0, 0, 1]
+    cam = CameraModel(960, 540, k, [0.1, -0.05, 0, 0, 0.01, 0, 0, 0], "plumb_bob")
+    np.testing.assert_array_equal(cam.D, [0.1, -0.05, 0, 0, 0.01])
+    assert CameraModel(960, 540, k, [0.1], "plumb_bob").D.tolist() == [0.1, 0, 0, 0, 0]
+    assert CameraModel(960, 540, k, [0, 0, 0, 0, 0], "none").D.size == 0
 
 
 @pytest.mark.parametrize(
@@ -226,6 +245,10 @@ def test_camera_yaml_round_trip_with_timing(timing) -> None:
     ("camera_timing: {row_order: 1}", "row_order must be a string"),
     ("camera_timing: {row_order: left_to_right}", "row_order must be one of"),
     ("camera_timing: {stamp_offset_ms: .nan}", "stamp_offset_ms must be in"),
+    ("camera_timing: {readout_ms: 1.0e+308}", "readout_ms must be a number of ms"),
+    ("camera_timing: {readout_ms: " + "9" * 5000 + "}", "an integer of 5000 digits"),
+    ("camera_timing: " + "[" * 10_000 + "]" * 10_000, "nested deeper than"),
+    ("t: &t {readout_ms: 1}\ncamera_timing: *t", "aliases"),
 ])
 def test_malformed_camera_timing_is_one_clear_error(tmp_path, block: str, message: str) -> None:
     from ficap_ros.geometry.camera import load_camera_timing

@@ -250,6 +250,23 @@ def test_transform_algebra() -> None:
     np.testing.assert_allclose(CAM_FROM_FORWARD.apply([0, 0, 1]), [0, -1, 0], atol=1e-12)
 
 
+def test_quaternions_from_files_are_unit_real_numbers() -> None:
+    """Four finite real numbers (YAML's true is no 1) of unit length within the rounding of a
+    hand-edited file; their norm is computed without overflow (1e308 is not infinity's NaN)."""
+    from ficap_ros.errors import CalibrationError
+    from ficap_ros.geometry.transform import unit_quaternion
+
+    r = unit_quaternion([0.7071, 0.7071, 0.0, 0.0], "q")  # rounded: normalised
+    assert abs(r.magnitude() - np.pi / 2) < 1e-3
+    np.testing.assert_allclose(unit_quaternion([0, 0, 0, 1], "q", "xyzw").as_quat(), [0, 0, 0, 1])
+    for bad, says in (([True, False, 0, 0], "must be 4 numbers"), ([1, 0, 0], "must be 4 numbers"),
+                      (["1", 0, 0, 0], "must be 4 numbers"), ([np.nan, 0, 0, 1], "finite"),
+                      ([1e308, 1e308, 0, 0], r"norm is 1.41421e\+308"), ([0, 0, 0, 0], "norm is 0"),
+                      ([1, 1, 0, 0], "norm is 1.41421")):
+        with pytest.raises(CalibrationError, match=says):
+            unit_quaternion(bad, "field q", "wxyz", CalibrationError)
+
+
 @given(rotvec=rotvecs, a=rotvecs, lin=translations, t0=translations)
 def test_a_rotated_twist_moves_points_as_the_rotated_frame_sees_them(rotvec, a, lin, t0) -> None:
     """``rotate_twist``: the velocity of a moving pose, seen from a frame turned and shifted by a

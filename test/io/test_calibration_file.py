@@ -60,7 +60,7 @@ def test_load_refuses_bad_files(tmp_path) -> None:
         load_calibration(tmp_path / "missing.yaml")
     bad = tmp_path / "bad.yaml"
     bad.write_text("R_cap_head_q_wxyz: [0, 0, 0, 0]\n")
-    with pytest.raises(CalibrationError, match="not a valid quaternion"):
+    with pytest.raises(CalibrationError, match=r"R_cap_head_q_wxyz \(w, x, y, z\) must be of unit"):
         load_calibration(bad)
     bad.write_text("just: text\n")
     with pytest.raises(CalibrationError, match="R_cap_head_q_wxyz"):

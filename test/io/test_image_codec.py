@@ -11,7 +11,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from mutations import mutated
 
-from ficap_ros.errors import ImageError
+from ficap_ros.errors import ConfigError, ImageError
 from ficap_ros.io.image_codec import ENCODINGS, decode_compressed, decode_image
 
 W, H = 64, 48
@@ -170,8 +170,10 @@ def test_jpeg_and_png_decode_to_grey() -> None:
     jpg = cv2.imencode(".jpg", grey, [cv2.IMWRITE_JPEG_QUALITY, 95])[1]
     out = decode_compressed(jpg)  # a numpy buffer, no format given: OpenCV sniffs the codec
     assert np.abs(out.astype(int) - grey).mean() < 3
-    with pytest.raises(ImageError, match="cannot decode compressed jpeg image"):
+    with pytest.raises(ImageError, match="JPEG header is damaged"):
         decode_compressed(b"\xff\xd8 not a jpeg", "jpeg")
+    with pytest.raises(ImageError, match="neither JPEG nor PNG"):
+        decode_compressed(cv2.imencode(".bmp", grey)[1].tobytes())
     with pytest.raises(ImageError, match="empty"):
         decode_compressed(b"")
 
@@ -184,10 +186,13 @@ def test_the_pixel_budget_and_its_environment_variable(monkeypatch: pytest.Monke
     )
 
     for text, budget in (("", DEFAULT_MAX_PIXELS), ("5000", 5000), (" 77 ", 77),
-                         ("-5", DEFAULT_MAX_PIXELS), ("0", DEFAULT_MAX_PIXELS),
-                         ("lots", DEFAULT_MAX_PIXELS)):
+                         ("1e3", 1000), ("4e7", 40_000_000)):
         monkeypatch.setenv("FICAP_MAX_PIXELS", text)
         assert max_pixels() == budget, text
+    for text in ("-5", "0", "lots", "inf", "nan"):  # refused in one line, never ignored
+        monkeypatch.setenv("FICAP_MAX_PIXELS", text)
+        with pytest.raises(ConfigError, match=f"FICAP_MAX_PIXELS='{text}' is not a number"):
+            max_pixels()
     monkeypatch.delenv("FICAP_MAX_PIXELS")
     assert max_pixels() == DEFAULT_MAX_PIXELS == 40_000_000
     check_pixel_budget(100, 50, budget=5000)  # exactly the budget: taken
@@ -195,5 +200,49 @@ def test_the_pixel_budget_and_its_environment_variable(monkeypatch: pytest.Monke
         check_pixel_budget(100, 51, "frame", budget=5000)
     png = cv2.imencode(".png", np.zeros((60, 100), np.uint8))[1].tobytes()
     monkeypatch.setenv("FICAP_MAX_PIXELS", "5999")
-    with pytest.raises(ImageError, match="budget"):
-        decode_compressed(png)  # checked on the decoded size
+    with pytest.raises(ImageError, match="PNG image is 100x60 .* budget"):
+        decode_compressed(png)  # checked on the size in its header, before decoding
+
+
+@pytest.mark.parametrize("options", [
+    [cv2.IMWRITE_JPEG_QUALITY, 1], [cv2.IMWRITE_JPEG_QUALITY, 50], [cv2.IMWRITE_JPEG_QUALITY, 100],
+    [cv2.IMWRITE_JPEG_PROGRESSIVE, 1], [cv2.IMWRITE_JPEG_OPTIMIZE, 1],
+    [cv2.IMWRITE_JPEG_RST_INTERVAL, 4], [cv2.IMWRITE_JPEG_SAMPLING_FACTOR,
+                                         cv2.IMWRITE_JPEG_SAMPLING_FACTOR_411],
+], ids=["q1", "q50", "q100", "progressive", "optimized", "restarts", "411"])
+def test_every_kind_of_intact_jpeg_decodes_and_its_damage_is_found(options: list[int]) -> None:
+    """No false alarm on an intact JPEG of any encoder setting (colour or grey), and 50 bytes of
+    its entropy-coded data changed are found: a reason, never an image."""
+    from probe_cases import flip_bytes
+
+    from ficap_ros.io.image_codec import DamagedImageError, compressed_size
+
+    colour = cv2.resize(_bgr(), (320, 240), interpolation=cv2.INTER_NEAREST)
+    for image in (colour, cv2.cvtColor(colour, cv2.COLOR_BGR2GRAY)):
+        jpeg = cv2.imencode(".jpg", image, options)[1].tobytes()
+        assert compressed_size(jpeg) == ("jpeg", 320, 240)
+        assert decode_compressed(jpeg).shape == (240, 320)
+        found = 0
+        for seed in range(5):
+            try:
+                decode_compressed(flip_bytes(jpeg, 50, seed))
+            except DamagedImageError as err:
+                assert str(err).startswith("damaged JPEG (")
+                found += 1
+            except ImageError:
+                found += 1  # damaged beyond decoding: undecodable, also no image
+        assert found == 5
+
+
+def test_sizes_come_from_headers_and_bad_headers_are_one_line() -> None:
+    from ficap_ros.io.image_codec import check_compressed, compressed_size
+
+    png = cv2.imencode(".png", IMAGE)[1].tobytes()
+    assert compressed_size(png) == ("png", W, H) and compressed_size(JPEG) == ("jpeg", W, H)
+    assert compressed_size(np.frombuffer(JPEG, np.uint8)) == ("jpeg", W, H)
+    for data, says in ((png[:20], "without its header"), (JPEG[:30], "without a frame header"),
+                       (b"\xff\xd8\x00\x00\x00\x00", "no marker at byte 2"), (b"GIF89a", "neither")):
+        with pytest.raises(ImageError, match=says):
+            compressed_size(data)
+        with pytest.raises(ImageError, match="cannot decode compressed image"):
+            check_compressed(data)

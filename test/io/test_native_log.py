@@ -13,8 +13,12 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_libjpeg_messages_are_throttled() -> None:
+    """libjpeg's line per damaged frame (printed by OpenCV calls outside the decoder's capture)
+    reaches the terminal once per interval, with the count held back; through
+    ``decode_compressed`` each is its frame's own reason instead and never printed."""
     code = (
         "import numpy as np, cv2\n"
+        "from ficap_ros.errors import ImageError\n"
         "from ficap_ros.io.native_log import ThrottledStderr\n"
         "from ficap_ros.io.image_codec import decode_compressed\n"
         "img = np.random.default_rng(0).integers(0, 255, (120, 160), dtype=np.uint8)\n"
@@ -22,17 +26,42 @@ def test_libjpeg_messages_are_throttled() -> None:
         "bad = jpg[: len(jpg) // 2] + bytes(50) + jpg[-2:]\n"
         "with ThrottledStderr():\n"
         "    for _ in range(500):\n"
-        "        decode_compressed(bad)\n"
+        "        cv2.imdecode(np.frombuffer(bad, np.uint8), cv2.IMREAD_GRAYSCALE)\n"
+        "    reasons = set()\n"
+        "    for _ in range(50):\n"
+        "        try:\n"
+        "            decode_compressed(bad)\n"
+        "        except ImageError as err:\n"
+        "            reasons.add(str(err))\n"
+        "    print(sorted(reasons))\n"
         "    import sys; print('other text passes', file=sys.stderr)\n"
     )
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, timeout=120, cwd=ROOT)
     lines = res.stderr.decode().splitlines()
-    assert res.returncode == 0
+    assert res.returncode == 0, lines
     assert "other text passes" in lines
     jpeg = [ln for ln in lines if "Corrupt JPEG data" in ln]
     assert 1 <= len(jpeg) <= 3, lines
     assert all(ln.startswith("ficap: warning:") for ln in jpeg)
     assert "held back" in jpeg[-1] or "more like it" in jpeg[-1]
+    held = int(jpeg[-1].split("(")[-1].split()[0])
+    assert held <= 499  # only the OpenCV calls' lines: the decoder's own were captured
+    assert res.stdout.decode().strip() == \
+        "['damaged JPEG (Corrupt JPEG data: premature end of data segment)']"
+
+
+def test_a_calls_messages_are_captured_and_the_rest_passes(capfd: pytest.CaptureFixture[str]
+                                                           ) -> None:
+    """``call_capturing_stderr``: what fd 2 gets during the call is returned (C libraries write
+    there directly), and fd 2 is itself again afterwards."""
+    import os
+
+    from ficap_ros.io.native_log import call_capturing_stderr
+
+    result, captured = call_capturing_stderr(lambda: os.write(2, b"from the call\n") and 7)
+    assert result == 7 and captured == b"from the call\n"
+    os.write(2, b"after\n")
+    assert capfd.readouterr().err == "after\n"
 
 
 def _write_fd2(text: str) -> None:

@@ -269,3 +269,52 @@ def test_a_torn_sqlite3_bag_gives_its_first_messages(scratch: Path) -> None:
     assert 0 < len(got) < 40 and [t for _, t, _ in got] == list(range(T0, T0 + len(got)))
     assert damage is not None and damage.expected_counts == {"/cam/image_raw": 40}
     assert db.read_bytes() == torn  # the input is only read
+
+
+def test_a_cut_sqlite3_bag_is_read_in_place(scratch: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Nothing is copied: the salvage reads the file through its VFS (no temporary file is made),
+    a page past the cut is a corrupt page to SQLite (never zeros in a message), and the rows read
+    are the whole-page ones, byte for byte."""
+    folder = scratch / "sq_in_place"
+    shutil.rmtree(folder, ignore_errors=True)
+    images = [np.full((48, 64), i, np.uint8) for i in range(30)]
+    with BagWriter(folder, storage="sqlite3") as w:
+        w.add_topic("/cam/image_raw", IMAGE_TYPE)
+        for i, img in enumerate(images):
+            w.write("/cam/image_raw", T0 + i,
+                    messages.image(ROSBAGS, messages.header(ROSBAGS, T0 + i, "cam"), img, "mono8"))
+    db = next(folder.glob("*.db3"))
+    db.write_bytes(db.read_bytes()[: db.stat().st_size * 6 // 10 + 123])  # not on a page edge
+    def no_copy(*args: object, **kwargs: object) -> None:
+        raise AssertionError("the salvage made a temporary file")
+
+    for name in ("mkdtemp", "mkstemp", "NamedTemporaryFile", "TemporaryFile"):
+        monkeypatch.setattr(tempfile, name, no_copy)
+    with SalvageReader(folder, jazzy_typestore()) as reader:
+        got = [(t, reader.deserialize(raw, c.msgtype)) for c, t, raw in reader.messages()]
+        assert "cut short" in reader.damage.detail
+    monkeypatch.undo()
+    assert 0 < len(got) < 30
+    for (t, msg), img in zip(got, images):
+        assert bytes(msg.data) == img.tobytes()
+
+
+def test_a_chunk_index_that_does_not_fit_its_file_is_not_trusted(files: dict[str, bytes],
+                                                                  scratch: Path) -> None:
+    """An indexed file whose summary names a chunk of a corrupt size: read front to back by the
+    salvage (rosbags would read the rest of the file for it)."""
+    from mcap.reader import make_reader
+
+    from ficap_ros.io.salvage import index_damage
+
+    path = scratch / "indexed.mcap"
+    path.write_bytes(files["rosbags"])
+    assert index_damage(path) == ""
+    summary = make_reader(io.BytesIO(files["rosbags"])).get_summary()
+    start = summary.chunk_indexes[0].chunk_start_offset
+    data = bytearray(files["rosbags"])
+    data[start + 1: start + 9] = (1 << 40).to_bytes(8, "little")  # the chunk record's length
+    path.write_bytes(bytes(data))
+    assert "is not the chunk its index names" in index_damage(path)
+    got, damage = _salvage(path)
+    assert damage is not None and "claims 1099511627776 bytes" in damage.detail

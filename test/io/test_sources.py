@@ -132,6 +132,10 @@ def test_the_recordings_own_camera_timing(tmp_path: Path) -> None:
     _write_bag(bad, custom={TIMING_METADATA_KEY: json.dumps({"readout_ms": -2.0})})
     with pytest.raises(BagError, match=r"ficap.camera_timing: readout_ms must be in \[0, 1000\]"):
         open_frames(bad)
+    deep = tmp_path / "deep"  # JSON nested past Python's recursion limit: one line, no RecursionError
+    _write_bag(deep, custom={TIMING_METADATA_KEY: "[" * 100_000 + "]" * 100_000})
+    with pytest.raises(BagError, match=r"bag .*deep: "):
+        open_frames(deep)
     yml.write_text(yaml.safe_dump({**CAM.to_camera_yaml(), "camera_timing": {"exposure_ms": "x"}}))
     with pytest.raises(IntrinsicsError, match="exposure_ms must be a number"):
         open_frames(plain, intrinsics=yml)
@@ -302,3 +306,19 @@ def test_folder_of_a_recorder_killed_before_metadata(drive: Path, tmp_path: Path
         assert {c.topic for c in reader.connections} >= {"/camera/image_raw/compressed"}
     finally:
         reader.close()
+
+
+def test_a_loss_is_told_in_recording_time() -> None:
+    """Seconds from the first frame; without any frame read, never an epoch taken for seconds;
+    a damaged container that lost no frame says so."""
+    from ficap_ros.io.sources import Loss
+
+    start = 1_700_000_000_000_000_000
+    assert Loss("cut", 3, False, start + 2_000_000_000, start + 2_100_000_000).describe(start) == \
+        "LOST 3 frames between 2.000 s and 2.100 s (cut)"
+    line = Loss("cut", None, False, 0, start + 267_000_000).describe(0)
+    assert line == "LOST an unknown number of frames from the start, before any frame could be " \
+                   "read (cut)" and "1700000000" not in line
+    assert Loss("index", 0, False, start, start).describe(start) == \
+        "DAMAGED, but every frame it lists was read (index)"
+    assert Loss("cut", None, False, 0, start).to_dict(0)["until_s"] is None

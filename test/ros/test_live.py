@@ -30,6 +30,7 @@ from ficap_ros.io.sources import open_frames
 from ficap_ros.io.status import ERROR, OK, WARN, FrameStatus
 from ficap_ros.ros import msgs as ros_msgs
 from ficap_ros.ros.live import (
+    apply_settings,
     camera_timing,
     failed_frame,
     frame_processor,
@@ -134,6 +135,18 @@ def test_the_camera_timing_comes_from_the_parameters_else_the_camera_file(tmp_pa
     with pytest.raises(ConfigError, match="unknown key 'readout'"):
         camera_timing(config(camera_info_file=str(path)))
     assert camera_timing(config(camera_info_file=str(tmp_path / "missing.yaml"))) == CameraTiming()
+    # Changed under a running node into a malformed mapping: the parameters' change applies, the
+    # timing in use is kept and the reason returned (the node logs it), nothing raised.
+    running = frame_processor(config())
+    running.timing = in_file
+    for block in ({"readout": 3}, {"readout_ms": "fast"}, {"stamp_offset_ms": 1e300}):
+        path.write_text(yaml.safe_dump({**camera.to_camera_yaml(), "camera_timing": block}))
+        kept = apply_settings(running, config(camera_info_file=str(path), **{"pose.method": "paper"}))
+        assert kept.startswith("camera timing kept: ") and "\n" not in kept, kept
+        assert running.timing == in_file and running.pose_config.method == "paper"
+    path.write_text(yaml.safe_dump(camera.to_camera_yaml("rear", in_file)))
+    assert apply_settings(running, config(camera_info_file=str(path), **given)) == ""
+    assert running.timing == CameraTiming(readout_ms=22.0, row_order="bottom_to_top")
 
 
 def test_reference_quaternions_are_checked_and_normalised() -> None:

@@ -110,6 +110,58 @@ def test_undecodable_jpeg_gives_error_status(harness_factory) -> None:
     assert h.node._image_sub.topic_name == "/image/compressed"
 
 
+def test_damaged_jpegs_never_give_a_pose(harness_factory, rendered_frames) -> None:
+    """JPEGs with 50 bytes of their entropy-coded data changed decode (libjpeg only warns): the
+    node reports each as damaged (ERROR, no pose published), between good frames it poses; a
+    header claiming 30000x30000 pixels is refused before the frame is queued."""
+    import cv2
+    from probe_cases import flip_bytes, huge_jpeg_header
+
+    images, scene = rendered_frames
+    h = harness_factory(overrides={"image_transport": "compressed", "warn_throttle_s": 0.0,
+                                   "tracking": False})
+    jpegs = [cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 95])[1].tobytes()
+             for img in images]
+    t = 3_000_000_000
+    for k in range(10):
+        good = t + 2 * k * 10_000_000
+        msg = CompressedImage(header=header_at(good), format="jpeg", data=jpegs[k % len(jpegs)])
+        st = h.publish_and_wait(msg, info_at(scene.camera, good))
+        assert level_of(st) != ros_msgs.LEVEL_ERROR, st.message
+        with h.lock:
+            posed = len(h.head)
+        bad = good + 10_000_000
+        st = h.publish_and_wait(CompressedImage(
+            header=header_at(bad), format="jpeg", data=flip_bytes(jpegs[k % len(jpegs)], 50, k)),
+            info_at(scene.camera, bad))
+        assert level_of(st) == ros_msgs.LEVEL_ERROR and "damaged JPEG" in st.message, st.message
+        time.sleep(0.05)
+        with h.lock:
+            assert len(h.head) == posed
+            assert bad not in {ros_msgs.stamp_to_ns(m.header.stamp) for m in h.head}
+    huge = t + 500_000_000
+    queued = h.node._mailbox.received
+    st = h.publish_and_wait(CompressedImage(header=header_at(huge), format="jpeg",
+                                            data=huge_jpeg_header()), info_at(scene.camera, huge))
+    assert level_of(st) == ros_msgs.LEVEL_ERROR and "30000x30000" in st.message
+    assert h.node._mailbox.received == queued  # refused before it reached the mailbox
+
+
+def test_camera_info_opencv_would_refuse_is_a_clear_status(harness_factory) -> None:
+    """Six plumb_bob coefficients (cv2.error on the first frame without the camera model's
+    door): an ERROR status naming the problem, not an internal error."""
+    h = harness_factory(overrides={"warn_throttle_s": 0.0})
+    cam = CameraModel.pinhole(64, 48, hfov_deg=60.0)
+    t = 4_000_000_000
+    info = info_at(cam, t)
+    info.distortion_model = "plumb_bob"
+    info.d = [0.1, 0.0, 0.0, 0.0, 0.0, 0.2]
+    grey = np.zeros((48, 64), np.uint8)
+    st = h.publish_and_wait(messages.image(ros_msgs.RCLPY, header_at(t), grey, "mono8"), info)
+    assert level_of(st) == ros_msgs.LEVEL_ERROR
+    assert "takes 5 coefficients" in st.message and "internal" not in st.message
+
+
 def test_parameters_out_of_range_are_rejected(harness_factory) -> None:
     h = harness_factory()
     node = h.node
@@ -253,6 +305,37 @@ def test_node_survives_binary_files_and_never_overwrites_them(binary_files: dict
         resp = h.call(h.clear, Trigger.Request())
         assert not resp.success and "NOT updated" in resp.message
         assert bad.read_bytes() == before
+    finally:
+        h.close()
+
+
+def test_node_survives_a_calibration_file_turned_hostile(tmp_path: Path) -> None:
+    """calibration.file replaced while the node runs by 100k-deep nesting or a 5000-digit
+    integer: ~/calibrate and ~/clear_calibration answer (not saved, the file kept), the node
+    keeps processing."""
+    from node_harness import Harness
+    from std_srvs.srv import Trigger
+
+    from ficap_ros.vision.calibration import CalibrationResult
+
+    path = tmp_path / "calibration.yaml"
+    h = Harness(overrides={"calibration.file": str(path), "warn_throttle_s": 0.0})
+    try:
+        h.node._run_calibration = lambda: CalibrationResult(  # type: ignore[method-assign]
+            Rotation.from_euler("z", 3.0, degrees=True), 60, 0.3, "frontal")
+        assert h.call(h.calibrate, Trigger.Request()).success
+        for hostile in ("R_cap_head_q_wxyz: " + "[" * 100_000 + "]" * 100_000 + "\n",
+                        "R_cap_head_q_wxyz: [1, 0, 0, " + "9" * 5000 + "]\n"):
+            path.write_text(hostile)
+            resp = h.call(h.calibrate, Trigger.Request())
+            assert not resp.success and "NOT saved" in resp.message, resp.message
+            resp = h.call(h.clear, Trigger.Request())
+            assert not resp.success and "NOT updated" in resp.message, resp.message
+            assert path.read_text() == hostile
+        cam = CameraModel.pinhole(64, 48, hfov_deg=60.0)
+        st = h.publish_and_wait(messages.image(ros_msgs.RCLPY, header_at(5), np.zeros(
+            (48, 64), np.uint8), "mono8"), info_at(cam, 5))
+        assert level_of(st) != ros_msgs.LEVEL_ERROR
     finally:
         h.close()
 

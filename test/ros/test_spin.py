@@ -14,15 +14,16 @@ from ficap_ros.ros.spin import _rcl_message, make_executor, run_node
 
 
 def test_unparsable_ros_args_are_one_line_not_a_traceback(tmp_path) -> None:
-    """rcl refuses a missing or malformed params file, or a bad remap, in rclpy.init: the node
-    says so in one line of its own (rcl logs one more) and exits 1."""
+    """A missing or malformed params file (refused by the guarded loader before rcl reads it), or
+    a bad remap (refused by rcl in rclpy.init): the node says so in one line of its own (rcl
+    logs one more for a remap) and exits 1."""
     import os
     import subprocess
     import sys
 
     bad = tmp_path / "bad.yaml"
     bad.write_text("garbage: [\n")
-    for ros_args, says in ((["--params-file", str(tmp_path / "none.yaml")], "Error opening YAML"),
+    for ros_args, says in ((["--params-file", str(tmp_path / "none.yaml")], "No such file"),
                            (["--params-file", str(bad)], "params file"),
                            (["-r", "badremap"], "remap rule")):
         run = subprocess.run([sys.executable, "-m", "ficap_ros.ros.node", "--ros-args", *ros_args],
@@ -86,3 +87,26 @@ def test_rcl_messages_lose_their_source_locations() -> None:
                        "  more, at /opt/ros/src/rcl/lexer.c:56")
     assert _rcl_message(err) == ("Couldn't parse remap rule: 'badremap'. Error: Expected lexeme "
                                  "type (19), got (34) at index 8 more")
+
+
+def test_params_files_are_read_through_the_guarded_loader(tmp_path, capsys) -> None:  # noqa: ANN001
+    """A params file that is a FIFO (rcl would block reading it for ever), /dev/zero, or YAML
+    with an alias bomb: one line naming it, before rcl parses anything."""
+    import os
+
+    from ficap_ros.ros.node import FicapNode
+    from ficap_ros.ros.spin import params_files, run_node
+
+    assert params_files(["ficap_node", "--ros-args", "-p", "a:=1", "--params-file", "x.yaml",
+                         "--", "--params-file", "not_ros.yaml"]) == ["x.yaml"]
+    fifo = tmp_path / "params.fifo"
+    os.mkfifo(fifo)
+    bomb = tmp_path / "bomb.yaml"
+    bomb.write_text("a: &a [1, 1]\nb: [*a, *a]\n")
+    for path, says in ((fifo, "not a regular file"), ("/dev/zero", "not a regular file"),
+                       (bomb, "aliases")):
+        code = run_node(FicapNode, "ficap_node", ["ficap_node", "--ros-args", "--params-file",
+                                                  str(path)])
+        err = capsys.readouterr().err.strip().splitlines()
+        assert code == 1 and len(err) == 1 and says in err[0], err
+        assert err[0].startswith(f"ficap_node: params file {path} ")

@@ -11,6 +11,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from probe_cases import kill_pool_workers
 from recordings import FRAMES, true_R_cap_head
 from rosbags.highlevel import AnyReader
 from scipy.spatial.transform import Rotation
@@ -235,6 +236,45 @@ def test_jobs_are_capped_at_the_cores_available() -> None:
     assert capped_jobs(cores + 14) == (cores, f"--jobs {cores + 14} capped at {cores}, "
                                               "the cores available")
     assert capped_jobs(1) == (1, "")
+
+
+@pytest.mark.parametrize("kills", [1, 100])
+def test_a_killed_worker_is_retried_and_never_hangs(drive: Path, kills: int) -> None:
+    """--jobs 2 with a worker killed outright (SIGKILL: out of memory, a crash): its segment is
+    run again in a new pool and the frames are those of one process; a segment whose workers
+    keep dying fails in one line (WorkerError) instead of waiting for ever."""
+    import threading
+    import time
+
+    from ficap_ros.errors import WorkerError
+    from ficap_ros.geometry.cap_model import nominal_model
+    from ficap_ros.io.sources import open_frames
+    from ficap_ros.tools.replay import available_cores, process_frames
+    from ficap_ros.vision.pose import PoseConfig
+
+    if available_cores() < 2:
+        pytest.skip("--jobs 2 needs two cores")
+    model, pose = nominal_model(), PoseConfig()
+    one = [f.record for f in process_frames(open_frames(drive).raw_frames(), model, pose, 1)]
+    stop, killed = threading.Event(), []
+    killer = threading.Thread(target=kill_pool_workers, args=(stop, kills, killed), daemon=True)
+    killer.start()
+    t0 = time.monotonic()
+    try:
+        if kills == 1:
+            two = [f.record for f in process_frames(open_frames(drive).raw_frames(), model, pose,
+                                                    2)]
+            assert len(killed) == 1
+            from ficap_ros.io.labels import labels_csv_text
+
+            assert labels_csv_text(two) == labels_csv_text(one)
+        else:
+            with pytest.raises(WorkerError, match=r"a worker process died twice on frames 0-"):
+                list(process_frames(open_frames(drive).raw_frames(), model, pose, 2))
+    finally:
+        stop.set()
+        killer.join(timeout=10)
+    assert time.monotonic() - t0 < 120.0
 
 
 def test_the_camera_timing_given_over_the_recordings_own(tmp_path: Path,

@@ -1,7 +1,7 @@
 """What decides a recording's labels, as a fingerprint summary.json carries: the input's
-identity, the ficap version and every label-changing setting (configs as ``dataclasses.asdict``
-JSON, files by content hash, the segment length). Outputs whose fingerprint matches a run's are
-current, and that run skips them.
+identity (every byte of it, hashed), the ficap version and every label-changing setting (configs
+as ``dataclasses.asdict`` JSON, files by content hash, the segment length). Outputs whose
+fingerprint matches a run's are current, and that run skips them.
 """
 
 from __future__ import annotations
@@ -9,12 +9,14 @@ from __future__ import annotations
 import hashlib
 import json
 import math
+import os
 from dataclasses import asdict
 from pathlib import Path
 from typing import Any, Mapping
 
 from ficap_ros import __version__
 from ficap_ros.errors import BagError
+from ficap_ros.files import read_bytes
 from ficap_ros.geometry.cap_model import CapModel
 from ficap_ros.tools import replay
 from ficap_ros.vision.calibration import HeadCalibration
@@ -28,24 +30,17 @@ __all__ = ["OUTPUTS", "input_identity", "config_json", "label_settings", "settin
 #: The outputs of one recording; summary.json is written last (a recording cut off mid-write has
 #: no matching summary and is redone).
 OUTPUTS = ("labels.mcap", "labels.csv", "summary.json")
-#: Bytes hashed at each end of every input file for its identity (with its size): cheap on
-#: hours of video, and a recording that changed (re-recorded, cut, appended) changes there.
-_IDENTITY_BYTES = 1 << 20
-
-
 def _file_identity(path: Path) -> dict[str, Any]:
-    size = path.stat().st_size
-    h = hashlib.sha256()
+    """Size and SHA-256 of every byte of the file, read in a stream (a change anywhere in a
+    recording, even one that keeps its size, is a new identity; docs/fleet.md: the cost)."""
     with path.open("rb") as f:
-        h.update(f.read(_IDENTITY_BYTES))
-        if size > 2 * _IDENTITY_BYTES:
-            f.seek(size - _IDENTITY_BYTES)
-        h.update(f.read(_IDENTITY_BYTES))
-    return {"size": size, "sha256_ends": h.hexdigest()}
+        size = os.fstat(f.fileno()).st_size
+        digest = hashlib.file_digest(f, "sha256").hexdigest()
+    return {"size": size, "sha256": digest}
 
 
 def input_identity(path: str | Path) -> dict[str, Any]:
-    """Identity of an input: name, and per file its size and a hash of its first and last MiB.
+    """Identity of an input: name, and per file its size and the SHA-256 of its content.
 
     Not its modification time or absolute path, so a fleet copied elsewhere still resumes.
 
@@ -65,10 +60,7 @@ def input_identity(path: str | Path) -> dict[str, Any]:
 def _text_sha256(path: str | Path | None) -> str | None:
     if not path:
         return None
-    try:
-        return hashlib.sha256(Path(path).read_bytes()).hexdigest()
-    except OSError as err:
-        raise BagError(f"cannot read {path}: {err.strerror or err}") from err
+    return hashlib.sha256(read_bytes(path, "intrinsics", BagError)).hexdigest()
 
 
 def config_json(config: Any) -> Any:

@@ -10,12 +10,13 @@ from pathlib import Path
 from typing import Iterator, Sequence
 
 from ficap_ros.errors import BagError
-from ficap_ros.io.sources import VIDEO_SUFFIXES
+from ficap_ros.files import BAG_SUFFIXES, VIDEO_SUFFIXES, read_text
 
-__all__ = ["BAG_SUFFIXES", "Recording", "is_recording", "read_manifest", "find_recordings"]
+__all__ = ["BAG_SUFFIXES", "Recording", "is_recording", "read_manifest", "find_recordings",
+           "MAX_MANIFEST_BYTES"]
 
-#: Files of a bag container (a rosbag2 folder holds metadata.yaml and these).
-BAG_SUFFIXES = (".mcap", ".db3", ".bag")
+#: Largest manifest read: some hundred thousand recordings.
+MAX_MANIFEST_BYTES = 16 << 20
 
 
 @dataclass(frozen=True)
@@ -83,16 +84,15 @@ def read_manifest(path: str | Path) -> list[tuple[Path, Path | None]]:
     """A manifest: one input per line (``#`` starts a comment), relative to the manifest's folder.
 
     Returns (input path, output folder or None) per entry: a relative entry's output mirrors its
-    path (``drivers/d01/drive.mcap`` -> ``drivers/d01/drive``), an absolute one uses its name.
+    path (``drivers/d01/drive.mcap`` -> ``drivers/d01/drive``); an absolute one, or one that
+    leaves the manifest's folder (``../other/drive.mcap``), uses its name, so no output lands
+    outside ``--out``.
 
     Raises:
-        BagError: unreadable manifest.
+        BagError: the manifest is not a readable text file (``files.read_text``).
     """
     p = Path(path)
-    try:
-        text = p.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as err:
-        raise BagError(f"cannot read manifest {p}: {getattr(err, 'strerror', None) or err}") from err
+    text = read_text(p, "manifest", BagError, MAX_MANIFEST_BYTES)
     entries: list[tuple[Path, Path | None]] = []
     for line in text.splitlines():
         entry = line.split("#", 1)[0].strip()
@@ -101,6 +101,8 @@ def read_manifest(path: str | Path) -> list[tuple[Path, Path | None]]:
         e = Path(entry)
         if e.is_absolute():
             entries.append((e, None))
+        elif ".." in e.parts:
+            entries.append((p.parent / e, None))
         else:
             entries.append((p.parent / e, e.parent / _stem(p.parent / e)))
     return entries
@@ -150,6 +152,8 @@ def find_recordings(
                            f"{', video' if videos else ''}) found under {path}")
     seen: dict[Path, Path] = {}
     for r in found:
+        if r.rel.is_absolute() or ".." in r.rel.parts:  # never outside --out
+            raise BagError(f"{r.path} would write outside the output folder ({r.rel})")
         if r.rel in seen:
             raise BagError(f"{seen[r.rel]} and {r.path} would both write to {r.rel}; "
                            "rename one or list them in a manifest with distinct paths")

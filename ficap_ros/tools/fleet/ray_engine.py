@@ -8,6 +8,10 @@ whose first frames tracking restarts whatever the engine), so the labels are byt
 store, so workers need ficap_ros installed but no access to the inputs or outputs; only the driver
 reads and writes files. A segment whose worker dies is retried (``retries``). Nothing imports ray
 until an engine is made.
+
+No wait is unbounded: a new engine runs one small task first and fails in one line when no worker
+answers within ``START_TIMEOUT_S`` (workers that cannot start, e.g. out of address space), and a
+segment that does not come back within ``SEGMENT_TIMEOUT_S`` fails its recording.
 """
 
 from __future__ import annotations
@@ -18,7 +22,7 @@ from collections import deque
 from itertools import islice
 from typing import Any, Callable, Iterable, Iterator
 
-from ficap_ros.errors import ConfigError
+from ficap_ros.errors import ConfigError, WorkerError
 from ficap_ros.geometry.camera import CameraTiming
 from ficap_ros.geometry.cap_model import CapModel
 from ficap_ros.io.sources import RawFrame
@@ -27,7 +31,19 @@ from ficap_ros.tools.fleet.fingerprints import settings_key
 from ficap_ros.vision.detector import DetectorConfig
 from ficap_ros.vision.pose import PoseConfig
 
-__all__ = ["RayEngine", "ray_segment"]
+__all__ = ["RayEngine", "ray_segment", "START_TIMEOUT_S", "SEGMENT_TIMEOUT_S"]
+
+#: Longest wait for a new engine's first task: its workers start (importing numpy, OpenCV and
+#: the pipeline) well within it, on a loaded machine too.
+START_TIMEOUT_S = 120.0
+#: Longest wait for one segment's frames, queueing included: many times what 128 frames of the
+#: slowest settings take.
+SEGMENT_TIMEOUT_S = 1800.0
+
+
+def _probe() -> int:
+    """The first task of an engine: a worker that runs it has started."""
+    return os.getpid()
 
 #: What this Ray worker process's pipeline labels with (``settings_key``).
 _WORKER_KEY: Any = None
@@ -59,12 +75,22 @@ class RayEngine:
         segment_fn: the task, ``fn((model, pose, detector), raws, timing) -> processed frames``
             (default: the pipeline; tests pass one that fails).
         detector: detector settings of every task (default ``DetectorConfig()``).
+        start_timeout_s, segment_timeout_s: the waits' bounds (``START_TIMEOUT_S``,
+            ``SEGMENT_TIMEOUT_S``).
+        task_options: more Ray options of every task (tests: a resource no node has).
+
+    Raises:
+        ConfigError: ray missing, the cluster unreachable or not startable. WorkerError: no
+            worker ran the first task within ``start_timeout_s``.
     """
 
     def __init__(self, model: CapModel, pose: PoseConfig, address: str | None = None,
                  num_cpus: int | None = None, retries: int = 2,
                  segment_fn: Callable[..., list[Any]] | None = None,
-                 detector: DetectorConfig | None = None) -> None:
+                 detector: DetectorConfig | None = None,
+                 start_timeout_s: float = START_TIMEOUT_S,
+                 segment_timeout_s: float = SEGMENT_TIMEOUT_S,
+                 task_options: dict[str, Any] | None = None) -> None:
         # Never phone home (usage statistics), and keep an embedded Ray on loopback: Ray replaces
         # 127.0.0.1 by the machine's outward address unless it believes clusters are off.
         # The variable is read when ray is imported (here, and by the worker processes, which
@@ -108,11 +134,32 @@ class RayEngine:
         self._slots = threading.BoundedSemaphore(2 * self.cpus)
         # Retries cover a worker or node that dies (max_retries); an exception raised by the
         # pipeline would only repeat, so it fails its recording at once.
-        self._task = ray.remote(num_cpus=1, max_retries=int(retries), retry_exceptions=False)(
+        options = {"num_cpus": 1, **(task_options or {})}
+        self._task = ray.remote(max_retries=int(retries), retry_exceptions=False, **options)(
             segment_fn or ray_segment)
+        self.segment_timeout_s = float(segment_timeout_s)
+        self._check_workers(ray.remote(max_retries=0, **options)(_probe), float(start_timeout_s))
         self._config = ray.put((model, pose, detector))
         #: What its tasks label with (``fingerprints.settings_key``).
         self.settings_key = settings_key(model, pose, detector)
+
+    def _check_workers(self, probe: Any, timeout_s: float) -> None:
+        """Run the first task; no answer within ``timeout_s`` is one line (and the embedded Ray
+        is shut down), not a fleet that waits at 0 frames for ever."""
+        ray = self._ray
+        ref = probe.remote()
+        try:
+            ray.get(ref, timeout=timeout_s)
+        except ray.exceptions.GetTimeoutError:
+            ray.cancel(ref, force=True)
+            self.close()
+            raise WorkerError(f"no Ray worker started within {timeout_s:g} s ({self.cpus} CPUs); "
+                              "the workers may lack memory or address space (see the Ray logs)"
+                              ) from None
+        except ray.exceptions.RayError as err:
+            self.close()
+            raise WorkerError(f"Ray's workers cannot run: {str(err).strip().splitlines()[-1]}"
+                              ) from None
 
     def process(self, raws: Iterable[RawFrame], timing: CameraTiming | None = None) -> Iterator[Any]:
         """``replay``'s engine: processed frames of ``raws`` (of a camera with ``timing``; None:
@@ -138,7 +185,12 @@ class RayEngine:
                     return
                 ref = pending.popleft()
                 try:
-                    frames = ray.get(ref)
+                    frames = ray.get(ref, timeout=self.segment_timeout_s)
+                except ray.exceptions.GetTimeoutError:
+                    ray.cancel(ref, force=True)
+                    raise WorkerError(f"a segment did not come back from Ray within "
+                                      f"{self.segment_timeout_s:g} s (workers stalled or lost)"
+                                      ) from None
                 finally:
                     self._slots.release()
                 yield from frames

@@ -14,7 +14,8 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Callable, Mapping, Sequence
 
-from ficap_ros.errors import ConfigError, FicapError, one_line
+from ficap_ros.errors import ConfigError, FicapError, OutputError, one_line
+from ficap_ros.files import OutputLock, check_output_folder
 from ficap_ros.geometry.cap_model import CapModel
 from ficap_ros.io.labels import read_labels
 from ficap_ros.io.sources import FrameSource
@@ -55,6 +56,7 @@ class _Labelling:
     namespace: str
     jobs: int
     detector: DetectorConfig | None
+    inputs: tuple[Any, ...] = ()
     timing: Mapping[str, Any] | None = None
 
     def replay_one(self, item: _Todo, engine: RayEngine | None,
@@ -71,7 +73,8 @@ class _Labelling:
                 source, self.out / rec.rel, self.model, self.pose, self.calibration,
                 self.calibrate_window_s, self.jobs, self.namespace, progress=False,
                 engine=lambda raws: bar.counted(process(raws)),
-                summary_extra={"fingerprint": fp}, detector=self.detector, timing=self.timing)
+                summary_extra={"fingerprint": fp}, detector=self.detector, inputs=self.inputs,
+                timing=self.timing)
         except Exception as err:  # noqa: BLE001 - one recording's failure must not stop the fleet
             return RecordingResult(str(rec.path), str(rec.rel), "failed",
                                    wall_s=round(time.perf_counter() - t, 3),
@@ -100,6 +103,7 @@ def run_fleet(
     summary_files: bool = True,
     ray_engine: RayEngine | None = None,
     detector: DetectorConfig | None = None,
+    inputs: Sequence[Any] = (),
     timing: Mapping[str, Any] | None = None,
 ) -> FleetResult:
     """Replay every recording into ``out / rec.rel`` (see the package docstring).
@@ -116,6 +120,8 @@ def run_fleet(
             its own ``detector``.
         detector: detector settings (default ``DetectorConfig()``); give the same to
             ``label_settings`` so the fingerprint holds them.
+        inputs: the run's configuration files (model, calibration, intrinsics, manifest): no
+            output may be one.
         timing: camera timing fields over each recording's own (``replay.recording_timing``);
             give the same to ``label_settings``.
 
@@ -123,15 +129,33 @@ def run_fleet(
         One result per recording, in the given order. A failing recording does not stop the others.
 
     Raises:
-        BagError: ``out`` not writable. ConfigError: Ray missing or not startable, or a given
-        engine started with other settings.
+        OutputError: ``out`` breaks the output rule, or another ficap process writes it (its lock
+        is held for the whole run). ConfigError: Ray missing or not startable, or a given engine
+        started with other settings. WorkerError: Ray's workers did not start in time.
     """
-    out = Path(out)
-    replay_mod.check_output_dir(out)
+    out = check_output_folder(out, inputs, subfolders=True)
+    with OutputLock(out, "fleet output"):
+        try:
+            out.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise OutputError(f"cannot write output folder {out}: {err.strerror or err}") from err
+        return _run(recordings, out, open_source, model, pose, settings, calibration,
+                    calibrate_window_s, namespace, jobs, ray_address, use_ray, retries, force,
+                    progress, summary_files, ray_engine, detector, tuple(inputs), timing)
+
+
+def _run(recordings: Sequence[Recording], out: Path, open_source: Callable[[Path], FrameSource],
+         model: CapModel, pose: PoseConfig, settings: dict[str, Any],
+         calibration: HeadCalibration | None, calibrate_window_s: tuple[float, float] | None,
+         namespace: str, jobs: int, ray_address: str | None, use_ray: bool, retries: int,
+         force: bool, progress: bool, summary_files: bool, ray_engine: RayEngine | None,
+         detector: DetectorConfig | None, inputs: tuple[Any, ...],
+         timing: Mapping[str, Any] | None) -> FleetResult:
+    """``run_fleet`` once its output is checked and locked."""
     t0 = time.perf_counter()
     results, todo = _plan(recordings, out, settings, force, open_source)
     labelling = _Labelling(out, model, pose, calibration, calibrate_window_s, namespace, jobs,
-                           detector, timing)
+                           detector, inputs, timing)
     bar = FleetProgress(sum(src.count for _, _, src, _ in todo), len(recordings), len(results),
                         sum(r.status == "failed" for r in results.values()), progress)
     fleet = FleetResult(engine="processes", workers=jobs)

@@ -34,7 +34,8 @@ class RecordingResult:
         frames: images labelled; frames_with_pose, pct_with_pose: coverage; pct_ge4_tags: share
             of decoded frames with at least 4 tags; reliability_mean/median: over frames with a
             pose; frames_lost: frames that gave no label input (undecodable images plus what a
-            damaged container lost); wall_s: this run's time on it (0 when skipped).
+            damaged container lost), None when the container cannot say how many it lost;
+            wall_s: this run's time on it (0 when skipped).
     """
 
     recording: str
@@ -46,7 +47,7 @@ class RecordingResult:
     pct_ge4_tags: float = 0.0
     reliability_mean: float = math.nan
     reliability_median: float = math.nan
-    frames_lost: int = 0
+    frames_lost: int | None = 0
     wall_s: float = 0.0
     error: str = ""
 
@@ -65,9 +66,12 @@ class FleetResult:
         return sum(r.status == status for r in self.results)
 
 
-def _lost(summary: dict[str, Any]) -> int:
-    """Frames a recording lost: undecodable images, plus what a damaged container cut off."""
+def _lost(summary: dict[str, Any]) -> int | None:
+    """Frames a recording lost: undecodable images, plus what a damaged container cut off (None
+    when it is damaged and cannot say how many)."""
     lost = int(summary.get("frames_skipped", 0) or 0)
+    if summary.get("damaged") and "frames_lost" in summary and summary["frames_lost"] is None:
+        return None
     for key in ("frames_lost", "messages_lost"):
         value = summary.get(key)
         if isinstance(value, (int, float)) and not isinstance(value, bool):
@@ -83,7 +87,8 @@ def _lost(summary: dict[str, Any]) -> int:
 
 
 def _damaged(summary: dict[str, Any]) -> bool:
-    return _lost(summary) > int(summary.get("frames_skipped", 0) or 0) or bool(
+    lost = _lost(summary)
+    return lost is None or lost > int(summary.get("frames_skipped", 0) or 0) or bool(
         summary.get("truncated") or summary.get("damaged"))
 
 
@@ -117,15 +122,16 @@ def write_fleet_summary(out: Path, fleet: FleetResult) -> list[Path]:
     writer.writerow(_COLUMNS)
     for r in fleet.results:
         row = asdict(r)
-        writer.writerow(["" if isinstance(row[c], float) and math.isnan(row[c]) else row[c]
-                         for c in _COLUMNS])
+        writer.writerow(["" if row[c] is None or (isinstance(row[c], float) and math.isnan(row[c]))
+                         else row[c] for c in _COLUMNS])
     totals = {
         "recordings": len(fleet.results),
         **{s: fleet.count(s) for s in ("done", "skipped", "damaged", "failed")},
         "frames": sum(r.frames for r in fleet.results),
         "frames_processed": sum(r.frames for r in fleet.results if r.status in ("done", "damaged")),
         "frames_with_pose": sum(r.frames_with_pose for r in fleet.results),
-        "frames_lost": sum(r.frames_lost for r in fleet.results),
+        "frames_lost": sum(r.frames_lost or 0 for r in fleet.results),
+        "recordings_lost_unknown": sum(r.frames_lost is None for r in fleet.results),
         "wall_s": round(fleet.wall_s, 3),
         "engine": fleet.engine,
         "workers": fleet.workers,
@@ -160,7 +166,7 @@ def _plot(fleet: FleetResult) -> bytes:
               (">= 4 tags %", "decoded frames with >= 4 tags, %", lambda r: r.pct_ge4_tags),
               ("reliability", "mean reliability (frames with a pose)",
                lambda r: 0.0 if math.isnan(r.reliability_mean) else r.reliability_mean),
-              ("frames lost", "undecodable or cut off", lambda r: r.frames_lost),
+              ("frames lost", "undecodable or cut off (unknown: 0)", lambda r: r.frames_lost or 0),
               ("wall s", "this run's time, s (0: skipped)", lambda r: r.wall_s))
     height = max(3.0, 0.28 * len(rs) + 1.6)
     fig, axes = plt.subplots(1, len(panels), figsize=(3.0 * len(panels), height), sharey=True)

@@ -14,7 +14,8 @@ from ficap_ros.tools.synth.lighting import LIGHTINGS, LIGHTS
 from ficap_ros.tools.synth.scene import HEAD_CENTRE_M, HEAD_SEMI_AXES_M
 from ficap_ros.vision.tone import TONES
 
-__all__ = ["RENDER_VERSION", "PSF_SIGMA_1080P_PX", "REALISTIC", "default_psf_sigma_px",
+__all__ = ["RENDER_VERSION", "PSF_SIGMA_1080P_PX", "REALISTIC", "MAX_BLUR_PX", "MAX_EXPOSURE_MS",
+           "MAX_GAIN", "MAX_GAMMA", "default_psf_sigma_px",
            "RenderConfig", "RenderedFrame"]
 
 #: Raise it with every change that moves rendered pixels for the same options: ``ficap demo``'s
@@ -24,6 +25,14 @@ RENDER_VERSION = 3
 PSF_SIGMA_1080P_PX = 0.7
 #: The realistic camera (``RenderConfig(**REALISTIC)``): the default lens PSF and the sRGB tone curve.
 REALISTIC: dict[str, object] = {"psf_sigma_px": None, "tone": "srgb"}
+#: Largest lens blur (Gaussian sigma, defocus disc radius), px: beyond it a tag of any rendered
+#: size is a smudge, and the blur's kernel grows with its square.
+MAX_BLUR_PX = 50.0
+#: Longest exposure, ms (ten seconds: far beyond a driving camera's).
+MAX_EXPOSURE_MS = 10_000.0
+#: Largest sensor gain and tone-curve exponent.
+MAX_GAIN = 1000.0
+MAX_GAMMA = 10.0
 
 
 def default_psf_sigma_px(height_px: int) -> float:
@@ -113,27 +122,27 @@ class RenderConfig:
         if self.tone not in TONES:
             raise ConfigError(f"tone must be one of {', '.join(TONES)}, got {self.tone!r}")
 
-        def finite(name: str, low: float, strict: bool = False, optional: bool = False) -> None:
+        def finite(name: str, low: float, strict: bool = False, optional: bool = False,
+                   high: float = math.inf) -> None:
             value = getattr(self, name)
             if value is None and optional:
                 return
             try:
                 v = float(value)
-            except (TypeError, ValueError):
+            except (TypeError, ValueError, OverflowError):
                 raise ConfigError(f"{name} must be a number, got {value!r}") from None
-            if not math.isfinite(v) or v < low or (strict and v == low):
-                raise ConfigError(f"{name} must be finite and {'>' if strict else '>='} {low}, got {value}")
+            if not math.isfinite(v) or v < low or (strict and v == low) or v > high:
+                raise ConfigError(f"{name} must be finite, {'>' if strict else '>='} {low}"
+                                  f"{f' and <= {high:g}' if math.isfinite(high) else ''}, got {value}")
 
-        finite("psf_sigma_px", 0.0, optional=True)
-        finite("defocus_radius_px", 0.0)
-        finite("exposure_ms", 0.0, strict=True, optional=True)
-        finite("gain", 0.0, strict=True, optional=True)
+        finite("psf_sigma_px", 0.0, optional=True, high=MAX_BLUR_PX)
+        finite("defocus_radius_px", 0.0, high=MAX_BLUR_PX)
+        finite("exposure_ms", 0.0, strict=True, optional=True, high=MAX_EXPOSURE_MS)
+        finite("gain", 0.0, strict=True, optional=True, high=MAX_GAIN)
         finite("full_well_e", 0.0, strict=True)
         finite("read_noise_e", 0.0)
-        finite("gamma", 0.0, strict=True)
-        finite("readout_ms", 0.0)
-        if float(self.readout_ms) > 1000.0:
-            raise ConfigError(f"readout_ms must be at most 1000, got {self.readout_ms}")
+        finite("gamma", 0.0, strict=True, high=MAX_GAMMA)
+        finite("readout_ms", 0.0, high=1000.0)
         if self.row_order not in ROW_ORDERS:
             raise ConfigError(f"row_order must be one of {', '.join(ROW_ORDERS)}, got {self.row_order!r}")
         if not 0 <= int(self.motion_subframes) <= 255:

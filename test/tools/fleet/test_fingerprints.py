@@ -5,6 +5,8 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
+import numpy as np
+
 from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.tools.fleet.fingerprints import (
     config_json,
@@ -64,3 +66,18 @@ def test_current_outputs_need_all_three_and_the_digest(tmp_path: Path) -> None:
     assert current_outputs(tmp_path, "other") is None
     (tmp_path / "summary.json").write_text("{cut")
     assert current_outputs(tmp_path, "abc") is None
+
+
+def test_a_change_anywhere_in_a_recording_is_a_new_identity(tmp_path: Path) -> None:
+    """Every byte is hashed: one byte changed in the middle of a file (its size kept, far from
+    either end) is a new identity, so its outputs are no longer current."""
+    data = bytearray(np.random.default_rng(0).integers(0, 256, 5 << 20, np.uint8).tobytes())
+    path = tmp_path / "drive.mcap"
+    path.write_bytes(bytes(data))
+    before = input_identity(path)
+    assert before["files"]["drive.mcap"]["size"] == len(data)
+    data[len(data) // 2] ^= 0x01
+    path.write_bytes(bytes(data))
+    after = input_identity(path)
+    assert after["files"]["drive.mcap"]["size"] == len(data)
+    assert after != before

@@ -69,3 +69,24 @@ def test_manifest_entries_and_recordings(tmp_path: Path) -> None:
     assert not is_recording(tmp_path / "bag")  # a replay output (a rosbag2 of labels)
     with pytest.raises(BagError, match="cannot read manifest"):
         read_manifest(tmp_path / "missing.txt")
+
+
+def test_manifest_entries_that_leave_its_folder_go_under_their_name(tmp_path: Path) -> None:
+    """``../x/drive.mcap`` would mirror to a path outside --out: such an entry (like an absolute
+    one) writes under its name instead; a manifest that is not a regular file is one line."""
+    import os
+
+    import pytest
+
+    from ficap_ros.errors import BagError
+    from ficap_ros.tools.fleet.manifest import read_manifest
+
+    (tmp_path / "lists").mkdir()
+    manifest = tmp_path / "lists" / "m.txt"
+    manifest.write_text("../in/d1.mcap\nsub/d2.mcap\n/abs/d3.mcap\n")
+    entries = read_manifest(manifest)
+    assert [rel for _, rel in entries] == [None, Path("sub/d2"), None]
+    fifo = tmp_path / "m.fifo"
+    os.mkfifo(fifo)
+    with pytest.raises(BagError, match="not a regular file"):
+        read_manifest(fifo)

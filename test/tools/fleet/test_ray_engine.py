@@ -224,3 +224,23 @@ def test_unreachable_cluster_is_one_line(fleet_in: Path, tmp_path: Path, capsys)
     assert rc == 1 and f"no Ray cluster answers at 127.0.0.1:{port}" in err
     assert len(err.strip().splitlines()) == 1
     assert not (tmp_path / "o" / "labels.csv").exists()
+
+
+def test_workers_that_cannot_start_fail_within_the_stated_time(local_ray) -> None:
+    """No worker ever runs the engine's first task (here: it asks for a resource no node has,
+    as a task waits when its workers cannot start): one line within the start timeout, not a
+    fleet that waits at 0 frames."""
+    import time
+
+    from ficap_ros.errors import WorkerError
+    from ficap_ros.geometry.cap_model import nominal_model
+    from ficap_ros.tools.fleet.ray_engine import START_TIMEOUT_S, RayEngine
+    from ficap_ros.vision.pose import PoseConfig
+
+    assert START_TIMEOUT_S <= 120.0  # the stated bound of a real run
+    t0 = time.monotonic()
+    with pytest.raises(WorkerError, match=r"no Ray worker started within 2 s \(2 CPUs\)") as info:
+        RayEngine(nominal_model(), PoseConfig(), start_timeout_s=2.0,
+                  task_options={"resources": {"nowhere": 1}})
+    assert time.monotonic() - t0 < 15.0 and "\n" not in str(info.value)
+    assert local_ray.cpus == 2  # the shared Ray is left running

@@ -70,3 +70,68 @@ def test_no_ray_import_without_ray(fleet_in: Path, tmp_path: Path) -> None:
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr[-2000:]
     assert proc.stdout.strip().endswith("ok")
+
+
+def test_a_fleet_whose_workers_keep_dying_fails_them_and_ends(fleet_in: Path, tmp_path: Path,
+                                                              capsys) -> None:  # noqa: ANN001
+    """Without Ray, --jobs 2 workers killed as they start: each recording fails in one line
+    (its segment's workers died twice), the fleet ends and says so; nothing waits for ever."""
+    import threading
+    import time
+
+    from probe_cases import kill_pool_workers
+
+    from ficap_ros.tools.replay import available_cores
+
+    if available_cores() < 2:
+        import pytest
+
+        pytest.skip("--jobs 2 needs two cores")
+    stop, killed = threading.Event(), []
+    killer = threading.Thread(target=kill_pool_workers, args=(stop, 100, killed), daemon=True)
+    killer.start()
+    t0 = time.monotonic()
+    try:
+        code = main(["replay", str(fleet_in / "alice/d1"), str(fleet_in / "bob/d2"), "--out",
+                     str(tmp_path / "out"), "--jobs", "2", "--quiet"])
+    finally:
+        stop.set()
+        killer.join(timeout=10)
+    out = capsys.readouterr().out.splitlines()
+    assert code == 1 and time.monotonic() - t0 < 120.0
+    failed = [line for line in out if ": failed: a worker process died twice on frames 0-" in line]
+    assert len(failed) == 2, out
+    assert out[-1].startswith("2 recordings: 0 done, 0 skipped (current), 0 damaged, 2 failed")
+
+
+def test_a_fleet_whose_worker_is_killed_once_finishes_with_the_same_labels(
+        fleet_in: Path, tmp_path: Path, capsys) -> None:  # noqa: ANN001
+    """Without Ray, --jobs 2 with one worker killed (SIGKILL) mid-run: its segment runs again in
+    a new pool, every recording is done, and the labels are those of --jobs 1."""
+    import threading
+    import time
+
+    import pytest
+    from probe_cases import kill_pool_workers
+
+    from ficap_ros.tools.replay import available_cores
+
+    if available_cores() < 2:
+        pytest.skip("--jobs 2 needs two cores")
+    recs = [str(fleet_in / "alice/d1"), str(fleet_in / "bob/d2")]
+    assert main(["replay", *recs, "--out", str(tmp_path / "one"), "--quiet"]) == 0
+    stop, killed = threading.Event(), []
+    killer = threading.Thread(target=kill_pool_workers, args=(stop, 1, killed), daemon=True)
+    killer.start()
+    t0 = time.monotonic()
+    try:
+        code = main(["replay", *recs, "--out", str(tmp_path / "two"), "--jobs", "2", "--quiet"])
+    finally:
+        stop.set()
+        killer.join(timeout=10)
+    out = capsys.readouterr().out.splitlines()
+    assert code == 0 and len(killed) == 1 and time.monotonic() - t0 < 120.0, out
+    assert out[-1].startswith("2 recordings: 2 done, 0 skipped (current), 0 damaged, 0 failed")
+    for name in ("d1", "d2"):
+        assert (tmp_path / "two" / name / "labels.csv").read_bytes() == \
+            (tmp_path / "one" / name / "labels.csv").read_bytes()

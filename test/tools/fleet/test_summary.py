@@ -45,3 +45,25 @@ def test_fleet_summary_files(tmp_path: Path) -> None:
     assert doc["fleet"]["frames_processed"] == 10 and doc["fleet"]["throughput_fps"] == 2.5
     assert doc["recordings"][1]["reliability_mean"] is None
     assert (tmp_path / "fleet_summary.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_an_unknown_loss_is_never_counted_as_zero(tmp_path: Path) -> None:
+    """A damaged recording whose container cannot say how many frames it lost: damaged, its
+    frames_lost unknown (empty in the CSV, counted apart in the totals), not '0 lost'."""
+    import json
+
+    from ficap_ros.tools.fleet.manifest import Recording
+    from ficap_ros.tools.fleet.summary import (
+        FleetResult,
+        recording_result,
+        write_fleet_summary,
+    )
+
+    summary = {"frames": 10, "frames_skipped": 0, "damaged": True, "frames_lost": None}
+    r = recording_result(Recording(Path("a.mcap"), Path("a")), "done", summary, [0.9], 1.0)
+    assert r.status == "damaged" and r.frames_lost is None
+    write_fleet_summary(tmp_path, FleetResult([r], 1.0))
+    rows = (tmp_path / "fleet_summary.csv").read_text().splitlines()
+    assert rows[1].split(",")[rows[0].split(",").index("frames_lost")] == ""
+    totals = json.loads((tmp_path / "fleet_summary.json").read_text())["fleet"]
+    assert totals["frames_lost"] == 0 and totals["recordings_lost_unknown"] == 1
