@@ -8,12 +8,15 @@ PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-stamp
+# tf2_msgs and apriltag_msgs generated into the venv (scripts/build_ros_interfaces.py says why).
+INTERFACES := $(VENV)/.interfaces-stamp
 
 .PHONY: demo test bench install clean bpy-venv
 
-install: $(STAMP)
+install: $(STAMP) $(INTERFACES)
 
-REQUIREMENTS := requirements.txt requirements-extras.txt requirements-test.txt
+REQUIREMENTS := requirements.txt requirements-extras.txt requirements-test.txt \
+	requirements-interfaces.txt
 
 $(STAMP): $(REQUIREMENTS) setup.py package.xml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -23,16 +26,20 @@ $(STAMP): $(REQUIREMENTS) setup.py package.xml
 	$(PY) -m pip install --quiet --disable-pip-version-check --no-deps --no-build-isolation -e .
 	touch $(STAMP)
 
-demo: $(STAMP)
+$(INTERFACES): $(STAMP) scripts/build_ros_interfaces.py $(wildcard ficap_ros/interfaces/*/msg/*.msg)
+	$(PY) scripts/build_ros_interfaces.py --venv $(VENV)
+	touch $(INTERFACES)
+
+demo: $(STAMP) $(INTERFACES)
 	ROS_DOMAIN_ID=$${ROS_DOMAIN_ID:-77} $(PY) -m ficap_ros.cli demo
 
-test: $(STAMP)
+test: $(STAMP) $(INTERFACES)
 	$(PY) -m pytest
 
 # Every benchmark in turn (each writes its section of docs/benchmarks.md); BENCH_ARGS=--quick is
 # the fast mode. A caller's ROS_DOMAIN_ID is kept (the node benchmarks start rclpy).
 BENCH_ARGS ?=
-bench: $(STAMP)
+bench: $(STAMP) $(INTERFACES)
 	@set -e; start=$$(date +%s); for script in benchmarks/bench_*.py; do \
 		echo "== $$script $(BENCH_ARGS)"; t0=$$(date +%s); \
 		ROS_DOMAIN_ID=$${ROS_DOMAIN_ID:-70} $(PY) $$script $(BENCH_ARGS) > /dev/null; \

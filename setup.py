@@ -10,7 +10,9 @@ setup(
     name=package_name,
     version="0.2.0",
     packages=find_packages(exclude=["test", "test.*", "benchmarks"]),
-    package_data={package_name: ["py.typed", "data/*"]},
+    # The vendored message definitions (ficap_ros/interfaces/README.md): labels.mcap's detections.
+    package_data={package_name: ["py.typed", "data/*", "interfaces/README.md",
+                                 "interfaces/*/LICENSE", "interfaces/*/msg/*.msg"]},
     data_files=[
         ("share/ament_index/resource_index/packages", ["resource/" + package_name]),
         ("share/" + package_name, ["package.xml"]),
@@ -34,6 +36,7 @@ setup(
         "console_scripts": [
             "ficap = ficap_ros.cli.main:main",
             "ficap_node = ficap_ros.ros.node:main",
+            "ficap_lifecycle_node = ficap_ros.ros.lifecycle:main",
         ],
     },
 )

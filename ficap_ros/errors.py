@@ -18,6 +18,7 @@ __all__ = [
     "OutputError",
     "WorkerError",
     "one_line",
+    "missing_module",
 ]
 
 
@@ -70,3 +71,24 @@ def one_line(err: BaseException, typed: bool = False) -> str:
     if typed and not isinstance(err, FicapError):
         return f"{type(err).__name__}: {lines[-1] if lines else ''}".strip()
     return lines[0] if lines else type(err).__name__
+
+
+#: Third-party modules by the package that brings them: (pip package, rosdep key or '' for none).
+_PROVIDERS = {
+    "rosbags": ("rosbags", "python3-rosbags-pip"),
+    "mcap": ("mcap", "mcap-ros2-support"),
+    "pupil_apriltags": ("pupil-apriltags", ""),
+    "ray": ("ray", ""),
+    "tqdm": ("tqdm", "python3-tqdm"),
+    "matplotlib": ("matplotlib", "python3-matplotlib"),
+    "yaml": ("PyYAML", "python3-yaml"),
+}
+
+
+def missing_module(err: ModuleNotFoundError) -> str:
+    """A missing module as one line naming what to install (the requirements files and
+    package.xml list every module ficap_ros imports)."""
+    top = (err.name or "?").split(".")[0]
+    pip, key = _PROVIDERS.get(top, (top, ""))
+    how = f"pip install {pip}" + (f", or rosdep key {key}" if key else "")
+    return f"the Python module {top} is not installed ({how})"

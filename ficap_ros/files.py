@@ -58,7 +58,7 @@ _RECORDING_MAGIC = (b"\x89MCAP", b"SQLite format 3\x00", b"#ROSBAG")
 #: Files ficap writes into an output folder (replay, stats, evaluate, a fleet's summary): an
 #: existing folder holding only these (and ficap's own hidden temporaries) may be replaced.
 FICAP_OUTPUT_FILES = frozenset({
-    "labels.mcap", "metadata.yaml", "labels.csv", "summary.json", "stats.json",
+    "labels.mcap", "metadata.yaml", "labels.csv", "detections.csv", "summary.json", "stats.json",
     "reliability_histogram.png", "tag_detection_rate.png", "report.md", "report.json",
     "error_histogram.png", "timeseries.png", "error_vs_yaw.png",
     "fleet_summary.csv", "fleet_summary.json", "fleet_summary.png",

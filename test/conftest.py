@@ -27,6 +27,20 @@ from recordings import (  # noqa: E402
     RS_SEED,
 )
 
+
+def pytest_configure(config: pytest.Config) -> None:
+    """The message packages the ROS wheels lack must be there (the tests see /tf, /tf_static and
+    the detections on real DDS): one line saying how, not a collection traceback."""
+    import importlib.util
+
+    missing = [m for m in ("tf2_msgs", "apriltag_msgs") if importlib.util.find_spec(m) is None]
+    if missing:
+        raise pytest.UsageError(
+            f"{' and '.join(missing)} not importable: `make` generates them into the venv "
+            "(python scripts/build_ros_interfaces.py --venv <venv>); a ROS install has them "
+            "(package.xml)")
+
+
 #: Real photos the detection tests need, kept in the repository (test/data/README.md: sources and
 #: licences) so a fresh clone tests without the workplace's ../shared; benchmarks read the full sets.
 REAL_APRILTAG = Path(__file__).resolve().parent / "data" / "real_apriltag"

@@ -26,7 +26,8 @@ KINDS = (ModelError, ImageError, IntrinsicsError, ConfigError, CalibrationError,
 
 
 def test_every_kind_is_a_ficap_error_and_exported() -> None:
-    assert set(errors.__all__) == {k.__name__ for k in KINDS} | {"FicapError", "one_line"}
+    assert set(errors.__all__) == {k.__name__ for k in KINDS} | {"FicapError", "one_line",
+                                                                 "missing_module"}
     for kind in KINDS:
         assert issubclass(kind, FicapError) and issubclass(FicapError, Exception)
         assert kind.__doc__  # each says what it is for
@@ -63,3 +64,15 @@ def test_one_line_is_one_line(message: str, typed: bool, kind: type[Exception]) 
 def test_a_ficap_error_caught_as_the_root(kind: type[FicapError]) -> None:
     with pytest.raises(FicapError, match="bad"):
         raise kind("bad")
+
+
+def test_a_missing_module_is_one_line_naming_what_to_install() -> None:
+    from ficap_ros.errors import missing_module
+
+    line = missing_module(ModuleNotFoundError("No module named 'rosbags.highlevel'",
+                                              name="rosbags.highlevel"))
+    assert line == ("the Python module rosbags is not installed (pip install rosbags, or rosdep "
+                    "key python3-rosbags-pip)")
+    assert "\n" not in missing_module(ModuleNotFoundError("x", name="somethingelse"))
+    assert "pip install pupil-apriltags)" in missing_module(
+        ModuleNotFoundError("x", name="pupil_apriltags"))

@@ -11,13 +11,16 @@ import argparse
 import math
 from typing import Callable
 
-__all__ = ["EXIT_FRAMES_LOST", "ROW_ORDERS", "int_at_least", "positive_int", "non_negative_int",
-           "finite_float", "positive_float", "non_negative_float", "duration_ms", "offset_ms",
-           "time_window", "float_in", "int_in", "seed", "frame_count", "frame_rate", "max_dt_ms",
-           "MAX_FRAMES", "MAX_SEED"]
+__all__ = ["EXIT_FRAMES_LOST", "POSE_METHOD_CHOICES", "ROW_ORDERS", "int_at_least", "positive_int",
+           "non_negative_int", "finite_float", "positive_float", "non_negative_float", "duration_ms",
+           "offset_ms", "time_window", "float_in", "int_in", "seed", "frame_count", "frame_rate",
+           "max_dt_ms", "MAX_FRAMES", "MAX_SEED"]
 
 #: Exit code of a verb that finished but lost frames to a damaged (cut, corrupt) input.
 EXIT_FRAMES_LOST = 3
+#: ``--method``'s choices: ``ficap_ros.vision.pose.POSE_METHODS`` (named here so that ``--help``
+#: does not import the pipeline; a test keeps them equal).
+POSE_METHOD_CHOICES = ("joint", "paper", "naive")
 #: Most frames a verb renders (``synth``, ``demo``): an hour at 30 fps.
 MAX_FRAMES = 108_000
 #: Largest random seed (numpy's generators take non-negative seeds; 32 bits are plenty).

@@ -2,10 +2,10 @@
 
 Each verb lives in ``ficap_ros/cli/<verb>.py`` and provides ``HELP``, ``add_arguments(parser)``
 and ``run(args) -> int``; heavy imports happen inside ``run`` so ``ficap --help`` stays quick.
-Errors a user can cause print one line (``ficap: error: ...``) and exit 1, and so do a file
-system error or exhausted memory that no check foresaw (never a traceback). Exit codes: 0 done,
-1 error, 2 bad arguments (argparse), 3 done but frames were lost to a damaged input (the summary
-line says how many and when), 130 interrupted.
+Errors a user can cause, and a missing optional package, print one line (``ficap: error: ...``)
+and exit 1, and so do a file system error or exhausted memory that no check foresaw (never a
+traceback). Exit codes: 0 done, 1 error, 2 bad arguments (argparse), 3 done but frames were lost
+to a damaged input (the summary line says how many and when), 130 interrupted.
 """
 
 from __future__ import annotations
@@ -15,7 +15,7 @@ import importlib
 import sys
 from typing import Sequence
 
-from ficap_ros.errors import FicapError, one_line
+from ficap_ros.errors import FicapError, missing_module, one_line
 
 #: Verb -> module under ficap_ros.cli, in the order ``--help`` lists them.
 VERBS: dict[str, str] = {
@@ -73,6 +73,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             return int(args._run(args) or 0)
     except FicapError as err:
         print(f"ficap: error: {err}", file=sys.stderr)
+        return 1
+    except ModuleNotFoundError as err:  # an optional package a verb or input needs
+        print(f"ficap: error: {missing_module(err)}", file=sys.stderr)
         return 1
     except MemoryError:
         print("ficap: error: out of memory", file=sys.stderr)

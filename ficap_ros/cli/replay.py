@@ -6,8 +6,10 @@ import argparse
 from typing import Any
 
 from ficap_ros.cli.args import (
+    POSE_METHOD_CHOICES,
     ROW_ORDERS,
     duration_ms,
+    finite_float,
     frame_rate,
     int_in,
     offset_ms,
@@ -42,8 +44,10 @@ def add_input_arguments(parser: argparse.ArgumentParser, many: bool = False) -> 
     parser.add_argument("--fps", type=frame_rate,
                         help="video frame rate, 0.01 to 1000 Hz (default: the container's)")
     parser.add_argument("--model", help="as-built cap model YAML (default: nominal)")
-    parser.add_argument("--method", choices=("joint", "paper"), default="joint",
-                        help="cap pose estimator (default: joint)")
+    parser.add_argument("--method", choices=POSE_METHOD_CHOICES, default="joint",
+                        help="cap pose estimator, the node's pose.method: joint (PnP over all "
+                             "corners, tag-level outlier rejection), paper (per-tag + Kabsch + "
+                             "outlier trimming) or naive (the baseline; default: joint)")
     parser.add_argument("--jobs", type=positive_int, default=1,
                         help="worker processes, capped at the cores available (default 1; "
                              "output identical to --jobs 1)")
@@ -65,6 +69,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "calibrate R_cap_head from them and apply it to every frame")
     parser.add_argument("--namespace", default="",
                         help="topic namespace in labels.mcap (default: none, as the node: /head_pose ...)")
+    parser.add_argument("--camera-mount", type=finite_float, nargs=7,
+                        metavar=("X", "Y", "Z", "QX", "QY", "QZ", "QW"),
+                        help="the camera's optical frame in --output-frame (or in the frontal frame "
+                             "without one): metres and a unit quaternion, static_transform_publisher's "
+                             "order, as the node's camera_mount; on /tf_static in labels.mcap, and "
+                             "the frontal frame of the head angles takes its parent's axes")
+    parser.add_argument("--output-frame", default="", metavar="FRAME",
+                        help="frame of labels.mcap's poses (e.g. base_link), reached through "
+                             "--camera-mount, as the node's output_frame (default: the image's)")
     timing = parser.add_argument_group(
         "camera timing", "when the camera's rows see the scene (the node's camera.* parameters); "
         "each one given replaces that field of the recording's own timing (a camera_timing "
@@ -112,6 +125,18 @@ def open_source(args: argparse.Namespace, path: object = None):  # noqa: ANN201 
                        args.camera_info_topic, args.intrinsics, args.fps, args.rectified)
 
 
+def output_frames(args: argparse.Namespace):  # noqa: ANN201 - io.frames.OutputFrames
+    """``--output-frame`` and ``--camera-mount`` (``ficap_ros.io.frames``' rule, the node's).
+
+    Raises:
+        ConfigError: an output frame without a mount, or a mount that is not a unit quaternion.
+    """
+    from ficap_ros.io.frames import OutputFrames, camera_mount_transform
+
+    mount = camera_mount_transform(args.camera_mount) if args.camera_mount else None
+    return OutputFrames(args.output_frame, mount)
+
+
 def _is_fleet(args: argparse.Namespace) -> bool:
     """Several recordings, a folder tree, a manifest or Ray: the fleet runner (ficap_ros.tools.fleet)."""
     from pathlib import Path
@@ -151,6 +176,7 @@ def run(args: argparse.Namespace) -> int:
     from ficap_ros.vision.pose import PoseConfig
 
     keep_freed_memory()  # this process decodes and processes the frames (--jobs 1)
+    frames = output_frames(args)
     model = load_model(args.model) if args.model else nominal_model()
     detector = DetectorConfig(edge_photometric=args.photometric)
     calibration = None
@@ -163,7 +189,7 @@ def run(args: argparse.Namespace) -> int:
 
         raise ConfigError("give at least one INPUT or --manifest FILE")
     if _is_fleet(args):
-        return _run_fleet(args, model, calibration, detector)
+        return _run_fleet(args, model, calibration, detector, frames)
     args.input = args.input[0]
     # Before any processing: never an input, a recording or a folder ficap did not write.
     check_output_folder(Path(args.out), [args.input, *side_files(args)])
@@ -171,7 +197,7 @@ def run(args: argparse.Namespace) -> int:
     source = open_source(args)
     out = replay(source, args.out, model, PoseConfig(method=args.method), calibration,
                  args.calibrate_frontal, jobs, args.namespace, progress=not args.quiet,
-                 detector=detector, inputs=side_files(args), timing=timing_fields(args))
+                 detector=detector, frames=frames, inputs=side_files(args), timing=timing_fields(args))
     s = out.summary
     line = (f"{s['frames']} frames, {s['frames_with_pose']} with a pose "
             f"({s['pct_with_pose']:.1f} %), >=1 tag {s['pct_ge1_tag']:.1f} %, >=4 tags "
@@ -183,7 +209,7 @@ def run(args: argparse.Namespace) -> int:
     return EXIT_FRAMES_LOST if out.loss is not None else 0
 
 
-def _run_fleet(args: argparse.Namespace, model, calibration, detector) -> int:  # noqa: ANN001
+def _run_fleet(args: argparse.Namespace, model, calibration, detector, frames) -> int:  # noqa: ANN001
     from ficap_ros.files import check_output_folder
     from ficap_ros.tools.fleet.manifest import find_recordings
 
@@ -191,10 +217,10 @@ def _run_fleet(args: argparse.Namespace, model, calibration, detector) -> int:  
     # input (run_fleet checks again and holds its lock for the whole run).
     check_output_folder(args.out, side_files(args), subfolders=True)
     recordings = find_recordings(args.input, args.manifest, args.out, videos=args.videos)
-    return _fleet(args, recordings, model, calibration, detector)
+    return _fleet(args, recordings, model, calibration, detector, frames)
 
 
-def _fleet(args: argparse.Namespace, recordings, model, calibration, detector) -> int:  # noqa: ANN001
+def _fleet(args: argparse.Namespace, recordings, model, calibration, detector, frames) -> int:  # noqa: ANN001
     from pathlib import Path
 
     from ficap_ros.tools.fleet.fingerprints import label_settings
@@ -204,23 +230,23 @@ def _fleet(args: argparse.Namespace, recordings, model, calibration, detector) -
     pose = PoseConfig(method=args.method)
     settings = label_settings(model, pose, calibration, args.calibrate_frontal, args.namespace,
                               args.image_topic, args.camera_info_topic, args.intrinsics, args.fps,
-                              args.rectified, detector, timing_fields(args))
+                              args.rectified, detector, frames, timing_fields(args))
     single = len(recordings) == 1 and str(recordings[0].rel) == "."
     fleet = run_fleet(
         recordings, args.out, lambda path: open_source(args, path), model, pose, settings,
         calibration, args.calibrate_frontal, args.namespace, args.jobs, args.ray_address,
         args.ray, args.retries, args.force, progress=not args.quiet, summary_files=not single,
-        detector=detector, inputs=side_files(args), timing=timing_fields(args))
+        detector=detector, frames=frames, inputs=side_files(args), timing=timing_fields(args))
     for r in fleet.results:
         if r.status == "failed":
             print(f"{r.rel}: failed: {r.error}")
         elif r.status == "damaged":
             lost = "an unknown number" if r.frames_lost is None else r.frames_lost
             print(f"{r.rel}: damaged: {r.frames} frames recovered, {lost} lost")
-    frames = sum(r.frames for r in fleet.results if r.status in ("done", "damaged"))
+    n_frames = sum(r.frames for r in fleet.results if r.status in ("done", "damaged"))
     print(f"{len(fleet.results)} recordings: {fleet.count('done')} done, "
           f"{fleet.count('skipped')} skipped (current), {fleet.count('damaged')} damaged, "
-          f"{fleet.count('failed')} failed; {frames} frames in {fleet.wall_s:.1f} s "
+          f"{fleet.count('failed')} failed; {n_frames} frames in {fleet.wall_s:.1f} s "
           f"({fleet.engine}, {fleet.workers} workers) -> {Path(args.out) / ('' if single else 'fleet_summary.csv')}")
     # 1: a recording has no labels; 3 (as a single replay of a damaged input): frames were lost.
     return 1 if fleet.count("failed") else 3 if fleet.count("damaged") else 0

@@ -62,6 +62,11 @@ def yaw_pitch_roll_deg(rotation: Rotation) -> np.ndarray:
     return np.array(rotation.as_euler("ZYX", degrees=True), dtype=np.float64)
 
 
+def yaw_pitch_roll_rad(rotation: Rotation) -> np.ndarray:
+    """``yaw_pitch_roll_deg`` in radians (the same convention)."""
+    return np.array(rotation.as_euler("ZYX"), dtype=np.float64)
+
+
 def rotation_from_ypr_deg(yaw_deg: float, pitch_deg: float, roll_deg: float) -> Rotation:
     """Inverse of ``yaw_pitch_roll_deg`` for one rotation (REP-103: pitch positive nose down)."""
     return Rotation.from_euler("ZYX", [yaw_deg, pitch_deg, roll_deg], degrees=True)

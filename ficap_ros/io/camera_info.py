@@ -18,11 +18,20 @@ from ficap_ros.errors import IntrinsicsError
 from ficap_ros.geometry.camera import CameraModel, load_camera_yaml
 
 __all__ = ["camera_from_info", "camera_info_key", "pick_camera_info", "CameraInfoCache",
-           "CAMERA_INFO_MAX_STAMP_DIFF_NS"]
+           "CAMERA_INFO_MAX_STAMP_DIFF_NS", "camera_info_beside"]
 
 #: How close a CameraInfo's stamp must be to an image's to count as that image's (the node's
 #: ``camera_info_max_stamp_diff_ms`` default; bags use it as is).
 CAMERA_INFO_MAX_STAMP_DIFF_NS = 1_000_000
+
+
+def camera_info_beside(image_topic: str) -> str:
+    """The CameraInfo topic of an image topic, image_transport's rule (``getCameraInfoTopic``):
+    ``camera_info`` in the image topic's namespace (``/rear_cam/image_raw`` ->
+    ``/rear_cam/camera_info``). ``image_topic`` is the base topic, without a transport's suffix
+    (``/compressed``); a relative one gives a relative answer."""
+    head, _, _ = image_topic.rstrip("/").rpartition("/")
+    return f"{head}/camera_info" if head or image_topic.startswith("/") else "camera_info"
 
 
 def camera_from_info(msg: Any, rectified: bool = False) -> CameraModel:

@@ -17,26 +17,32 @@ Frames and quaternions (CSV columns are w, x, y, z; ROS messages store x, y, z, 
         pose estimator does not measure it (``CapPose.velocity`` None) or there is no pose.
 
 labels.mcap holds the live node's topics (``ficap_ros.ros.node``), with the same messages, each stamped
-with the image stamp (header and bag receive time), frame = the image's frame_id; names relative to
-``namespace`` (default none: ``/head_pose`` ...):
-    ``head_pose`` PoseStamped: T_cam_head = T_cam_cap * R_cap_head (camera optical frame).
+with the image stamp (header and bag receive time); names relative to ``namespace`` (default none:
+``/head_pose`` ...). The poses are in the frames ``ficap_ros.io.frames.OutputFrames`` says, as the
+node's: by default the camera's (the image's frame_id) and the frontal frame ``ficap_frontal``:
+    ``head_pose`` PoseStamped: T_cam_head = T_cam_cap * R_cap_head (camera optical frame; in
+        ``output_frame`` through ``camera_mount`` when one is given).
     ``head_pose/with_covariance`` PoseWithCovarianceStamped: the same with the estimator's 6x6
-        covariance (ROS order, camera axes).
-    ``cap_pose`` PoseStamped: T_cam_cap.
-    ``head_pose/frontal`` PoseStamped: T_frontal_head, frame ``ficap_frontal`` (F).
-    ``head_rpy_deg`` Vector3Stamped: x roll, y pitch, z yaw of H in F, degrees (REP-103).
-    ``quality`` JointState: ``name[i]`` labels ``position[i]``: tags_detected, tags_used,
-        reliability, rms_px, rot_err95_deg, trans_err95_mm (NaN without a pose); every image.
+        covariance (ROS order, m and rad, the pose's frame).
+    ``cap_pose`` PoseStamped: T_cam_cap (the same frame).
+    ``head_pose/frontal`` PoseStamped: the head in the frontal frame F.
+    ``head_rpy_deg`` Vector3Stamped: x roll, y pitch, z yaw of H in F, degrees (REP-103);
+        ``head_rpy`` the same in radians.
+    ``quality`` JointState: ``name[i]`` labels ``position[i]`` (``ficap_ros.io.status.quality_values``:
+        tag counts, reliability, rms_px, the 95 % bounds in deg and mm and in rad and m; NaN without
+        a pose); every image.
     ``status`` DiagnosticArray, one status ``ficap`` per image, level and message as the node's
         (``ficap_ros.io.status.record_status``): OK with a pose, WARN without one or below reliability
         0.5, ERROR for an undecodable image; values tags_detected, tags_used, rms_px, reliability,
         calibrated and, with a pose, yaw_deg, pitch_deg, roll_deg (R_frontal_head).
-    ``head_twist`` TwistStamped: the head's twist (``ficap_ros.ros.twist``: the cap origin's
-        linear velocity and the angular velocity, camera axes), for images whose pose has one.
-    ``/tf`` (never namespaced) tf2_msgs/TFMessage per posed image: ``ficap_frontal`` -> the camera
-        frame (R_frontal_cam, the frontal frame's orientation; origin at the camera), camera ->
-        ``ficap_cap`` (T_cam_cap), ``ficap_cap`` -> ``ficap_head`` (R_cap_head), so a 3-D view
-        (Foxglove, RViz) fixed in ``ficap_frontal`` shows the head moving.
+    ``detections`` apriltag_msgs/AprilTagDetectionArray and ``detections/fit`` JointState
+        (``ficap_ros.io.detections``): every decoded image's detected tags, their corners, use and
+        residual.
+    ``head_twist`` TwistStamped: the head's twist (the cap origin's linear velocity and the
+        angular velocity, m/s and rad/s, in the pose outputs' frame), for images whose pose has one.
+    ``/tf`` and ``/tf_static`` (never namespaced) tf2_msgs/TFMessage: the TF tree of
+        ``ficap_ros.io.frames`` (camera -> ``ficap_cap`` -> ``ficap_head`` per posed image; the
+        mount on ``/tf_static``), so a 3-D view (Foxglove, RViz) shows the head moving.
 Poses exist in the bag only for images with a pose; status and quality for every image.
 """
 
@@ -56,6 +62,8 @@ from scipy.spatial.transform import Rotation
 from ficap_ros.errors import BagError
 from ficap_ros.geometry.metrics import yaw_pitch_roll_deg
 from ficap_ros.geometry.transform import Transform, inverse, rotate_twist
+from ficap_ros.io.detections import TagFits
+from ficap_ros.io.frames import CAP_FRAME, FRONTAL_FRAME, HEAD_FRAME, OutputFrames
 from ficap_ros.io.status import (
     FrameStatus,
     quality_values,
@@ -82,6 +90,9 @@ __all__ = [
     "read_labels_text",
     "write_labels_bag",
     "label_topics",
+    "FRONTAL_FRAME",
+    "CAP_FRAME",
+    "HEAD_FRAME",
 ]
 
 #: The head twist's CSV columns (the last six): linear velocity, then angular velocity, in F.
@@ -101,10 +112,6 @@ DEFAULT_NAMESPACE = ""
 DEFAULT_CAMERA_FRAME = "camera_optical_frame"
 #: The head calibration of a record made without one: the cap is the head, the camera looks ahead.
 UNCALIBRATED = HeadCalibration()
-#: TF frame names of labels.mcap (the camera's is the image's frame_id).
-FRONTAL_FRAME = "ficap_frontal"
-CAP_FRAME = "ficap_cap"
-HEAD_FRAME = "ficap_head"
 
 
 @dataclass(frozen=True)
@@ -148,6 +155,8 @@ class FrameRecord:
         pose: the cap pose, or None.
         calibration: the head calibration the head pose is composed with (``head``).
         method: the pose method of the settings.
+        tags: the detected tags with their corners, use and residual (None: not kept, or the
+            image could not be processed).
     """
 
     index: int
@@ -159,25 +168,29 @@ class FrameRecord:
     pose: CapPose | None = None
     calibration: HeadCalibration = UNCALIBRATED
     method: str = ""
+    tags: TagFits | None = None
 
     @classmethod
     def processed(cls, index: int, stamp_ns: int, frame_id: str, pose: CapPose | None,
                   detected_ids: Iterable[int], reason: str = "",
-                  calibration: HeadCalibration = UNCALIBRATED, method: str = "") -> FrameRecord:
+                  calibration: HeadCalibration = UNCALIBRATED, method: str = "",
+                  tags: TagFits | None = None) -> FrameRecord:
         """A processed frame: ``POSE`` with a pose, else ``NO_POSE`` (reason default "no pose");
         ``frame_id`` '' is ``DEFAULT_CAMERA_FRAME``."""
         return cls(int(index), int(stamp_ns), frame_id or DEFAULT_CAMERA_FRAME,
                    FrameStatus.POSE if pose is not None else FrameStatus.NO_POSE,
                    "" if pose is not None else reason or "no pose",
                    tuple(sorted({int(i) for i in detected_ids})), pose, calibration,
-                   pose.method if pose is not None else method)
+                   pose.method if pose is not None else method, tags)
 
     @classmethod
     def of(cls, result: FrameResult, index: int, stamp_ns: int, frame_id: str,
-           calibration: HeadCalibration = UNCALIBRATED, method: str = "") -> FrameRecord:
-        """The record of the pipeline's result for a frame."""
+           calibration: HeadCalibration = UNCALIBRATED, method: str = "",
+           tags: TagFits | None = None) -> FrameRecord:
+        """The record of the pipeline's result for a frame (``tags``: its detections'
+        ``ficap_ros.io.detections.tag_fits``, when kept)."""
         return cls.processed(index, stamp_ns, frame_id, result.pose, result.detected_ids,
-                             result.reason, calibration, method)
+                             result.reason, calibration, method, tags)
 
     @classmethod
     def unprocessed(cls, index: int, stamp_ns: int, frame_id: str, reason: str,
@@ -461,8 +474,9 @@ def _first_bad_field(rows: list[dict[str, str]]) -> str:
 
 
 def label_topics(namespace: str = DEFAULT_NAMESPACE) -> dict[str, str]:
-    """Topic name per label stream: cap_pose, head_pose, head_pose_cov, head_frontal, head_rpy,
-    quality, status, tf (``/tf`` is global, as in ROS: never namespaced), head_twist."""
+    """Topic name per label stream: cap_pose, head_pose, head_pose_cov, head_frontal, head_rpy
+    (degrees), head_rpy_rad, quality, status, detections, detections_fit, head_twist, tf and
+    tf_static (``/tf`` and ``/tf_static`` are global, as in ROS: never namespaced)."""
     ns = "/" + namespace.strip("/") if namespace.strip("/") else ""
     return {
         "cap_pose": f"{ns}/cap_pose",
@@ -470,51 +484,33 @@ def label_topics(namespace: str = DEFAULT_NAMESPACE) -> dict[str, str]:
         "head_pose_cov": f"{ns}/head_pose/with_covariance",
         "head_frontal": f"{ns}/head_pose/frontal",
         "head_rpy": f"{ns}/head_rpy_deg",
+        "head_rpy_rad": f"{ns}/head_rpy",
         "quality": f"{ns}/quality",
         "status": f"{ns}/status",
+        "detections": f"{ns}/detections",
+        "detections_fit": f"{ns}/detections/fit",
         "tf": "/tf",
+        "tf_static": "/tf_static",
         "head_twist": f"{ns}/head_twist",
     }
 
 
-def _quality_msg(rec: FrameRecord) -> object:
-    from ficap_ros.io.messages import ROSBAGS, header, named_values
-
-    return named_values(ROSBAGS, header(ROSBAGS, rec.stamp_ns, rec.frame_id), quality_values(rec))
-
-
-def _rpy_msg(rec: FrameRecord) -> object:
-    from ficap_ros.io.messages import ROSBAGS, header, rpy_deg
-
-    assert rec.T_frontal_head is not None
-    return rpy_deg(ROSBAGS, header(ROSBAGS, rec.stamp_ns, FRONTAL_FRAME),
-                   rec.T_frontal_head.rotation)
-
-
-def _tf_msg(rec: FrameRecord) -> object:
-    """tf2_msgs/TFMessage: frontal -> camera, camera -> cap, cap -> head (stamp = the image's)."""
-    from ficap_ros.io.messages import ROSBAGS, header
-    from ficap_ros.io.sources import jazzy_typestore
-
-    assert rec.T_cam_cap is not None and rec.T_frontal_head is not None
-    t = jazzy_typestore().types
-    T_frontal_cam = Transform(rec.R_frontal_cam, np.zeros(3))
-    T_cap_head = rec.T_cam_cap.inv() * T_frontal_cam.inv() * rec.T_frontal_head
-
-    def stamped(parent: str, child: str, T: Transform) -> object:
-        x, y, z = (float(v) for v in T.translation_m)
-        qx, qy, qz, qw = (float(v) for v in T.q_xyzw)
-        return t["geometry_msgs/msg/TransformStamped"](
-            header=header(ROSBAGS, rec.stamp_ns, parent), child_frame_id=child,
-            transform=t["geometry_msgs/msg/Transform"](
-                translation=t["geometry_msgs/msg/Vector3"](x=x, y=y, z=z),
-                rotation=t["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)))
-
-    return t["tf2_msgs/msg/TFMessage"](transforms=[
-        stamped(FRONTAL_FRAME, rec.frame_id, T_frontal_cam),
-        stamped(rec.frame_id, CAP_FRAME, rec.T_cam_cap),
-        stamped(CAP_FRAME, HEAD_FRAME, T_cap_head),
-    ])
+#: labels.mcap's message type per label stream.
+_TOPIC_TYPES = {
+    "cap_pose": "geometry_msgs/msg/PoseStamped",
+    "head_pose": "geometry_msgs/msg/PoseStamped",
+    "head_pose_cov": "geometry_msgs/msg/PoseWithCovarianceStamped",
+    "head_frontal": "geometry_msgs/msg/PoseStamped",
+    "head_rpy": "geometry_msgs/msg/Vector3Stamped",
+    "head_rpy_rad": "geometry_msgs/msg/Vector3Stamped",
+    "quality": "sensor_msgs/msg/JointState",
+    "status": "diagnostic_msgs/msg/DiagnosticArray",
+    "tf": "tf2_msgs/msg/TFMessage",
+    "head_twist": "geometry_msgs/msg/TwistStamped",
+    "tf_static": "tf2_msgs/msg/TFMessage",
+    "detections": "apriltag_msgs/msg/AprilTagDetectionArray",
+    "detections_fit": "sensor_msgs/msg/JointState",
+}
 
 
 def _status_text(key: str, value: object) -> str:
@@ -541,54 +537,59 @@ def _status_msg(rec: FrameRecord) -> object:
         header=header(ROSBAGS, rec.stamp_ns, rec.frame_id), status=[status])
 
 
+def _frame_messages(rec: FrameRecord, frames: OutputFrames) -> list[tuple[str, object]]:
+    """(label stream, message) of one record, in the order they are written: the poses, the head
+    angles and the TF of a posed frame; quality and status of every frame; the detections of
+    every processed one."""
+    from ficap_ros.io.detections import apriltag_array, fit_values
+    from ficap_ros.io.frames import frame_transforms, pose_outputs, tf_message
+    from ficap_ros.io.messages import ROSBAGS, header, named_values
+
+    out: list[tuple[str, object]] = []
+    if rec.T_cam_cap is not None and rec.T_frontal_head is not None:
+        poses = pose_outputs(ROSBAGS, rec.stamp_ns, rec, frames)
+        out += [("cap_pose", poses["cap"]), ("head_pose", poses["head"]),
+                ("head_pose_cov", poses["head_cov"]), ("head_frontal", poses["head_frontal"]),
+                ("head_rpy", poses["rpy_deg"]),
+                ("tf", tf_message(ROSBAGS, rec.stamp_ns, frame_transforms(rec, frames))),
+                *([("head_twist", poses["twist"])] if "twist" in poses else []),
+                ("head_rpy_rad", poses["rpy_rad"])]
+    in_camera = header(ROSBAGS, rec.stamp_ns, rec.frame_id)
+    out += [("quality", named_values(ROSBAGS, in_camera, quality_values(rec))),
+            ("status", _status_msg(rec))]
+    if rec.tags is not None:
+        out += [("detections", apriltag_array(ROSBAGS, in_camera, rec.tags)),
+                ("detections_fit", named_values(ROSBAGS, in_camera, fit_values(rec.tags)))]
+    return out
+
+
 def write_labels_bag(path: str | Path, records: Sequence[FrameRecord],
-                     namespace: str = DEFAULT_NAMESPACE) -> None:
+                     namespace: str = DEFAULT_NAMESPACE,
+                     frames: OutputFrames | None = None) -> None:
     """Write labels.mcap: a single-file rosbag2 MCAP, plus ``metadata.yaml`` beside it.
 
-    The folder holding ``path`` is thus also a rosbag2 bag. Written atomically.
+    The folder holding ``path`` is thus also a rosbag2 bag. Written atomically. ``frames``: the
+    output frames (default: the camera's and the frontal frame, no mount); a mount goes on
+    ``/tf_static`` with the first image of each camera frame.
 
     Raises:
         BagError: the folder is not writable.
     """
     from ficap_ros.io.bag_writer import BagWriter
-    from ficap_ros.io.messages import (
-        ROSBAGS,
-        header,
-        pose_stamped,
-        pose_with_covariance_stamped,
-        twist_stamped,
-    )
+    from ficap_ros.io.frames import static_transforms, tf_message
+    from ficap_ros.io.messages import ROSBAGS
 
+    frames = frames or OutputFrames()
     topics = label_topics(namespace)
     with BagWriter(path, storage="mcap", layout="file") as bag:
-        bag.add_topic(topics["cap_pose"], "geometry_msgs/msg/PoseStamped")
-        bag.add_topic(topics["head_pose"], "geometry_msgs/msg/PoseStamped")
-        bag.add_topic(topics["head_pose_cov"], "geometry_msgs/msg/PoseWithCovarianceStamped")
-        bag.add_topic(topics["head_frontal"], "geometry_msgs/msg/PoseStamped")
-        bag.add_topic(topics["head_rpy"], "geometry_msgs/msg/Vector3Stamped")
-        bag.add_topic(topics["quality"], "sensor_msgs/msg/JointState")
-        bag.add_topic(topics["status"], "diagnostic_msgs/msg/DiagnosticArray")
-        bag.add_topic(topics["tf"], "tf2_msgs/msg/TFMessage")
-        bag.add_topic(topics["head_twist"], "geometry_msgs/msg/TwistStamped")
+        for stream, msgtype in _TOPIC_TYPES.items():
+            if stream != "tf_static" or frames.mount is not None:
+                bag.add_topic(topics[stream], msgtype)
+        static_for = None
         for rec in records:
-            if rec.T_cam_cap is not None and rec.T_frontal_head is not None:
-                in_camera = header(ROSBAGS, rec.stamp_ns, rec.frame_id)
-                bag.write(topics["cap_pose"], rec.stamp_ns,
-                          pose_stamped(ROSBAGS, in_camera, rec.T_cam_cap))
-                T_cam_head = rec.T_cam_head
-                bag.write(topics["head_pose"], rec.stamp_ns,
-                          pose_stamped(ROSBAGS, in_camera, T_cam_head))
-                assert rec.covariance_cam is not None  # finite and positive: pose.py's guarantee
-                cov = rec.covariance_cam
-                bag.write(topics["head_pose_cov"], rec.stamp_ns,
-                          pose_with_covariance_stamped(ROSBAGS, in_camera, T_cam_head, cov))
-                bag.write(topics["head_frontal"], rec.stamp_ns,
-                          pose_stamped(ROSBAGS, header(ROSBAGS, rec.stamp_ns, FRONTAL_FRAME),
-                                       rec.T_frontal_head))
-                bag.write(topics["head_rpy"], rec.stamp_ns, _rpy_msg(rec))
-                bag.write(topics["tf"], rec.stamp_ns, _tf_msg(rec))
-                if rec.head_twist_cam is not None:
-                    bag.write(topics["head_twist"], rec.stamp_ns,
-                              twist_stamped(ROSBAGS, in_camera, rec.head_twist_cam))
-            bag.write(topics["quality"], rec.stamp_ns, _quality_msg(rec))
-            bag.write(topics["status"], rec.stamp_ns, _status_msg(rec))
+            if frames.mount is not None and rec.frame_id != static_for:
+                static_for = rec.frame_id
+                bag.write(topics["tf_static"], rec.stamp_ns, tf_message(
+                    ROSBAGS, rec.stamp_ns, static_transforms(frames, rec.frame_id)))
+            for stream, msg in _frame_messages(rec, frames):
+                bag.write(topics[stream], rec.stamp_ns, msg)

@@ -21,13 +21,13 @@ from scipy.spatial.transform import Rotation
 
 from ficap_ros.errors import ImageError
 from ficap_ros.geometry.camera import CameraModel
-from ficap_ros.geometry.metrics import yaw_pitch_roll_deg
+from ficap_ros.geometry.metrics import yaw_pitch_roll_deg, yaw_pitch_roll_rad
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.io.image_codec import decode_compressed, decode_image, encoding_layout
 
-__all__ = ["MessageClasses", "ROSBAGS", "jazzy_typestore", "as_bytes", "time", "header", "pose",
-           "pose_stamped", "pose_with_covariance_stamped", "rpy_deg", "named_values", "twist_stamped",
-           "twist_to_array",
+__all__ = ["MessageClasses", "ROSBAGS", "jazzy_typestore", "vendored_msg_definitions", "as_bytes", "time", "header", "pose",
+           "pose_stamped", "pose_with_covariance_stamped", "transform_stamped", "rpy_deg",
+           "rpy_rad", "named_values", "twist_stamped", "twist_to_array",
            "camera_info", "image",
            "compressed_image", "image_to_array", "compressed_to_array", "orientation",
            "pose_to_transform", "UNKNOWN_COVARIANCE"]
@@ -68,13 +68,27 @@ _TYPESTORE: Any = None
 
 
 def jazzy_typestore() -> Any:
-    """rosbags' ROS 2 Jazzy typestore (cached)."""
+    """rosbags' ROS 2 Jazzy typestore with the vendored apriltag_msgs definitions (cached)."""
     global _TYPESTORE
     if _TYPESTORE is None:
-        from rosbags.typesys import Stores, get_typestore
+        from rosbags.typesys import Stores, get_types_from_msg, get_typestore
 
-        _TYPESTORE = get_typestore(Stores.ROS2_JAZZY)
+        store = get_typestore(Stores.ROS2_JAZZY)
+        for name, text in vendored_msg_definitions().items():
+            store.register(get_types_from_msg(text, name))
+        _TYPESTORE = store
     return _TYPESTORE
+
+
+def vendored_msg_definitions() -> dict[str, str]:
+    """The message definitions vendored in ``ficap_ros/interfaces`` that rosbags' Jazzy store
+    lacks (apriltag_msgs: labels.mcap's ``detections``), ``pkg/msg/Name`` -> .msg text, each
+    after the ones it uses."""
+    from importlib import resources
+
+    folder = resources.files("ficap_ros") / "interfaces" / "apriltag_msgs" / "msg"
+    return {f"apriltag_msgs/msg/{name}": (folder / f"{name}.msg").read_text()
+            for name in ("Point", "AprilTagDetection", "AprilTagDetectionArray")}
 
 
 #: rosbags' dataclasses: array fields are numpy arrays of their own (CDR serialises them as is).
@@ -132,13 +146,34 @@ def pose_with_covariance_stamped(c: MessageClasses, head: Any, T: Transform,
             pose=pose(c, T), covariance=c.floats(cov)))
 
 
+def transform_stamped(c: MessageClasses, head: Any, child_frame_id: str, T: Transform) -> Any:
+    """``geometry_msgs/TransformStamped``: ``T`` is T_parent_child, the parent ``head.frame_id``
+    (translation in metres)."""
+    x, y, z = (float(v) for v in T.translation_m)
+    qx, qy, qz, qw = (float(v) for v in T.q_xyzw)
+    return c.types["geometry_msgs/msg/TransformStamped"](
+        header=head, child_frame_id=child_frame_id,
+        transform=c.types["geometry_msgs/msg/Transform"](
+            translation=c.types["geometry_msgs/msg/Vector3"](x=x, y=y, z=z),
+            rotation=c.types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw)))
+
+
+def _rpy(c: MessageClasses, head: Any, ypr: np.ndarray) -> Any:
+    yaw, pitch, roll = (float(v) for v in ypr)
+    return c.types["geometry_msgs/msg/Vector3Stamped"](
+        header=head, vector=c.types["geometry_msgs/msg/Vector3"](x=roll, y=pitch, z=yaw))
+
+
 def rpy_deg(c: MessageClasses, head: Any, R_frontal_head: Rotation) -> Any:
     """``geometry_msgs/Vector3Stamped`` of the head angles in degrees: x roll, y pitch, z yaw
     (each about its axis, REP-103 right-hand, intrinsic ZYX: tf2's ``getRPY``); pitch positive
     nose down."""
-    yaw, pitch, roll = (float(v) for v in yaw_pitch_roll_deg(R_frontal_head))
-    return c.types["geometry_msgs/msg/Vector3Stamped"](
-        header=head, vector=c.types["geometry_msgs/msg/Vector3"](x=roll, y=pitch, z=yaw))
+    return _rpy(c, head, yaw_pitch_roll_deg(R_frontal_head))
+
+
+def rpy_rad(c: MessageClasses, head: Any, R_frontal_head: Rotation) -> Any:
+    """``rpy_deg`` in radians (REP-103's unit)."""
+    return _rpy(c, head, yaw_pitch_roll_rad(R_frontal_head))
 
 
 def twist_stamped(c: MessageClasses, head: Any, twist: np.ndarray) -> Any:

@@ -38,6 +38,7 @@ from ficap_ros.geometry.camera import (
 from ficap_ros.io.camera_info import (
     CAMERA_INFO_MAX_STAMP_DIFF_NS,
     camera_from_info,
+    camera_info_beside,
     camera_info_key,
     pick_camera_info,
 )
@@ -261,8 +262,15 @@ def open_bag_reader(path: Path, salvage: bool = True) -> Any:
 
 
 def _pick_camera_info(topics: dict[str, str], image_topic: str) -> str | None:
-    """The CameraInfo topic of ``image_topic``: the only one, or the one in its namespace."""
+    """The CameraInfo topic of ``image_topic``: the one beside it (image_transport's rule, the
+    node's: ``camera_info.camera_info_beside`` of the base topic, a CompressedImage topic without
+    its ``/compressed``), else the only one, else the nearest in an enclosing namespace."""
     infos = sorted(t for t, typ in topics.items() if typ == CAMERA_INFO_TYPE)
+    base = image_topic
+    if topics.get(image_topic) == COMPRESSED_TYPE and image_topic.endswith("/compressed"):
+        base = image_topic[:-len("/compressed")]
+    if camera_info_beside(base) in infos:
+        return camera_info_beside(base)
     if len(infos) <= 1:
         return infos[0] if infos else None
     parts = image_topic.rstrip("/").split("/")

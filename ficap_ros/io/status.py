@@ -66,7 +66,8 @@ def record_status(rec: FrameRecord, warn_reliability: float = WARN_RELIABILITY) 
 
 def quality_values(rec: FrameRecord) -> dict[str, float]:
     """The numbers of the ``quality`` topic (the node adds its latency): NaN without a pose,
-    reliability 0."""
+    reliability 0. The 95 % bounds come in degrees and mm and in SI units (``rot_err95_rad``,
+    ``trans_err95_m``)."""
     return {
         "tags_detected": float(rec.tags_detected),
         "tags_used": float(rec.tags_used),
@@ -74,6 +75,8 @@ def quality_values(rec: FrameRecord) -> dict[str, float]:
         "rms_px": float(rec.rms_px),
         "rot_err95_deg": float(rec.rot_err95_deg),
         "trans_err95_mm": float(rec.trans_err95_mm),
+        "rot_err95_rad": math.radians(rec.rot_err95_deg),
+        "trans_err95_m": float(rec.trans_err95_mm) / 1000.0,
     }
 
 

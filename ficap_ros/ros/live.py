@@ -1,8 +1,8 @@
 """What ``ficap_node`` does with one image, without ROS: build its pipeline from the settings,
 decode the message, choose its intrinsics, run the pipeline, and make the frame's record
-(``ficap_ros.io.labels.FrameRecord``, the labels' own) with what the node adds to it (status level
-and message, whether its pose is published, the image and tags to draw). The node only subscribes,
-publishes and serves.
+(``ficap_ros.io.labels.FrameRecord``, the labels' own, with its detections' fits) with what the
+node adds to it (status level and message, whether its pose is published, the image and tags to
+draw). The node only subscribes, publishes and serves.
 
 Messages are read duck-typed (``ficap_ros.io.messages``), so tests and tools can drive this with
 rosbags messages as well as rclpy's.
@@ -25,6 +25,7 @@ from ficap_ros.geometry.camera import (
 from ficap_ros.geometry.cap_model import load_model, nominal_model
 from ficap_ros.io import messages
 from ficap_ros.io.camera_info import CameraInfoCache
+from ficap_ros.io.detections import tag_fits
 from ficap_ros.io.labels import FrameRecord
 from ficap_ros.io.status import (
     FrameStatus,
@@ -71,8 +72,9 @@ class LiveFrame:
         return self.record.status is FrameStatus.FAILED
 
     def quality_values(self, latency_ms: float) -> dict[str, float]:
-        """The ``quality`` topic's numbers: labels.mcap's, and the latency."""
-        return {**quality_values(self.record), "latency_ms": float(latency_ms)}
+        """The ``quality`` topic's numbers: labels.mcap's, and the latency (ms and s)."""
+        return {**quality_values(self.record), "latency_ms": float(latency_ms),
+                "latency_s": float(latency_ms) / 1000.0}
 
     def status_values(self, latency_ms: float, dropped_frames: int) -> dict[str, Any]:
         """The ``status`` topic's values: labels.mcap's, how the tags were found, the latency
@@ -184,7 +186,8 @@ def process_image(msg: Any, processor: FrameProcessor, cameras: CameraInfoCache,
     except FicapError as err:
         return failed_frame(stamp_ns, header.frame_id, str(err), calibration)
     rec = FrameRecord.of(result, 0, stamp_ns, header.frame_id, calibration,
-                         processor.pose_config.method)
+                         processor.pose_config.method,
+                         tag_fits(result.detections, result.pose, processor.model, camera))
     return LiveFrame(rec, *record_status(rec, config.warn_reliability), str(result.search),
                      result.detections, image, camera,
                      publish_pose=(rec.pose is not None

@@ -123,13 +123,16 @@ class LiveCalibration:
                 message: str) -> tuple[bool, str]:
         """Save the current calibration to ``path`` ('' = not persisted): (success, message). A
         calibration in use but not saved is a failure (lost at the next start: the caller must
-        know); ``save_calibration`` never replaces a file that is not a calibration."""
+        know); ``save_calibration`` never replaces a file that is not a calibration, and no
+        folder is made for it."""
         if not path:
             return True, message
+        what = "; in use but NOT saved" if result else f" in memory; {path} NOT updated"
+        if not Path(path).parent.is_dir():  # never a new folder tree from a typo in the path
+            return False, f"{message}{what}: folder {Path(path).parent} does not exist"
         try:
             save_calibration(path, self._current, result)
         except (OSError, FicapError) as err:
-            what = "; in use but NOT saved" if result else f" in memory; {path} NOT updated"
             return False, f"{message}{what}: {err}"
         return True, message + (f", saved to {path}" if result else "")
 
@@ -159,7 +162,10 @@ class LiveCalibration:
         return ("ok" if ok else "unsaved"), message
 
     def clear_and_save(self, path: str | Path) -> tuple[str, str]:
-        """``~/clear_calibration``: (outcome, message) as ``calibrate``'s."""
+        """``~/clear_calibration``: (outcome, message) as ``calibrate``'s. Without a calibration in
+        use and without a file at ``path`` there is nothing to clear and no file is written."""
+        if not self._current.calibrated and not (path and Path(path).exists()):
+            return "ok", "not calibrated: nothing to clear" + (f", {path} not written" if path else "")
         self.clear()
         ok, message = self.persist(path, None, "calibration cleared")
         return ("ok" if ok else "unsaved"), message

@@ -1,10 +1,11 @@
 """The node's messages: rclpy's classes for ``ficap_ros.io.messages`` (``RCLPY``), and the
-messages only the node publishes (its pose outputs, DiagnosticArray, MarkerArray, a debug Image).
+messages only the node publishes (DiagnosticArray, MarkerArray, a debug Image).
 
 Headers, poses, head angles, named values, CameraInfo and images are built and read by
 ``ficap_ros.io.messages``'s functions over ``RCLPY``; CameraInfo becomes a ``CameraModel`` by
-``ficap_ros.io.camera_info.camera_from_info``. Quaternions in messages are the x, y, z, w fields
-(``q_xyzw``). Frame records become the node's pose messages (``pose_outputs``).
+``ficap_ros.io.camera_info.camera_from_info``; frame records become the pose messages by
+``ficap_ros.io.frames.pose_outputs``. Quaternions in messages are the x, y, z, w fields
+(``q_xyzw``).
 """
 
 from __future__ import annotations
@@ -22,7 +23,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.cap_model import CapModel
-from ficap_ros.geometry.transform import Transform, rotate_covariance
+from ficap_ros.geometry.transform import Transform
 from ficap_ros.io import messages
 from ficap_ros.io.labels import FrameRecord
 from ficap_ros.stamps import stamp_to_ns
@@ -161,31 +162,3 @@ def debug_image_msg(
                     cv2.line(bgr, o, tip, colour, 2, cv2.LINE_AA)
     return messages.image(RCLPY, header, bgr, "bgr8")
 
-
-def pose_outputs(header: Header, record: FrameRecord, output_frame: str, frontal_frame: str,
-                 mount: Transform | None) -> dict[str, object]:
-    """The node's pose messages of a posed frame, by publisher: ``head``, ``head_cov``, ``cap``
-    (in ``output_frame`` through ``mount``, else the image's frame), ``head_frontal`` and ``rpy``
-    (the head in the frontal frame: ``output_frame``, else ``frontal_frame``), and ``twist``
-    (``ros.twist.head_twist``, like ``head``) when the estimator measures the velocity."""
-    from ficap_ros.ros.twist import head_twist
-
-    pose, T_cam_head, T_frontal_head = record.pose, record.T_cam_head, record.T_frontal_head
-    assert pose is not None and T_cam_head is not None and T_frontal_head is not None
-    out = Header(stamp=header.stamp, frame_id=output_frame or header.frame_id)
-    # Into output_frame through the mount (identity when the outputs stay in the camera's).
-    moved = bool(output_frame) and mount is not None
-    T_out_cam = mount if moved and mount is not None else Transform.identity()
-    cov = rotate_covariance(pose.covariance, T_out_cam.rotation) if moved else pose.covariance
-    # The head in the frontal frame F: through the mount (the camera's place in F too), or the
-    # record's (the camera at F's origin).
-    frontal = Header(stamp=header.stamp, frame_id=output_frame or frontal_frame)
-    return {
-        "head": messages.pose_stamped(RCLPY, out, T_out_cam * T_cam_head),
-        "head_cov": messages.pose_with_covariance_stamped(RCLPY, out, T_out_cam * T_cam_head, cov),
-        "cap": messages.pose_stamped(RCLPY, out, T_out_cam * pose.T_cam_cap),
-        "head_frontal": messages.pose_stamped(RCLPY, frontal, mount * T_cam_head if mount is not None
-                                              else T_frontal_head),
-        "rpy": messages.rpy_deg(RCLPY, frontal, T_frontal_head.rotation),
-        **({"twist": twist} if (twist := head_twist(header, record, output_frame, mount)) else {}),
-    }

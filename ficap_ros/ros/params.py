@@ -9,9 +9,9 @@ from __future__ import annotations
 import math
 from dataclasses import asdict, dataclass, fields
 from enum import Enum
+from pathlib import Path
 from typing import Any
 
-import numpy as np
 from rcl_interfaces.msg import (
     FloatingPointRange,
     IntegerRange,
@@ -23,13 +23,16 @@ from ficap_ros.errors import ConfigError
 from ficap_ros.geometry.camera import ROW_ORDERS, CameraTiming
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.io.camera_info import CAMERA_INFO_MAX_STAMP_DIFF_NS
+from ficap_ros.io.frames import OutputFrames, camera_mount_transform
+from ficap_ros.io.frames import frames_reason as _frames_reason
 from ficap_ros.io.status import WARN_RELIABILITY
 from ficap_ros.vision.detector import DetectorConfig
 from ficap_ros.vision.pose import POSE_METHODS, PoseConfig
 from ficap_ros.vision.uncertainty import UncertaintyConfig
 
 __all__ = ["ParamSpec", "PARAMETERS", "REMOVED_PARAMETERS", "CalibrationMode", "NodeConfig",
-           "camera_mount_transform", "descriptor", "validate_parameter", "frames_reason"]
+           "camera_mount_transform", "descriptor", "validate_parameter", "frames_reason",
+           "calibration_folder_warning", "change_lines", "usage"]
 
 
 class CalibrationMode(str, Enum):
@@ -70,10 +73,15 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("image_transport", "raw", "Input transport: 'raw' subscribes to image, 'compressed' "
               "to image/compressed.", choices=("raw", "compressed"), read_only=True),
     ParamSpec("qos.reliability", "best_effort", "Reliability of the image/camera_info "
-              "subscriptions (best_effort = sensor-data QoS, matches any publisher).",
+              "subscriptions (best_effort = sensor-data QoS, matches any publisher); "
+              "qos_overrides.<topic>.subscription.* override it per topic.",
               choices=("best_effort", "reliable"), read_only=True),
-    ParamSpec("qos.depth", 5, "History depth of the image/camera_info subscriptions.",
+    ParamSpec("qos.depth", 5, "History depth of the image/camera_info subscriptions; "
+              "qos_overrides.<topic>.subscription.depth overrides it per topic.",
               range=(1, 100), read_only=True),
+    ParamSpec("camera_info_topic", "", "CameraInfo topic ('' = beside the image topic, "
+              "image_transport's rule: <the image topic's namespace>/camera_info, remaps of image "
+              "included; a remap of camera_info is honoured too).", read_only=True),
     ParamSpec("camera_info_file", "", "camera_calibration YAML with static intrinsics, used while "
               "no CameraInfo has been received ('' = none).", read_only=True),
     ParamSpec("camera_info_max_stamp_diff_ms", CAMERA_INFO_MAX_STAMP_DIFF_NS / 1e6, "A CameraInfo "
@@ -120,8 +128,10 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               read_only=True),
     ParamSpec("tracking", True, "Follow the cap from frame to frame: verify its tags where the "
               "last poses predict them, search only when that fails.", read_only=True),
-    ParamSpec("pose.method", "joint", "Pose estimator: 'joint' (PnP over all corners) or "
-              "'paper' (per-tag + Kabsch + outlier trimming).", choices=tuple(POSE_METHODS)),
+    ParamSpec("pose.method", "joint", "Pose estimator: 'joint' (PnP over all corners, tag-level "
+              "outlier rejection), 'paper' (per-tag + Kabsch + outlier trimming) or 'naive' (one "
+              "PnP over all corners, no outlier handling: the baseline).",
+              choices=tuple(POSE_METHODS)),
     ParamSpec("pose.min_tags", 1, "Fewest tags for a pose.", range=(1, 23)),
     ParamSpec("uncertainty.corner_noise_px", _UNCERTAINTY.corner_noise_px,
               "Covariance floor (added to the residual-based term): independent corner noise, px.",
@@ -191,7 +201,8 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("calibration.pair_tolerance_ms", 5.0, "Reference mode: largest stamp difference of "
               "a pair, ms.", range=(0.0, 1000.0)),
     ParamSpec("calibration.file", "", "Calibration YAML: loaded at start, written by "
-              "~/calibrate ('' = not persisted).", read_only=True),
+              "~/calibrate ('' = not persisted) into its folder, which must exist.",
+              read_only=True),
 )
 _SPECS = {p.name: p for p in PARAMETERS}
 
@@ -202,18 +213,6 @@ REMOVED_PARAMETERS: dict[str, str] = {
           "vehicle frame, static_transform_publisher order; see README 'Migration')"
     for name in ("frontal.mount_pitch_deg", "frontal.mount_yaw_deg", "frontal.mount_roll_deg")
 }
-
-
-def camera_mount_transform(values: Any) -> Transform | None:
-    """The ``camera_mount`` parameter as T_parent_cam, or None when it is all zeros (not set).
-
-    Raises:
-        ConfigError: not 7 finite numbers or not a unit quaternion.
-    """
-    v = np.asarray(list(values), dtype=np.float64)
-    if v.size == 7 and not np.any(v):
-        return None
-    return Transform.from_xyz_q_xyzw(v, "camera_mount")
 
 
 def descriptor(spec: ParamSpec) -> ParameterDescriptor:
@@ -262,10 +261,27 @@ def validate_parameter(name: str, value: Any) -> str:
 
 def frames_reason(values: dict[str, Any]) -> str:
     """Why the output_frame / camera_mount combination is refused ('' when it is fine)."""
-    if values.get("output_frame") and camera_mount_transform(values["camera_mount"]) is None:
-        return (f"output_frame {values['output_frame']!r} needs camera_mount (the camera's optical "
-                "frame in it: x y z qx qy qz qw); without it the poses would only be relabelled")
+    return _frames_reason(values.get("output_frame", ""),
+                          camera_mount_transform(values.get("camera_mount", [0.0] * 7)))
+
+
+def calibration_folder_warning(path: str) -> str:
+    """The start-up warning for a ``calibration.file`` whose folder does not exist ('' when it
+    does): ~/calibrate will not save into it until it is made (never a new folder tree from a
+    typo in the path)."""
+    if path and not Path(path).parent.is_dir():
+        return (f"calibration.file {path}: folder {Path(path).parent} does not exist; "
+                "~/calibrate cannot save until it does")
     return ""
+
+
+def change_lines(old: dict[str, Any], params: list[Any]) -> list[str]:
+    """One log line per parameter of ficap_node's whose value a set changed: ``name: old -> new``."""
+    out = []
+    for p in params:
+        if p.name in _SPECS and p.name in old and old[p.name] != p.value:
+            out.append(f"parameter {p.name}: {old[p.name]!r} -> {p.value!r}")
+    return out
 
 
 @dataclass(frozen=True)
@@ -276,6 +292,7 @@ class NodeConfig:
     image_transport: str
     qos_reliability: str
     qos_depth: int
+    camera_info_topic: str
     camera_info_file: str
     camera_info_max_stamp_diff_ms: float
     image_is_rectified: bool
@@ -343,6 +360,11 @@ class NodeConfig:
         return camera_mount_transform(self.camera_mount)
 
     @property
+    def frames(self) -> OutputFrames:
+        """The output frames (``output_frame``, ``camera_mount``, ``frontal_frame``)."""
+        return OutputFrames(self.output_frame, self.mount, self.frontal_frame)
+
+    @property
     def camera_timing(self) -> CameraTiming | None:
         """The ``camera.*`` parameters as the camera's timing, or None while every one is at its
         default (a parameter cannot be unset: "not set", so a camera_info_file's timing may
@@ -391,6 +413,8 @@ def declare(node: Any) -> NodeConfig:
     from rclpy.exceptions import InvalidParameterTypeException, ParameterException
 
     for spec in PARAMETERS:
+        if node.has_parameter(spec.name):
+            continue  # declared by an earlier configure (a lifecycle node's)
         try:
             node.declare_parameter(spec.name, spec.default, descriptor(spec))
         except (ParameterException, InvalidParameterTypeException) as err:
@@ -428,9 +452,22 @@ def override_names(node: Any) -> list[str]:
 
 def unknown_parameters(node: Any) -> list[str]:
     """Override names the node does not declare (misspelt keys would otherwise be silently
-    ignored). rclpy's own (``use_sim_time``, ``qos_overrides.*``) count as known."""
-    return sorted(n for n in override_names(node)
-                  if not node.has_parameter(n) and not n.startswith("qos_overrides."))
+    ignored). rclpy's own (``use_sim_time``) and the ``qos_overrides.*`` of the node's
+    subscriptions are declared once it has subscribed; a ``qos_overrides`` key of any other topic
+    is unknown."""
+    return sorted(n for n in override_names(node) if not node.has_parameter(n))
+
+
+def usage(doc: str) -> str:
+    """``ficap_node --help``: how to run it, ``doc`` (the node's interface) and every parameter
+    with its default and description."""
+    lines = [f"usage: {doc.split(':', 1)[0].strip('`') or 'ficap_node'} [--ros-args "
+             "[-r FROM:=TO] [-p NAME:=VALUE] [--params-file FILE]]", "", doc.strip(), "",
+             "Parameters (-p NAME:=VALUE, or a params file; ros2 param describe for ranges):"]
+    for spec in PARAMETERS:
+        lines.append(f"  {spec.name} (default {spec.default!r}"
+                     f"{', read-only' if spec.read_only else ''}): {spec.description}")
+    return "\n".join(lines) + "\n"
 
 
 def unknown_warning(names: list[str]) -> str:

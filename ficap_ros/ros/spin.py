@@ -12,10 +12,10 @@ from rclpy.context import Context
 from rclpy.executors import ExternalShutdownException, SingleThreadedExecutor
 from rclpy.node import Node
 
-from ficap_ros.errors import FicapError
+from ficap_ros.errors import FicapError, missing_module
 from ficap_ros.io.native_log import ThrottledStderr
 
-__all__ = ["make_executor", "run_node", "params_files", "check_params_files"]
+__all__ = ["make_executor", "run_node", "wants_help", "params_files", "check_params_files"]
 
 
 def make_executor(context: Context | None = None) -> SingleThreadedExecutor:
@@ -34,6 +34,13 @@ def _rcl_message(err: BaseException) -> str:
     """rcl's error as one line, without the C source locations it appends (``, at file.c:N``)."""
     text = " ".join(str(err).split())
     return re.sub(r",? at /\S+:\d+", "", text).strip()
+
+
+def wants_help(args: list[str] | None) -> bool:
+    """``-h`` or ``--help`` among the arguments before ``--ros-args`` (``sys.argv`` when None)."""
+    argv = list(sys.argv[1:] if args is None else args)
+    own = argv[:argv.index("--ros-args")] if "--ros-args" in argv else argv
+    return any(a in ("-h", "--help") for a in own)
 
 
 def params_files(args: list[str]) -> list[str]:
@@ -64,15 +71,20 @@ def check_params_files(args: list[str]) -> None:
         load_yaml(path, "params file", ConfigError)
 
 
-def run_node(make_node: Callable[[], Node], name: str, args: list[str] | None = None) -> int:
+def run_node(make_node: Callable[[], Node], name: str, args: list[str] | None = None,
+             usage: str = "") -> int:
     """Run a node (Jazzy's idiom: spin until Ctrl-C or external shutdown); the exit code.
 
-    Bad ``--ros-args`` (a params file, a remap) and ``FicapError``s at start are one line on
+    ``-h``/``--help`` prints ``usage`` and exits 0 without starting ROS. Bad ``--ros-args`` (a
+    params file, a remap), ``FicapError``s at start and a missing optional module are one line on
     stderr after ``name:`` and exit 1; params files are read through the guarded loader first
     (``check_params_files``).
     """
     from rclpy.impl.implementation_singleton import rclpy_implementation
 
+    if wants_help(args):
+        print(usage or f"usage: {name} [--ros-args ...]")
+        return 0
     try:
         check_params_files(sys.argv if args is None else args)
     except FicapError as err:
@@ -95,6 +107,9 @@ def run_node(make_node: Callable[[], Node], name: str, args: list[str] | None = 
         pass
     except FicapError as err:
         print(f"{name}: {err}", file=sys.stderr)
+        code = 1
+    except ModuleNotFoundError as err:
+        print(f"{name}: {missing_module(err)}", file=sys.stderr)
         code = 1
     finally:
         if node is not None:

@@ -1,4 +1,5 @@
-"""Replay a recording through the pipeline: labels.mcap, labels.csv and summary.json.
+"""Replay a recording through the pipeline: labels.mcap, labels.csv, detections.csv and
+summary.json.
 
 Every frame goes through ``FrameProcessor.process`` (the node's code path), with tracking: a frame
 is looked at where the previous frames put the cap; it becomes the node's record
@@ -30,7 +31,10 @@ from ficap_ros.errors import BagError, ImageError
 from ficap_ros.files import write_atomic
 from ficap_ros.geometry.camera import CameraTiming
 from ficap_ros.geometry.cap_model import CapModel
+from ficap_ros.geometry.transform import Transform
 from ficap_ros.io.calibration_file import q_wxyz
+from ficap_ros.io.detections import detections_csv_text, tag_fits
+from ficap_ros.io.frames import OutputFrames
 from ficap_ros.io.labels import (
     UNCALIBRATED,
     FrameRecord,
@@ -38,7 +42,7 @@ from ficap_ros.io.labels import (
     write_labels_bag,
 )
 from ficap_ros.io.sources import FrameSource, Loss, RawFrame, decode_raw
-from ficap_ros.vision.calibration import HeadCalibration
+from ficap_ros.vision.calibration import HeadCalibration, frontal_from_camera_mount
 from ficap_ros.vision.detector import DetectorConfig
 from ficap_ros.vision.pipeline import FrameProcessor
 from ficap_ros.vision.pose import PoseConfig
@@ -138,8 +142,10 @@ def _process_one(raw: RawFrame) -> ReplayedFrame:
     except ImageError as err:
         return ReplayedFrame(FrameRecord.unprocessed(raw.index, raw.stamp_ns, raw.frame_id,
                                                      str(err), method=method))
-    return ReplayedFrame(FrameRecord.of(result, raw.index, raw.stamp_ns, raw.frame_id, method=method),
-                         result.detect_ms, result.pose_ms, result.timing_evidence)
+    tags = tag_fits(result.detections, result.pose, _PROCESSOR.model, raw.camera)
+    return ReplayedFrame(FrameRecord.of(result, raw.index, raw.stamp_ns, raw.frame_id, method=method,
+                                        tags=tags), result.detect_ms, result.pose_ms,
+                         result.timing_evidence)
 
 
 #: Frames per tracking segment (see the module docstring): 128 frames are about 4 s at 30 fps, so
@@ -457,10 +463,12 @@ def replay(
     engine: Callable[[Iterable[RawFrame]], Iterable[ReplayedFrame]] | None = None,
     summary_extra: dict[str, Any] | None = None,
     detector: DetectorConfig | None = None,
+    frames: OutputFrames | None = None,
     inputs: Iterable[str | Path | None] = (),
     timing: Mapping[str, Any] | None = None,
 ) -> ReplayOutput:
-    """Process every frame of ``source`` and write labels.mcap, labels.csv and summary.json.
+    """Process every frame of ``source`` and write labels.mcap, labels.csv, detections.csv and
+    summary.json.
 
     The outputs are built in a temporary folder beside ``out_dir`` and replace it as a unit
     (``ficap_ros.files.OutputFolder``, checked and locked before the first frame): an error or
@@ -485,6 +493,9 @@ def replay(
         detector: detector settings (default ``DetectorConfig()``): ``process_frames``'s; an
             ``engine`` carries its own, and this only records them (summary.json's
             ``photometric``).
+        frames: the output frames (``ficap_ros.io.frames.OutputFrames``: ``camera_mount`` and
+            ``output_frame`` as the node's; default none). A mount also sets the frontal frame of
+            the head angles, as the node's does.
         inputs: the run's other input files (model, calibration, intrinsics): never written.
         timing: ``CameraTiming`` fields given for the camera (the command line's), over the
             recording's own timing (``recording_timing``); summary.json's ``camera_timing``
@@ -507,7 +518,8 @@ def replay(
         check_window(source, calibrate_window_s)
         output = _replay_into(folder.tmp, out, source, model, pose, calibration,
                               calibrate_window_s, jobs, namespace, progress, progress_stream,
-                              engine, summary_extra, detector, camera_timing)
+                              engine, summary_extra, detector, frames or OutputFrames(),
+                              camera_timing)
         _check_usable(source, output.summary)
     except BaseException:
         folder.discard()
@@ -553,28 +565,30 @@ def _replay_into(
     jobs: int, namespace: str, progress: bool, progress_stream: IO[str] | None,
     engine: Callable[[Iterable[RawFrame]], Iterable[ReplayedFrame]] | None,
     summary_extra: dict[str, Any] | None, detector: DetectorConfig | None = None,
+    frames: OutputFrames = OutputFrames(),
     camera_timing: tuple[CameraTiming, str] = (CameraTiming(), "not known"),
 ) -> ReplayOutput:
     jobs = capped_jobs(jobs)[0]
     timing, timing_source = camera_timing
     bar = Progress(source.count, "frames", progress_stream, enabled=progress)
     t0 = time.perf_counter()
-    frames: list[ReplayedFrame] = []
+    replayed: list[ReplayedFrame] = []
     try:
         raws = source.raw_frames()
         if engine is not None:
             for item in engine(raws):
-                frames.append(item)
+                replayed.append(item)
                 bar.update()
         else:
-            frames.extend(process_frames(raws, model, pose, jobs, detector=detector, timing=timing,
+            replayed.extend(process_frames(raws, model, pose, jobs, detector=detector, timing=timing,
                                          on_progress=lambda n: bar.update(n - bar.n)))
     finally:
         bar.close()
     elapsed = time.perf_counter() - t0
-    cal, cal_info = _calibration(frames, source.start_ns, calibration, calibrate_window_s)
+    cal, cal_info = _calibration(replayed, source.start_ns, calibration, calibrate_window_s,
+                                 frames.mount)
     records = [f.record if f.record.calibration is cal else replace(f.record, calibration=cal)
-               for f in frames]
+               for f in replayed]
     loss = source.loss
     summary = {
         "writer": "ficap replay",
@@ -586,7 +600,7 @@ def _replay_into(
         **({"photometric": True} if detector is not None and detector.edge_photometric else {}),
         "jobs": jobs,
         "camera_timing": {**timing.to_dict(), "source": timing_source},
-        **_summary(frames, elapsed),
+        **_summary(replayed, elapsed),
         # A damaged input: frames_lost is None when the container cannot say how many.
         "damaged": loss is not None,
         "frames_lost": (loss.frames_lost if loss is not None else 0),
@@ -597,12 +611,19 @@ def _replay_into(
             "R_cap_head_q_wxyz": [round(v, 9) for v in q_wxyz(cal.R_cap_head)],
             "R_cam_frontal_q_wxyz": [round(v, 9) for v in q_wxyz(cal.R_cam_frontal)],
         },
+        # Only when set (the default runs' summaries name no frame).
+        **({"output_frame": frames.output_frame} if frames.output_frame else {}),
+        **({"camera_mount": [round(float(v), 9) for v in (*frames.mount.translation_m,
+                                                          *frames.mount.q_xyzw)]}
+           if frames.mount is not None else {}),
         **(summary_extra or {}),
     }
-    write_labels_bag(tmp / "labels.mcap", records, namespace)
+    write_labels_bag(tmp / "labels.mcap", records, namespace, frames)
     _write(tmp / "labels.csv", labels_csv_text(records))
+    _write(tmp / "detections.csv", detections_csv_text(records))
     _write(tmp / "summary.json", json.dumps(summary, indent=2) + "\n")
-    files = [out / "labels.mcap", out / "metadata.yaml", out / "labels.csv", out / "summary.json"]
+    files = [out / "labels.mcap", out / "metadata.yaml", out / "labels.csv",
+             out / "detections.csv", out / "summary.json"]
     return ReplayOutput(records, summary, files, loss)
 
 
@@ -634,10 +655,14 @@ def recording_timing(source: FrameSource, given: Mapping[str, Any] | None = None
 
 
 def _calibration(frames: list[ReplayedFrame], start_ns: int, given: HeadCalibration | None,
-                 window_s: tuple[float, float] | None) -> tuple[HeadCalibration, dict[str, Any]]:
+                 window_s: tuple[float, float] | None,
+                 mount: Transform | None = None) -> tuple[HeadCalibration, dict[str, Any]]:
     """The run's head calibration and summary.json's account of it: the one given (or none),
-    or a frontal calibration from ``window_s`` (``frontal_calibration``) over it."""
+    or a frontal calibration from ``window_s`` (``frontal_calibration``) over it. A camera
+    ``mount`` sets the frontal frame (its parent's axes), as the node's does."""
     base = given or UNCALIBRATED
+    if mount is not None:
+        base = HeadCalibration(base.R_cap_head, frontal_from_camera_mount(mount), base.calibrated)
     if window_s is None:
         return base, {"mode": "file" if base.calibrated else "none"}
     return frontal_calibration([f.record for f in frames], start_ns, window_s, base)

@@ -461,8 +461,15 @@ def _apriltag_detector_class() -> type:
     pupil-apriltags' ``Detector.__del__`` (1.0.4) destroys the tag families first and then the
     detector, whose destroy still releases each family's decode table: a use after free that
     corrupts the heap and may kill the process long after. Here the detector goes first.
+
+    Raises:
+        ConfigError: pupil-apriltags is not installed (an optional package).
     """
-    import pupil_apriltags
+    try:
+        import pupil_apriltags
+    except ImportError as err:
+        raise ConfigError("the apriltag detector backend needs the Python package pupil-apriltags "
+                          "(pip install pupil-apriltags); the default backend is opencv") from err
 
     class Detector(pupil_apriltags.Detector):  # type: ignore[misc]
         def __del__(self) -> None:

@@ -318,6 +318,89 @@ def test_jobs_capped_at_available_cores(drive: Path, tmp_path: Path,
     assert json.loads((out / "summary.json").read_text())["jobs"] == cores
 
 
+MOUNT = ["0.2", "0", "1.1", "-0.5", "0.5", "-0.5", "0.5"]  # looking straight ahead from base_link
+
+
+def test_replay_into_base_link_through_the_camera_mount(drive: Path, replayed: Path,
+                                                       tmp_path: Path) -> None:
+    """--camera-mount and --output-frame as the node's camera_mount and output_frame: poses in
+    base_link, the mount once on /tf_static, the camera without any other parent; a mount that
+    looks straight ahead leaves the head angles (labels.csv) as they were."""
+    from mcap.reader import make_reader
+    from mcap_ros2.decoder import DecoderFactory
+
+    out = tmp_path / "out"
+    assert main(["replay", str(drive), "--out", str(out), "--quiet", "--camera-mount", *MOUNT,
+                 "--output-frame", "base_link"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["output_frame"] == "base_link" and summary["camera_mount"][:3] == [0.2, 0.0, 1.1]
+    plain, moved = read_labels(replayed), read_labels(out)
+    np.testing.assert_allclose(moved.head_ypr_deg, plain.head_ypr_deg, atol=2e-4)
+    np.testing.assert_array_equal(moved.t_cam_cap_m, plain.t_cam_cap_m)  # the CSV stays in the camera
+    seen: dict[str, list] = {}
+    with open(out / "labels.mcap", "rb") as f:
+        for _, channel, _, msg in make_reader(f, decoder_factories=[DecoderFactory()]).iter_decoded_messages(
+                topics=["/tf_static", "/tf", "/head_pose", "/head_pose/frontal"]):
+            seen.setdefault(channel.topic, []).append(msg)
+    (static,) = seen["/tf_static"]
+    (mount,) = static.transforms
+    cam = mount.child_frame_id
+    assert mount.header.frame_id == "base_link" and (mount.transform.translation.z == 1.1)
+    assert all(t.child_frame_id != cam for m in seen["/tf"] for t in m.transforms)
+    assert {m.header.frame_id for m in seen["/head_pose"]} == {"base_link"}
+    assert {m.header.frame_id for m in seen["/head_pose/frontal"]} == {"base_link"}
+    # The head 1.1 m up less the cap's drop below the camera: base_link's z of the head.
+    assert 0.8 < seen["/head_pose"][0].pose.position.z < 1.4
+
+
+def test_replay_frame_options_are_checked(drive: Path, tmp_path: Path,
+                                          capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["replay", str(drive), "--out", str(tmp_path / "a"), "--quiet",
+                 "--output-frame", "base_link"]) == 1
+    assert "needs camera_mount" in one_error_line(capsys)
+    assert main(["replay", str(drive), "--out", str(tmp_path / "b"), "--quiet",
+                 "--camera-mount", "0", "0", "0", "0", "0", "0", "2"]) == 1
+    assert "unit length" in one_error_line(capsys)
+    assert not (tmp_path / "a").exists() and not (tmp_path / "b").exists()
+
+
+def test_replay_writes_the_detections_beside_the_labels(replayed: Path) -> None:
+    labels = read_labels(replayed)
+    rows = (replayed / "detections.csv").read_text().splitlines()
+    assert rows[0].startswith("frame,stamp_ns,tag_id,used,residual_px,")
+    per_frame: dict[int, set[int]] = {}
+    used_residuals = []
+    for row in rows[1:]:
+        frame, _, tag, used, residual = row.split(",")[:5]
+        per_frame.setdefault(int(frame), set()).add(int(tag))
+        if used == "1":
+            used_residuals.append(float(residual))
+    assert np.median(used_residuals) < 0.3 and max(used_residuals) < 3.0
+    assert [sorted(per_frame.get(i, ())) for i in range(len(labels))] == [
+        sorted(ids) for ids in labels.detected_ids]
+
+
+def test_replay_offers_every_pose_method(drive: Path, tmp_path: Path) -> None:
+    from ficap_ros.cli.args import POSE_METHOD_CHOICES
+    from ficap_ros.vision.pose import POSE_METHODS
+
+    assert POSE_METHOD_CHOICES == tuple(POSE_METHODS)
+    assert main(["replay", str(drive), "--out", str(tmp_path / "o"), "--quiet", "--method", "naive"]) == 0
+    assert json.loads((tmp_path / "o" / "summary.json").read_text())["method"] == "naive"
+
+
+def test_replay_without_rosbags_is_one_line(drive: Path, tmp_path: Path, monkeypatch,
+                                           capsys: pytest.CaptureFixture[str]) -> None:
+    for name in ("rosbags.highlevel", "rosbags.rosbag2", "rosbags.typesys", "rosbags.serde"):
+        monkeypatch.setitem(sys.modules, name, None)  # as if rosbags were not installed
+    import ficap_ros.io.messages as messages_mod
+
+    monkeypatch.setattr(messages_mod, "_TYPESTORE", None)
+    assert main(["replay", str(drive), "--out", str(tmp_path / "o"), "--quiet"]) == 1
+    line = one_error_line(capsys)
+    assert "the Python module rosbags is not installed (pip install rosbags" in line
+
+
 def test_camera_timing_flags_reach_every_recording(tmp_path: Path,
                                                    capsys: pytest.CaptureFixture[str]) -> None:
     """--exposure-ms/--readout-ms/--row-order/--stamp-offset-ms: each replaces its field of the

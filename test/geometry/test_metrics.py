@@ -150,3 +150,12 @@ def test_corner_errors_split_radial_and_distance(radial_px: float, dx: float, dy
     dist, radial = corner_errors_px(true + [dx, dy], true)
     np.testing.assert_allclose(dist, np.hypot(dx, dy), atol=1e-12)
     assert float(radial.mean()) == pytest.approx(0.0, abs=1e-12)
+
+
+@given(st.floats(-179.0, 179.0), st.floats(-89.0, 89.0), st.floats(-179.0, 179.0))
+def test_head_angles_in_radians_are_the_degrees_converted(yaw: float, pitch: float, roll: float) -> None:
+    from ficap_ros.geometry.metrics import yaw_pitch_roll_rad
+
+    R = rotation_from_ypr_deg(yaw, pitch, roll)
+    np.testing.assert_allclose(yaw_pitch_roll_rad(R), np.radians(yaw_pitch_roll_deg(R)),
+                               rtol=1e-12, atol=1e-15)

@@ -30,7 +30,8 @@ class Harness:
     """A FicapNode and a peer node (publishes inputs, records outputs) spinning in a thread."""
 
     def __init__(self, overrides: dict[str, Any] | None = None, cli_args: list[str] | None = None,
-                 reference_topic: str | None = None) -> None:
+                 reference_topic: str | None = None, image_topic: str = "image",
+                 info_topic: str = "camera_info") -> None:
         self.context = Context()
         rclpy.init(context=self.context)
         params = [Parameter(k, value=v) for k, v in (overrides or {}).items()]
@@ -51,9 +52,9 @@ class Harness:
         self.peer.create_subscription(DiagnosticArray, "status", self._rec(self.status), 100)
         self.peer.create_subscription(DiagnosticArray, "/diagnostics", self._rec(self.diagnostics),
                                       10)
-        self.pub_image = self.peer.create_publisher(Image, "image", 5)
-        self.pub_compressed = self.peer.create_publisher(CompressedImage, "image/compressed", 5)
-        self.pub_info = self.peer.create_publisher(CameraInfo, "camera_info", 5)
+        self.pub_image = self.peer.create_publisher(Image, image_topic, 5)
+        self.pub_compressed = self.peer.create_publisher(CompressedImage, f"{image_topic}/compressed", 5)
+        self.pub_info = self.peer.create_publisher(CameraInfo, info_topic, 5)
         self.pub_ref = (self.peer.create_publisher(PoseStamped, reference_topic, 100)
                         if reference_topic else None)
         self.calibrate = self.peer.create_client(Trigger, "/ficap_node/calibrate")
@@ -78,12 +79,7 @@ class Harness:
         return cb
 
     def wait_for(self, pred: Callable[[], bool], timeout: float = WAIT_S, what: str = "") -> None:
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            if pred():
-                return
-            time.sleep(0.01)
-        raise AssertionError(f"timed out after {timeout} s waiting for {what or pred}")
+        wait_for(pred, timeout, what)
 
     def statuses_for(self, stamp_ns: int) -> list:
         with self.lock:
@@ -125,6 +121,16 @@ class Harness:
         self.peer.destroy_node()
         rclpy.try_shutdown(context=self.context)
         self.thread.join(timeout=5.0)
+
+
+def wait_for(pred: Callable[[], bool], timeout: float = WAIT_S, what: str = "") -> None:
+    """Poll ``pred`` every 10 ms until it holds; AssertionError after ``timeout`` s."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        if pred():
+            return
+        time.sleep(0.01)
+    raise AssertionError(f"timed out after {timeout} s waiting for {what or pred}")
 
 
 def header_at(stamp_ns: int) -> Header:

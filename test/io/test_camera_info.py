@@ -147,3 +147,14 @@ def test_camera_info_with_only_p_one_rule_for_node_and_bags() -> None:
     ros.k = [float("nan")] * 9
     with pytest.raises(FicapError):
         camera_from_info(ros)
+
+
+def test_camera_info_beside_the_image_topic() -> None:
+    """image_transport's getCameraInfoTopic: camera_info in the image topic's namespace."""
+    from ficap_ros.io.camera_info import camera_info_beside
+
+    assert camera_info_beside("/rear_cam/image_raw") == "/rear_cam/camera_info"
+    assert camera_info_beside("/image") == "/camera_info"
+    assert camera_info_beside("/a/b/image_rect/") == "/a/b/camera_info"
+    assert camera_info_beside("image") == "camera_info"
+    assert camera_info_beside("cam/image") == "cam/camera_info"

@@ -302,3 +302,27 @@ def test_image_builder_checks_the_array_against_the_encoding() -> None:
         with pytest.raises(ImageError, match="unsupported"):
             messages.image(c, head, g.astype(np.float32), "32FC1")
 
+
+def test_transform_stamped_and_rpy_rad_live_and_offline() -> None:
+    for builder, msgtype in (
+            (lambda c, h: messages.transform_stamped(c, h, "ficap_cap", T),
+             "geometry_msgs/msg/TransformStamped"),
+            (lambda c, h: messages.rpy_rad(c, h, T.rotation), "geometry_msgs/msg/Vector3Stamped")):
+        live, offline = _both(builder)
+        _same_cdr(live, offline, msgtype)
+    live, _ = _both(lambda c, h: messages.transform_stamped(c, h, "ficap_cap", T))
+    r, t = live.transform.rotation, live.transform.translation
+    assert (r.x, r.y, r.z, r.w) == tuple(float(v) for v in T.q_xyzw)
+    assert (t.x, t.y, t.z) == tuple(float(v) for v in T.translation_m)
+    assert live.child_frame_id == "ficap_cap" and live.header.frame_id == "cam"
+    deg, rad = (_both(lambda c, h, f=f: f(c, h, T.rotation))[0].vector
+                for f in (messages.rpy_deg, messages.rpy_rad))
+    np.testing.assert_allclose(np.radians([deg.x, deg.y, deg.z]), [rad.x, rad.y, rad.z], rtol=1e-13)
+
+
+def test_the_vendored_apriltag_definitions_are_in_the_typestore() -> None:
+    defs = messages.vendored_msg_definitions()
+    assert list(defs) == ["apriltag_msgs/msg/Point", "apriltag_msgs/msg/AprilTagDetection",
+                          "apriltag_msgs/msg/AprilTagDetectionArray"]
+    assert "Point[4] corners" in defs["apriltag_msgs/msg/AprilTagDetection"]
+    assert set(defs) <= set(jazzy_typestore().types)

@@ -308,6 +308,24 @@ def test_folder_of_a_recorder_killed_before_metadata(drive: Path, tmp_path: Path
         reader.close()
 
 
+def test_camera_info_topic_of_an_image_is_the_one_beside_it() -> None:
+    """Offline as live: the CameraInfo beside the image topic first (of a CompressedImage topic,
+    beside its base topic), else the only one, else the nearest enclosing namespace's."""
+    from ficap_ros.io.sources import COMPRESSED_TYPE, IMAGE_TYPE, _pick_camera_info
+
+    info = "sensor_msgs/msg/CameraInfo"
+    topics = {"/cam/image_raw": IMAGE_TYPE, "/cam/camera_info": info, "/other/camera_info": info}
+    assert _pick_camera_info(topics, "/cam/image_raw") == "/cam/camera_info"
+    topics = {"/cam/image/compressed": COMPRESSED_TYPE, "/cam/camera_info": info,
+              "/cam/image/camera_info": info}
+    assert _pick_camera_info(topics, "/cam/image/compressed") == "/cam/camera_info"
+    topics = {"/cam/image_raw": IMAGE_TYPE, "/calib/info": info}
+    assert _pick_camera_info(topics, "/cam/image_raw") == "/calib/info"  # the only one
+    topics = {"/car/cam/image_raw": IMAGE_TYPE, "/car/camera_info": info, "/x/camera_info": info}
+    assert _pick_camera_info(topics, "/car/cam/image_raw") == "/car/camera_info"
+    assert _pick_camera_info({"/cam/image_raw": IMAGE_TYPE}, "/cam/image_raw") is None
+
+
 def test_a_loss_is_told_in_recording_time() -> None:
     """Seconds from the first frame; without any frame read, never an epoch taken for seconds;
     a damaged container that lost no frame says so."""

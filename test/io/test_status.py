@@ -6,6 +6,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 
 from ficap_ros.geometry.transform import Transform
@@ -63,7 +64,13 @@ def test_values_and_quality_come_from_the_record() -> None:
     assert values["rot_err95_deg"] == 0.4 and values["trans_err95_mm"] == 0.9
     assert {"yaw_deg", "pitch_deg", "roll_deg"} <= set(values)
     assert quality_values(posed) == {"tags_detected": 6.0, "tags_used": 5.0, "reliability": 0.9,
-                                     "rms_px": 0.12, "rot_err95_deg": 0.4, "trans_err95_mm": 0.9}
+                                     "rms_px": 0.12, "rot_err95_deg": 0.4, "trans_err95_mm": 0.9,
+                                     "rot_err95_rad": pytest.approx(0.4 * math.pi / 180, rel=1e-15),
+                                     "trans_err95_m": pytest.approx(0.9e-3, rel=1e-15)}
+    # The SI bounds come after the human ones (a name order readers of labels.mcap rely on).
+    assert list(quality_values(posed))[-2:] == ["rot_err95_rad", "trans_err95_m"]
+    assert math.isnan(quality_values(none)["rot_err95_rad"])
+    assert math.isnan(quality_values(none)["trans_err95_m"])
 
 
 def test_period_stats_and_health() -> None:

@@ -12,6 +12,7 @@ import pytest
 import rclpy
 from rclpy.context import Context
 
+from ficap_ros.io.camera_info import camera_info_beside
 from ficap_ros.ros.node import FicapNode
 from ficap_ros.ros.params import PARAMETERS, validate_parameter
 from ficap_ros.ros.params import frames_reason as _frames_reason
@@ -122,9 +123,10 @@ def test_launch_file_names_only_what_the_node_has(path: Path, node_interface) ->
         if _call_name(c) == "PathJoinSubstitution":
             parts = [e.value for e in c.args[0].elts if isinstance(e, ast.Constant)]
             assert (ROOT.joinpath(*parts)).is_file(), parts
-    # The two-camera table: each row's mount is a valid camera_mount in base_link.
+    # The two-camera table: each row's mount is a valid camera_mount in base_link; its CameraInfo
+    # is found beside the image, in the camera's namespace.
     for row in literals.get("CAMERAS", ()):
-        namespace, image, camera_info, mount = row
+        namespace, image, mount = row
         assert validate_parameter("camera_mount", mount) == ""
         assert _frames_reason({"output_frame": "base_link", "camera_mount": mount}) == ""
-        assert image.startswith(f"/{namespace}/") and camera_info.startswith(f"/{namespace}/")
+        assert camera_info_beside(image) == f"/{namespace}/camera_info"

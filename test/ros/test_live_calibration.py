@@ -222,3 +222,25 @@ def test_reference_calibration_with_noisy_reference(harness_factory, tmp_path) -
     # The reference frame is the frontal frame live (no camera_mount) as offline.
     assert angle_deg(offline.R_cam_frontal, h.node.calibration.R_cam_frontal) < 1e-3
     assert angle_deg(h.node.calibration.R_cam_frontal, R_CAM_REF) < 1.0
+
+
+def test_clearing_nothing_writes_nothing_and_no_folder_is_made(tmp_path) -> None:
+    """~/clear_calibration without a calibration and without a file writes no file; a calibration
+    file whose folder does not exist is not saved and the folder is not made (a typo in the path
+    never grows a new tree)."""
+    live = LiveCalibration()
+    outcome, message = live.clear_and_save(tmp_path / "cal.yaml")
+    assert outcome == "ok" and "nothing to clear" in message
+    assert not (tmp_path / "cal.yaml").exists()
+    R = Rotation.from_euler("xyz", [2.0, -5.0, 1.0], degrees=True)
+    typo = tmp_path / "tpyo" / "deeper" / "cal.yaml"
+    outcome, message = live.calibrate(lambda: CalibrationResult(R, 60, 0.3, "frontal"), typo)
+    assert outcome == "unsaved" and "NOT saved" in message and "does not exist" in message
+    assert live.current.calibrated and not (tmp_path / "tpyo").exists()
+    # Calibrated: clearing rewrites an existing file (to calibrated: false), as before.
+    outcome, _ = live.calibrate(lambda: CalibrationResult(R, 60, 0.3, "frontal"), tmp_path / "cal.yaml")
+    assert outcome == "ok"
+    outcome, _ = live.clear_and_save(tmp_path / "cal.yaml")
+    from ficap_ros.io.calibration_file import load_calibration
+
+    assert outcome == "ok" and not load_calibration(tmp_path / "cal.yaml").calibrated

@@ -10,6 +10,9 @@ Every test gets its own rclpy Context on the ROS_DOMAIN_ID conftest sets; every 
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -430,8 +433,8 @@ def test_poses_come_back_with_stamps_and_accuracy(rendered_drive, harness_factor
     markers, debug = [], []
     h.peer.create_subscription(MarkerArray, "markers", h._rec(markers), 10)
     h.peer.create_subscription(Image, "debug_image", h._rec(debug), 10)
-    h.wait_for(lambda: h.node._pub_markers.get_subscription_count() > 0
-               and h.node._pub_debug.get_subscription_count() > 0, what="viz subscribers")
+    h.wait_for(lambda: h.node._out.markers.get_subscription_count() > 0
+               and h.node._out.debug.get_subscription_count() > 0, what="viz subscribers")
     statuses = _play(h, scene, frames)
     h.wait_for(lambda: len(h.cap) >= len(frames), timeout=5.0, what="all cap poses")
     # Visualisation while subscribed: tag outlines + 3 head axes, and a colour debug image.
@@ -574,8 +577,8 @@ def test_output_frame_through_camera_mount(rendered_drive, harness_factory) -> N
         h.peer.create_subscription(PoseStamped, "head_pose/frontal", h._rec(frontal), 50)
         h.peer.create_subscription(Vector3Stamped, "head_rpy_deg", h._rec(rpy), 50)
         h.peer.create_subscription(JointState, "quality", h._rec(quality), 50)
-        h.wait_for(lambda: h.node._pub_quality.get_subscription_count() > 0
-                   and h.node._pubs["rpy"].get_subscription_count() > 0, what="subscribers")
+        h.wait_for(lambda: h.node._out.quality.get_subscription_count() > 0
+                   and h.node._out.pubs["rpy_deg"].get_subscription_count() > 0, what="subscribers")
         _play(h, scene, few)
         h.wait_for(lambda: len(cov) >= len(few) and len(quality) >= len(few)
                    and len(rpy) >= len(few), timeout=5.0, what="outputs")
@@ -622,3 +625,48 @@ def test_output_frame_through_camera_mount(rendered_drive, harness_factory) -> N
         for run in (cam, base):
             C = np.array(run["cov"][t].pose.covariance).reshape(6, 6)
             assert np.all(np.isfinite(C)) and np.linalg.eigvalsh(C).min() > 0
+
+
+# -- the command line and the logs -----------------------------------------------------------------
+def _node_process(*args: str, code: str | None = None) -> subprocess.CompletedProcess[str]:
+
+    argv = [sys.executable, "-c", code] if code else [sys.executable, "-m", "ficap_ros.ros.node"]
+    return subprocess.run([*argv, *args], capture_output=True, text=True, timeout=120,
+                          env=dict(os.environ))
+
+
+def test_help_prints_the_interface_and_does_not_start() -> None:
+    run = _node_process("--help")
+    assert run.returncode == 0 and run.stdout.startswith("usage: ficap_node [--ros-args")
+    for name in ("detections", "head_rpy", "/tf", "camera_info_topic", "pose.method"):
+        assert name in run.stdout
+    assert "ready" not in run.stderr and "Traceback" not in run.stderr
+
+
+def test_the_apriltag_backend_without_its_package_is_one_line() -> None:
+    code = ("import sys; sys.modules['pupil_apriltags'] = None; from ficap_ros.ros.node import main; "
+            "raise SystemExit(main(sys.argv[1:]))")
+    run = _node_process("--ros-args", "-p", "detector.backend:=apriltag", code=code)
+    assert run.returncode == 1 and "Traceback" not in run.stderr, run.stderr
+    ours = [ln for ln in run.stderr.splitlines() if ln.startswith("ficap_node:")]
+    assert len(ours) == 1 and "pip install pupil-apriltags" in ours[0]
+
+
+def test_parameter_changes_are_logged(harness_factory, capfd) -> None:
+    h = harness_factory()
+    capfd.readouterr()
+    assert h.node.set_parameters([Parameter("pose.method", value="paper")])[0].successful
+    assert not h.node.set_parameters([Parameter("pose.min_tags", value=0)])[0].successful
+    err = capfd.readouterr().err
+    assert "parameter pose.method: 'joint' -> 'paper'" in err
+    assert "pose.min_tags" not in err  # refused: nothing changed
+
+
+def test_a_calibration_file_in_a_missing_folder_warns_and_makes_no_folder(harness_factory,
+                                                                          tmp_path, capfd) -> None:
+    target = tmp_path / "tpyo" / "cal.yaml"
+    h = harness_factory(overrides={"calibration.file": str(target)})
+    assert "does not exist" in capfd.readouterr().err
+    resp = h.call(h.clear, Trigger.Request())  # nothing calibrated: nothing written
+    assert resp.success and "nothing to clear" in resp.message
+    assert not (tmp_path / "tpyo").exists()

@@ -90,6 +90,47 @@ def test_detector_photometric_reaches_the_detector() -> None:
         off.detector_config
 
 
+def test_parameter_changes_are_log_lines() -> None:
+    from rclpy.parameter import Parameter
+
+    from ficap_ros.ros.params import change_lines
+
+    old = _defaults()
+    lines = change_lines(old, [Parameter("pose.method", value="paper"),
+                               Parameter("pose.min_tags", value=1),  # unchanged: no line
+                               Parameter("qos_overrides./image.subscription.depth", value=3)])
+    assert lines == ["parameter pose.method: 'joint' -> 'paper'"]
+
+
+def test_help_lists_every_parameter_and_every_pose_method() -> None:
+    from ficap_ros.ros.params import usage
+    from ficap_ros.vision.pose import POSE_METHODS
+
+    text = usage("``ficap_node``: the node.\n\nSubscribes ...")
+    assert text.startswith("usage: ficap_node [--ros-args")
+    assert all(f"  {p.name} (default " in text for p in PARAMETERS)
+    method = next(p for p in PARAMETERS if p.name == "pose.method")
+    assert method.choices == tuple(POSE_METHODS)
+    assert all(f"'{m}'" in method.description for m in POSE_METHODS)  # naive too
+
+
+def test_a_calibration_file_in_a_missing_folder_is_warned(tmp_path) -> None:
+    from ficap_ros.ros.params import calibration_folder_warning
+
+    assert calibration_folder_warning("") == ""
+    assert calibration_folder_warning(str(tmp_path / "cal.yaml")) == ""
+    warning = calibration_folder_warning(str(tmp_path / "typo" / "cal.yaml"))
+    assert "folder" in warning and "does not exist" in warning and "typo" in warning
+
+
+def test_the_config_gives_the_output_frames() -> None:
+    mount = [0.2, 0.0, 1.1, -0.5, 0.5, -0.5, 0.5]
+    frames = NodeConfig.from_values(_defaults(output_frame="base_link", camera_mount=mount)).frames
+    assert (frames.output_frame, frames.frontal_frame, frames.moved) == ("base_link", "ficap_frontal", True)
+    frames = NodeConfig.from_values(_defaults()).frames
+    assert frames.mount is None and frames.frontal == "ficap_frontal"
+
+
 def test_camera_timing_parameters() -> None:
     """``camera.*``: the camera's timing (None while all are at their defaults: not set), each
     validated against its declared range or choices, none read-only (they may follow the camera)."""

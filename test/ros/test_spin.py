@@ -89,6 +89,30 @@ def test_rcl_messages_lose_their_source_locations() -> None:
                                  "type (19), got (34) at index 8 more")
 
 
+def test_help_is_asked_before_ros_args_only() -> None:
+    from ficap_ros.ros.spin import wants_help
+
+    assert wants_help(["--help"]) and wants_help(["-h", "--ros-args", "-p", "a:=1"])
+    assert not wants_help([]) and not wants_help(["--ros-args", "-r", "__node:=-h"])
+
+
+def test_help_prints_usage_and_starts_nothing(capsys: pytest.CaptureFixture[str]) -> None:
+    made = []
+    assert run_node(lambda: made.append(1), "my_node", ["--help"], usage="usage: my_node ...") == 0
+    assert made == [] and capsys.readouterr().out == "usage: my_node ...\n"
+    assert not rclpy.ok()
+
+
+def test_a_missing_optional_module_at_start_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    def needs_ray():  # noqa: ANN202
+        raise ModuleNotFoundError("No module named 'ray'", name="ray")
+
+    assert run_node(needs_ray, "ficap_node", []) == 1
+    err = capsys.readouterr().err
+    assert err.strip().splitlines()[-1] == "ficap_node: the Python module ray is not installed (pip install ray)"
+    assert "Traceback" not in err and not rclpy.ok()
+
+
 def test_params_files_are_read_through_the_guarded_loader(tmp_path, capsys) -> None:  # noqa: ANN001
     """A params file that is a FIFO (rcl would block reading it for ever), /dev/zero, or YAML
     with an alias bomb: one line naming it, before rcl parses anything."""

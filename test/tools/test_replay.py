@@ -67,7 +67,8 @@ def test_labels_bag_matches_csv(replayed_calibrated: Path) -> None:
             counts = {c.topic: c.msgcount for c in reader.connections}
             assert counts == {**{t: FRAMES for t in (
                 "/head_pose", "/head_pose/with_covariance", "/cap_pose", "/head_pose/frontal",
-                "/head_rpy_deg", "/quality", "/status", "/tf")},
+                "/head_rpy_deg", "/head_rpy", "/quality", "/status", "/tf", "/detections",
+                "/detections/fit")},
                 "/head_twist": int(np.isfinite(labels.head_twist).all(axis=1).sum())}
             conns = [c for c in reader.connections if c.topic == "/cap_pose"]
             stamps, quats = [], []
@@ -96,7 +97,8 @@ def _tf_matrix(tr) -> np.ndarray:  # noqa: ANN001 - a decoded geometry_msgs/Tran
 
 def test_labels_tf_decodes_with_mcap_ros2(replayed_calibrated: Path) -> None:
     """labels.mcap's /tf, /head_rpy_deg and /quality read by the MCAP project's own ROS 2 decoder
-    (mcap-ros2-support, as Foxglove's tooling does), and the TF chain composes to the labels."""
+    (mcap-ros2-support, as Foxglove's tooling does), and the TF chain composes to the labels: the
+    camera (no mount) has no parent; the cap, the head and the frontal frame are its children."""
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
 
@@ -116,15 +118,17 @@ def test_labels_tf_decodes_with_mcap_ros2(replayed_calibrated: Path) -> None:
     assert sorted(tf) == list(labels.stamp_ns)
     for k, stamp in enumerate(labels.stamp_ns):
         chain = {(t.header.frame_id, t.child_frame_id): t for t in tf[stamp].transforms}
-        cam = next(c for p, c in chain if p == "ficap_frontal")  # the image's frame_id
-        assert set(chain) == {("ficap_frontal", cam), (cam, "ficap_cap"), ("ficap_cap", "ficap_head")}
+        cam = next(p for p, c in chain if c == "ficap_cap")  # the image's frame_id
+        assert set(chain) == {(cam, "ficap_frontal"), (cam, "ficap_cap"), ("ficap_cap", "ficap_head")}
         assert all(t.header.stamp.sec * 10**9 + t.header.stamp.nanosec == stamp
                                     for t in chain.values())
         M_cam_cap = _tf_matrix(chain[(cam, "ficap_cap")].transform)
         np.testing.assert_allclose(M_cam_cap[:3, 3], labels.t_cam_cap_m[k], atol=2e-6)
         M_cap_head = _tf_matrix(chain[("ficap_cap", "ficap_head")].transform)
         np.testing.assert_allclose(M_cap_head[:3, :3], R_cap_head, atol=1e-6)
-        M = _tf_matrix(chain[("ficap_frontal", cam)].transform) @ M_cam_cap @ M_cap_head
+        M_cam_frontal = _tf_matrix(chain[(cam, "ficap_frontal")].transform)
+        np.testing.assert_array_equal(M_cam_frontal[:3, 3], 0.0)  # F's origin at the camera
+        M = np.linalg.inv(M_cam_frontal) @ M_cam_cap @ M_cap_head
         qw, qx, qy, qz = labels.q_frontal_head_wxyz[k]
         R_csv = Rotation.from_quat([qx, qy, qz, qw]).as_matrix()
         np.testing.assert_allclose(M[:3, :3], R_csv, atol=1e-6)

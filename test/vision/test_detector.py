@@ -305,3 +305,23 @@ def test_search_keeps_its_recall_on_the_real_mapping_photos(mapping_photos) -> N
     assert counts["ours"][1] == 0 and counts["apriltag"][1] == 0
     # Measured: ours 37, AprilTag 3 35; one miss of slack for a library update.
     assert counts["ours"][0] >= max(counts["apriltag"][0], 36), counts
+
+
+def test_the_apriltag_backend_without_its_package_is_a_config_error(monkeypatch) -> None:
+    """pupil-apriltags is optional: without it the apriltag backend says what to install in one
+    line (a FicapError: the node and the CLI print it), not an ImportError traceback."""
+    import sys
+
+    from ficap_ros.vision.detector import (
+        DetectorConfig,
+        TagDetector,
+        _apriltag_detector_class,
+    )
+
+    _apriltag_detector_class.cache_clear()
+    monkeypatch.setitem(sys.modules, "pupil_apriltags", None)
+    try:
+        with pytest.raises(ConfigError, match="pip install pupil-apriltags"):
+            TagDetector(DetectorConfig(backend="apriltag"))
+    finally:
+        _apriltag_detector_class.cache_clear()

@@ -18,6 +18,7 @@ from ficap_ros import __version__
 from ficap_ros.errors import BagError
 from ficap_ros.files import read_bytes
 from ficap_ros.geometry.cap_model import CapModel
+from ficap_ros.io.frames import OutputFrames
 from ficap_ros.tools import replay
 from ficap_ros.vision.calibration import HeadCalibration
 from ficap_ros.vision.detector import DetectorConfig
@@ -29,7 +30,9 @@ __all__ = ["OUTPUTS", "input_identity", "config_json", "label_settings", "settin
 
 #: The outputs of one recording; summary.json is written last (a recording cut off mid-write has
 #: no matching summary and is redone).
-OUTPUTS = ("labels.mcap", "labels.csv", "summary.json")
+OUTPUTS = ("labels.mcap", "labels.csv", "detections.csv", "summary.json")
+
+
 def _file_identity(path: Path) -> dict[str, Any]:
     """Size and SHA-256 of every byte of the file, read in a stream (a change anywhere in a
     recording, even one that keeps its size, is a new identity; docs/fleet.md: the cost)."""
@@ -73,7 +76,8 @@ def label_settings(
     calibrate_window_s: tuple[float, float] | None = None, namespace: str = "",
     image_topic: str | None = None, camera_info_topic: str | None = None,
     intrinsics: str | Path | None = None, fps: float | None = None, rectified: bool = False,
-    detector: DetectorConfig | None = None, timing: Mapping[str, Any] | None = None,
+    detector: DetectorConfig | None = None, frames: OutputFrames | None = None,
+    timing: Mapping[str, Any] | None = None,
 ) -> dict[str, Any]:
     """Every setting that changes the labels, as plain JSON values (files by content hash;
     ``timing``: camera timing fields given over the recordings' own, recorded when given).
@@ -103,8 +107,18 @@ def label_settings(
         "fps": fps,
         "rectified": bool(rectified),
         "segment_frames": replay.SEGMENT_FRAMES,
+        **_frames_json(frames),
         **({"camera_timing": dict(sorted(timing.items()))} if timing else {}),
     }
+
+
+def _frames_json(frames: OutputFrames | None) -> dict[str, Any]:
+    """The output frames' settings, only when set (a run without them keeps its fingerprint)."""
+    if frames is None or (not frames.output_frame and frames.mount is None):
+        return {}
+    mount = frames.mount
+    return {"frames": {"output_frame": frames.output_frame, "camera_mount": None if mount is None
+                       else [round(float(v), 12) for v in (*mount.translation_m, *mount.q_xyzw)]}}
 
 
 def settings_key(model: CapModel, pose: PoseConfig, detector: DetectorConfig | None) -> tuple[int, str, str]:

@@ -17,6 +17,7 @@ from typing import Any, Callable, Mapping, Sequence
 from ficap_ros.errors import ConfigError, FicapError, OutputError, one_line
 from ficap_ros.files import OutputLock, check_output_folder
 from ficap_ros.geometry.cap_model import CapModel
+from ficap_ros.io.frames import OutputFrames
 from ficap_ros.io.labels import read_labels
 from ficap_ros.io.sources import FrameSource
 from ficap_ros.tools import replay as replay_mod
@@ -56,6 +57,7 @@ class _Labelling:
     namespace: str
     jobs: int
     detector: DetectorConfig | None
+    frames: OutputFrames | None = None
     inputs: tuple[Any, ...] = ()
     timing: Mapping[str, Any] | None = None
 
@@ -73,7 +75,8 @@ class _Labelling:
                 source, self.out / rec.rel, self.model, self.pose, self.calibration,
                 self.calibrate_window_s, self.jobs, self.namespace, progress=False,
                 engine=lambda raws: bar.counted(process(raws)),
-                summary_extra={"fingerprint": fp}, detector=self.detector, inputs=self.inputs,
+                summary_extra={"fingerprint": fp}, detector=self.detector, frames=self.frames,
+                inputs=self.inputs,
                 timing=self.timing)
         except Exception as err:  # noqa: BLE001 - one recording's failure must not stop the fleet
             return RecordingResult(str(rec.path), str(rec.rel), "failed",
@@ -103,6 +106,7 @@ def run_fleet(
     summary_files: bool = True,
     ray_engine: RayEngine | None = None,
     detector: DetectorConfig | None = None,
+    frames: OutputFrames | None = None,
     inputs: Sequence[Any] = (),
     timing: Mapping[str, Any] | None = None,
 ) -> FleetResult:
@@ -120,6 +124,7 @@ def run_fleet(
             its own ``detector``.
         detector: detector settings (default ``DetectorConfig()``); give the same to
             ``label_settings`` so the fingerprint holds them.
+        frames: the output frames (``replay.replay``'s; give the same to ``label_settings``).
         inputs: the run's configuration files (model, calibration, intrinsics, manifest): no
             output may be one.
         timing: camera timing fields over each recording's own (``replay.recording_timing``);
@@ -141,7 +146,7 @@ def run_fleet(
             raise OutputError(f"cannot write output folder {out}: {err.strerror or err}") from err
         return _run(recordings, out, open_source, model, pose, settings, calibration,
                     calibrate_window_s, namespace, jobs, ray_address, use_ray, retries, force,
-                    progress, summary_files, ray_engine, detector, tuple(inputs), timing)
+                    progress, summary_files, ray_engine, detector, frames, tuple(inputs), timing)
 
 
 def _run(recordings: Sequence[Recording], out: Path, open_source: Callable[[Path], FrameSource],
@@ -149,13 +154,13 @@ def _run(recordings: Sequence[Recording], out: Path, open_source: Callable[[Path
          calibration: HeadCalibration | None, calibrate_window_s: tuple[float, float] | None,
          namespace: str, jobs: int, ray_address: str | None, use_ray: bool, retries: int,
          force: bool, progress: bool, summary_files: bool, ray_engine: RayEngine | None,
-         detector: DetectorConfig | None, inputs: tuple[Any, ...],
+         detector: DetectorConfig | None, frames: OutputFrames | None, inputs: tuple[Any, ...],
          timing: Mapping[str, Any] | None) -> FleetResult:
     """``run_fleet`` once its output is checked and locked."""
     t0 = time.perf_counter()
     results, todo = _plan(recordings, out, settings, force, open_source)
     labelling = _Labelling(out, model, pose, calibration, calibrate_window_s, namespace, jobs,
-                           detector, inputs, timing)
+                           detector, frames, inputs, timing)
     bar = FleetProgress(sum(src.count for _, _, src, _ in todo), len(recordings), len(results),
                         sum(r.status == "failed" for r in results.values()), progress)
     fleet = FleetResult(engine="processes", workers=jobs)

@@ -57,15 +57,33 @@ def test_settings_are_plain_json_of_the_configs_as_applied() -> None:
     assert settings_key(model, PoseConfig(), None) != settings_key(model, PoseConfig(method="paper"), None)
 
 
-def test_current_outputs_need_all_three_and_the_digest(tmp_path: Path) -> None:
+def test_current_outputs_need_every_output_and_the_digest(tmp_path: Path) -> None:
     for name in ("labels.mcap", "labels.csv"):
         (tmp_path / name).write_text("")
+    (tmp_path / "summary.json").write_text(json.dumps({"fingerprint": {"sha256": "abc"}}))
+    assert current_outputs(tmp_path, "abc") is None  # no detections.csv (an older run's outputs)
+    (tmp_path / "detections.csv").write_text("")
+    (tmp_path / "summary.json").unlink()
     assert current_outputs(tmp_path, "abc") is None  # no summary.json
     (tmp_path / "summary.json").write_text(json.dumps({"fingerprint": {"sha256": "abc"}}))
     assert current_outputs(tmp_path, "abc") == {"fingerprint": {"sha256": "abc"}}
     assert current_outputs(tmp_path, "other") is None
     (tmp_path / "summary.json").write_text("{cut")
     assert current_outputs(tmp_path, "abc") is None
+
+
+def test_output_frames_are_in_the_settings_only_when_set() -> None:
+    from ficap_ros.geometry.transform import Transform
+    from ficap_ros.io.frames import OutputFrames
+
+    model = nominal_model()
+    plain = label_settings(model, PoseConfig())
+    assert label_settings(model, PoseConfig(), frames=OutputFrames()) == plain  # unchanged
+    mount = Transform.from_xyz_q_xyzw([0.2, 0.0, 1.1, -0.5, 0.5, -0.5, 0.5])
+    moved = label_settings(model, PoseConfig(), frames=OutputFrames("base_link", mount))
+    assert moved["frames"]["output_frame"] == "base_link"
+    assert moved["frames"]["camera_mount"][:3] == [0.2, 0.0, 1.1]
+    assert {k: v for k, v in moved.items() if k != "frames"} == plain
 
 
 def test_a_change_anywhere_in_a_recording_is_a_new_identity(tmp_path: Path) -> None:
