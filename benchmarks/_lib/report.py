@@ -28,6 +28,7 @@ INDEX = DOCS / "benchmarks.md"
 SECTIONS: dict[str, str] = {
     "accuracy": "Accuracy on synth drives (the paper's Table 1)",
     "blender_pose": "Accuracy on blender_dev (independent path-traced renders)",
+    "glance": "Fast glances: motion blur and rolling shutter",
     "corners": "Corners on blender_dev and synth",
     "uncertainty": "Calibrated uncertainty: coverage and sharpness of the 95 % bounds",
     "calibration": "Head calibration against a reference (the paper's Table 2)",

@@ -167,6 +167,12 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("uncertainty.tilt_shift_px", _UNCERTAINTY.tilt_shift_px,
               "Covariance floor: that shared shift, px at a tag seen edge-on (0 = none; values for "
               "small blurred tags in docs/benchmarks.md).", range=(0.0, 10.0)),
+    ParamSpec("uncertainty.motion_blur_gain", _UNCERTAINTY.motion_blur_gain,
+              "Covariance: shared shrink of the tags across their image motion over the exposure, "
+              "per px of it (only with camera.exposure_ms given).", range=(0.0, 10.0)),
+    ParamSpec("uncertainty.motion_blur_shift_gain", _UNCERTAINTY.motion_blur_shift_gain,
+              "Covariance: shared shift of the tags along their image motion over the exposure, "
+              "per px of it (only with camera.exposure_ms given).", range=(0.0, 10.0)),
     ParamSpec("uncertainty.weight_tags", _UNCERTAINTY.weight_tags,
               "Joint pose: weight each tag by its own corner noise (one weighted Gauss-Newton "
               "step from the unweighted optimum)."),
@@ -317,6 +323,8 @@ class NodeConfig:
     uncertainty_light_gradient_gain: float
     uncertainty_light_gradient_tilt_gain: float
     uncertainty_tilt_shift_px: float
+    uncertainty_motion_blur_gain: float
+    uncertainty_motion_blur_shift_gain: float
     uncertainty_weight_tags: bool
     publish_min_reliability: float
     warn_reliability: float

@@ -46,6 +46,7 @@ from ficap_ros.vision.calibration import HeadCalibration, frontal_from_camera_mo
 from ficap_ros.vision.detector import DetectorConfig
 from ficap_ros.vision.pipeline import FrameProcessor
 from ficap_ros.vision.pose import PoseConfig
+from ficap_ros.vision.shutter import TimingEvidence, combine_evidence
 
 __all__ = ["Progress", "ReplayedFrame", "process_frames", "frontal_calibration",
            "ReplayOutput", "replay", "recording_timing", "check_window", "available_cores",
@@ -72,11 +73,13 @@ class ReplayedFrame:
         record: the frame's record, uncalibrated (``labels.UNCALIBRATED``) until ``replay`` applies
             the run's calibration.
         detect_ms, pose_ms: pipeline timings (NaN for an undecodable image).
+        timing_evidence: what the frame says of the camera's readout (``FrameResult``'s).
     """
 
     record: FrameRecord
     detect_ms: float = math.nan
     pose_ms: float = math.nan
+    timing_evidence: TimingEvidence | None = None
 
 
 # -- worker side ---------------------------------------------------------------------------------
@@ -141,7 +144,8 @@ def _process_one(raw: RawFrame) -> ReplayedFrame:
                                                      str(err), method=method))
     tags = tag_fits(result.detections, result.pose, _PROCESSOR.model, raw.camera)
     return ReplayedFrame(FrameRecord.of(result, raw.index, raw.stamp_ns, raw.frame_id, method=method,
-                                        tags=tags), result.detect_ms, result.pose_ms)
+                                        tags=tags), result.detect_ms, result.pose_ms,
+                         result.timing_evidence)
 
 
 #: Frames per tracking segment (see the module docstring): 128 frames are about 4 s at 30 fps, so
@@ -440,6 +444,8 @@ def _summary(frames: list[ReplayedFrame], elapsed_s: float) -> dict:
         "throughput_fps": round(n / elapsed_s, 2) if elapsed_s > 0 else None,
         "mean_detect_ms": round(float(np.mean(detect_ms)), 3) if detect_ms else None,
         "mean_pose_ms": round(float(np.mean(pose_ms)), 3) if pose_ms else None,
+        # The camera's readout read from the moving frames (signed: negative bottom to top).
+        "timing_estimate": combine_evidence([f.timing_evidence for f in frames]).as_dict(),
     }
 
 

@@ -15,6 +15,7 @@ from ficap_ros.geometry.camera import CameraModel, CameraTiming
 from ficap_ros.geometry.cap_model import CapModel, nominal_model
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.vision.detector import DetectorConfig, TagDetection, TagDetector, as_gray
+from ficap_ros.vision.motion import MotionPrior
 from ficap_ros.vision.occlusion import partly_hidden
 from ficap_ros.vision.pose import (
     CapPose,
@@ -22,6 +23,8 @@ from ficap_ros.vision.pose import (
     PoseResult,
     estimate_cap_pose,
 )
+from ficap_ros.vision.reprojection import TagObservations, undistorted_corners
+from ficap_ros.vision.shutter import TimingEvidence, frame_evidence
 from ficap_ros.vision.tracking import Search, TrackConfig, TrackedFrame, Tracker
 from ficap_ros.vision.uncertainty import UncertaintyConfig
 
@@ -39,6 +42,9 @@ class FrameResult:
         search: how the tags were found (``tracking.Search``, a ``str``): ``tracked``, ``region``
             or ``image``.
         detect_ms, pose_ms: time spent finding the tags and solving the pose, ms.
+        timing_evidence: what the frame says of the camera's readout when the timing does not
+            model one (``shutter.frame_evidence``: a moving cap with a velocity from the frames
+            before); None otherwise. ``shutter.combine_evidence`` turns many into an estimate.
     """
 
     detections: tuple[TagDetection, ...]
@@ -47,6 +53,7 @@ class FrameResult:
     search: Search = Search.IMAGE
     detect_ms: float = 0.0
     pose_ms: float = 0.0
+    timing_evidence: TimingEvidence | None = None
 
     @property
     def detected_ids(self) -> tuple[int, ...]:
@@ -94,9 +101,14 @@ class FrameProcessor:
             in time order, as the node and the bag tools feed them); ``False``: every frame searched.
         track: tracking settings.
         timing: when the camera's rows see the scene relative to the stamps (exposure, rolling
-            shutter readout, stamp offset; ``CameraTiming()``: not known). Like ``pose_config``
-            it may be replaced as a whole between frames (the node does when its
-            ``camera.*`` parameters change; replay sets each recording's).
+            shutter readout, stamp offset; ``CameraTiming()``: not known). A rolling shutter's
+            poses are solved with the cap's velocity over the readout (``estimate_cap_pose``), the
+            tracker's past poses its velocity prior. The cap's velocity (``CapPose.velocity``)
+            is reported only when the timing states an exposure or a readout; with neither, the
+            outputs are those of an estimator without a motion model. Like ``pose_config`` it may
+            be replaced as a
+            whole between frames (the node does when its ``camera.*`` parameters change; replay
+            sets each recording's).
     """
 
     def __init__(self, model: CapModel | None = None, detector: DetectorConfig | None = None,
@@ -133,11 +145,12 @@ class FrameProcessor:
         find_hidden = cfg.hidden_check and cfg.corner_refine == "edge" and pose_config.method == "joint"
         solve_started: list[float] = []
 
-        def solve(tags: tuple[TagDetection, ...], start: Transform | None) -> PoseResult:
+        def solve(tags: tuple[TagDetection, ...], start: Transform | None,
+                  prior: MotionPrior | None = None) -> PoseResult:
             solve_started.append(time.perf_counter())
             hidden = hidden_tag_ids(gray, tags) if find_hidden else frozenset()
             return estimate_cap_pose(tags, self.model, camera, pose_config, start=start,
-                                     hidden_ids=hidden)
+                                     hidden_ids=hidden, timing=self.timing, prior=prior)
 
         if self.tracker is not None:
             frame = self.tracker.track(gray, camera, int(stamp_ns), pose_config, solve)
@@ -145,5 +158,34 @@ class FrameProcessor:
             detections = tuple(d for d in self.detector.detect(gray) if d.tag_id in self.model)
             frame = TrackedFrame(detections, solve(detections, None), Search.IMAGE)
         t1, t2 = solve_started[0], time.perf_counter()
-        return FrameResult(frame.detections, frame.result.pose, frame.result.reason, frame.search,
-                           (t1 - t0) * 1e3, (t2 - t1) * 1e3)
+        pose, evidence = frame.result.pose, None
+        if pose is not None and not self.timing.rolling:
+            evidence = _timing_evidence(pose, frame.detections, self.model, camera)
+        if pose is not None and not _timing_given(self.timing):
+            pose = replace(pose, velocity=None, velocity_covariance=None)
+        return FrameResult(frame.detections, pose, frame.result.reason, frame.search,
+                           (t1 - t0) * 1e3, (t2 - t1) * 1e3, evidence)
+
+
+def _timing_given(timing: CameraTiming) -> bool:
+    """Whether the camera's timing is stated (an exposure or a readout): only then is the cap's
+    velocity reported (``CapPose.velocity``, the head twist). With none stated the outputs are the
+    timing-agnostic estimator's, identical whatever the frames before say of the motion; the
+    velocity then serves only the readout's evidence."""
+    return timing.exposure_ms > 0.0 or timing.readout_ms > 0.0
+
+
+def _timing_evidence(pose: CapPose, detections: tuple[TagDetection, ...], model: CapModel,
+                     camera: CameraModel) -> TimingEvidence | None:
+    """A global-shutter pose's evidence of a readout (``shutter.frame_evidence``): its tags'
+    corners (each used id seen once) against the pose and its velocity; None without one."""
+    if pose.velocity is None:
+        return None
+    used = [d for d in detections if d.tag_id in pose.used_ids]
+    once = {d.tag_id: d for d in used if sum(e.tag_id == d.tag_id for e in used) == 1}
+    corners = {i: c[0] for i, c in undistorted_corners(list(once.values()), camera).items()}
+    if len(corners) < 4:
+        return None
+    obs = TagObservations.of(corners, model, camera.K)
+    rows = np.concatenate([once[i].corners_px[:, 1] for i in obs.ids])
+    return frame_evidence(obs, pose.T_cam_cap, pose.velocity, camera, rows)

@@ -36,7 +36,7 @@ little, and one tag has a mirror solution a first-order covariance does not see)
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from typing import Callable, Container, Sequence
 
 import cv2
@@ -45,16 +45,27 @@ from scipy.optimize import leastsq
 from scipy.spatial.transform import Rotation
 
 from ficap_ros.errors import ConfigError
-from ficap_ros.geometry.camera import CameraModel
+from ficap_ros.geometry.camera import CameraModel, CameraTiming
 from ficap_ros.geometry.cap_model import TAG_SIDE_MM, CapModel
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.vision.detector import TagDetection
+from ficap_ros.vision.motion import (
+    MotionConfig,
+    MotionPrior,
+    MovingFit,
+    corner_times_s,
+    moving_pose,
+    prior_blur_modes,
+    static_velocity,
+)
 from ficap_ros.vision.reprojection import (
     TagObservations,
+    edge_shifts_px,
     median,
     reprojection_errors_px,
     residuals_and_jacobian,
     residuals_and_jacobian_rt,
+    undistorted_corners,
 )
 from ficap_ros.vision.uncertainty import (
     UncertaintyConfig,
@@ -98,6 +109,7 @@ class PoseConfig:
         uncertainty: the error sources of the covariance (``UncertaintyConfig``); None: the
             profile of the corner estimator in use (``pipeline.pose_config_for``), the defaults
             when ``estimate_cap_pose`` is called directly.
+        motion: the head's motion sizes behind the velocity prior (``motion.MotionConfig``).
     """
 
     method: str = "joint"
@@ -110,6 +122,7 @@ class PoseConfig:
     paper_threshold_mm: float = 1.0
     paper_min_corners: int = 4
     uncertainty: UncertaintyConfig | None = None
+    motion: MotionConfig = field(default_factory=MotionConfig)
 
     def __post_init__(self) -> None:
         if self.method not in POSE_METHODS:
@@ -144,7 +157,8 @@ class CapPose:
         trans_err95_mm: predicted 95 % bound of the length of its translation error, mm.
         velocity: the cap's velocity at the stamp where the estimator measures it, else None:
             (6,) ROS twist order in the camera's axes: the cap origin's linear velocity, m/s,
-            then the angular velocity, rad/s.
+            then the angular velocity, rad/s (``vision.motion``: from the poses before).
+        velocity_covariance: its 6x6 covariance (same order), None with ``velocity``.
     """
 
     T_cam_cap: Transform
@@ -158,6 +172,7 @@ class CapPose:
     rot_err95_deg: float = float("nan")
     trans_err95_mm: float = float("nan")
     velocity: np.ndarray | None = None
+    velocity_covariance: np.ndarray | None = None
 
     @property
     def rotation_sigma_deg(self) -> float:
@@ -355,7 +370,6 @@ def _consensus_start(obs: TagObservations, config: PoseConfig) -> tuple[Transfor
     return best[2], best[3]
 
 
-
 # -- estimators -----------------------------------------------------------------------------------
 
 
@@ -384,12 +398,21 @@ def _hidden_outliers(err: np.ndarray, median_px: float, hidden: np.ndarray, n_us
     return hidden & (err > config.hidden_ratio * median_px)
 
 
+def _static_errors(obs: TagObservations, T: Transform) -> np.ndarray:
+    return reprojection_errors_px(obs.image_px, obs.K, T, obs.model_m)  # per tag, px
+
+
 def _solve_joint(obs: TagObservations, config: PoseConfig, start: Transform | None = None,
-                 hidden: np.ndarray | None = None) -> _Solution | str:
+                 hidden: np.ndarray | None = None, fit: MovingFit | None = None) -> _Solution | str:
+    """The joint estimator; ``fit``: a moving cap's (rolling shutter), None: the static fit."""
+    refine = _refine if fit is None else fit.refine
+    errors = _static_errors if fit is None else fit.errors
     begin = None
     if start is not None and _in_front(obs, start):
         # A predicted pose (tracking) that every tag agrees with replaces the consensus search.
-        inliers = reprojection_errors_px(obs.image_px, obs.K, start, obs.model_m) < _inlier_threshold(obs, config)
+        if fit is not None:
+            fit.begin(start)
+        inliers = errors(obs, start) < _inlier_threshold(obs, config)
         if np.all(inliers):
             begin = (start, inliers)
     if begin is None:
@@ -397,6 +420,8 @@ def _solve_joint(obs: TagObservations, config: PoseConfig, start: Transform | No
     if begin is None:
         return "no pose agrees with the detected tags"
     T, inliers = begin
+    if fit is not None and fit.velocity is None:
+        fit.begin(T)
     # ``used`` is always ``obs.subset(current)`` (obs's ids are unique): the mask is kept, not
     # rebuilt from the ids each round.
     current = np.array(inliers, dtype=bool)
@@ -405,8 +430,8 @@ def _solve_joint(obs: TagObservations, config: PoseConfig, start: Transform | No
     for _ in range(5):
         if len(used) < config.min_tags:
             return f"{len(used)} tag(s) left after outlier rejection, need {config.min_tags}"
-        T, rms = _refine(used, T)
-        err_all = reprojection_errors_px(obs.image_px, obs.K, T, obs.model_m)
+        T, rms = refine(used, T)
+        err_all = errors(obs, T)
         median_px = median(err_all[current])
         limit = max(config.outlier_ratio * median_px, config.outlier_floor_px)
         keep = err_all <= limit
@@ -427,7 +452,7 @@ def _solve_joint(obs: TagObservations, config: PoseConfig, start: Transform | No
         else:
             current |= keep
         used = obs.subset(current)
-    T, rms = _refine(used, T)
+    T, rms = refine(used, T)
     return _Solution(T, used, rms)
 
 
@@ -518,52 +543,32 @@ def _resolve_duplicates(
     return unique
 
 
-def _undistorted_groups(ours: Sequence[TagDetection],
-                        camera: CameraModel) -> dict[int, list[np.ndarray]]:
-    """The undistorted corners (4, 2) of the model's detected tags, per id (a list: an id may be
-    detected twice); corners that do not undistort to finite pixels are left out."""
-    groups: dict[int, list[np.ndarray]] = {}
-    if ours:
-        # One undistortion call for every corner of the frame.
-        undistorted = camera.undistort_px(np.concatenate([d.corners_px for d in ours])).reshape(-1, 4, 2)
-        finite = np.isfinite(undistorted).all(axis=(1, 2))
-        for det, corners, ok in zip(ours, undistorted, finite):
-            if ok:
-                groups.setdefault(det.tag_id, []).append(corners)
-    return groups
-
-
 def _solve(obs: TagObservations, config: PoseConfig, start: Transform | None,
-           hidden_ids: Container[int]) -> _Solution | str:
-    """The configured estimator's solution, or the reason there is none."""
+           hidden_ids: Container[int], fit: MovingFit | None = None) -> _Solution | str:
+    """The configured estimator's solution, or the reason there is none. ``fit``: the moving
+    cap's fit of a rolling shutter (``joint`` only)."""
     if config.method == "joint":
         hidden = np.array([i in hidden_ids for i in obs.ids], dtype=bool) if hidden_ids else None
-        return _solve_joint(obs, config, start, hidden)
+        return _solve_joint(obs, config, start, hidden, fit)
     return _SOLVERS[config.method](obs, config)
-
-
-def _edge_shifts_px(ours: Sequence[TagDetection], ids: Sequence[int]) -> np.ndarray:
-    """The cell fit's edge shift of each of the tags ``ids``, px (NaN: not fitted, or the id was
-    detected twice)."""
-    shifts: dict[int, float] = {}
-    for det in ours:
-        shifts[det.tag_id] = float("nan") if det.tag_id in shifts else float(det.edge_shift_px)
-    return np.array([shifts.get(i, float("nan")) for i in ids])
 
 
 def _uncertainty(used: TagObservations, T: Transform, tag_sigma_px: np.ndarray | None,
                  edge_shift_px: np.ndarray, at: tuple[np.ndarray, np.ndarray],
-                 config: UncertaintyConfig) -> tuple[np.ndarray, float, float]:
+                 config: UncertaintyConfig,
+                 blur: dict[str, np.ndarray] | None = None) -> tuple[np.ndarray, float, float]:
     """(covariance, rot_err95_deg, trans_err95_mm) of the pose ``T`` fitted to ``used``."""
-    terms, seen = uncertainty_terms(used, T, tag_sigma_px, edge_shift_px, at=at)
+    terms, seen = uncertainty_terms(used, T, tag_sigma_px, edge_shift_px, at=at, shared_modes=blur)
     covariance = combine_uncertainty(terms, seen, config)
     rot95, trans95 = error_bound95(covariance, *uncertainty_bounds(terms, seen, config, covariance))
     return covariance, rot95, trans95
 
 
 def _cap_pose(solution: _Solution, ours: Sequence[TagDetection], tags_detected: int,
-              config: PoseConfig, with_uncertainty: bool) -> CapPose:
-    """The reported pose of a solution: tag weights (``joint``), its rms and uncertainty."""
+              config: PoseConfig, with_uncertainty: bool,
+              blur: dict[str, np.ndarray] | None = None) -> CapPose:
+    """The reported pose of a solution: tag weights (``joint``), its rms and uncertainty
+    (``blur``: the motion blur's shared corner errors, ``motion.blur_modes``)."""
     uncertainty = config.uncertainty if config.uncertainty is not None else UncertaintyConfig()
     used_n = len(solution.used)
     T = solution.T
@@ -574,8 +579,8 @@ def _cap_pose(solution: _Solution, ours: Sequence[TagDetection], tags_detected: 
     rms = float(np.sqrt(np.mean(res**2) * 2.0))
     if with_uncertainty:
         covariance, rot95, trans95 = _uncertainty(solution.used, T, tag_sigma,
-                                                  _edge_shifts_px(ours, solution.used.ids), (res, J),
-                                                  uncertainty)
+                                                  edge_shifts_px(ours, solution.used.ids), (res, J),
+                                                  uncertainty, blur)
     else:
         covariance = np.full((6, 6), np.nan)
         rot95 = trans95 = float("nan")
@@ -593,6 +598,22 @@ def _cap_pose(solution: _Solution, ours: Sequence[TagDetection], tags_detected: 
     )
 
 
+def _moving_cap_pose(solution: _Solution, fit: MovingFit, ours: Sequence[TagDetection],
+                     tags_detected: int, config: PoseConfig, with_uncertainty: bool,
+                     exposure_s: float) -> CapPose:
+    """The reported pose of a moving cap's solution (rolling shutter, ``motion.moving_pose``)."""
+    uncertainty = config.uncertainty if config.uncertainty is not None else UncertaintyConfig()
+    used = solution.used
+    m = moving_pose(fit, used, solution.T, edge_shifts_px(ours, used.ids), uncertainty,
+                    with_uncertainty, exposure_s)
+    return CapPose(
+        T_cam_cap=m.T_cam_cap, tags_detected=tags_detected, tags_used=len(used),
+        used_ids=used.ids, rms_px=m.rms_px, covariance=m.covariance,
+        reliability=reliability_score(len(used), m.rot_err95_deg), method=config.method,
+        rot_err95_deg=m.rot_err95_deg, trans_err95_mm=m.trans_err95_mm, velocity=m.velocity,
+        velocity_covariance=m.velocity_covariance)
+
+
 def estimate_cap_pose(
     detections: Sequence[TagDetection],
     model: CapModel,
@@ -601,6 +622,8 @@ def estimate_cap_pose(
     start: Transform | None = None,
     with_uncertainty: bool = True,
     hidden_ids: Container[int] = (),
+    timing: CameraTiming | None = None,
+    prior: MotionPrior | None = None,
 ) -> PoseResult:
     """Estimate T_cam_cap from detections of the model's tags.
 
@@ -620,12 +643,18 @@ def estimate_cap_pose(
         hidden_ids: ids of tags the image shows partly hidden (``detection.partly_hidden``),
             ``joint`` only: such a tag is dropped at a lower residual than others
             (``_hidden_outliers``).
+        timing: the camera's timing; a rolling shutter (``CameraTiming.rolling``) and the
+            ``joint`` method: each corner is seen at its row's time and the pose at the stamp is
+            solved with the cap's velocity (``motion.MovingFit``). None: a global shutter.
+        prior: what the frames before say about the velocity (``motion.MotionPrior``: the
+            tracker's); None: no past frame. A global-shutter pose with a past pose gets the
+            prior's velocity (``motion.static_velocity``); the pose itself does not depend on it.
     Returns:
         A ``PoseResult``: a ``CapPose``, or ``pose=None`` with the reason.
     """
     config = config or PoseConfig()
     ours = [d for d in detections if d.tag_id in model]
-    groups = _undistorted_groups(ours, camera)
+    groups = undistorted_corners(ours, camera)
     tags_detected = len(groups)
     if tags_detected == 0:
         return PoseResult(None, 0, "no tag of the model detected")
@@ -635,9 +664,22 @@ def estimate_cap_pose(
             None, tags_detected,
             f"{len(resolved)} usable tag(s) (after resolving duplicated ids), need {config.min_tags}",
         )
-    solution = _solve(TagObservations.of(resolved, model, camera.K), config, start, hidden_ids)
+    moving = timing is not None and timing.rolling and config.method == "joint"
+    fit = MovingFit(prior or MotionPrior(config=config.motion)) if moving else None
+    times = corner_times_s(resolved, camera, timing) if fit is not None else None  # type: ignore[arg-type]
+    obs = TagObservations.of(resolved, model, camera.K, times)
+    solution = _solve(obs, config, start, hidden_ids, fit)
     if isinstance(solution, str):
         return PoseResult(None, tags_detected, solution)
     if not _in_front(solution.used, solution.T):
         return PoseResult(None, tags_detected, "pose puts the cap behind the camera")
-    return PoseResult(_cap_pose(solution, ours, tags_detected, config, with_uncertainty), tags_detected, "")
+    if fit is not None:
+        return PoseResult(_moving_cap_pose(solution, fit, ours, tags_detected, config,
+                                           with_uncertainty, timing.exposure_ms * 1e-3),  # type: ignore[union-attr]
+                          tags_detected, "")
+    blur = prior_blur_modes(prior, solution.used, solution.T, timing)
+    pose = _cap_pose(solution, ours, tags_detected, config, with_uncertainty, blur)
+    velocity = None if prior is None else static_velocity(prior, pose.T_cam_cap, pose.covariance)
+    if velocity is not None:
+        pose = replace(pose, velocity=velocity[0], velocity_covariance=velocity[1])
+    return PoseResult(pose, tags_detected, "")

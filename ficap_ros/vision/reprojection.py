@@ -11,19 +11,24 @@ of the pose is in the camera (parent) frame, as ROS's PoseWithCovariance expects
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import Mapping
+from typing import Mapping, Sequence
 
 import numpy as np
 
+from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.cap_model import CapModel
 from ficap_ros.geometry.transform import Transform
+from ficap_ros.vision.detector import TagDetection
 
 __all__ = [
     "TagObservations",
+    "undistorted_corners",
+    "edge_shifts_px",
     "project_px",
     "reprojection_errors_px",
     "residuals_and_jacobian",
     "residuals_and_jacobian_rt",
+    "residuals_and_jacobian_moving",
     "median",
 ]
 
@@ -37,33 +42,64 @@ class TagObservations:
         image_px: (T, 4, 2) corners in the undistorted image, px.
         model_m: (T, 4, 3) the same corners on the cap model, cap frame, m.
         K: 3x3 intrinsics of the undistorted image.
+        time_s: (T, 4) when each corner was seen, s from the stamp (a rolling shutter's row
+            times); None: every corner at the stamp (a global shutter).
     """
 
     ids: tuple[int, ...]
     image_px: np.ndarray
     model_m: np.ndarray
     K: np.ndarray = field(repr=False)
+    time_s: np.ndarray | None = field(default=None, repr=False)
 
     @classmethod
-    def of(cls, corners_px: Mapping[int, np.ndarray], model: CapModel, K: np.ndarray) -> TagObservations:
-        """From undistorted corners (4, 2) per tag id of ``model``, in ascending id order."""
+    def of(cls, corners_px: Mapping[int, np.ndarray], model: CapModel, K: np.ndarray,
+           time_s: Mapping[int, np.ndarray] | None = None) -> TagObservations:
+        """From undistorted corners (4, 2) per tag id of ``model``, in ascending id order, and
+        optionally each corner's time (4,) per id, s."""
         ids = tuple(sorted(corners_px))
         return cls(
             ids,
             np.stack([corners_px[i] for i in ids]),
             np.stack([model.corners_of(i) for i in ids]) / 1000.0,
             K,
+            None if time_s is None else np.stack([time_s[i] for i in ids]),
         )
 
     def subset(self, keep: np.ndarray) -> TagObservations:
         """The tags where the boolean mask ``keep`` (T,) is set."""
         keep = np.asarray(keep, dtype=bool)
         return TagObservations(
-            tuple(i for i, k in zip(self.ids, keep) if k), self.image_px[keep], self.model_m[keep], self.K
+            tuple(i for i, k in zip(self.ids, keep) if k), self.image_px[keep], self.model_m[keep], self.K,
+            None if self.time_s is None else self.time_s[keep],
         )
 
     def __len__(self) -> int:
         return len(self.ids)
+
+
+def undistorted_corners(ours: Sequence[TagDetection],
+                        camera: CameraModel) -> dict[int, list[np.ndarray]]:
+    """The undistorted corners (4, 2) of the model's detected tags, per id (a list: an id may be
+    detected twice); corners that do not undistort to finite pixels are left out."""
+    groups: dict[int, list[np.ndarray]] = {}
+    if ours:
+        # One undistortion call for every corner of the frame.
+        undistorted = camera.undistort_px(np.concatenate([d.corners_px for d in ours])).reshape(-1, 4, 2)
+        finite = np.isfinite(undistorted).all(axis=(1, 2))
+        for det, corners, ok in zip(ours, undistorted, finite):
+            if ok:
+                groups.setdefault(det.tag_id, []).append(corners)
+    return groups
+
+
+def edge_shifts_px(ours: Sequence[TagDetection], ids: Sequence[int]) -> np.ndarray:
+    """The cell fit's edge shift of each of the tags ``ids``, px (NaN: not fitted, or the id was
+    detected twice)."""
+    shifts: dict[int, float] = {}
+    for det in ours:
+        shifts[det.tag_id] = float("nan") if det.tag_id in shifts else float(det.edge_shift_px)
+    return np.array([shifts.get(i, float("nan")) for i in ids])
 
 
 def median(values: np.ndarray) -> float:
@@ -139,3 +175,79 @@ def residuals_and_jacobian_rt(
 def residuals_and_jacobian(T: Transform, obs: TagObservations) -> tuple[np.ndarray, np.ndarray]:
     """Residuals (8T,) and Jacobian (8T, 6) of ``obs`` at pose ``T`` = T_cam_cap itself."""
     return residuals_and_jacobian_rt(T.rotation_matrix, T.translation_m, obs.K, obs.model_m, obs.image_px)
+
+
+def _skew(a: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) cross-product matrices [a]_x of vectors (N, 3)."""
+    out = np.zeros(a.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -a[..., 2], a[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = a[..., 2], -a[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -a[..., 1], a[..., 0]
+    return out
+
+
+def rotations_of(rotvecs_rad: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) rotation matrices of rotation vectors (N, 3), rad (Rodrigues' formula)."""
+    theta = np.linalg.norm(rotvecs_rad, axis=-1)
+    small = theta < 1e-12
+    safe = np.where(small, 1.0, theta)
+    k = _skew(rotvecs_rad / safe[:, None])
+    s = np.where(small, 0.0, np.sin(theta))[:, None, None]
+    c1 = np.where(small, 0.0, 1.0 - np.cos(theta))[:, None, None]
+    return np.eye(3) + s * k + c1 * (k @ k)
+
+
+def moving_points_m(R: np.ndarray, t: np.ndarray, velocity: np.ndarray, model_m: np.ndarray,
+                    time_s: np.ndarray) -> np.ndarray:
+    """Camera-frame positions (N, 3), m, of model points ``model_m`` (..., 3) at their times
+    ``time_s`` (...,), s from the stamp, of a cap at pose (R, t) at the stamp moving at
+    ``velocity`` (6,): linear m/s, then angular rad/s (camera axes)."""
+    tau = np.asarray(time_s, dtype=np.float64).reshape(-1)
+    Y = model_m.reshape(-1, 3) @ R.T
+    E = rotations_of(tau[:, None] * velocity[3:])
+    return np.einsum("nij,nj->ni", E, Y) + t + tau[:, None] * velocity[:3]
+
+
+def residuals_and_jacobian_moving(
+    R: np.ndarray, t: np.ndarray, velocity: np.ndarray, obs: TagObservations
+) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals (2N,) and Jacobian (2N, 12) of a cap at pose (R, t) at the stamp moving at
+    ``velocity`` (6,: linear m/s, angular rad/s, camera axes) over the corners' times
+    ``obs.time_s`` (module docstring).
+
+    Rows alternate u and v of each corner; the columns: the pose's left perturbation (d_theta,
+    d_t), then the velocity in twist order, d_v (m/s) and d_w (rad/s). A corner seen at the stamp (time 0) gives the same
+    residuals and pose columns as ``residuals_and_jacobian_rt``, and zeros in the velocity's."""
+    tau = np.asarray(obs.time_s, dtype=np.float64).reshape(-1)
+    w = velocity[3:]
+    Y = obs.model_m.reshape(-1, 3) @ R.T
+    E = rotations_of(tau[:, None] * w)
+    P = np.einsum("nij,nj->ni", E, Y)  # the rotated model points at each corner's time
+    p = P + t + tau[:, None] * velocity[:3]
+    K = obs.K
+    fx, fy, s, cx, cy = K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2]
+    iz = 1.0 / p[:, 2]
+    xn, yn = p[:, 0] * iz, p[:, 1] * iz
+    u = fx * xn + s * yn + cx
+    v = fy * yn + cy
+    image = obs.image_px.reshape(-1, 2)
+    n = len(p)
+    res = np.empty(2 * n)
+    res[0::2] = u - image[:, 0]
+    res[1::2] = v - image[:, 1]
+    G = np.zeros((n, 2, 3))  # d(u, v)/dp
+    G[:, 0, 0] = fx * iz
+    G[:, 0, 1] = s * iz
+    G[:, 0, 2] = -(u - cx) * iz
+    G[:, 1, 1] = fy * iz
+    G[:, 1, 2] = -(v - cy) * iz
+    # dp/d_theta = -[P]_x E; dp/d_w = -[P]_x J_l(tau w) tau, J_l to first order (tau w is small).
+    GP = -G @ _skew(P)
+    phi = tau[:, None] * w
+    Jl = np.eye(3) + 0.5 * _skew(phi)
+    jac = np.empty((n, 2, 12))
+    jac[:, :, 0:3] = GP @ E
+    jac[:, :, 3:6] = G
+    jac[:, :, 6:9] = G * tau[:, None, None]
+    jac[:, :, 9:12] = (GP @ Jl) * tau[:, None, None]
+    return res, jac.reshape(2 * n, 12)

@@ -36,7 +36,8 @@ from ficap_ros.geometry.transform import Transform
 from ficap_ros.vision.corners import refine_tag_corners
 from ficap_ros.vision.detector import TagDetection, TagDetector
 from ficap_ros.vision.edges import refine_corners_edge_ok
-from ficap_ros.vision.pose import PoseConfig, PoseResult, estimate_cap_pose
+from ficap_ros.vision.motion import MotionPrior, PastPose
+from ficap_ros.vision.pose import CapPose, PoseConfig, PoseResult, estimate_cap_pose
 
 __all__ = ["TrackConfig", "Tracker", "TrackedFrame", "PoseSolver", "Search", "extrapolate_pose",
            "predict_tags", "verify_tags", "tag_cells", "view_angles_deg"]
@@ -201,8 +202,10 @@ class Search(str, Enum):
 
 
 #: How the pipeline solves a frame's pose: (the tags the pose uses, the pose they were predicted
-#: at or None) -> the pose result. ``Tracker.track`` calls it once a frame.
-PoseSolver = Callable[[tuple[TagDetection, ...], "Transform | None"], PoseResult]
+#: at or None, the velocity prior of the frames before or None) -> the pose result.
+#: ``Tracker.track`` calls it once a frame.
+PoseSolver = Callable[[tuple[TagDetection, ...], "Transform | None", "MotionPrior | None"],
+                      PoseResult]
 
 
 @dataclass(frozen=True)
@@ -229,6 +232,9 @@ class _TrackState:
     dt_prev_ns: int  # stamp_ns minus the earlier frame's stamp (0: unknown)
     n_tags: int
     camera: CameraModel
+    # The last three posed frames' (stamp_ns, pose, covariance), newest first, while
+    # consecutive: the velocity prior of the next frame (``Tracker.motion_prior``).
+    history: tuple[tuple[int, Transform, np.ndarray], ...] = ()
 
 
 class Tracker:
@@ -453,11 +459,22 @@ class Tracker:
             pose: the current pose settings (second looks, search completion, the pose's tags).
             solve: the pipeline's solver of the frame's final pose.
         """
+        prior = self.motion_prior(camera, stamp_ns, pose)
         detections, predicted, search = self._find(gray, camera, stamp_ns, pose)
-        result = solve(self._pose_tags(detections, predicted, pose), predicted)
-        self._remember(None if result.pose is None else result.pose.T_cam_cap, stamp_ns,
-                       detections, camera)
+        result = solve(self._pose_tags(detections, predicted, pose), predicted, prior)
+        self._remember(result.pose, stamp_ns, detections, camera)
         return TrackedFrame(detections, result, search)
+
+    def motion_prior(self, camera: CameraModel, stamp_ns: int,
+                     pose: PoseConfig) -> MotionPrior | None:
+        """The velocity prior of a frame at ``stamp_ns``: the last posed frames' poses (at most
+        three, consecutive and stamped), or None when no frame before can inform it."""
+        tr = self._usable_track(camera, stamp_ns)
+        if tr is None or not stamp_ns or not tr.history:
+            return None
+        past = tuple(PastPose((stamp_ns - s) * 1e-9, T, cov) for s, T, cov in tr.history
+                     if s and stamp_ns > s)
+        return MotionPrior(past, pose.motion) if past else None
 
     def _find(
         self, gray: np.ndarray, camera: CameraModel, stamp_ns: int, pose: PoseConfig
@@ -519,18 +536,22 @@ class Tracker:
             return detections
         return kept
 
-    def _remember(self, T_cam_cap: Transform | None, stamp_ns: int,
+    def _remember(self, cap_pose: CapPose | None, stamp_ns: int,
                   detections: tuple[TagDetection, ...], camera: CameraModel) -> None:
         """Remember a frame's pose (None: lost, the next frame is searched over the whole image)."""
-        if T_cam_cap is None:
+        if cap_pose is None:
             self._track = None
             return
+        T_cam_cap = cap_pose.T_cam_cap
         # The velocity needs the previous posed frame to be the one just before, at another stamp.
         prev = self._usable_track(camera, stamp_ns)
         timed = prev is not None and bool(stamp_ns and prev.stamp_ns)
         if timed and stamp_ns == prev.stamp_ns:  # type: ignore[union-attr]
             prev = None
+        history = ((stamp_ns, T_cam_cap, cap_pose.covariance),)
+        if prev is not None and timed:
+            history += prev.history[:2]
         self._track = _TrackState(
             T_cam_cap, None if prev is None else prev.T_cam_cap, stamp_ns,
             stamp_ns - prev.stamp_ns if prev is not None and timed else 0,
-            len({d.tag_id for d in detections}), camera)
+            len({d.tag_id for d in detections}), camera, history)

@@ -46,6 +46,10 @@ def test_replay_recovers_ground_truth(drive: Path, replayed_calibrated: Path) ->
     assert cal_err < 0.5
     assert summary["frames"] == FRAMES and summary["frames_skipped"] == 0
     assert summary["pct_ge4_tags"] == 100.0 and summary["throughput_fps"] > 0
+    # The synth camera is a global shutter: the readout read from the moving frames is none,
+    # within a few of its standard errors.
+    timing = summary["timing_estimate"]
+    assert timing["readout_frames"] > 0 and abs(timing["readout_ms"]) < 4.0 * timing["readout_se_ms"]
     # Every label says how wrong it may be: finite, positive 95 % bounds that hold for the
     # frames' true errors, and a reliability that is the bound's.
     assert np.all(np.isfinite(labels.rot_err95_deg)) and np.all(labels.rot_err95_deg > 0)

@@ -131,6 +131,46 @@ def test_a_frame_result_and_pose_settings_replaced_between_frames() -> None:
                                                          scene.camera).reason
 
 
+def test_tracked_frames_give_the_cap_velocity() -> None:
+    """Consecutive 30 fps frames through a glance: the first frame (searched, nothing before it)
+    has no velocity; the tracked ones have the velocity of their poses' finite difference, near
+    the true one and within what its covariance says. Without a stated timing the same poses come
+    without a velocity, while the frames still give their readout evidence."""
+    from ficap_ros.geometry.camera import CameraTiming
+    from ficap_ros.tools.synth import naturalistic_motion
+
+    scene = default_scene("540p")
+    motion = naturalistic_motion(12.0, seed=2, scene=scene)
+    times = np.arange(3.0, 12.0, 1 / 30)
+    speeds = [angle_deg(motion.T_cam_cap_at(t - 0.005).rotation, motion.T_cam_cap_at(t + 0.005).rotation)
+              / 0.01 for t in times]
+    t_fast = float(times[int(np.argmax(speeds))])
+    proc = FrameProcessor(MODEL, timing=CameraTiming(exposure_ms=8.0))
+    bare = FrameProcessor(MODEL)
+    assert proc.timing.exposure_ms == 8.0 and not proc.timing.rolling
+    for k in range(-3, 2):
+        t = t_fast + k / 30
+        frame = render(MODEL, scene.camera, motion.T_cam_cap_at(t), RenderConfig(lighting="neutral"), seed=k + 10)
+        r = proc.process(frame.image, scene.camera, int(round(t * 1e9)))
+        b = bare.process(frame.image, scene.camera, int(round(t * 1e9)))
+        assert b.pose.velocity is None and b.pose.velocity_covariance is None
+        np.testing.assert_array_equal(b.pose.T_cam_cap.matrix, r.pose.T_cam_cap.matrix)
+        assert (b.timing_evidence is None) == (k == -3)
+        if k == -3:
+            assert r.pose.velocity is None and r.pose.velocity_covariance is None
+            assert r.timing_evidence is None  # no velocity: nothing said of the readout
+            continue
+        # A global shutter: the frame's readout evidence is none within its error.
+        ev = r.timing_evidence
+        assert ev is not None and abs(ev.readout_s) < 4.0 * np.sqrt(ev.readout_var_s2)
+        a, b = motion.T_cam_cap_at(t - 1e-4), motion.T_cam_cap_at(t + 1e-4)
+        w_true = (b * a.inv()).rvec / 2e-4
+        w_err = r.pose.velocity[3:] - w_true
+        sigma = np.sqrt(np.diag(r.pose.velocity_covariance)[3:])
+        assert np.degrees(np.linalg.norm(w_true)) > 50.0
+        assert np.degrees(np.abs(w_err)).max() < 25.0 and np.all(np.abs(w_err) < 4.0 * sigma)
+
+
 def test_the_camera_timing_is_a_setting_of_the_processor() -> None:
     """``timing`` is held as given (``CameraTiming()``, not known, by default) and, like
     ``pose_config``, replaced as a whole between frames."""

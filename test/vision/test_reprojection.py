@@ -89,3 +89,51 @@ def test_jacobian_is_the_left_perturbation_derivative(column: int) -> None:
     numeric = (at(step) - at(-step)) / (2 * h)
     scale = np.abs(J[:, column]).max()
     np.testing.assert_allclose(J[:, column], numeric, atol=1e-6 * scale)
+
+
+def _timed(obs: TagObservations, seed: int = 1) -> TagObservations:
+    times = np.random.default_rng(seed).uniform(-0.011, 0.011, (len(obs), 4))
+    return TagObservations(obs.ids, obs.image_px, obs.model_m, obs.K, times)
+
+
+VELOCITY = np.array([0.05, -0.02, 0.1, 0.5, 4.0, -0.3])
+
+
+@pytest.mark.parametrize("column", range(12))
+def test_moving_jacobian_is_the_derivative_of_pose_and_velocity(column: int) -> None:
+    """Columns 0-5: a left perturbation of the pose at the stamp; 6-11: the velocity (twist
+    order). Central differences; the angular columns to the first-order J_l they use (the
+    rotation over a corner's time is a few degrees at most)."""
+    from ficap_ros.vision.reprojection import residuals_and_jacobian_moving
+
+    obs = _timed(_observations(0.2))
+    _, J = residuals_and_jacobian_moving(T_TRUE.rotation_matrix, T_TRUE.translation_m, VELOCITY, obs)
+    eps = 1e-7
+
+    def res(sign: float) -> np.ndarray:
+        dx = np.zeros(12)
+        dx[column] = sign * eps
+        T = T_TRUE.turned(dx[:3], T_TRUE.translation_m + dx[3:6])
+        return residuals_and_jacobian_moving(T.rotation_matrix, T.translation_m, VELOCITY + dx[6:], obs)[0]
+
+    numeric = (res(1.0) - res(-1.0)) / (2 * eps)
+    scale = np.abs(numeric).max()
+    np.testing.assert_allclose(J[:, column], numeric, atol=(1e-3 if column >= 9 else 1e-6) * scale)
+
+
+def test_corners_at_the_stamp_are_the_static_fit() -> None:
+    """Corners timed at the stamp (0) give the static residuals and Jacobian, and no velocity
+    columns; ``subset`` keeps the times with their tags."""
+    from ficap_ros.vision.reprojection import residuals_and_jacobian_moving
+
+    obs = _observations(0.3)
+    zero = TagObservations(obs.ids, obs.image_px, obs.model_m, obs.K, np.zeros((len(obs), 4)))
+    res, J = residuals_and_jacobian_moving(T_TRUE.rotation_matrix, T_TRUE.translation_m, VELOCITY, zero)
+    res0, J0 = residuals_and_jacobian(T_TRUE, obs)
+    np.testing.assert_allclose(res, res0, atol=1e-12)
+    np.testing.assert_allclose(J[:, :6], J0, rtol=1e-12, atol=1e-9)
+    assert not J[:, 6:].any()
+    timed = _timed(obs)
+    keep = np.arange(len(obs)) % 2 == 0
+    np.testing.assert_array_equal(timed.subset(keep).time_s, timed.time_s[keep])
+    assert obs.subset(keep).time_s is None

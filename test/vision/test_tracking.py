@@ -169,8 +169,9 @@ def test_search_kinds_are_their_strings() -> None:
 
 def test_one_call_a_frame_with_the_pose_settings_of_that_call() -> None:
     """``Tracker.track`` is the whole frame: it finds the tags, hands the pipeline's solver the
-    tags the pose should use and the pose they were predicted or located at (once), and remembers
-    the solved pose for the next frame; the pose settings come with each call."""
+    tags the pose should use, the pose they were predicted or located at and the velocity prior of
+    the frames before (once), and remembers the solved pose for the next frame; the pose settings
+    come with each call."""
     from ficap_ros.vision.detector import TagDetector
     from ficap_ros.vision.pose import PoseConfig, estimate_cap_pose
     from ficap_ros.vision.tracking import Search, Tracker
@@ -178,11 +179,13 @@ def test_one_call_a_frame_with_the_pose_settings_of_that_call() -> None:
     scene, frames = _drive(4, 600)
     tracker = Tracker(MODEL, TagDetector())
     calls: list[tuple[tuple[int, ...], bool]] = []
+    priors: list = []
 
     def solver(pose: PoseConfig):
-        def solve(tags, start):
+        def solve(tags, start, prior):
             calls.append((tuple(d.tag_id for d in tags), start is not None))
-            return estimate_cap_pose(tags, MODEL, scene.camera, pose, start=start)
+            priors.append(prior)
+            return estimate_cap_pose(tags, MODEL, scene.camera, pose, start=start, prior=prior)
         return solve
 
     searched = tracker.track(frames[0].image, scene.camera, FRAME_NS, PoseConfig(),
@@ -193,6 +196,9 @@ def test_one_call_a_frame_with_the_pose_settings_of_that_call() -> None:
     tracked = tracker.track(frames[1].image, scene.camera, 2 * FRAME_NS, PoseConfig(),
                             solver(PoseConfig()))
     assert tracked.search == Search.TRACKED and len(calls) == 2 and calls[1][1]
+    # No frame before the first; the second's prior is the first frame's pose, one frame old.
+    assert priors[0] is None and [p.age_s for p in priors[1].past] == [FRAME_NS * 1e-9]
+    assert priors[1].past[0].T_cam_cap is searched.result.pose.T_cam_cap
     assert set(calls[1][0]) <= {d.tag_id for d in tracked.detections}
     assert angle_deg(tracked.result.pose.T_cam_cap.rotation, frames[1].T_cam_cap.rotation) < 0.05
     # Settings of this call: a pose needing more tags than the cap shows gives none, so the

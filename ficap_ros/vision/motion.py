@@ -1,0 +1,534 @@
+"""The cap's motion over one frame: the velocity prior from past poses and the rolling-shutter fit.
+
+A rolling shutter sees each corner at its row's time (``CameraTiming.row_time_s``): during a fast
+glance the top and bottom of the cap are seen several milliseconds apart, and a pose fitted as if
+every corner were seen at once is the pose at some mean time of the cap's rows, tilted by the shear.
+The joint solver's moving fit (``MovingFit``) solves instead for the pose at the stamp together with
+the cap's velocity over the readout (constant velocity: ``reprojection.residuals_and_jacobian_moving``),
+the velocity held by a prior (``MotionPrior``).
+
+The prior comes from the poses of the frames before (the tracker's, ``PastPose``): the velocity at
+this frame's stamp is the derivative of the quadratic through the two past poses and the pose being
+solved (backward differentiation, BDF2), or of the line through one past pose and it; the prior is
+therefore a constraint between this frame's pose and its velocity, not a fixed guess. Its
+covariance holds the past poses' covariances and the model's error: the truncation of the finite
+difference by the head's angular and linear jerk (two past poses) or acceleration (one), at the
+sizes of ``MotionConfig``. With no past pose the prior is a weak one around rest (the speeds of
+``MotionConfig``), so a rolling-shutter frame alone still has a pose.
+
+A global-shutter frame says nothing of the velocity: its pose is the static fit's, and its velocity
+(``static_velocity``) is the prior's finite difference at that pose, with the pose's covariance
+propagated into the prior's.
+
+Velocities are twists in ROS order and camera axes: the cap origin's linear velocity (m/s), then
+the angular velocity (rad/s).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.optimize import leastsq
+
+from ficap_ros.errors import ConfigError
+from ficap_ros.geometry.camera import CameraModel, CameraTiming
+from ficap_ros.geometry.transform import Transform
+from ficap_ros.vision.reprojection import (
+    TagObservations,
+    moving_points_m,
+    project_px,
+    residuals_and_jacobian_moving,
+)
+from ficap_ros.vision.uncertainty import (
+    UncertaintyConfig,
+    combine_uncertainty,
+    error_bound95,
+    tag_noise_from_residuals,
+    uncertainty_bounds,
+    uncertainty_terms,
+)
+
+__all__ = ["MotionConfig", "PastPose", "VelocityPrior", "MotionPrior", "MovingFit", "MovingPose",
+           "blur_modes", "blur_px", "corner_times_s", "moving_pose", "prior_blur_modes",
+           "static_velocity"]
+
+#: Reorders the pose solver's (d_theta, d_t) into ROS (t, theta) order.
+_POSE_TO_ROS = np.array([3, 4, 5, 0, 1, 2])
+
+
+@dataclass(frozen=True)
+class MotionConfig:
+    """How the head moves, for the velocity prior (1-sigma sizes).
+
+    The default jerk and acceleration are the root mean square over a glance under the
+    minimum-jerk profile that reaches 250 deg/s in 0.35 s (fast mirror glances); linear sizes are
+    the cap origin's, a few centimetres off the axis the head turns about, plus the centripetal
+    part. They are what a finite difference of poses may be off by in such a glance. With three
+    past poses the jerk is measured instead (the third divided difference through them and the
+    pose being solved), at least ``jerk_floor`` times these sizes: slow frames then get the small
+    prior error they have.
+
+    Attributes:
+        angular_jerk_rad_s3, linear_jerk_m_s3: the third derivative of the cap's orientation
+            (rad/s^3) and position (m/s^3): the error of the velocity from two past poses.
+        angular_accel_rad_s2, linear_accel_m_s2: the second derivative: the error of the
+            velocity from one past pose.
+        angular_speed_rad_s, linear_speed_m_s: the velocity itself, for a frame with no past pose
+            (a prior around rest).
+        jerk_floor: the least measured jerk, as a fraction of the sizes above (the jerk changes
+            between the past poses and this frame).
+        max_age_s: past poses older than this are not used.
+    """
+
+    angular_jerk_rad_s3: float = 500.0
+    linear_jerk_m_s3: float = 30.0
+    angular_accel_rad_s2: float = 30.0
+    linear_accel_m_s2: float = 2.0
+    angular_speed_rad_s: float = 4.0
+    linear_speed_m_s: float = 0.6
+    jerk_floor: float = 0.2
+    max_age_s: float = 0.2
+
+    def __post_init__(self) -> None:
+        values = (self.angular_jerk_rad_s3, self.linear_jerk_m_s3, self.angular_accel_rad_s2,
+                  self.linear_accel_m_s2, self.angular_speed_rad_s, self.linear_speed_m_s,
+                  self.jerk_floor, self.max_age_s)
+        if not all(math.isfinite(v) and v > 0.0 for v in values):
+            raise ConfigError("motion sizes must be finite and > 0")
+
+
+@dataclass(frozen=True)
+class PastPose:
+    """A pose of an earlier frame of the same camera.
+
+    Attributes:
+        age_s: how long before this frame's stamp it was, s (> 0).
+        T_cam_cap: its pose at its stamp.
+        covariance: its 6x6 covariance, ROS order (``CapPose.covariance``).
+    """
+
+    age_s: float
+    T_cam_cap: Transform
+    covariance: np.ndarray
+
+
+@dataclass(frozen=True)
+class VelocityPrior:
+    """The prior of the velocity at one candidate pose of this frame.
+
+    Attributes:
+        mean: (6,) twist, ROS order.
+        d_mean: (6, 6) its derivative by a left perturbation of the pose, columns (d_theta, d_t)
+            (the pose solver's order).
+        covariance: (6, 6) twist covariance.
+    """
+
+    mean: np.ndarray
+    d_mean: np.ndarray
+    covariance: np.ndarray
+
+
+@dataclass(frozen=True)
+class MotionPrior:
+    """What the frames before say about this frame's velocity (module docstring).
+
+    Attributes:
+        past: up to three past poses, the most recent first (older ones and those beyond
+            ``config.max_age_s`` are ignored).
+        config: the head's motion sizes.
+    """
+
+    past: tuple[PastPose, ...] = ()
+    config: MotionConfig = field(default_factory=MotionConfig)
+
+    @property
+    def usable(self) -> tuple[PastPose, ...]:
+        """The past poses the prior uses: at most three, each older than the one before."""
+        out: list[PastPose] = []
+        for p in self.past:
+            if len(out) == 3 or not 0.0 < p.age_s <= self.config.max_age_s:
+                break
+            if out and p.age_s <= out[-1].age_s:
+                break
+            if not np.all(np.isfinite(p.covariance)):
+                break
+            out.append(p)
+        return tuple(out)
+
+    @property
+    def from_past(self) -> bool:
+        """Whether a past pose informs the prior (else it is the weak prior around rest)."""
+        return bool(self.usable)
+
+    def at(self, T: Transform) -> VelocityPrior:
+        """The prior of the velocity if this frame's pose is ``T``."""
+        c = self.config
+        past = self.usable
+        if not past:
+            var = np.array([c.linear_speed_m_s] * 3 + [c.angular_speed_rad_s] * 3) ** 2
+            return VelocityPrior(np.zeros(6), np.zeros((6, 6)), np.diag(var))
+        h1 = past[0].age_s
+        T1 = past[0].T_cam_cap
+        phi0 = (T * T1.inv()).rvec
+        if len(past) == 1:
+            c0, coefs = 1.0 / h1, (-1.0 / h1,)
+            w = phi0 * c0
+            v = (T.translation_m - T1.translation_m) * c0
+            model = np.array([c.linear_accel_m_s2] * 3 + [c.angular_accel_rad_s2] * 3) * (h1 / 2.0)
+        else:
+            h2 = past[1].age_s - h1
+            T2 = past[1].T_cam_cap
+            c0 = (2.0 * h1 + h2) / (h1 * (h1 + h2))
+            c1 = -(h1 + h2) / (h1 * h2)
+            c2 = h1 / (h2 * (h1 + h2))
+            coefs = (c1, c2)
+            w = c0 * phi0 + c2 * (T2 * T1.inv()).rvec
+            v = c0 * T.translation_m + c1 * T1.translation_m + c2 * T2.translation_m
+            jerk = np.array([c.linear_jerk_m_s3] * 3 + [c.angular_jerk_rad_s3] * 3)
+            if len(past) == 3:
+                jerk = np.hypot(_measured_jerk(T, past), c.jerk_floor * jerk)
+            model = jerk * (h1 * (h1 + h2) / 6.0)
+        cov = np.diag(model**2)
+        for coef, p in zip(coefs, past[:2]):
+            cov = cov + coef * coef * np.asarray(p.covariance, dtype=float)
+        d_mean = np.zeros((6, 6))
+        d_mean[0:3, 3:6] = c0 * np.eye(3)  # v by d_t
+        d_mean[3:6, 0:3] = c0 * _left_jacobian_inverse(phi0)  # w by d_theta
+        return VelocityPrior(np.concatenate([v, w]), d_mean, 0.5 * (cov + cov.T))
+
+
+def _measured_jerk(T: Transform, past: tuple[PastPose, ...]) -> np.ndarray:
+    """(6,) the magnitude of each twist component's second derivative (the jerk of position and
+    orientation): six times the third divided difference through the pose ``T`` (at 0) and the
+    three past poses (rotations as vectors in the tangent at the most recent past pose)."""
+    T1 = past[0].T_cam_cap
+    times = [0.0] + [-p.age_s for p in past]
+    values = [np.concatenate([Ti.translation_m, (Ti * T1.inv()).rvec])
+              for Ti in [T] + [p.T_cam_cap for p in past]]
+    for level in range(1, 4):  # Newton's divided differences, in place
+        values = [(values[i] - values[i + 1]) / (times[i] - times[i + level])
+                  for i in range(len(values) - 1)]
+    return np.abs(6.0 * values[0])
+
+
+def _left_jacobian_inverse(phi: np.ndarray) -> np.ndarray:
+    """(3, 3) derivative of ``log(exp(d) exp(phi))`` by ``d`` at 0: how a rotation vector moves
+    when its rotation is turned a little more (camera axes)."""
+    theta = float(np.linalg.norm(phi))
+    k = np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
+    if theta < 1e-6:
+        return np.eye(3) - 0.5 * k + k @ k / 12.0
+    coef = 1.0 / theta**2 - (1.0 + math.cos(theta)) / (2.0 * theta * math.sin(theta))
+    return np.eye(3) - 0.5 * k + coef * (k @ k)
+
+
+def static_velocity(prior: MotionPrior, T: Transform,
+                    covariance: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """A global-shutter frame's velocity: the prior's finite difference at its pose ``T`` (with
+    ``covariance``, 6x6 ROS order), and its covariance (the prior's plus the pose's, propagated).
+    None without a past pose (no velocity is measured)."""
+    if not prior.from_past or not np.all(np.isfinite(covariance)):
+        return None
+    vp = prior.at(T)
+    D = vp.d_mean[:, _POSE_TO_ROS]  # by (t, theta), ROS order
+    cov = vp.covariance + D @ covariance @ D.T
+    return vp.mean, 0.5 * (cov + cov.T)
+
+
+class MovingFit:
+    """The joint solver's fit of a cap moving over a rolling shutter's readout.
+
+    With a past pose (``MotionPrior.from_past``) the velocity is the prior's: its finite
+    difference at the pose being fitted, so the fit has the pose's six unknowns and each corner
+    is projected from the pose moved at that velocity to its time. The corners themselves say
+    little about the velocity over one readout (a shear between rows a fraction of a pixel at the
+    cap's size), and what they say shares their biases: a vertical scale error of the corners
+    reads as a vertical velocity, and through it as depth. The prior's error is propagated into
+    the pose's covariance instead (``motion_term``).
+
+    Without a past pose the prior is the weak one around rest, and the velocity is fitted with the
+    pose: 12 unknowns, the pose's left perturbation and translation then the velocity in twist
+    order; residuals: the corners' reprojection at their times and the prior's six rows whitened
+    by its covariance and scaled by ``sigma_px``, the corner noise (px) that puts them in the
+    corners' units (the least-squares cost is the negative log posterior times ``sigma_px ** 2``).
+    ``sigma_px`` is re-estimated from each fit's residuals (the median tag's, as
+    ``uncertainty.tag_noise_px``).
+
+    The state (``velocity``, ``sigma_px``) is that of the last ``refine`` or ``reweighted``.
+    """
+
+    #: Corner noise before any fit, and the least it is taken to be, px.
+    START_SIGMA_PX = 0.15
+    MIN_SIGMA_PX = 0.03
+
+    def __init__(self, prior: MotionPrior) -> None:
+        self.prior = prior
+        self.held = prior.from_past
+        self.sigma_px = self.START_SIGMA_PX
+        self.velocity: np.ndarray | None = None
+
+    @property
+    def unknowns(self) -> int:
+        """6 (the pose; the velocity held to the prior) or 12 (pose and velocity)."""
+        return 6 if self.held else 12
+
+    def begin(self, T: Transform) -> None:
+        """Start from the prior's velocity at the start pose ``T``."""
+        self.velocity = self.prior.at(T).mean.copy()
+
+    def _velocity(self, T: Transform) -> np.ndarray:
+        if self.held or self.velocity is None:
+            self.begin(T)
+        assert self.velocity is not None
+        return self.velocity
+
+    def _step(self, T0: Transform, velocity0: np.ndarray, x: np.ndarray) -> tuple[Transform, np.ndarray]:
+        """The pose and velocity at the unknowns ``x`` around (T0, velocity0)."""
+        T = T0.turned(x[:3], x[3:6])
+        return T, (self.prior.at(T).mean if self.held else velocity0 + x[6:])
+
+    def prior_rows(self, T: Transform, velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The prior's residuals (6,) and their Jacobian (6, 12) at pose ``T`` and ``velocity``:
+        ``sigma_px`` times the prior's whitened misfit."""
+        vp = self.prior.at(T)
+        try:
+            C = np.linalg.cholesky(vp.covariance)
+        except np.linalg.LinAlgError:
+            C = np.diag(np.sqrt(np.maximum(np.diagonal(vp.covariance), 1e-18)))
+        S = self.sigma_px * np.linalg.inv(C)
+        jac = np.empty((6, 12))
+        jac[:, :6] = -S @ vp.d_mean
+        jac[:, 6:] = S
+        return S @ (velocity - vp.mean), jac
+
+    def residuals_and_jacobian(self, obs: TagObservations, T: Transform,
+                               velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The fit's residuals and Jacobian (columns: ``unknowns``): held, the corners' (2N,),
+        the velocity following the pose; else the corners' and the prior's (2N + 6,)."""
+        res, J = residuals_and_jacobian_moving(T.rotation_matrix, T.translation_m, velocity, obs)
+        if self.held:
+            return res, J[:, :6] + J[:, 6:] @ self.prior.at(T).d_mean
+        rp, Jp = self.prior_rows(T, velocity)
+        return np.concatenate([res, rp]), np.vstack([J, Jp])
+
+    def refine(self, obs: TagObservations, T0: Transform) -> tuple[Transform, float]:
+        """Least-squares fit from ``T0`` (MINPACK's Levenberg-Marquardt, as the static fit);
+        returns (pose at the stamp, rms_px of the corners). Updates ``velocity`` and
+        ``sigma_px``."""
+        velocity0 = self._velocity(T0)
+        x0 = np.concatenate([np.zeros(3), T0.translation_m, np.zeros(self.unknowns - 6)])
+        cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+
+        def both(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+            key = x.tobytes()
+            if key not in cache:
+                cache.clear()
+                cache[key] = self.residuals_and_jacobian(obs, *self._step(T0, velocity0, x))
+            return cache[key]
+
+        x, _cov, info, _msg, _status = leastsq(
+            lambda x: both(x)[0], x0, Dfun=lambda x: both(x)[1], full_output=True,
+            ftol=1e-10, xtol=1e-10, gtol=1e-8, maxfev=50, factor=100.0)
+        T, self.velocity = self._step(T0, velocity0, x)
+        res = info["fvec"][: 8 * len(obs)]
+        self.sigma_px = self._noise_px(res, len(obs))
+        return T, float(np.sqrt(np.mean(res**2) * 2.0))
+
+    def _noise_px(self, res: np.ndarray, n_tags: int) -> float:
+        rms = np.sqrt(np.mean(res.reshape(n_tags, 8) ** 2, axis=1))
+        return max(math.sqrt(2.0) * float(np.median(rms)), self.MIN_SIGMA_PX)
+
+    def errors(self, obs: TagObservations, T: Transform) -> np.ndarray:
+        """Per-tag RMS reprojection error (T,), px, at pose ``T`` moving at the current velocity
+        (held: the prior's at ``T``)."""
+        res, _ = residuals_and_jacobian_moving(T.rotation_matrix, T.translation_m,
+                                               self._velocity(T), obs)
+        return np.sqrt(np.sum(res.reshape(len(obs), 4, 2) ** 2, axis=2).mean(axis=1))
+
+    def corner_residuals(self, obs: TagObservations, T: Transform) -> tuple[np.ndarray, np.ndarray]:
+        """The corners' residuals (2N,) and the fit's Jacobian of them (2N, ``unknowns``)."""
+        res, J = self.residuals_and_jacobian(obs, T, self._velocity(T))
+        n = 8 * len(obs)
+        return res[:n], J[:n]
+
+    def reweighted(self, obs: TagObservations, T: Transform,
+                   tag_sigma_px: np.ndarray) -> Transform:
+        """One weighted Gauss-Newton step (each tag by its corner noise ``tag_sigma_px``, relative
+        to the median tag's) from the unweighted optimum ``T``; updates ``velocity``."""
+        velocity = self._velocity(T)
+        res, J = self.residuals_and_jacobian(obs, T, velocity)
+        w = np.concatenate([self._weights(tag_sigma_px), np.ones(len(res) - 8 * len(obs))])
+        try:
+            dx = -np.linalg.solve(J.T @ (w[:, None] * J), J.T @ (w * res))
+        except np.linalg.LinAlgError:
+            return T
+        if not np.all(np.isfinite(dx)):
+            return T
+        x = np.concatenate([dx[:3], T.translation_m + dx[3:6], dx[6:]])
+        T, self.velocity = self._step(T, velocity, x)
+        return T
+
+    @staticmethod
+    def _weights(tag_sigma_px: np.ndarray) -> np.ndarray:
+        rel = np.asarray(tag_sigma_px, dtype=float) / max(float(np.median(tag_sigma_px)), 1e-12)
+        return np.repeat(1.0 / rel**2, 8)
+
+    def prior_information(self, T: Transform) -> np.ndarray | None:
+        """What the prior adds to the fit's normal matrix (12, 12; px units), None when held."""
+        if self.held:
+            return None
+        Jp = self.prior_rows(T, self._velocity(T))[1]
+        return Jp.T @ Jp
+
+    def motion_term(self, obs: TagObservations, T: Transform,
+                    tag_sigma_px: np.ndarray | None) -> np.ndarray:
+        """(6, 6) ROS order: the pose covariance the prior's own error causes, through the
+        (weighted: ``tag_sigma_px``, None: equal weights) fit. Held: the corners were projected
+        at the prior's velocity, so its error moves the pose as the corners' response to it;
+        fitted: the prior's rows are noise of variance ``sigma_px ** 2`` each."""
+        velocity = self._velocity(T)
+        n = 8 * len(obs)
+        w = np.ones(n) if tag_sigma_px is None else self._weights(tag_sigma_px)
+        res, J = self.residuals_and_jacobian(obs, T, velocity)
+        H = J[:n].T @ (w[:, None] * J[:n])
+        if self.held:
+            _, J12 = residuals_and_jacobian_moving(T.rotation_matrix, T.translation_m, velocity, obs)
+            G = -np.linalg.solve(H, J[:n].T @ (w[:, None] * J12[:, 6:]))
+            cov = G @ self.prior.at(T).covariance @ G.T
+        else:
+            Jp = J[n:]
+            M = np.linalg.inv(H + Jp.T @ Jp)
+            cov = (self.sigma_px**2 * M @ Jp.T @ Jp @ M)[:6, :6]
+        cov = cov[np.ix_(_POSE_TO_ROS, _POSE_TO_ROS)]
+        return 0.5 * (cov + cov.T)
+
+    def velocity_covariance(self, obs: TagObservations, T: Transform, tag_sigma_px: np.ndarray,
+                            pose_covariance: np.ndarray, inflation: float = 1.0) -> np.ndarray:
+        """(6, 6) covariance of the velocity. Held: the prior's at the pose with the pose's
+        covariance (ROS order) propagated (``static_velocity``'s); fitted: each tag's corner noise
+        ``tag_sigma_px`` (times ``inflation``) and the prior through the (weighted) fit."""
+        velocity = self._velocity(T)
+        if self.held:
+            vp = self.prior.at(T)
+            D = vp.d_mean[:, _POSE_TO_ROS]
+            cov = vp.covariance + D @ pose_covariance @ D.T
+            return 0.5 * (cov + cov.T)
+        res, J = residuals_and_jacobian_moving(T.rotation_matrix, T.translation_m, velocity, obs)
+        _, Jp = self.prior_rows(T, velocity)
+        var = np.repeat((inflation * np.asarray(tag_sigma_px, dtype=float)) ** 2, 8)
+        # The prior rows are whitened to variance sigma_px ** 2; the corners' weights are 1 / var.
+        H = J.T @ (J / var[:, None]) + Jp.T @ Jp / self.sigma_px**2
+        try:
+            cov = np.linalg.inv(H)[6:, 6:]
+        except np.linalg.LinAlgError:
+            return self.prior.at(T).covariance
+        return 0.5 * (cov + cov.T)
+
+
+def corner_times_s(corners_px: dict[int, np.ndarray], camera: CameraModel,
+                   timing: CameraTiming) -> dict[int, np.ndarray]:
+    """Each undistorted corner's time (4,) per id, s from the stamp: the time of the row of the
+    (distorted) image it was seen in (``CameraTiming.row_time_s``)."""
+    ids = list(corners_px)
+    px = np.concatenate([corners_px[i] for i in ids])
+    if camera.is_distorted:
+        rays = np.column_stack([px, np.ones(len(px))]) @ np.linalg.inv(camera.K).T
+        px = camera.project(rays)
+    times = timing.row_time_s(px[:, 1], camera.height_px).reshape(-1, 4)
+    return dict(zip(ids, times))
+
+
+@dataclass(frozen=True)
+class MovingPose:
+    """A moving cap's reported pose (``moving_pose``): at the stamp, with its velocity.
+
+    Attributes:
+        T_cam_cap: the pose at the stamp.
+        velocity: (6,) twist, ROS order; velocity_covariance: its 6x6 covariance.
+        rms_px: RMS reprojection error of the corners at their times, px.
+        covariance, rot_err95_deg, trans_err95_mm: as ``CapPose``'s (NaN without uncertainty).
+    """
+
+    T_cam_cap: Transform
+    velocity: np.ndarray
+    velocity_covariance: np.ndarray
+    rms_px: float
+    covariance: np.ndarray
+    rot_err95_deg: float
+    trans_err95_mm: float
+
+
+def blur_px(obs: TagObservations, T: Transform, velocity: np.ndarray, exposure_s: float) -> np.ndarray:
+    """(tags, 2) each tag's image motion over the exposure, px: where its corners' centre is at
+    the end of the exposure minus where it is at its start (a cap at pose ``T`` at the stamp
+    moving at ``velocity``; each corner's exposure centred on its row's time, ``obs.time_s``)."""
+    n = len(obs)
+    times = np.zeros((n, 4)) if obs.time_s is None else obs.time_s
+    ends = []
+    for half in (-0.5 * exposure_s, 0.5 * exposure_s):
+        p = moving_points_m(T.rotation_matrix, T.translation_m, velocity, obs.model_m, times + half)
+        ends.append(project_px(obs.K, Transform.identity(), p).reshape(n, 4, 2).mean(axis=1))
+    return ends[1] - ends[0]
+
+
+def blur_modes(corners_px: np.ndarray, blur: np.ndarray) -> dict[str, np.ndarray]:
+    """The corner errors motion blur shares among the tags (``uncertainty_terms``'
+    ``shared_modes``), per px of each tag's motion ``blur`` (tags, 2: ``blur_px``), for the
+    tags' corners ``corners_px`` (tags, 4, 2): ``blur``, each tag's corners moved toward its
+    centre along its motion by its length times the cosine between the motion and the
+    centre-to-corner direction (an edge across the motion moves by the full length, one along it
+    not at all); ``blur_shift``, each tag's corners moved along its motion by its length."""
+    lever = corners_px - corners_px.mean(axis=1, keepdims=True)
+    unit = lever / np.maximum(np.linalg.norm(lever, axis=2, keepdims=True), 1e-9)
+    length = np.linalg.norm(blur, axis=1)
+    direction = blur / np.maximum(length, 1e-12)[:, None]
+    along = np.einsum("tkj,tj->tk", unit, direction)  # cosines (tags, 4)
+    shrink = -(along * length[:, None])[:, :, None] * direction[:, None, :]
+    shift = np.repeat(blur[:, None, :], 4, axis=1)
+    return {"blur": shrink.reshape(-1), "blur_shift": shift.reshape(-1)}
+
+
+def prior_blur_modes(prior: MotionPrior | None, obs: TagObservations, T: Transform,
+                     timing: CameraTiming | None) -> dict[str, np.ndarray] | None:
+    """A global-shutter frame's ``blur_modes`` at the prior's velocity at pose ``T``; None when
+    the exposure or the velocity (a past pose) is not known."""
+    if prior is None or not prior.from_past or timing is None or timing.exposure_ms <= 0.0:
+        return None
+    return blur_modes(obs.image_px, blur_px(obs, T, prior.at(T).mean, timing.exposure_ms * 1e-3))
+
+
+def moving_pose(fit: MovingFit, used: TagObservations, T: Transform, edge_shift_px: np.ndarray,
+                config: UncertaintyConfig, with_uncertainty: bool,
+                exposure_s: float = 0.0) -> MovingPose:
+    """The reported pose of a moving cap's solution ``T`` on the tags ``used``: each tag weighted
+    by its corner noise (``config.weight_tags``, four tags or more), its rms, its covariance (the
+    velocity marginalised out and the prior's error in: ``uncertainty_terms``) and bounds, and the
+    velocity with its covariance. ``edge_shift_px``: the tags' cell-fit edge shifts;
+    ``exposure_s``: the exposure (0: not known), for the motion blur's term."""
+    res, _ = fit.corner_residuals(used, T)
+    tag_sigma = tag_noise_from_residuals(res, len(used))
+    weighted = config.weight_tags and len(used) >= 4
+    if weighted:
+        T = fit.reweighted(used, T, tag_sigma)
+    res, J = fit.corner_residuals(used, T)
+    rms = float(np.sqrt(np.mean(res**2) * 2.0))
+    covariance = velocity_cov = np.full((6, 6), np.nan)
+    rot95 = trans95 = float("nan")
+    if with_uncertainty:
+        weights = tag_sigma if weighted else None
+        assert fit.velocity is not None
+        modes = (blur_modes(used.image_px, blur_px(used, T, fit.velocity, exposure_s))
+                 if exposure_s > 0.0 else None)
+        terms, seen = uncertainty_terms(
+            used, T, weights, edge_shift_px, at=(res, J),
+            prior_information=fit.prior_information(T),
+            motion_term=fit.motion_term(used, T, weights), shared_modes=modes)
+        covariance = combine_uncertainty(terms, seen, config)
+        rot95, trans95 = error_bound95(covariance,
+                                       *uncertainty_bounds(terms, seen, config, covariance))
+        velocity_cov = fit.velocity_covariance(used, T, tag_sigma, covariance,
+                                               config.residual_inflation)
+    assert fit.velocity is not None
+    return MovingPose(T, np.array(fit.velocity), velocity_cov, rms, covariance, rot95, trans95)

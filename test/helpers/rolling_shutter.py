@@ -1,0 +1,57 @@
+"""Corners of a moving cap as a rolling shutter sees them: each corner where the cap was when its
+row was exposed (the row's time depends on where the corner lands, so it is found by iterating)."""
+
+from __future__ import annotations
+
+from typing import Callable
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from ficap_ros.geometry.camera import CameraModel, CameraTiming
+from ficap_ros.geometry.cap_model import CapModel
+from ficap_ros.geometry.transform import Transform
+from ficap_ros.vision.detector import TagDetection
+
+
+def constant_velocity(T0: Transform, twist: np.ndarray) -> Callable[[float], Transform]:
+    """The pose at time ``s`` (s from the stamp) of a cap at ``T0`` at the stamp moving at the
+    constant ``twist`` (6,: linear m/s of the cap origin, angular rad/s, camera axes)."""
+    twist = np.asarray(twist, dtype=float)
+
+    def at(s: float) -> Transform:
+        R = Rotation.from_rotvec(twist[3:] * s) * T0.rotation
+        return Transform(R, T0.translation_m + twist[:3] * s)
+
+    return at
+
+
+def facing_ids(model: CapModel, T: Transform, min_cos: float = 0.2) -> list[int]:
+    """The model's tags facing the camera at ``T`` (cosine of the view angle above ``min_cos``)."""
+    n = T.rotation.apply(model.normals)
+    c = T.apply(model.centres_mm / 1000.0)
+    facing = np.sum(n * c, axis=1) < -min_cos * np.linalg.norm(c, axis=1)
+    return [int(i) for i in np.asarray(model.ids)[facing]]
+
+
+def rolling_corners(model: CapModel, camera: CameraModel, pose_at: Callable[[float], Transform],
+                    timing: CameraTiming, tag_ids: list[int], iterations: int = 8) -> dict[int, np.ndarray]:
+    """Per tag, its four corners (4, 2) in the (distorted) image, each projected from the pose at
+    its row's time (``timing.row_time_s``)."""
+    out = {}
+    for tag_id in tag_ids:
+        corners_m = model.corners_of(tag_id) / 1000.0
+        px = camera.project(pose_at(0.0).apply(corners_m))
+        for _ in range(iterations):
+            times = timing.row_time_s(px[:, 1], camera.height_px)
+            px = np.stack([camera.project(pose_at(float(t)).apply(c[None]))[0]
+                           for t, c in zip(times, corners_m)])
+        out[tag_id] = px
+    return out
+
+
+def detections(corners: dict[int, np.ndarray], rng: np.random.Generator | None = None,
+               noise_px: float = 0.0) -> list[TagDetection]:
+    """Detections of the corners, with seeded Gaussian noise when ``rng`` is given."""
+    return [TagDetection(i, c + (0.0 if rng is None else rng.normal(0.0, noise_px, c.shape)))
+            for i, c in corners.items()]

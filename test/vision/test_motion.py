@@ -1,0 +1,232 @@
+"""The cap's motion over a frame: the velocity prior's finite differences and their covariance, and
+the rolling-shutter pose (``estimate_cap_pose`` with a ``CameraTiming``) on corners projected from a
+moving cap row by row (test/helpers/rolling_shutter.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from rolling_shutter import constant_velocity, detections, facing_ids, rolling_corners
+from scipy.spatial.transform import Rotation
+
+from ficap_ros.errors import ConfigError
+from ficap_ros.geometry.camera import CameraModel, CameraTiming
+from ficap_ros.geometry.cap_model import nominal_model
+from ficap_ros.geometry.metrics import angle_deg
+from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform
+from ficap_ros.vision.motion import (
+    MotionConfig,
+    MotionPrior,
+    PastPose,
+    blur_modes,
+    corner_times_s,
+    static_velocity,
+)
+from ficap_ros.vision.pose import PoseConfig, estimate_cap_pose
+
+MODEL = nominal_model()
+CAMERA = CameraModel.pinhole(960, 540, hfov_deg=67.4)
+ROLLING = CameraTiming(exposure_ms=0.0, readout_ms=22.0)
+T0 = Transform(CAM_FROM_FORWARD * Rotation.from_euler("ZYX", [20.0, 5.0, 0.0], degrees=True),
+               [0.01, -0.02, 0.7])
+#: A fast glance: 200 deg/s about the camera's vertical axis, and the cap origin moving with it.
+GLANCE = np.array([0.05, 0.01, 0.12, 0.1, np.radians(200.0), 0.05])
+SMALL_COV = np.diag([1e-10] * 3 + [1e-10] * 3)
+
+
+def _past(pose_at, ages_s, cov=SMALL_COV) -> tuple[PastPose, ...]:
+    return tuple(PastPose(a, pose_at(-a), cov) for a in ages_s)
+
+
+def _errors(pose, truth: Transform) -> tuple[float, float]:
+    """(rotation deg, translation mm) of a CapPose against the truth."""
+    return (angle_deg(pose.T_cam_cap.rotation, truth.rotation),
+            1e3 * float(np.linalg.norm(pose.T_cam_cap.translation_m - truth.translation_m)))
+
+
+@settings(max_examples=40, deadline=None)
+@given(h1=st.floats(0.01, 0.05), h2=st.floats(0.01, 0.05),
+       w=st.lists(st.floats(-4.0, 4.0), min_size=3, max_size=3),
+       v=st.lists(st.floats(-0.3, 0.3), min_size=3, max_size=3))
+def test_prior_is_exact_for_constant_velocity(h1: float, h2: float, w: list, v: list) -> None:
+    """A cap turning at a constant rate about a fixed axis and moving along a line: the finite
+    difference through two past poses (any spacing) and through one gives its twist exactly."""
+    twist = np.array(v + w)
+    pose_at = constant_velocity(T0, twist)
+    for ages in ((h1, h1 + h2), (h1,)):
+        prior = MotionPrior(_past(pose_at, ages))
+        np.testing.assert_allclose(prior.at(T0).mean, twist, atol=1e-9)
+
+
+def test_prior_mean_moves_with_the_pose_as_its_derivative_says() -> None:
+    """``d_mean`` is the prior mean's derivative by a left perturbation (d_theta, d_t) of the
+    pose being solved (numerically)."""
+    prior = MotionPrior(_past(constant_velocity(T0, GLANCE), (1 / 30, 2 / 30)))
+    vp = prior.at(T0)
+    eps = 1e-6
+    for k in range(6):
+        dx = np.zeros(6)
+        dx[k] = eps
+        moved = prior.at(T0.turned(dx[:3], T0.translation_m + dx[3:])).mean
+        np.testing.assert_allclose((moved - vp.mean) / eps, vp.d_mean[:, k], rtol=1e-4, atol=1e-4)
+
+
+def test_prior_covariance_holds_the_past_poses_and_the_model_error() -> None:
+    """Two past poses: c1^2 S1 + c2^2 S2 plus the jerk truncation; one: 1/h^2 S1 plus the
+    acceleration's; none: the weak prior around rest."""
+    h = 1 / 30
+    cfg = MotionConfig()
+    S = np.diag([1e-8, 2e-8, 3e-8, 1e-6, 2e-6, 3e-6])
+    pose_at = constant_velocity(T0, GLANCE)
+    two = MotionPrior(_past(pose_at, (h, 2 * h), S)).at(T0).covariance
+    jerk = np.array([cfg.linear_jerk_m_s3] * 3 + [cfg.angular_jerk_rad_s3] * 3) * h * h / 3
+    np.testing.assert_allclose(two, np.diag(jerk**2) + (4 / h**2 + 1 / (4 * h**2)) * S, rtol=1e-12)
+    one = MotionPrior(_past(pose_at, (h,), S)).at(T0).covariance
+    acc = np.array([cfg.linear_accel_m_s2] * 3 + [cfg.angular_accel_rad_s2] * 3) * h / 2
+    np.testing.assert_allclose(one, np.diag(acc**2) + S / h**2, rtol=1e-12)
+    none = MotionPrior().at(T0)
+    assert not MotionPrior().from_past and np.all(none.mean == 0) and np.all(none.d_mean == 0)
+    np.testing.assert_allclose(np.sqrt(np.diag(none.covariance)),
+                               [cfg.linear_speed_m_s] * 3 + [cfg.angular_speed_rad_s] * 3)
+
+
+def test_prior_uses_consecutive_recent_poses_only() -> None:
+    """Poses beyond ``max_age_s``, out of order or without a finite covariance are not used."""
+    pose_at = constant_velocity(T0, GLANCE)
+    p1, p2 = _past(pose_at, (0.03, 0.06))
+    assert MotionPrior((p1, p2, p1)).usable == (p1, p2)
+    assert MotionPrior((p2, p1)).usable == (p2,)
+    assert MotionPrior((PastPose(0.5, p1.T_cam_cap, SMALL_COV),)).usable == ()
+    assert MotionPrior((p1, PastPose(0.06, p2.T_cam_cap, np.full((6, 6), np.nan)))).usable == (p1,)
+
+
+def test_motion_config_rejects_non_positive_sizes() -> None:
+    with pytest.raises(ConfigError):
+        MotionConfig(angular_jerk_rad_s3=0.0)
+    with pytest.raises(ConfigError):
+        MotionConfig(max_age_s=float("nan"))
+
+
+def _glance_frame(rng: np.random.Generator | None = None, noise_px: float = 0.0):
+    pose_at = constant_velocity(T0, GLANCE)
+    corners = rolling_corners(MODEL, CAMERA, pose_at, ROLLING, facing_ids(MODEL, T0))
+    return pose_at, detections(corners, rng, noise_px)
+
+
+def test_rolling_shutter_pose_is_the_pose_at_the_stamp() -> None:
+    """Corners of a 200 deg/s glance read over 22 ms: with the timing and the past poses the
+    pose at the stamp comes back exactly and the velocity with it; a static fit of the same
+    corners is off by the shear between the rows."""
+    pose_at, dets = _glance_frame()
+    prior = MotionPrior(_past(pose_at, (1 / 30, 2 / 30)))
+    moving = estimate_cap_pose(dets, MODEL, CAMERA, timing=ROLLING, prior=prior).pose
+    rot, trans = _errors(moving, T0)
+    assert rot < 1e-4 and trans < 1e-4
+    np.testing.assert_allclose(moving.velocity, GLANCE, atol=1e-6)
+    assert np.all(np.linalg.eigvalsh(moving.velocity_covariance) > 0)
+    assert np.isfinite(moving.rot_err95_deg) and np.isfinite(moving.trans_err95_mm)
+    static = estimate_cap_pose(dets, MODEL, CAMERA).pose
+    assert _errors(static, T0)[0] > 50 * max(rot, 1e-4) and static.velocity is None
+
+
+def test_rolling_shutter_without_a_past_fits_the_velocity() -> None:
+    """No past pose: the velocity is fitted with the pose under a weak prior around rest; the
+    corners' shear then carries it (noise-free corners: near the truth, far better than static)."""
+    _, dets = _glance_frame()
+    pose = estimate_cap_pose(dets, MODEL, CAMERA, timing=ROLLING).pose
+    static = estimate_cap_pose(dets, MODEL, CAMERA).pose
+    assert _errors(pose, T0)[0] < 0.2 * _errors(static, T0)[0]
+    assert abs(np.degrees(pose.velocity[4] - GLANCE[4])) < 20.0
+
+
+def test_rolling_shutter_bound_covers_noisy_corners() -> None:
+    """Seeded 0.1 px corner noise: the rolling-shutter pose stays near the truth and its 95 %
+    bounds hold in most draws."""
+    rng = np.random.default_rng(3)
+    hits = []
+    for _ in range(20):
+        pose_at, dets = _glance_frame(rng, 0.1)
+        prior = MotionPrior(_past(pose_at, (1 / 30, 2 / 30), np.diag([1e-8] * 3 + [3e-7] * 3)))
+        pose = estimate_cap_pose(dets, MODEL, CAMERA, timing=ROLLING, prior=prior).pose
+        rot, trans = _errors(pose, T0)
+        assert rot < 0.2
+        hits.append(rot <= pose.rot_err95_deg and trans <= pose.trans_err95_mm)
+    assert np.mean(hits) >= 0.8
+
+
+def test_global_shutter_velocity_is_the_prior_and_leaves_the_pose_alone() -> None:
+    """A global shutter: the pose is the static fit's whatever the prior, and its velocity the
+    prior's finite difference at it, with the pose's covariance propagated in. A known exposure
+    adds the motion blur's terms to the covariance (the defaults' gains); none known, nothing."""
+    rng = np.random.default_rng(5)
+    pose_at = constant_velocity(T0, GLANCE)
+    dets = detections({i: CAMERA.project(T0.apply(MODEL.corners_of(i) / 1000.0))
+                       for i in facing_ids(MODEL, T0)}, rng, 0.05)
+    prior = MotionPrior(_past(pose_at, (1 / 30, 2 / 30)))
+    plain = estimate_cap_pose(dets, MODEL, CAMERA).pose
+    for timing in (None, CameraTiming(exposure_ms=16.0)):
+        pose = estimate_cap_pose(dets, MODEL, CAMERA, timing=timing, prior=prior).pose
+        assert pose.T_cam_cap.matrix.tobytes() == plain.T_cam_cap.matrix.tobytes()
+        grown = np.linalg.eigvalsh(pose.covariance - plain.covariance)
+        if timing is None:
+            assert pose.covariance.tobytes() == plain.covariance.tobytes()
+        else:  # the glance smears each tag by several px over 16 ms: the bounds widen
+            assert grown.min() > -1e-15 and grown.max() > 0.1 * np.linalg.eigvalsh(plain.covariance).max()
+            assert pose.rot_err95_deg > plain.rot_err95_deg
+        expected = static_velocity(prior, pose.T_cam_cap, pose.covariance)
+        np.testing.assert_array_equal(pose.velocity, expected[0])
+        assert np.all(np.linalg.eigvalsh(pose.velocity_covariance - prior.at(pose.T_cam_cap).covariance)
+                      > -1e-12)
+    assert static_velocity(MotionPrior(), T0, plain.covariance) is None
+
+
+def test_blur_modes_shrink_across_the_motion_and_shift_along_it() -> None:
+    """A square tag moving 4 px along x: ``blur`` moves the corners toward the centre along x
+    by the length times the cosine of their lever to the motion, ``blur_shift`` every corner by
+    the motion itself."""
+    square = np.array([[[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]]])
+    modes = blur_modes(square, np.array([[4.0, 0.0]]))
+    cos = np.sqrt(0.5)
+    np.testing.assert_allclose(modes["blur"].reshape(4, 2),
+                               [[4 * cos, 0.0], [-4 * cos, 0.0], [-4 * cos, 0.0], [4 * cos, 0.0]])
+    np.testing.assert_allclose(modes["blur_shift"].reshape(4, 2), [[4.0, 0.0]] * 4)
+
+
+def test_rolling_shutter_needs_the_joint_method() -> None:
+    """The other estimators fit every corner at once, timing or not."""
+    _, dets = _glance_frame()
+    config = PoseConfig(method="paper")
+    a = estimate_cap_pose(dets, MODEL, CAMERA, config, timing=ROLLING).pose
+    b = estimate_cap_pose(dets, MODEL, CAMERA, config).pose
+    assert a.T_cam_cap.matrix.tobytes() == b.T_cam_cap.matrix.tobytes() and a.velocity is None
+
+
+def test_corner_times_are_the_distorted_rows_times() -> None:
+    """Undistorted corners are timed by the row they were seen in, in the distorted image."""
+    camera = CameraModel(960, 540, CAMERA.K, np.array([-0.3, 0.1, 0.0, 0.0, 0.0]), "plumb_bob")
+    seen = {7: np.array([[100.0, 30.0], [900.0, 40.0], [880.0, 500.0], [90.0, 520.0]])}
+    undistorted = {7: camera.undistort_px(seen[7])}
+    times = corner_times_s(undistorted, camera, ROLLING)[7]
+    np.testing.assert_allclose(times, ROLLING.row_time_s(seen[7][:, 1], 540), atol=1e-8)
+
+
+def test_three_past_poses_measure_the_jerk() -> None:
+    """A cap whose position is a cubic in time and whose turn rate grows linearly: with three
+    past poses the prior's model error is the measured jerk's truncation (exact for a cubic),
+    not the glance's sizes; at rest it falls to the floor."""
+    cfg = MotionConfig()
+    jerk = np.array([2.0, -3.0, 1.0])  # m/s^3
+    h = 1 / 30
+
+    def cubic(s: float) -> Transform:
+        return Transform(T0.rotation, T0.translation_m + jerk * s**3 / 6.0)
+
+    prior = MotionPrior(tuple(PastPose(k * h, cubic(-k * h), SMALL_COV * 1e-8) for k in (1, 2, 3)),
+                        cfg)
+    sd = np.sqrt(np.diag(prior.at(T0).covariance))
+    floor = cfg.jerk_floor * np.array([cfg.linear_jerk_m_s3] * 3 + [cfg.angular_jerk_rad_s3] * 3)
+    expected = np.hypot(np.concatenate([np.abs(jerk), np.zeros(3)]), floor) * h * 2 * h / 6
+    np.testing.assert_allclose(sd, expected, rtol=1e-4)
+    assert sd[3] < 0.5 * MotionPrior(prior.past[:2], cfg).at(T0).covariance[3, 3] ** 0.5
