@@ -116,12 +116,12 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               choices=("opencv", "apriltag"), read_only=True),
     ParamSpec("detector.corner_refine", "edge", "Corner refinement.",
               choices=("edge", "subpix", "apriltag", "none"), read_only=True),
-    ParamSpec("detector.photometric", True, "Corners' last step (with corner_refine edge): fit each "
-              "tag's pattern, blurred in linear light and through a tone curve, to its pixels: more "
-              "accurate where noise limits the corners (dim frames); false: the cell-edge fit's "
-              "corners, at less CPU a frame (costs in docs/benchmarks.md). While every uncertainty.* "
-              "parameter is at its default, each corner estimator gets its own covariance "
-              "profile.", read_only=True),
+    ParamSpec("detector.photometric", False, "Corners' last step: fit each tag's pattern, blurred in "
+              "linear light and through a tone curve, to its pixels: more accurate where noise limits "
+              "the corners (dim frames), at more CPU a frame than all the rest of the processing, "
+              "which a live camera's frame rate may not leave (costs in docs/benchmarks.md). While "
+              "every uncertainty.* parameter is at its default, its corners get their own "
+              "covariance profile.", read_only=True),
     ParamSpec("detector.search_decimate", 0, "Search an image this many times smaller (corners "
               "are refined at full size); 0 = auto, as ficap replay: 2 from 1920 px wide up, else 1.",
               range=(0, 4),

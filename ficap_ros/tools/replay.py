@@ -492,7 +492,7 @@ def replay(
         summary_extra: more fields for summary.json (the fleet's fingerprint).
         detector: detector settings (default ``DetectorConfig()``): ``process_frames``'s; an
             ``engine`` carries its own, and this only records them (summary.json's
-            ``photometric``, false when the corners are not the photometric fit's).
+            ``photometric``).
         frames: the output frames (``ficap_ros.io.frames.OutputFrames``: ``camera_mount`` and
             ``output_frame`` as the node's; default none). A mount also sets the frontal frame of
             the head angles, as the node's does.
@@ -596,8 +596,8 @@ def _replay_into(
         "image_topic": source.image_topic,
         "camera_info_topic": source.camera_info_topic,
         "method": pose.method,
-        # Only when off (the default runs' summaries name no detector setting).
-        **({"photometric": False} if detector is not None and not detector.photometric_corners else {}),
+        # Only when on (the default runs' summaries name no detector setting).
+        **({"photometric": True} if detector is not None and detector.edge_photometric else {}),
         "jobs": jobs,
         "camera_timing": {**timing.to_dict(), "source": timing_source},
         **_summary(replayed, elapsed),

@@ -11,8 +11,8 @@ stage (``refine_tag_corners``) removes that bias with the tag's own pattern:
 2. ``fit_tag_edges``: the tag's homography fitted to every black/white cell boundary at once,
    with one free shift per boundary direction.
 3. Tags the fit refused, or whose cells then read wrong, are fitted again from other starts.
-4. The photometric fit of the whole pattern (``fit_tags_photometric``,
-   ``ficap_ros.vision.photometric``; ``DetectorConfig.edge_photometric``, on by default).
+4. Optionally (``DetectorConfig.edge_photometric``) the photometric fit of the whole pattern
+   (``fit_tags_photometric``, ``ficap_ros.vision.photometric``).
 5. Tags too small or oblique to measure their own shift take the line estimator's bias measured
    on the fitted tags of the same call (``_line_bias``).
 """
@@ -53,7 +53,6 @@ from ficap_ros.vision.medians import (
     group_nearest_quantile_of_finite,
     row_median,
 )
-from ficap_ros.vision.photometric import fit_tags
 
 __all__ = [
     "refine_tag_corners",
@@ -664,7 +663,7 @@ def _solve_grouped(
     return sol, solved, resid
 
 
-# --- Step 4: the photometric fit ------------------------------------------------------------
+# --- Step 4 (optional): the photometric fit -------------------------------------------------
 def fit_tags_photometric(
     gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray, **kwargs: Any,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -683,5 +682,8 @@ def fit_tags_photometric(
         return out, fitted
     if len(c) == 0:
         return c.copy(), np.zeros(0, dtype=bool)
+    # Imported here: the fit's compiled kernels (numba) load only where photometric corners are on.
+    from ficap_ros.vision.photometric import fit_tags
+
     cells = stacked_tag_cells(tuple(int(i) for i in ids))
     return fit_tags(gray, c, tag_homographies(c), cells, **kwargs)

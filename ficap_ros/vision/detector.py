@@ -7,10 +7,9 @@ Corners are in OpenCV's order (c0..c3 = top-left, top-right, bottom-right, botto
 integer coordinates), in the image as given (distorted).
 
 With corner refinement ``edge`` (the default) the search's corners are refined by line fits to the
-tag's four outer border edges (``ficap_ros.vision.edges``), freed of the camera's tone-curve bias
-(``ficap_ros.vision.corners``) and fitted, tag by tag, to the pattern's pixels
-(``ficap_ros.vision.photometric``); docs/detection.md compares it with ``cv2.cornerSubPix`` and
-OpenCV's AprilTag refinement.
+tag's four outer border edges (``ficap_ros.vision.edges``) and then freed of the camera's
+tone-curve bias (``ficap_ros.vision.corners``); docs/detection.md compares it with
+``cv2.cornerSubPix`` and OpenCV's AprilTag refinement.
 """
 
 from __future__ import annotations
@@ -139,10 +138,10 @@ class DetectorConfig:
             still detected and reported.
         edge_photometric: then fit each fitted tag once more, as a whole, to its pixels near the
             cell boundaries: the printed pattern blurred in linear light (blur fitted per tag)
-            through an sRGB tone curve (``fit_tags_photometric``, ``ficap_ros.vision.photometric``,
-            compiled kernels). More accurate where noise limits the cell-edge fit (low light);
-            False: the cell-edge fit's corners, at less CPU a tag (costs in docs/benchmarks.md).
-            ``edge`` refine with ``edge_fit`` only (``photometric_corners``); no effect otherwise.
+            through an sRGB tone curve (``fit_tags_photometric``, ``ficap_ros.vision.photometric``).
+            More accurate where noise limits the cell-edge fit (low light), at a much higher CPU
+            cost per tag, hence off by default (costs in docs/benchmarks.md). ``edge`` refine with
+            ``edge_fit`` only (else ``ConfigError``).
     """
 
     backend: str = "opencv"
@@ -186,7 +185,7 @@ class DetectorConfig:
     edge_fit_iterations: int = 2
     # Pose input: name the partly hidden tags (pipeline.FrameProcessor).
     hidden_check: bool = True
-    edge_photometric: bool = True
+    edge_photometric: bool = False
 
     def __post_init__(self) -> None:
         if self.backend not in BACKENDS:
@@ -224,12 +223,11 @@ class DetectorConfig:
             raise ConfigError("edge_max_shift_px must be > 0")
         if not 1 <= self.edge_fit_iterations <= 5:
             raise ConfigError(f"edge_fit_iterations must be in [1, 5], got {self.edge_fit_iterations}")
-
-    @property
-    def photometric_corners(self) -> bool:
-        """Whether the corners come from the photometric fit: ``edge_photometric`` with the
-        ``edge`` refinement's cell-edge fit, whose corners it refines."""
-        return self.edge_photometric and self.corner_refine == "edge" and self.edge_fit
+        if self.edge_photometric and not (self.corner_refine == "edge" and self.edge_fit):
+            # It refines the cell-edge fit's corners: without that fit it would do nothing.
+            raise ConfigError("the photometric corner fit (edge_photometric, --photometric, "
+                              "detector.photometric) needs corner_refine 'edge' with edge_fit, "
+                              f"got corner_refine {self.corner_refine!r}, edge_fit {self.edge_fit}")
 
 
 def opencv_without_ipp() -> None:

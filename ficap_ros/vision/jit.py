@@ -1,7 +1,7 @@
 """The compiled kernels' runtime: where numba keeps their machine code, and their warm-up.
 
-The per-pixel kernels (``ficap_ros.vision.kernels``, ``ficap_ros.vision.photometric_kernels``)
-are numba functions compiled on their first call and cached on disk (``njit(cache=True)``), so a
+The photometric corner fit's per-pixel kernels (``ficap_ros.vision.photometric_kernels``) are
+numba functions compiled on their first call and cached on disk (``njit(cache=True)``), so a
 later process loads them instead of compiling. numba keeps that cache next to the source
 (``__pycache__``) when the package's directory is writable (a clone, an editable install). Where
 it is not (an apt or colcon install), the cache goes to the user's cache directory,
@@ -9,7 +9,9 @@ it is not (an apt or colcon install), the cache goes to the user's cache directo
 ``NUMBA_CACHE_DIR``: set here before numba is imported, and only when the user has not set it.
 
 ``warm_up`` runs every kernel once on a tiny input of the types the pipeline passes (a kernel is
-compiled, or loaded, per argument type): the node calls it at start-up, so no frame pays for it.
+compiled, or loaded, per argument type): the node calls it at start-up when its corners are
+photometric, so no frame pays for it. Importing this module imports numba: only the photometric
+fit does (the default corners never load it).
 """
 
 from __future__ import annotations

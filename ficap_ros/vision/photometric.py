@@ -34,8 +34,9 @@ exceeds ``_MAX_MISFIT`` of its contrast keeps its input corners.
 
 This module sets a frame's fit up (the tags' tables, face boxes and inverse homographies) and
 judges its outcome; the per-pixel work (the pixels' selection, the model, its Jacobian and the
-steps) is compiled (``ficap_ros.vision.photometric_kernels``). It is the corner stage's last step by
-default (``DetectorConfig.edge_photometric``).
+steps) is compiled (``ficap_ros.vision.photometric_kernels``, numba). The fit costs more CPU per tag
+than the cell-edge fit (docs/benchmarks.md), hence it is opt-in (``DetectorConfig.edge_photometric``)
+and this module is imported only when it runs (``corners.fit_tags_photometric``).
 """
 
 from __future__ import annotations

@@ -67,9 +67,9 @@ class FrameResult:
 
 def corner_estimator(detector: DetectorConfig) -> str:
     """The corner estimator of a detector setting, as ``UncertaintyConfig.for_corners`` names it:
-    ``photometric`` (``DetectorConfig.photometric_corners``: the default) or ``edge`` (the
-    cell-edge fit and every other ``corner_refine``, whose bounds have no profile of their own)."""
-    return "photometric" if detector.photometric_corners else "edge"
+    ``photometric`` (``edge_photometric``) or ``edge`` (the cell-edge fit and every other
+    ``corner_refine``, whose bounds have no profile of their own)."""
+    return "photometric" if detector.edge_photometric else "edge"
 
 
 def pose_config_for(pose: PoseConfig, detector: DetectorConfig) -> PoseConfig:

@@ -86,12 +86,11 @@ class UncertaintyConfig:
     its figures are in docs/benchmarks.md ("Calibrated uncertainty"). The floors state what
     residuals cannot estimate and guarantee that no pose is ever "exact".
 
-    Profiles per corner estimator (``for_corners``): the defaults are the profile of the
-    cell-edge corners (``edge``: ``DetectorConfig(edge_photometric=False)``, ``--no-photometric``,
-    node ``detector.photometric`` false). The tag-level photometric corner fit (``photometric``:
-    the default detector's, ``DetectorConfig.photometric_corners``) leaves much less of the shift
-    along the foreshortening under uneven light, so its profile has a smaller
-    ``light_gradient_tilt_gain`` from the same calibration. ``pipeline.FrameProcessor``
+    Profiles per corner estimator (``for_corners``): the defaults are the profile of the default
+    cell-edge corners (``edge``). The tag-level photometric corner fit (``photometric``:
+    ``DetectorConfig(edge_photometric=True)``, ``--photometric``, node ``detector.photometric``)
+    leaves much less of the shift along the foreshortening under uneven light, so its profile has
+    a smaller ``light_gradient_tilt_gain`` from the same calibration. ``pipeline.FrameProcessor``
     uses the profile of its detector's corner estimator when the pose's uncertainty is not set
     (``PoseConfig.uncertainty`` None).
 
@@ -162,8 +161,7 @@ class UncertaintyConfig:
     @classmethod
     def for_corners(cls, corners: str = "edge") -> UncertaintyConfig:
         """The synth-calibrated profile for a corner estimator (``CORNER_ESTIMATORS``): ``edge``
-        (the cell-edge fit and every other ``corner_refine``: the defaults) or ``photometric``
-        (the default detector's corners).
+        (the cell-edge fit and every other ``corner_refine``: the defaults) or ``photometric``.
 
         Raises:
             ConfigError: unknown corner estimator.

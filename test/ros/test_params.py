@@ -80,13 +80,14 @@ def test_node_defaults_are_the_offline_pipeline_and_the_shipped_file() -> None:
 
 
 def test_detector_photometric_reaches_the_detector() -> None:
-    # The node's detector.photometric is the CLI's --photometric (the default): DetectorConfig.
-    # edge_photometric of its detector settings; with another corner refinement it does nothing.
-    assert NodeConfig.from_values(_defaults()).detector_config.photometric_corners is True
-    off = NodeConfig.from_values(_defaults(**{"detector.photometric": False}))
-    assert off.detector_config.edge_photometric is False
-    other = NodeConfig.from_values(_defaults(**{"detector.photometric": True, "detector.corner_refine": "subpix"}))
-    assert other.detector_config.photometric_corners is False
+    # The node's detector.photometric is the CLI's --photometric: DetectorConfig.edge_photometric
+    # of its detector settings; with another corner refinement the node refuses to start.
+    on = NodeConfig.from_values(_defaults(**{"detector.photometric": True}))
+    assert on.detector_config.edge_photometric is True
+    assert NodeConfig.from_values(_defaults()).detector_config.edge_photometric is False
+    off = NodeConfig.from_values(_defaults(**{"detector.photometric": True, "detector.corner_refine": "subpix"}))
+    with pytest.raises(ConfigError, match="photometric"):
+        off.detector_config
 
 
 def test_parameter_changes_are_log_lines() -> None:

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from tag_images import DICT, oblique_tag, random_tag
 
+from ficap_ros.cli.main import main as cli_main
 from ficap_ros.errors import ConfigError, ImageError
 from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.geometry.tag36h11 import tag_cells
@@ -143,18 +144,17 @@ def test_bad_config_and_roi():
 
 @pytest.mark.parametrize("settings", [dict(corner_refine="subpix"), dict(corner_refine="apriltag"),
                                       dict(corner_refine="none"), dict(edge_fit=False)])
-def test_photometric_corners_need_the_cell_edge_fit(settings, real_apriltag_dir):
-    # The photometric fit (on by default) refines the cell-edge fit's corners: with another corner
-    # refinement, or without that fit, it does nothing, and says so (photometric_corners).
-    assert DetectorConfig().photometric_corners
-    assert not DetectorConfig(**settings).photometric_corners
-    assert not DetectorConfig(edge_photometric=False).photometric_corners
-    gray = cv2.imread(str(real_apriltag_dir / "apriltags_jl" / "tagtest.jpg"), cv2.IMREAD_GRAYSCALE)
-    on, off = (TagDetector(DetectorConfig(edge_photometric=p, **settings)).detect(gray) for p in (True, False))
-    assert len(on) == len(off) > 0
-    for a, b in zip(on, off):
-        assert a.tag_id == b.tag_id
-        np.testing.assert_array_equal(a.corners_px, b.corners_px)
+def test_photometric_without_the_cell_edge_fit_is_refused(settings, real_apriltag_dir, capsys):
+    # The photometric fit runs only after the cell-edge fit (edge refine): asked for without it,
+    # it would silently do nothing (ficap detect --refine subpix --photometric, the node's
+    # detector.corner_refine: subpix with detector.photometric: true).
+    with pytest.raises(ConfigError, match="photometric"):
+        DetectorConfig(edge_photometric=True, **settings)
+    DetectorConfig(**settings)  # fine without it
+    if "corner_refine" in settings:
+        path = str(real_apriltag_dir / "apriltags_jl" / "tagtest.jpg")
+        assert cli_main(["detect", "--refine", settings["corner_refine"], "--photometric", path]) == 1
+        assert "photometric" in capsys.readouterr().err
 
 
 def test_second_reading_finds_tags_aruco_rejects() -> None:

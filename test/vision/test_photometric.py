@@ -1,4 +1,4 @@
-"""The tag-level photometric corner fit (the corner stage's last step: ``DetectorConfig()``).
+"""The tag-level photometric corner fit (``DetectorConfig(edge_photometric=True)``).
 
 On ``ficap synth`` frames rendered through the realistic chain (lens PSF in linear light, shot and
 read noise, clipping, a tone curve, JPEG) with exact truth: the fit, run as the corner stage's last
@@ -20,8 +20,8 @@ from ficap_ros.vision.corners import fit_tags_photometric
 from ficap_ros.vision.detector import DetectorConfig, TagDetector
 from ficap_ros.vision.tracking import view_angles_deg
 
-EDGE = TagDetector(DetectorConfig(edge_photometric=False))
-PHOTO = TagDetector(DetectorConfig())
+EDGE = TagDetector(DetectorConfig())
+PHOTO = TagDetector(DetectorConfig(edge_photometric=True))
 
 
 @pytest.mark.parametrize(
@@ -117,9 +117,9 @@ def test_pipeline_takes_the_uncertainty_profile_of_its_corners() -> None:
     """An unset uncertainty (None) means the synth-calibrated profile of the corner estimator in use
     (``UncertaintyConfig.for_corners``): with photometric corners the pipeline's bounds are those of
     ``estimate_cap_pose`` with the photometric profile on the same detections (tilt gain 0.1, so a
-    narrower translation bound under spotlights than the cell-edge corners' profile would give), with
-    the cell-edge corners (``--no-photometric``) those of ``PoseConfig()``; an uncertainty set by
-    the user is kept; and the fleet fingerprint's pose is the one applied."""
+    narrower translation bound under spotlights than the default corners' profile would give), with
+    the default corners those of ``PoseConfig()``; an uncertainty set by the user is kept; and the
+    fleet fingerprint's pose is the one applied."""
     from ficap_ros.tools.fleet.fingerprints import config_json, label_settings
     from ficap_ros.vision.detector import as_gray
     from ficap_ros.vision.pipeline import (
@@ -134,8 +134,8 @@ def test_pipeline_takes_the_uncertainty_profile_of_its_corners() -> None:
     assert UncertaintyConfig.for_corners("edge") == UncertaintyConfig()
     assert photo_u == UncertaintyConfig(light_gradient_tilt_gain=0.1)
     fr = drive_frames("540p", RenderConfig(lighting="high"), n=1)[0]
-    for det, profile in ((DetectorConfig(), photo_u),
-                         (DetectorConfig(edge_photometric=False), UncertaintyConfig())):
+    for det, profile in ((DetectorConfig(edge_photometric=True), photo_u),
+                         (DetectorConfig(), UncertaintyConfig())):
         r = FrameProcessor(MODEL, det, PoseConfig(), tracking=False).process(fr.image, fr.camera)
         assert r.pose is not None, r.reason
         hidden = hidden_tag_ids(as_gray(fr.image), r.detections)
@@ -154,10 +154,9 @@ def test_pipeline_takes_the_uncertainty_profile_of_its_corners() -> None:
     assert pose_config_for(mine, DetectorConfig(edge_photometric=True)) is mine
     defaults = PoseConfig(uncertainty=UncertaintyConfig())
     assert pose_config_for(defaults, DetectorConfig(edge_photometric=True)) is defaults
-    assert pose_config_for(PoseConfig(), DetectorConfig(edge_photometric=False)) == defaults
-    edge = label_settings(MODEL, PoseConfig(), detector=DetectorConfig(edge_photometric=False))["pose"]
-    assert edge == config_json(defaults)
-    photo = label_settings(MODEL, PoseConfig())["pose"]
+    assert pose_config_for(PoseConfig(), DetectorConfig()) == defaults
+    assert label_settings(MODEL, PoseConfig())["pose"] == config_json(defaults)
+    photo = label_settings(MODEL, PoseConfig(), detector=DetectorConfig(edge_photometric=True))["pose"]
     assert photo == config_json(PoseConfig(uncertainty=photo_u))
     assert photo["uncertainty"]["light_gradient_tilt_gain"] == 0.1
 

@@ -112,12 +112,12 @@ def test_half_occluded() -> None:
 def test_a_frame_result_and_pose_settings_replaced_between_frames() -> None:
     """What a frame shows: its tags (ids sorted, each once), the cap pose, how they were found and
     the time spent; ``pose_config`` replaced as a whole applies from the next frame (the node's
-    parameters), and an unset uncertainty is the default corners' profile (the photometric one)."""
+    parameters), and an unset uncertainty is the default corners' profile."""
     from ficap_ros.vision.uncertainty import UncertaintyConfig
 
     scene, frames = _frames("540p", 2, seed=3)
     proc = FrameProcessor(MODEL)
-    assert proc.effective_pose_config.uncertainty == UncertaintyConfig.for_corners("photometric")
+    assert proc.effective_pose_config.uncertainty == UncertaintyConfig()
     r = proc.process(frames[0][0].image, scene.camera, 1_000)
     assert r.pose is not None and r.reason == "" and r.search == "image"
     assert r.detected_ids == tuple(sorted({d.tag_id for d in r.detections}))

@@ -40,22 +40,20 @@ def test_fingerprint_follows_the_input_not_its_place(fleet_in: Path, tmp_path: P
 
 def test_settings_are_plain_json_of_the_configs_as_applied() -> None:
     """Configs enter as ``dataclasses.asdict`` JSON, the pose as the pipeline applies it: an unset
-    uncertainty and the default corners' profile (the photometric one) are one setting (the same
-    labels), another method is not."""
+    uncertainty and the default one are one setting (the same labels), another method is not."""
     model = nominal_model()
-    photometric = UncertaintyConfig.for_corners("photometric")
     unset = label_settings(model, PoseConfig())
-    assert unset == label_settings(model, PoseConfig(uncertainty=photometric))
-    assert unset["pose"]["uncertainty"] == config_json(photometric)
+    assert unset == label_settings(model, PoseConfig(uncertainty=UncertaintyConfig()))
+    assert unset["pose"]["uncertainty"] == config_json(UncertaintyConfig())
     assert unset["detector"] == config_json(DetectorConfig()) and unset["rectified"] is False
     assert json.loads(json.dumps(unset, sort_keys=True)) == unset  # plain JSON values
     paper = label_settings(model, PoseConfig(method="paper"))
     assert paper["pose"]["method"] == "paper" and paper != unset
-    edge = label_settings(model, PoseConfig(), detector=DetectorConfig(edge_photometric=False))
-    assert edge["detector"]["edge_photometric"] is False
-    assert edge["pose"]["uncertainty"] == config_json(UncertaintyConfig())
+    photo = label_settings(model, PoseConfig(), detector=DetectorConfig(edge_photometric=True))
+    assert photo["detector"]["edge_photometric"] is True
+    assert photo["pose"]["uncertainty"]["light_gradient_tilt_gain"] == 0.1
     assert settings_key(model, PoseConfig(), None) == settings_key(
-        model, PoseConfig(uncertainty=photometric), DetectorConfig())
+        model, PoseConfig(uncertainty=UncertaintyConfig()), DetectorConfig())
     assert settings_key(model, PoseConfig(), None) != settings_key(model, PoseConfig(method="paper"), None)
 
 

@@ -203,7 +203,7 @@ def test_ray_retries_a_dead_worker_and_fails_only_the_broken_recording(
     from ficap_ros.errors import ConfigError
     from ficap_ros.vision.detector import DetectorConfig
 
-    for other in ({"pose": PoseConfig(method="paper")}, {"detector": DetectorConfig(edge_photometric=False)}):
+    for other in ({"pose": PoseConfig(method="paper")}, {"detector": DetectorConfig(edge_photometric=True)}):
         with pytest.raises(ConfigError, match="another model, pose or detector"):
             run_fleet(recs[:1], tmp_path / "mismatch", open_frames, model, other.get("pose", pose),
                       settings, progress=False, ray_engine=engine, detector=other.get("detector"))

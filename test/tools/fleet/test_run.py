@@ -1,5 +1,5 @@
 """ficap_ros.tools.fleet.run: a fleet replayed with processes: skipping what is current, redoing
-what changed or was cut off, ``--no-photometric`` reaching every recording, no ray imported."""
+what changed or was cut off, ``--photometric`` reaching every recording, no ray imported."""
 
 from __future__ import annotations
 
@@ -27,30 +27,26 @@ def test_changed_settings_redo_a_recording(fleet_in: Path, tmp_path: Path) -> No
     assert summary["method"] == "paper" and summary["fingerprint"]["settings"]["pose"]["method"] == "paper"
 
 
-def test_no_photometric_fleet_matches_a_single_no_photometric_replay(fleet_in: Path, tmp_path: Path) -> None:
-    """--no-photometric reaches every recording of a fleet and its fingerprint: the default run's
-    outputs are redone, and each recording's labels are the single-recording --no-photometric
-    ones; --photometric is the default."""
+def test_photometric_fleet_matches_a_single_photometric_replay(fleet_in: Path, tmp_path: Path) -> None:
+    """--photometric reaches every recording of a fleet and its fingerprint: the default run's
+    outputs are redone, and each recording's labels are the single-recording --photometric ones."""
     out = tmp_path / "out"
     recs = [str(fleet_in / "alice/d1"), str(fleet_in / "bob/d2")]
     assert main(["replay", *recs, "--out", str(out), "--quiet"]) == 0
     default = (out / "d1" / "labels.csv").read_text()
-    assert "photometric" not in json.loads((out / "d1" / "summary.json").read_text())  # the default
+    assert "photometric" not in json.loads((out / "d1" / "summary.json").read_text())  # as before
     assert main(["replay", *recs, "--out", str(out), "--quiet", "--photometric"]) == 0
-    doc = json.loads((out / "fleet_summary.json").read_text())
-    assert [r["status"] for r in doc["recordings"]] == ["skipped", "skipped"]
-    assert main(["replay", *recs, "--out", str(out), "--quiet", "--no-photometric"]) == 0
     doc = json.loads((out / "fleet_summary.json").read_text())
     assert [r["status"] for r in doc["recordings"]] == ["done", "done"]
     settings = json.loads((out / "d1" / "summary.json").read_text())["fingerprint"]["settings"]
-    assert settings["detector"]["edge_photometric"] is False
+    assert settings["detector"]["edge_photometric"] is True
     single = tmp_path / "single"
-    assert main(["replay", recs[0], "--out", str(single), "--quiet", "--no-photometric"]) == 0
+    assert main(["replay", recs[0], "--out", str(single), "--quiet", "--photometric"]) == 0
     assert (out / "d1" / "labels.csv").read_text() == (single / "labels.csv").read_text() != default
     # summary.json says how the labels were made: the single replay's too (it has no fingerprint).
-    assert json.loads((single / "summary.json").read_text())["photometric"] is False
-    assert json.loads((out / "d1" / "summary.json").read_text())["photometric"] is False
-    assert main(["replay", *recs, "--out", str(out), "--quiet", "--no-photometric"]) == 0
+    assert json.loads((single / "summary.json").read_text())["photometric"] is True
+    assert json.loads((out / "d1" / "summary.json").read_text())["photometric"] is True
+    assert main(["replay", *recs, "--out", str(out), "--quiet", "--photometric"]) == 0
     doc = json.loads((out / "fleet_summary.json").read_text())
     assert [r["status"] for r in doc["recordings"]] == ["skipped", "skipped"]
 
