@@ -3,7 +3,7 @@
 Every set of ``<data>/blender_dev`` (the glance sets with motion blur and a rolling shutter
 included) goes through ``FrameProcessor`` frame by frame in recording order, as ``ficap replay``
 feeds it: ours (defaults, tracking on; the sets sampled 1.6-3.2 s apart are searched every frame),
-ours without the photometric corner step (``--no-photometric``), and the naive peer (OpenCV sub-pixel corners, one
+ours with the opt-in photometric corner step, and the naive peer (OpenCV sub-pixel corners, one
 SQPnP + LM, no tracking). Errors of the cap pose against the rendered truth: rotation (the
 geodesic angle, and Phi3 = half of it, the paper's metric) and the cap origin's translation (mm);
 ``rms_px`` is the pose's reprojection rms. The nominal cap model is used for every set (the
@@ -18,12 +18,12 @@ import sys
 import numpy as np
 
 from _lib import cli, devsets, report
-from _lib.methods import OURS, OURS_CELL_EDGE, PEER
+from _lib.methods import OURS, OURS_PHOTOMETRIC, PEER
 from _lib.stats import q
 from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.geometry.metrics import angle_deg
 
-METHODS = (OURS, OURS_CELL_EDGE, PEER)
+METHODS = (OURS, OURS_PHOTOMETRIC, PEER)
 
 
 def run_set(data, name: str, max_frames: int | None) -> dict[str, dict[str, np.ndarray]]:  # noqa: ANN001
@@ -110,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
             "the pose is of a rigid cap at one instant, so both carry the motion's error.")
     what = ("What it measures: cap pose error on every blender_dev set (independent path-traced "
             "renders with exact truth; nothing in the package is tuned to them), ours, ours with the "
-            "cell-edge corners (`--no-photometric`) and the naive peer, each set's frames in "
+            "opt-in photometric corners (`--photometric`) and the naive peer, each set's frames in "
             "recording order as `ficap replay` feeds them (tracking on for ours), nominal cap model.")
     report.write_section("blender_pose", what, report.how("bench_blender_pose.py", "the first 8 frames of each set"),
                          body, run, report.command(), args.quick, args.no_doc)

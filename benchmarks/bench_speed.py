@@ -11,7 +11,7 @@ tracking's reach): every 20th frame of the synth drive, and blender_dev's three 
 (``dev_1080p_high``, ``_neutral``, ``_neutral_asbuilt``), each played ``--searched-loops`` times.
 
 Ours: the real command, ``python -m ficap_ros.cli replay BAG --out DIR --jobs 1 --quiet``, in a
-child process, with its defaults and with ``--no-photometric`` (the cell-edge fit's corners); its
+child process, with its defaults and with ``--photometric`` (the opt-in photometric corner fit); its
 CPU time (user + sys from ``os.wait4``: start-up, imports, bag reading, JPEG
 decode, pipeline, label writing, everything) per frame. AprilTag 3: pupil-apriltags decimate 1,
 one thread, with our joint pose, on the same JPEG payloads in this process, decode included
@@ -47,7 +47,6 @@ from _lib.timing import OwnTime, ficap_command, run_child
 STAGES = (
     ("ficap_ros.vision.detector", "TagDetector.detect", "search (ArUco, rejected quads read again)"),
     ("ficap_ros.vision.corners", "refine_tag_corners", "corner stage (unbias, cell-edge fit)"),
-    ("ficap_ros.vision.corners", "fit_tags_photometric", "photometric corner fit"),
     ("ficap_ros.vision.edges", "refine_corners_edge_ok", "tracked tags: line refinement"),
     ("ficap_ros.vision.tracking", "predict_tags", "tracked tags: prediction and verification"),
     ("ficap_ros.vision.tracking", "verify_tags", "tracked tags: prediction and verification"),
@@ -66,7 +65,7 @@ class Drive:
     raws: list = field(default_factory=list)
     command_cpu_s: list[float] = field(default_factory=list)
     command_wall_s: list[float] = field(default_factory=list)
-    cell_edge_cpu_s: list[float] = field(default_factory=list)
+    photometric_cpu_s: list[float] = field(default_factory=list)
     at3_ms: list[float] = field(default_factory=list)
     decode_ms: list[float] = field(default_factory=list)
     at3_tags: float = float("nan")
@@ -86,15 +85,15 @@ class Drive:
     def ours_ms(self) -> float:
         return 1e3 * float(np.median(self.command_cpu_s)) / self.frames
 
-    def cell_edge_ms(self) -> float:
-        return 1e3 * float(np.median(self.cell_edge_cpu_s)) / self.frames
+    def photometric_ms(self) -> float:
+        return 1e3 * float(np.median(self.photometric_cpu_s)) / self.frames
 
 
 def command_round(d: Drive, out: Path) -> None:
     shutil.rmtree(out, ignore_errors=True)
     r = run_child(ficap_command("replay", str(d.bag), "--out", str(out), "--jobs", "1", "--quiet",
-                                "--no-photometric"), ok=(0, 3))
-    d.cell_edge_cpu_s.append(r.cpu_s)
+                                "--photometric"), ok=(0, 3))
+    d.photometric_cpu_s.append(r.cpu_s)
     shutil.rmtree(out, ignore_errors=True)
     r = run_child(ficap_command("replay", str(d.bag), "--out", str(out), "--jobs", "1", "--quiet"), ok=(0, 3))
     d.command_cpu_s.append(r.cpu_s)
@@ -242,16 +241,16 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for d in drives:
         ours, at3, dec = d.ours_ms(), float(np.median(d.at3_ms)), float(np.median(d.decode_ms))
-        edge = d.cell_edge_ms()
+        photo = d.photometric_ms()
         rows.append([d.label, d.frames, f"{ours:.1f}", f"{at3:.1f}", f"**{at3 / ours:.1f}x**", f"{dec:.2f}",
-                     f"**{ours / dec:.2f}x**", f"{edge:.1f} ({at3 / edge:.1f}x, {edge / dec:.2f}x)",
+                     f"**{ours / dec:.2f}x**", f"{photo:.1f} ({at3 / photo:.1f}x, {photo / dec:.2f}x)",
                      f"{at3 - dec:.1f} / {ours - dec:.1f} = {(at3 - dec) / (ours - dec):.1f}x",
                      f"{d.summary.get('frames_with_pose', 0)}/{d.frames}", f"{d.ours_tags:.1f} / {d.at3_tags:.1f}",
                      f"{d.frames / np.median(d.command_wall_s):.0f}"])
     table = report.md_table(["drive", "frames", "ficap replay ms/frame (whole command)",
                              "AprilTag 3 ms/frame (decode + detect + pose)", "AprilTag 3 / ficap",
                              "JPEG decode alone ms/frame", "ficap / decode alone",
-                             "--no-photometric ms/frame (AprilTag 3 / it, it / decode)",
+                             "--photometric ms/frame (AprilTag 3 / it, it / decode)",
                              "without the decode: AprilTag 3 / ficap",
                              "frames with a pose (ficap)", "tags/frame: ficap / AprilTag 3",
                              "ficap replay frames/s (wall)"], rows)
@@ -269,13 +268,13 @@ def main(argv: list[str] | None = None) -> int:
     stage_table = report.md_table(["stage (own CPU time)"] + [c for d in drives for c in (f"{d.label} ms/frame",
                                                                                           "of the command")], srows)
     body = (f"{table}\n\n{plot(drives, stages)}\n\n"
-            f"Rounds: {rounds}, alternated (the command with `--no-photometric` and with its defaults, "
+            f"Rounds: {rounds}, alternated (the command with `--photometric` and with its defaults, "
             f"AprilTag 3, decode alone) drive by drive; one core (affinity {{{core}}}). Where our time goes, from one instrumented pass in this process "
             "(each stage's own CPU time, without the listed stages it calls; the command's rest is "
             "its median CPU time less this pass's total):\n\n" + stage_table)
     what = ("What it measures: CPU time per frame of the whole `ficap replay --jobs 1` command "
             "(start-up, bag reading, JPEG decode, pipeline, label writing; its defaults, and with "
-            "`--no-photometric`) against AprilTag 3 "
+            "`--photometric`) against AprilTag 3 "
             "decimate 1 with our pose on the same JPEGs (decode included, start-up not), with the "
             "JPEG decode alone beside them, on a continuous 1080p `ficap synth` drive, on "
             "blender_dev's continuous 1080p drive played several times over, and on 1080p frames "

@@ -1,8 +1,8 @@
 """The pipelines the tables compare, defined once.
 
-* ours: ``FrameProcessor`` with its defaults (ArUco search, unbiased edge-fit corners refined by
-  the tag-level photometric fit, joint pose, tracking), as ``ficap replay`` and the node run it;
-* ours, cell-edge corners: without the photometric step (``--no-photometric``);
+* ours: ``FrameProcessor`` with its defaults (ArUco search, unbiased edge-fit corners, joint pose,
+  tracking), as ``ficap replay`` and the node run it;
+* ours + photometric: the opt-in tag-level photometric corner step (``--photometric``);
 * the naive peer: what an afternoon's pipeline does: OpenCV's ArUco detector with sub-pixel
   corners, one SQPnP + Levenberg-Marquardt over every corner, no outlier handling, no tracking;
 * AprilTag 3: pupil-apriltags, decimate 1, one thread, its own corners, with our joint pose.
@@ -32,7 +32,7 @@ class Method:
 
 
 OURS = Method("ficap", DetectorConfig(), PoseConfig())
-OURS_CELL_EDGE = Method("ficap --no-photometric", DetectorConfig(edge_photometric=False), PoseConfig())
+OURS_PHOTOMETRIC = Method("ficap + photometric", DetectorConfig(edge_photometric=True), PoseConfig())
 OURS_PAPER = Method("ficap, paper's pose", DetectorConfig(), PoseConfig(method="paper"))
 PEER = Method("naive peer", DetectorConfig(corner_refine="subpix"), PoseConfig(method="naive"), tracking=False)
 AT3_DETECTOR = DetectorConfig(backend="apriltag", corner_refine="apriltag", quad_decimate=1.0)
