@@ -1,4 +1,4 @@
-"""Speed: the whole ``ficap replay`` command against AprilTag 3 decimate 1, on continuous 1080p drives.
+"""Speed: the whole ``ficap replay`` command against AprilTag 3 decimate 1, on 1080p drives.
 
 Two continuous 30 fps 1080p drives, JPEG (q95) CompressedImage in MCAP bags:
 
@@ -6,8 +6,13 @@ Two continuous 30 fps 1080p drives, JPEG (q95) CompressedImage in MCAP bags:
 * blender_dev: ``dev_1080p_drive30`` (60 path-traced frames through a left-mirror glance) played
   ``--loops`` times over (each loop starts with a jump of the head, as after a cut).
 
+And two of 1080p frames that must all be searched (2 s apart, or 0.67 s for synth, beyond
+tracking's reach): every 20th frame of the synth drive, and blender_dev's three still 1080p sets
+(``dev_1080p_high``, ``_neutral``, ``_neutral_asbuilt``), each played ``--searched-loops`` times.
+
 Ours: the real command, ``python -m ficap_ros.cli replay BAG --out DIR --jobs 1 --quiet``, in a
-child process; its CPU time (user + sys from ``os.wait4``: start-up, imports, bag reading, JPEG
+child process, with its defaults and with ``--photometric`` (the opt-in photometric corner fit); its
+CPU time (user + sys from ``os.wait4``: start-up, imports, bag reading, JPEG
 decode, pipeline, label writing, everything) per frame. AprilTag 3: pupil-apriltags decimate 1,
 one thread, with our joint pose, on the same JPEG payloads in this process, decode included
 (``cv2.imdecode`` grey); its start-up and bag reading are not counted (the ratio favours it).
@@ -34,7 +39,7 @@ import numpy as np
 
 from _lib import cli, devsets, report
 from _lib.methods import AT3, OURS
-from _lib.synthdata import cached_synth_bag, looped_bag
+from _lib.synthdata import cached_synth_bag, looped_bag, searched_bag
 from _lib.timing import OwnTime, ficap_command, run_child
 
 #: Stages of the instrumented pass: (module, public function, label); a stage's own time leaves
@@ -60,6 +65,7 @@ class Drive:
     raws: list = field(default_factory=list)
     command_cpu_s: list[float] = field(default_factory=list)
     command_wall_s: list[float] = field(default_factory=list)
+    photometric_cpu_s: list[float] = field(default_factory=list)
     at3_ms: list[float] = field(default_factory=list)
     decode_ms: list[float] = field(default_factory=list)
     at3_tags: float = float("nan")
@@ -79,8 +85,15 @@ class Drive:
     def ours_ms(self) -> float:
         return 1e3 * float(np.median(self.command_cpu_s)) / self.frames
 
+    def photometric_ms(self) -> float:
+        return 1e3 * float(np.median(self.photometric_cpu_s)) / self.frames
+
 
 def command_round(d: Drive, out: Path) -> None:
+    shutil.rmtree(out, ignore_errors=True)
+    r = run_child(ficap_command("replay", str(d.bag), "--out", str(out), "--jobs", "1", "--quiet",
+                                "--photometric"), ok=(0, 3))
+    d.photometric_cpu_s.append(r.cpu_s)
     shutil.rmtree(out, ignore_errors=True)
     r = run_child(ficap_command("replay", str(d.bag), "--out", str(out), "--jobs", "1", "--quiet"), ok=(0, 3))
     d.command_cpu_s.append(r.cpu_s)
@@ -170,7 +183,7 @@ def plot(drives: list[Drive], stages: dict[str, tuple[dict[str, float], float, f
     ax.set_xlabel("CPU ms per frame (one core, median of rounds)")
     ax.legend(fontsize=8)
     ax.grid(True, axis="x", alpha=0.3)
-    fig.suptitle("Whole replay command vs AprilTag 3 decimate 1, continuous 1080p")
+    fig.suptitle("Whole replay command vs AprilTag 3 decimate 1, 1080p")
     fig.tight_layout()
     return report.save_figure(fig, "speed")
 
@@ -181,12 +194,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rounds", type=int, default=None, help="alternated rounds (default 3)")
     ap.add_argument("--seconds", type=float, default=None, help="synth drive length, s (default 20)")
     ap.add_argument("--loops", type=int, default=None, help="times blender_dev's drive is played (default 10)")
+    ap.add_argument("--searched-loops", type=int, default=None, help="times the searched frames are played "
+                                                                     "(default 4)")
     ap.add_argument("--core", type=int, default=None, help="the one core everything runs on (default: the "
                                                            "last this process may use)")
     args = ap.parse_args(argv)
     rounds = args.rounds or (2 if args.quick else 3)
     seconds = args.seconds or (5.0 if args.quick else 20.0)
     loops = args.loops or (3 if args.quick else 10)
+    searched_loops = args.searched_loops or (1 if args.quick else 4)
     import cv2
 
     from ficap_ros.tools.replay import keep_freed_memory
@@ -196,12 +212,21 @@ def main(argv: list[str] | None = None) -> int:
     cv2.setNumThreads(1)
     keep_freed_memory()  # the allocator setting the command makes for itself, for AprilTag 3's rounds too
     run = report.Run()
-    drives = [Drive("synth", cached_synth_bag(args.cache, "1080p", int(round(seconds * 30))))]
+    synth = cached_synth_bag(args.cache, "1080p", int(round(seconds * 30)))
+    drives = [Drive("synth", synth)]
     if devsets.present(args.data, ("dev_1080p_drive30",)):
         src = devsets.root_of(args.data) / "dev_1080p_drive30"
         drives.append(Drive(f"blender_dev drive30 x{loops}", looped_bag(args.cache, src, loops)))
     else:
         print("blender_dev's dev_1080p_drive30 not found (--data): synth only", file=sys.stderr)
+    drives.append(Drive(f"synth searched x{searched_loops}",
+                        searched_bag(args.cache, f"{synth.name}_every20", [synth], searched_loops, every=20,
+                                     gap_ns=667_000_000)))
+    still = ("dev_1080p_high", "dev_1080p_neutral", "dev_1080p_neutral_asbuilt")
+    if devsets.present(args.data, still) == list(still):
+        drives.append(Drive(f"blender_dev 1080p searched x{searched_loops}",
+                            searched_bag(args.cache, "blender_dev_1080p_still",
+                                         [devsets.root_of(args.data) / s for s in still], searched_loops)))
     for d in drives:
         d.load()
     stages = {}
@@ -216,13 +241,17 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for d in drives:
         ours, at3, dec = d.ours_ms(), float(np.median(d.at3_ms)), float(np.median(d.decode_ms))
+        photo = d.photometric_ms()
         rows.append([d.label, d.frames, f"{ours:.1f}", f"{at3:.1f}", f"**{at3 / ours:.1f}x**", f"{dec:.2f}",
+                     f"**{ours / dec:.2f}x**", f"{photo:.1f} ({at3 / photo:.1f}x, {photo / dec:.2f}x)",
                      f"{at3 - dec:.1f} / {ours - dec:.1f} = {(at3 - dec) / (ours - dec):.1f}x",
                      f"{d.summary.get('frames_with_pose', 0)}/{d.frames}", f"{d.ours_tags:.1f} / {d.at3_tags:.1f}",
                      f"{d.frames / np.median(d.command_wall_s):.0f}"])
     table = report.md_table(["drive", "frames", "ficap replay ms/frame (whole command)",
                              "AprilTag 3 ms/frame (decode + detect + pose)", "AprilTag 3 / ficap",
-                             "JPEG decode alone ms/frame", "without the decode: AprilTag 3 / ficap",
+                             "JPEG decode alone ms/frame", "ficap / decode alone",
+                             "--photometric ms/frame (AprilTag 3 / it, it / decode)",
+                             "without the decode: AprilTag 3 / ficap",
                              "frames with a pose (ficap)", "tags/frame: ficap / AprilTag 3",
                              "ficap replay frames/s (wall)"], rows)
     labels = list(dict.fromkeys(label for *_m, label in STAGES))
@@ -239,16 +268,17 @@ def main(argv: list[str] | None = None) -> int:
     stage_table = report.md_table(["stage (own CPU time)"] + [c for d in drives for c in (f"{d.label} ms/frame",
                                                                                           "of the command")], srows)
     body = (f"{table}\n\n{plot(drives, stages)}\n\n"
-            f"Rounds: {rounds}, alternated (command, AprilTag 3, decode alone) drive by drive; one core "
-            f"(affinity {{{core}}}). Where our time goes, from one instrumented pass in this process "
+            f"Rounds: {rounds}, alternated (the command with `--photometric` and with its defaults, "
+            f"AprilTag 3, decode alone) drive by drive; one core (affinity {{{core}}}). Where our time goes, from one instrumented pass in this process "
             "(each stage's own CPU time, without the listed stages it calls; the command's rest is "
             "its median CPU time less this pass's total):\n\n" + stage_table)
     what = ("What it measures: CPU time per frame of the whole `ficap replay --jobs 1` command "
-            "(start-up, bag reading, JPEG decode, pipeline, label writing) against AprilTag 3 "
+            "(start-up, bag reading, JPEG decode, pipeline, label writing; its defaults, and with "
+            "`--photometric`) against AprilTag 3 "
             "decimate 1 with our pose on the same JPEGs (decode included, start-up not), with the "
-            "JPEG decode alone beside them, on a continuous 1080p `ficap synth` drive and on "
-            "blender_dev's continuous 1080p drive played several times over; one core, interleaved "
-            "rounds, medians.")
+            "JPEG decode alone beside them, on a continuous 1080p `ficap synth` drive, on "
+            "blender_dev's continuous 1080p drive played several times over, and on 1080p frames "
+            "that must all be searched (synth and blender_dev); one core, interleaved rounds, medians.")
     report.write_section("speed", what, report.how("bench_speed.py", "shorter drives, 2 rounds"), body, run,
                          report.command(), args.quick, args.no_doc)
     return 0

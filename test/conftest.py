@@ -41,6 +41,18 @@ def pytest_configure(config: pytest.Config) -> None:
             "(package.xml)")
 
 
+def pytest_sessionstart(session: pytest.Session) -> None:
+    """The photometric fit's compiled kernels (``ficap_ros.vision.jit``) compiled, or loaded from
+    their cache, once in the controlling process before any xdist worker starts: on a fresh clone
+    the workers' photometric tests (``test_photometric``, ``test_photometric_kernels``, the fleet's
+    and the commands' ``--photometric`` runs) then load them instead of each compiling them."""
+    if hasattr(session.config, "workerinput"):  # an xdist worker: its controller did it
+        return
+    from ficap_ros.vision.jit import warm_up
+
+    warm_up()
+
+
 #: Real photos the detection tests need, kept in the repository (test/data/README.md: sources and
 #: licences) so a fresh clone tests without the workplace's ../shared; benchmarks read the full sets.
 REAL_APRILTAG = Path(__file__).resolve().parent / "data" / "real_apriltag"

@@ -88,6 +88,7 @@ MODULES: dict[str, tuple[str | None, str | None]] = {
     "cv2": ("python3-opencv", "opencv-python-headless"),
     "numpy": ("python3-numpy", "numpy"),
     "scipy": ("python3-scipy", "scipy"),
+    "numba": ("python3-numba", "numba"),
     "yaml": ("python3-yaml", "PyYAML"),
     "matplotlib": ("python3-matplotlib", "matplotlib"),
     "tqdm": ("python3-tqdm", "tqdm"),

@@ -119,3 +119,36 @@ def looped_bag(cache: Path, source: Path, times: int) -> Path:
                 bag.write("/camera/image_raw/compressed", stamp,
                           messages.compressed_image(ROSBAGS, head, bytes(r.payload), r.encoding or "jpeg"))
     return path
+
+
+def searched_bag(cache: Path, name: str, sources: list[Path], times: int, every: int = 1,
+                 gap_ns: int = 2_000_000_000) -> Path:
+    """A bag of every ``every``-th compressed image of each of ``sources`` (with its CameraInfo),
+    the sources one after another, played ``times`` over, consecutive frames ``gap_ns`` apart:
+    beyond tracking's reach, so every frame is searched over the whole image (as after a cut, a
+    gap or dropped frames)."""
+    from ficap_ros.io import messages
+    from ficap_ros.io.bag_writer import BagWriter
+    from ficap_ros.io.messages import ROSBAGS
+    from ficap_ros.io.sources import CAMERA_INFO_TYPE, COMPRESSED_TYPE, open_frames
+
+    path = cache / f"{name}_x{times}"
+    if (path / "metadata.yaml").is_file():
+        return path
+    raws = [r for src in sources
+            for r in [r for r in open_frames(src).raw_frames() if r.kind == "compressed" and not r.error][::every]]
+    if not raws:
+        raise RuntimeError(f"{name}: no compressed images in {sources}")
+    shutil.rmtree(path, ignore_errors=True)
+    stamp = raws[0].stamp_ns
+    with BagWriter(path, storage="mcap", layout="folder") as bag:  # written atomically
+        bag.add_topic("/camera/image_raw/compressed", COMPRESSED_TYPE)
+        bag.add_topic("/camera/camera_info", CAMERA_INFO_TYPE)
+        for _ in range(times):
+            for r in raws:
+                head = messages.header(ROSBAGS, stamp, r.frame_id or "camera")
+                bag.write("/camera/camera_info", stamp, messages.camera_info(ROSBAGS, head, r.camera))
+                bag.write("/camera/image_raw/compressed", stamp,
+                          messages.compressed_image(ROSBAGS, head, bytes(r.payload), r.encoding or "jpeg"))
+                stamp += gap_ns
+    return path

@@ -14,10 +14,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="detector backend (default: opencv)")
     parser.add_argument("--refine", choices=("edge", "subpix", "apriltag", "none"), default="edge",
                         help="corner refinement (default: edge)")
-    parser.add_argument("--photometric", action="store_true",
+    parser.add_argument("--photometric", action=argparse.BooleanOptionalAction, default=False,
                         help="with edge refinement: fit each tag's pattern, blurred in linear light and "
                              "through a tone curve, to its pixels (more accurate on noisy frames, "
-                             "~ms per tag; docs/detection.md)")
+                             "at a CPU cost per tag: docs/detection.md); --no-photometric (the "
+                             "default): the cell-edge fit's corners")
 
 
 #: Largest image file read: a 40 MP PNG (the pixel budget) stays well below it.

@@ -56,11 +56,12 @@ def add_input_arguments(parser: argparse.ArgumentParser, many: bool = False) -> 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_input_arguments(parser, many=True)
-    parser.add_argument("--photometric", action="store_true",
+    parser.add_argument("--photometric", action=argparse.BooleanOptionalAction, default=False,
                         help="corners' last step: fit each tag's pattern, blurred in linear light and "
                              "through a tone curve, to its pixels (more accurate on noisy frames, "
                              "at a CPU cost per tag: docs/detection.md; every recording of a fleet, "
-                             "any engine)")
+                             "any engine); --no-photometric (the default): the cell-edge fit's "
+                             "corners")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     parser.add_argument("--calibration", metavar="FILE",
                         help="head calibration YAML (ficap calibrate / the node's service)")

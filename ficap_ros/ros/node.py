@@ -77,6 +77,7 @@ class FicapNodeSteps:
             self.add_post_set_parameters_callback(self._after_set_parameters)
             self._callbacks_added = True
         self._processor = live.frame_processor(cfg)
+        self.kernels_warm_up_s = self._warm_up_kernels(cfg)
         self._cameras = CameraInfoCache.with_file(cfg.camera_info_file)
         if self._cameras.static_error:
             self.get_logger().error(self._cameras.static_error)
@@ -100,6 +101,17 @@ class FicapNodeSteps:
         self._worker = threading.Thread(target=self._work, name="ficap_worker", daemon=True)
         self._worker.start()
 
+    @staticmethod
+    def _warm_up_kernels(cfg: Any) -> float | None:
+        """With photometric corners (``detector.photometric``), their compiled kernels loaded (or
+        compiled) now, so no frame waits for them: the seconds it took; None without them (numba
+        is then never imported)."""
+        if not cfg.detector_config.edge_photometric:
+            return None
+        from ficap_ros.vision.jit import warm_up
+
+        return warm_up()
+
     def activate(self: Any) -> None:
         """Subscribe; warn about parameters given but not declared (after the subscriptions'
         ``qos_overrides`` are declared). Raises ``ConfigError`` for a bad ``qos_overrides``."""
@@ -113,7 +125,9 @@ class FicapNodeSteps:
         self.get_logger().info(
             f"ficap_node ready: {cfg.image_transport} images on {self._inputs.image.topic_name}, "
             f"CameraInfo on {self._inputs.camera_info.topic_name}, pose method {cfg.pose_method}, "
-            f"{'calibrated' if self.calibration.calibrated else 'not calibrated'}")
+            f"{'calibrated' if self.calibration.calibrated else 'not calibrated'}"
+            + ("" if self.kernels_warm_up_s is None
+               else f", photometric corners' kernels ready in {self.kernels_warm_up_s:.1f} s"))
 
     def deactivate(self: Any) -> None:
         """Unsubscribe (frames in flight still finish)."""

@@ -53,7 +53,6 @@ from ficap_ros.vision.medians import (
     group_nearest_quantile_of_finite,
     row_median,
 )
-from ficap_ros.vision.photometric import fit_tags
 
 __all__ = [
     "refine_tag_corners",
@@ -683,5 +682,8 @@ def fit_tags_photometric(
         return out, fitted
     if len(c) == 0:
         return c.copy(), np.zeros(0, dtype=bool)
+    # Imported here: the fit's compiled kernels (numba) load only where photometric corners are on.
+    from ficap_ros.vision.photometric import fit_tags
+
     cells = stacked_tag_cells(tuple(int(i) for i in ids))
     return fit_tags(gray, c, tag_homographies(c), cells, **kwargs)

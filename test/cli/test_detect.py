@@ -52,3 +52,21 @@ def test_an_image_above_the_pixel_budget_is_one_line(tmp_path: Path,
     cv2.imwrite(str(big), np.zeros((6000, 8000), np.uint8))  # 48 MP, a few kB as PNG
     assert cli_main(["detect", str(big)]) == 1
     assert "budget" in one_error_line(capsys)
+
+
+def test_photometric_is_opt_in(real_apriltag_dir: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """--no-photometric is the default's corners to the bit; --photometric moves them (by a fraction
+    of a pixel) and needs the edge refinement."""
+    path = str(real_apriltag_dir / "apriltags_jl" / "tagtest.jpg")
+
+    def corners(*flags: str) -> np.ndarray:
+        assert cli_main(["detect", "--json", *flags, path]) == 0
+        dets = sorted(json.loads(capsys.readouterr().out)[0]["detections"], key=lambda d: d["id"])
+        return np.array([d["corners_px"] for d in dets])
+
+    default = corners()
+    np.testing.assert_array_equal(corners("--no-photometric"), default)
+    moved = np.abs(corners("--photometric") - default)
+    assert 0.0 < moved.max() < 1.0
+    assert cli_main(["detect", "--refine", "subpix", "--photometric", path]) == 1
+    assert "photometric" in capsys.readouterr().err

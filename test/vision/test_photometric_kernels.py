@@ -1,0 +1,77 @@
+"""The photometric fit's compiled kernels against the numpy reference (``photometric_reference``)
+and their small parts against numpy and scipy.
+
+The fit's corners agree with the reference's within 1e-5 px and the same tags are fitted (the
+reference evaluates the blurred shares in float32, the kernels in float64); the pixels it selects
+are checked against a per-box oracle in test_photometric.py.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import photometric_reference
+import pytest
+from corner_eval import drive_frames
+from hypothesis import given, settings
+from hypothesis import strategies as st
+from scipy.special import ndtr
+
+from ficap_ros.geometry.tag36h11 import stacked_tag_cells, tag_homographies
+from ficap_ros.tools.synth import RenderConfig
+from ficap_ros.vision import photometric, photometric_kernels
+from ficap_ros.vision.tone import srgb_encode_slope, srgb_to_linear_scalar
+
+
+@pytest.mark.parametrize("resolution, lighting", [("540p", "low"), ("1080p", "neutral")])
+def test_fit_equals_the_numpy_reference(resolution: str, lighting: str) -> None:
+    fr = drive_frames(resolution, RenderConfig(lighting=lighting, jpeg_quality=95), n=1)[0]
+    ids = np.array(fr.visible_ids(0.999))
+    rng = np.random.default_rng(2)
+    start = np.array([fr.corners_px[t] for t in ids]) + rng.normal(0.0, 0.15, (len(ids), 4, 2))
+    hom, cells = tag_homographies(start), stacked_tag_cells(tuple(int(i) for i in ids))
+    for free_tone, iterations in ((True, 3), (False, 2)):
+        got, ok = photometric.fit_tags(fr.image, start, hom, cells, free_tone=free_tone, iterations=iterations)
+        want, ok_ref = photometric_reference.fit_tags(fr.image, start, hom, cells, free_tone=free_tone,
+                                                      iterations=iterations)
+        np.testing.assert_array_equal(ok, ok_ref)
+        assert ok.sum() >= len(ids) - 2
+        np.testing.assert_allclose(got, want, rtol=0.0, atol=1e-5)
+
+
+def test_normal_cdf_and_density_match_scipy() -> None:
+    z = np.linspace(-10.0, 10.0, 4001)
+    cdf = np.array([photometric_kernels._cdf_pdf(float(v))[0] for v in z])
+    pdf = np.array([photometric_kernels._cdf_pdf(float(v))[1] for v in z])
+    np.testing.assert_allclose(cdf, ndtr(z), rtol=0.0, atol=1e-7)
+    np.testing.assert_allclose(pdf, np.exp(-0.5 * z * z) / np.sqrt(2.0 * np.pi), rtol=0.0, atol=1e-15)
+
+
+@given(st.floats(-1.0, 2.0))
+@settings(max_examples=200, deadline=None)
+def test_srgb_curves_match_the_tone_module(linear: float) -> None:
+    enc, slope = srgb_encode_slope(np.array([linear]))
+    got = photometric_kernels._srgb_encode(linear)
+    assert got[0] == pytest.approx(enc[0], rel=1e-12, abs=1e-15)
+    assert got[1] == pytest.approx(slope[0], rel=1e-12, abs=1e-15)
+    assert photometric_kernels._srgb_to_linear(linear) == pytest.approx(srgb_to_linear_scalar(linear), rel=1e-12)
+
+
+@given(st.integers(-40, 40))
+def test_rounding_is_numpys_half_to_even(twice: int) -> None:
+    x = twice / 2.0
+    assert photometric_kernels._round_half_even(x) == int(np.round(x))
+    assert photometric_kernels._round_half_even(x + 1e-9) == int(np.round(x + 1e-9))
+
+
+def test_solve_matches_numpy_and_refuses_a_singular_system() -> None:
+    rng = np.random.default_rng(0)
+    for n in (3, 8, 16):
+        m = rng.normal(size=(n, n))
+        a = m @ m.T + 1e-3 * np.eye(n)
+        b = rng.normal(size=n)
+        ok, x = photometric_kernels._solve(a.copy(), b.copy())
+        assert ok
+        np.testing.assert_allclose(x, np.linalg.solve(a, b), rtol=1e-9, atol=1e-9)
+    singular = np.ones((4, 4))
+    singular[:, 0] = 0.0
+    assert not photometric_kernels._solve(singular, np.ones(4))[0]
