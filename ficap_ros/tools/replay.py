@@ -199,12 +199,14 @@ class _SegmentPool:
     def __init__(self, jobs: int, initargs: tuple, counter: Any,
                  timing: CameraTiming | None = None) -> None:
         self.jobs, self.initargs, self.counter, self.timing = jobs, initargs, counter, timing
+        self.others: set[Any] = set()  # the children that are not the pool's workers
         self.pool = self._new()
 
     def _new(self) -> Any:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
+        self.others = set(multiprocessing.active_children())
         return ProcessPoolExecutor(self.jobs, mp_context=multiprocessing.get_context("spawn"),
                                    initializer=_init_worker, initargs=self.initargs)
 
@@ -243,9 +245,13 @@ class _SegmentPool:
             item[1], item[2] = self.submit(item[0]), item[2] + 1
 
     def stop(self) -> None:
-        """Cancel what waits and end the workers now (a segment in progress is not waited for:
-        ``ProcessPoolExecutor`` has no public way to end running workers before Python 3.14)."""
-        processes = list((getattr(self.pool, "_processes", None) or {}).values())
+        """Cancel what waits and end the workers now (a segment in progress is not waited for).
+        ``ProcessPoolExecutor`` has no public way to end running workers before Python 3.14: its
+        workers are this process's children that were not there when the pool was made
+        (``multiprocessing.active_children``)."""
+        import multiprocessing
+
+        processes = [p for p in multiprocessing.active_children() if p not in self.others]
         self.pool.shutdown(wait=False, cancel_futures=True)
         for process in processes:
             process.terminate()

@@ -2,7 +2,9 @@
 
 ``run_cli`` runs ``ficap`` in a child process (the real file descriptor 2, where C libraries and
 tracebacks print) and measures what the issue's rules bound: wall time and peak memory (the
-child's own ``ru_maxrss`` and its workers', reported through a file so stderr stays the verb's).
+child's own high-water mark ``VmHWM``, not its ``ru_maxrss``, which Linux carries across exec from
+the test process that started it; its workers' ``ru_maxrss``; reported through a file so stderr
+stays the verb's).
 The builders make the damaged and hostile inputs small, or sparse where a case needs a large file
 (holes cost neither disk nor time). ``Probe`` builds the probe's inputs in one folder; the case
 tables (``QUICK_REFUSALS``, ``BAD_NUMBERS``, ``walk_cases``) are what test_bad_inputs.py runs.
@@ -50,6 +52,10 @@ _CHILD = (
     "    code = stop.code if isinstance(stop.code, int) else 2\n"
     "finally:\n"
     "    own = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss\n"
+    "    if os.path.exists('/proc/self/status'):\n"
+    "        with open('/proc/self/status') as status:\n"
+    "            own = next((int(line.split()[1]) for line in status\n"
+    "                        if line.startswith('VmHWM:')), own)\n"
     "    kids = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss\n"
     "    with open(os.environ['FICAP_PROBE_RSS'], 'w') as f:\n"
     "        f.write(f'{own} {kids}')\n"
