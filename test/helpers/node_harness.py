@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import threading
 import time
-from typing import Any, Callable
+from typing import Any, Callable, Iterator
 
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
@@ -26,7 +26,53 @@ from ficap_ros.ros.spin import make_executor
 WAIT_S = 10.0
 
 
-class Harness:
+class Spinning:
+    """A node and a peer node in one context, spinning in one thread as ficap_node spins
+    (``spin.make_executor`` says why); ``call`` a service, ``close`` it all."""
+
+    context: Context
+    node: Any
+    peer: Any
+
+    def _spin(self) -> None:
+        self.executor = make_executor(context=self.context)
+        self.executor.add_node(self.node)
+        self.executor.add_node(self.peer)
+        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
+        self.thread.start()
+
+    def wait_for(self, pred: Callable[[], bool], timeout: float = WAIT_S, what: str = "") -> None:
+        wait_for(pred, timeout, what)
+
+    def call(self, client, request, timeout: float = WAIT_S):
+        assert client.wait_for_service(timeout_sec=timeout), "service not available"
+        future = client.call_async(request)
+        self.wait_for(future.done, timeout, what="service response")
+        return future.result()
+
+    def close(self) -> None:
+        self.executor.shutdown(timeout_sec=2.0)
+        self.node.destroy_node()
+        self.peer.destroy_node()
+        rclpy.try_shutdown(context=self.context)
+        self.thread.join(timeout=5.0)
+
+
+def closing_factory(make: Callable[..., Any]) -> Iterator[Callable[..., Any]]:
+    """A fixture's body: yields ``make`` (keyword arguments passed on) and closes everything it
+    made after the test."""
+    made: list[Any] = []
+
+    def build(**kw: Any) -> Any:
+        made.append(make(**kw))
+        return made[-1]
+
+    yield build
+    for item in made:
+        item.close()
+
+
+class Harness(Spinning):
     """A FicapNode and a peer node (publishes inputs, records outputs) spinning in a thread."""
 
     def __init__(self, overrides: dict[str, Any] | None = None, cli_args: list[str] | None = None,
@@ -60,12 +106,7 @@ class Harness:
         self.calibrate = self.peer.create_client(Trigger, "/ficap_node/calibrate")
         self.clear = self.peer.create_client(Trigger, "/ficap_node/clear_calibration")
         self.set_params = self.peer.create_client(SetParameters, "/ficap_node/set_parameters")
-        # One spin thread for node and peer, as ficap_node spins (spin.make_executor says why).
-        self.executor = make_executor(context=self.context)
-        self.executor.add_node(self.node)
-        self.executor.add_node(self.peer)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self.thread.start()
+        self._spin()
         image_pub = self.pub_compressed if self.node._config.image_transport == "compressed" \
             else self.pub_image
         self.wait_for(lambda: image_pub.get_subscription_count() > 0
@@ -77,9 +118,6 @@ class Harness:
             with self.lock:
                 store.append(msg)
         return cb
-
-    def wait_for(self, pred: Callable[[], bool], timeout: float = WAIT_S, what: str = "") -> None:
-        wait_for(pred, timeout, what)
 
     def statuses_for(self, stamp_ns: int) -> list:
         with self.lock:
@@ -109,18 +147,6 @@ class Harness:
                 continue
         raise AssertionError(f"no status for frame {stamp_ns}")
 
-    def call(self, client, request, timeout: float = WAIT_S):
-        assert client.wait_for_service(timeout_sec=timeout), "service not available"
-        future = client.call_async(request)
-        self.wait_for(future.done, timeout, what="service response")
-        return future.result()
-
-    def close(self) -> None:
-        self.executor.shutdown(timeout_sec=2.0)
-        self.node.destroy_node()
-        self.peer.destroy_node()
-        rclpy.try_shutdown(context=self.context)
-        self.thread.join(timeout=5.0)
 
 
 def wait_for(pred: Callable[[], bool], timeout: float = WAIT_S, what: str = "") -> None:

@@ -1,26 +1,28 @@
 """Fixtures of the node tests: ``harness_factory`` makes harnesses (``node_harness.Harness``) and
-closes them after the test; ``posed_frames`` renders a few frames of a drive with their truth."""
+closes them after the test; ``node`` is a plain rclpy node; ``posed_frames`` renders a few frames of a drive with their truth."""
 
 from __future__ import annotations
 
-from typing import Any
-
 import pytest
-from node_harness import Harness
+import rclpy
+from node_harness import Harness, closing_factory
+from rclpy.context import Context
 
 
 @pytest.fixture
 def harness_factory():
-    made: list[Harness] = []
+    yield from closing_factory(Harness)
 
-    def make(**kw: Any) -> Harness:
-        h = Harness(**kw)
-        made.append(h)
-        return h
 
-    yield make
-    for h in made:
-        h.close()
+@pytest.fixture
+def node():
+    """A plain rclpy node in its own context (for publishers the outputs are sent through)."""
+    context = Context()
+    rclpy.init(context=context)
+    n = rclpy.create_node("ficap_test_outputs", context=context)
+    yield n
+    n.destroy_node()
+    rclpy.try_shutdown(context=context)
 
 
 @pytest.fixture(scope="session")

@@ -5,14 +5,13 @@ from __future__ import annotations
 
 import subprocess
 import sys
-import threading
 
 import pytest
 import rclpy
 from geometry_msgs.msg import PoseStamped
 from lifecycle_msgs.msg import State, Transition
 from lifecycle_msgs.srv import ChangeState, GetState
-from node_harness import header_at, info_at, wait_for
+from node_harness import Spinning, closing_factory, header_at, info_at
 from rclpy.context import Context
 from rclpy.parameter import Parameter
 from sensor_msgs.msg import CameraInfo, Image
@@ -20,10 +19,9 @@ from sensor_msgs.msg import CameraInfo, Image
 from ficap_ros.io import messages
 from ficap_ros.ros import msgs as ros_msgs
 from ficap_ros.ros.lifecycle import FicapLifecycleNode
-from ficap_ros.ros.spin import make_executor
 
 
-class _Managed:
+class _Managed(Spinning):
     """A lifecycle node and a peer (lifecycle client, image publisher, pose recorder) spinning."""
 
     def __init__(self, overrides: dict | None = None) -> None:
@@ -38,18 +36,7 @@ class _Managed:
         self.pub_info = self.peer.create_publisher(CameraInfo, "camera_info", 5)
         self.head: list = []
         self.peer.create_subscription(PoseStamped, "head_pose", self.head.append, 10)
-        self.executor = make_executor(context=self.context)
-        self.executor.add_node(self.node)
-        self.executor.add_node(self.peer)
-        self.thread = threading.Thread(target=self.executor.spin, daemon=True)
-        self.thread.start()
-        self.wait_for = wait_for
-
-    def call(self, client, request):  # noqa: ANN001, ANN201
-        assert client.wait_for_service(timeout_sec=10.0)
-        future = client.call_async(request)
-        self.wait_for(future.done, what="lifecycle service")
-        return future.result()
+        self._spin()
 
     def transition(self, transition_id: int) -> bool:
         return self.call(self.change, ChangeState.Request(
@@ -58,26 +45,10 @@ class _Managed:
     def state(self) -> int:
         return self.call(self.get, GetState.Request()).current_state.id
 
-    def close(self) -> None:
-        self.executor.shutdown(timeout_sec=2.0)
-        self.node.destroy_node()
-        self.peer.destroy_node()
-        rclpy.try_shutdown(context=self.context)
-        self.thread.join(timeout=5.0)
-
 
 @pytest.fixture
 def managed():
-    made: list[_Managed] = []
-
-    def make(**kw) -> _Managed:  # noqa: ANN003
-        m = _Managed(**kw)
-        made.append(m)
-        return m
-
-    yield make
-    for m in made:
-        m.close()
+    yield from closing_factory(_Managed)
 
 
 def _subscribed(m: _Managed) -> bool:

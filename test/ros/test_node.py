@@ -28,6 +28,7 @@ from rclpy.parameter import Parameter
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CompressedImage, Image
 from std_srvs.srv import Trigger
+from textbook import pose_matrix
 from visualization_msgs.msg import MarkerArray
 
 from ficap_ros.errors import ConfigError, ModelError
@@ -540,15 +541,10 @@ def test_newest_frame_wins_and_services_stay_responsive(rendered_drive, harness_
 
 
 def _matrix(pose) -> np.ndarray:
-    """4x4 of a geometry_msgs/Pose from its quaternion by the textbook formula (independent of
+    """4x4 of a geometry_msgs/Pose (``textbook.pose_matrix``: independent of
     ficap_ros.geometry.transform and of scipy)."""
-    x, y, z, w = (pose.orientation.x, pose.orientation.y, pose.orientation.z, pose.orientation.w)
-    m = np.eye(4)
-    m[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                 [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                 [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
-    m[:3, 3] = [pose.position.x, pose.position.y, pose.position.z]
-    return m
+    o, p = pose.orientation, pose.position
+    return pose_matrix((o.x, o.y, o.z, o.w), (p.x, p.y, p.z))
 
 
 def test_output_frame_through_camera_mount(rendered_drive, harness_factory) -> None:

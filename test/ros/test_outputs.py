@@ -13,11 +13,9 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-import rclpy
 from apriltag_msgs.msg import AprilTagDetectionArray
 from geometry_msgs.msg import PoseStamped, TwistStamped, Vector3Stamped
 from node_harness import header_at, info_at
-from rclpy.context import Context
 from recordings import RS_EXPOSURE_MS, RS_READOUT_MS
 from scipy.spatial.transform import Rotation
 from sensor_msgs.msg import CompressedImage, JointState
@@ -84,18 +82,8 @@ def test_detections_rpy_and_quality_of_a_posed_image(harness_factory, posed_fram
         assert q["latency_s"] == pytest.approx(q["latency_ms"] / 1000.0, rel=1e-12)
 
 
-@pytest.fixture
-def node():
-    context = Context()
-    rclpy.init(context=context)
-    n = rclpy.create_node("outputs_test", context=context)
-    yield n
-    n.destroy_node()
-    rclpy.try_shutdown(context=context)
-
-
 def _published(node) -> set[str]:  # noqa: ANN001
-    return {name for name, _ in node.get_publisher_names_and_types_by_node("outputs_test", "/")}
+    return {name for name, _ in node.get_publisher_names_and_types_by_node(node.get_name(), "/")}
 
 
 def test_without_apriltag_msgs_one_line_and_the_fits_still(monkeypatch, node, capfd) -> None:

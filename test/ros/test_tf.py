@@ -8,10 +8,7 @@ import sys
 import types
 
 import numpy as np
-import pytest
-import rclpy
 from node_harness import header_at, info_at
-from rclpy.context import Context
 from scipy.spatial.transform import Rotation
 from tf2_msgs.msg import TFMessage
 
@@ -109,16 +106,6 @@ def _record(frame_id: str = "cam") -> FrameRecord:
                                  calibration=HeadCalibration(calibrated=True))
 
 
-@pytest.fixture
-def node():
-    context = Context()
-    rclpy.init(context=context)
-    n = rclpy.create_node("tf_test", context=context)
-    yield n
-    n.destroy_node()
-    rclpy.try_shutdown(context=context)
-
-
 def test_tf2_ros_is_used_where_it_is_importable(monkeypatch, node) -> None:
     """Through tf2_ros' broadcasters (every apt/colcon install has them): one sendTransform of
     TransformStamped per image, the static one only when it changes."""
@@ -159,5 +146,5 @@ def test_without_tf2_one_log_line_and_no_tf(monkeypatch, node, capfd) -> None:
     out.publish(_record(), OutputFrames())  # a no-op, never a traceback
     err = capfd.readouterr().err
     assert err.count("no /tf") == 1 and "Traceback" not in err
-    assert not [name for name, _ in node.get_publisher_names_and_types_by_node("tf_test", "/")
+    assert not [name for name, _ in node.get_publisher_names_and_types_by_node(node.get_name(), "/")
                 if name in ("/tf", "/tf_static")]

@@ -15,6 +15,7 @@ from probe_cases import kill_pool_workers
 from recordings import FRAMES, true_R_cap_head
 from rosbags.highlevel import AnyReader
 from scipy.spatial.transform import Rotation
+from textbook import pose_matrix
 
 from ficap_ros.cli import synth as synth_cmd
 from ficap_ros.io.labels import read_labels
@@ -86,13 +87,8 @@ def test_labels_bag_matches_csv(replayed_calibrated: Path) -> None:
 
 def _tf_matrix(tr) -> np.ndarray:  # noqa: ANN001 - a decoded geometry_msgs/Transform
     """4x4 by the textbook quaternion formula (independent of ficap_ros and scipy)."""
-    x, y, z, w = tr.rotation.x, tr.rotation.y, tr.rotation.z, tr.rotation.w
-    m = np.eye(4)
-    m[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-                 [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-                 [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
-    m[:3, 3] = [tr.translation.x, tr.translation.y, tr.translation.z]
-    return m
+    r, t = tr.rotation, tr.translation
+    return pose_matrix((r.x, r.y, r.z, r.w), (t.x, t.y, t.z))
 
 
 def test_labels_tf_decodes_with_mcap_ros2(replayed_calibrated: Path) -> None:
