@@ -129,7 +129,7 @@ def processor(method: str, timing: CameraTiming) -> FrameProcessor:
     if method == NAIVE:
         return PEER.processor(model)
     return FrameProcessor(model, OURS.detector, OURS.pose, tracking=True,
-                          timing=timing if method == OURS_TIMED else None)
+                          timing=timing if method == OURS_TIMED else None, readout_evidence=True)
 
 
 def run(rec: Recording) -> dict[str, dict[str, np.ndarray]]:

@@ -128,7 +128,8 @@ def _init_worker(model: CapModel, pose: PoseConfig, single_thread: bool, done: A
         import cv2
 
         cv2.setNumThreads(1)  # N processes already use the cores; avoid oversubscription
-    _PROCESSOR = FrameProcessor(model=model, detector=detector, pose=pose)
+    _PROCESSOR = FrameProcessor(model=model, detector=detector, pose=pose,
+                                readout_evidence=True)
 
 
 def _process_one(raw: RawFrame) -> ReplayedFrame:

@@ -44,7 +44,8 @@ class FrameResult:
         detect_ms, pose_ms: time spent finding the tags and solving the pose, ms.
         timing_evidence: what the frame says of the camera's readout when the timing does not
             model one (``shutter.frame_evidence``: a moving cap with a velocity from the frames
-            before); None otherwise. ``shutter.combine_evidence`` turns many into an estimate.
+            before; ``FrameProcessor(readout_evidence=True)`` only); None otherwise.
+            ``shutter.combine_evidence`` turns many into an estimate.
     """
 
     detections: tuple[TagDetection, ...]
@@ -106,16 +107,20 @@ class FrameProcessor:
             tracker's past poses its velocity prior. The cap's velocity (``CapPose.velocity``)
             is reported only when the timing states an exposure or a readout; with neither, the
             outputs are those of an estimator without a motion model. Like ``pose_config`` it may
-            be replaced as a
-            whole between frames (the node does when its ``camera.*`` parameters change; replay
-            sets each recording's).
+            be replaced as a whole between frames (the node does when its ``camera.*``
+            parameters change; replay sets each recording's).
+        readout_evidence: also read each global-shutter frame's evidence of a rolling-shutter
+            readout (``FrameResult.timing_evidence``), for a recording's ``timing_estimate``;
+            off where nothing collects it (the node), since it costs a residual pass a frame.
     """
 
     def __init__(self, model: CapModel | None = None, detector: DetectorConfig | None = None,
                  pose: PoseConfig | None = None, tracking: bool = True,
-                 track: TrackConfig | None = None, timing: CameraTiming | None = None) -> None:
+                 track: TrackConfig | None = None, timing: CameraTiming | None = None,
+                 readout_evidence: bool = False) -> None:
         self.model = model or nominal_model()
         self.timing = timing or CameraTiming()
+        self.readout_evidence = readout_evidence
         self.detector = TagDetector(detector)
         self.pose_config = pose or PoseConfig()
         self.tracker = Tracker(self.model, self.detector, track) if tracking else None
@@ -159,7 +164,7 @@ class FrameProcessor:
             frame = TrackedFrame(detections, solve(detections, None), Search.IMAGE)
         t1, t2 = solve_started[0], time.perf_counter()
         pose, evidence = frame.result.pose, None
-        if pose is not None and not self.timing.rolling:
+        if self.readout_evidence and pose is not None and not self.timing.rolling:
             evidence = _timing_evidence(pose, frame.detections, self.model, camera)
         if pose is not None and not _timing_given(self.timing):
             pose = replace(pose, velocity=None, velocity_covariance=None)
