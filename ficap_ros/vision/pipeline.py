@@ -14,6 +14,7 @@ import numpy as np
 from ficap_ros.geometry.camera import CameraModel, CameraTiming
 from ficap_ros.geometry.cap_model import CapModel, nominal_model
 from ficap_ros.geometry.transform import Transform
+from ficap_ros.vision import motion_corners
 from ficap_ros.vision.detector import DetectorConfig, TagDetection, TagDetector, as_gray
 from ficap_ros.vision.motion import MotionPrior
 from ficap_ros.vision.occlusion import partly_hidden
@@ -149,13 +150,30 @@ class FrameProcessor:
         # Only the joint solver has a tag-level outlier step that reads which tags are hidden.
         find_hidden = cfg.hidden_check and cfg.corner_refine == "edge" and pose_config.method == "joint"
         solve_started: list[float] = []
+        refitted: dict[int, TagDetection] = {}
+
+        def estimate(tags: tuple[TagDetection, ...], start: Transform | None,
+                     prior: MotionPrior | None) -> PoseResult:
+            hidden = hidden_tag_ids(gray, tags) if find_hidden else frozenset()
+            return estimate_cap_pose(tags, self.model, camera, pose_config, start=start,
+                                     hidden_ids=hidden, timing=self.timing, prior=prior)
 
         def solve(tags: tuple[TagDetection, ...], start: Transform | None,
                   prior: MotionPrior | None = None) -> PoseResult:
             solve_started.append(time.perf_counter())
-            hidden = hidden_tag_ids(gray, tags) if find_hidden else frozenset()
-            return estimate_cap_pose(tags, self.model, camera, pose_config, start=start,
-                                     hidden_ids=hidden, timing=self.timing, prior=prior)
+            result = estimate(tags, start, prior)
+            if result.pose is None or not motion_corners.applies(cfg, self.timing, prior):
+                return result
+            # Motion-aware corners: the velocity at the frame's own pose, the moving tags refitted.
+            assert prior is not None
+            T = result.pose.T_cam_cap
+            velocity = result.pose.velocity if result.pose.velocity is not None else prior.at(T).mean
+            moved = motion_corners.motion_aware_corners(gray, tags, self.model, camera, self.timing, T,
+                                                        velocity, cfg)
+            if all(a is b for a, b in zip(tags, moved)):
+                return result
+            refitted.update((id(a), b) for a, b in zip(tags, moved) if a is not b)
+            return estimate(moved, T, prior)
 
         if self.tracker is not None:
             frame = self.tracker.track(gray, camera, int(stamp_ns), pose_config, solve)
@@ -163,6 +181,8 @@ class FrameProcessor:
             detections = tuple(d for d in self.detector.detect(gray) if d.tag_id in self.model)
             frame = TrackedFrame(detections, solve(detections, None), Search.IMAGE)
         t1, t2 = solve_started[0], time.perf_counter()
+        if refitted:
+            frame = replace(frame, detections=tuple(refitted.get(id(d), d) for d in frame.detections))
         pose, evidence = frame.result.pose, None
         if self.readout_evidence and pose is not None and not self.timing.rolling:
             evidence = _timing_evidence(pose, frame.detections, self.model, camera)
