@@ -131,13 +131,15 @@ def _face_boxes(
 # ------------------------------------------------------------------------------------------------
 # Motion over the exposure
 # ------------------------------------------------------------------------------------------------
-def motion_warps(corners_px: np.ndarray, motion_px: np.ndarray,
-                 spacing_px: float) -> tuple[np.ndarray, np.ndarray]:
+def motion_warps(corners_px: np.ndarray, motion_px: np.ndarray, spacing_px: float,
+                 bend_px: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
     """The instants a moving tag is averaged over, as image warps (``fit_steps_moving``).
 
-    Each tag's corners move by ``motion_px`` over the exposure, at constant velocity: at instant
-    s (-1/2 .. 1/2 of the exposure from its middle) corner j is at ``corners_px[j] + s
-    motion_px[j]``. The instants are the midpoints of K equal parts of the exposure, K such that
+    Each tag's corners move by ``motion_px`` over the exposure: at instant s (-1/2 .. 1/2 of the
+    exposure from its middle) corner j is at ``corners_px[j] + s motion_px[j] + 4 s^2
+    bend_px[j]`` (``bend_px``: how far the path's ends lie beyond the straight line through the
+    mid-exposure corner, a motion that speeds up or slows down over the exposure: 1/8 of the
+    acceleration times the exposure squared; None: constant velocity). The instants are the midpoints of K equal parts of the exposure, K such that
     no corner moves more than ``spacing_px`` from one to the next (a sum of Gaussian-blurred
     patterns this close is their box-blurred one to well under a grey level); a tag that does not
     move has one, the identity.
@@ -146,6 +148,7 @@ def motion_warps(corners_px: np.ndarray, motion_px: np.ndarray,
         corners_px: (N, 4, 2) mid-exposure corners.
         motion_px: (N, 4, 2) each corner's motion over the exposure (end minus start), px.
         spacing_px: the most a corner moves between instants, px.
+        bend_px: (N, 4, 2) the path's bend, px, or None.
 
     Returns:
         (warps (N, K, 3, 3): image px at each instant -> image px at mid-exposure (the identity
@@ -162,7 +165,10 @@ def motion_warps(corners_px: np.ndarray, motion_px: np.ndarray,
     h_mid = tag_homographies(c)
     for t in np.flatnonzero(instants > 1):
         s = (np.arange(instants[t]) + 0.5) / instants[t] - 0.5
-        h_k = tag_homographies(c[t][None] + s[:, None, None] * m[t][None])
+        at = c[t][None] + s[:, None, None] * m[t][None]
+        if bend_px is not None:
+            at = at + (4.0 * s * s)[:, None, None] * np.asarray(bend_px, dtype=np.float64).reshape(-1, 4, 2)[t][None]
+        h_k = tag_homographies(at)
         warps[t, :instants[t]] = h_mid[t] @ np.linalg.inv(h_k)
     return warps, instants
 
@@ -174,7 +180,8 @@ def fit_tags(
     gray: np.ndarray, corners_px: np.ndarray, hom: np.ndarray, cells: np.ndarray,
     psf_sigma_px: float = PSF_SIGMA_PX,
     iterations: int = 3, reach_px: float = 1.0, free_tone: bool = True, max_move_cells: float = 0.35,
-    max_pixels: int = 1500, motion_px: np.ndarray | None = None,
+    max_pixels: int = 1500, motion_px: np.ndarray | None = None, converged_px: float = 0.0,
+    bend_px: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Fit each tag's homography and levels to its pixels (module docstring).
 
@@ -197,6 +204,10 @@ def fit_tags(
         max_pixels: most pixels fitted a tag (a larger tag's are thinned evenly).
         motion_px: (N, 4, 2) each corner's image motion over the exposure (end minus start), px;
             None: the tags are still.
+        converged_px: with ``motion_px``, ``iterations`` is the most steps: a tag stops once a
+            step moves no corner further than this, px (``fit_steps_moving``).
+        bend_px: with ``motion_px``, (N, 4, 2) how each corner's path bends over the exposure
+            (``motion_warps``), or None: constant velocity.
 
     Returns:
         (corners (N, 4, 2), fitted (N,) bool): a tag not fitted keeps its input corners.
@@ -230,8 +241,8 @@ def fit_tags(
     if motion_px is None:
         ok, misfit, contrast = fit_steps(*args, *settings)
     else:
-        warps, instants = motion_warps(c_in, motion_px, _INSTANT_SPACING_SDS * sd_px)
-        ok, misfit, contrast = fit_steps_moving(*args, warps, instants, *settings)
+        warps, instants = motion_warps(c_in, motion_px, _INSTANT_SPACING_SDS * sd_px, bend_px)
+        ok, misfit, contrast = fit_steps_moving(*args, warps, instants, *settings, float(converged_px))
     corners = homography_corners(h)
     cell = np.linalg.norm(c_in[:, [1, 2, 3, 0]] - c_in, axis=2).min(axis=1) / TAG_CELLS
     moved = np.linalg.norm(corners - c_in, axis=2).max(axis=1)

@@ -192,7 +192,8 @@ def _fit_tag(obs: np.ndarray, px: np.ndarray, py: np.ndarray, h: np.ndarray, the
 def fit_steps_moving(obs: np.ndarray, px: np.ndarray, py: np.ndarray, starts: np.ndarray, counts: np.ndarray,
                      h: np.ndarray, theta: np.ndarray, tables: np.ndarray, warps: np.ndarray,
                      instants: np.ndarray, sd_px: float, free_tone: bool, iterations: int, min_pixels: int,
-                     min_level_pixels: int, damping: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                     min_level_pixels: int, damping: float,
+                     converged_px: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``fit_steps`` with each tag's pattern moving over the exposure (motion blur).
 
     A pixel's linear light is the mean over ``instants[t]`` instants of the light the tag's
@@ -204,6 +205,11 @@ def fit_steps_moving(obs: np.ndarray, px: np.ndarray, py: np.ndarray, starts: np
     Args:
         warps: (N, K, 3, 3) each tag's warps, the first ``instants[t]`` of them used.
         instants: (N,) int64 each tag's instant count (at least 1).
+        iterations: the most steps a tag takes (at least 2).
+        converged_px: a tag stops once a step (from the second on) moves no corner further
+            than this, px: a smeared edge's start can lie beyond the reach of one linearised
+            step (its model's slope lives within a blur sd of the smear's two ends), so such a
+            tag needs more steps than a still one, and a tag already there needs none.
         The rest: as ``fit_steps``.
     """
     n = h.shape[0]
@@ -216,14 +222,14 @@ def fit_steps_moving(obs: np.ndarray, px: np.ndarray, py: np.ndarray, starts: np
         a, b = starts[t], starts[t] + counts[t]
         ok[t], misfit[t], contrast[t] = _fit_tag_moving(
             obs[a:b], px[a:b], py[a:b], h[t], theta[t], tables[t], warps[t, :instants[t]], sd_px,
-            free_tone, iterations, min_level_pixels, damping)
+            free_tone, iterations, min_level_pixels, damping, converged_px)
     return ok, misfit, contrast
 
 
 @njit
 def _fit_tag_moving(obs: np.ndarray, px: np.ndarray, py: np.ndarray, h: np.ndarray, theta: np.ndarray,
                     table: np.ndarray, warps: np.ndarray, sd_px: float, free_tone: bool, iterations: int,
-                    min_level_pixels: int, damping: float) -> tuple[bool, float, float]:
+                    min_level_pixels: int, damping: float, converged_px: float) -> tuple[bool, float, float]:
     """One moving tag's steps (``fit_steps_moving``; ``_fit_tag``'s steps over the instants'
     mean), ``h`` and ``theta`` in place: (fitted, misfit, contrast)."""
     p_n = len(obs)
@@ -250,9 +256,28 @@ def _fit_tag_moving(obs: np.ndarray, px: np.ndarray, py: np.ndarray, h: np.ndarr
                 if abs(r[p]) > limit:
                     jac[p, :] = 0.0
                     r[p] = 0.0
+        before = h.copy()
         if not _gauss_newton_update(jac, r, h, theta, damping, free_tone):
             return False, misfit, contrast
+        if it >= 1 and _largest_corner_move(before, h) <= converged_px:
+            break
     return True, misfit, contrast
+
+
+@njit
+def _largest_corner_move(h0: np.ndarray, h1: np.ndarray) -> float:
+    """The farthest any of the tag's corners (cell units (0, 0), (8, 0), (8, 8), (0, 8)) lies
+    under homography ``h1`` from where it lies under ``h0``, px."""
+    most = 0.0
+    for k in range(4):
+        u = float(_CELLS) if k == 1 or k == 2 else 0.0
+        v = float(_CELLS) if k >= 2 else 0.0
+        d0 = h0[6] * u + h0[7] * v + 1.0
+        d1 = h1[6] * u + h1[7] * v + 1.0
+        dx = (h1[0] * u + h1[1] * v + h1[2]) / d1 - (h0[0] * u + h0[1] * v + h0[2]) / d0
+        dy = (h1[3] * u + h1[4] * v + h1[5]) / d1 - (h0[3] * u + h0[4] * v + h0[5]) / d0
+        most = max(most, math.sqrt(dx * dx + dy * dy))
+    return most
 
 
 @njit

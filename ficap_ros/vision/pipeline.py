@@ -164,12 +164,11 @@ class FrameProcessor:
             result = estimate(tags, start, prior)
             if result.pose is None or not motion_corners.applies(cfg, self.timing, prior):
                 return result
-            # Motion-aware corners: the velocity at the frame's own pose, the moving tags refitted.
+            # Motion-aware corners: the paths through the frame's own pose, the moving tags refitted.
             assert prior is not None
             T = result.pose.T_cam_cap
-            velocity = result.pose.velocity if result.pose.velocity is not None else prior.at(T).mean
             moved = motion_corners.motion_aware_corners(gray, tags, self.model, camera, self.timing, T,
-                                                        velocity, cfg)
+                                                        prior.usable, cfg)
             if all(a is b for a, b in zip(tags, moved)):
                 return result
             refitted.update((id(a), b) for a, b in zip(tags, moved) if a is not b)
