@@ -69,9 +69,10 @@ _MIN_LEVEL_PIXELS = 5
 #: Levenberg damping on the column-scaled normal equations.
 _DAMPING = 1e-3
 #: Most a moving tag's corners move between the instants its light is averaged over, in blur sds
-#: (``motion_warps``): Gaussians one sd apart sum to their box-blurred one within exp(-2 pi^2) of
-#: the step (Poisson summation), and within 1 % where the fitted blur scale halves the sd.
-_INSTANT_SPACING_SDS = 1.0
+#: (``motion_warps``): Gaussians two sds apart sum to their box-blurred one within exp(-pi^2 / 2),
+#: under 1 % of the step (Poisson summation: exp(-2 pi^2 / spacing^2)), a ripple symmetric about
+#: each instant that moves no corner; the fit's cost grows with the instants.
+_INSTANT_SPACING_SDS = 2.0
 
 
 def _black_tables(cells: np.ndarray) -> np.ndarray:
