@@ -15,10 +15,10 @@ corners first, refits the moving tags along the paths through it and solves agai
 predicted before the pose is known lags a glance's acceleration by a fifth of the motion and
 more; a path through the frame's own pose does not, and its bend (the glance speeding up or
 slowing down within the exposure) moves each smear's centre of light off the mid-exposure corner
-by a tenth of a pixel and more at a glance's peak acceleration. The refit runs only
-where the camera's exposure is stated, a past pose gives the velocity, and a tag's corner motion
-reaches ``DetectorConfig.motion_corners_min_px``; everything else keeps its corners, so a frame
-without a stated exposure is untouched.
+by up to a fifth of a pixel at a glance's peak acceleration. The refit runs only where the
+camera's exposure is stated, a past pose gives the paths, and a tag's corner motion reaches
+``DetectorConfig.motion_corners_min_px``; everything else keeps its corners, so a frame without a
+stated exposure is untouched. Its cost is the moving fit's, per refitted tag (docs/benchmarks.md).
 """
 
 from __future__ import annotations

@@ -42,7 +42,8 @@ class FrameResult:
         reason: why there is no pose ("" when there is one).
         search: how the tags were found (``tracking.Search``, a ``str``): ``tracked``, ``region``
             or ``image``.
-        detect_ms, pose_ms: time spent finding the tags and solving the pose, ms.
+        detect_ms, pose_ms: time spent finding the tags and solving the pose (with the moving
+            tags' refit, ``motion_corners``), ms.
         timing_evidence: what the frame says of the camera's readout when the timing does not
             model one (``shutter.frame_evidence``: a moving cap with a velocity from the frames
             before; ``FrameProcessor(readout_evidence=True)`` only); None otherwise.
@@ -105,7 +106,9 @@ class FrameProcessor:
         timing: when the camera's rows see the scene relative to the stamps (exposure, rolling
             shutter readout, stamp offset; ``CameraTiming()``: not known). A rolling shutter's
             poses are solved with the cap's velocity over the readout (``estimate_cap_pose``), the
-            tracker's past poses its velocity prior. The cap's velocity (``CapPose.velocity``)
+            tracker's past poses its velocity prior. With an exposure stated, the tags that move
+            over it are refitted as moving (``DetectorConfig.motion_corners``,
+            ``vision.motion_corners``) and the pose solved again. The cap's velocity (``CapPose.velocity``)
             is reported only when the timing states an exposure or a readout; with neither, the
             outputs are those of an estimator without a motion model. Like ``pose_config`` it may
             be replaced as a whole between frames (the node does when its ``camera.*``
