@@ -159,7 +159,9 @@ class UncertaintyConfig:
             place, alike in every tag, which the pose takes for a turn. Both gains are fitted
             on rendered fast glances (path-traced and synth, global and rolling shutter) for
             95 % coverage, each recording's coverage checked with gains fitted without it
-            (``benchmarks/bench_glance.py``); they act only when the exposure is given.
+            (``benchmarks/bench_glance.py``); they act only when the exposure is given. The
+            shrink's fit is 0: the shared corner bias (``shared_bias_gain``), which follows the
+            corner noise a smear raises, covers it on those renders.
     """
 
     corner_noise_px: float = 0.002
@@ -176,7 +178,7 @@ class UncertaintyConfig:
     light_gradient_tilt_gain: float = 0.35
     tilt_shift_px: float = 0.0
     weight_tags: bool = True
-    motion_blur_gain: float = 0.35
+    motion_blur_gain: float = 0.0
     motion_blur_shift_gain: float = 0.1
 
     def __post_init__(self) -> None:
