@@ -116,8 +116,12 @@ class UncertaintyConfig:
     ``DetectorConfig(edge_photometric=True)``, ``--photometric``, node ``detector.photometric``)
     leaves much less of the shift along the foreshortening under uneven light and less of the
     shared bias, so its profile has a smaller ``light_gradient_tilt_gain`` and
-    ``shared_bias_gain`` from the same calibrations. ``pipeline.FrameProcessor``
-    uses the profile of its detector's corner estimator when the pose's uncertainty is not set
+    ``shared_bias_gain`` from the same calibrations. Corners that keep the tone curve's bias
+    (``uncorrected``: every ``corner_refine`` but ``edge``: OpenCV's sub-pixel corners,
+    AprilTag's, the search's polygon) sit a tenth of a px to over a px inside every tag alike: an
+    offset large enough that the part the depth leaves in the residuals measures it, so their
+    profile uses it (``common_offset_gain`` 1). ``pipeline.FrameProcessor`` uses the profile of
+    its detector's corner estimator when the pose's uncertainty is not set
     (``PoseConfig.uncertainty`` None).
 
     Attributes:
@@ -129,8 +133,9 @@ class UncertaintyConfig:
         shared_bias_gain: sigma of the edge corners' radial offset shared by every tag, px per
             unit of the frame's ``shared_bias_ratio`` (its corner noise over its cell width).
         common_offset_gain: factor on the tags' common radial offset as the residuals show it
-            (``uncertainty_bounds``: a measured mean error). 0 by default: the estimate is the
-            small part the depth left, scaled back, and ``shared_bias_gain`` states the offset.
+            (``uncertainty_bounds``: a measured mean error). 0 by default: for corners whose
+            tone-curve bias is removed the estimate is the small part the depth left, scaled
+            back, and ``shared_bias_gain`` states the offset; 1 in the ``uncorrected`` profile.
         model_mm, model_deg: each tag plate's placement on the built cap against the model, per
             axis (shift, mm; turn about the plate centre, deg). 0 by default: misplaced plates
             show in the residuals; raise them when the cap may have changed since its model was
@@ -196,8 +201,9 @@ class UncertaintyConfig:
 
     @classmethod
     def for_corners(cls, corners: str = "edge") -> UncertaintyConfig:
-        """The synth-calibrated profile for a corner estimator (``CORNER_ESTIMATORS``): ``edge``
-        (the cell-edge fit and every other ``corner_refine``: the defaults) or ``photometric``.
+        """The calibrated profile for a corner estimator (``CORNER_ESTIMATORS``): ``edge`` (the
+        cell-edge fit: the defaults), ``photometric`` or ``uncorrected`` (corners that keep the
+        tone curve's bias: ``pipeline.corner_estimator``).
 
         Raises:
             ConfigError: unknown corner estimator.
@@ -211,10 +217,11 @@ class UncertaintyConfig:
 #: ``UncertaintyConfig.for_corners``: the fields each corner estimator's profile changes from the
 #: defaults (the ``edge`` profile). The photometric corners leave less of the tilt under uneven
 #: light and a smaller shared bias: their ``shared_bias_gain`` is fitted as the edge corners' is
-#: (``bench_uncertainty.py --photometric``).
+#: (``bench_uncertainty.py --photometric``). Uncorrected corners use the measured common offset.
 _CORNER_PROFILES: dict[str, dict[str, float]] = {
     "edge": {},
     "photometric": {"light_gradient_tilt_gain": 0.1, "shared_bias_gain": 0.75},
+    "uncorrected": {"common_offset_gain": 1.0},
 }
 CORNER_ESTIMATORS = tuple(_CORNER_PROFILES)
 

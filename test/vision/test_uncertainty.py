@@ -373,3 +373,20 @@ def test_shared_bias_ratio_on_rendered_frames() -> None:
     print(f"\nshared bias ratio: 540p {ratios['540p']:.4f}, 1080p {ratios['1080p']:.4f}")
     assert 0.003 < ratios["540p"] < 0.05
     assert 1.8 < ratios["540p"] / ratios["1080p"] < 4.5
+
+
+def test_uncorrected_corners_bound_their_measured_offset() -> None:
+    """Corners that keep the tone curve's bias (every tag 0.3 px inward, as OpenCV's sub-pixel
+    corners sit): the ``uncorrected`` profile uses the offset the residuals show and its bounds
+    cover the depth error it causes; the edge corners' profile, which does not, falls short."""
+    T = _truth(12.0)
+    rng = np.random.default_rng(13)
+    misses = {"edge": 0, "uncorrected": 0}
+    for _ in range(20):
+        corners = _with_common_offset(_exact_corners(T), -0.3, 0.05, rng)
+        for profile in misses:
+            p = _pose(corners, PoseConfig(uncertainty=UncertaintyConfig.for_corners(profile)))
+            err = 1e3 * np.linalg.norm(p.T_cam_cap.translation_m - T.translation_m)
+            misses[profile] += err > p.trans_err95_mm
+    assert UncertaintyConfig.for_corners("uncorrected").common_offset_gain == 1.0
+    assert misses["uncorrected"] <= 1 and misses["edge"] >= 15
