@@ -81,8 +81,9 @@ def tag_fits(detections: Sequence[TagDetection], pose: CapPose | None, model: Ca
     residual = np.full(n, math.nan)
     used = np.zeros(n, dtype=bool)
     if pose is not None and n:
-        used = np.isin(ids, np.array(pose.used_ids, dtype=np.int64))
-        model_m = np.stack([model.corners_of(int(i)) for i in ids]) / 1000.0
+        used_ids = set(pose.used_ids)  # a few dozen ids: a set beats np.isin's sorting
+        used = np.array([i in used_ids for i in ids.tolist()], dtype=bool)
+        model_m = model.corners_mm[[model.index_of(i) for i in ids.tolist()]] / 1000.0
         projected = camera.project(pose.T_cam_cap.apply(model_m.reshape(-1, 3))).reshape(n, 4, 2)
         residual = np.sqrt(np.mean(np.sum((projected - corners) ** 2, axis=-1), axis=-1))
     return TagFits(ids, corners, used, residual,
