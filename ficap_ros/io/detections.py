@@ -22,6 +22,7 @@ distortion included: the detected image's pixels); NaN without a pose. No rclpy 
 from __future__ import annotations
 
 import math
+import struct
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Iterable, Sequence
 
@@ -36,7 +37,8 @@ from ficap_ros.vision.pose import CapPose
 if TYPE_CHECKING:
     from ficap_ros.io.labels import FrameRecord
 
-__all__ = ["TagFits", "tag_fits", "apriltag_corners", "apriltag_array", "fit_values",
+__all__ = ["TagFits", "tag_fits", "apriltag_corners", "apriltag_array", "apriltag_array_cdr",
+           "fit_values",
            "DETECTION_COLUMNS", "detections_csv_text", "TAG_FAMILY"]
 
 TAG_FAMILY = "tag36h11"
@@ -126,6 +128,45 @@ def apriltag_array(c: messages.MessageClasses, head: Any, fits: TagFits) -> Any:
                      homography=c.floats(h))
            for tag_id, hamming, margin, corners, cx, cy, h in rows]
     return c.types["apriltag_msgs/msg/AprilTagDetectionArray"](header=head, detections=out)
+
+
+#: CDR's encapsulation header: plain CDR, little endian (what rosbags writes).
+_CDR_LE = b"\x00\x01\x00\x00"
+#: A detection's ``family`` field in CDR: length (NUL included), the characters, the NUL.
+_FAMILY_CDR = struct.pack("<I", len(TAG_FAMILY) + 1) + TAG_FAMILY.encode() + b"\0"
+_ID_FIELDS = struct.Struct("<iiff")  # id, hamming, goodness, decision_margin
+
+
+def _cdr_pad(buf: bytearray, align: int) -> None:
+    """Zero bytes up to the next multiple of ``align`` counted after the encapsulation header."""
+    buf += bytes(-(len(buf) - len(_CDR_LE)) % align)
+
+
+def apriltag_array_cdr(stamp_ns: int, frame_id: str, fits: TagFits) -> bytes:
+    """``apriltag_array``'s message serialised (CDR, little endian), built straight from the
+    arrays: the bytes rosbags' ``serialize_cdr`` gives for ``apriltag_array(ROSBAGS, header,
+    fits)`` with the header (``stamp_ns``, ``frame_id``), without a message object per tag and
+    point (labels.mcap writes one a frame)."""
+    sec, nanosec = divmod(int(stamp_ns), 1_000_000_000)
+    frame = frame_id.encode() + b"\0"
+    buf = bytearray(_CDR_LE)
+    buf += struct.pack("<iII", sec, nanosec, len(frame)) + frame
+    _cdr_pad(buf, 4)
+    buf += struct.pack("<I", len(fits))
+    if len(fits):
+        p = fits.corners_px[:, list(_APRILTAG_ORDER)] + _APRILTAG_OFFSET_PX  # as apriltag_array
+        H = _homographies(p).reshape(-1, 9)
+        # Per tag: centre (H's translation column, as apriltag_array), corners, homography.
+        doubles = np.concatenate([H[:, [2, 5]], p.reshape(-1, 8), H], axis=1)
+        for tag_id, hamming, margin, row in zip(fits.ids.tolist(), fits.hamming.tolist(),
+                                                fits.decision_margin.tolist(), doubles):
+            _cdr_pad(buf, 4)
+            buf += _FAMILY_CDR
+            _cdr_pad(buf, 4)
+            buf += _ID_FIELDS.pack(int(tag_id), int(hamming), 0.0, float(margin))
+            _cdr_pad(buf, 8)
+            buf += row.tobytes()
+    return bytes(buf)
 
 
 def fit_values(fits: TagFits) -> dict[str, float]:

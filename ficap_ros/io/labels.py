@@ -540,8 +540,9 @@ def _status_msg(rec: FrameRecord) -> object:
 def _frame_messages(rec: FrameRecord, frames: OutputFrames) -> list[tuple[str, object]]:
     """(label stream, message) of one record, in the order they are written: the poses, the head
     angles and the TF of a posed frame; quality and status of every frame; the detections of
-    every processed one."""
-    from ficap_ros.io.detections import apriltag_array, fit_values
+    every processed one. The detections come serialised already (``bytes``: the CDR of
+    ``apriltag_array``'s message, built without an object per tag)."""
+    from ficap_ros.io.detections import apriltag_array_cdr, fit_values
     from ficap_ros.io.frames import frame_transforms, pose_outputs, tf_message
     from ficap_ros.io.messages import ROSBAGS, header, named_values
 
@@ -558,7 +559,7 @@ def _frame_messages(rec: FrameRecord, frames: OutputFrames) -> list[tuple[str, o
     out += [("quality", named_values(ROSBAGS, in_camera, quality_values(rec))),
             ("status", _status_msg(rec))]
     if rec.tags is not None:
-        out += [("detections", apriltag_array(ROSBAGS, in_camera, rec.tags)),
+        out += [("detections", apriltag_array_cdr(rec.stamp_ns, rec.frame_id, rec.tags)),
                 ("detections_fit", named_values(ROSBAGS, in_camera, fit_values(rec.tags)))]
     return out
 
@@ -592,4 +593,7 @@ def write_labels_bag(path: str | Path, records: Sequence[FrameRecord],
                 bag.write(topics["tf_static"], rec.stamp_ns, tf_message(
                     ROSBAGS, rec.stamp_ns, static_transforms(frames, rec.frame_id)))
             for stream, msg in _frame_messages(rec, frames):
-                bag.write(topics[stream], rec.stamp_ns, msg)
+                if isinstance(msg, bytes):
+                    bag.write_cdr(topics[stream], rec.stamp_ns, msg)
+                else:
+                    bag.write(topics[stream], rec.stamp_ns, msg)
