@@ -141,6 +141,13 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("uncertainty.corner_bias_common_px", _UNCERTAINTY.corner_bias_common_px,
               "Covariance floor: radial corner bias shared by all tags of a frame, px.",
               range=(0.0, 10.0)),
+    ParamSpec("uncertainty.shared_bias_gain", _UNCERTAINTY.shared_bias_gain,
+              "Covariance: the edge corners' radial offset shared by all tags of a frame (the depth "
+              "takes it), px per unit of the frame's corner noise over its cell width (calibrated "
+              "on path-traced renders).", range=(0.0, 10.0)),
+    ParamSpec("uncertainty.common_offset_gain", _UNCERTAINTY.common_offset_gain,
+              "Covariance: factor on the tags' common radial offset the residuals show, a measured "
+              "mean error (0 = not used: shared_bias_gain states the offset).", range=(0.0, 10.0)),
     ParamSpec("uncertainty.model_mm", _UNCERTAINTY.model_mm,
               "Covariance floor: each tag plate's shift against the cap model, mm per axis "
               "(misplaced plates the residuals show come on top).", range=(0.0, 20.0)),
@@ -315,6 +322,8 @@ class NodeConfig:
     uncertainty_corner_noise_px: float
     uncertainty_corner_bias_px: float
     uncertainty_corner_bias_common_px: float
+    uncertainty_shared_bias_gain: float
+    uncertainty_common_offset_gain: float
     uncertainty_model_mm: float
     uncertainty_model_deg: float
     uncertainty_residual_inflation: float

@@ -35,6 +35,7 @@ from scipy.optimize import leastsq
 from ficap_ros.errors import ConfigError
 from ficap_ros.geometry.camera import CameraModel, CameraTiming
 from ficap_ros.geometry.transform import Transform
+from ficap_ros.vision.error_bounds import error_bound95
 from ficap_ros.vision.reprojection import (
     TagObservations,
     moving_points_m,
@@ -44,7 +45,6 @@ from ficap_ros.vision.reprojection import (
 from ficap_ros.vision.uncertainty import (
     UncertaintyConfig,
     combine_uncertainty,
-    error_bound95,
     tag_noise_from_residuals,
     uncertainty_bounds,
     uncertainty_terms,

@@ -69,14 +69,17 @@ class FrameResult:
 
 def corner_estimator(detector: DetectorConfig) -> str:
     """The corner estimator of a detector setting, as ``UncertaintyConfig.for_corners`` names it:
-    ``photometric`` (``edge_photometric``) or ``edge`` (the cell-edge fit and every other
-    ``corner_refine``, whose bounds have no profile of their own)."""
-    return "photometric" if detector.edge_photometric else "edge"
+    ``photometric`` (``edge_photometric``), ``edge`` (the cell-edge fit with its tone-curve
+    correction) or ``uncorrected`` (every other ``corner_refine``: corners that keep the tone
+    curve's bias)."""
+    if detector.edge_photometric:
+        return "photometric"
+    return "edge" if detector.corner_refine == "edge" else "uncorrected"
 
 
 def pose_config_for(pose: PoseConfig, detector: DetectorConfig) -> PoseConfig:
     """``pose`` as ``FrameProcessor`` applies it to ``detector``'s corners: an ``uncertainty`` of
-    None is the synth-calibrated profile of the corner estimator in use
+    None is the calibrated profile of the corner estimator in use
     (``UncertaintyConfig.for_corners``); an uncertainty that is set is kept as set."""
     if pose.uncertainty is not None:
         return pose

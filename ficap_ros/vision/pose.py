@@ -49,6 +49,7 @@ from ficap_ros.geometry.camera import CameraModel, CameraTiming
 from ficap_ros.geometry.cap_model import TAG_SIDE_MM, CapModel
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.vision.detector import TagDetection
+from ficap_ros.vision.error_bounds import error_bound95
 from ficap_ros.vision.motion import (
     MotionConfig,
     MotionPrior,
@@ -70,7 +71,6 @@ from ficap_ros.vision.reprojection import (
 from ficap_ros.vision.uncertainty import (
     UncertaintyConfig,
     combine_uncertainty,
-    error_bound95,
     reweighted,
     uncertainty_bounds,
     uncertainty_terms,

@@ -12,6 +12,9 @@ changes) of
         light (a spotlight) moves every tag's edges toward its darker side; its measure is how the
         tags' fitted edge shifts vary across the cap (``light_gradient_px``), scaled into noise the
         pose absorbs and into a shift of every tag along its foreshortening (the depth's mode);
+        and the edge corners' own bias, the same in every tag of a frame (one blur, one tone curve,
+        one fit), a radial offset the pose takes into the depth: its size follows the frame's
+        corner noise over its cell width (``shared_bias_ratio``);
     the floors of ``UncertaintyConfig`` added to it: independent corner noise, radial corner bias
         (per tag and common), a shift along the foreshortening, each plate shifted and turned as a
         rigid whole against the cap model, the intrinsics (principal point, focal length).
@@ -19,12 +22,20 @@ Pooling by pattern matters: a tag's corner errors are not independent (a blurred
 four corners inward), and treating them as such misjudges which pose directions they disturb.
 
 Bounds: ``rot_err95_deg`` / ``trans_err95_mm`` are the 95 % quantiles of the rotation angle /
-translation length under the covariance (``error_bound95``), with two things the covariance alone
-does not say (``uncertainty_bounds``): the tags' common radial offset is measured (its sign and
-size, from the residuals), so its effect on the pose is a mean error, not a spread (the covariance
-holds its square, as a mean squared error must); and the residual-based sigmas are estimates pooled
-from a few dozen coefficients, so the bound is the predictive (F, Welch-Satterthwaite degrees of
-freedom) quantile, not the Gaussian one.
+translation length under the covariance (``error_bounds.error_bound95``), with two things the covariance alone
+does not say (``uncertainty_bounds``): the residual-based sigmas are estimates pooled from a few
+dozen coefficients, so the bound is the predictive (F, Welch-Satterthwaite degrees of freedom)
+quantile, not the Gaussian one; and where the tags' common radial offset the residuals show is
+used (``UncertaintyConfig.common_offset_gain``), it is a measured mean error, not a spread (the
+covariance holds its square, as a mean squared error must).
+
+Depth is what the shared corner errors move most: a radial offset of every corner by delta px
+moves the depth by about z * sqrt(2) * delta / (tag side in px), so at a given distance the same
+offset costs a low-resolution camera twice the depth error, and it leaves no residual (the depth
+absorbs it). What the residuals do show of it (the part the depth could not absorb, scaled back)
+is an estimate amplified up to tenfold, whose size does not follow the depth error from one camera
+or light to another; the shared bias term (``shared_bias_ratio``) states it from what the frame
+shows instead, with a gain calibrated on path-traced renders.
 
 Tag weights (``joint`` pose, ``UncertaintyConfig.weight_tags``): each tag's corner noise is
 estimated from its own residuals with the frame's median as a prior (``tag_noise_px``), and the pose
@@ -41,6 +52,7 @@ from functools import lru_cache
 import numpy as np
 
 from ficap_ros.errors import ConfigError
+from ficap_ros.geometry.tag36h11 import TAG_CELLS
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.vision.reprojection import (
     TagObservations,
@@ -55,11 +67,11 @@ __all__ = [
     "tag_noise_from_residuals",
     "reweighted",
     "light_gradient_px",
+    "shared_bias_ratio",
     "uncertainty_terms",
     "uncertainty_sources",
     "combine_uncertainty",
     "uncertainty_bounds",
-    "error_bound95",
 ]
 
 
@@ -80,18 +92,36 @@ class UncertaintyConfig:
     its foreshortening (the projected normal, times the sine of the view angle), the mode that
     moves the depth.
 
-    The gains and ``residual_inflation`` are calibrated on ``ficap synth`` drives (the smallest
-    bounds whose rotation and translation bounds cover at least 90 % in every lighting and
-    resolution condition) and checked, not fitted, on independent renders; the procedure and
-    its figures are in docs/benchmarks.md ("Calibrated uncertainty"). The floors state what
-    residuals cannot estimate and guarantee that no pose is ever "exact".
+    The corner stage's own bias is shared too: every tag of a frame has the same blur and tone
+    curve and goes through the same fit, so what the fit leaves of the tone curve's edge shift
+    is a radial offset of every tag's corners alike, which the pose takes into the depth without
+    a residual. The fit measures the shift across one cell (a border's two edges, the cells'
+    boundaries), exact where a cell is much wider than the blur and the noise; its error grows
+    as the blur reaches across a cell and as the edges get noisier, which the frame shows as its
+    corner noise (the median tag's ``tag_noise_px``: a blurred, low-contrast edge is placed less
+    precisely) over its cell width (``shared_bias_ratio``). ``shared_bias_gain`` turns that ratio
+    into the offset's sigma, px.
+
+    The light gradient gains and ``residual_inflation`` are calibrated on ``ficap synth`` drives
+    (the smallest bounds whose rotation and translation bounds cover at least 90 % in every
+    lighting and resolution condition); ``shared_bias_gain`` on the path-traced development
+    renders (the smallest gain whose translation bounds cover at least 90 % of every set, each
+    set's figures from the gain fitted without it) and checked, not fitted, on synth drives.
+    ``benchmarks/bench_uncertainty.py`` runs both checks and the leave-one-set-out fit
+    (docs/benchmarks/uncertainty.md). The floors state what residuals cannot estimate and
+    guarantee that no pose is ever "exact".
 
     Profiles per corner estimator (``for_corners``): the defaults are the profile of the default
     cell-edge corners (``edge``). The tag-level photometric corner fit (``photometric``:
     ``DetectorConfig(edge_photometric=True)``, ``--photometric``, node ``detector.photometric``)
-    leaves much less of the shift along the foreshortening under uneven light, so its profile has
-    a smaller ``light_gradient_tilt_gain`` from the same calibration. ``pipeline.FrameProcessor``
-    uses the profile of its detector's corner estimator when the pose's uncertainty is not set
+    leaves much less of the shift along the foreshortening under uneven light and less of the
+    shared bias, so its profile has a smaller ``light_gradient_tilt_gain`` and
+    ``shared_bias_gain`` from the same calibrations. Corners that keep the tone curve's bias
+    (``uncorrected``: every ``corner_refine`` but ``edge``: OpenCV's sub-pixel corners,
+    AprilTag's, the search's polygon) sit a tenth of a px to over a px inside every tag alike: an
+    offset large enough that the part the depth leaves in the residuals measures it, so their
+    profile uses it (``common_offset_gain`` 1). ``pipeline.FrameProcessor`` uses the profile of
+    its detector's corner estimator when the pose's uncertainty is not set
     (``PoseConfig.uncertainty`` None).
 
     Attributes:
@@ -99,7 +129,13 @@ class UncertaintyConfig:
             still limited by their quantisation).
         corner_bias_px: radial offset of a tag's corners toward or away from its centre (blur and
             tone curve move dark borders), independent per tag, px.
-        corner_bias_common_px: the same offset shared by every tag of a frame, px.
+        corner_bias_common_px: the same offset shared by every tag of a frame, px (a floor).
+        shared_bias_gain: sigma of the edge corners' radial offset shared by every tag, px per
+            unit of the frame's ``shared_bias_ratio`` (its corner noise over its cell width).
+        common_offset_gain: factor on the tags' common radial offset as the residuals show it
+            (``uncertainty_bounds``: a measured mean error). 0 by default: for corners whose
+            tone-curve bias is removed the estimate is the small part the depth left, scaled
+            back, and ``shared_bias_gain`` states the offset; 1 in the ``uncorrected`` profile.
         model_mm, model_deg: each tag plate's placement on the built cap against the model, per
             axis (shift, mm; turn about the plate centre, deg). 0 by default: misplaced plates
             show in the residuals; raise them when the cap may have changed since its model was
@@ -128,12 +164,16 @@ class UncertaintyConfig:
             place, alike in every tag, which the pose takes for a turn. Both gains are fitted
             on rendered fast glances (path-traced and synth, global and rolling shutter) for
             95 % coverage, each recording's coverage checked with gains fitted without it
-            (``benchmarks/bench_glance.py``); they act only when the exposure is given.
+            (``benchmarks/bench_glance.py``); they act only when the exposure is given. The
+            shrink's fit is 0: the shared corner bias (``shared_bias_gain``), which follows the
+            corner noise a smear raises, covers it on those renders.
     """
 
     corner_noise_px: float = 0.002
     corner_bias_px: float = 0.002
     corner_bias_common_px: float = 0.002
+    shared_bias_gain: float = 1.2
+    common_offset_gain: float = 0.0
     model_mm: float = 0.0
     model_deg: float = 0.0
     principal_point_px: float = 0.0
@@ -143,7 +183,7 @@ class UncertaintyConfig:
     light_gradient_tilt_gain: float = 0.35
     tilt_shift_px: float = 0.0
     weight_tags: bool = True
-    motion_blur_gain: float = 0.35
+    motion_blur_gain: float = 0.0
     motion_blur_shift_gain: float = 0.1
 
     def __post_init__(self) -> None:
@@ -152,7 +192,8 @@ class UncertaintyConfig:
         values = (self.corner_noise_px, self.corner_bias_px, self.corner_bias_common_px,
                   self.model_mm, self.model_deg, self.principal_point_px, self.focal_rel,
                   self.light_gradient_gain, self.light_gradient_tilt_gain, self.tilt_shift_px,
-                  self.motion_blur_gain, self.motion_blur_shift_gain)
+                  self.motion_blur_gain, self.motion_blur_shift_gain, self.shared_bias_gain,
+                  self.common_offset_gain)
         if not all(np.isfinite(v) and v >= 0 for v in values):
             raise ConfigError("uncertainty sigmas and gains must be finite and >= 0")
         if self.corner_noise_px <= 0:
@@ -160,8 +201,9 @@ class UncertaintyConfig:
 
     @classmethod
     def for_corners(cls, corners: str = "edge") -> UncertaintyConfig:
-        """The synth-calibrated profile for a corner estimator (``CORNER_ESTIMATORS``): ``edge``
-        (the cell-edge fit and every other ``corner_refine``: the defaults) or ``photometric``.
+        """The calibrated profile for a corner estimator (``CORNER_ESTIMATORS``): ``edge`` (the
+        cell-edge fit: the defaults), ``photometric`` or ``uncorrected`` (corners that keep the
+        tone curve's bias: ``pipeline.corner_estimator``).
 
         Raises:
             ConfigError: unknown corner estimator.
@@ -173,10 +215,13 @@ class UncertaintyConfig:
 
 
 #: ``UncertaintyConfig.for_corners``: the fields each corner estimator's profile changes from the
-#: defaults (the ``edge`` profile), picked by ``bench_uncertainty.py --photometric --grid``.
+#: defaults (the ``edge`` profile). The photometric corners leave less of the tilt under uneven
+#: light and a smaller shared bias: their ``shared_bias_gain`` is fitted as the edge corners' is
+#: (``bench_uncertainty.py --photometric``). Uncorrected corners use the measured common offset.
 _CORNER_PROFILES: dict[str, dict[str, float]] = {
     "edge": {},
-    "photometric": {"light_gradient_tilt_gain": 0.1},
+    "photometric": {"light_gradient_tilt_gain": 0.1, "shared_bias_gain": 0.75},
+    "uncorrected": {"common_offset_gain": 1.0},
 }
 CORNER_ESTIMATORS = tuple(_CORNER_PROFILES)
 
@@ -281,6 +326,24 @@ def light_gradient_px(edge_shift_px: np.ndarray, centres_px: np.ndarray) -> floa
     return float(np.std(X @ coef))
 
 
+def shared_bias_ratio(corners_px: np.ndarray, tag_sigma_px: np.ndarray) -> float:
+    """The frame's corner noise over its cell width (dimensionless): the median of the tags'
+    corner noise (``tag_noise_px``, px) over the median tag's cell width (its mean side over the
+    ``TAG_CELLS`` cells across, px). What sets the edge corners' shared bias
+    (``UncertaintyConfig.shared_bias_gain``): the corner stage measures the tone curve's edge
+    shift across one cell, and its error grows with the blur and noise of the edges (the corner
+    noise) against the cell they are measured over.
+
+    Args:
+        corners_px: (tags, 4, 2) the tags' corners, px.
+        tag_sigma_px: (tags,) each tag's corner noise, px.
+    """
+    c = np.asarray(corners_px, dtype=float)
+    side_px = np.linalg.norm(c - np.roll(c, -1, axis=1), axis=2).mean(axis=1)
+    cell_px = max(median(side_px) / TAG_CELLS, 1e-6)
+    return median(tag_sigma_px) / cell_px
+
+
 def _model_geometry(obs: TagObservations) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Of the used tags' model corners: centres (tags, 3), unit outward normals (tags, 3) and, per
     corner, the cross products e_k x (corner - its tag's centre) (4 * tags, 3, 3): cached on the
@@ -368,7 +431,9 @@ def uncertainty_terms(
             tag's divided by its relative noise) pooled over the tags, less the share the fit
             absorbed (the weighted hat matrix's leverage of the group), and ``bias_common``, the
             tags' mean radial offset (px per corner), scaled back by the share of it the fit left
-            in the residuals; and ``light_gradient`` (``light_gradient_px``), px; per pattern
+            in the residuals; ``light_gradient`` (``light_gradient_px``), px;
+            ``shared_bias_ratio`` (``shared_bias_ratio`` of the tags' corner noise from these
+            residuals: ``tag_noise_from_residuals``); per pattern
             group also ``<group>_dof``, the degrees of freedom its sigma was pooled from (the
             bounds widen for a sigma estimated from few, ``uncertainty_bounds``).
     """
@@ -390,6 +455,7 @@ def uncertainty_terms(
     seen["bias_common"] = _common_offset_px(common, w, J, A, mean_scale, seen["scale"], n_tags)
     seen["light_gradient"] = (0.0 if edge_shift_px is None
                               else light_gradient_px(edge_shift_px, obs.image_px.mean(axis=1)))
+    seen["shared_bias_ratio"] = shared_bias_ratio(obs.image_px, tag_noise_from_residuals(res, n_tags))
     if motion_term is not None:
         terms["motion_prior"] = motion_term
     for name, mode in (shared_modes or {}).items():
@@ -530,8 +596,10 @@ def uncertainty_sources(terms: dict[str, np.ndarray], seen: dict[str, float],
                         config: UncertaintyConfig) -> dict[str, np.ndarray]:
     """The pose covariance's parts (6x6 each, ROS order), by source: ``residual_<group>`` (each
     pattern group of ``_PATTERNS`` at the sigma the residuals show), ``light_noise`` and
-    ``light_tilt`` (the frame's ``light_gradient`` times the gains), ``common_offset`` (the
-    measured common radial offset, a mean error: ``uncertainty_bounds``) and the floors
+    ``light_tilt`` (the frame's ``light_gradient`` times the gains), ``shared_bias`` (the edge
+    corners' radial offset shared by the tags: the frame's ``shared_bias_ratio`` times
+    ``shared_bias_gain``), ``common_offset`` (the measured common radial offset times
+    ``common_offset_gain``, a mean error: ``uncertainty_bounds``) and the floors
     (``floor_noise``, ``floor_bias``, ``floor_tilt``, ``floor_model``, ``floor_intrinsics``).
     ``combine_uncertainty`` is their sum; benchmarks/bench_uncertainty.py reports what each
     contributes to the bounds."""
@@ -544,7 +612,10 @@ def uncertainty_sources(terms: dict[str, np.ndarray], seen: dict[str, float],
         light_noise=(c.light_gradient_gain * gradient) ** 2 * terms["noise"],
         floor_bias=(c.corner_bias_px**2 * terms["bias"]
                     + c.corner_bias_common_px**2 * terms["bias_common"]),
-        common_offset=k2 * seen["bias_common"] ** 2 * terms["bias_common"],
+        shared_bias=((c.shared_bias_gain * seen.get("shared_bias_ratio", 0.0)) ** 2
+                     * terms["bias_common"]),
+        common_offset=(k2 * (c.common_offset_gain * seen["bias_common"]) ** 2
+                       * terms["bias_common"]),
         light_tilt=(c.light_gradient_tilt_gain * gradient) ** 2 * terms["tilt"],
         floor_tilt=c.tilt_shift_px**2 * terms["tilt"],
         floor_model=c.model_mm**2 * terms["model_t"] + c.model_deg**2 * terms["model_r"],
@@ -563,7 +634,8 @@ def combine_uncertainty(terms: dict[str, np.ndarray], seen: dict[str, float],
                         config: UncertaintyConfig) -> np.ndarray:
     """The pose covariance (6x6, ROS order, camera axes): the residual-based term (each pattern
     group's sigma as the residuals show it), the shared corner errors uneven light causes (the
-    frame's ``light_gradient`` times the gains of ``config``), plus the floors of ``config``, each
+    frame's ``light_gradient`` times the gains of ``config``) and the corner stage's shared bias
+    (``shared_bias_ratio`` times ``shared_bias_gain``), plus the floors of ``config``, each
     source's unit covariance times its variance (``uncertainty_sources``). Finite and positive
     definite: a degenerate fit gives a huge diagonal (1 m, 180 deg), never zeros or infinities."""
     cov = sum(uncertainty_sources(terms, seen, config).values())
@@ -573,88 +645,26 @@ def combine_uncertainty(terms: dict[str, np.ndarray], seen: dict[str, float],
     return cov
 
 
-#: The 95 % quantile of F(nu, nu_e) over a grid of log(nu) (the error's effective dimensions: 1-3
-#: for a zero-mean error, up to ~1e6 when a measured offset dominates) and 1 / nu_e (the degrees
-#: of freedom its variance was estimated from; 0: known). F(nu, inf) = chi2(nu) / nu.
-_F_LOG_NU = np.linspace(np.log(0.5), np.log(1e6), 90)
-_F_INV_DOF = np.linspace(0.0, 0.5, 26)
-
-
-def _f_quantile_table() -> np.ndarray:
-    # scipy.stats' f.ppf(q, a, b) is fdtri(a, b, q) and chi2.ppf(q, nu) 2 * gammaincinv(nu / 2, q)
-    # (bit-identical): not importing scipy.stats keeps its start-up cost off every command.
-    from scipy.special import fdtri, gammaincinv
-
-    nu = np.exp(_F_LOG_NU)[:, None]
-    inv = _F_INV_DOF[None, :]
-    with np.errstate(divide="ignore"):
-        dof = np.where(inv > 0, 1.0 / np.where(inv > 0, inv, 1.0), np.inf)
-    return np.where(np.isinf(dof), 2.0 * gammaincinv(nu / 2, 0.95) / nu,
-                    fdtri(nu, np.where(np.isinf(dof), 1.0, dof), 0.95))
-
-
-_F_Q95 = _f_quantile_table()
-
-
-#: ``_F_Q95`` and its grid as Python floats: ``_f_quantile95`` runs six times a pose, on scalars,
-#: where Python's float arithmetic is cheaper than numpy's scalar indexing.
-_F_Q95_ROWS = _F_Q95.tolist()
-_F_X0, _F_DX = float(_F_LOG_NU[0]), float(_F_LOG_NU[1] - _F_LOG_NU[0])
-_F_DY = float(_F_INV_DOF[1] - _F_INV_DOF[0])
-
-
-def _f_quantile95(nu: float, dof: float) -> float:
-    """Bilinear lookup of the 95 % quantile of F(nu, dof) (dof >= 2; inf: chi2(nu) / nu)."""
-    x = (math.log(min(max(nu, 0.5), 1e6)) - _F_X0) / _F_DX
-    y = min(1.0 / max(dof, 2.0), 0.5) / _F_DY
-    i = min(int(x), len(_F_LOG_NU) - 2)
-    j = min(int(y), len(_F_INV_DOF) - 2)
-    fx, fy = x - i, y - j
-    q0, q1 = _F_Q95_ROWS[i], _F_Q95_ROWS[i + 1]
-    return float((q0[j] * (1 - fx) + q1[j] * fx) * (1 - fy) + (q0[j + 1] * (1 - fx) + q1[j + 1] * fx) * fy)
-
-
-def _bound95(block: np.ndarray, offset: np.ndarray, dof: float) -> float:
-    """95 % quantile of |m + e|, e ~ N(0, S) with ``block`` = S + m m^T: |m + e|^2 matched in mean
-    and variance by a scaled chi-square (Welch-Satterthwaite; for m = 0 that of |e| itself).
-    When S is known only to ``dof`` degrees of freedom, S is first widened to its predictive size
-    (by the ratio of the F to the chi-square quantile of its own effective dimensions: for m = 0
-    exactly the predictive F quantile); the offset is a measurement, not widened. The three
-    eigenvalues as Python floats (sums in numpy's order for three: left to right)."""
-    S = 0.5 * (block + block.T) - np.outer(offset, offset)
-    lam = [max(v, 0.0) for v in np.linalg.eigvalsh(S).tolist()]
-    total = sum(lam)
-    if math.isfinite(dof) and total > 0.0:
-        nu_s = total * total / sum(v * v for v in lam)
-        widen = _f_quantile95(nu_s, dof) / _f_quantile95(nu_s, math.inf)
-        lam = [v * widen for v in lam]
-        S = S * widen
-    mean = sum(lam) + float(offset @ offset)
-    if mean <= 0.0:
-        return 0.0
-    var = 2.0 * sum(v * v for v in lam) + float(4.0 * offset @ S @ offset)
-    nu = 2.0 * mean * mean / var if var > 1e-12 * mean * mean else 1e6
-    return math.sqrt(mean * _f_quantile95(nu, math.inf))
-
-
 def uncertainty_bounds(terms: dict[str, np.ndarray], seen: dict[str, float],
                        config: UncertaintyConfig,
                        covariance: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
-    """What ``error_bound95`` needs beyond the covariance: the measured offset and how well the
-    random part is known.
+    """What ``error_bounds.error_bound95`` needs beyond the covariance: the measured offset and
+    how well the random part is known.
 
     offset (6,), ROS order: the pose error that the tags' common radial offset the residuals
-        show (``seen["bias_common"]``) causes. The covariance (``combine_uncertainty``) carries
-        it as its square (the frame's mean squared error: a consumer does not know its sign);
-        for the bounds it is a mean, not a spread: a measured offset moves the pose by its
-        effect, not by 1.96 times it. Its sign is immaterial to a bound on the error's length.
+        show (``seen["bias_common"]``, times ``common_offset_gain``) causes. The covariance
+        (``combine_uncertainty``) carries it as its square (the frame's mean squared error: a
+        consumer does not know its sign); for the bounds it is a mean, not a spread: a measured
+        offset moves the pose by its effect, not by 1.96 times it. Its sign is immaterial to a
+        bound on the error's length.
     dof (rotation, translation): effective degrees of freedom (Welch-Satterthwaite) of the
         random part's variance in each block: each residual pattern group's sigma was pooled
         from ``<group>_dof`` coefficients; the floors and light terms count as known."""
     k = config.residual_inflation
     unit = terms["bias_common"]  # a a^T (one mode shared by all tags): a from its largest column
     j = int(np.argmax(np.diagonal(unit)))
-    offset = unit[:, j] / np.sqrt(max(float(unit[j, j]), 1e-300)) * k * seen.get("bias_common", 0.0)
+    offset = (unit[:, j] / np.sqrt(max(float(unit[j, j]), 1e-300))
+              * k * config.common_offset_gain * seen.get("bias_common", 0.0))
     if not np.all(np.isfinite(offset)):
         offset = np.zeros(6)
     diag = (np.diagonal(covariance) - offset * offset).tolist()
@@ -668,26 +678,3 @@ def uncertainty_bounds(terms: dict[str, np.ndarray], seen: dict[str, float],
     total = [sum(diag[3:]), sum(diag[:3])]
     dofs = [float(t * t / e) if e > 0.0 and t > 0.0 else float("inf") for t, e in zip(total, den)]
     return offset, (dofs[0], dofs[1])
-
-
-def error_bound95(covariance: np.ndarray, offset: np.ndarray | None = None,
-                  dof: tuple[float, float] = (float("inf"), float("inf"))) -> tuple[float, float]:
-    """(rotation deg, translation mm): 95 % quantiles of the geodesic rotation error and of the
-    translation error's length under the covariance (first order).
-
-    Args:
-        covariance: 6x6, ROS order: the error's second moment (``combine_uncertainty``).
-        offset: (6,) the part of it that is a measured mean error (``uncertainty_bounds``):
-            the covariance holds ``S + offset offset^T`` with ``S`` the random part. None: 0.
-        dof: (rotation, translation) degrees of freedom the random part is known to; inf: known
-            (Gaussian), finite: the predictive (F) quantile.
-    """
-    m = np.zeros(6) if offset is None else np.asarray(offset, dtype=float)
-    out = []
-    for rows, scale, nu_e in ((slice(3, 6), np.degrees(1.0), dof[0]), (slice(0, 3), 1e3, dof[1])):
-        block = covariance[rows, rows]
-        if not np.all(np.isfinite(block)):
-            out.append(float("inf"))
-            continue
-        out.append(_bound95(block, m[rows], nu_e) * scale)
-    return out[0], out[1]

@@ -184,3 +184,17 @@ def test_the_camera_timing_is_a_setting_of_the_processor() -> None:
     scene, frames = _frames("540p", 2, seed=3)
     assert proc.process(frames[0][0].image, scene.camera).pose is not None
     assert proc.timing == CameraTiming(exposure_ms=4.0)
+
+
+def test_corner_estimator_names_the_uncertainty_profile() -> None:
+    """The cell-edge corners, the photometric ones and every refinement that keeps the tone
+    curve's bias each get their own profile when the pose's uncertainty is not set."""
+    from ficap_ros.vision.pipeline import corner_estimator, pose_config_for
+    from ficap_ros.vision.uncertainty import UncertaintyConfig
+
+    assert corner_estimator(DetectorConfig()) == "edge"
+    assert corner_estimator(DetectorConfig(edge_photometric=True)) == "photometric"
+    for refine in ("subpix", "apriltag", "none"):
+        assert corner_estimator(DetectorConfig(corner_refine=refine)) == "uncorrected"
+    peer = pose_config_for(PoseConfig(method="naive"), DetectorConfig(corner_refine="subpix"))
+    assert peer.uncertainty == UncertaintyConfig.for_corners("uncorrected")

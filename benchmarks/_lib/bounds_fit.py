@@ -1,0 +1,139 @@
+"""Fitting a covariance gain leave-one-set-out: each frame's covariance terms recorded once, the
+bounds recomputed at any gain through the package's own functions, the gain of each set chosen
+without it.
+
+``record_terms`` records what ``uncertainty_terms`` returned for each pose a processor reports
+(the terms and what the residuals showed), so a gain of ``UncertaintyConfig`` can be changed after
+the run: ``combine_uncertainty``, ``uncertainty_bounds`` and ``error_bound95`` on the recorded terms
+give the bounds the pose would have had with it (the pose itself does not depend on the gains).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
+from dataclasses import dataclass, replace
+
+import numpy as np
+from scipy.stats import binom
+
+import ficap_ros.vision.pose as pose_module
+from ficap_ros.vision.error_bounds import error_bound95
+from ficap_ros.vision.uncertainty import (
+    UncertaintyConfig,
+    combine_uncertainty,
+    uncertainty_bounds,
+)
+
+#: The share of frames a set's translation bounds must cover for a gain to be chosen.
+MIN_COVERAGE = 0.9
+
+
+@dataclass(frozen=True)
+class FrameTerms:
+    """One pose's covariance terms (``uncertainty_terms``) and its true errors."""
+
+    terms: dict[str, np.ndarray]
+    seen: dict[str, float]
+    rot_err_deg: float
+    trans_err_mm: float
+
+
+@contextmanager
+def record_terms() -> Iterator[list[tuple[np.ndarray, dict, dict]]]:
+    """Within the block, every ``uncertainty_terms`` call of ``ficap_ros.vision.pose`` appends
+    (the pose's translation, terms, seen) to the yielded list (``terms_of`` picks a pose's)."""
+    calls: list[tuple[np.ndarray, dict, dict]] = []
+    original = pose_module.uncertainty_terms
+
+    def recording(obs, T, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202 - as wrapped
+        terms, seen = original(obs, T, *args, **kwargs)
+        calls.append((np.array(T.translation_m), terms, seen))
+        return terms, seen
+
+    pose_module.uncertainty_terms = recording
+    try:
+        yield calls
+    finally:
+        pose_module.uncertainty_terms = original
+
+
+def terms_of(calls: Sequence[tuple[np.ndarray, dict, dict]], translation_m: np.ndarray
+             ) -> tuple[dict, dict] | None:
+    """The terms of the reported pose: the last call whose pose is the reported one."""
+    for t, terms, seen in reversed(calls):
+        if np.array_equal(t, translation_m):
+            return terms, seen
+    return None
+
+
+def bounds_at(frames: Sequence[FrameTerms], config: UncertaintyConfig) -> np.ndarray:
+    """(frames, 2): each frame's (rotation deg, translation mm) 95 % bounds under ``config``."""
+    out = np.empty((len(frames), 2))
+    for i, f in enumerate(frames):
+        cov = combine_uncertainty(f.terms, f.seen, config)
+        out[i] = error_bound95(cov, *uncertainty_bounds(f.terms, f.seen, config, cov))
+    return out
+
+
+@dataclass(frozen=True)
+class SetFit:
+    """One held-out set: the gain fitted without it and its figures at that gain."""
+
+    name: str
+    gain: float
+    frames: int
+    rot_coverage: float
+    rot_sharpness: float
+    trans_coverage: float
+    trans_sharpness: float
+    trans_misses: int
+
+
+def coverage_table(sets: dict[str, Sequence[FrameTerms]], base: UncertaintyConfig, field: str,
+                   gains: Sequence[float]) -> dict[str, np.ndarray]:
+    """Per set, (gains, 5): rotation coverage, rotation sharpness, translation coverage,
+    translation sharpness, translation misses at each value of the gain ``field``."""
+    table = {}
+    for name, frames in sets.items():
+        er = np.array([f.rot_err_deg for f in frames])
+        et = np.array([f.trans_err_mm for f in frames])
+        rows = []
+        for g in gains:
+            b = bounds_at(frames, replace(base, **{field: float(g)}))
+            rows.append((np.mean(er <= b[:, 0]), np.median(b[:, 0]) / np.median(er),
+                         np.mean(et <= b[:, 1]), np.median(b[:, 1]) / np.median(et),
+                         int(np.sum(et > b[:, 1]))))
+        table[name] = np.array(rows)
+    return table
+
+
+def smallest_gain(table: dict[str, np.ndarray], gains: Sequence[float],
+                  train: Sequence[str]) -> int:
+    """Index of the smallest gain whose translation bounds cover at least ``MIN_COVERAGE`` of
+    every training set's frames (the largest gain when none does)."""
+    ok = np.all([table[s][:, 2] >= MIN_COVERAGE - 1e-9 for s in train], axis=0)
+    return int(np.argmax(ok)) if ok.any() else len(gains) - 1
+
+
+def leave_one_set_out(table: dict[str, np.ndarray], gains: Sequence[float],
+                      frames: dict[str, int]) -> list[SetFit]:
+    """Each set's figures at the gain fitted on the other sets (``smallest_gain``)."""
+    fits = []
+    for name, rows in table.items():
+        i = smallest_gain(table, gains, [s for s in table if s != name])
+        r = rows[i]
+        fits.append(SetFit(name, float(gains[i]), frames[name], *map(float, r[:4]), int(r[4])))
+    return fits
+
+
+def binomial_reading(misses: int, frames: int, p_miss: float = 0.05) -> str:
+    """How likely a calibrated 95 % bound misses this many frames or more (more than expected)
+    or this many or fewer (fewer), and how likely 90-99 % coverage is at all for the set's size."""
+    if misses > p_miss * frames:
+        tail = f"P(>= {misses}) = {binom.sf(misses - 1, frames, p_miss):.2f}"
+    else:
+        tail = f"P(<= {misses}) = {binom.cdf(misses, frames, p_miss):.2f}"
+    lo, hi = int(np.ceil(0.01 * frames - 1e-9)), int(np.floor(0.10 * frames + 1e-9))
+    band = binom.cdf(hi, frames, p_miss) - binom.cdf(lo - 1, frames, p_miss) if hi >= lo else 0.0
+    return f"{tail}; P(90-99 %) = {band:.2f}"
