@@ -21,9 +21,8 @@ distortion included: the detected image's pixels); NaN without a pose. No rclpy 
 
 from __future__ import annotations
 
-import csv
-import io
 import math
+import struct
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Iterable, Sequence
 
@@ -32,13 +31,15 @@ import numpy as np
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.cap_model import CapModel
 from ficap_ros.io import messages
+from ficap_ros.io.cdr import CdrWriter, header_cdr
 from ficap_ros.vision.detector import TagDetection
 from ficap_ros.vision.pose import CapPose
 
 if TYPE_CHECKING:
     from ficap_ros.io.labels import FrameRecord
 
-__all__ = ["TagFits", "tag_fits", "apriltag_corners", "apriltag_array", "fit_values",
+__all__ = ["TagFits", "tag_fits", "apriltag_corners", "apriltag_array", "apriltag_array_cdr",
+           "fit_values",
            "DETECTION_COLUMNS", "detections_csv_text", "TAG_FAMILY"]
 
 TAG_FAMILY = "tag36h11"
@@ -83,8 +84,9 @@ def tag_fits(detections: Sequence[TagDetection], pose: CapPose | None, model: Ca
     residual = np.full(n, math.nan)
     used = np.zeros(n, dtype=bool)
     if pose is not None and n:
-        used = np.isin(ids, np.array(pose.used_ids, dtype=np.int64))
-        model_m = np.stack([model.corners_of(int(i)) for i in ids]) / 1000.0
+        used_ids = set(pose.used_ids)  # a few dozen ids: a set beats np.isin's sorting
+        used = np.array([i in used_ids for i in ids.tolist()], dtype=bool)
+        model_m = model.corners_mm[[model.index_of(i) for i in ids.tolist()]] / 1000.0
         projected = camera.project(pose.T_cam_cap.apply(model_m.reshape(-1, 3))).reshape(n, 4, 2)
         residual = np.sqrt(np.mean(np.sum((projected - corners) ** 2, axis=-1), axis=-1))
     return TagFits(ids, corners, used, residual,
@@ -117,15 +119,57 @@ def apriltag_array(c: messages.MessageClasses, head: Any, fits: TagFits) -> Any:
     point, detection = c.types["apriltag_msgs/msg/Point"], c.types["apriltag_msgs/msg/AprilTagDetection"]
     p = fits.corners_px[:, list(_APRILTAG_ORDER)] + _APRILTAG_OFFSET_PX  # apriltag_corners, each
     H = _homographies(p) if len(fits) else np.zeros((0, 3, 3))
-    out = []
-    for k in range(len(fits)):
-        out.append(detection(
-            family=TAG_FAMILY, id=int(fits.ids[k]), hamming=int(fits.hamming[k]), goodness=0.0,
-            decision_margin=float(fits.decision_margin[k]),
-            centre=point(x=float(H[k, 0, 2]), y=float(H[k, 1, 2])),  # H (0, 0, 1); H[2][2] = 1
-            corners=[point(x=float(x), y=float(y)) for x, y in p[k]],
-            homography=c.floats(H[k])))
+    # Python scalars once per array (tolist), not a numpy scalar per field.
+    rows = zip(fits.ids.tolist(), fits.hamming.tolist(), fits.decision_margin.tolist(),
+               p.tolist(), H[:, 0, 2].tolist(), H[:, 1, 2].tolist(), H)
+    out = [detection(family=TAG_FAMILY, id=int(tag_id), hamming=int(hamming), goodness=0.0,
+                     decision_margin=float(margin),
+                     centre=point(x=cx, y=cy),  # H (0, 0, 1); H[2][2] = 1
+                     corners=[point(x=x, y=y) for x, y in corners],
+                     homography=c.floats(h))
+           for tag_id, hamming, margin, corners, cx, cy, h in rows]
     return c.types["apriltag_msgs/msg/AprilTagDetectionArray"](header=head, detections=out)
+
+
+def _detection_layout(start_mod_8: int) -> struct.Struct:
+    """One ``AprilTagDetection`` in CDR starting ``start_mod_8`` bytes past an 8-byte boundary
+    (counted as CDR counts): family (length, characters, NUL), then 4-aligned id, hamming,
+    goodness, decision_margin, then the padding before the 8-aligned centre, corners and
+    homography (19 float64, appended as they are)."""
+    family = len(TAG_FAMILY) + 1
+    after_family = start_mod_8 + 4 + family
+    pad_ids = -after_family % 4
+    pad_doubles = -(after_family + pad_ids + 16) % 8
+    return struct.Struct(f"<I{family}s{pad_ids}xiiff{pad_doubles}x")
+
+
+#: A detection's layout by where it starts (mod 8): each after the first starts 8-aligned.
+_DETECTION_AT = {0: _detection_layout(0), 4: _detection_layout(4)}
+_FAMILY_Z = TAG_FAMILY.encode() + b"\0"
+
+
+def apriltag_array_cdr(stamp_ns: int, frame_id: str, fits: TagFits) -> bytes:
+    """``apriltag_array``'s message serialised (``ficap_ros.io.cdr``), built straight from the
+    arrays: the bytes rosbags' ``serialize_cdr`` gives for ``apriltag_array(ROSBAGS, header,
+    fits)`` with the header (``stamp_ns``, ``frame_id``), without a message object per tag and
+    point (labels.mcap writes one a frame)."""
+    out = CdrWriter()
+    header_cdr(out, stamp_ns, frame_id)
+    out.u32(len(fits))
+    if len(fits):
+        p = fits.corners_px[:, list(_APRILTAG_ORDER)] + _APRILTAG_OFFSET_PX  # as apriltag_array
+        H = _homographies(p).reshape(-1, 9)
+        # Per tag: centre (H's translation column, as apriltag_array), corners, homography.
+        doubles = np.ascontiguousarray(np.concatenate([H[:, [2, 5]], p.reshape(-1, 8), H], axis=1),
+                                       dtype="<f8")
+        buf = out.buf
+        for tag_id, hamming, margin, row in zip(fits.ids.tolist(), fits.hamming.tolist(),
+                                                fits.decision_margin.tolist(), doubles):
+            layout = _DETECTION_AT[out.offset() % 8]
+            buf += layout.pack(len(_FAMILY_Z), _FAMILY_Z, int(tag_id), int(hamming), 0.0,
+                               float(margin))
+            buf += row.tobytes()
+    return out.data()
 
 
 def fit_values(fits: TagFits) -> dict[str, float]:
@@ -149,20 +193,34 @@ def _num(value: float, digits: int) -> str:
     return f"{value:.{digits}f}" if math.isfinite(value) else ""
 
 
+#: Eight finite corner coordinates, as ``_num`` writes each.
+_CORNERS_FORMAT = ",".join(["{:.4f}"] * 8)
+
+
+def _corners_text(corners: list[float]) -> str:
+    """One row's eight corner fields (c0_x .. c3_y), ``_num``'s text for each."""
+    if all(map(math.isfinite, corners)):
+        return _CORNERS_FORMAT.format(*corners)
+    return ",".join([_num(v, 4) for v in corners])
+
+
 def detections_csv_text(records: Iterable[FrameRecord]) -> str:
     """detections.csv: a header row and a row per detected tag of every record (corners and
-    residuals to 4 decimals, px; empty where NaN)."""
-    buf = io.StringIO()
-    writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(DETECTION_COLUMNS)
+    residuals to 4 decimals, px; empty where NaN).
+
+    Every field is a number or empty, so rows are joined directly (what ``csv.writer`` writes for
+    them, without its per-field work); each array becomes Python scalars once (``tolist``).
+    """
+    lines = [",".join(DETECTION_COLUMNS)]
     for rec in records:
         fits = rec.tags
-        if fits is None:
+        if fits is None or not len(fits):
             continue
-        for k in range(len(fits)):
-            writer.writerow([rec.index, rec.stamp_ns, int(fits.ids[k]), int(fits.used[k]),
-                             _num(float(fits.residual_px[k]), 4), int(fits.hamming[k]),
-                             _num(float(fits.decision_margin[k]), 4),
-                             *(_num(float(v), 4) for v in fits.corners_px[k].reshape(-1))])
-    return buf.getvalue()
-
+        lead = f"{int(rec.index)},{int(rec.stamp_ns)},"
+        rows = zip(fits.ids.tolist(), fits.used.tolist(), fits.residual_px.tolist(),
+                   fits.hamming.tolist(), fits.decision_margin.tolist(),
+                   fits.corners_px.reshape(len(fits), 8).tolist())
+        lines += [f"{lead}{int(tag_id)},{int(used)},{_num(residual, 4)},{int(hamming)},"
+                  f"{_num(margin, 4)},{_corners_text(corners)}"
+                  for tag_id, used, residual, hamming, margin, corners in rows]
+    return "\n".join(lines) + "\n"

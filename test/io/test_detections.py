@@ -21,6 +21,7 @@ from ficap_ros.io.detections import (
     DETECTION_COLUMNS,
     TagFits,
     apriltag_array,
+    apriltag_array_cdr,
     apriltag_corners,
     detections_csv_text,
     fit_values,
@@ -138,6 +139,23 @@ def test_each_homography_maps_the_tag_square_onto_its_corners(tags) -> None:  # 
         np.testing.assert_allclose(got[4], [d.centre.x, d.centre.y], atol=1e-9)
 
 
+@given(st.integers(0, 6), st.integers(-2**40, 2**40), st.text(max_size=9), st.data())
+def test_serialised_detections_are_rosbags_bytes_of_the_message(n: int, stamp_ns: int, frame: str,
+                                                                data: st.DataObject) -> None:
+    """labels.mcap's detections, serialised straight from the arrays, are the bytes rosbags
+    serialises from ``apriltag_array``'s message (any tag count, stamp, frame name, NaN margin)."""
+    corners = data.draw(arrays(np.float64, (n, 4, 2), elements=st.floats(-1e4, 1e4)))
+    corners += np.array([[0.0, 0.0], [40.0, 1.0], [41.0, 42.0], [1.0, 40.0]])  # a usable quad
+    margins = data.draw(arrays(np.float64, n, elements=st.one_of(st.floats(0, 500),
+                                                                   st.just(np.nan))))
+    fits = TagFits(np.arange(n) * 3, corners, np.ones(n, bool), np.zeros(n),
+                   np.arange(n) % 3, margins)
+    store = messages.jazzy_typestore()
+    msg = apriltag_array(ROSBAGS, messages.header(ROSBAGS, stamp_ns, frame), fits)
+    expect = store.serialize_cdr(msg, "apriltag_msgs/msg/AprilTagDetectionArray")
+    assert apriltag_array_cdr(stamp_ns, frame, fits) == bytes(expect)
+
+
 def _fits() -> TagFits:
     corners = np.arange(16, dtype=np.float64).reshape(2, 4, 2) + 0.123456
     return TagFits(np.array([3, 11]), corners, np.array([True, False]), np.array([0.25, np.nan]),
@@ -162,6 +180,20 @@ def test_detections_csv_has_a_row_per_tag() -> None:
     assert (first["c0_x_px"], first["c3_y_px"]) == ("0.1235", "7.1235")
     second = dict(zip(rows[0], rows[2]))
     assert (second["used"], second["residual_px"], second["hamming"]) == ("0", "", "1")
+
+
+@given(arrays(np.float64, (3, 4, 2), elements=st.one_of(
+    st.floats(-1e4, 1e4), st.sampled_from([np.nan, np.inf, -np.inf]))))
+def test_detections_csv_writes_each_corner_to_four_decimals_or_empty(corners: np.ndarray) -> None:
+    fits = TagFits(np.array([1, 2, 3]), corners, np.array([True, False, True]),
+                   np.array([0.5, np.nan, np.inf]), np.array([0, 1, 2]), np.array([1.0, np.nan, 2.0]))
+    rows = list(csv.reader(io.StringIO(detections_csv_text(
+        [FrameRecord.processed(7, 123, "cam", None, (1, 2, 3), tags=fits)]))))
+    assert len(rows) == 4 and all(len(r) == len(DETECTION_COLUMNS) for r in rows)
+    for row, c in zip(rows[1:], corners.reshape(3, 8)):
+        expect = [f"{v:.4f}" if math.isfinite(v) else "" for v in c]
+        assert row[7:] == expect
+    assert [r[4] for r in rows[1:]] == ["0.5000", "", ""]
 
 
 def test_detections_of_a_record_without_pose_keep_their_corners() -> None:
