@@ -81,13 +81,10 @@ class BagWriter:
 
     def write(self, topic: str, stamp_ns: int, msg: Any) -> None:
         """Serialize ``msg`` (a rosbags message object) and write it with receive time ``stamp_ns``."""
-        self.write_cdr(topic, stamp_ns, self.typestore.serialize_cdr(msg, self._conns[topic].msgtype))
-
-    def write_cdr(self, topic: str, stamp_ns: int, data: bytes | memoryview) -> None:
-        """Write a message already serialised (CDR of the topic's type) with receive time
-        ``stamp_ns``."""
+        conn = self._conns[topic]
         try:
-            self._writer.write(self._conns[topic], int(stamp_ns), data)
+            self._writer.write(conn, int(stamp_ns),
+                               self.typestore.serialize_cdr(msg, conn.msgtype))
         except OSError as err:  # a full disk: one line, and __exit__ removes the temporary
             raise OutputError(f"cannot write {self.path}: {err.strerror or err}") from err
 

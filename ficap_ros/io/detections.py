@@ -22,7 +22,6 @@ distortion included: the detected image's pixels); NaN without a pose. No rclpy 
 from __future__ import annotations
 
 import math
-import struct
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Iterable, Sequence
 
@@ -31,15 +30,13 @@ import numpy as np
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.cap_model import CapModel
 from ficap_ros.io import messages
-from ficap_ros.io.cdr import CdrWriter, header_cdr
 from ficap_ros.vision.detector import TagDetection
 from ficap_ros.vision.pose import CapPose
 
 if TYPE_CHECKING:
     from ficap_ros.io.labels import FrameRecord
 
-__all__ = ["TagFits", "tag_fits", "apriltag_corners", "apriltag_array", "apriltag_array_cdr",
-           "fit_values",
+__all__ = ["TagFits", "tag_fits", "apriltag_corners", "apriltag_array", "fit_values",
            "DETECTION_COLUMNS", "detections_csv_text", "TAG_FAMILY"]
 
 TAG_FAMILY = "tag36h11"
@@ -129,47 +126,6 @@ def apriltag_array(c: messages.MessageClasses, head: Any, fits: TagFits) -> Any:
                      homography=c.floats(h))
            for tag_id, hamming, margin, corners, cx, cy, h in rows]
     return c.types["apriltag_msgs/msg/AprilTagDetectionArray"](header=head, detections=out)
-
-
-def _detection_layout(start_mod_8: int) -> struct.Struct:
-    """One ``AprilTagDetection`` in CDR starting ``start_mod_8`` bytes past an 8-byte boundary
-    (counted as CDR counts): family (length, characters, NUL), then 4-aligned id, hamming,
-    goodness, decision_margin, then the padding before the 8-aligned centre, corners and
-    homography (19 float64, appended as they are)."""
-    family = len(TAG_FAMILY) + 1
-    after_family = start_mod_8 + 4 + family
-    pad_ids = -after_family % 4
-    pad_doubles = -(after_family + pad_ids + 16) % 8
-    return struct.Struct(f"<I{family}s{pad_ids}xiiff{pad_doubles}x")
-
-
-#: A detection's layout by where it starts (mod 8): each after the first starts 8-aligned.
-_DETECTION_AT = {0: _detection_layout(0), 4: _detection_layout(4)}
-_FAMILY_Z = TAG_FAMILY.encode() + b"\0"
-
-
-def apriltag_array_cdr(stamp_ns: int, frame_id: str, fits: TagFits) -> bytes:
-    """``apriltag_array``'s message serialised (``ficap_ros.io.cdr``), built straight from the
-    arrays: the bytes rosbags' ``serialize_cdr`` gives for ``apriltag_array(ROSBAGS, header,
-    fits)`` with the header (``stamp_ns``, ``frame_id``), without a message object per tag and
-    point (labels.mcap writes one a frame)."""
-    out = CdrWriter()
-    header_cdr(out, stamp_ns, frame_id)
-    out.u32(len(fits))
-    if len(fits):
-        p = fits.corners_px[:, list(_APRILTAG_ORDER)] + _APRILTAG_OFFSET_PX  # as apriltag_array
-        H = _homographies(p).reshape(-1, 9)
-        # Per tag: centre (H's translation column, as apriltag_array), corners, homography.
-        doubles = np.ascontiguousarray(np.concatenate([H[:, [2, 5]], p.reshape(-1, 8), H], axis=1),
-                                       dtype="<f8")
-        buf = out.buf
-        for tag_id, hamming, margin, row in zip(fits.ids.tolist(), fits.hamming.tolist(),
-                                                fits.decision_margin.tolist(), doubles):
-            layout = _DETECTION_AT[out.offset() % 8]
-            buf += layout.pack(len(_FAMILY_Z), _FAMILY_Z, int(tag_id), int(hamming), 0.0,
-                               float(margin))
-            buf += row.tobytes()
-    return out.data()
 
 
 def fit_values(fits: TagFits) -> dict[str, float]:

@@ -537,23 +537,13 @@ def _status_msg(rec: FrameRecord) -> object:
         header=header(ROSBAGS, rec.stamp_ns, rec.frame_id), status=[status])
 
 
-def _named_values_cdr(rec: FrameRecord, values: dict[str, float]) -> bytes:
-    """``messages.named_values``'s message of ``values`` in the record's camera frame, serialised
-    (``cdr.named_values_cdr``)."""
-    from ficap_ros.io.cdr import named_values_cdr
-
-    return named_values_cdr(rec.stamp_ns, rec.frame_id, values,
-                            np.array([float(v) for v in values.values()], dtype=np.float64))
-
-
 def _frame_messages(rec: FrameRecord, frames: OutputFrames) -> list[tuple[str, object]]:
     """(label stream, message) of one record, in the order they are written: the poses, the head
     angles and the TF of a posed frame; quality and status of every frame; the detections of
-    every processed one. The named numbers and the detections come serialised already (``bytes``:
-    ``ficap_ros.io.cdr``), built without a message object per name, tag and point."""
-    from ficap_ros.io.detections import apriltag_array_cdr, fit_values
+    every processed one."""
+    from ficap_ros.io.detections import apriltag_array, fit_values
     from ficap_ros.io.frames import frame_transforms, pose_outputs, tf_message
-    from ficap_ros.io.messages import ROSBAGS
+    from ficap_ros.io.messages import ROSBAGS, header, named_values
 
     out: list[tuple[str, object]] = []
     if rec.T_cam_cap is not None and rec.T_frontal_head is not None:
@@ -564,10 +554,12 @@ def _frame_messages(rec: FrameRecord, frames: OutputFrames) -> list[tuple[str, o
                 ("tf", tf_message(ROSBAGS, rec.stamp_ns, frame_transforms(rec, frames))),
                 *([("head_twist", poses["twist"])] if "twist" in poses else []),
                 ("head_rpy_rad", poses["rpy_rad"])]
-    out += [("quality", _named_values_cdr(rec, quality_values(rec))), ("status", _status_msg(rec))]
+    in_camera = header(ROSBAGS, rec.stamp_ns, rec.frame_id)
+    out += [("quality", named_values(ROSBAGS, in_camera, quality_values(rec))),
+            ("status", _status_msg(rec))]
     if rec.tags is not None:
-        out += [("detections", apriltag_array_cdr(rec.stamp_ns, rec.frame_id, rec.tags)),
-                ("detections_fit", _named_values_cdr(rec, fit_values(rec.tags)))]
+        out += [("detections", apriltag_array(ROSBAGS, in_camera, rec.tags)),
+                ("detections_fit", named_values(ROSBAGS, in_camera, fit_values(rec.tags)))]
     return out
 
 
@@ -600,7 +592,4 @@ def write_labels_bag(path: str | Path, records: Sequence[FrameRecord],
                 bag.write(topics["tf_static"], rec.stamp_ns, tf_message(
                     ROSBAGS, rec.stamp_ns, static_transforms(frames, rec.frame_id)))
             for stream, msg in _frame_messages(rec, frames):
-                if isinstance(msg, bytes):
-                    bag.write_cdr(topics[stream], rec.stamp_ns, msg)
-                else:
-                    bag.write(topics[stream], rec.stamp_ns, msg)
+                bag.write(topics[stream], rec.stamp_ns, msg)

@@ -21,7 +21,6 @@ from ficap_ros.io.detections import (
     DETECTION_COLUMNS,
     TagFits,
     apriltag_array,
-    apriltag_array_cdr,
     apriltag_corners,
     detections_csv_text,
     fit_values,
@@ -137,23 +136,6 @@ def test_each_homography_maps_the_tag_square_onto_its_corners(tags) -> None:  # 
         got = m[:, :2] / m[:, 2:]
         np.testing.assert_allclose(got[:4], apriltag_corners(fits.corners_px[k]), atol=1e-6)
         np.testing.assert_allclose(got[4], [d.centre.x, d.centre.y], atol=1e-9)
-
-
-@given(st.integers(0, 6), st.integers(-2**40, 2**40), st.text(max_size=9), st.data())
-def test_serialised_detections_are_rosbags_bytes_of_the_message(n: int, stamp_ns: int, frame: str,
-                                                                data: st.DataObject) -> None:
-    """labels.mcap's detections, serialised straight from the arrays, are the bytes rosbags
-    serialises from ``apriltag_array``'s message (any tag count, stamp, frame name, NaN margin)."""
-    corners = data.draw(arrays(np.float64, (n, 4, 2), elements=st.floats(-1e4, 1e4)))
-    corners += np.array([[0.0, 0.0], [40.0, 1.0], [41.0, 42.0], [1.0, 40.0]])  # a usable quad
-    margins = data.draw(arrays(np.float64, n, elements=st.one_of(st.floats(0, 500),
-                                                                   st.just(np.nan))))
-    fits = TagFits(np.arange(n) * 3, corners, np.ones(n, bool), np.zeros(n),
-                   np.arange(n) % 3, margins)
-    store = messages.jazzy_typestore()
-    msg = apriltag_array(ROSBAGS, messages.header(ROSBAGS, stamp_ns, frame), fits)
-    expect = store.serialize_cdr(msg, "apriltag_msgs/msg/AprilTagDetectionArray")
-    assert apriltag_array_cdr(stamp_ns, frame, fits) == bytes(expect)
 
 
 def _fits() -> TagFits:
