@@ -21,8 +21,6 @@ distortion included: the detected image's pixels); NaN without a pose. No rclpy 
 
 from __future__ import annotations
 
-import csv
-import io
 import math
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Iterable, Sequence
@@ -83,8 +81,9 @@ def tag_fits(detections: Sequence[TagDetection], pose: CapPose | None, model: Ca
     residual = np.full(n, math.nan)
     used = np.zeros(n, dtype=bool)
     if pose is not None and n:
-        used = np.isin(ids, np.array(pose.used_ids, dtype=np.int64))
-        model_m = np.stack([model.corners_of(int(i)) for i in ids]) / 1000.0
+        used_ids = set(pose.used_ids)  # a few dozen ids: a set beats np.isin's sorting
+        used = np.array([i in used_ids for i in ids.tolist()], dtype=bool)
+        model_m = model.corners_mm[[model.index_of(i) for i in ids.tolist()]] / 1000.0
         projected = camera.project(pose.T_cam_cap.apply(model_m.reshape(-1, 3))).reshape(n, 4, 2)
         residual = np.sqrt(np.mean(np.sum((projected - corners) ** 2, axis=-1), axis=-1))
     return TagFits(ids, corners, used, residual,
@@ -117,14 +116,15 @@ def apriltag_array(c: messages.MessageClasses, head: Any, fits: TagFits) -> Any:
     point, detection = c.types["apriltag_msgs/msg/Point"], c.types["apriltag_msgs/msg/AprilTagDetection"]
     p = fits.corners_px[:, list(_APRILTAG_ORDER)] + _APRILTAG_OFFSET_PX  # apriltag_corners, each
     H = _homographies(p) if len(fits) else np.zeros((0, 3, 3))
-    out = []
-    for k in range(len(fits)):
-        out.append(detection(
-            family=TAG_FAMILY, id=int(fits.ids[k]), hamming=int(fits.hamming[k]), goodness=0.0,
-            decision_margin=float(fits.decision_margin[k]),
-            centre=point(x=float(H[k, 0, 2]), y=float(H[k, 1, 2])),  # H (0, 0, 1); H[2][2] = 1
-            corners=[point(x=float(x), y=float(y)) for x, y in p[k]],
-            homography=c.floats(H[k])))
+    # Python scalars once per array (tolist), not a numpy scalar per field.
+    rows = zip(fits.ids.tolist(), fits.hamming.tolist(), fits.decision_margin.tolist(),
+               p.tolist(), H[:, 0, 2].tolist(), H[:, 1, 2].tolist(), H)
+    out = [detection(family=TAG_FAMILY, id=int(tag_id), hamming=int(hamming), goodness=0.0,
+                     decision_margin=float(margin),
+                     centre=point(x=cx, y=cy),  # H (0, 0, 1); H[2][2] = 1
+                     corners=[point(x=x, y=y) for x, y in corners],
+                     homography=c.floats(h))
+           for tag_id, hamming, margin, corners, cx, cy, h in rows]
     return c.types["apriltag_msgs/msg/AprilTagDetectionArray"](header=head, detections=out)
 
 
@@ -149,20 +149,34 @@ def _num(value: float, digits: int) -> str:
     return f"{value:.{digits}f}" if math.isfinite(value) else ""
 
 
+#: Eight finite corner coordinates, as ``_num`` writes each.
+_CORNERS_FORMAT = ",".join(["{:.4f}"] * 8)
+
+
+def _corners_text(corners: list[float]) -> str:
+    """One row's eight corner fields (c0_x .. c3_y), ``_num``'s text for each."""
+    if all(map(math.isfinite, corners)):
+        return _CORNERS_FORMAT.format(*corners)
+    return ",".join([_num(v, 4) for v in corners])
+
+
 def detections_csv_text(records: Iterable[FrameRecord]) -> str:
     """detections.csv: a header row and a row per detected tag of every record (corners and
-    residuals to 4 decimals, px; empty where NaN)."""
-    buf = io.StringIO()
-    writer = csv.writer(buf, lineterminator="\n")
-    writer.writerow(DETECTION_COLUMNS)
+    residuals to 4 decimals, px; empty where NaN).
+
+    Every field is a number or empty, so rows are joined directly (what ``csv.writer`` writes for
+    them, without its per-field work); each array becomes Python scalars once (``tolist``).
+    """
+    lines = [",".join(DETECTION_COLUMNS)]
     for rec in records:
         fits = rec.tags
-        if fits is None:
+        if fits is None or not len(fits):
             continue
-        for k in range(len(fits)):
-            writer.writerow([rec.index, rec.stamp_ns, int(fits.ids[k]), int(fits.used[k]),
-                             _num(float(fits.residual_px[k]), 4), int(fits.hamming[k]),
-                             _num(float(fits.decision_margin[k]), 4),
-                             *(_num(float(v), 4) for v in fits.corners_px[k].reshape(-1))])
-    return buf.getvalue()
-
+        lead = f"{int(rec.index)},{int(rec.stamp_ns)},"
+        rows = zip(fits.ids.tolist(), fits.used.tolist(), fits.residual_px.tolist(),
+                   fits.hamming.tolist(), fits.decision_margin.tolist(),
+                   fits.corners_px.reshape(len(fits), 8).tolist())
+        lines += [f"{lead}{int(tag_id)},{int(used)},{_num(residual, 4)},{int(hamming)},"
+                  f"{_num(margin, 4)},{_corners_text(corners)}"
+                  for tag_id, used, residual, hamming, margin, corners in rows]
+    return "\n".join(lines) + "\n"

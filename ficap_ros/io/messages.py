@@ -122,8 +122,8 @@ def header(c: MessageClasses, stamp_ns: int, frame_id: str) -> Any:
 
 def pose(c: MessageClasses, T: Transform) -> Any:
     """``geometry_msgs/Pose`` of a transform (translation in metres)."""
-    x, y, z = (float(v) for v in T.translation_m)
-    qx, qy, qz, qw = (float(v) for v in T.q_xyzw)
+    x, y, z = T.translation_m.tolist()  # Python floats, one call per array
+    qx, qy, qz, qw = T.q_xyzw.tolist()
     return c.types["geometry_msgs/msg/Pose"](
         position=c.types["geometry_msgs/msg/Point"](x=x, y=y, z=z),
         orientation=c.types["geometry_msgs/msg/Quaternion"](x=qx, y=qy, z=qz, w=qw))
@@ -149,8 +149,8 @@ def pose_with_covariance_stamped(c: MessageClasses, head: Any, T: Transform,
 def transform_stamped(c: MessageClasses, head: Any, child_frame_id: str, T: Transform) -> Any:
     """``geometry_msgs/TransformStamped``: ``T`` is T_parent_child, the parent ``head.frame_id``
     (translation in metres)."""
-    x, y, z = (float(v) for v in T.translation_m)
-    qx, qy, qz, qw = (float(v) for v in T.q_xyzw)
+    x, y, z = T.translation_m.tolist()
+    qx, qy, qz, qw = T.q_xyzw.tolist()
     return c.types["geometry_msgs/msg/TransformStamped"](
         header=head, child_frame_id=child_frame_id,
         transform=c.types["geometry_msgs/msg/Transform"](
@@ -159,7 +159,7 @@ def transform_stamped(c: MessageClasses, head: Any, child_frame_id: str, T: Tran
 
 
 def _rpy(c: MessageClasses, head: Any, ypr: np.ndarray) -> Any:
-    yaw, pitch, roll = (float(v) for v in ypr)
+    yaw, pitch, roll = np.asarray(ypr, dtype=np.float64).reshape(3).tolist()
     return c.types["geometry_msgs/msg/Vector3Stamped"](
         header=head, vector=c.types["geometry_msgs/msg/Vector3"](x=roll, y=pitch, z=yaw))
 
@@ -179,7 +179,7 @@ def rpy_rad(c: MessageClasses, head: Any, R_frontal_head: Rotation) -> Any:
 def twist_stamped(c: MessageClasses, head: Any, twist: np.ndarray) -> Any:
     """``geometry_msgs/TwistStamped`` of a (6,) twist in ROS order: the linear velocity (m/s),
     then the angular velocity (rad/s), both in the axes of ``head``'s frame."""
-    v = [float(x) for x in np.asarray(twist, dtype=np.float64).reshape(6)]
+    v = np.asarray(twist, dtype=np.float64).reshape(6).tolist()
     vector = c.types["geometry_msgs/msg/Vector3"]
     return c.types["geometry_msgs/msg/TwistStamped"](
         header=head, twist=c.types["geometry_msgs/msg/Twist"](

@@ -53,10 +53,25 @@ __all__ = ["Progress", "ReplayedFrame", "process_frames", "frontal_calibration",
            "capped_jobs", "SEGMENT_FRAMES", "MAX_WINDOW_S"]
 
 
+class _SilentProgress:
+    """``Progress`` turned off: what a disabled ``tqdm`` bar does (nothing; ``n`` stays 0),
+    without importing tqdm (``--quiet`` runs start sooner)."""
+
+    n = 0
+
+    def update(self, n: int = 1) -> None:
+        """Count nothing."""
+
+    def close(self) -> None:
+        """Nothing to close."""
+
+
 def Progress(total: int, label: str = "frames", stream: IO[str] | None = None,  # noqa: N802
              enabled: bool = True) -> Any:
     """A ``tqdm`` bar on stderr: per-frame updates, rate and ETA (tqdm's moving average), and
     nothing at all when the stream is not a terminal (logs, CI) or ``enabled`` is False."""
+    if not enabled:
+        return _SilentProgress()
     from tqdm import tqdm
 
     return tqdm(total=max(int(total), 0) or None, desc=label, unit="frame",

@@ -7,6 +7,7 @@ is ``ficap_ros.io.labels``'s: it composes it from the cap pose and the head cali
 from __future__ import annotations
 
 import time
+from collections import Counter
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -212,7 +213,8 @@ def _timing_evidence(pose: CapPose, detections: tuple[TagDetection, ...], model:
     if pose.velocity is None:
         return None
     used = [d for d in detections if d.tag_id in pose.used_ids]
-    once = {d.tag_id: d for d in used if sum(e.tag_id == d.tag_id for e in used) == 1}
+    seen = Counter(d.tag_id for d in used)
+    once = {d.tag_id: d for d in used if seen[d.tag_id] == 1}
     corners = {i: c[0] for i, c in undistorted_corners(list(once.values()), camera).items()}
     if len(corners) < 4:
         return None

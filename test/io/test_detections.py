@@ -164,6 +164,20 @@ def test_detections_csv_has_a_row_per_tag() -> None:
     assert (second["used"], second["residual_px"], second["hamming"]) == ("0", "", "1")
 
 
+@given(arrays(np.float64, (3, 4, 2), elements=st.one_of(
+    st.floats(-1e4, 1e4), st.sampled_from([np.nan, np.inf, -np.inf]))))
+def test_detections_csv_writes_each_corner_to_four_decimals_or_empty(corners: np.ndarray) -> None:
+    fits = TagFits(np.array([1, 2, 3]), corners, np.array([True, False, True]),
+                   np.array([0.5, np.nan, np.inf]), np.array([0, 1, 2]), np.array([1.0, np.nan, 2.0]))
+    rows = list(csv.reader(io.StringIO(detections_csv_text(
+        [FrameRecord.processed(7, 123, "cam", None, (1, 2, 3), tags=fits)]))))
+    assert len(rows) == 4 and all(len(r) == len(DETECTION_COLUMNS) for r in rows)
+    for row, c in zip(rows[1:], corners.reshape(3, 8)):
+        expect = [f"{v:.4f}" if math.isfinite(v) else "" for v in c]
+        assert row[7:] == expect
+    assert [r[4] for r in rows[1:]] == ["0.5000", "", ""]
+
+
 def test_detections_of_a_record_without_pose_keep_their_corners() -> None:
     model = nominal_model()
     d = TagDetection(5, np.array([[10.0, 10.0], [20.0, 10.0], [20.0, 20.0], [10.0, 20.0]]))

@@ -227,6 +227,12 @@ def test_progress_is_per_frame_and_quiet_off_a_terminal() -> None:
     bar.update(5)
     bar.close()
     assert plain.getvalue() == ""
+    off = Progress(5, "frames", tty, enabled=False)  # --quiet: nothing even on a terminal
+    before = tty.getvalue()
+    off.update(3)
+    off.update(off.n + 2)
+    off.close()
+    assert tty.getvalue() == before and off.n == 0
 
 
 def test_jobs_are_capped_at_the_cores_available() -> None:
