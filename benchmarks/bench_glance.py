@@ -26,6 +26,7 @@ import sys
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 
 from _lib import cli, devsets, report
@@ -35,6 +36,7 @@ from ficap_ros.geometry.camera import CameraModel, CameraTiming
 from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.geometry.metrics import angle_deg
 from ficap_ros.geometry.transform import Transform
+from ficap_ros.vision.detector import as_gray
 from ficap_ros.vision.pipeline import FrameProcessor
 from ficap_ros.vision.shutter import combine_evidence
 from ficap_ros.vision.uncertainty import UncertaintyConfig
@@ -141,11 +143,12 @@ def run(rec: Recording) -> dict[str, dict[str, np.ndarray]]:
         proc = processor(method, rec.timing)
         keys = ("rot", "trans", "rot95", "trans95", "w_err", "w_maha")
         o = {k: np.full(len(rec.images), np.nan) for k in keys}
-        evidence = []
+        evidence, used = [], []
         for i, (image, stamp, truth) in enumerate(zip(rec.images, rec.stamps_ns, rec.truths)):
             r = proc.process(image, rec.camera, int(stamp))
             evidence.append(r.timing_evidence)
             p = r.pose
+            used.append(sorted(p.used_ids) if p is not None else [])
             if p is None:
                 continue
             o["rot"][i] = angle_deg(p.T_cam_cap.rotation, truth.rotation)
@@ -157,8 +160,38 @@ def run(rec: Recording) -> dict[str, dict[str, np.ndarray]]:
                 o["w_maha"][i] = float(e @ np.linalg.solve(p.velocity_covariance[3:, 3:], e))
         o["speed"] = speed
         o["timing_estimate"] = combine_evidence(evidence)
+        o["used_ids"] = used
         out[method] = o
     return out
+
+
+def blur_bound_row(rec: Recording, res: dict[str, dict[str, np.ndarray]]) -> list[str] | None:
+    """The Cramer-Rao bound's slow and fast rotation medians of a global-shutter recording with a
+    stated exposure (``_lib.blur_bound``; every fast frame, every fourth slow one, on the tags
+    ours used) beside ours: None for a rolling shutter or no exposure."""
+    from _lib.blur_bound import frame_rotation_draws
+
+    if rec.timing.rolling or rec.timing.exposure_ms <= 0.0:
+        return None
+    o = res[OURS_TIMED]
+    model, rng = nominal_model(), np.random.default_rng(0)
+    draws: dict[bool, list[np.ndarray]] = {True: [], False: []}
+    for i in range(1, len(rec.images) - 1):
+        fast, slow = o["speed"][i] >= FAST_DPS, o["speed"][i] < SLOW_DPS and i % 4 == 0
+        if not (fast or slow) or not o["used_ids"][i]:
+            continue
+        dt = (rec.stamps_ns[i + 1] - rec.stamps_ns[i - 1]) * 0.5e-9
+        gray = as_gray(rec.images[i])
+        draws[bool(fast)].append(frame_rotation_draws(gray, rec.camera, model, o["used_ids"][i],
+                                                      tuple(rec.truths[i - 1:i + 2]), dt,
+                                                      rec.timing.exposure_ms * 1e-3, rng))
+    if not draws[True] or not draws[False]:
+        return None
+    b_slow, b_fast = (float(np.median(np.concatenate(draws[k]))) for k in (False, True))
+    slow, fast = o["speed"] < SLOW_DPS, o["speed"] >= FAST_DPS
+    ratio = q(o["rot"][fast], 50) / q(o["rot"][slow], 50)
+    return [rec.name, f"{b_slow:.4f}", f"{b_fast:.4f}", f"{b_fast / b_slow:.2f}", f"{ratio:.2f}",
+            f"{ratio / (b_fast / b_slow):.2f}"]
 
 
 def bounds_with_gains(rec: Recording, gains: tuple[float, float]) -> np.ndarray:
@@ -303,18 +336,19 @@ def _gains_section(recs: list[Recording]) -> str:
 def main(argv: list[str] | None = None) -> int:
     ap = cli.parser(__doc__, quick="frames 8-31 of each glance set and 60-frame synth drives")
     args = ap.parse_args(argv)
-    import cv2
-
     cv2.setNumThreads(1)
     run_info = report.Run()
     recs = _recordings(args)
     if not recs:
         print(f"no glance set under {args.data} and no rolling-shutter synth (--data)", file=sys.stderr)
         return 1
-    results, rows, verdicts, readouts = {}, [], [], []
+    results, rows, verdicts, readouts, crb_rows = {}, [], [], [], []
     for rec in recs:
         res = run(rec)
         results[rec.name] = res
+        crb = blur_bound_row(rec, res)
+        if crb is not None:
+            crb_rows.append(crb)
         r, v = rows_of(rec.name, res)
         rows += r
         verdicts.append([rec.name] + ["-" if ok is None else "yes" if ok else "**no**" for ok in v.values()])
@@ -341,6 +375,14 @@ def main(argv: list[str] | None = None) -> int:
             "shutter's the finite difference of the poses before, tied to the frame's own pose; "
             "none without a stated timing); its bound holds when the error is inside the 95 % "
             "ellipsoid of its covariance.")
+    if crb_rows:
+        body += ("\n\nA Cramer-Rao bound for the blurred frames (global shutter; `benchmarks/_lib/blur_bound.py`: "
+                 "each tag's pixels through the photometric model moving along the truth's path over the "
+                 "exposure, levels, lens blur and tone marginalised, the pixel noise the fit's residual sd, "
+                 "on the tags ours used; every fast frame, every fourth slow one): the rotation median "
+                 "an efficient estimator would have, slow and fast, and ours against it:\n\n"
+                 + report.md_table(["recording", "bound median, slow (deg)", "bound median, fast",
+                                    "bound fast / slow", "ours fast / slow", "ours / bound (ratios)"], crb_rows))
     body += "\n\n" + _gains_section(recs)
     what = ("What it measures: pose error through fast glances against the cap's angular speed, "
             "ours with and without the camera's timing (exposure, rolling-shutter readout) beside "

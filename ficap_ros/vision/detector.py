@@ -14,6 +14,7 @@ tone-curve bias (``ficap_ros.vision.corners``); docs/detection.md compares it wi
 
 from __future__ import annotations
 
+import math
 from collections.abc import Container
 from dataclasses import dataclass
 from functools import lru_cache
@@ -142,6 +143,13 @@ class DetectorConfig:
             More accurate where noise limits the cell-edge fit (low light), at a much higher CPU
             cost per tag, hence off by default (costs in docs/benchmarks.md). ``edge`` refine with
             ``edge_fit`` only (else ``ConfigError``).
+        motion_corners: where the camera's exposure is stated and the frames before give the
+            cap's velocity, refit the corners of each tag that moves over the exposure with the
+            photometric model of its pattern moving along that motion (the mean over the
+            exposure in linear light, before the tone curve), so the corners are the
+            mid-exposure ones (``ficap_ros.vision.motion_corners``); ``edge`` refine only.
+        motion_corners_min_px: the least predicted motion of a tag's corners over the exposure,
+            px, for which it is refitted (slower tags keep the cell-edge corners).
     """
 
     backend: str = "opencv"
@@ -186,6 +194,9 @@ class DetectorConfig:
     # Pose input: name the partly hidden tags (pipeline.FrameProcessor).
     hidden_check: bool = True
     edge_photometric: bool = False
+    # Moving tags (pipeline.FrameProcessor with an exposure stated): motion-aware corners.
+    motion_corners: bool = True
+    motion_corners_min_px: float = 2.0
 
     def __post_init__(self) -> None:
         if self.backend not in BACKENDS:
@@ -223,6 +234,8 @@ class DetectorConfig:
             raise ConfigError("edge_max_shift_px must be > 0")
         if not 1 <= self.edge_fit_iterations <= 5:
             raise ConfigError(f"edge_fit_iterations must be in [1, 5], got {self.edge_fit_iterations}")
+        if not (math.isfinite(self.motion_corners_min_px) and self.motion_corners_min_px >= 0.0):
+            raise ConfigError(f"motion_corners_min_px must be >= 0, got {self.motion_corners_min_px}")
         if self.edge_photometric and not (self.corner_refine == "edge" and self.edge_fit):
             # It refines the cell-edge fit's corners: without that fit it would do nothing.
             raise ConfigError("the photometric corner fit (edge_photometric, --photometric, "

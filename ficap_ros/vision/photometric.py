@@ -43,11 +43,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from ficap_ros.geometry.tag36h11 import TAG_CELLS, homography_corners
+from ficap_ros.geometry.tag36h11 import TAG_CELLS, homography_corners, tag_homographies
 from ficap_ros.vision.photometric_kernels import PAD as _PAD
-from ficap_ros.vision.photometric_kernels import fit_steps, select_pixels
+from ficap_ros.vision.photometric_kernels import (
+    fit_steps,
+    fit_steps_moving,
+    select_pixels,
+)
 
-__all__ = ["fit_tags", "PSF_SIGMA_PX"]
+__all__ = ["fit_tags", "motion_warps", "PSF_SIGMA_PX"]
 
 #: Lens PSF sigma, px, assumed when the recording's is unknown: where the per-tag blur scale
 #: starts; a typical camera's lens blur, within the range the fit converges from.
@@ -64,6 +68,11 @@ _MIN_PIXELS = 40
 _MIN_LEVEL_PIXELS = 5
 #: Levenberg damping on the column-scaled normal equations.
 _DAMPING = 1e-3
+#: Most a moving tag's corners move between the instants its light is averaged over, in blur sds
+#: (``motion_warps``): Gaussians two sds apart sum to their box-blurred one within exp(-pi^2 / 2),
+#: under 1 % of the step (Poisson summation: exp(-2 pi^2 / spacing^2)), a ripple symmetric about
+#: each instant that moves no corner; the fit's cost grows with the instants.
+_INSTANT_SPACING_SDS = 2.0
 
 
 def _black_tables(cells: np.ndarray) -> np.ndarray:
@@ -79,7 +88,7 @@ def _black_tables(cells: np.ndarray) -> np.ndarray:
 # The pixels fitted
 # ------------------------------------------------------------------------------------------------
 def _select_pixels(shape: tuple[int, int], hom: np.ndarray, tables: np.ndarray, sd_px: float,
-                   reach_px: float, max_pixels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                   reach_px: float | np.ndarray, max_pixels: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Pixels (x, y) within ``reach_px`` (plus 1.5 ``sd_px``) of a black/white boundary of each
     tag's face: (tag of each, x, y) as int arrays, tag after tag, each tag's row by row; a tag with
     more than ``max_pixels`` is thinned to that many, evenly (a narrower band would lose the flat
@@ -98,7 +107,7 @@ def _select_pixels(shape: tuple[int, int], hom: np.ndarray, tables: np.ndarray, 
 
 
 def _face_boxes(
-    shape: tuple[int, int], hom: np.ndarray, sd_px: float, reach_px: float
+    shape: tuple[int, int], hom: np.ndarray, sd_px: float, reach_px: float | np.ndarray
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """Each tag's face (10 x 10 cells) box in the image, all tags at once (a stacked matmul, inv
     and norm run the same loops per tag): (tags whose box inside the image's 1-px frame is at least
@@ -121,15 +130,66 @@ def _face_boxes(
 
 
 # ------------------------------------------------------------------------------------------------
+# Motion over the exposure
+# ------------------------------------------------------------------------------------------------
+def motion_warps(corners_px: np.ndarray, motion_px: np.ndarray, spacing_px: float,
+                 bend_px: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """The instants a moving tag is averaged over, as image warps (``fit_steps_moving``).
+
+    Each tag's corners move by ``motion_px`` over the exposure: at instant s (-1/2 .. 1/2 of the
+    exposure from its middle) corner j is at ``corners_px[j] + s motion_px[j] + 4 s^2
+    bend_px[j]`` (``bend_px``: how far the path's ends lie beyond the straight line through the
+    mid-exposure corner, a motion that speeds up or slows down over the exposure: 1/8 of the
+    acceleration times the exposure squared; None: constant velocity). The instants are the midpoints of K equal parts of the exposure, K such that
+    no corner moves more than ``spacing_px`` from one to the next (a sum of Gaussian-blurred
+    patterns this close is their box-blurred one to well under a grey level); a tag that does not
+    move has one, the identity.
+
+    Args:
+        corners_px: (N, 4, 2) mid-exposure corners.
+        motion_px: (N, 4, 2) each corner's motion over the exposure (end minus start), px.
+        spacing_px: the most a corner moves between instants, px.
+        bend_px: (N, 4, 2) the path's bend, px, or None.
+
+    Returns:
+        (warps (N, K, 3, 3): image px at each instant -> image px at mid-exposure (the identity
+        beyond a tag's own count), instants (N,) int64 each tag's count K_t, K the largest).
+    """
+    c = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    m = np.asarray(motion_px, dtype=np.float64).reshape(-1, 4, 2)
+    length = np.linalg.norm(m, axis=2).max(axis=1)
+    instants = np.maximum(np.ceil(length / spacing_px), 1).astype(np.int64)
+    k_max = int(instants.max()) if len(instants) else 1
+    warps = np.tile(np.eye(3), (len(c), k_max, 1, 1))
+    if k_max == 1:
+        return warps, instants
+    h_mid = tag_homographies(c)
+    for t in np.flatnonzero(instants > 1):
+        s = (np.arange(instants[t]) + 0.5) / instants[t] - 0.5
+        at = c[t][None] + s[:, None, None] * m[t][None]
+        if bend_px is not None:
+            at = at + (4.0 * s * s)[:, None, None] * np.asarray(bend_px, dtype=np.float64).reshape(-1, 4, 2)[t][None]
+        h_k = tag_homographies(at)
+        warps[t, :instants[t]] = h_mid[t] @ np.linalg.inv(h_k)
+    return warps, instants
+
+
+# ------------------------------------------------------------------------------------------------
 # The model
 # ------------------------------------------------------------------------------------------------
 def fit_tags(
     gray: np.ndarray, corners_px: np.ndarray, hom: np.ndarray, cells: np.ndarray,
     psf_sigma_px: float = PSF_SIGMA_PX,
     iterations: int = 3, reach_px: float = 1.0, free_tone: bool = True, max_move_cells: float = 0.35,
-    max_pixels: int = 1500,
+    max_pixels: int = 1500, motion_px: np.ndarray | None = None, converged_px: float = 0.0,
+    bend_px: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Fit each tag's homography and levels to its pixels (module docstring).
+
+    With ``motion_px`` the pattern moves over the exposure (motion blur): each pixel's light is
+    the mean over the exposure's instants (``motion_warps``), in linear light before the tone
+    curve, and the fitted corners are the mid-exposure ones; the pixels fitted reach half the
+    tag's motion further from a boundary.
 
     Args:
         gray: (H, W) uint8 image.
@@ -143,6 +203,12 @@ def fit_tags(
         free_tone: also fit an exponent on the sRGB curve.
         max_move_cells: a tag moving any corner further than this (cells) keeps its input.
         max_pixels: most pixels fitted a tag (a larger tag's are thinned evenly).
+        motion_px: (N, 4, 2) each corner's image motion over the exposure (end minus start), px;
+            None: the tags are still.
+        converged_px: with ``motion_px``, ``iterations`` is the most steps: a tag stops once a
+            step moves no corner further than this, px (``fit_steps_moving``).
+        bend_px: with ``motion_px``, (N, 4, 2) how each corner's path bends over the exposure
+            (``motion_warps``), or None: constant velocity.
 
     Returns:
         (corners (N, 4, 2), fitted (N,) bool): a tag not fitted keeps its input corners.
@@ -159,17 +225,25 @@ def fit_tags(
     hom = hom / hom[:, 2:3, 2:3]
     tab = _black_tables(cells)  # (N, S, S)
     sd_px = float(np.sqrt(psf_sigma_px ** 2 + 1.0 / 12.0))  # the PSF and the pixel's area
-    tag, xi, yi = _select_pixels(gray.shape[:2], hom, tab, sd_px, reach_px, max_pixels)
+    reach: float | np.ndarray = reach_px
+    if motion_px is not None:
+        motion_px = np.asarray(motion_px, dtype=np.float64).reshape(n, 4, 2)
+        reach = reach_px + 0.5 * np.linalg.norm(motion_px, axis=2).max(axis=1)
+    tag, xi, yi = _select_pixels(gray.shape[:2], hom, tab, sd_px, reach, max_pixels)
     if len(tag) == 0:
         return c_in.copy(), fitted
     counts = np.bincount(tag, minlength=n)
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     h = hom.reshape(n, 9)[:, :8].copy()
     theta = np.zeros((n, 8 if free_tone else 7))  # levels (2 planes), log blur scale, log tone exponent
-    ok, misfit, contrast = fit_steps(gray[yi, xi].astype(np.float64), xi.astype(np.float64),
-                                     yi.astype(np.float64), starts, counts, h, theta, tab, sd_px,
-                                     bool(free_tone), int(iterations), _MIN_PIXELS, _MIN_LEVEL_PIXELS,
-                                     _DAMPING)
+    args = (gray[yi, xi].astype(np.float64), xi.astype(np.float64), yi.astype(np.float64), starts, counts,
+            h, theta, tab)
+    settings = (sd_px, bool(free_tone), int(iterations), _MIN_PIXELS, _MIN_LEVEL_PIXELS, _DAMPING)
+    if motion_px is None:
+        ok, misfit, contrast = fit_steps(*args, *settings)
+    else:
+        warps, instants = motion_warps(c_in, motion_px, _INSTANT_SPACING_SDS * sd_px, bend_px)
+        ok, misfit, contrast = fit_steps_moving(*args, warps, instants, *settings, float(converged_px))
     corners = homography_corners(h)
     cell = np.linalg.norm(c_in[:, [1, 2, 3, 0]] - c_in, axis=2).min(axis=1) / TAG_CELLS
     moved = np.linalg.norm(corners - c_in, axis=2).max(axis=1)

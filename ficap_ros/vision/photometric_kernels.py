@@ -25,7 +25,7 @@ import numpy as np
 from ficap_ros.vision.jit import njit, register_warm_up
 from ficap_ros.vision.tone import SRGB_ENCODED_KNEE, SRGB_LINEAR_KNEE
 
-__all__ = ["PAD", "select_pixels", "fit_steps"]
+__all__ = ["PAD", "select_pixels", "fit_steps", "fit_steps_moving", "coverage_moving", "model_rows_moving"]
 
 #: Cells padded around the 8 x 8 tag in a tag's table (white: quiet zone and beyond), so the
 #: 4 x 4 cells around any face pixel's nearest boundary stay inside it.
@@ -186,6 +186,200 @@ def _fit_tag(obs: np.ndarray, px: np.ndarray, py: np.ndarray, h: np.ndarray, the
         if not _gauss_newton_update(jac, r, h, theta, damping, free_tone):
             return False, misfit, contrast
     return True, misfit, contrast
+
+
+@njit
+def fit_steps_moving(obs: np.ndarray, px: np.ndarray, py: np.ndarray, starts: np.ndarray, counts: np.ndarray,
+                     h: np.ndarray, theta: np.ndarray, tables: np.ndarray, warps: np.ndarray,
+                     instants: np.ndarray, sd_px: float, free_tone: bool, iterations: int, min_pixels: int,
+                     min_level_pixels: int, damping: float,
+                     converged_px: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``fit_steps`` with each tag's pattern moving over the exposure (motion blur).
+
+    A pixel's linear light is the mean over ``instants[t]`` instants of the light the tag's
+    pattern sends it at each: the mid-exposure pattern (``h``) seen at the pixel mapped through
+    the instant's warp (``warps[t, k]``: image px at instant k -> image px at mid-exposure). The
+    levels, the lens blur and the tone curve are as ``fit_steps``'; ``h`` is the mid-exposure
+    homography.
+
+    Args:
+        warps: (N, K, 3, 3) each tag's warps, the first ``instants[t]`` of them used.
+        instants: (N,) int64 each tag's instant count (at least 1).
+        iterations: the most steps a tag takes (at least 2).
+        converged_px: a tag stops once a step (from the second on) moves no corner further
+            than this, px: a smeared edge's start can lie beyond the reach of one linearised
+            step (its model's slope lives within a blur sd of the smear's two ends), so such a
+            tag needs more steps than a still one, and a tag already there needs none.
+        The rest: as ``fit_steps``.
+    """
+    n = h.shape[0]
+    ok = counts >= min_pixels
+    misfit = np.full(n, np.inf)
+    contrast = np.zeros(n)
+    for t in range(n):
+        if not ok[t]:
+            continue
+        a, b = starts[t], starts[t] + counts[t]
+        ok[t], misfit[t], contrast[t] = _fit_tag_moving(
+            obs[a:b], px[a:b], py[a:b], h[t], theta[t], tables[t], warps[t, :instants[t]], sd_px,
+            free_tone, iterations, min_level_pixels, damping, converged_px)
+    return ok, misfit, contrast
+
+
+@njit
+def _fit_tag_moving(obs: np.ndarray, px: np.ndarray, py: np.ndarray, h: np.ndarray, theta: np.ndarray,
+                    table: np.ndarray, warps: np.ndarray, sd_px: float, free_tone: bool, iterations: int,
+                    min_level_pixels: int, damping: float, converged_px: float) -> tuple[bool, float, float]:
+    """One moving tag's steps (``fit_steps_moving``; ``_fit_tag``'s steps over the instants'
+    mean), ``h`` and ``theta`` in place: (fitted, misfit, contrast)."""
+    p_n = len(obs)
+    n_par = 8 + len(theta)
+    bu = np.empty((p_n, len(warps)), np.int64)
+    bv = np.empty((p_n, len(warps)), np.int64)
+    mean = np.empty((p_n, 12))  # C, d black / d log scale, u, v, 8 geometric rows of d C / d h
+    jac = np.empty((p_n, n_par))
+    r = np.empty(p_n)
+    shares = np.empty((2, 3, 4))
+    misfit, contrast = np.inf, 0.0
+    for it in range(iterations):
+        scale = sd_px * math.exp(theta[6])
+        coverage_moving(px, py, h, scale, table, warps, it == 0, bu, bv, mean, shares)
+        if it == 0 and not _start_levels(obs, mean[:, 0], theta, min_level_pixels):
+            return False, misfit, contrast
+        lo, hi = model_rows_moving(obs, theta, mean, free_tone, jac, r)
+        if it >= 1:
+            mad = np.median(np.abs(r))
+            limit = max(_OUTLIER_SDS * _MAD_SD * mad, _MIN_OUTLIER_GREY)
+            contrast = hi - lo
+            misfit = _MAD_SD * mad / max(contrast, 1.0)
+            for p in range(p_n):
+                if abs(r[p]) > limit:
+                    jac[p, :] = 0.0
+                    r[p] = 0.0
+        before = h.copy()
+        if not _gauss_newton_update(jac, r, h, theta, damping, free_tone):
+            return False, misfit, contrast
+        if it >= 1 and _largest_corner_move(before, h) <= converged_px:
+            break
+    return True, misfit, contrast
+
+
+@njit
+def _largest_corner_move(h0: np.ndarray, h1: np.ndarray) -> float:
+    """The farthest any of the tag's corners (cell units (0, 0), (8, 0), (8, 8), (0, 8)) lies
+    under homography ``h1`` from where it lies under ``h0``, px."""
+    most = 0.0
+    for k in range(4):
+        u = float(_CELLS) if k == 1 or k == 2 else 0.0
+        v = float(_CELLS) if k >= 2 else 0.0
+        d0 = h0[6] * u + h0[7] * v + 1.0
+        d1 = h1[6] * u + h1[7] * v + 1.0
+        dx = (h1[0] * u + h1[1] * v + h1[2]) / d1 - (h0[0] * u + h0[1] * v + h0[2]) / d0
+        dy = (h1[3] * u + h1[4] * v + h1[5]) / d1 - (h0[3] * u + h0[4] * v + h0[5]) / d0
+        most = max(most, math.sqrt(dx * dx + dy * dy))
+    return most
+
+
+@njit
+def coverage_moving(px: np.ndarray, py: np.ndarray, h: np.ndarray, scale: float, table: np.ndarray,
+                    warps: np.ndarray, first: bool, bu: np.ndarray, bv: np.ndarray, mean: np.ndarray,
+                    shares: np.ndarray) -> None:
+    """Every pixel's white coverage averaged over the instants of ``warps`` (K, 3, 3), with what
+    the steps need, into ``mean`` (P, 12): C, d black / d log(blur scale), the mean tag
+    coordinates u, v (the levels' planes), and the 8 rows of d C / d h per unit d grey / d C (each
+    instant's ``_model_rows`` geometry at the pixel it maps to). ``bu``, ``bv`` (P, K): each
+    instant's nearest boundary crossing, set on the ``first`` step."""
+    a11, a12, a13, a21, a22, a23, a31, a32 = h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7]
+    size = table.shape[0]
+    n_k = len(warps)
+    inv_k = 1.0 / n_k
+    for p in range(len(px)):
+        for c in range(12):
+            mean[p, c] = 0.0
+        for k in range(n_k):
+            W = warps[k]
+            wd = W[2, 0] * px[p] + W[2, 1] * py[p] + W[2, 2]
+            x = (W[0, 0] * px[p] + W[0, 1] * py[p] + W[0, 2]) / wd
+            y = (W[1, 0] * px[p] + W[1, 1] * py[p] + W[1, 2]) / wd
+            m11, m12, m21, m22 = a11 - a31 * x, a12 - a32 * x, a21 - a31 * y, a22 - a32 * y
+            det = m11 * m22 - m12 * m21
+            bx, by = x - a13, y - a23
+            u = (m22 * bx - m12 * by) / det
+            v = (-m21 * bx + m11 * by) / det
+            gd = scale * abs((a31 * u + a32 * v + 1.0) / det)
+            if first:
+                bu[p, k] = _round_half_even(u)
+                bv[p, k] = _round_half_even(v)
+            _shares(shares, 0, bu[p, k] - u, math.sqrt(m22 * m22 + m12 * m12) * gd)
+            _shares(shares, 1, bv[p, k] - v, math.sqrt(m21 * m21 + m11 * m11) * gd)
+            ci = min(max(bu[p, k] + PAD, 2), size - 2) - 2
+            cj = min(max(bv[p, k] + PAD, 2), size - 2) - 2
+            black, dbu, dbv, dbs = 0.0, 0.0, 0.0, 0.0
+            for j in range(4):
+                r0, r1, r2 = 0.0, 0.0, 0.0
+                for i in range(4):
+                    cell = table[cj + j, ci + i]
+                    r0 += cell * shares[0, 0, i]
+                    r1 += cell * shares[0, 1, i]
+                    r2 += cell * shares[0, 2, i]
+                av = shares[1, 0, j]
+                black += r0 * av
+                dbu += r1 * av
+                dbv += r0 * shares[1, 1, j]
+                dbs += r2 * av + r0 * shares[1, 2, j]
+            gx = (m22 * dbu - m21 * dbv) / det
+            gy = (m11 * dbv - m12 * dbu) / det
+            gp = gx * x + gy * y
+            mean[p, 0] += 1.0 - black
+            mean[p, 1] += dbs
+            mean[p, 2] += u
+            mean[p, 3] += v
+            mean[p, 4] += gx * u
+            mean[p, 5] += gx * v
+            mean[p, 6] += gx
+            mean[p, 7] += gy * u
+            mean[p, 8] += gy * v
+            mean[p, 9] += gy
+            mean[p, 10] -= gp * u
+            mean[p, 11] -= gp * v
+        for c in range(12):
+            mean[p, c] *= inv_k
+
+
+@njit
+def model_rows_moving(obs: np.ndarray, theta: np.ndarray, mean: np.ndarray, free_tone: bool, jac: np.ndarray,
+                      r: np.ndarray) -> tuple[float, float]:
+    """``_model_rows`` from the instants' means (``coverage_moving``): each pixel's residual into
+    ``r`` and Jacobian row into ``jac``; returns the model's (least, greatest) grey."""
+    lo, hi = np.inf, -np.inf
+    kap = math.exp(theta[7]) if free_tone else 1.0
+    for p in range(len(obs)):
+        C, dbs = mean[p, 0], mean[p, 1]
+        uc, vc = (mean[p, 2] - 4.0) / 4.0, (mean[p, 3] - 4.0) / 4.0
+        lb = theta[0] + theta[1] * uc + theta[2] * vc
+        lw = theta[3] + theta[4] * uc + theta[5] * vc
+        enc, slope = _srgb_encode(lb + (lw - lb) * C)
+        if free_tone:
+            encp = max(enc, 1e-4)
+            log_enc = math.log(encp)
+            powered = math.exp(kap * log_enc)
+            model = 255.0 * powered
+            fp = 255.0 * kap * (powered / encp) * slope
+            jac[p, 15] = model * log_enc * kap
+        else:
+            model = 255.0 * enc
+            fp = 255.0 * slope
+        r[p] = obs[p] - model
+        lo, hi = min(lo, model), max(hi, model)
+        dC = (lw - lb) * fp  # d grey / d C
+        for i in range(8):
+            jac[p, i] = mean[p, 4 + i] * dC
+        fw = fp * C
+        fb = fp - fw
+        jac[p, 8], jac[p, 9], jac[p, 10] = fb, fb * uc, fb * vc
+        jac[p, 11], jac[p, 12], jac[p, 13] = fw, fw * uc, fw * vc
+        jac[p, 14] = -(dbs * dC)
+    return lo, hi
 
 
 @njit
@@ -426,7 +620,7 @@ def _solve(A: np.ndarray, b: np.ndarray) -> tuple[bool, np.ndarray]:
 
 @register_warm_up
 def _warm_up() -> None:
-    """Both kernels once on one small synthetic tag (the pipeline's argument types)."""
+    """The kernels once on one small synthetic tag (the pipeline's argument types), still and moving."""
     size = _CELLS + 2 * PAD
     table = np.zeros((size, size))
     table[PAD:PAD + _CELLS, PAD:PAD + _CELLS] = 1.0  # a black border around white cells
@@ -442,3 +636,7 @@ def _warm_up() -> None:
     fit_steps(obs, xs.astype(np.float64), ys.astype(np.float64), np.zeros(1, np.int64),
               np.array([len(tag)], np.int64), hom.reshape(1, 9)[:, :8].copy(), theta, table[None], 0.66,
               True, 2, 40, 5, 1e-3)
+    theta = np.zeros((1, 8))
+    fit_steps_moving(obs, xs.astype(np.float64), ys.astype(np.float64), np.zeros(1, np.int64),
+                     np.array([len(tag)], np.int64), hom.reshape(1, 9)[:, :8].copy(), theta, table[None],
+                     np.tile(np.eye(3), (1, 2, 1, 1)), np.array([2], np.int64), 0.66, True, 2, 40, 5, 1e-3)

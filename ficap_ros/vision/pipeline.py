@@ -15,6 +15,7 @@ import numpy as np
 from ficap_ros.geometry.camera import CameraModel, CameraTiming
 from ficap_ros.geometry.cap_model import CapModel, nominal_model
 from ficap_ros.geometry.transform import Transform
+from ficap_ros.vision import motion_corners
 from ficap_ros.vision.detector import DetectorConfig, TagDetection, TagDetector, as_gray
 from ficap_ros.vision.motion import MotionPrior
 from ficap_ros.vision.occlusion import partly_hidden
@@ -42,7 +43,8 @@ class FrameResult:
         reason: why there is no pose ("" when there is one).
         search: how the tags were found (``tracking.Search``, a ``str``): ``tracked``, ``region``
             or ``image``.
-        detect_ms, pose_ms: time spent finding the tags and solving the pose, ms.
+        detect_ms, pose_ms: time spent finding the tags and solving the pose (with the moving
+            tags' refit, ``motion_corners``), ms.
         timing_evidence: what the frame says of the camera's readout when the timing does not
             model one (``shutter.frame_evidence``: a moving cap with a velocity from the frames
             before; ``FrameProcessor(readout_evidence=True)`` only); None otherwise.
@@ -108,7 +110,9 @@ class FrameProcessor:
         timing: when the camera's rows see the scene relative to the stamps (exposure, rolling
             shutter readout, stamp offset; ``CameraTiming()``: not known). A rolling shutter's
             poses are solved with the cap's velocity over the readout (``estimate_cap_pose``), the
-            tracker's past poses its velocity prior. The cap's velocity (``CapPose.velocity``)
+            tracker's past poses its velocity prior. With an exposure stated, the tags that move
+            over it are refitted as moving (``DetectorConfig.motion_corners``,
+            ``vision.motion_corners``) and the pose solved again. The cap's velocity (``CapPose.velocity``)
             is reported only when the timing states an exposure or a readout; with neither, the
             outputs are those of an estimator without a motion model. Like ``pose_config`` it may
             be replaced as a whole between frames (the node does when its ``camera.*``
@@ -153,13 +157,29 @@ class FrameProcessor:
         # Only the joint solver has a tag-level outlier step that reads which tags are hidden.
         find_hidden = cfg.hidden_check and cfg.corner_refine == "edge" and pose_config.method == "joint"
         solve_started: list[float] = []
+        refitted: dict[int, TagDetection] = {}
+
+        def estimate(tags: tuple[TagDetection, ...], start: Transform | None,
+                     prior: MotionPrior | None) -> PoseResult:
+            hidden = hidden_tag_ids(gray, tags) if find_hidden else frozenset()
+            return estimate_cap_pose(tags, self.model, camera, pose_config, start=start,
+                                     hidden_ids=hidden, timing=self.timing, prior=prior)
 
         def solve(tags: tuple[TagDetection, ...], start: Transform | None,
                   prior: MotionPrior | None = None) -> PoseResult:
             solve_started.append(time.perf_counter())
-            hidden = hidden_tag_ids(gray, tags) if find_hidden else frozenset()
-            return estimate_cap_pose(tags, self.model, camera, pose_config, start=start,
-                                     hidden_ids=hidden, timing=self.timing, prior=prior)
+            result = estimate(tags, start, prior)
+            if result.pose is None or not motion_corners.applies(cfg, self.timing, prior):
+                return result
+            # Motion-aware corners: the paths through the frame's own pose, the moving tags refitted.
+            assert prior is not None
+            T = result.pose.T_cam_cap
+            moved = motion_corners.motion_aware_corners(gray, tags, self.model, camera, self.timing, T,
+                                                        prior.usable, cfg)
+            if all(a is b for a, b in zip(tags, moved)):
+                return result
+            refitted.update((id(a), b) for a, b in zip(tags, moved) if a is not b)
+            return estimate(moved, T, prior)
 
         if self.tracker is not None:
             frame = self.tracker.track(gray, camera, int(stamp_ns), pose_config, solve)
@@ -167,6 +187,8 @@ class FrameProcessor:
             detections = tuple(d for d in self.detector.detect(gray) if d.tag_id in self.model)
             frame = TrackedFrame(detections, solve(detections, None), Search.IMAGE)
         t1, t2 = solve_started[0], time.perf_counter()
+        if refitted:
+            frame = replace(frame, detections=tuple(refitted.get(id(d), d) for d in frame.detections))
         pose, evidence = frame.result.pose, None
         if self.readout_evidence and pose is not None and not self.timing.rolling:
             evidence = _timing_evidence(pose, frame.detections, self.model, camera)

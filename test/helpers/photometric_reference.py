@@ -522,3 +522,51 @@ class _TagFit:
         if self.free_tone:
             self.theta[:, 7] = np.clip(self.theta[:, 7], np.log(0.5), np.log(2.0))
         self.theta[:, 6] = np.clip(self.theta[:, 6], np.log(0.25), np.log(4.0))
+
+
+# ------------------------------------------------------------------------------------------------
+# The moving tag's model (``photometric_kernels.coverage_moving`` / ``model_rows_moving``)
+# ------------------------------------------------------------------------------------------------
+def moving_model_grey(px: np.ndarray, py: np.ndarray, h: np.ndarray, theta: np.ndarray, table: np.ndarray,
+                      warps: np.ndarray, sd_px: float, free_tone: bool) -> np.ndarray:
+    """The grey a moving tag's model gives pixels (``px``, ``py``): the white coverage of the
+    pattern at homography ``h`` (8,) seen through each of ``warps`` (K, 3, 3), averaged over them,
+    mixed between the level planes of ``theta`` at the mean tag coordinates, through the sRGB curve
+    (and the tone exponent): per quantity over all pixels, the normal CDF from scipy, in float64."""
+    from scipy.special import ndtr
+
+    H = np.append(h, 1.0).reshape(3, 3)
+    Hi = np.linalg.inv(H)
+    scale = sd_px * np.exp(theta[6])
+    white = np.zeros(len(px))
+    uv_sum = np.zeros((2, len(px)))
+    for W in warps:
+        q = W @ np.vstack([px, py, np.ones(len(px))])
+        x, y = q[0] / q[2], q[1] / q[2]
+        t = Hi @ np.vstack([x, y, np.ones(len(px))])
+        u, v = t[0] / t[2], t[1] / t[2]
+        uv_sum += (u, v)
+        # The sds along u and v: the image Gaussian through the local inverse Jacobian.
+        m11, m12, m21, m22 = H[0, 0] - H[2, 0] * x, H[0, 1] - H[2, 1] * x, H[1, 0] - H[2, 0] * y, H[1, 1] - H[2, 1] * y
+        det = m11 * m22 - m12 * m21
+        gd = scale * np.abs((H[2, 0] * u + H[2, 1] * v + 1.0) / det)
+        sd_u, sd_v = np.hypot(m22, m12) * gd, np.hypot(m21, m11) * gd
+        bu, bv = np.round(u), np.round(v)
+        black = np.zeros(len(px))
+        for j in range(4):
+            for i in range(4):
+                cu, cv = bu - 2 + i, bv - 2 + j  # the cell [cu, cu + 1) x [cv, cv + 1)
+                share = ((ndtr((cu + 1 - u) / sd_u) - ndtr((cu - u) / sd_u))
+                         * (ndtr((cv + 1 - v) / sd_v) - ndtr((cv - v) / sd_v)))
+                ti = np.clip(cu + _PAD, 0, len(table) - 1).astype(int)
+                tj = np.clip(cv + _PAD, 0, len(table) - 1).astype(int)
+                black += table[tj, ti] * share
+        white += 1.0 - black
+    C = white / len(warps)
+    uc, vc = (uv_sum / len(warps) - 4.0) / 4.0
+    lb = theta[0] + theta[1] * uc + theta[2] * vc
+    lw = theta[3] + theta[4] * uc + theta[5] * vc
+    enc = srgb_encode_slope(lb + (lw - lb) * C)[0]
+    if not free_tone:
+        return 255.0 * enc
+    return 255.0 * np.maximum(enc, 1e-4) ** np.exp(theta[7])

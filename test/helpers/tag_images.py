@@ -66,3 +66,26 @@ def oblique_tag(tag_id: int, side_px: float, angle_deg: float, tilt: float, blur
     corners = square @ rot.T + np.array([w, h]) / 2 + rng.uniform(-0.5, 0.5, 2)
     img = tag_image(tag_id, corners, (w, h), rng, background=120, levels=(30, 220), blur=blur, noise=2.0)
     return img, corners
+
+
+def moving_tag_image(
+    tag_id: int, corners: np.ndarray, motion: np.ndarray, size_wh: tuple[int, int], rng: np.random.Generator,
+    *, levels_linear: tuple[float, float] = (0.03, 0.7), blur: float = 0.6, noise: float = 1.5,
+    instants: int = 32,
+) -> np.ndarray:
+    """The tag moving over the exposure, as a camera records it: its corners at ``corners + s
+    motion`` (s over ``instants`` midpoints of -1/2..1/2; ``corners`` (4, 2) are the mid-exposure
+    ones, ``motion`` (4, 2) each corner's motion over the exposure), the instants' light averaged in
+    linear light (black and white ``levels_linear``, the background the white's half), blurred by a
+    Gaussian of sd ``blur`` px, then through the sRGB curve to 8 bits with Gaussian noise of sd
+    ``noise`` grey levels."""
+    from ficap_ros.vision.tone import srgb_encode_slope
+
+    acc = np.zeros(size_wh[::-1])
+    for s in (np.arange(instants) + 0.5) / instants - 0.5:
+        img = tag_image(tag_id, corners + s * motion, size_wh, rng, background=128, levels=(0, 255),
+                        blur=0.0, noise=0.0).astype(np.float64) / 255.0
+        acc += levels_linear[0] + (levels_linear[1] - levels_linear[0]) * img
+    light = cv2.GaussianBlur(acc / instants, (0, 0), blur)
+    grey = 255.0 * srgb_encode_slope(light)[0] + rng.normal(0.0, noise, light.shape)
+    return np.clip(np.round(grey), 0, 255).astype(np.uint8)

@@ -75,3 +75,55 @@ def test_solve_matches_numpy_and_refuses_a_singular_system() -> None:
     singular = np.ones((4, 4))
     singular[:, 0] = 0.0
     assert not photometric_kernels._solve(singular, np.ones(4))[0]
+
+
+def _moving_case(rng: np.random.Generator) -> tuple:
+    """A tag of 6 px cells turned and moved 5 px over the exposure: its pixels near boundaries,
+    homography, levels, table and warps."""
+    ang = 0.4
+    rot = np.array([[np.cos(ang), -np.sin(ang)], [np.sin(ang), np.cos(ang)]])
+    corners = (np.array([[-1, -1], [1, -1], [1, 1.1], [-1, 1]]) * 24.0) @ rot.T + [60.0, 55.0]
+    motion = np.tile([4.0, -3.0], (4, 1)) + rng.normal(0.0, 0.3, (4, 2))
+    hom = tag_homographies(corners)[0]
+    h = (hom / hom[2, 2]).ravel()[:8].copy()
+    table = photometric._black_tables(stacked_tag_cells((7,)))[0]
+    warps, instants = photometric.motion_warps(corners[None], motion[None], 0.7)
+    ys, xs = np.mgrid[30:80, 30:85]
+    # Flat levels: the kernels' rows leave out how the level planes' coordinates move with h.
+    theta = np.array([0.03, 0.0, 0.0, 0.6, 0.0, 0.0, 0.1, 0.05])
+    return xs.ravel().astype(float), ys.ravel().astype(float), h, theta, table, warps[0, :instants[0]]
+
+
+def test_moving_model_equals_the_numpy_reference_and_its_jacobian_the_differences() -> None:
+    px, py, h, theta, table, warps = _moving_case(np.random.default_rng(3))
+    assert len(warps) >= 7
+    n = len(px)
+    mean, jac, r = np.empty((n, 12)), np.empty((n, 16)), np.empty(n)
+    bu, bv = np.empty((n, len(warps)), np.int64), np.empty((n, len(warps)), np.int64)
+    photometric_kernels.coverage_moving(px, py, h, 0.66 * np.exp(theta[6]), table, warps, True, bu, bv, mean,
+                                        np.empty((2, 3, 4)))
+    photometric_kernels.model_rows_moving(np.zeros(n), theta, mean, True, jac, r)
+    want = photometric_reference.moving_model_grey(px, py, h, theta, table, warps, 0.66, True)
+    np.testing.assert_allclose(-r, want, rtol=0.0, atol=2e-3)  # A & S's CDF in the kernels
+    assert np.ptp(want) > 100.0  # the pattern is in view
+    # The rows leave out how the blur's sds in tag units change with h (as the still fit's do):
+    # the translations' rows agree to the differences' own precision, the others to 3 %.
+    for i, tol in ((0, 0.03), (1, 0.03), (2, 2e-3), (3, 0.03), (4, 0.03), (5, 2e-3), (6, 0.03), (7, 0.03)):
+        step = 1e-6
+        hp, hm = h.copy(), h.copy()
+        hp[i] += step
+        hm[i] -= step
+        diff = (photometric_reference.moving_model_grey(px, py, hp, theta, table, warps, 0.66, True)
+                - photometric_reference.moving_model_grey(px, py, hm, theta, table, warps, 0.66, True)) / (2 * step)
+        np.testing.assert_allclose(jac[:, i], diff, rtol=0.0, atol=tol * np.abs(diff).max())
+
+
+def test_a_still_tag_through_the_moving_kernels_is_the_still_fit() -> None:
+    fr = drive_frames("540p", RenderConfig(lighting="neutral", jpeg_quality=95), n=1)[0]
+    ids = np.array(fr.visible_ids(0.999))[:6]
+    start = np.array([fr.corners_px[t] for t in ids]) + np.random.default_rng(4).normal(0.0, 0.1, (len(ids), 4, 2))
+    hom, cells = tag_homographies(start), stacked_tag_cells(tuple(int(i) for i in ids))
+    still, ok = photometric.fit_tags(fr.image, start, hom, cells)
+    moving, ok_m = photometric.fit_tags(fr.image, start, hom, cells, motion_px=np.zeros((len(ids), 4, 2)))
+    np.testing.assert_array_equal(ok, ok_m)
+    np.testing.assert_allclose(moving, still, rtol=0.0, atol=1e-9)
