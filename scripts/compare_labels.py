@@ -82,7 +82,8 @@ def _messages(path: Path) -> dict[str, list[tuple[int, dict[str, Any]]]]:
 def _field_difference(a: Any, b: Any) -> float | None:
     """None when equal (NaN equals NaN), else the largest absolute difference (NaN: not numeric)."""
     va, vb = np.asarray(a), np.asarray(b)
-    if va.shape == vb.shape and np.array_equal(va, vb, equal_nan=va.dtype.kind == "f"):
+    floats = va.dtype.kind == "f" and vb.dtype.kind == "f"
+    if va.shape == vb.shape and np.array_equal(va, vb, equal_nan=floats):
         return None
     try:
         return float(np.max(np.abs(va.astype(float) - vb.astype(float))))

@@ -62,6 +62,11 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "at a CPU cost per tag: docs/detection.md; every recording of a fleet, "
                              "any engine); --no-photometric (the default): the cell-edge fit's "
                              "corners")
+    parser.add_argument("--motion-corners", action=argparse.BooleanOptionalAction, default=True,
+                        help="with a stated exposure (--exposure-ms, a camera YAML's camera_timing): "
+                             "refit each tag that moves over the exposure with its pattern moving "
+                             "along its corners' paths, for the mid-exposure corners (the default; "
+                             "more CPU in fast frames); --no-motion-corners: the still fit only")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     parser.add_argument("--calibration", metavar="FILE",
                         help="head calibration YAML (ficap calibrate / the node's service)")
@@ -179,7 +184,7 @@ def run(args: argparse.Namespace) -> int:
     keep_freed_memory()  # this process decodes and processes the frames (--jobs 1)
     frames = output_frames(args)
     model = load_model(args.model) if args.model else nominal_model()
-    detector = DetectorConfig(edge_photometric=args.photometric)
+    detector = DetectorConfig(edge_photometric=args.photometric, motion_corners=args.motion_corners)
     calibration = None
     if args.calibration:
         from ficap_ros.io.calibration_file import load_calibration

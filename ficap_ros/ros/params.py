@@ -122,6 +122,10 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               "which a live camera's frame rate may not leave (costs in docs/benchmarks.md). While "
               "every uncertainty.* parameter is at its default, its corners get their own "
               "covariance profile.", read_only=True),
+    ParamSpec("detector.motion_corners", True, "With camera.exposure_ms given: refit each tag that "
+              "moves over the exposure with its pattern moving along its corners' paths, so its "
+              "corners are the mid-exposure ones (blurred edges otherwise settle off them); more CPU "
+              "in fast frames (costs in docs/benchmarks.md).", read_only=True),
     ParamSpec("detector.search_decimate", 0, "Search an image this many times smaller (corners "
               "are refined at full size); 0 = auto, as ficap replay: 2 from 1920 px wide up, else 1.",
               range=(0, 4),
@@ -316,6 +320,7 @@ class NodeConfig:
     detector_corner_refine: str
     detector_search_decimate: int
     detector_photometric: bool
+    detector_motion_corners: bool
     tracking: bool
     pose_method: str
     pose_min_tags: int
@@ -395,7 +400,8 @@ class NodeConfig:
         """The detector settings."""
         return DetectorConfig(backend=self.detector_backend, corner_refine=self.detector_corner_refine,
                               search_decimate=self.detector_search_decimate,
-                              edge_photometric=self.detector_photometric)
+                              edge_photometric=self.detector_photometric,
+                              motion_corners=self.detector_motion_corners)
 
     @property
     def pose_config(self) -> PoseConfig:

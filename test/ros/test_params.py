@@ -90,6 +90,13 @@ def test_detector_photometric_reaches_the_detector() -> None:
         off.detector_config
 
 
+def test_detector_motion_corners_reaches_the_detector() -> None:
+    # The node's detector.motion_corners is the CLI's --motion-corners: on by default, as there.
+    assert NodeConfig.from_values(_defaults()).detector_config.motion_corners is True
+    off = NodeConfig.from_values(_defaults(**{"detector.motion_corners": False}))
+    assert off.detector_config.motion_corners is False
+
+
 def test_parameter_changes_are_log_lines() -> None:
     from rclpy.parameter import Parameter
 
