@@ -53,8 +53,10 @@ CONVERGED_PX = 0.02
 #: its corners creep for the whole step budget; a third of it reaches them in a few steps.
 DAMPING = 3e-4
 #: Most a corner moves between the instants a moving tag's light is averaged over, in blur sds
-#: (``photometric.fit_tags``' ``instant_spacing_sds``): the ripple of Gaussians three sds apart is
-#: symmetric about each instant and moves no corner; the fit's cost grows with the instants.
+#: (``photometric.fit_tags``' ``instant_spacing_sds``): the fit's cost grows with the instants, and
+#: Gaussians three sds apart still sum close to their box-blurred one; the rest of the difference
+#: (a short smear averaged over two instants is narrower than its box) the fitted blur scale takes
+#: up, leaving the corners a bias far under their noise.
 INSTANT_SPACING_SDS = 3.0
 
 
