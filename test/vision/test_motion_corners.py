@@ -18,10 +18,10 @@ from tag_images import moving_tag_image
 from ficap_ros.geometry.camera import CameraModel, CameraTiming
 from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.geometry.transform import Transform
+from ficap_ros.vision import motion_corners
 from ficap_ros.vision.corners import fit_tags_photometric
 from ficap_ros.vision.detector import DetectorConfig, TagDetection
 from ficap_ros.vision.motion import MotionPrior, PastPose
-from ficap_ros.vision import motion_corners
 from ficap_ros.vision.motion_corners import (
     applies,
     corner_paths_px,
