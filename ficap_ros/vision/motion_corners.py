@@ -42,9 +42,22 @@ __all__ = ["applies", "corner_paths_px", "motion_aware_corners"]
 _MAX_MOVE_CELLS = 0.5
 #: The most Gauss-Newton steps a moving tag's fit takes, and the corner move, px, below which it
 #: stops (``photometric.fit_tags``' ``iterations`` and ``converged_px``): the cell-edge corners
-#: of a smeared tag start up to a pixel off, beyond one linearised step's reach.
+#: of a smeared tag start up to a pixel off, beyond one linearised step's reach. A step of a
+#: fiftieth of a pixel leaves the corners within a few hundredths of where further steps settle,
+#: well within their noise.
 MAX_STEPS = 12
-CONVERGED_PX = 0.01
+CONVERGED_PX = 0.02
+#: The moving fit's Levenberg damping (``photometric.fit_tags``' ``damping``): on a smeared tag the
+#: tone exponent, the levels and the blur scale trade against each other along a weakly determined
+#: direction that the still fit's damping (``photometric.DAMPING``) walks a small share a step, so
+#: its corners creep for the whole step budget; a third of it reaches them in a few steps.
+DAMPING = 3e-4
+#: Most a corner moves between the instants a moving tag's light is averaged over, in blur sds
+#: (``photometric.fit_tags``' ``instant_spacing_sds``): the fit's cost grows with the instants, and
+#: Gaussians three sds apart still sum close to their box-blurred one; the rest of the difference
+#: (a short smear averaged over two instants is narrower than its box) the fitted blur scale takes
+#: up, leaving the corners a bias far under their noise.
+INSTANT_SPACING_SDS = 3.0
 
 
 def corner_paths_px(corners_m: np.ndarray, rows_px: np.ndarray, T_cam_cap: Transform,
@@ -127,7 +140,8 @@ def motion_aware_corners(
     ids = np.array([tags[i].tag_id for i in moving])
     refit, fitted = fit_tags_photometric(gray, corners_px[moving], ids, motion_px=motion[moving],
                                          bend_px=bend[moving], max_move_cells=_MAX_MOVE_CELLS,
-                                         iterations=MAX_STEPS, converged_px=CONVERGED_PX)
+                                         iterations=MAX_STEPS, converged_px=CONVERGED_PX, damping=DAMPING,
+                                         instant_spacing_sds=INSTANT_SPACING_SDS)
     out = list(tags)
     for k, i in enumerate(moving):
         if fitted[k]:

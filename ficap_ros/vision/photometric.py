@@ -66,13 +66,14 @@ _MAX_MISFIT = 0.3
 _MIN_PIXELS = 40
 #: Fewest pixels the start corners call flat black and flat white that set a tag's first levels.
 _MIN_LEVEL_PIXELS = 5
-#: Levenberg damping on the column-scaled normal equations.
-_DAMPING = 1e-3
+#: Levenberg damping on the column-scaled normal equations (``fit_tags``' ``damping``).
+DAMPING = 1e-3
 #: Most a moving tag's corners move between the instants its light is averaged over, in blur sds
-#: (``motion_warps``): Gaussians two sds apart sum to their box-blurred one within exp(-pi^2 / 2),
-#: under 1 % of the step (Poisson summation: exp(-2 pi^2 / spacing^2)), a ripple symmetric about
-#: each instant that moves no corner; the fit's cost grows with the instants.
-_INSTANT_SPACING_SDS = 2.0
+#: (``motion_warps``; ``fit_tags``' ``instant_spacing_sds``): Gaussians two sds apart sum to their
+#: box-blurred one within exp(-pi^2 / 2), under 1 % of the step (Poisson summation:
+#: exp(-2 pi^2 / spacing^2)), a ripple symmetric about each instant that moves no corner; the
+#: fit's cost grows with the instants.
+INSTANT_SPACING_SDS = 2.0
 
 
 def _black_tables(cells: np.ndarray) -> np.ndarray:
@@ -182,7 +183,8 @@ def fit_tags(
     psf_sigma_px: float = PSF_SIGMA_PX,
     iterations: int = 3, reach_px: float = 1.0, free_tone: bool = True, max_move_cells: float = 0.35,
     max_pixels: int = 1500, motion_px: np.ndarray | None = None, converged_px: float = 0.0,
-    bend_px: np.ndarray | None = None,
+    bend_px: np.ndarray | None = None, damping: float = DAMPING,
+    instant_spacing_sds: float = INSTANT_SPACING_SDS,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Fit each tag's homography and levels to its pixels (module docstring).
 
@@ -209,12 +211,19 @@ def fit_tags(
             step moves no corner further than this, px (``fit_steps_moving``).
         bend_px: with ``motion_px``, (N, 4, 2) how each corner's path bends over the exposure
             (``motion_warps``), or None: constant velocity.
+        damping: Levenberg damping on the column-scaled normal equations: less damping walks
+            along the parameters' weakly determined combinations (the tone exponent against the
+            levels and the blur) in fewer steps.
+        instant_spacing_sds: with ``motion_px``, the most a corner moves between the instants
+            averaged, in blur sds (``motion_warps``); the moving fit's cost grows with the instants.
 
     Returns:
         (corners (N, 4, 2), fitted (N,) bool): a tag not fitted keeps its input corners.
     """
     if iterations < 2:
         raise ValueError(f"iterations must be >= 2, got {iterations}")
+    if not (damping > 0.0 and instant_spacing_sds > 0.0):
+        raise ValueError(f"damping and instant_spacing_sds must be > 0, got {damping}, {instant_spacing_sds}")
     c_in = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
     n = len(c_in)
     hom = np.asarray(hom, dtype=np.float64).reshape(n, 3, 3)
@@ -238,11 +247,12 @@ def fit_tags(
     theta = np.zeros((n, 8 if free_tone else 7))  # levels (2 planes), log blur scale, log tone exponent
     args = (gray[yi, xi].astype(np.float64), xi.astype(np.float64), yi.astype(np.float64), starts, counts,
             h, theta, tab)
-    settings = (sd_px, bool(free_tone), int(iterations), _MIN_PIXELS, _MIN_LEVEL_PIXELS, _DAMPING)
+    settings = (sd_px, bool(free_tone), int(iterations), _MIN_PIXELS, _MIN_LEVEL_PIXELS,
+                float(damping))
     if motion_px is None:
         ok, misfit, contrast = fit_steps(*args, *settings)
     else:
-        warps, instants = motion_warps(c_in, motion_px, _INSTANT_SPACING_SDS * sd_px, bend_px)
+        warps, instants = motion_warps(c_in, motion_px, instant_spacing_sds * sd_px, bend_px)
         ok, misfit, contrast = fit_steps_moving(*args, warps, instants, *settings, float(converged_px))
     corners = homography_corners(h)
     cell = np.linalg.norm(c_in[:, [1, 2, 3, 0]] - c_in, axis=2).min(axis=1) / TAG_CELLS

@@ -111,6 +111,10 @@ def test_photometric_fit_takes_colour_frames_and_refuses_what_it_cannot_do() -> 
         fit_tags_photometric(fr.image.astype(np.float32), start, ids)
     with pytest.raises(ValueError, match="iterations"):
         fit_tags_photometric(fr.image, start, ids, iterations=1)
+    with pytest.raises(ValueError, match="damping"):
+        fit_tags_photometric(fr.image, start, ids, damping=0.0)
+    with pytest.raises(ValueError, match="instant_spacing_sds"):
+        fit_tags_photometric(fr.image, start, ids, instant_spacing_sds=-1.0)
 
 
 def test_pipeline_takes_the_uncertainty_profile_of_its_corners() -> None:
