@@ -175,14 +175,7 @@ def _fit_tag(obs: np.ndarray, px: np.ndarray, py: np.ndarray, h: np.ndarray, the
             return False, misfit, contrast
         lo, hi = _model_rows(obs, px, py, theta, geo, cov, free_tone, jac, r)
         if it >= 1:
-            mad = np.median(np.abs(r))
-            limit = max(_OUTLIER_SDS * _MAD_SD * mad, _MIN_OUTLIER_GREY)
-            contrast = hi - lo
-            misfit = _MAD_SD * mad / max(contrast, 1.0)
-            for p in range(p_n):
-                if abs(r[p]) > limit:
-                    jac[p, :] = 0.0
-                    r[p] = 0.0
+            misfit, contrast = _drop_outliers(jac, r, lo, hi)
         if not _gauss_newton_update(jac, r, h, theta, damping, free_tone):
             return False, misfit, contrast
     return True, misfit, contrast
@@ -248,14 +241,7 @@ def _fit_tag_moving(obs: np.ndarray, px: np.ndarray, py: np.ndarray, h: np.ndarr
             return False, misfit, contrast
         lo, hi = model_rows_moving(obs, theta, mean, free_tone, jac, r)
         if it >= 1:
-            mad = np.median(np.abs(r))
-            limit = max(_OUTLIER_SDS * _MAD_SD * mad, _MIN_OUTLIER_GREY)
-            contrast = hi - lo
-            misfit = _MAD_SD * mad / max(contrast, 1.0)
-            for p in range(p_n):
-                if abs(r[p]) > limit:
-                    jac[p, :] = 0.0
-                    r[p] = 0.0
+            misfit, contrast = _drop_outliers(jac, r, lo, hi)
         before = h.copy()
         if not _gauss_newton_update(jac, r, h, theta, damping, free_tone):
             return False, misfit, contrast
@@ -290,7 +276,6 @@ def coverage_moving(px: np.ndarray, py: np.ndarray, h: np.ndarray, scale: float,
     instant's ``_model_rows`` geometry at the pixel it maps to). ``bu``, ``bv`` (P, K): each
     instant's nearest boundary crossing, set on the ``first`` step."""
     a11, a12, a13, a21, a22, a23, a31, a32 = h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7]
-    size = table.shape[0]
     n_k = len(warps)
     inv_k = 1.0 / n_k
     for p in range(len(px)):
@@ -312,21 +297,7 @@ def coverage_moving(px: np.ndarray, py: np.ndarray, h: np.ndarray, scale: float,
                 bv[p, k] = _round_half_even(v)
             _shares(shares, 0, bu[p, k] - u, math.sqrt(m22 * m22 + m12 * m12) * gd)
             _shares(shares, 1, bv[p, k] - v, math.sqrt(m21 * m21 + m11 * m11) * gd)
-            ci = min(max(bu[p, k] + PAD, 2), size - 2) - 2
-            cj = min(max(bv[p, k] + PAD, 2), size - 2) - 2
-            black, dbu, dbv, dbs = 0.0, 0.0, 0.0, 0.0
-            for j in range(4):
-                r0, r1, r2 = 0.0, 0.0, 0.0
-                for i in range(4):
-                    cell = table[cj + j, ci + i]
-                    r0 += cell * shares[0, 0, i]
-                    r1 += cell * shares[0, 1, i]
-                    r2 += cell * shares[0, 2, i]
-                av = shares[1, 0, j]
-                black += r0 * av
-                dbu += r1 * av
-                dbv += r0 * shares[1, 1, j]
-                dbs += r2 * av + r0 * shares[1, 2, j]
+            black, dbu, dbv, dbs = _blurred_cells(table, shares, bu[p, k], bv[p, k])
             gx = (m22 * dbu - m21 * dbv) / det
             gy = (m11 * dbv - m12 * dbu) / det
             gp = gx * x + gy * y
@@ -356,19 +327,9 @@ def model_rows_moving(obs: np.ndarray, theta: np.ndarray, mean: np.ndarray, free
     for p in range(len(obs)):
         C, dbs = mean[p, 0], mean[p, 1]
         uc, vc = (mean[p, 2] - 4.0) / 4.0, (mean[p, 3] - 4.0) / 4.0
-        lb = theta[0] + theta[1] * uc + theta[2] * vc
-        lw = theta[3] + theta[4] * uc + theta[5] * vc
-        enc, slope = _srgb_encode(lb + (lw - lb) * C)
+        lb, lw, model, fp, d_kappa = _grey(C, uc, vc, theta, kap, free_tone)
         if free_tone:
-            encp = max(enc, 1e-4)
-            log_enc = math.log(encp)
-            powered = math.exp(kap * log_enc)
-            model = 255.0 * powered
-            fp = 255.0 * kap * (powered / encp) * slope
-            jac[p, 15] = model * log_enc * kap
-        else:
-            model = 255.0 * enc
-            fp = 255.0 * slope
+            jac[p, 15] = d_kappa
         r[p] = obs[p] - model
         lo, hi = min(lo, model), max(hi, model)
         dC = (lw - lb) * fp  # d grey / d C
@@ -388,10 +349,9 @@ def _coverage(px: np.ndarray, py: np.ndarray, h: np.ndarray, scale: float, table
     """Every pixel (``px``, ``py``): its tag coordinates and the local geometry into ``geo``, its
     white coverage and the black coverage's derivatives into ``cov``; on the ``first`` step also
     the boundary crossing nearest it into ``bu``, ``bv`` (kept through the steps: a corner moves a
-    few hundredths of a cell). ``shares``: (2, 3, 4) scratch (``_shares``). One loop, no calls
-    with array arguments inside it: the loop is the fit's bulk."""
+    few hundredths of a cell). ``shares``: (2, 3, 4) scratch (``_shares``). One loop whose helpers
+    are inlined (``_shares``, ``_blurred_cells``): the loop is the fit's bulk."""
     a11, a12, a13, a21, a22, a23, a31, a32 = h[0], h[1], h[2], h[3], h[4], h[5], h[6], h[7]
-    size = table.shape[0]
     for p in range(len(px)):
         x, y = px[p], py[p]
         # Solve [a11 - a31 x, a12 - a32 x; a21 - a31 y, a22 - a32 y] (u, v) = (x - a13, y - a23).
@@ -409,22 +369,32 @@ def _coverage(px: np.ndarray, py: np.ndarray, h: np.ndarray, scale: float, table
         geo[p, 0], geo[p, 1], geo[p, 2], geo[p, 3], geo[p, 4], geo[p, 5], geo[p, 6] = u, v, m11, m12, m21, m22, det
         _shares(shares, 0, bu[p] - u, math.sqrt(m22 * m22 + m12 * m12) * gd)
         _shares(shares, 1, bv[p] - v, math.sqrt(m21 * m21 + m11 * m11) * gd)
-        ci = min(max(bu[p] + PAD, 2), size - 2) - 2
-        cj = min(max(bv[p] + PAD, 2), size - 2) - 2
-        black, dbu, dbv, dbs = 0.0, 0.0, 0.0, 0.0
-        for j in range(4):
-            r0, r1, r2 = 0.0, 0.0, 0.0
-            for k in range(4):
-                cell = table[cj + j, ci + k]
-                r0 += cell * shares[0, 0, k]
-                r1 += cell * shares[0, 1, k]
-                r2 += cell * shares[0, 2, k]
-            av = shares[1, 0, j]
-            black += r0 * av
-            dbu += r1 * av
-            dbv += r0 * shares[1, 1, j]
-            dbs += r2 * av + r0 * shares[1, 2, j]
+        black, dbu, dbv, dbs = _blurred_cells(table, shares, bu[p], bv[p])
         cov[p, 0], cov[p, 1], cov[p, 2], cov[p, 3] = 1.0 - black, dbu, dbv, dbs
+
+
+@njit(inline="always")
+def _blurred_cells(table: np.ndarray, shares: np.ndarray, bu: int, bv: int) -> tuple[float, float, float, float]:
+    """The black coverage a pixel gets from the 4 x 4 cells around its nearest boundary crossing
+    (``bu``, ``bv``; the table padded by ``PAD``) under the blurred shares (``_shares``), and its
+    derivatives along the pixel's u and v and the log of the blur's scale."""
+    size = table.shape[0]
+    ci = min(max(bu + PAD, 2), size - 2) - 2
+    cj = min(max(bv + PAD, 2), size - 2) - 2
+    black, dbu, dbv, dbs = 0.0, 0.0, 0.0, 0.0
+    for j in range(4):
+        r0, r1, r2 = 0.0, 0.0, 0.0
+        for i in range(4):
+            cell = table[cj + j, ci + i]
+            r0 += cell * shares[0, 0, i]
+            r1 += cell * shares[0, 1, i]
+            r2 += cell * shares[0, 2, i]
+        av = shares[1, 0, j]
+        black += r0 * av
+        dbu += r1 * av
+        dbv += r0 * shares[1, 1, j]
+        dbs += r2 * av + r0 * shares[1, 2, j]
+    return black, dbu, dbv, dbs
 
 
 @njit(inline="always")
@@ -513,19 +483,9 @@ def _model_rows(obs: np.ndarray, px: np.ndarray, py: np.ndarray, theta: np.ndarr
         u, v, m11, m12, m21, m22, det = geo[p, 0], geo[p, 1], geo[p, 2], geo[p, 3], geo[p, 4], geo[p, 5], geo[p, 6]
         C, dbu, dbv, dbs = cov[p, 0], cov[p, 1], cov[p, 2], cov[p, 3]
         uc, vc = (u - 4.0) / 4.0, (v - 4.0) / 4.0
-        lb = theta[0] + theta[1] * uc + theta[2] * vc
-        lw = theta[3] + theta[4] * uc + theta[5] * vc
-        enc, slope = _srgb_encode(lb + (lw - lb) * C)
+        lb, lw, model, fp, d_kappa = _grey(C, uc, vc, theta, kap, free_tone)
         if free_tone:
-            encp = max(enc, 1e-4)
-            log_enc = math.log(encp)
-            powered = math.exp(kap * log_enc)
-            model = 255.0 * powered
-            fp = 255.0 * kap * (powered / encp) * slope
-            jac[p, 15] = model * log_enc * kap
-        else:
-            model = 255.0 * enc
-            fp = 255.0 * slope
+            jac[p, 15] = d_kappa
         r[p] = obs[p] - model
         lo, hi = min(lo, model), max(hi, model)
         dC = (lw - lb) * fp  # d grey / d C
@@ -542,6 +502,39 @@ def _model_rows(obs: np.ndarray, px: np.ndarray, py: np.ndarray, theta: np.ndarr
         jac[p, 11], jac[p, 12], jac[p, 13] = fw, fw * uc, fw * vc
         jac[p, 14] = -(dbs * dC)
     return lo, hi
+
+
+@njit
+def _grey(C: float, uc: float, vc: float, theta: np.ndarray, kap: float,
+          free_tone: bool) -> tuple[float, float, float, float, float]:
+    """The model at a pixel whose white coverage is ``C``, at tag position (``uc``, ``vc``) from the
+    centre (half-tags): (black level, white level, grey, d grey / d linear light, d grey / d log
+    tone exponent (0 without ``free_tone``)); ``kap`` the tone exponent."""
+    lb = theta[0] + theta[1] * uc + theta[2] * vc
+    lw = theta[3] + theta[4] * uc + theta[5] * vc
+    enc, slope = _srgb_encode(lb + (lw - lb) * C)
+    if free_tone:
+        encp = max(enc, 1e-4)
+        log_enc = math.log(encp)
+        powered = math.exp(kap * log_enc)
+        model = 255.0 * powered
+        return lb, lw, model, 255.0 * kap * (powered / encp) * slope, model * log_enc * kap
+    return lb, lw, 255.0 * enc, 255.0 * slope, 0.0
+
+
+@njit
+def _drop_outliers(jac: np.ndarray, r: np.ndarray, lo: float, hi: float) -> tuple[float, float]:
+    """Zero the rows of pixels more than ``_OUTLIER_SDS`` robust sds off (glare specks, a
+    neighbour's edge) in ``jac`` and ``r``; returns (misfit: the robust residual sd over the
+    model's grey range ``hi - lo``, that range)."""
+    mad = np.median(np.abs(r))
+    limit = max(_OUTLIER_SDS * _MAD_SD * mad, _MIN_OUTLIER_GREY)
+    contrast = hi - lo
+    for p in range(len(r)):
+        if abs(r[p]) > limit:
+            jac[p, :] = 0.0
+            r[p] = 0.0
+    return _MAD_SD * mad / max(contrast, 1.0), contrast
 
 
 @njit
