@@ -94,9 +94,6 @@ class MotionConfig:
     linear_speed_m_s: float = 0.6
     jerk_floor: float = 0.2
     max_age_s: float = 0.2
-    cubic_velocity: bool = False
-    angular_snap_rad_s4: float = 11000.0
-    linear_snap_m_s4: float = 700.0
 
     def __post_init__(self) -> None:
         values = (self.angular_jerk_rad_s3, self.linear_jerk_m_s3, self.angular_accel_rad_s2,
@@ -203,8 +200,6 @@ class MotionPrior:
             if len(past) == 3:
                 jerk = np.hypot(_measured_jerk(T, past), c.jerk_floor * jerk)
             model = jerk * (h1 * (h1 + h2) / 6.0)
-            if len(past) == 3 and c.cubic_velocity:
-                v, w, c0, coefs, model = _cubic_velocity(T, past, c)
         cov = np.diag(model**2)
         for coef, p in zip(coefs, past):
             cov = cov + coef * coef * np.asarray(p.covariance, dtype=float)
@@ -212,22 +207,6 @@ class MotionPrior:
         accel, a0 = acceleration(T, past)
         return VelocityPrior(np.concatenate([v, w]), _by_pose(c0, jl_inv), 0.5 * (cov + cov.T),
                              accel, _by_pose(a0, jl_inv))
-
-
-def _cubic_velocity(T: Transform, past: tuple[PastPose, ...], c: MotionConfig
-                    ) -> tuple[np.ndarray, np.ndarray, float, tuple[float, ...], np.ndarray]:
-    """The velocity at the stamp from the cubic through ``T`` and three past poses: (linear,
-    angular, the weight of ``T``, the past poses' weights, the model error's sd (6,): the
-    truncation by the head's snap)."""
-    T1 = past[0].T_cam_cap
-    times = np.array([0.0] + [-p.age_s for p in past])
-    values = np.stack([np.concatenate([Ti.translation_m, (Ti * T1.inv()).rvec])
-                       for Ti in [T] + [p.T_cam_cap for p in past]])
-    weights = np.linalg.inv(np.vander(times, increasing=True))[1]
-    mean = weights @ values
-    snap = np.array([c.linear_snap_m_s4] * 3 + [c.angular_snap_rad_s4] * 3)
-    model = snap * (float(np.prod(-times[1:])) / 24.0)
-    return mean[:3], mean[3:], float(weights[0]), tuple(float(x) for x in weights[1:]), model
 
 
 def _by_pose(coef: np.ndarray | float, jl_inv: np.ndarray) -> np.ndarray:
