@@ -19,9 +19,9 @@ one thread, with our joint pose, on the same JPEG payloads in this process, deco
 Beside them the JPEG decode alone. Everything runs on one core (this process's affinity, which
 the child inherits); the command's runs and the other rounds alternate (``--rounds``), so a change
 of the shared machine's load falls on all; each figure is the median of its rounds. The package's
-modules are compiled to bytecode first (into the cache, ``PYTHONPYCACHEPREFIX``), as a pip or colcon
-install has them: ``make`` runs with ``PYTHONDONTWRITEBYTECODE``, which would otherwise make each
-run compile them again. Then one
+modules are compiled to bytecode first (``__pycache__`` beside them), as a pip or colcon install has
+them: ``make`` runs with ``PYTHONDONTWRITEBYTECODE``, which would otherwise make each run compile
+them again. Then one
 instrumented pass of ours in this process: each stage's own CPU time (the package's public
 functions, timed wherever they are called). Writes docs/benchmarks/speed.md and speed.png.
 """
@@ -191,15 +191,14 @@ def plot(drives: list[Drive], stages: dict[str, tuple[dict[str, float], float, f
     return report.save_figure(fig, "speed")
 
 
-def compile_package(prefix: Path) -> None:
-    """Compile the package's modules to bytecode under ``prefix`` and point this process and its
-    children there (``PYTHONPYCACHEPREFIX``), so the command starts as an installed one does."""
+def compile_package() -> None:
+    """Compile the package's modules to bytecode beside them (``__pycache__``, ignored by git), so
+    the command starts as an installed one does. Not ``PYTHONPYCACHEPREFIX``: a prefix applies to
+    every module, and the installed libraries' own bytecode would then go unread."""
     import compileall
 
     import ficap_ros
 
-    os.environ["PYTHONPYCACHEPREFIX"] = str(prefix)
-    sys.pycache_prefix = str(prefix)
     compileall.compile_dir(Path(ficap_ros.__file__).parent, quiet=1)
 
 
@@ -226,7 +225,7 @@ def main(argv: list[str] | None = None) -> int:
     os.sched_setaffinity(0, {core})  # the command's children inherit it
     cv2.setNumThreads(1)
     keep_freed_memory()  # the allocator setting the command makes for itself, for AprilTag 3's rounds too
-    compile_package(args.cache / "pycache")
+    compile_package()
     run = report.Run()
     synth = cached_synth_bag(args.cache, "1080p", int(round(seconds * 30)))
     drives = [Drive("synth", synth)]
