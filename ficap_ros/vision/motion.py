@@ -4,8 +4,12 @@ A rolling shutter sees each corner at its row's time (``CameraTiming.row_time_s`
 glance the top and bottom of the cap are seen several milliseconds apart, and a pose fitted as if
 every corner were seen at once is the pose at some mean time of the cap's rows, tilted by the shear.
 The joint solver's moving fit (``MovingFit``) solves instead for the pose at the stamp together with
-the cap's velocity over the readout (constant velocity: ``reprojection.residuals_and_jacobian_moving``),
-the velocity held by a prior (``MotionPrior``).
+the cap's velocity over the readout (``reprojection.residuals_and_jacobian_moving``), the velocity
+held by a prior (``MotionPrior``). A glance speeds up and slows down within a readout: with two past
+poses or more the corners are projected with the cap's acceleration as well, the second derivative
+of the polynomial through the past poses and the pose being solved (``acceleration``), so that the
+top and bottom rows, seen milliseconds before and after the stamp, are not both off the same way by
+half the acceleration times their time squared.
 
 The prior comes from the poses of the frames before (the tracker's, ``PastPose``): the velocity at
 this frame's stamp is the derivative of the quadratic through the two past poses and the pose being
@@ -51,7 +55,7 @@ from ficap_ros.vision.uncertainty import (
 )
 
 __all__ = ["MotionConfig", "PastPose", "VelocityPrior", "MotionPrior", "MovingFit", "MovingPose",
-           "blur_modes", "blur_px", "corner_times_s", "moving_pose", "prior_blur_modes",
+           "acceleration", "blur_modes", "blur_px", "corner_times_s", "moving_pose", "prior_blur_modes",
            "static_velocity"]
 
 #: Reorders the pose solver's (d_theta, d_t) into ROS (t, theta) order.
@@ -123,11 +127,17 @@ class VelocityPrior:
         d_mean: (6, 6) its derivative by a left perturbation of the pose, columns (d_theta, d_t)
             (the pose solver's order).
         covariance: (6, 6) twist covariance.
+        accel: (6,) the acceleration at the stamp, ROS order (m/s^2, then rad/s^2; camera
+            axes): the second derivative of the polynomial through the pose and the past ones
+            (``acceleration``); zero with fewer than two past poses.
+        d_accel: (6, 6) its derivative by a left perturbation of the pose, as ``d_mean``.
     """
 
     mean: np.ndarray
     d_mean: np.ndarray
     covariance: np.ndarray
+    accel: np.ndarray = field(default_factory=lambda: np.zeros(6))
+    d_accel: np.ndarray = field(default_factory=lambda: np.zeros((6, 6)))
 
 
 @dataclass(frozen=True)
@@ -191,12 +201,38 @@ class MotionPrior:
                 jerk = np.hypot(_measured_jerk(T, past), c.jerk_floor * jerk)
             model = jerk * (h1 * (h1 + h2) / 6.0)
         cov = np.diag(model**2)
-        for coef, p in zip(coefs, past[:2]):
+        for coef, p in zip(coefs, past):
             cov = cov + coef * coef * np.asarray(p.covariance, dtype=float)
-        d_mean = np.zeros((6, 6))
-        d_mean[0:3, 3:6] = c0 * np.eye(3)  # v by d_t
-        d_mean[3:6, 0:3] = c0 * _left_jacobian_inverse(phi0)  # w by d_theta
-        return VelocityPrior(np.concatenate([v, w]), d_mean, 0.5 * (cov + cov.T))
+        jl_inv = _left_jacobian_inverse(phi0)
+        accel, a0 = acceleration(T, past)
+        return VelocityPrior(np.concatenate([v, w]), _by_pose(c0, jl_inv), 0.5 * (cov + cov.T),
+                             accel, _by_pose(a0, jl_inv))
+
+
+def _by_pose(coef: np.ndarray | float, jl_inv: np.ndarray) -> np.ndarray:
+    """(6, 6) the derivative by a left perturbation of the pose (columns d_theta, d_t) of a twist
+    (ROS order) that weighs this frame's pose by ``coef`` in a finite difference of poses."""
+    d = np.zeros((6, 6))
+    d[0:3, 3:6] = coef * np.eye(3)  # linear by d_t
+    d[3:6, 0:3] = coef * jl_inv  # angular by d_theta
+    return d
+
+
+def acceleration(T: Transform, past: tuple[PastPose, ...]) -> tuple[np.ndarray, float]:
+    """The cap's acceleration at this frame's stamp (6,: m/s^2 then rad/s^2, ROS order, camera
+    axes) if its pose there is ``T``, and the weight of ``T`` in it: the second derivative at the
+    stamp of the polynomial through ``T`` and the past poses (a parabola through two, a cubic
+    through three; rotations as vectors in the tangent at the most recent past pose). Zero with
+    fewer than two past poses (a line has none)."""
+    if len(past) < 2:
+        return np.zeros(6), 0.0
+    T1 = past[0].T_cam_cap
+    times = np.array([0.0] + [-p.age_s for p in past])
+    values = np.stack([np.concatenate([Ti.translation_m, (Ti * T1.inv()).rvec])
+                       for Ti in [T] + [p.T_cam_cap for p in past]])
+    # p''(0) = 2 a_2 of p(t) = sum a_k t^k through the nodes: row 2 of the Vandermonde inverse.
+    weights = 2.0 * np.linalg.inv(np.vander(times, increasing=True))[2]
+    return weights @ values, float(weights[0])
 
 
 def _measured_jerk(T: Transform, past: tuple[PastPose, ...]) -> np.ndarray:
@@ -284,6 +320,11 @@ class MovingFit:
         assert self.velocity is not None
         return self.velocity
 
+    def _accel(self, T: Transform) -> np.ndarray | None:
+        """The acceleration the corners are projected with: held, the prior's at ``T``; fitted
+        (no past pose), none."""
+        return self.prior.at(T).accel if self.held else None
+
     def _step(self, T0: Transform, velocity0: np.ndarray, x: np.ndarray) -> tuple[Transform, np.ndarray]:
         """The pose and velocity at the unknowns ``x`` around (T0, velocity0)."""
         T = T0.turned(x[:3], x[3:6])
@@ -307,9 +348,14 @@ class MovingFit:
                                velocity: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The fit's residuals and Jacobian (columns: ``unknowns``): held, the corners' (2N,),
         the velocity following the pose; else the corners' and the prior's (2N + 6,)."""
-        res, J = residuals_and_jacobian_moving(T.rotation_matrix, T.translation_m, velocity, obs)
         if self.held:
-            return res, J[:, :6] + J[:, 6:] @ self.prior.at(T).d_mean
+            vp = self.prior.at(T)
+            res, J = residuals_and_jacobian_moving(T.rotation_matrix, T.translation_m, velocity,
+                                                   obs, vp.accel)
+            # The acceleration's columns are the velocity's times tau / 2 (moving_points_m).
+            half_tau = 0.5 * np.repeat(np.asarray(obs.time_s, dtype=float).reshape(-1), 2)
+            return res, J[:, :6] + J[:, 6:] @ vp.d_mean + (half_tau[:, None] * J[:, 6:]) @ vp.d_accel
+        res, J = residuals_and_jacobian_moving(T.rotation_matrix, T.translation_m, velocity, obs)
         rp, Jp = self.prior_rows(T, velocity)
         return np.concatenate([res, rp]), np.vstack([J, Jp])
 
@@ -344,7 +390,7 @@ class MovingFit:
         """Per-tag RMS reprojection error (T,), px, at pose ``T`` moving at the current velocity
         (held: the prior's at ``T``)."""
         res, _ = residuals_and_jacobian_moving(T.rotation_matrix, T.translation_m,
-                                               self._velocity(T), obs)
+                                               self._velocity(T), obs, self._accel(T))
         return np.sqrt(np.sum(res.reshape(len(obs), 4, 2) ** 2, axis=2).mean(axis=1))
 
     def corner_residuals(self, obs: TagObservations, T: Transform) -> tuple[np.ndarray, np.ndarray]:
@@ -394,7 +440,8 @@ class MovingFit:
         res, J = self.residuals_and_jacobian(obs, T, velocity)
         H = J[:n].T @ (w[:, None] * J[:n])
         if self.held:
-            _, J12 = residuals_and_jacobian_moving(T.rotation_matrix, T.translation_m, velocity, obs)
+            _, J12 = residuals_and_jacobian_moving(T.rotation_matrix, T.translation_m, velocity,
+                                                   obs, self._accel(T))
             G = -np.linalg.solve(H, J[:n].T @ (w[:, None] * J12[:, 6:]))
             cov = G @ self.prior.at(T).covariance @ G.T
         else:

@@ -198,32 +198,51 @@ def rotations_of(rotvecs_rad: np.ndarray) -> np.ndarray:
 
 
 def moving_points_m(R: np.ndarray, t: np.ndarray, velocity: np.ndarray, model_m: np.ndarray,
-                    time_s: np.ndarray) -> np.ndarray:
+                    time_s: np.ndarray, accel: np.ndarray | None = None) -> np.ndarray:
     """Camera-frame positions (N, 3), m, of model points ``model_m`` (..., 3) at their times
     ``time_s`` (...,), s from the stamp, of a cap at pose (R, t) at the stamp moving at
-    ``velocity`` (6,): linear m/s, then angular rad/s (camera axes)."""
+    ``velocity`` (6,): linear m/s, then angular rad/s (camera axes), speeding up at ``accel``
+    (6,: m/s^2, rad/s^2, camera axes; None: constant velocity): the motion over ``tau`` is the
+    turn ``exp(tau w + tau^2 alpha / 2)`` and the shift ``tau v + tau^2 a / 2``."""
     tau = np.asarray(time_s, dtype=np.float64).reshape(-1)
+    turn, shift = _motion_over(tau, velocity, accel)
     Y = model_m.reshape(-1, 3) @ R.T
-    E = rotations_of(tau[:, None] * velocity[3:])
-    return np.einsum("nij,nj->ni", E, Y) + t + tau[:, None] * velocity[:3]
+    E = rotations_of(turn)
+    return np.einsum("nij,nj->ni", E, Y) + t + shift
+
+
+def _motion_over(tau: np.ndarray, velocity: np.ndarray,
+                 accel: np.ndarray | None) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3) rotation vectors (rad) and (N, 3) shifts (m) of a cap moving at ``velocity`` with
+    ``accel`` (None: none) over the times ``tau`` (N,) from the stamp (camera axes)."""
+    turn = tau[:, None] * velocity[3:]
+    shift = tau[:, None] * velocity[:3]
+    if accel is not None:
+        half_sq = 0.5 * tau[:, None] ** 2
+        turn = turn + half_sq * accel[3:]
+        shift = shift + half_sq * accel[:3]
+    return turn, shift
 
 
 def residuals_and_jacobian_moving(
-    R: np.ndarray, t: np.ndarray, velocity: np.ndarray, obs: TagObservations
+    R: np.ndarray, t: np.ndarray, velocity: np.ndarray, obs: TagObservations,
+    accel: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """Residuals (2N,) and Jacobian (2N, 12) of a cap at pose (R, t) at the stamp moving at
     ``velocity`` (6,: linear m/s, angular rad/s, camera axes) over the corners' times
-    ``obs.time_s`` (module docstring).
+    ``obs.time_s`` (module docstring), speeding up at ``accel`` (``moving_points_m``; a known
+    term, no columns of its own: by ``tau / 2`` times the velocity's columns it moves the
+    corners).
 
     Rows alternate u and v of each corner; the columns: the pose's left perturbation (d_theta,
     d_t), then the velocity in twist order, d_v (m/s) and d_w (rad/s). A corner seen at the stamp (time 0) gives the same
     residuals and pose columns as ``residuals_and_jacobian_rt``, and zeros in the velocity's."""
     tau = np.asarray(obs.time_s, dtype=np.float64).reshape(-1)
-    w = velocity[3:]
+    phi, shift = _motion_over(tau, velocity, accel)
     Y = obs.model_m.reshape(-1, 3) @ R.T
-    E = rotations_of(tau[:, None] * w)
+    E = rotations_of(phi)
     P = np.einsum("nij,nj->ni", E, Y)  # the rotated model points at each corner's time
-    p = P + t + tau[:, None] * velocity[:3]
+    p = P + t + shift
     K = obs.K
     fx, fy, s, cx, cy = K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2]
     iz = 1.0 / p[:, 2]
@@ -241,9 +260,9 @@ def residuals_and_jacobian_moving(
     G[:, 0, 2] = -(u - cx) * iz
     G[:, 1, 1] = fy * iz
     G[:, 1, 2] = -(v - cy) * iz
-    # dp/d_theta = -[P]_x E; dp/d_w = -[P]_x J_l(tau w) tau, J_l to first order (tau w is small).
+    # dp/d_theta = -[P]_x E; dp/d_w = -[P]_x J_l(phi) tau, phi the turn over the corner's time,
+    # J_l to first order (phi is small).
     GP = -G @ _skew(P)
-    phi = tau[:, None] * w
     Jl = np.eye(3) + 0.5 * _skew(phi)
     jac = np.empty((n, 2, 12))
     jac[:, :, 0:3] = GP @ E

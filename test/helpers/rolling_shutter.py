@@ -26,6 +26,19 @@ def constant_velocity(T0: Transform, twist: np.ndarray) -> Callable[[float], Tra
     return at
 
 
+def accelerating(T0: Transform, twist: np.ndarray, accel: np.ndarray) -> Callable[[float], Transform]:
+    """The pose at time ``s`` of a cap at ``T0`` at the stamp moving at ``twist`` there and
+    speeding up at the constant ``accel`` (6,: m/s^2 of the cap origin, rad/s^2; camera axes):
+    turned by ``exp(w s + alpha s^2 / 2)`` and shifted by ``v s + a s^2 / 2``."""
+    twist, accel = np.asarray(twist, dtype=float), np.asarray(accel, dtype=float)
+
+    def at(s: float) -> Transform:
+        R = Rotation.from_rotvec(twist[3:] * s + 0.5 * accel[3:] * s * s) * T0.rotation
+        return Transform(R, T0.translation_m + twist[:3] * s + 0.5 * accel[:3] * s * s)
+
+    return at
+
+
 def facing_ids(model: CapModel, T: Transform, min_cos: float = 0.2) -> list[int]:
     """The model's tags facing the camera at ``T`` (cosine of the view angle above ``min_cos``)."""
     n = T.rotation.apply(model.normals)

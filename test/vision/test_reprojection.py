@@ -97,28 +97,52 @@ def _timed(obs: TagObservations, seed: int = 1) -> TagObservations:
 
 
 VELOCITY = np.array([0.05, -0.02, 0.1, 0.5, 4.0, -0.3])
+ACCEL = np.array([1.0, 0.5, -2.0, 5.0, 60.0, -3.0])
 
 
+@pytest.mark.parametrize("accel", [None, ACCEL])
 @pytest.mark.parametrize("column", range(12))
-def test_moving_jacobian_is_the_derivative_of_pose_and_velocity(column: int) -> None:
+def test_moving_jacobian_is_the_derivative_of_pose_and_velocity(column: int,
+                                                                accel: np.ndarray | None) -> None:
     """Columns 0-5: a left perturbation of the pose at the stamp; 6-11: the velocity (twist
-    order). Central differences; the angular columns to the first-order J_l they use (the
-    rotation over a corner's time is a few degrees at most)."""
+    order), with or without an acceleration. Central differences; the angular columns to the
+    first-order J_l they use (the rotation over a corner's time is a few degrees at most)."""
     from ficap_ros.vision.reprojection import residuals_and_jacobian_moving
 
     obs = _timed(_observations(0.2))
-    _, J = residuals_and_jacobian_moving(T_TRUE.rotation_matrix, T_TRUE.translation_m, VELOCITY, obs)
+    _, J = residuals_and_jacobian_moving(T_TRUE.rotation_matrix, T_TRUE.translation_m, VELOCITY, obs,
+                                         accel)
     eps = 1e-7
 
     def res(sign: float) -> np.ndarray:
         dx = np.zeros(12)
         dx[column] = sign * eps
         T = T_TRUE.turned(dx[:3], T_TRUE.translation_m + dx[3:6])
-        return residuals_and_jacobian_moving(T.rotation_matrix, T.translation_m, VELOCITY + dx[6:], obs)[0]
+        return residuals_and_jacobian_moving(T.rotation_matrix, T.translation_m, VELOCITY + dx[6:], obs,
+                                             accel)[0]
 
     numeric = (res(1.0) - res(-1.0)) / (2 * eps)
     scale = np.abs(numeric).max()
     np.testing.assert_allclose(J[:, column], numeric, atol=(1e-3 if column >= 9 else 1e-6) * scale)
+
+
+def test_moving_points_add_half_the_acceleration_times_time_squared() -> None:
+    """A cap speeding up along a line and about a fixed axis: the points at ``tau`` are the pose
+    turned by ``w tau + alpha tau^2 / 2`` and shifted by ``v tau + a tau^2 / 2``; no acceleration
+    is constant velocity."""
+    from ficap_ros.vision.reprojection import moving_points_m
+
+    model = np.array([[0.01, 0.02, 0.0], [-0.03, 0.0, 0.01]])
+    tau = np.array([0.011, -0.007])
+    got = moving_points_m(T_TRUE.rotation_matrix, T_TRUE.translation_m, VELOCITY, model, tau, ACCEL)
+    for k in range(2):
+        turn = Rotation.from_rotvec(VELOCITY[3:] * tau[k] + 0.5 * ACCEL[3:] * tau[k] ** 2)
+        want = (turn * T_TRUE.rotation).apply(model[k]) + T_TRUE.translation_m \
+            + VELOCITY[:3] * tau[k] + 0.5 * ACCEL[:3] * tau[k] ** 2
+        np.testing.assert_allclose(got[k], want, atol=1e-12)
+    np.testing.assert_array_equal(
+        moving_points_m(T_TRUE.rotation_matrix, T_TRUE.translation_m, VELOCITY, model, tau, None),
+        moving_points_m(T_TRUE.rotation_matrix, T_TRUE.translation_m, VELOCITY, model, tau))
 
 
 def test_corners_at_the_stamp_are_the_static_fit() -> None:
