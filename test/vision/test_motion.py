@@ -34,6 +34,7 @@ from ficap_ros.vision.motion import (
     static_velocity,
 )
 from ficap_ros.vision.pose import PoseConfig, estimate_cap_pose
+from ficap_ros.vision.uncertainty import UncertaintyConfig
 
 MODEL = nominal_model()
 CAMERA = CameraModel.pinhole(960, 540, hfov_deg=67.4)
@@ -262,24 +263,27 @@ def test_rolling_shutter_bound_covers_noisy_corners() -> None:
 def test_global_shutter_velocity_is_the_prior_and_leaves_the_pose_alone() -> None:
     """A global shutter: the pose is the static fit's whatever the prior, and its velocity the
     prior's finite difference at it, with the pose's covariance propagated in. A known exposure
-    adds the motion blur's terms to the covariance (the defaults' gains); none known, nothing."""
+    adds the motion blur's terms to the covariance when their gains are set (the defaults' are 0:
+    motion-aware corners fit the smear); none known, nothing."""
     rng = np.random.default_rng(5)
     pose_at = constant_velocity(T0, GLANCE)
     dets = detections({i: CAMERA.project(T0.apply(MODEL.corners_of(i) / 1000.0))
                        for i in facing_ids(MODEL, T0)}, rng, 0.05)
     prior = MotionPrior(_past(pose_at, (1 / 30, 2 / 30)))
-    plain = estimate_cap_pose(dets, MODEL, CAMERA).pose
-    for timing in (None, CameraTiming(exposure_ms=16.0)):
-        pose = estimate_cap_pose(dets, MODEL, CAMERA, timing=timing, prior=prior).pose
-        assert pose.T_cam_cap.matrix.tobytes() == plain.T_cam_cap.matrix.tobytes()
-        grown = np.linalg.eigvalsh(pose.covariance - plain.covariance)
-        if timing is None:
-            assert pose.covariance.tobytes() == plain.covariance.tobytes()
-        else:  # the glance smears each tag by several px over 16 ms: the bounds widen
-            assert grown.min() > -1e-15 and grown.max() > 0.1 * np.linalg.eigvalsh(plain.covariance).max()
-            assert pose.rot_err95_deg > plain.rot_err95_deg
-        expected = static_velocity(prior, pose.T_cam_cap, pose.covariance)
-        np.testing.assert_array_equal(pose.velocity, expected[0])
+    gains = PoseConfig(uncertainty=UncertaintyConfig(motion_blur_gain=0.35, motion_blur_shift_gain=0.1))
+    for config in (None, gains):
+        plain = estimate_cap_pose(dets, MODEL, CAMERA, config).pose
+        for timing in (None, CameraTiming(exposure_ms=16.0)):
+            pose = estimate_cap_pose(dets, MODEL, CAMERA, config, timing=timing, prior=prior).pose
+            assert pose.T_cam_cap.matrix.tobytes() == plain.T_cam_cap.matrix.tobytes()
+            grown = np.linalg.eigvalsh(pose.covariance - plain.covariance)
+            if timing is None or config is None:
+                assert pose.covariance.tobytes() == plain.covariance.tobytes()
+            else:  # the glance smears each tag by several px over 16 ms: the bounds widen
+                assert grown.min() > -1e-15 and grown.max() > 0.1 * np.linalg.eigvalsh(plain.covariance).max()
+                assert pose.rot_err95_deg > plain.rot_err95_deg
+            expected = static_velocity(prior, pose.T_cam_cap, pose.covariance)
+            np.testing.assert_array_equal(pose.velocity, expected[0])
         assert np.all(np.linalg.eigvalsh(pose.velocity_covariance - prior.at(pose.T_cam_cap).covariance)
                       > -1e-12)
     assert static_velocity(MotionPrior(), T0, plain.covariance) is None
