@@ -164,11 +164,10 @@ class UncertaintyConfig:
             place, alike in every tag, which the pose takes for a turn. Both gains are fitted
             on rendered fast glances (path-traced and synth, global and rolling shutter) for
             95 % coverage, each recording's coverage checked with gains fitted without it
-            (``benchmarks/bench_glance.py``); they act only when the exposure is given. Both fit 0:
-            the motion-aware corners (``DetectorConfig.motion_corners``) fit the smear instead of
-            leaving it in the edges, and the shared corner bias (``shared_bias_gain``), which
-            follows the corner noise a smear raises, covers what is left; they stay for corners
-            fitted without the motion (``motion_corners`` off).
+            (``benchmarks/bench_glance.py``); they act only when the exposure is given. The shift's
+            fit is 0: the motion-aware corners (``DetectorConfig.motion_corners``) fit the smear
+            instead of leaving it in the edges, and the shared corner bias (``shared_bias_gain``),
+            which follows the corner noise a smear raises, covers most of what is left.
     """
 
     corner_noise_px: float = 0.002
@@ -185,7 +184,7 @@ class UncertaintyConfig:
     light_gradient_tilt_gain: float = 0.35
     tilt_shift_px: float = 0.0
     weight_tags: bool = True
-    motion_blur_gain: float = 0.0
+    motion_blur_gain: float = 0.1
     motion_blur_shift_gain: float = 0.0
 
     def __post_init__(self) -> None:
