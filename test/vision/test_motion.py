@@ -12,6 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from rolling_shutter import (
     accelerating,
+    bag_truths,
     constant_velocity,
     detections,
     facing_ids,
@@ -188,24 +189,10 @@ def test_rolling_shutter_pose_follows_the_glance_speeding_up(monkeypatch: pytest
 def _glance_errors(bag: Path) -> tuple[np.ndarray, np.ndarray]:
     """(rotation error deg, true angular speed deg/s) per frame of a synth rolling-shutter bag,
     its frames in order through the pipeline with the bag's timing."""
-    from ficap_ros.cli.synth import TRUTH_CAP_TOPIC, TRUTH_TWIST_TOPIC
-    from ficap_ros.io.messages import pose_to_transform, twist_to_array
-    from ficap_ros.io.sources import decode_raw, open_bag_reader, open_frames
-    from ficap_ros.stamps import stamp_to_ns
+    from ficap_ros.io.sources import decode_raw, open_frames
     from ficap_ros.vision.pipeline import FrameProcessor
 
-    truth: dict[int, dict] = {}
-    reader = open_bag_reader(bag)
-    try:
-        conns = [c for c in reader.connections if c.topic in (TRUTH_CAP_TOPIC, TRUTH_TWIST_TOPIC)]
-        for conn, _, raw in reader.messages(connections=conns):
-            msg = reader.deserialize(raw, conn.msgtype)
-            truth.setdefault(stamp_to_ns(msg.header.stamp), {})[conn.topic] = msg
-    finally:
-        reader.close()
-    truths = {stamp: (pose_to_transform(m[TRUTH_CAP_TOPIC]),
-                      np.degrees(np.linalg.norm(twist_to_array(m[TRUTH_TWIST_TOPIC])[3:])))
-              for stamp, m in truth.items()}
+    truths = bag_truths(bag)
     source = open_frames(bag)
     proc = FrameProcessor(MODEL, timing=source.timing)
     rot, speed = [], []
