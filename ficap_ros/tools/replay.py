@@ -49,6 +49,7 @@ from ficap_ros.io.labels import (
     write_labels_bag,
 )
 from ficap_ros.io.sources import FrameSource, Loss, RawFrame, decode_raw
+from ficap_ros.tools.worker_pool import parallel_frames
 from ficap_ros.vision.calibration import HeadCalibration, frontal_from_camera_mount
 from ficap_ros.vision.detector import DetectorConfig
 from ficap_ros.vision.pipeline import FrameProcessor, FrameResult
@@ -261,121 +262,6 @@ def capped_jobs(requested: int) -> tuple[int, str]:
     return max(requested, 1), ""
 
 
-class _SegmentPool:
-    """Worker processes for whole segments (``concurrent.futures.ProcessPoolExecutor``, spawned),
-    which notice a worker that dies: its segments fail with ``BrokenProcessPool`` instead of never
-    coming back. The pool is then replaced and every segment in flight submitted again, once: a
-    segment whose worker dies a second time (a frame that kills its decoder, memory that runs
-    out) fails the recording with one line (``WorkerError``). Results are the same whatever
-    retries happened (tracking restarts at each segment's first frame).
-    """
-
-    def __init__(self, jobs: int, initargs: tuple, counter: Any,
-                 timing: CameraTiming | None = None) -> None:
-        self.jobs, self.initargs, self.counter, self.timing = jobs, initargs, counter, timing
-        self.others: set[Any] = set()  # the children that are not the pool's workers
-        self.pool = self._new()
-
-    def _new(self) -> Any:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
-
-        self.others = set(multiprocessing.active_children())
-        return ProcessPoolExecutor(self.jobs, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=_init_worker, initargs=self.initargs)
-
-    def submit(self, segment: tuple[list[RawFrame], RawFrame | None]) -> Any:
-        """Run ``segment`` in a worker. Workers are started by the submits, with SIGINT ignored
-        from their first instruction: Ctrl-C reaches the whole process group and only this
-        process must handle it (stop the pool, print one line); a worker still importing numpy
-        when it comes has not run its initializer yet (an ignored signal stays ignored across
-        exec, and Python keeps it so)."""
-        import signal
-        import threading
-
-        raws, lookahead = segment
-        if threading.current_thread() is not threading.main_thread():
-            return self.pool.submit(_process_segment, raws, self.timing, lookahead)
-        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
-        try:
-            return self.pool.submit(_process_segment, raws, self.timing, lookahead)
-        finally:
-            signal.signal(signal.SIGINT, previous)
-
-    def restart(self, pending: list[list[Any]], done: int) -> None:
-        """A worker died: a new pool, every segment in flight submitted again (each
-        ``[segment, future, attempts]``), the progress counter back to the frames delivered."""
-        from ficap_ros.errors import WorkerError
-
-        self.stop()
-        for item in pending:
-            if item[2] >= 1:
-                first, last = item[0][0][0].index, item[0][0][-1].index
-                raise WorkerError(f"a worker process died twice on frames {first}-{last} "
-                                  "(killed, out of memory or crashed in a native library)")
-        with self.counter.get_lock():
-            self.counter.value = done
-        self.pool = self._new()
-        for item in pending:
-            item[1], item[2] = self.submit(item[0]), item[2] + 1
-
-    def stop(self) -> None:
-        """Cancel what waits and end the workers now (a segment in progress is not waited for).
-        ``ProcessPoolExecutor`` has no public way to end running workers before Python 3.14: its
-        workers are this process's children that were not there when the pool was made
-        (``multiprocessing.active_children``)."""
-        import multiprocessing
-
-        processes = [p for p in multiprocessing.active_children() if p not in self.others]
-        self.pool.shutdown(wait=False, cancel_futures=True)
-        for process in processes:
-            process.terminate()
-        for process in processes:
-            process.join(timeout=5.0)
-
-
-def _parallel_frames(it: Iterator[tuple[list[RawFrame], RawFrame | None]], jobs: int,
-                     initargs: tuple, counter: Any, on_progress: Callable[[int], None] | None,
-                     timing: CameraTiming | None) -> Iterator[ReplayedFrame]:
-    """``process_frames`` over ``jobs`` worker processes, in order (``_SegmentPool``), with the
-    camera's ``timing``."""
-    from concurrent.futures import BrokenExecutor
-    from concurrent.futures import TimeoutError as FutureTimeout
-
-    pool = _SegmentPool(jobs, initargs, counter, timing)
-    done = 0
-    try:
-        # Bounded look-ahead: one segment per worker in flight plus one, in order, so the bag is
-        # never read into memory ahead of the workers.
-        pending: list[list[Any]] = []
-        while True:
-            while len(pending) < jobs + 1:
-                segment = next(it, None)
-                if segment is None:
-                    break
-                pending.append([segment, pool.submit(segment), 0])
-            if not pending:
-                break
-            try:
-                while True:
-                    try:
-                        frames = pending[0][1].result(timeout=0.1)
-                        break
-                    except FutureTimeout:
-                        if on_progress is not None:
-                            on_progress(counter.value)
-            except BrokenExecutor:
-                pool.restart(pending, done)
-                continue
-            pending.pop(0)
-            done += len(frames)
-            if on_progress is not None:
-                on_progress(counter.value)
-            yield from frames
-    finally:
-        pool.stop()
-
-
 def process_frames(
     raws: Iterable[RawFrame], model: CapModel, pose: PoseConfig, jobs: int = 1,
     on_progress: Callable[[int], None] | None = None, detector: DetectorConfig | None = None,
@@ -392,7 +278,7 @@ def process_frames(
     waiting for the next segment, so a bar moves smoothly although results come in segments).
 
     Raises:
-        WorkerError: a worker process died twice on the same segment (``_SegmentPool``).
+        WorkerError: a worker process died twice on the same segment (``worker_pool.SegmentPool``).
     """
     jobs = capped_jobs(jobs)[0]
     it = segments(raws, two_sided_applies(timing, two_sided))
@@ -411,8 +297,8 @@ def process_frames(
     import multiprocessing
 
     counter = multiprocessing.get_context("spawn").Value("q", 0)
-    yield from _parallel_frames(it, jobs, (model, pose, True, counter, detector, two_sided),
-                                counter, on_progress, timing)
+    yield from parallel_frames(it, jobs, _init_worker, (model, pose, True, counter, detector, two_sided),
+                               _process_segment, counter, on_progress, timing)
 
 
 # -- calibration ---------------------------------------------------------------------------------
