@@ -183,12 +183,13 @@ def run(rec: Recording) -> dict[str, dict[str, np.ndarray]]:
 
 
 def blur_bound_row(rec: Recording, res: dict[str, dict[str, np.ndarray]]) -> list[str] | None:
-    """The Cramer-Rao bound's slow and fast rotation medians of a global-shutter recording with a
-    stated exposure (``_lib.blur_bound``; every fast frame, every fourth slow one, on the tags
-    ours used) beside ours: None for a rolling shutter or no exposure."""
+    """The Cramer-Rao bound's slow and fast rotation medians of a recording with a stated exposure
+    (``_lib.blur_bound``: a rolling shutter's corners at their row times, the motion over the
+    readout known; every fast frame, every fourth slow one, on the tags ours used) beside ours:
+    None without an exposure."""
     from _lib.blur_bound import frame_rotation_draws
 
-    if rec.timing.rolling or rec.timing.exposure_ms <= 0.0:
+    if rec.timing.exposure_ms <= 0.0:
         return None
     o = res[OURS_TIMED]
     model, rng = nominal_model(), np.random.default_rng(0)
@@ -201,7 +202,8 @@ def blur_bound_row(rec: Recording, res: dict[str, dict[str, np.ndarray]]) -> lis
         gray = as_gray(rec.images[i])
         draws[bool(fast)].append(frame_rotation_draws(gray, rec.camera, model, o["used_ids"][i],
                                                       tuple(rec.truths[i - 1:i + 2]), dt,
-                                                      rec.timing.exposure_ms * 1e-3, rng))
+                                                      rec.timing.exposure_ms * 1e-3, rng,
+                                                      timing=rec.timing))
     if not draws[True] or not draws[False]:
         return None
     b_slow, b_fast = (float(np.median(np.concatenate(draws[k]))) for k in (False, True))
@@ -394,10 +396,11 @@ def main(argv: list[str] | None = None) -> int:
             "none without a stated timing); its bound holds when the error is inside the 95 % "
             "ellipsoid of its covariance.")
     if crb_rows:
-        body += ("\n\nA Cramer-Rao bound for the blurred frames (global shutter; `benchmarks/_lib/blur_bound.py`: "
+        body += ("\n\nA Cramer-Rao bound for the blurred frames (`benchmarks/_lib/blur_bound.py`: "
                  "each tag's pixels through the photometric model moving along the truth's path over the "
                  "exposure, levels, lens blur and tone marginalised, the pixel noise the fit's residual sd, "
-                 "on the tags ours used; every fast frame, every fourth slow one): the rotation median "
+                 "on the tags ours used; a rolling shutter's corners at their row times with the cap's "
+                 "motion over the readout known; every fast frame, every fourth slow one): the rotation median "
                  "an efficient estimator would have, slow and fast, and ours against it:\n\n"
                  + report.md_table(["recording", "bound median, slow (deg)", "bound median, fast",
                                     "bound fast / slow", "ours fast / slow", "ours / bound (ratios)"], crb_rows))
