@@ -148,9 +148,10 @@ class DetectorConfig:
             (``tag_noise.noise_ratios``: noise sd over contrast times sqrt(px per cell), from the
             tag's own cell centres) exceeds ``edge_photometric_noise_ratio``; the rest keep the
             cell-edge corners. ``edge`` refine with ``edge_fit`` only (else it does nothing).
-        edge_photometric_noise_ratio: that threshold. On ``ficap synth``'s dim frames the tags
-            above it hold nearly all the photometric fit's gain over the cell-edge fit; clean
-            1080p tags lie well below it (docs/detection.md).
+        edge_photometric_noise_ratio: that threshold, chosen on ``ficap synth`` frames alone: on
+            its dim frames the photometric fit of the tags above it gives about nine tenths of
+            the median gain its fit of every tag gives; clean tags lie several times below it
+            (docs/detection.md).
         motion_corners: where the camera's exposure is stated and the frames before give the
             cap's velocity, refit the corners of each tag that moves over the exposure with the
             photometric model of its pattern moving along that motion (the mean over the
@@ -203,7 +204,7 @@ class DetectorConfig:
     hidden_check: bool = True
     edge_photometric: bool = False
     edge_photometric_auto: bool = True
-    edge_photometric_noise_ratio: float = 0.025
+    edge_photometric_noise_ratio: float = 0.03
     # Moving tags (pipeline.FrameProcessor with an exposure stated): motion-aware corners.
     motion_corners: bool = True
     motion_corners_min_px: float = 2.0

@@ -36,8 +36,10 @@ a cell, or whose residual sd exceeds ``_MAX_MISFIT`` of its contrast keeps its i
 This module sets a frame's fit up (the tags' tables, face boxes and inverse homographies) and
 judges its outcome; the per-pixel work (the pixels' selection, the model, its Jacobian and the
 steps) is compiled (``ficap_ros.vision.photometric_kernels``, numba). The fit costs more CPU per tag
-than the cell-edge fit (docs/benchmarks.md), hence it is opt-in (``DetectorConfig.edge_photometric``)
-and this module is imported only when it runs (``corners.fit_tags_photometric``).
+than the cell-edge fit (docs/benchmarks.md), so by default it runs on the tags whose corners noise
+limits (``DetectorConfig.edge_photometric_auto``, ``ficap_ros.vision.tag_noise``), on every tag with
+``DetectorConfig.edge_photometric``; this module (and numba) is imported only when it runs
+(``corners.fit_tags_photometric``).
 """
 
 from __future__ import annotations
