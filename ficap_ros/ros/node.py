@@ -103,13 +103,14 @@ class FicapNodeSteps:
 
     @staticmethod
     def _warm_up_kernels(cfg: Any) -> float | None:
-        """With photometric corners (``detector.photometric``), or an exposure stated
-        (``camera.exposure_ms``: the moving tags' fit, ``DetectorConfig.motion_corners``), the
-        compiled kernels loaded (or compiled) now, so no frame waits for them: the seconds it
-        took; None without them (numba is then not imported until a camera_info_file's timing
-        states an exposure and a tag moves)."""
-        moving = cfg.detector_config.motion_corners and cfg.camera_exposure_ms > 0.0
-        if not (cfg.detector_config.edge_photometric or moving):
+        """With photometric corners (``detector.photometric``, or ``detector.photometric_auto``:
+        on the tags noise limits), or an exposure stated (``camera.exposure_ms``: the moving
+        tags' fit, ``DetectorConfig.motion_corners``), the compiled kernels loaded (or compiled)
+        now, so no frame waits for them: the seconds it took; None without them (numba is then
+        not imported until a camera_info_file's timing states an exposure and a tag moves)."""
+        det = cfg.detector_config
+        moving = det.motion_corners and cfg.camera_exposure_ms > 0.0
+        if not (det.edge_photometric or det.edge_photometric_auto or moving):
             return None
         from ficap_ros.vision.jit import warm_up
 

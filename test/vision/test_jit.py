@@ -64,20 +64,21 @@ def test_warm_up_compiles_every_kernel_a_frame_uses() -> None:
 
 def test_numba_is_imported_only_for_photometric_corners(bag_with_a_corrupt_frame: Path, tmp_path: Path,
                                                         real_apriltag_dir: Path) -> None:
-    """The default replay, ``ficap detect`` and the node's module never import numba (its import
-    alone costs a second or more); ``--photometric`` does."""
+    """Replay and ``ficap detect`` with ``--no-photometric``, and the node's module, never import
+    numba (its import alone costs a second or more); ``--photometric`` does (and the default
+    where a tag's corners are noisy enough for the photometric fit)."""
     photo = real_apriltag_dir / "apriltags_jl" / "tagtest.jpg"
     code = (
         "import sys\n"
         "from ficap_ros.cli.main import main\n"
         "import ficap_ros.ros.node\n"
         f"assert main(['replay', {str(bag_with_a_corrupt_frame)!r}, '--out', {str(tmp_path / 'out')!r},"
-        " '--quiet']) == 0\n"
-        f"assert main(['detect', {str(photo)!r}]) == 0\n"
-        "print('default', 'numba' in sys.modules)\n"
+        " '--quiet', '--no-photometric']) == 0\n"
+        f"assert main(['detect', '--no-photometric', {str(photo)!r}]) == 0\n"
+        "print('no-photometric', 'numba' in sys.modules)\n"
         f"assert main(['detect', '--photometric', {str(photo)!r}]) == 0\n"
         "print('photometric', 'numba' in sys.modules)\n")
     out = subprocess.run([sys.executable, "-c", code], env={**os.environ, "PYTHONPATH": str(ROOT)},
                          capture_output=True, text=True, check=True, cwd=tmp_path)
-    said = [line for line in out.stdout.splitlines() if line.startswith(("default ", "photometric "))]
-    assert said == ["default False", "photometric True"], out.stderr
+    said = [line for line in out.stdout.splitlines() if line.startswith(("no-photometric ", "photometric "))]
+    assert said == ["no-photometric False", "photometric True"], out.stderr
