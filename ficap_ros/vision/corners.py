@@ -48,6 +48,7 @@ from ficap_ros.vision.edges import (
     step_offset,
     vector_norm,
 )
+from ficap_ros.vision.kernels import grouped_normal_equations, grouped_residuals
 from ficap_ros.vision.medians import (
     group_median_of_finite,
     group_nearest_quantile_of_finite,
@@ -627,17 +628,7 @@ def _solve_grouped(
     residuals rhs - jac @ solution (T,), None unless ``residuals``). A group needs ``min_rows``
     weighted rows and every parameter touched by one."""
     n, p = len(starts), jac.shape[1]
-    ends = np.append(starts[1:], len(rhs))
-    jw = jac * w[:, None]
-    ata = np.empty((n, p, p))
-    atb = np.empty((n, p))
-    # Python ints: slicing with numpy integers is slower per group.
-    bounds = list(enumerate(zip(starts.tolist(), ends.tolist())))
-    for g, (a, b) in bounds:  # a few dozen small products: cheaper than one (T, P, P) outer product
-        jw_t = jw[a:b].T
-        ata[g] = jw_t @ jac[a:b]
-        atb[g] = jw_t @ rhs[a:b]
-    rows = np.add.reduceat((w > 0).astype(np.float64), starts)
+    ata, atb, rows = grouped_normal_equations(jac, rhs, w, starts)
     # Column scaling: the parameters differ in size by orders of magnitude.
     d = np.sqrt(np.maximum(np.einsum("nii->ni", ata), 1e-30))
     a_s = ata / d[:, :, None] / d[:, None, :]
@@ -657,9 +648,7 @@ def _solve_grouped(
     solved &= np.isfinite(sol).all(axis=1)
     if not residuals:
         return sol, solved, None
-    resid = np.empty_like(rhs)
-    for g, (a, b) in bounds:
-        resid[a:b] = rhs[a:b] - jac[a:b] @ sol[g]
+    resid = grouped_residuals(jac, rhs, sol, starts)
     return sol, solved, resid
 
 
