@@ -82,3 +82,31 @@ def _fit_side_lines(x: np.ndarray, s: np.ndarray, w: np.ndarray) -> tuple[np.nda
         mad = 1.4826 * row_median(r, w > 0)
         w = np.where(r <= np.maximum(3.0 * mad, 0.05)[:, None], w, 0.0)
     return alpha, beta, (w > 0).sum(axis=1)
+
+
+def boundary_rows(h: np.ndarray, tag_of: np.ndarray, uv: np.ndarray, nu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``kernels.boundary_rows`` in numpy: (frames (6, T): x, y, den, normal x, y, cell px;
+    rows (T, 10) of the cell-edge fit's linearised model)."""
+    u, v = uv[:, 0], uv[:, 1]
+    ht = h[tag_of]
+    den = ht[:, 6] * u + ht[:, 7] * v + 1.0
+    px = (ht[:, 0] * u + ht[:, 1] * v + ht[:, 2]) / den
+    py = (ht[:, 3] * u + ht[:, 4] * v + ht[:, 5]) / den
+    j11 = (ht[:, 0] - ht[:, 6] * px) / den
+    j12 = (ht[:, 1] - ht[:, 7] * px) / den
+    j21 = (ht[:, 3] - ht[:, 6] * py) / den
+    j22 = (ht[:, 4] - ht[:, 7] * py) / den
+    det = j11 * j22 - j12 * j21
+    gx = (j22 * nu[:, 0] - j21 * nu[:, 1]) / det
+    gy = (-j12 * nu[:, 0] + j11 * nu[:, 1]) / det
+    gnorm = np.hypot(gx, gy)
+    nx, ny = gx / gnorm, gy / gnorm
+    across_x = (np.abs(nu[:, 0]) > 0.5).astype(np.float64)
+    jac = np.zeros((len(uv), 10))
+    jac[:, 0], jac[:, 1], jac[:, 2] = nx * u / den, nx * v / den, nx / den
+    jac[:, 3], jac[:, 4], jac[:, 5] = ny * u / den, ny * v / den, ny / den
+    jac[:, 6] = -(nx * px + ny * py) * u / den
+    jac[:, 7] = -(nx * px + ny * py) * v / den
+    jac[:, 8] = -across_x
+    jac[:, 9] = -(1.0 - across_x)
+    return np.stack([px, py, den, nx, ny, 1.0 / gnorm]), jac

@@ -2,20 +2,25 @@
 profiles hold ``cv2.remap``'s own samples (contrast, a difference of samples, equal exactly), and
 the step offsets and fitted lines agree to float rounding (offsets within 2e-6 px, line offsets
 within 1e-5 px, normals within 1e-7, the same profiles kept), inside the image and reaching off it;
-the per-tag normal equations and residuals equal numpy's products to 1e-12 relative."""
+the cell-edge fit's boundary rows and per-tag normal equations and residuals equal numpy's to
+1e-12 relative."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
+from edges_reference import boundary_rows as boundary_rows_numpy
 from edges_reference import edge_lines as edge_lines_numpy
 from edges_reference import step_offset as step_offset_numpy
 from tag_images import tag_image
 
+from ficap_ros.geometry.tag36h11 import tag_homographies
+from ficap_ros.vision import corners as corners_mod
 from ficap_ros.vision import edges
 from ficap_ros.vision.detector import DetectorConfig
 from ficap_ros.vision.kernels import (
     area_steps,
+    boundary_rows,
     edge_lines,
     grouped_normal_equations,
     grouped_residuals,
@@ -110,3 +115,16 @@ def test_grouped_least_squares_equal_numpy(seed: int) -> None:
         np.testing.assert_allclose(atb[g], (j * wg[:, None]).T @ b, rtol=1e-12, atol=1e-9)
         assert rows[g] == (wg > 0).sum()
         np.testing.assert_allclose(resid[a:a + n], b - j @ sol[g], rtol=1e-12, atol=1e-9)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_boundary_rows_equal_numpy(seed: int) -> None:
+    """Every cell boundary of the scene's tags (one seen obliquely by its random corners)."""
+    _, corners = _scene(seed)
+    ids = (5, 6)
+    _, tag_of, _, (uv, nu) = corners_mod._stacked(corners_mod._cell_edge_samples, ids)
+    h = tag_homographies(corners).reshape(len(corners), 9)[:, :8].copy()
+    frames, rows = boundary_rows(h, tag_of, uv, nu)
+    want_frames, want_rows = boundary_rows_numpy(h, tag_of, uv, nu)
+    np.testing.assert_allclose(frames, want_frames, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(rows, want_rows, rtol=1e-12, atol=1e-12)
