@@ -7,9 +7,8 @@ and the white quiet zone. The step's position is its *area* location: with dark 
 level l at the ends of the window, the edge sits at s_out - integral((I - d) / (l - d)) ds, which is
 exact for an area-sampled step under any blur that fits in the window, and is the 50 % crossing
 for a symmetric one. A line is fitted per side (weights = local contrast; samples beyond 3 robust
-sigmas dropped and the line refitted) and adjacent lines are intersected. The per-side work (the
-profiles, their steps and weights, the line fit) is compiled (``ficap_ros.vision.kernels``); the
-rest is vectorised across the tags' 4N sides.
+sigmas dropped and the line refitted) and adjacent lines are intersected. The pass is compiled
+(``ficap_ros.vision.kernels.line_pass``).
 
 Corner order and pixel convention are OpenCV's (``ficap_ros.vision.detector``). Side k runs from
 corner k to corner k + 1; corner k joins sides k - 1 and k.
@@ -24,7 +23,7 @@ import numpy as np
 
 from ficap_ros.geometry.tag36h11 import TAG_CELLS
 from ficap_ros.vision.detector import DetectorConfig
-from ficap_ros.vision.kernels import area_steps, edge_lines, frozen
+from ficap_ros.vision.kernels import area_steps, frozen, line_pass
 
 __all__ = [
     "NEXT",
@@ -79,20 +78,15 @@ def refine_corners_edge_ok(
     quarter of the tag's shortest side) from its input.
     """
     cfg = config or DetectorConfig()
-    c_init = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    c_init = np.ascontiguousarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
     if len(c_init) == 0:
         return c_init.copy(), np.zeros(0, dtype=bool)
-    side_len = vector_norm(c_init[:, NEXT] - c_init)  # (N, 4)
-    cell_px = np.repeat(side_len.mean(axis=1) / TAG_CELLS, 4)  # (4N,) one per side
-    corners = c_init
-    ok = np.ones(len(c_init), dtype=bool)
-    for _ in range(cfg.edge_iterations):
-        corners, it_ok = _edge_pass(gray, corners, cell_px, cfg)
-        ok &= it_ok
-    shift = vector_norm(corners - c_init).max(axis=1)
-    max_shift = np.minimum(cfg.edge_max_shift_px, 0.25 * side_len.min(axis=1))
-    ok &= np.isfinite(corners).all(axis=(1, 2)) & (shift <= max_shift)
-    return np.where(ok[:, None, None], corners, c_init), ok
+    m = cfg.edge_samples_per_side
+    # Every side's window [-half, half] holds the same number of samples, so their spacing
+    # follows the window: the same relative resolution on every side.
+    return line_pass(frozen(gray), c_init, cfg.edge_iterations, float(cfg.edge_search_px),
+                     float(cfg.edge_window_cells), _side_positions(cfg.edge_corner_skip, m),
+                     (cfg.edge_profile_samples - 1) // 2, max(3, m // 4), float(cfg.edge_max_shift_px))
 
 
 def refine_corners_edge_wide(gray: np.ndarray, corners: np.ndarray, cfg: DetectorConfig) -> np.ndarray:
@@ -106,83 +100,9 @@ def refine_corners_edge_wide(gray: np.ndarray, corners: np.ndarray, cfg: Detecto
     return np.where((ok1 & ok2)[:, None, None], c, corners)
 
 
-def _edge_pass(
-    img: np.ndarray, corners: np.ndarray, cell_px: np.ndarray, cfg: DetectorConfig
-) -> tuple[np.ndarray, np.ndarray]:
-    """One search-and-fit pass over the 4N sides (rows r of every per-side array): sample each
-    side's profiles, locate the step on each, fit a line per side (``kernels.edge_lines``, the
-    module docstring's rules side by side, compiled), intersect adjacent lines.
-
-    Returns:
-        (corners (N,4,2), ok (N,)): a tag is ok when its four lines meet at usable angles and each
-        kept at least a quarter of its samples (at least 3).
-    """
-    n, m = len(corners), cfg.edge_samples_per_side
-    a, d, _, _, nrm = _outward_sides(corners)
-    half = _side_windows(corners, a, nrm, cell_px, cfg)
-    # Every side's window [-half, half] holds the same number of samples, so their spacing
-    # follows the window: the same relative resolution on every side and one array shape for all.
-    k = (cfg.edge_profile_samples - 1) // 2
-    normal, rho, keep_n = edge_lines(frozen(img), a, d, nrm, half, _side_positions(cfg.edge_corner_skip, m), k,
-                                     _near_border(img, corners, half))
-    new, good_det = _corners_of_lines(np.column_stack([normal, rho]).reshape(n, 4, 3))
-    ok = good_det.all(axis=1) & (keep_n.reshape(n, 4) >= max(3, m // 4)).all(axis=1)
-    return np.where(ok[:, None, None], new, corners), ok
-
-
-def _near_border(img: np.ndarray, corners: np.ndarray, half: np.ndarray) -> bool:
-    """Whether a profile of these corners' sides may reach off the image (then each profile is
-    checked)."""
-    h_img, w_img = img.shape
-    reach = float(half.max()) + 1.0
-    return not (corners.min() >= reach and (corners.max(axis=(0, 1)) <= (w_img - 1 - reach, h_img - 1 - reach)).all())
-
-
-def _outward_sides(corners: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Per side (R = 4N rows): start point a (R, 2), side vector d (R, 2), length (R,), unit
-    direction u (R, 2) and unit normal (R, 2) pointing away from the tag's centre, whatever the
-    corner order's handedness."""
-    a = corners.reshape(-1, 2)
-    d = corners[:, NEXT].reshape(-1, 2) - a
-    length = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
-    u = d / length[:, None]
-    nrm = np.column_stack([u[:, 1], -u[:, 0]])
-    centre = np.repeat(corners.mean(axis=1), 4, axis=0)
-    nrm *= np.where(np.einsum("ij,ij->i", a + 0.5 * d - centre, nrm) < 0, -1.0, 1.0)[:, None]
-    return a, d, length, u, nrm
-
-
-def _side_windows(
-    corners: np.ndarray, a: np.ndarray, nrm: np.ndarray, cell_px: np.ndarray, cfg: DetectorConfig
-) -> np.ndarray:
-    """(R,) half-length, px, of each side's search window across it.
-
-    The window must stay between the data cells (one cell inside) and whatever lies beyond the
-    white quiet zone (one cell outside). The cell that matters is the one across this side, which
-    on an obliquely seen tag is much narrower than the mean side / 8: the tag's width along the
-    side's normal (distance of the two opposite corners from the side's line) gives it.
-    """
-    opp = corners[:, OPPOSITE[0]].reshape(-1, 2) + corners[:, OPPOSITE[1]].reshape(-1, 2) - 2 * a
-    width = np.abs(np.einsum("ij,ij->i", opp, nrm)) / 2.0
-    cell_side = np.minimum(width / TAG_CELLS, cell_px)
-    return np.maximum(np.minimum(cfg.edge_search_px, cfg.edge_window_cells * cell_side), 0.75)
-
-
-def _corners_of_lines(lines: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Corner k where side k-1's line meets side k's, from ``lines`` (N, 4, 3) = (normal x,
-    normal y, rho): (corners (N, 4, 2), usable (N, 4): the two sides at least ~12 deg apart)."""
-    l_prev = lines[:, PREV]
-    a11, a12, r1 = l_prev[..., 0], l_prev[..., 1], l_prev[..., 2]
-    a21, a22, r2 = lines[..., 0], lines[..., 1], lines[..., 2]
-    det = a11 * a22 - a12 * a21
-    good_det = np.abs(det) > 0.2
-    det = np.where(good_det, det, 1.0)
-    return np.stack([(r1 * a22 - a12 * r2) / det, (a11 * r2 - a21 * r1) / det], axis=-1), good_det
-
-
 @lru_cache(maxsize=8)
 def _side_positions(corner_skip: float, m: int) -> np.ndarray:
-    """``_edge_pass``'s positions along a side (M,), fractions of its length, built once per
+    """The line pass's positions along a side (M,), fractions of its length, built once per
     setting."""
     t = np.linspace(corner_skip, 1.0 - corner_skip, m)
     t.setflags(write=False)
@@ -213,7 +133,7 @@ def intersect_sides(nrm: np.ndarray, rho: np.ndarray) -> np.ndarray:
 
 def line_windows(corners: np.ndarray, cfg: DetectorConfig) -> np.ndarray:
     """(N, 4) half-length, px, of the line pass's window across each side of these corners, from
-    the corners' own side lines: ``_side_windows``, except that the tag's width across a side is
+    the corners' own side lines: the line pass's windows, except that the tag's width across a side is
     taken at its farther opposite corner, where the line pass takes the mean of the two (the
     same on a parallelogram, at least as wide otherwise)."""
     side_len = np.linalg.norm(corners[:, NEXT] - corners, axis=2)

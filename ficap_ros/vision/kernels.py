@@ -13,7 +13,9 @@ two outer ones, the edge at ``half`` minus the trapezoid integral of the clipped
 (I - d) / (l - d) times the sample spacing (``edges``' module docstring).
 
 ``edge_lines`` is the line pass's per-side work on top of it: a side's profiles, their weights and
-the robust straight-line fit through their steps (``edges._edge_pass``).
+the robust straight-line fit through their steps; ``line_pass`` the whole line pass of
+``edges.refine_corners_edge_ok`` around it (each side's outward normal and window, the corners
+where adjacent lines meet, the passes and the plausibility checks).
 
 ``boundary_rows`` places the cell-edge fit's boundary samples in the image through their tags'
 homographies, with the rows of its linearised model; ``grouped_normal_equations`` and
@@ -30,12 +32,14 @@ import numpy as np
 
 from ficap_ros.vision.jit import njit, register_warm_up
 
-__all__ = ["area_steps", "edge_lines", "boundary_rows", "frozen", "grouped_normal_equations", "grouped_residuals"]
+__all__ = ["area_steps", "edge_lines", "boundary_rows", "frozen", "grouped_normal_equations", "line_pass", "grouped_residuals"]
 
 #: ``cv2.remap``'s sub-pixel positions per px (``INTER_TAB_SIZE``) and its weights' scale bits
 #: (``INTER_REMAP_COEF_BITS``).
 _TAB_SIZE = 32
 _COEF_BITS = 15
+#: Cells across a tag, border included (``geometry.tag36h11.TAG_CELLS``).
+_TAG_CELLS = 8.0
 
 
 def frozen(a: np.ndarray) -> np.ndarray:
@@ -250,6 +254,113 @@ def _robust_line(x: np.ndarray, s: np.ndarray, w: np.ndarray, resid: np.ndarray,
 
 
 @njit
+def line_pass(img: np.ndarray, c_init: np.ndarray, iterations: int, search_px: float, window_cells: float,
+              t: np.ndarray, k: int, min_kept: int, max_shift_px: float) -> tuple[np.ndarray, np.ndarray]:
+    """The line pass (``edges.refine_corners_edge_ok``, the rules in ``edges``' module docstring).
+
+    Args:
+        img: (H, W) uint8 image.
+        c_init: (N, 4, 2) float64 starting corners.
+        iterations: search-and-fit passes, each from the previous pass's corners.
+        search_px, window_cells: a side's window half-length is at most ``search_px`` and at most
+            ``window_cells`` of the cell across it (at least 0.75 px).
+        t: (M,) the profiles' places along a side, fractions of its length.
+        k: samples each way across a side (2 k + 1).
+        min_kept: profiles each side's fit must keep.
+        max_shift_px: the furthest a refined corner may move (and a quarter of the shortest side).
+
+    Returns:
+        (corners (N, 4, 2), ok (N,)): a tag not refined keeps its starting corners.
+    """
+    n = c_init.shape[0]
+    cell_px = np.empty(n)
+    max_shift = np.empty(n)
+    for g in range(n):
+        total, shortest = 0.0, np.inf
+        for s in range(4):
+            e = (s + 1) % 4
+            side = math.sqrt((c_init[g, e, 0] - c_init[g, s, 0]) ** 2 + (c_init[g, e, 1] - c_init[g, s, 1]) ** 2)
+            total += side
+            shortest = min(shortest, side)
+        cell_px[g] = total / 4.0 / _TAG_CELLS
+        max_shift[g] = min(max_shift_px, 0.25 * shortest)
+    corners = c_init.copy()
+    ok = np.ones(n, np.bool_)
+    for _ in range(iterations):
+        corners = _one_line_pass(img, corners, cell_px, search_px, window_cells, t, k, min_kept, ok)
+    out = np.empty_like(c_init)
+    for g in range(n):
+        shift = 0.0
+        finite = True
+        for c in range(4):
+            dx, dy = corners[g, c, 0] - c_init[g, c, 0], corners[g, c, 1] - c_init[g, c, 1]
+            shift = max(shift, math.sqrt(dx * dx + dy * dy))
+            finite = finite and math.isfinite(corners[g, c, 0]) and math.isfinite(corners[g, c, 1])
+        ok[g] = ok[g] and finite and shift <= max_shift[g]
+        out[g] = corners[g] if ok[g] else c_init[g]
+    return out, ok
+
+
+@njit
+def _one_line_pass(img: np.ndarray, corners: np.ndarray, cell_px: np.ndarray, search_px: float,
+                   window_cells: float, t: np.ndarray, k: int, min_kept: int, ok: np.ndarray) -> np.ndarray:
+    """One search-and-fit pass over the tags' 4N sides: each side's outward normal (away from the
+    tag's centre, either handedness) and window (the cell across it: the tag's width along the
+    normal / 8, at most ``cell_px``), a line per side (``edge_lines``), corners where adjacent
+    lines meet. A tag whose lines meet at under ~12 degrees or keep fewer than ``min_kept``
+    profiles keeps its corners and is marked not ``ok`` (in place)."""
+    n = corners.shape[0]
+    a = np.empty((4 * n, 2))
+    d = np.empty((4 * n, 2))
+    nrm = np.empty((4 * n, 2))
+    half = np.empty(4 * n)
+    h_img, w_img = img.shape
+    lo, hi_x, hi_y = np.inf, -np.inf, -np.inf
+    for g in range(n):
+        mx = 0.25 * (corners[g, 0, 0] + corners[g, 1, 0] + corners[g, 2, 0] + corners[g, 3, 0])
+        my = 0.25 * (corners[g, 0, 1] + corners[g, 1, 1] + corners[g, 2, 1] + corners[g, 3, 1])
+        for s in range(4):
+            r = 4 * g + s
+            e, o1, o2 = (s + 1) % 4, (s + 2) % 4, (s + 3) % 4
+            ax, ay = corners[g, s, 0], corners[g, s, 1]
+            dx, dy = corners[g, e, 0] - ax, corners[g, e, 1] - ay
+            length = max(math.hypot(dx, dy), 1e-9)
+            nx, ny = dy / length, -dx / length
+            if (ax + 0.5 * dx - mx) * nx + (ay + 0.5 * dy - my) * ny < 0:
+                nx, ny = -nx, -ny
+            ox = corners[g, o1, 0] + corners[g, o2, 0] - 2 * ax
+            oy = corners[g, o1, 1] + corners[g, o2, 1] - 2 * ay
+            width = abs(ox * nx + oy * ny) / 2.0
+            cell_side = min(width / _TAG_CELLS, cell_px[g])
+            half[r] = max(min(search_px, window_cells * cell_side), 0.75)
+            a[r, 0], a[r, 1], d[r, 0], d[r, 1], nrm[r, 0], nrm[r, 1] = ax, ay, dx, dy, nx, ny
+            lo = min(lo, ax, ay)
+            hi_x, hi_y = max(hi_x, ax), max(hi_y, ay)
+    # Profiles may reach off the image only when some corner lies within a window of its border.
+    reach = half.max() + 1.0 if n else 1.0
+    near = not (lo >= reach and hi_x <= w_img - 1 - reach and hi_y <= h_img - 1 - reach)
+    normal, rho, kept = edge_lines(img, a, d, nrm, half, t, k, near)
+    new = corners.copy()
+    for g in range(n):
+        good = True
+        cs = np.empty((4, 2))
+        for c in range(4):
+            p, q = 4 * g + (c + 3) % 4, 4 * g + c
+            a11, a12, r1 = normal[p, 0], normal[p, 1], rho[p]
+            a21, a22, r2 = normal[q, 0], normal[q, 1], rho[q]
+            det = a11 * a22 - a12 * a21
+            if not abs(det) > 0.2 or kept[q] < min_kept:
+                good = False
+                det = 1.0
+            cs[c, 0], cs[c, 1] = (r1 * a22 - a12 * r2) / det, (a11 * r2 - a21 * r1) / det
+        if good:
+            new[g] = cs
+        else:
+            ok[g] = False
+    return new
+
+
+@njit
 def boundary_rows(h: np.ndarray, tag_of: np.ndarray, uv: np.ndarray,
                   nu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Each cell-boundary sample through its tag's homography, and its row of the cell-edge fit's
@@ -365,6 +476,7 @@ def _warm_up() -> None:
     a, d = corners, np.roll(corners, -1, axis=0) - corners
     nrm = np.column_stack([d[:, 1], -d[:, 0]]) / 8.0
     edge_lines(img, a, d, nrm, np.full(4, 1.0), frozen(np.linspace(0.15, 0.85, 6)), 4, True)
+    line_pass(img, corners[None], 2, 3.0, 0.5, frozen(np.linspace(0.15, 0.85, 6)), 4, 3, 2.0)
     tag_of = frozen(np.array([0, 0, 1, 1], np.int64))
     uv = frozen(np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]]))
     nu = frozen(np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]]))

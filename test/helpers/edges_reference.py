@@ -1,4 +1,5 @@
-"""The line pass's per-side work and the area step estimator in vectorised numpy (``cv2.remap``
+"""The corner stage's compiled kernels in vectorised numpy: the line pass, its per-side work, the
+area step estimator and the cell-edge fit's boundary rows (``cv2.remap``
 for the samples): the reference the compiled ones (``ficap_ros.vision.kernels``, used by
 ``ficap_ros.vision.edges``) are checked against (tests only).
 
@@ -12,6 +13,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from ficap_ros.geometry.tag36h11 import TAG_CELLS
+from ficap_ros.vision.detector import DetectorConfig
+from ficap_ros.vision.edges import NEXT, OPPOSITE, PREV
 from ficap_ros.vision.medians import row_median
 
 
@@ -110,3 +114,64 @@ def boundary_rows(h: np.ndarray, tag_of: np.ndarray, uv: np.ndarray, nu: np.ndar
     jac[:, 8] = -across_x
     jac[:, 9] = -(1.0 - across_x)
     return np.stack([px, py, den, nx, ny, 1.0 / gnorm]), jac
+
+
+def outward_sides(corners: np.ndarray) -> tuple[np.ndarray, ...]:
+    """Per side (R = 4N rows): start a (R, 2), side vector d (R, 2), length (R,), unit direction
+    u (R, 2) and unit normal (R, 2) away from the tag's centre, whatever the handedness."""
+    a = corners.reshape(-1, 2)
+    d = corners[:, NEXT].reshape(-1, 2) - a
+    length = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
+    u = d / length[:, None]
+    nrm = np.column_stack([u[:, 1], -u[:, 0]])
+    centre = np.repeat(corners.mean(axis=1), 4, axis=0)
+    nrm *= np.where(np.einsum("ij,ij->i", a + 0.5 * d - centre, nrm) < 0, -1.0, 1.0)[:, None]
+    return a, d, length, u, nrm
+
+
+def side_windows(corners: np.ndarray, a: np.ndarray, nrm: np.ndarray, cell_px: np.ndarray,
+                 cfg: DetectorConfig) -> np.ndarray:
+    """(R,) each side's window half-length, px: the cell across it (the tag's width along the
+    side's normal, the mean of its two opposite corners', / 8, at most ``cell_px``)."""
+    opp = corners[:, OPPOSITE[0]].reshape(-1, 2) + corners[:, OPPOSITE[1]].reshape(-1, 2) - 2 * a
+    width = np.abs(np.einsum("ij,ij->i", opp, nrm)) / 2.0
+    cell_side = np.minimum(width / TAG_CELLS, cell_px)
+    return np.maximum(np.minimum(cfg.edge_search_px, cfg.edge_window_cells * cell_side), 0.75)
+
+
+def _corners_of_lines(lines: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Corner k where side k-1's line meets side k's, from (N, 4, 3) lines: (corners, usable)."""
+    l_prev = lines[:, PREV]
+    a11, a12, r1 = l_prev[..., 0], l_prev[..., 1], l_prev[..., 2]
+    a21, a22, r2 = lines[..., 0], lines[..., 1], lines[..., 2]
+    det = a11 * a22 - a12 * a21
+    good_det = np.abs(det) > 0.2
+    det = np.where(good_det, det, 1.0)
+    return np.stack([(r1 * a22 - a12 * r2) / det, (a11 * r2 - a21 * r1) / det], axis=-1), good_det
+
+
+def refine_corners_edge_ok(img: np.ndarray, corners_px: np.ndarray,
+                           cfg: DetectorConfig) -> tuple[np.ndarray, np.ndarray]:
+    """``edges.refine_corners_edge_ok`` (``kernels.line_pass``) in numpy: (corners, ok)."""
+    c_init = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    side_len = np.linalg.norm(c_init[:, NEXT] - c_init, axis=-1)
+    cell_px = np.repeat(side_len.mean(axis=1) / TAG_CELLS, 4)
+    m, k = cfg.edge_samples_per_side, (cfg.edge_profile_samples - 1) // 2
+    t = np.linspace(cfg.edge_corner_skip, 1.0 - cfg.edge_corner_skip, m)
+    corners, ok = c_init, np.ones(len(c_init), dtype=bool)
+    h_img, w_img = img.shape
+    for _ in range(cfg.edge_iterations):
+        a, d, _, _, nrm = outward_sides(corners)
+        half = side_windows(corners, a, nrm, cell_px, cfg)
+        reach = float(half.max()) + 1.0
+        near = not (corners.min() >= reach
+                    and (corners.max(axis=(0, 1)) <= (w_img - 1 - reach, h_img - 1 - reach)).all())
+        normal, rho, kept = edge_lines(img, a, d, nrm, half, t, k, near)
+        new, good_det = _corners_of_lines(np.column_stack([normal, rho]).reshape(-1, 4, 3))
+        it_ok = good_det.all(axis=1) & (kept.reshape(-1, 4) >= max(3, m // 4)).all(axis=1)
+        corners = np.where(it_ok[:, None, None], new, corners)
+        ok &= it_ok
+    shift = np.linalg.norm(corners - c_init, axis=-1).max(axis=1)
+    max_shift = np.minimum(cfg.edge_max_shift_px, 0.25 * side_len.min(axis=1))
+    ok &= np.isfinite(corners).all(axis=(1, 2)) & (shift <= max_shift)
+    return np.where(ok[:, None, None], corners, c_init), ok

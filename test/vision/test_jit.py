@@ -20,7 +20,7 @@ from ficap_ros.vision.pipeline import FrameProcessor
 
 ROOT = Path(__file__).resolve().parents[2]
 KERNELS = (photometric_kernels.select_pixels, photometric_kernels.fit_steps, kernels.area_steps,
-           kernels.edge_lines, kernels.grouped_normal_equations, kernels.grouped_residuals)
+           kernels.line_pass, kernels.boundary_rows, kernels.grouped_normal_equations, kernels.grouped_residuals)
 
 
 def _cache_dir_in_child(env: dict[str, str], read_only: bool) -> str:
@@ -76,7 +76,7 @@ def test_the_photometric_kernels_load_only_for_photometric_corners(
         " '--quiet']) == 0\n"
         f"assert main(['detect', {str(photo)!r}]) == 0\n"
         "from ficap_ros.vision import kernels\n"
-        "print('default', bool(kernels.edge_lines.signatures),"
+        "print('default', bool(kernels.line_pass.signatures),"
         " 'ficap_ros.vision.photometric_kernels' in sys.modules)\n"
         f"assert main(['detect', '--photometric', {str(photo)!r}]) == 0\n"
         "print('photometric', 'ficap_ros.vision.photometric_kernels' in sys.modules)\n")

@@ -11,6 +11,8 @@ import numpy as np
 import pytest
 from edges_reference import boundary_rows as boundary_rows_numpy
 from edges_reference import edge_lines as edge_lines_numpy
+from edges_reference import outward_sides, side_windows
+from edges_reference import refine_corners_edge_ok as line_pass_numpy
 from edges_reference import step_offset as step_offset_numpy
 from tag_images import tag_image
 
@@ -69,9 +71,9 @@ def test_area_steps_equal_the_remap_reference(seed: int) -> None:
 def test_edge_lines_equal_the_numpy_reference(seed: int) -> None:
     img, corners = _scene(seed)
     cfg = DetectorConfig()
-    a, d, _, _, nrm = edges._outward_sides(corners)
+    a, d, _, _, nrm = outward_sides(corners)
     cell_px = np.repeat(edges.vector_norm(corners[:, edges.NEXT] - corners).mean(axis=1) / 8.0, 4)
-    half = edges._side_windows(corners, a, nrm, cell_px, cfg)
+    half = side_windows(corners, a, nrm, cell_px, cfg)
     for k, m in ((8, 24), (4, 12)):
         t = np.linspace(0.15, 0.85, m)
         for check_inside in (False, True):
@@ -128,3 +130,17 @@ def test_boundary_rows_equal_numpy(seed: int) -> None:
     want_frames, want_rows = boundary_rows_numpy(h, tag_of, uv, nu)
     np.testing.assert_allclose(frames, want_frames, rtol=1e-12, atol=1e-12)
     np.testing.assert_allclose(rows, want_rows, rtol=1e-12, atol=1e-12)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_line_pass_equals_the_numpy_reference(seed: int) -> None:
+    """The whole line pass from starts up to a pixel off (one tag cut by the border), both
+    settings the detector uses: the same tags refined, corners within 1e-5 px."""
+    img, corners = _scene(seed)
+    start = corners + np.random.default_rng(seed).normal(0.0, 0.7, corners.shape)
+    for cfg in (DetectorConfig(), DetectorConfig(edge_search_px=8.0, edge_max_shift_px=8.0, edge_iterations=1,
+                                                 edge_samples_per_side=12, edge_profile_samples=9)):
+        want, want_ok = line_pass_numpy(img, start, cfg)
+        got, got_ok = edges.refine_corners_edge_ok(img, start, cfg)
+        np.testing.assert_array_equal(got_ok, want_ok)
+        np.testing.assert_allclose(got, want, rtol=0.0, atol=1e-5)
