@@ -133,9 +133,9 @@ def intersect_sides(nrm: np.ndarray, rho: np.ndarray) -> np.ndarray:
 
 def line_windows(corners: np.ndarray, cfg: DetectorConfig) -> np.ndarray:
     """(N, 4) half-length, px, of the line pass's window across each side of these corners, from
-    the corners' own side lines: the line pass's windows, except that the tag's width across a side is
-    taken at its farther opposite corner, where the line pass takes the mean of the two (the
-    same on a parallelogram, at least as wide otherwise)."""
+    the corners' own side lines: the line pass's windows (``kernels.line_pass``), except that the
+    tag's width across a side is taken at its farther opposite corner, where the line pass takes
+    the mean of the two (the same on a parallelogram, at least as wide otherwise)."""
     side_len = np.linalg.norm(corners[:, NEXT] - corners, axis=2)
     cell_px = side_len.mean(axis=1, keepdims=True) / TAG_CELLS
     nrm, rho = side_lines(corners)
