@@ -51,13 +51,16 @@ import numba  # noqa: E402  (after the cache directory is chosen: numba reads it
 _WARM_UPS: list[Callable[[], None]] = []
 
 
-def njit(fn: Callable | None = None, *, inline: str = "never") -> Callable:
+def njit(fn: Callable | None = None, *, inline: str = "never", error_model: str = "python") -> Callable:
     """``numba.njit(cache=True)``: compiled on the first call per argument types, kept on disk.
     ``inline="always"`` (as ``@njit(inline="always")``): a small helper inlined into its callers'
-    loops (numba passes array arguments to a called kernel with reference counting)."""
+    loops (numba passes array arguments to a called kernel with reference counting).
+    ``error_model="numpy"``: a float division by zero gives inf or NaN, as numpy's does, instead of
+    raising ``ZeroDivisionError``."""
+    options = {"cache": True, "inline": inline, "error_model": error_model}
     if fn is None:
-        return lambda f: numba.njit(cache=True, inline=inline)(f)
-    return numba.njit(cache=True, inline=inline)(fn)
+        return lambda f: numba.njit(**options)(f)
+    return numba.njit(**options)(fn)
 
 
 def cache_dir() -> Path:

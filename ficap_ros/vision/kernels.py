@@ -6,7 +6,8 @@ A profile is ``2 k + 1`` samples at ``c + j d`` (j = -k..k) of an 8-bit grey ima
 ``cv2.remap`` samples it with ``INTER_LINEAR`` and ``BORDER_REPLICATE`` (positions rounded to 1/32
 px, fixed-point weights, values rounded to a grey level), so a profile holds the same values as
 OpenCV's. Positions are float32, computed as ``c + d * j`` in float32, as the callers' sample maps
-are.
+are. Every kernel divides as numpy does (``error_model="numpy"``): a degenerate input gives inf or
+NaN, which the callers' checks refuse, never an exception.
 
 The step's area location: dark level d from the profile's two inner samples, light level l from its
 two outer ones, the edge at ``half`` minus the trapezoid integral of the clipped normalised profile
@@ -50,7 +51,7 @@ def frozen(a: np.ndarray) -> np.ndarray:
     return view
 
 
-@njit(inline="always")
+@njit(inline="always", error_model="numpy")
 def _remap_sample(img: np.ndarray, x: np.float32, y: np.float32, clamp: bool) -> int:
     """One ``cv2.remap`` INTER_LINEAR, BORDER_REPLICATE sample of the uint8 image at (x, y).
 
@@ -73,7 +74,7 @@ def _remap_sample(img: np.ndarray, x: np.float32, y: np.float32, clamp: bool) ->
     return (total + (1 << (_COEF_BITS - 1))) >> _COEF_BITS
 
 
-@njit(inline="always")
+@njit(inline="always", error_model="numpy")
 def _area_step(img: np.ndarray, cx: np.float32, cy: np.float32, dx: np.float32, dy: np.float32, k: int,
                half: float, step: float, vals: np.ndarray) -> tuple[float, float, bool]:
     """One profile's step (``area_steps``): (offset, contrast, inside); ``vals`` (2 k + 1,) scratch."""
@@ -98,7 +99,7 @@ def _area_step(img: np.ndarray, cx: np.float32, cy: np.float32, dx: np.float32, 
     return half - area * step, contrast, inside
 
 
-@njit
+@njit(error_model="numpy")
 def area_steps(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, dx: np.ndarray, dy: np.ndarray, k: int,
                half: np.ndarray, step: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The step on each profile: its area location and contrast.
@@ -126,7 +127,7 @@ def area_steps(img: np.ndarray, cx: np.ndarray, cy: np.ndarray, dx: np.ndarray, 
     return offset, contrast, inside
 
 
-@njit
+@njit(error_model="numpy")
 def edge_lines(img: np.ndarray, a: np.ndarray, d: np.ndarray, nrm: np.ndarray, half: np.ndarray, t: np.ndarray,
                k: int, check_inside: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The line pass on every side: profiles across it, their weights, a robust line through their
@@ -184,7 +185,7 @@ def edge_lines(img: np.ndarray, a: np.ndarray, d: np.ndarray, nrm: np.ndarray, h
     return normal, rho, kept
 
 
-@njit(inline="always")
+@njit(inline="always", error_model="numpy")
 def _masked_median(x: np.ndarray, mask: np.ndarray, scratch: np.ndarray) -> float:
     """``np.median`` of the entries of ``x`` where ``mask`` (the middle one, or the mean of the
     middle two); 0.0 where there are none. ``scratch``: as long as ``x`` (an insertion sort: a
@@ -204,7 +205,7 @@ def _masked_median(x: np.ndarray, mask: np.ndarray, scratch: np.ndarray) -> floa
     return 0.5 * (scratch[(n - 1) // 2] + scratch[n // 2])
 
 
-@njit(inline="always")
+@njit(inline="always", error_model="numpy")
 def _profile_weights(s: np.ndarray, c: np.ndarray, w: np.ndarray, half: float, step: float,
                      scratch: np.ndarray) -> None:
     """Each profile's weight in its side's fit, in place on ``w`` (1 or 0 on entry: inside the
@@ -217,7 +218,7 @@ def _profile_weights(s: np.ndarray, c: np.ndarray, w: np.ndarray, half: float, s
         w[i] = c[i] * w[i] if good else 0.0
 
 
-@njit(inline="always")
+@njit(inline="always", error_model="numpy")
 def _robust_line(x: np.ndarray, s: np.ndarray, w: np.ndarray, resid: np.ndarray,
                  scratch: np.ndarray) -> tuple[float, float, int]:
     """Weighted line s = alpha + beta (x - x_mean), one round of 3-sigma (MAD, at least 0.05 px)
@@ -253,7 +254,7 @@ def _robust_line(x: np.ndarray, s: np.ndarray, w: np.ndarray, resid: np.ndarray,
     return alpha, beta, kept
 
 
-@njit
+@njit(error_model="numpy")
 def line_pass(img: np.ndarray, c_init: np.ndarray, iterations: int, search_px: float, window_cells: float,
               t: np.ndarray, k: int, min_kept: int, max_shift_px: float) -> tuple[np.ndarray, np.ndarray]:
     """The line pass (``edges.refine_corners_edge_ok``, the rules in ``edges``' module docstring).
@@ -301,7 +302,7 @@ def line_pass(img: np.ndarray, c_init: np.ndarray, iterations: int, search_px: f
     return out, ok
 
 
-@njit
+@njit(error_model="numpy")
 def _one_line_pass(img: np.ndarray, corners: np.ndarray, cell_px: np.ndarray, search_px: float,
                    window_cells: float, t: np.ndarray, k: int, min_kept: int, ok: np.ndarray) -> np.ndarray:
     """One search-and-fit pass over the tags' 4N sides: each side's outward normal (away from the
@@ -360,7 +361,7 @@ def _one_line_pass(img: np.ndarray, corners: np.ndarray, cell_px: np.ndarray, se
     return new
 
 
-@njit
+@njit(error_model="numpy")
 def boundary_rows(h: np.ndarray, tag_of: np.ndarray, uv: np.ndarray,
                   nu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Each cell-boundary sample through its tag's homography, and its row of the cell-edge fit's
@@ -410,7 +411,7 @@ def boundary_rows(h: np.ndarray, tag_of: np.ndarray, uv: np.ndarray,
     return frames, rows
 
 
-@njit
+@njit(error_model="numpy")
 def grouped_normal_equations(jac: np.ndarray, rhs: np.ndarray, w: np.ndarray,
                              starts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Weighted normal equations per contiguous group of rows.
@@ -448,7 +449,7 @@ def grouped_normal_equations(jac: np.ndarray, rhs: np.ndarray, w: np.ndarray,
     return ata, atb, rows
 
 
-@njit
+@njit(error_model="numpy")
 def grouped_residuals(jac: np.ndarray, rhs: np.ndarray, sol: np.ndarray, starts: np.ndarray) -> np.ndarray:
     """(T,) rhs - jac @ sol[g] for the rows of each group g (groups as ``grouped_normal_equations``'s;
     ``sol`` (n, P))."""

@@ -144,3 +144,17 @@ def test_line_pass_equals_the_numpy_reference(seed: int) -> None:
         got, got_ok = edges.refine_corners_edge_ok(img, start, cfg)
         np.testing.assert_array_equal(got_ok, want_ok)
         np.testing.assert_allclose(got, want, rtol=0.0, atol=1e-5)
+
+
+def test_degenerate_inputs_give_non_finite_values_not_exceptions() -> None:
+    """A collapsed homography or tag divides by zero: inf or NaN as in numpy, which the callers
+    refuse (the tag keeps its corners), never ZeroDivisionError."""
+    tag_of = np.array([0, 0, 1, 1], np.int64)
+    uv = np.array([[0.5, 0.0], [0.0, 0.5], [1.0, 0.5], [0.5, 1.0]])
+    nu = np.array([[0.0, 1.0], [1.0, 0.0], [-1.0, 0.0], [0.0, -1.0]])
+    frames, rows = boundary_rows(np.ones((2, 8)), tag_of, uv, nu)
+    assert not np.isfinite(frames).all() and not np.isfinite(rows).all()
+    img, _ = _scene(0)
+    point = np.full((1, 4, 2), 100.0)
+    refined, ok = edges.refine_corners_edge_ok(img, point)
+    assert not ok[0] and (refined == point).all()
