@@ -3,8 +3,8 @@
 Every set of ``<data>/blender_dev`` (the glance sets with motion blur and a rolling shutter
 included) goes through ``FrameProcessor`` frame by frame in recording order, as ``ficap replay``
 feeds it: ours (defaults, tracking on; the sets sampled 1.6-3.2 s apart are searched every frame),
-ours with the opt-in photometric corner step, and the naive peer (OpenCV sub-pixel corners, one
-SQPnP + LM, no tracking). Errors of the cap pose against the rendered truth: rotation (the
+ours with the photometric corner step on every tag, and the naive peer (OpenCV sub-pixel corners,
+one SQPnP + LM, no tracking). Errors of the cap pose against the rendered truth: rotation (the
 geodesic angle, and Phi3 = half of it, the paper's metric) and the cap origin's translation (mm);
 ``rms_px`` is the pose's reprojection rms. The nominal cap model is used for every set (the
 as-built set's cap differs from it by ~1 mm / ~1 deg a plate: what an unmeasured cap costs).
@@ -110,7 +110,7 @@ def main(argv: list[str] | None = None) -> int:
             "the pose is of a rigid cap at one instant, so both carry the motion's error.")
     what = ("What it measures: cap pose error on every blender_dev set (independent path-traced "
             "renders with exact truth; nothing in the package is tuned to them), ours, ours with the "
-            "opt-in photometric corners (`--photometric`) and the naive peer, each set's frames in "
+            "photometric corners on every tag (`--photometric`) and the naive peer, each set's frames in "
             "recording order as `ficap replay` feeds them (tracking on for ours), nominal cap model.")
     report.write_section("blender_pose", what, report.how("bench_blender_pose.py", "the first 8 frames of each set"),
                          body, run, report.command(), args.quick, args.no_doc)

@@ -1,4 +1,4 @@
-"""Corner accuracy against the truth, and what the opt-in photometric step costs.
+"""Corner accuracy against the truth, and what the photometric step costs on every tag.
 
 Corners are what every pose rests on, and a camera biases them: its lens blurs linear light and
 its tone curve then moves the grey midpoint of every black/white edge toward the black. Per
@@ -9,10 +9,11 @@ method, over every fully visible tag within 70 deg of head-on: the median and p9
 * ``ficap synth`` frames by condition: tone curve x PSF x lighting x resolution (6 frames each of
   one naturalistic drive, 1 s apart, seed 5, JPEG 95).
 
-Methods, each frame searched alone (``TagDetector``, as ``ficap detect``): ours (unbiased edge-fit
-corners), ours + the tag-level photometric step (``--photometric``), AprilTag 3 (its own corners)
-and the naive peer's OpenCV sub-pixel corners. Then the photometric step's cost: CPU ms per
-tracked frame without and with it (consecutive 30 fps synth frames through ``FrameProcessor``,
+Methods, each frame searched alone (``TagDetector``, as ``ficap detect``): ours (the defaults:
+unbiased edge-fit corners, the tag-level photometric step on the tags noise limits), ours with the
+photometric step on every tag (``--photometric``), AprilTag 3 (its own corners) and the naive
+peer's OpenCV sub-pixel corners. Then the step's cost on every tag: CPU ms per tracked frame of the
+defaults and of ``--photometric`` (consecutive 30 fps synth frames through ``FrameProcessor``,
 passes alternated, medians). Writes docs/benchmarks/corners.md and corners.png.
 """
 
@@ -183,10 +184,11 @@ def main(argv: list[str] | None = None) -> int:
             f"photometric step median {min(v[0] for v in photo):.3f}-{max(v[0] for v in photo):.3f} px. "
             "The grey-midpoint corners (AprilTag 3, OpenCV sub-pixel) sit inside the tag by a "
             "tenth of a pixel to over a pixel: the tone curve's bias, which the pose inherits.\n\n"
-            "What the photometric step costs (CPU time per tracked frame, `FrameProcessor` as "
-            "replay runs it; the two settings' passes alternated, medians):\n\n" + cost + "\n\n"
-            "It is opt-in (`ficap detect/replay --photometric`, the node's `detector.photometric`) "
-            "for offline labels where accuracy matters more than rate.")
+            "What the photometric step costs on every tag beyond the defaults (which run it on the "
+            "tags noise limits only; CPU time per tracked frame, `FrameProcessor` as replay runs "
+            "it; the two settings' passes alternated, medians):\n\n" + cost + "\n\n"
+            "On every tag it is `ficap detect/replay --photometric` (the node's "
+            "`detector.photometric`), for offline labels where accuracy matters more than rate.")
     what = ("What it measures: corner error against the projected truth (median, p95, mean radial "
             "offset; negative = inside the tag) of every fully visible tag within 70 deg of head-on, "
             "each frame searched alone (`TagDetector`, as `ficap detect`), on every blender_dev set "

@@ -11,7 +11,7 @@ tracking's reach): every 20th frame of the synth drive, and blender_dev's three 
 (``dev_1080p_high``, ``_neutral``, ``_neutral_asbuilt``), each played ``--searched-loops`` times.
 
 Ours: the real command, ``python -m ficap_ros.cli replay BAG --out DIR --jobs 1 --quiet``, in a
-child process, with its defaults and with ``--photometric`` (the opt-in photometric corner fit); its
+child process, with its defaults and with ``--photometric`` (the photometric corner fit on every tag); its
 CPU time (user + sys from ``os.wait4``: start-up, imports, bag reading, JPEG
 decode, pipeline, label writing, everything) per frame. AprilTag 3: pupil-apriltags decimate 1,
 one thread, with our joint pose, on the same JPEG payloads in this process, decode included

@@ -2,7 +2,8 @@
 
 * ours: ``FrameProcessor`` with its defaults (ArUco search, unbiased edge-fit corners, joint pose,
   tracking), as ``ficap replay`` and the node run it;
-* ours + photometric: the opt-in tag-level photometric corner step (``--photometric``);
+* ours + photometric: the tag-level photometric corner step on every tag (``--photometric``; ours
+  runs it on the tags noise limits only);
 * the naive peer: what an afternoon's pipeline does: OpenCV's ArUco detector with sub-pixel
   corners, one SQPnP + Levenberg-Marquardt over every corner, no outlier handling, no tracking;
 * AprilTag 3: pupil-apriltags, decimate 1, one thread, its own corners, with our joint pose.

@@ -14,11 +14,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="detector backend (default: opencv)")
     parser.add_argument("--refine", choices=("edge", "subpix", "apriltag", "none"), default="edge",
                         help="corner refinement (default: edge)")
-    parser.add_argument("--photometric", action=argparse.BooleanOptionalAction, default=False,
+    parser.add_argument("--photometric", action=argparse.BooleanOptionalAction, default=None,
                         help="with edge refinement: fit each tag's pattern, blurred in linear light and "
                              "through a tone curve, to its pixels (more accurate on noisy frames, "
-                             "at a CPU cost per tag: docs/detection.md); --no-photometric (the "
-                             "default): the cell-edge fit's corners")
+                             "at a CPU cost per tag: docs/detection.md): --photometric every tag's; "
+                             "--no-photometric none (the cell-edge fit's corners); neither (the "
+                             "default): the tags whose corners noise limits")
 
 
 #: Largest image file read: a 40 MP PNG (the pixel budget) stays well below it.
@@ -53,7 +54,8 @@ def run(args: argparse.Namespace) -> int:
     from ficap_ros.vision.detector import DetectorConfig, TagDetector
 
     detector = TagDetector(DetectorConfig(backend=args.backend, corner_refine=args.refine,
-                                          edge_photometric=args.photometric))
+                                          edge_photometric=args.photometric is True,
+                                          edge_photometric_auto=args.photometric is None))
     results = []
     failed = 0
     # Each image is reported as soon as it is done: one bad file among many costs its own line,

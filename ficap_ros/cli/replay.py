@@ -56,12 +56,13 @@ def add_input_arguments(parser: argparse.ArgumentParser, many: bool = False) -> 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     add_input_arguments(parser, many=True)
-    parser.add_argument("--photometric", action=argparse.BooleanOptionalAction, default=False,
+    parser.add_argument("--photometric", action=argparse.BooleanOptionalAction, default=None,
                         help="corners' last step: fit each tag's pattern, blurred in linear light and "
                              "through a tone curve, to its pixels (more accurate on noisy frames, "
                              "at a CPU cost per tag: docs/detection.md; every recording of a fleet, "
-                             "any engine); --no-photometric (the default): the cell-edge fit's "
-                             "corners")
+                             "any engine): --photometric every tag's; --no-photometric none (the "
+                             "cell-edge fit's corners); neither (the default): the tags whose "
+                             "corners noise limits")
     parser.add_argument("--motion-corners", action=argparse.BooleanOptionalAction, default=True,
                         help="with a stated exposure (--exposure-ms, a camera YAML's camera_timing): "
                              "refit each tag that moves over the exposure with its pattern moving "
@@ -184,7 +185,8 @@ def run(args: argparse.Namespace) -> int:
     keep_freed_memory()  # this process decodes and processes the frames (--jobs 1)
     frames = output_frames(args)
     model = load_model(args.model) if args.model else nominal_model()
-    detector = DetectorConfig(edge_photometric=args.photometric, motion_corners=args.motion_corners)
+    detector = DetectorConfig(edge_photometric=args.photometric is True,
+                              edge_photometric_auto=args.photometric is None, motion_corners=args.motion_corners)
     calibration = None
     if args.calibration:
         from ficap_ros.io.calibration_file import load_calibration

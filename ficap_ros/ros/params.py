@@ -122,6 +122,11 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               "which a live camera's frame rate may not leave (costs in docs/benchmarks.md). While "
               "every uncertainty.* parameter is at its default, its corners get their own "
               "covariance profile.", read_only=True),
+    ParamSpec("detector.photometric_auto", True, "With detector.photometric false: that fit on the "
+              "tags whose corners noise limits only (noise sd over contrast times sqrt(px per cell), "
+              "from each tag's cell centres, above DetectorConfig.edge_photometric_noise_ratio: dim "
+              "or small tags); the rest keep the cell-edge fit's corners. false: the cell-edge "
+              "fit's corners everywhere.", read_only=True),
     ParamSpec("detector.motion_corners", True, "With camera.exposure_ms given: refit each tag that "
               "moves over the exposure with its pattern moving along its corners' paths, so its "
               "corners are the mid-exposure ones (blurred edges otherwise settle off them); more CPU "
@@ -320,6 +325,7 @@ class NodeConfig:
     detector_corner_refine: str
     detector_search_decimate: int
     detector_photometric: bool
+    detector_photometric_auto: bool
     detector_motion_corners: bool
     tracking: bool
     pose_method: str
@@ -401,6 +407,7 @@ class NodeConfig:
         return DetectorConfig(backend=self.detector_backend, corner_refine=self.detector_corner_refine,
                               search_decimate=self.detector_search_decimate,
                               edge_photometric=self.detector_photometric,
+                              edge_photometric_auto=self.detector_photometric_auto,
                               motion_corners=self.detector_motion_corners)
 
     @property

@@ -11,8 +11,9 @@ stage (``refine_tag_corners``) removes that bias with the tag's own pattern:
 2. ``fit_tag_edges``: the tag's homography fitted to every black/white cell boundary at once,
    with one free shift per boundary direction.
 3. Tags the fit refused, or whose cells then read wrong, are fitted again from other starts.
-4. Optionally (``DetectorConfig.edge_photometric``) the photometric fit of the whole pattern
-   (``fit_tags_photometric``, ``ficap_ros.vision.photometric``).
+4. The photometric fit of the whole pattern (``fit_tags_photometric``,
+   ``ficap_ros.vision.photometric``): of every tag (``DetectorConfig.edge_photometric``), or of
+   the tags whose corners noise limits (``edge_photometric_auto``, ``tag_noise.noise_ratios``).
 5. Tags too small or oblique to measure their own shift take the line estimator's bias measured
    on the fitted tags of the same call (``_line_bias``).
 """
@@ -58,6 +59,7 @@ from ficap_ros.vision.medians import (
     group_nearest_quantile_of_finite,
     row_median,
 )
+from ficap_ros.vision.tag_noise import noise_ratios
 
 __all__ = [
     "refine_tag_corners",
@@ -232,9 +234,12 @@ def refine_tag_corners(
         corners[good] = c
     if cfg.edge_fit and retry_px is not None:
         _retry_misfits(gray, corners, delta, good, ids, retry_px, cfg)
-    if cfg.edge_fit and cfg.edge_photometric and np.isfinite(delta).any():
+    if cfg.edge_fit and (cfg.edge_photometric or cfg.edge_photometric_auto) and np.isfinite(delta).any():
         done = np.flatnonzero(np.isfinite(delta))
-        corners[done] = fit_tags_photometric(gray, corners[done], ids[done])[0]
+        if not cfg.edge_photometric:  # only the tags whose corners noise limits (tag_noise)
+            done = done[noise_ratios(gray, corners[done], ids[done]) > cfg.edge_photometric_noise_ratio]
+        if len(done):
+            corners[done] = fit_tags_photometric(gray, corners[done], ids[done])[0]
     fitted = np.isfinite(delta)
     # Line-fit corners only (too small to unbias or fit, or both failed): no tone-curve correction yet.
     line_only = ~fitted & np.all(corners == corners_in, axis=(1, 2))

@@ -141,8 +141,17 @@ class DetectorConfig:
             cell boundaries: the printed pattern blurred in linear light (blur fitted per tag)
             through an sRGB tone curve (``fit_tags_photometric``, ``ficap_ros.vision.photometric``).
             More accurate where noise limits the cell-edge fit (low light), at a much higher CPU
-            cost per tag, hence off by default (costs in docs/benchmarks.md). ``edge`` refine with
+            cost per tag than that fit (costs in docs/benchmarks.md). ``edge`` refine with
             ``edge_fit`` only (else ``ConfigError``).
+        edge_photometric_auto: with ``edge_photometric`` off, fit photometrically only the tags
+            where noise limits the cell-edge fit: those whose noise ratio
+            (``tag_noise.noise_ratios``: noise sd over contrast times sqrt(px per cell), from the
+            tag's own cell centres) exceeds ``edge_photometric_noise_ratio``; the rest keep the
+            cell-edge corners. ``edge`` refine with ``edge_fit`` only (else it does nothing).
+        edge_photometric_noise_ratio: that threshold, chosen on ``ficap synth`` frames alone: on
+            its dim frames the photometric fit of the tags above it gives about nine tenths of
+            the median gain its fit of every tag gives; clean tags lie several times below it
+            (docs/detection.md).
         motion_corners: where the camera's exposure is stated and the frames before give the
             cap's velocity, refit the corners of each tag that moves over the exposure with the
             photometric model of its pattern moving along that motion (the mean over the
@@ -194,6 +203,8 @@ class DetectorConfig:
     # Pose input: name the partly hidden tags (pipeline.FrameProcessor).
     hidden_check: bool = True
     edge_photometric: bool = False
+    edge_photometric_auto: bool = True
+    edge_photometric_noise_ratio: float = 0.03
     # Moving tags (pipeline.FrameProcessor with an exposure stated): motion-aware corners.
     motion_corners: bool = True
     motion_corners_min_px: float = 2.0
@@ -234,6 +245,8 @@ class DetectorConfig:
             raise ConfigError("edge_max_shift_px must be > 0")
         if not 1 <= self.edge_fit_iterations <= 5:
             raise ConfigError(f"edge_fit_iterations must be in [1, 5], got {self.edge_fit_iterations}")
+        if not (math.isfinite(self.edge_photometric_noise_ratio) and self.edge_photometric_noise_ratio >= 0.0):
+            raise ConfigError(f"edge_photometric_noise_ratio must be >= 0, got {self.edge_photometric_noise_ratio}")
         if not (math.isfinite(self.motion_corners_min_px) and self.motion_corners_min_px >= 0.0):
             raise ConfigError(f"motion_corners_min_px must be >= 0, got {self.motion_corners_min_px}")
         if self.edge_photometric and not (self.corner_refine == "edge" and self.edge_fit):

@@ -26,17 +26,20 @@ the corners outward for a blur assumed too wide, inward for one too narrow).
 
 Pixels: those within ``reach_px`` plus 1.5 blur sds of a black/white cell boundary (the rest are
 flat and say nothing about H), on the tag's 10 x 10-cell face, chosen once at the start corners;
-a large tag's thinned evenly to ``max_pixels``. Gauss-Newton (Levenberg-damped) over H, the
-levels, a blur scale and the exponent, tag by tag (16 x 16 normal equations), pixels more than 4
-robust sds off dropped after the first step (glare specks, a neighbour's edge). A tag whose fit
-fails, that would move a corner more than ``max_move_cells`` of a cell, or whose residual sd
-exceeds ``_MAX_MISFIT`` of its contrast keeps its input corners.
+a large tag's thinned evenly to ``max_pixels``. Gauss-Newton
+(Levenberg-damped) over H, the levels, a blur scale and the exponent, tag by tag (16 x 16 normal
+equations), pixels more than 4 robust sds off dropped after the first step (glare specks, a
+neighbour's edge); a tag stops once a step from the second on moves no corner further than
+``converged_px``. A tag whose fit fails, that would move a corner more than ``max_move_cells`` of
+a cell, or whose residual sd exceeds ``_MAX_MISFIT`` of its contrast keeps its input corners.
 
 This module sets a frame's fit up (the tags' tables, face boxes and inverse homographies) and
 judges its outcome; the per-pixel work (the pixels' selection, the model, its Jacobian and the
 steps) is compiled (``ficap_ros.vision.photometric_kernels``, numba). The fit costs more CPU per tag
-than the cell-edge fit (docs/benchmarks.md), hence it is opt-in (``DetectorConfig.edge_photometric``)
-and this module is imported only when it runs (``corners.fit_tags_photometric``).
+than the cell-edge fit (docs/benchmarks.md), so by default it runs on the tags whose corners noise
+limits (``DetectorConfig.edge_photometric_auto``, ``ficap_ros.vision.tag_noise``), on every tag with
+``DetectorConfig.edge_photometric``; this module (and numba) is imported only when it runs
+(``corners.fit_tags_photometric``).
 """
 
 from __future__ import annotations
@@ -68,6 +71,10 @@ _MIN_PIXELS = 40
 _MIN_LEVEL_PIXELS = 5
 #: Levenberg damping on the column-scaled normal equations (``fit_tags``' ``damping``).
 DAMPING = 1e-3
+#: A still tag stops once a step (from the second on) moves no corner further than this, px
+#: (``fit_tags``' ``converged_px``): far below the corners' noise, so the steps after it move
+#: nothing that matters.
+STILL_CONVERGED_PX = 0.02
 #: Most a moving tag's corners move between the instants its light is averaged over, in blur sds
 #: (``motion_warps``; ``fit_tags``' ``instant_spacing_sds``): Gaussians two sds apart sum to their
 #: box-blurred one within exp(-pi^2 / 2), under 1 % of the step (Poisson summation:
@@ -182,7 +189,7 @@ def fit_tags(
     gray: np.ndarray, corners_px: np.ndarray, hom: np.ndarray, cells: np.ndarray,
     psf_sigma_px: float = PSF_SIGMA_PX,
     iterations: int = 3, reach_px: float = 1.0, free_tone: bool = True, max_move_cells: float = 0.35,
-    max_pixels: int = 1500, motion_px: np.ndarray | None = None, converged_px: float = 0.0,
+    max_pixels: int = 1500, motion_px: np.ndarray | None = None, converged_px: float | None = None,
     bend_px: np.ndarray | None = None, damping: float = DAMPING,
     instant_spacing_sds: float = INSTANT_SPACING_SDS,
 ) -> tuple[np.ndarray, np.ndarray]:
@@ -199,16 +206,17 @@ def fit_tags(
         hom: (N, 3, 3) their homographies from tag cell units (``tag36h11.tag_homographies``).
         cells: (N, 8, 8) each tag's cells, True = black (``tag36h11.tag_cells``).
         psf_sigma_px: lens PSF sigma, px (linear light), where the per-tag blur scale starts.
-        iterations: Gauss-Newton steps, at least 2 (a tag's misfit, which decides whether it is
-            fitted, is measured from the second step on).
+        iterations: the most Gauss-Newton steps, at least 2 (a tag's misfit, which decides
+            whether it is fitted, is measured from the second step on).
         reach_px: pixels used lie within this (plus 1.5 blur sds) of a black/white boundary.
         free_tone: also fit an exponent on the sRGB curve.
         max_move_cells: a tag moving any corner further than this (cells) keeps its input.
         max_pixels: most pixels fitted a tag (a larger tag's are thinned evenly).
         motion_px: (N, 4, 2) each corner's image motion over the exposure (end minus start), px;
             None: the tags are still.
-        converged_px: with ``motion_px``, ``iterations`` is the most steps: a tag stops once a
-            step moves no corner further than this, px (``fit_steps_moving``).
+        converged_px: a tag stops once a step (from the second on) moves no corner further
+            than this, px; None: ``STILL_CONVERGED_PX`` for still tags, 0 (every step) with
+            ``motion_px``.
         bend_px: with ``motion_px``, (N, 4, 2) how each corner's path bends over the exposure
             (``motion_warps``), or None: constant velocity.
         damping: Levenberg damping on the column-scaled normal equations: less damping walks
@@ -234,6 +242,9 @@ def fit_tags(
     hom = hom / hom[:, 2:3, 2:3]
     tab = _black_tables(cells)  # (N, S, S)
     sd_px = float(np.sqrt(psf_sigma_px ** 2 + 1.0 / 12.0))  # the PSF and the pixel's area
+    still = motion_px is None
+    if converged_px is None:
+        converged_px = STILL_CONVERGED_PX if still else 0.0
     reach: float | np.ndarray = reach_px
     if motion_px is not None:
         motion_px = np.asarray(motion_px, dtype=np.float64).reshape(n, 4, 2)
@@ -250,7 +261,7 @@ def fit_tags(
     settings = (sd_px, bool(free_tone), int(iterations), _MIN_PIXELS, _MIN_LEVEL_PIXELS,
                 float(damping))
     if motion_px is None:
-        ok, misfit, contrast = fit_steps(*args, *settings)
+        ok, misfit, contrast = fit_steps(*args, *settings, float(converged_px))
     else:
         warps, instants = motion_warps(c_in, motion_px, instant_spacing_sds * sd_px, bend_px)
         ok, misfit, contrast = fit_steps_moving(*args, warps, instants, *settings, float(converged_px))

@@ -120,7 +120,7 @@ def _near_boundary(H: np.ndarray, sat: np.ndarray, x0: int, y0: int, x1: int, y1
 def fit_steps(obs: np.ndarray, px: np.ndarray, py: np.ndarray, starts: np.ndarray, counts: np.ndarray,
               h: np.ndarray, theta: np.ndarray, tables: np.ndarray, sd_px: float, free_tone: bool,
               iterations: int, min_pixels: int, min_level_pixels: int,
-              damping: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+              damping: float, converged_px: float = 0.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Every tag's Gauss-Newton steps, in place on ``h`` (N, 8) and ``theta`` (N, 7 or 8).
 
     Args:
@@ -135,6 +135,8 @@ def fit_steps(obs: np.ndarray, px: np.ndarray, py: np.ndarray, starts: np.ndarra
         min_pixels, min_level_pixels: fewest pixels a tag needs, and fewest flat black and flat
             white pixels that start its levels.
         damping: Levenberg damping on the column-scaled normal equations.
+        converged_px: a tag stops once a step (from the second on) moves no corner further than
+            this, px (0: only a step that moves nothing stops it).
 
     Returns:
         (fitted (N,) bool: pixels enough, levels started, every system solved; misfit (N,): robust
@@ -149,14 +151,15 @@ def fit_steps(obs: np.ndarray, px: np.ndarray, py: np.ndarray, starts: np.ndarra
             continue
         a, b = starts[t], starts[t] + counts[t]
         ok[t], misfit[t], contrast[t] = _fit_tag(obs[a:b], px[a:b], py[a:b], h[t], theta[t], tables[t],
-                                                 sd_px, free_tone, iterations, min_level_pixels, damping)
+                                                 sd_px, free_tone, iterations, min_level_pixels, damping,
+                                                 converged_px)
     return ok, misfit, contrast
 
 
 @njit
 def _fit_tag(obs: np.ndarray, px: np.ndarray, py: np.ndarray, h: np.ndarray, theta: np.ndarray,
              table: np.ndarray, sd_px: float, free_tone: bool, iterations: int, min_level_pixels: int,
-             damping: float) -> tuple[bool, float, float]:
+             damping: float, converged_px: float) -> tuple[bool, float, float]:
     """One tag's steps (``fit_steps``), ``h`` and ``theta`` in place: (fitted, misfit, contrast)."""
     p_n = len(obs)
     n_par = 8 + len(theta)
@@ -176,8 +179,11 @@ def _fit_tag(obs: np.ndarray, px: np.ndarray, py: np.ndarray, h: np.ndarray, the
         lo, hi = _model_rows(obs, px, py, theta, geo, cov, free_tone, jac, r)
         if it >= 1:
             misfit, contrast = _drop_outliers(jac, r, lo, hi)
+        before = h.copy()
         if not _gauss_newton_update(jac, r, h, theta, damping, free_tone):
             return False, misfit, contrast
+        if it >= 1 and _largest_corner_move(before, h) <= converged_px:
+            break
     return True, misfit, contrast
 
 

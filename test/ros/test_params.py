@@ -90,6 +90,14 @@ def test_detector_photometric_reaches_the_detector() -> None:
         off.detector_config
 
 
+def test_detector_photometric_auto_reaches_the_detector() -> None:
+    # The node's detector.photometric_auto is the CLI's default (neither --photometric nor
+    # --no-photometric): on by default, as there.
+    assert NodeConfig.from_values(_defaults()).detector_config.edge_photometric_auto is True
+    off = NodeConfig.from_values(_defaults(**{"detector.photometric_auto": False}))
+    assert off.detector_config.edge_photometric_auto is False
+
+
 def test_detector_motion_corners_reaches_the_detector() -> None:
     # The node's detector.motion_corners is the CLI's --motion-corners: on by default, as there.
     assert NodeConfig.from_values(_defaults()).detector_config.motion_corners is True

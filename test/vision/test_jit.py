@@ -64,23 +64,23 @@ def test_warm_up_compiles_every_kernel_a_frame_uses() -> None:
     assert [len(k.signatures) for k in KERNELS] == compiled
 
 
-def test_the_photometric_kernels_load_only_for_photometric_corners(
+def test_the_photometric_kernels_load_only_where_the_photometric_fit_runs(
         bag_with_a_corrupt_frame: Path, tmp_path: Path, real_apriltag_dir: Path) -> None:
-    """The default replay and ``ficap detect`` load the corner stage's kernels and never the
-    photometric fit's (loading them costs start-up time); ``--photometric`` does."""
+    """Replay and ``ficap detect`` with ``--no-photometric`` load the corner stage's kernels and
+    never the photometric fit's (loading them costs start-up time); ``--photometric`` does."""
     photo = real_apriltag_dir / "apriltags_jl" / "tagtest.jpg"
     code = (
         "import sys\n"
         "from ficap_ros.cli.main import main\n"
         f"assert main(['replay', {str(bag_with_a_corrupt_frame)!r}, '--out', {str(tmp_path / 'out')!r},"
-        " '--quiet']) == 0\n"
-        f"assert main(['detect', {str(photo)!r}]) == 0\n"
+        " '--quiet', '--no-photometric']) == 0\n"
+        f"assert main(['detect', '--no-photometric', {str(photo)!r}]) == 0\n"
         "from ficap_ros.vision import kernels\n"
-        "print('default', bool(kernels.line_pass.signatures),"
+        "print('no-photometric', bool(kernels.line_pass.signatures),"
         " 'ficap_ros.vision.photometric_kernels' in sys.modules)\n"
         f"assert main(['detect', '--photometric', {str(photo)!r}]) == 0\n"
         "print('photometric', 'ficap_ros.vision.photometric_kernels' in sys.modules)\n")
     out = subprocess.run([sys.executable, "-c", code], env={**os.environ, "PYTHONPATH": str(ROOT)},
                          capture_output=True, text=True, check=True, cwd=tmp_path)
-    said = [line for line in out.stdout.splitlines() if line.startswith(("default ", "photometric "))]
-    assert said == ["default True False", "photometric True"], out.stderr
+    said = [line for line in out.stdout.splitlines() if line.startswith(("no-photometric ", "photometric "))]
+    assert said == ["no-photometric True False", "photometric True"], out.stderr

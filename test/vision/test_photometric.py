@@ -20,7 +20,7 @@ from ficap_ros.vision.corners import fit_tags_photometric
 from ficap_ros.vision.detector import DetectorConfig, TagDetector
 from ficap_ros.vision.tracking import view_angles_deg
 
-EDGE = TagDetector(DetectorConfig())
+EDGE = TagDetector(DetectorConfig(edge_photometric_auto=False))
 PHOTO = TagDetector(DetectorConfig(edge_photometric=True))
 
 

@@ -30,12 +30,32 @@ def test_fit_equals_the_numpy_reference(resolution: str, lighting: str) -> None:
     start = np.array([fr.corners_px[t] for t in ids]) + rng.normal(0.0, 0.15, (len(ids), 4, 2))
     hom, cells = tag_homographies(start), stacked_tag_cells(tuple(int(i) for i in ids))
     for free_tone, iterations in ((True, 3), (False, 2)):
-        got, ok = photometric.fit_tags(fr.image, start, hom, cells, free_tone=free_tone, iterations=iterations)
+        # Every step (the reference takes them all).
+        got, ok = photometric.fit_tags(fr.image, start, hom, cells, free_tone=free_tone, iterations=iterations,
+                                       converged_px=0.0)
         want, ok_ref = photometric_reference.fit_tags(fr.image, start, hom, cells, free_tone=free_tone,
                                                       iterations=iterations)
         np.testing.assert_array_equal(ok, ok_ref)
         assert ok.sum() >= len(ids) - 2
         np.testing.assert_allclose(got, want, rtol=0.0, atol=1e-5)
+
+
+@pytest.mark.parametrize("resolution, lighting", [("540p", "low"), ("1080p", "neutral")])
+def test_the_convergence_stop_moves_no_corner_beyond_its_threshold(resolution: str, lighting: str) -> None:
+    """A still tag that stops once a step moves its corners under ``STILL_CONVERGED_PX`` lands where
+    every step would take it, within a few times that (the steps shrink), and fits the same tags;
+    some tags do stop early (else the stop saves nothing)."""
+    fr = drive_frames(resolution, RenderConfig(lighting=lighting, jpeg_quality=95), n=1)[0]
+    ids = np.array(fr.visible_ids(0.999))
+    rng = np.random.default_rng(3)
+    start = np.array([fr.corners_px[t] for t in ids]) + rng.normal(0.0, 0.15, (len(ids), 4, 2))
+    hom, cells = tag_homographies(start), stacked_tag_cells(tuple(int(i) for i in ids))
+    stopped, ok = photometric.fit_tags(fr.image, start, hom, cells, iterations=4)
+    full, ok_full = photometric.fit_tags(fr.image, start, hom, cells, iterations=4, converged_px=0.0)
+    np.testing.assert_array_equal(ok, ok_full)
+    gap = np.linalg.norm(stopped - full, axis=2)[ok]
+    assert gap.max() <= 3.0 * photometric.STILL_CONVERGED_PX
+    assert (gap.max(axis=1) == 0.0).sum() < ok.sum()
 
 
 def test_normal_cdf_and_density_match_scipy() -> None:
@@ -123,7 +143,7 @@ def test_a_still_tag_through_the_moving_kernels_is_the_still_fit() -> None:
     ids = np.array(fr.visible_ids(0.999))[:6]
     start = np.array([fr.corners_px[t] for t in ids]) + np.random.default_rng(4).normal(0.0, 0.1, (len(ids), 4, 2))
     hom, cells = tag_homographies(start), stacked_tag_cells(tuple(int(i) for i in ids))
-    still, ok = photometric.fit_tags(fr.image, start, hom, cells)
+    still, ok = photometric.fit_tags(fr.image, start, hom, cells, converged_px=0.0)
     moving, ok_m = photometric.fit_tags(fr.image, start, hom, cells, motion_px=np.zeros((len(ids), 4, 2)))
     np.testing.assert_array_equal(ok, ok_m)
     np.testing.assert_allclose(moving, still, rtol=0.0, atol=1e-9)
