@@ -42,10 +42,10 @@ def pytest_configure(config: pytest.Config) -> None:
 
 
 def pytest_sessionstart(session: pytest.Session) -> None:
-    """The photometric fit's compiled kernels (``ficap_ros.vision.jit``) compiled, or loaded from
-    their cache, once in the controlling process before any xdist worker starts: on a fresh clone
-    the workers' photometric tests (``test_photometric``, ``test_photometric_kernels``, the fleet's
-    and the commands' ``--photometric`` runs) then load them instead of each compiling them."""
+    """The compiled kernels (``ficap_ros.vision.jit``: the corner stage's and the photometric
+    fit's) compiled, or loaded from their cache, once in the controlling process before any xdist
+    worker starts: on a fresh clone every worker's detection, replay and node tests then load them
+    instead of each compiling them."""
     if hasattr(session.config, "workerinput"):  # an xdist worker: its controller did it
         return
     from ficap_ros.vision.jit import warm_up

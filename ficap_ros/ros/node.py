@@ -102,16 +102,12 @@ class FicapNodeSteps:
         self._worker.start()
 
     @staticmethod
-    def _warm_up_kernels(cfg: Any) -> float | None:
-        """With photometric corners (``detector.photometric``, or ``detector.photometric_auto``:
-        on the tags noise limits), or an exposure stated (``camera.exposure_ms``: the moving
-        tags' fit, ``DetectorConfig.motion_corners``), the compiled kernels loaded (or compiled)
-        now, so no frame waits for them: the seconds it took; None without them (numba is then
-        not imported until a camera_info_file's timing states an exposure and a tag moves)."""
-        det = cfg.detector_config
-        moving = det.motion_corners and cfg.camera_exposure_ms > 0.0
-        if not (det.edge_photometric or det.edge_photometric_auto or moving):
-            return None
+    def _warm_up_kernels(cfg: Any) -> float:
+        """The compiled kernels (``ficap_ros.vision.jit``: the corner stage's, the photometric and
+        the moving tags' fits) loaded from their cache, or compiled, now, so no frame waits for
+        them: the seconds it took. All of them whatever ``cfg`` says: the corner stage always
+        uses its kernels, and a camera_info_file's exposure may switch on the moving tags' fit
+        later."""
         from ficap_ros.vision.jit import warm_up
 
         return warm_up()
@@ -130,8 +126,7 @@ class FicapNodeSteps:
             f"ficap_node ready: {cfg.image_transport} images on {self._inputs.image.topic_name}, "
             f"CameraInfo on {self._inputs.camera_info.topic_name}, pose method {cfg.pose_method}, "
             f"{'calibrated' if self.calibration.calibrated else 'not calibrated'}"
-            + ("" if self.kernels_warm_up_s is None
-               else f", photometric kernels ready in {self.kernels_warm_up_s:.1f} s"))
+            + f", kernels ready in {self.kernels_warm_up_s:.1f} s")
 
     def deactivate(self: Any) -> None:
         """Unsubscribe (frames in flight still finish)."""

@@ -49,6 +49,11 @@ from ficap_ros.vision.edges import (
     step_offset,
     vector_norm,
 )
+from ficap_ros.vision.kernels import (
+    boundary_rows,
+    grouped_normal_equations,
+    grouped_residuals,
+)
 from ficap_ros.vision.medians import (
     group_median_of_finite,
     group_nearest_quantile_of_finite,
@@ -525,9 +530,8 @@ def fit_tag_edges(
     keep = np.ones(len(uv), dtype=bool)
     fitted = np.zeros(n, dtype=bool)
     for it in range(iterations):
-        frames = _boundary_frames(h, tag_of, uv, nu)
+        frames, jac = _boundary_frames(h, tag_of, uv, nu)
         s, contrast, top_c, ok = _boundary_offsets(gray, frames, keep, tag_of, counts, cfg)
-        jac = _edge_jacobian(uv, nu, frames)
         sol, solved, ok = _solve_edges(jac, s, contrast, top_c, ok, nu, tag_of, starts, counts)
         h = h + np.where(solved[:, None], sol[:, :8], 0.0)
         delta = np.where(solved, sol[:, 8:].mean(axis=1), np.nan)  # the two directions' mean
@@ -541,25 +545,19 @@ def fit_tag_edges(
     return np.where(good[:, None, None], corners, c_in), np.where(good, delta, np.nan)
 
 
-def _boundary_frames(h: np.ndarray, tag_of: np.ndarray, uv: np.ndarray, nu: np.ndarray) -> dict[str, np.ndarray]:
+def _boundary_frames(
+    h: np.ndarray, tag_of: np.ndarray, uv: np.ndarray, nu: np.ndarray,
+) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """Each boundary sample in the image through its tag's homography ``h`` (N, 8): its position
     ``px``, ``py``, the homography's denominator ``den`` there, the boundary's unit image normal
     ``nx``, ``ny`` (toward the white cell: J^-T nu, J = d(px, py)/d(u, v)) and ``cell_px``, one
-    cell across the boundary in px (all (T,))."""
-    u, v = uv[:, 0], uv[:, 1]
-    ht = h[tag_of]
-    den = ht[:, 6] * u + ht[:, 7] * v + 1.0
-    px = (ht[:, 0] * u + ht[:, 1] * v + ht[:, 2]) / den
-    py = (ht[:, 3] * u + ht[:, 4] * v + ht[:, 5]) / den
-    j11 = (ht[:, 0] - ht[:, 6] * px) / den
-    j12 = (ht[:, 1] - ht[:, 7] * px) / den
-    j21 = (ht[:, 3] - ht[:, 6] * py) / den
-    j22 = (ht[:, 4] - ht[:, 7] * py) / den
-    det = j11 * j22 - j12 * j21
-    gx = (j22 * nu[:, 0] - j21 * nu[:, 1]) / det
-    gy = (-j12 * nu[:, 0] + j11 * nu[:, 1]) / det
-    gnorm = np.hypot(gx, gy)
-    return {"px": px, "py": py, "den": den, "nx": gx / gnorm, "ny": gy / gnorm, "cell_px": 1.0 / gnorm}
+    cell across the boundary in px (all (T,)); with the (T, 10) rows of the linearised model
+    s = n . J_h dh - delta: the 8 homography entries, then one shift per boundary direction (tag
+    x, tag y): what the estimator sees of the shift depends on its window, half a cell across the
+    boundary, and an oblique tag's cells are narrower along one axis (a window that cuts the
+    blurred step's tails sees less). Compiled: ``kernels.boundary_rows``."""
+    frames, jac = boundary_rows(np.ascontiguousarray(h), tag_of, uv, nu)
+    return dict(zip(("px", "py", "den", "nx", "ny", "cell_px"), frames)), jac
 
 
 def _boundary_offsets(
@@ -578,24 +576,6 @@ def _boundary_offsets(
     ok = (keep & (f["cell_px"] >= _MIN_CELL_PX) & np.isfinite(s) & (np.abs(s) < half - step)
           & (contrast > 8.0) & (contrast >= _MIN_CONTRAST_RATIO * top_c))
     return s, contrast, top_c, ok
-
-
-def _edge_jacobian(uv: np.ndarray, nu: np.ndarray, f: dict[str, np.ndarray]) -> np.ndarray:
-    """(T, 10) rows of the linearised model s = n . J_h dh - delta: the 8 homography entries, then
-    one shift per boundary direction (tag x, tag y): what the estimator sees of the shift depends
-    on its window, half a cell across the boundary, and an oblique tag's cells are narrower along
-    one axis (a window that cuts the blurred step's tails sees less)."""
-    u, v = uv[:, 0], uv[:, 1]
-    nx, ny, px, py, den = f["nx"], f["ny"], f["px"], f["py"], f["den"]
-    across_x = (np.abs(nu[:, 0]) > 0.5).astype(np.float64)  # boundary normal along tag x
-    jac = np.zeros((len(uv), 10))
-    jac[:, 0], jac[:, 1], jac[:, 2] = nx * u / den, nx * v / den, nx / den
-    jac[:, 3], jac[:, 4], jac[:, 5] = ny * u / den, ny * v / den, ny / den
-    jac[:, 6] = -(nx * px + ny * py) * u / den
-    jac[:, 7] = -(nx * px + ny * py) * v / den
-    jac[:, 8] = -across_x
-    jac[:, 9] = -(1.0 - across_x)
-    return jac
 
 
 def _solve_edges(
@@ -632,17 +612,7 @@ def _solve_grouped(
     residuals rhs - jac @ solution (T,), None unless ``residuals``). A group needs ``min_rows``
     weighted rows and every parameter touched by one."""
     n, p = len(starts), jac.shape[1]
-    ends = np.append(starts[1:], len(rhs))
-    jw = jac * w[:, None]
-    ata = np.empty((n, p, p))
-    atb = np.empty((n, p))
-    # Python ints: slicing with numpy integers is slower per group.
-    bounds = list(enumerate(zip(starts.tolist(), ends.tolist())))
-    for g, (a, b) in bounds:  # a few dozen small products: cheaper than one (T, P, P) outer product
-        jw_t = jw[a:b].T
-        ata[g] = jw_t @ jac[a:b]
-        atb[g] = jw_t @ rhs[a:b]
-    rows = np.add.reduceat((w > 0).astype(np.float64), starts)
+    ata, atb, rows = grouped_normal_equations(jac, rhs, w, starts)
     # Column scaling: the parameters differ in size by orders of magnitude.
     d = np.sqrt(np.maximum(np.einsum("nii->ni", ata), 1e-30))
     a_s = ata / d[:, :, None] / d[:, None, :]
@@ -662,9 +632,7 @@ def _solve_grouped(
     solved &= np.isfinite(sol).all(axis=1)
     if not residuals:
         return sol, solved, None
-    resid = np.empty_like(rhs)
-    for g, (a, b) in bounds:
-        resid[a:b] = rhs[a:b] - jac[a:b] @ sol[g]
+    resid = grouped_residuals(jac, rhs, sol, starts)
     return sol, solved, resid
 
 

@@ -7,8 +7,8 @@ and the white quiet zone. The step's position is its *area* location: with dark 
 level l at the ends of the window, the edge sits at s_out - integral((I - d) / (l - d)) ds, which is
 exact for an area-sampled step under any blur that fits in the window, and is the 50 % crossing
 for a symmetric one. A line is fitted per side (weights = local contrast; samples beyond 3 robust
-sigmas dropped and the line refitted) and adjacent lines are intersected. Everything is vectorised
-across the tags' 4N sides.
+sigmas dropped and the line refitted) and adjacent lines are intersected. The pass is compiled
+(``ficap_ros.vision.kernels.line_pass``).
 
 Corner order and pixel convention are OpenCV's (``ficap_ros.vision.detector``). Side k runs from
 corner k to corner k + 1; corner k joins sides k - 1 and k.
@@ -23,7 +23,7 @@ import numpy as np
 
 from ficap_ros.geometry.tag36h11 import TAG_CELLS
 from ficap_ros.vision.detector import DetectorConfig
-from ficap_ros.vision.medians import row_median
+from ficap_ros.vision.kernels import area_steps, frozen, line_pass
 
 __all__ = [
     "NEXT",
@@ -78,20 +78,15 @@ def refine_corners_edge_ok(
     quarter of the tag's shortest side) from its input.
     """
     cfg = config or DetectorConfig()
-    c_init = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    c_init = np.ascontiguousarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
     if len(c_init) == 0:
         return c_init.copy(), np.zeros(0, dtype=bool)
-    side_len = vector_norm(c_init[:, NEXT] - c_init)  # (N, 4)
-    cell_px = np.repeat(side_len.mean(axis=1) / TAG_CELLS, 4)  # (4N,) one per side
-    corners = c_init
-    ok = np.ones(len(c_init), dtype=bool)
-    for _ in range(cfg.edge_iterations):
-        corners, it_ok = _edge_pass(gray, corners, cell_px, cfg)
-        ok &= it_ok
-    shift = vector_norm(corners - c_init).max(axis=1)
-    max_shift = np.minimum(cfg.edge_max_shift_px, 0.25 * side_len.min(axis=1))
-    ok &= np.isfinite(corners).all(axis=(1, 2)) & (shift <= max_shift)
-    return np.where(ok[:, None, None], corners, c_init), ok
+    m = cfg.edge_samples_per_side
+    # Every side's window [-half, half] holds the same number of samples, so their spacing
+    # follows the window: the same relative resolution on every side.
+    return line_pass(frozen(gray), c_init, cfg.edge_iterations, float(cfg.edge_search_px),
+                     float(cfg.edge_window_cells), _side_positions(cfg.edge_corner_skip, m),
+                     (cfg.edge_profile_samples - 1) // 2, max(3, m // 4), float(cfg.edge_max_shift_px))
 
 
 def refine_corners_edge_wide(gray: np.ndarray, corners: np.ndarray, cfg: DetectorConfig) -> np.ndarray:
@@ -105,186 +100,13 @@ def refine_corners_edge_wide(gray: np.ndarray, corners: np.ndarray, cfg: Detecto
     return np.where((ok1 & ok2)[:, None, None], c, corners)
 
 
-def _edge_pass(
-    img: np.ndarray, corners: np.ndarray, cell_px: np.ndarray, cfg: DetectorConfig
-) -> tuple[np.ndarray, np.ndarray]:
-    """One search-and-fit pass over the 4N sides (rows r of every per-side array): sample each
-    side's profiles, locate the step on each, fit a line per side, intersect adjacent lines.
-
-    Returns:
-        (corners (N,4,2), ok (N,)): a tag is ok when its four lines meet at usable angles and each
-        kept at least a quarter of its samples (at least 3).
-    """
-    n, m = len(corners), cfg.edge_samples_per_side
-    a, d, length, u, nrm = _outward_sides(corners)
-    half = _side_windows(corners, a, nrm, cell_px, cfg)
-    # Every side's window [-half, half] holds the same number of samples, so their spacing
-    # follows the window: the same relative resolution on every side and one array shape for all.
-    k = (cfg.edge_profile_samples - 1) // 2
-    step = half / k  # (R,)
-    j, t, trap = _edge_pass_grid(k, cfg.edge_corner_skip, m)
-    map_x, map_y = _profile_grid(a, d, nrm, step, j, t)
-    s_edge, contrast = _area_edges(img, map_x, map_y, half, step, trap)
-    w = _sample_weights(img, corners, map_x, map_y, s_edge, contrast, half, step)
-    normal, rho, keep_n = _fit_lines(a, u, nrm, t[None, :] * length[:, None], s_edge, w)
-    new, good_det = _corners_of_lines(np.column_stack([normal, rho]).reshape(n, 4, 3))
-    ok = good_det.all(axis=1) & (keep_n.reshape(n, 4) >= max(3, m // 4)).all(axis=1)
-    return np.where(ok[:, None, None], new, corners), ok
-
-
-def _outward_sides(corners: np.ndarray) -> tuple[np.ndarray, ...]:
-    """Per side (R = 4N rows): start point a (R, 2), side vector d (R, 2), length (R,), unit
-    direction u (R, 2) and unit normal (R, 2) pointing away from the tag's centre, whatever the
-    corner order's handedness."""
-    a = corners.reshape(-1, 2)
-    d = corners[:, NEXT].reshape(-1, 2) - a
-    length = np.maximum(np.hypot(d[:, 0], d[:, 1]), 1e-9)
-    u = d / length[:, None]
-    nrm = np.column_stack([u[:, 1], -u[:, 0]])
-    centre = np.repeat(corners.mean(axis=1), 4, axis=0)
-    nrm *= np.where(np.einsum("ij,ij->i", a + 0.5 * d - centre, nrm) < 0, -1.0, 1.0)[:, None]
-    return a, d, length, u, nrm
-
-
-def _side_windows(
-    corners: np.ndarray, a: np.ndarray, nrm: np.ndarray, cell_px: np.ndarray, cfg: DetectorConfig
-) -> np.ndarray:
-    """(R,) half-length, px, of each side's search window across it.
-
-    The window must stay between the data cells (one cell inside) and whatever lies beyond the
-    white quiet zone (one cell outside). The cell that matters is the one across this side, which
-    on an obliquely seen tag is much narrower than the mean side / 8: the tag's width along the
-    side's normal (distance of the two opposite corners from the side's line) gives it.
-    """
-    opp = corners[:, OPPOSITE[0]].reshape(-1, 2) + corners[:, OPPOSITE[1]].reshape(-1, 2) - 2 * a
-    width = np.abs(np.einsum("ij,ij->i", opp, nrm)) / 2.0
-    cell_side = np.minimum(width / TAG_CELLS, cell_px)
-    return np.maximum(np.minimum(cfg.edge_search_px, cfg.edge_window_cells * cell_side), 0.75)
-
-
-def _profile_grid(
-    a: np.ndarray, d: np.ndarray, nrm: np.ndarray, step: np.ndarray, j: np.ndarray, t: np.ndarray
-) -> tuple[np.ndarray, np.ndarray]:
-    """Sample positions (R, M, S) float32, x and y: M points along each side (float64, then
-    float32) plus S steps of ``step`` along its normal."""
-    dn = (nrm * step[:, None]).astype(np.float32)  # (R,2) one sample step along the normal
-    map_x = (a[:, 0:1] + d[:, 0:1] * t).astype(np.float32)[..., None] + dn[:, None, 0:1] * j
-    map_y = (a[:, 1:2] + d[:, 1:2] * t).astype(np.float32)[..., None] + dn[:, None, 1:2] * j
-    return map_x, map_y
-
-
-def _area_edges(
-    img: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, half: np.ndarray, step: np.ndarray,
-    trap: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray]:
-    """Step position (R, M), px outward from the side, and contrast (R, M) of every profile.
-
-    Dark level: the window's inner end (black border); light level: its outer end (white quiet
-    zone); the edge: the window's outer end minus the trapezoid integral of the normalised
-    profile over the window. Sampling is ``cv2.remap``'s bilinear interpolation (positions to
-    1/32 px, values to 1 grey level; both average out over a profile and a side).
-    """
-    import cv2
-
-    s_len = map_x.shape[-1]
-    vals = cv2.remap(img, map_x.reshape(-1, s_len), map_y.reshape(-1, s_len), cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_REPLICATE).reshape(map_x.shape).astype(np.float32)
-    dark = 0.5 * (vals[..., 0] + vals[..., 1])  # (R,M)
-    contrast = 0.5 * (vals[..., -1] + vals[..., -2]) - dark
-    # In place: the samples are not needed again.
-    frac = np.subtract(vals, dark[..., None], out=vals)
-    frac /= np.where(contrast > 0, contrast, 1.0)[..., None]
-    np.clip(frac, 0.0, 1.0, out=frac)
-    s_edge = half[:, None] - (frac @ trap).astype(np.float64) * step[:, None]  # (R,M)
-    return s_edge, contrast.astype(np.float64)
-
-
-def _sample_weights(
-    img: np.ndarray, corners: np.ndarray, map_x: np.ndarray, map_y: np.ndarray, s_edge: np.ndarray,
-    contrast: np.ndarray, half: np.ndarray, step: np.ndarray,
-) -> np.ndarray:
-    """(R, M) each profile's weight in its side's line fit: its contrast; 0 for weak or inverted
-    profiles (occlusion, glare, the wrong edge: under 0.3 of the side's median contrast or 8
-    grey levels), for an edge at the window's end, and for a window reaching off the image."""
-    med_c = row_median(contrast, contrast > 0)
-    w = np.where((contrast > 0.3 * med_c[:, None]) & (contrast > 8.0)
-                 & (np.abs(s_edge) < half[:, None] - np.maximum(step, 0.25)[:, None]), contrast, 0.0)
-    h_img, w_img = img.shape
-    reach = float(half.max()) + 1.0
-    if not (corners.min() >= reach and (corners.max(axis=(0, 1)) <= (w_img - 1 - reach, h_img - 1 - reach)).all()):
-        inside = (map_x >= 0) & (map_y >= 0) & (map_x <= w_img - 1) & (map_y <= h_img - 1)
-        w = w * inside.all(axis=2)
-    return w
-
-
-def _fit_lines(
-    a: np.ndarray, u: np.ndarray, nrm: np.ndarray, along: np.ndarray, s_edge: np.ndarray, w: np.ndarray
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """A line per side through its step positions ``s_edge`` (R, M) at ``along`` (R, M) px along
-    it, fitted in the side's own coordinates (s = alpha + beta (along - mean)) and turned back
-    into the image: (unit normal (R, 2), offset rho (R,): normal . p = rho on the line, samples
-    kept (R,))."""
-    alpha, beta, keep_n = _fit_side_lines(along, s_edge, w)
-    along0 = (w * along).sum(axis=1) / np.maximum(w.sum(axis=1), 1e-12)
-    point = a + u * along0[:, None] + nrm * alpha[:, None]
-    normal = nrm - u * beta[:, None]
-    normal /= np.hypot(normal[:, 0], normal[:, 1])[:, None]
-    rho = np.einsum("ij,ij->i", normal, point)
-    return normal, rho, keep_n
-
-
-def _corners_of_lines(lines: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Corner k where side k-1's line meets side k's, from ``lines`` (N, 4, 3) = (normal x,
-    normal y, rho): (corners (N, 4, 2), usable (N, 4): the two sides at least ~12 deg apart)."""
-    l_prev = lines[:, PREV]
-    a11, a12, r1 = l_prev[..., 0], l_prev[..., 1], l_prev[..., 2]
-    a21, a22, r2 = lines[..., 0], lines[..., 1], lines[..., 2]
-    det = a11 * a22 - a12 * a21
-    good_det = np.abs(det) > 0.2
-    det = np.where(good_det, det, 1.0)
-    return np.stack([(r1 * a22 - a12 * r2) / det, (a11 * r2 - a21 * r1) / det], axis=-1), good_det
-
-
 @lru_cache(maxsize=8)
-def _sample_index(k: int) -> np.ndarray:
-    """(2k + 1,) float32 -k..k: a profile's sample index along its normal (built once per size)."""
-    j = np.arange(-k, k + 1, dtype=np.float32)
-    j.setflags(write=False)
-    return j
-
-
-@lru_cache(maxsize=8)
-def _edge_pass_grid(k: int, corner_skip: float, m: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``_edge_pass``'s constants, built once per setting: the sample index along the normal (S,),
-    the positions along a side (M,) and the trapezoid rule's weights (S,)."""
-    j = _sample_index(k)
+def _side_positions(corner_skip: float, m: int) -> np.ndarray:
+    """The line pass's positions along a side (M,), fractions of its length, built once per
+    setting."""
     t = np.linspace(corner_skip, 1.0 - corner_skip, m)
-    trap = np.ones(len(j), dtype=np.float32)
-    trap[[0, -1]] = 0.5
-    for a in (t, trap):
-        a.setflags(write=False)
-    return j, t, trap
-
-
-def _fit_side_lines(x: np.ndarray, s: np.ndarray, w: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Weighted straight-line fits s = alpha + beta (x - x_mean) per row, one round of 3-sigma
-    (MAD) outlier rejection; returns (alpha, beta, samples kept) per row.
-
-    A fit in the side's own frame (x along the side, s across it) equals the total-least-squares
-    line to first order in the slope, which the previous pass has already made small.
-    """
-    for round_ in range(2):
-        sw = np.maximum(w.sum(axis=1), 1e-12)
-        xm = (w * x).sum(axis=1) / sw
-        dx = x - xm[:, None]
-        alpha = (w * s).sum(axis=1) / sw
-        beta = (w * dx * s).sum(axis=1) / np.maximum((w * dx * dx).sum(axis=1), 1e-12)
-        if round_ == 1:
-            break
-        r = np.abs(s - alpha[:, None] - beta[:, None] * dx)
-        mad = 1.4826 * row_median(r, w > 0)
-        w = np.where(r <= np.maximum(3.0 * mad, 0.05)[:, None], w, 0.0)
-    return alpha, beta, (w > 0).sum(axis=1)
+    t.setflags(write=False)
+    return t
 
 
 def side_lines(corners: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -311,9 +133,9 @@ def intersect_sides(nrm: np.ndarray, rho: np.ndarray) -> np.ndarray:
 
 def line_windows(corners: np.ndarray, cfg: DetectorConfig) -> np.ndarray:
     """(N, 4) half-length, px, of the line pass's window across each side of these corners, from
-    the corners' own side lines: ``_side_windows``, except that the tag's width across a side is
-    taken at its farther opposite corner, where the line pass takes the mean of the two (the
-    same on a parallelogram, at least as wide otherwise)."""
+    the corners' own side lines: the line pass's windows (``kernels.line_pass``), except that the
+    tag's width across a side is taken at its farther opposite corner, where the line pass takes
+    the mean of the two (the same on a parallelogram, at least as wide otherwise)."""
     side_len = np.linalg.norm(corners[:, NEXT] - corners, axis=2)
     cell_px = side_len.mean(axis=1, keepdims=True) / TAG_CELLS
     nrm, rho = side_lines(corners)
@@ -333,19 +155,10 @@ def step_offset(
     step in linear light; under a tone curve, shifted toward the dark side by the same amount for
     every edge of the same blur and contrast).
     """
-    import cv2
-
     k = (samples - 1) // 2
-    j = _sample_index(k)
     step = half / k
     d = (to_light * step[:, None]).astype(np.float32)
     c = centre.astype(np.float32)
-    vals = cv2.remap(img, c[:, 0:1] + d[:, 0:1] * j, c[:, 1:2] + d[:, 1:2] * j, cv2.INTER_LINEAR,
-                     borderMode=cv2.BORDER_REPLICATE).astype(np.float32)
-    dark = 0.5 * (vals[:, 0] + vals[:, 1])
-    contrast = 0.5 * (vals[:, -1] + vals[:, -2]) - dark
-    frac = np.subtract(vals, dark[:, None], out=vals)  # in place, as _area_edges
-    frac /= np.where(contrast > 0, contrast, 1.0)[:, None]
-    np.clip(frac, 0.0, 1.0, out=frac)
-    area = frac.sum(axis=1) - 0.5 * (frac[:, 0] + frac[:, -1])  # trapezoid rule
-    return half - area.astype(np.float64) * step, contrast.astype(np.float64)
+    offset, contrast, _ = area_steps(frozen(img), c[:, 0].copy(), c[:, 1].copy(), d[:, 0].copy(), d[:, 1].copy(), k,
+                                     np.asarray(half, dtype=np.float64), step)
+    return offset, contrast

@@ -1,7 +1,8 @@
 """The compiled kernels' runtime: where numba keeps their machine code, and their warm-up.
 
-The photometric corner fit's per-pixel kernels (``ficap_ros.vision.photometric_kernels``) are
-numba functions compiled on their first call and cached on disk (``njit(cache=True)``), so a
+The per-pixel kernels (``ficap_ros.vision.kernels``: the corner stage's profiles, line pass and
+per-tag least squares; ``ficap_ros.vision.photometric_kernels``: the photometric and moving tags'
+fits) are numba functions compiled on their first call and cached on disk (``njit(cache=True)``), so a
 later process loads them instead of compiling. numba keeps that cache next to the source
 (``__pycache__``) when the package's directory is writable (a clone, an editable install). Where
 it is not (an apt or colcon install), the cache goes to the user's cache directory,
@@ -9,9 +10,10 @@ it is not (an apt or colcon install), the cache goes to the user's cache directo
 ``NUMBA_CACHE_DIR``: set here before numba is imported, and only when the user has not set it.
 
 ``warm_up`` runs every kernel once on a tiny input of the types the pipeline passes (a kernel is
-compiled, or loaded, per argument type): the node calls it at start-up when its corners are
-photometric, so no frame pays for it. Importing this module imports numba: only the photometric
-fit does (the default corners never load it).
+compiled, or loaded, per argument type): the node calls it at start-up, so no frame pays for it.
+Importing this module imports numba; the corner stage imports it, so every detecting command does.
+A command loads (or compiles) only the kernels it calls: the photometric ones only with
+photometric corners or moving tags.
 """
 
 from __future__ import annotations
@@ -49,13 +51,16 @@ import numba  # noqa: E402  (after the cache directory is chosen: numba reads it
 _WARM_UPS: list[Callable[[], None]] = []
 
 
-def njit(fn: Callable | None = None, *, inline: str = "never") -> Callable:
+def njit(fn: Callable | None = None, *, inline: str = "never", error_model: str = "python") -> Callable:
     """``numba.njit(cache=True)``: compiled on the first call per argument types, kept on disk.
     ``inline="always"`` (as ``@njit(inline="always")``): a small helper inlined into its callers'
-    loops (numba passes array arguments to a called kernel with reference counting)."""
+    loops (numba passes array arguments to a called kernel with reference counting).
+    ``error_model="numpy"``: a float division by zero gives inf or NaN, as numpy's does, instead of
+    raising ``ZeroDivisionError``."""
+    options = {"cache": True, "inline": inline, "error_model": error_model}
     if fn is None:
-        return lambda f: numba.njit(cache=True, inline=inline)(f)
-    return numba.njit(cache=True, inline=inline)(fn)
+        return lambda f: numba.njit(**options)(f)
+    return numba.njit(**options)(fn)
 
 
 def cache_dir() -> Path:
@@ -75,6 +80,7 @@ def warm_up() -> float:
     """Compile (or load from the cache) every kernel for the argument types the pipeline passes;
     returns the seconds it took (wall clock)."""
     # The modules register their kernels' warm-ups when imported.
+    import ficap_ros.vision.kernels  # noqa: F401
     import ficap_ros.vision.photometric_kernels  # noqa: F401
 
     t0 = time.perf_counter()

@@ -634,8 +634,9 @@ def _warm_up() -> None:
     theta = np.zeros((1, 8))
     fit_steps(obs, xs.astype(np.float64), ys.astype(np.float64), np.zeros(1, np.int64),
               np.array([len(tag)], np.int64), hom.reshape(1, 9)[:, :8].copy(), theta, table[None], 0.66,
-              True, 2, 40, 5, 1e-3)
+              True, 2, 40, 5, 1e-3, 0.02)  # the stop as the fit passes it (a float)
     theta = np.zeros((1, 8))
     fit_steps_moving(obs, xs.astype(np.float64), ys.astype(np.float64), np.zeros(1, np.int64),
                      np.array([len(tag)], np.int64), hom.reshape(1, 9)[:, :8].copy(), theta, table[None],
-                     np.tile(np.eye(3), (1, 2, 1, 1)), np.array([2], np.int64), 0.66, True, 2, 40, 5, 1e-3)
+                     np.tile(np.eye(3), (1, 2, 1, 1)), np.array([2], np.int64), 0.66, True, 2, 40, 5, 1e-3,
+                     0.02)

@@ -5,6 +5,8 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from edges_reference import outward_sides as _outward_sides
+from edges_reference import side_windows as _side_windows
 from hypothesis import given
 from hypothesis import strategies as st
 from tag_images import random_tag, tag_image
@@ -12,8 +14,6 @@ from tag_images import random_tag, tag_image
 from ficap_ros.vision.detector import DetectorConfig, TagDetector
 from ficap_ros.vision.edges import (
     NEXT,
-    _outward_sides,
-    _side_windows,
     intersect_sides,
     line_windows,
     refine_corners_edge,

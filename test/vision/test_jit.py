@@ -1,6 +1,6 @@
 """The kernels' runtime: where numba caches them, the warm-up that compiles (or loads) every
-kernel for the argument types the pipeline passes, so that a frame never compiles one, and numba
-imported only for photometric corners."""
+kernel for the argument types the pipeline passes, so that a frame never compiles one, and the
+photometric kernels loaded only for photometric corners."""
 
 from __future__ import annotations
 
@@ -14,12 +14,13 @@ from corner_eval import drive_frames
 
 from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.tools.synth import RenderConfig, default_scene
-from ficap_ros.vision import jit, photometric_kernels
+from ficap_ros.vision import jit, kernels, photometric_kernels
 from ficap_ros.vision.detector import DetectorConfig
 from ficap_ros.vision.pipeline import FrameProcessor
 
 ROOT = Path(__file__).resolve().parents[2]
-KERNELS = (photometric_kernels.select_pixels, photometric_kernels.fit_steps)
+KERNELS = (photometric_kernels.select_pixels, photometric_kernels.fit_steps, kernels.area_steps,
+           kernels.line_pass, kernels.boundary_rows, kernels.grouped_normal_equations, kernels.grouped_residuals)
 
 
 def _cache_dir_in_child(env: dict[str, str], read_only: bool) -> str:
@@ -49,36 +50,37 @@ def test_warm_up_compiles_every_kernel_a_frame_uses() -> None:
     assert seconds >= 0.0
     compiled = [len(k.signatures) for k in KERNELS]
     assert all(compiled)
-    # A tracked 1080p frame and a searched one with photometric corners: no kernel compiles anew.
+    # Tracked 1080p frames and a searched one, default and photometric corners: no kernel compiles
+    # anew.
     frames = drive_frames("1080p", RenderConfig(lighting="low", jpeg_quality=95), n=2)
-    photometric = DetectorConfig(edge_photometric=True)
-    proc = FrameProcessor(nominal_model(), photometric)
     camera = default_scene("1080p").camera
-    for k, fr in enumerate(frames):
-        result = proc.process(fr.image, camera, k * 33_000_000)
-        assert result.pose is not None
-    proc_bgr = FrameProcessor(nominal_model(), photometric, tracking=False)
-    proc_bgr.process(np.dstack([frames[0].image] * 3), camera, 0)
+    for config in (DetectorConfig(), DetectorConfig(edge_photometric=True)):
+        proc = FrameProcessor(nominal_model(), config)
+        for k, fr in enumerate(frames):
+            result = proc.process(fr.image, camera, k * 33_000_000)
+            assert result.pose is not None
+        proc_bgr = FrameProcessor(nominal_model(), config, tracking=False)
+        proc_bgr.process(np.dstack([frames[0].image] * 3), camera, 0)
     assert [len(k.signatures) for k in KERNELS] == compiled
 
 
-def test_numba_is_imported_only_for_photometric_corners(bag_with_a_corrupt_frame: Path, tmp_path: Path,
-                                                        real_apriltag_dir: Path) -> None:
-    """Replay and ``ficap detect`` with ``--no-photometric``, and the node's module, never import
-    numba (its import alone costs a second or more); ``--photometric`` does (and the default
-    where a tag's corners are noisy enough for the photometric fit)."""
+def test_the_photometric_kernels_load_only_where_the_photometric_fit_runs(
+        bag_with_a_corrupt_frame: Path, tmp_path: Path, real_apriltag_dir: Path) -> None:
+    """Replay and ``ficap detect`` with ``--no-photometric`` load the corner stage's kernels and
+    never the photometric fit's (loading them costs start-up time); ``--photometric`` does."""
     photo = real_apriltag_dir / "apriltags_jl" / "tagtest.jpg"
     code = (
         "import sys\n"
         "from ficap_ros.cli.main import main\n"
-        "import ficap_ros.ros.node\n"
         f"assert main(['replay', {str(bag_with_a_corrupt_frame)!r}, '--out', {str(tmp_path / 'out')!r},"
         " '--quiet', '--no-photometric']) == 0\n"
         f"assert main(['detect', '--no-photometric', {str(photo)!r}]) == 0\n"
-        "print('no-photometric', 'numba' in sys.modules)\n"
+        "from ficap_ros.vision import kernels\n"
+        "print('no-photometric', bool(kernels.line_pass.signatures),"
+        " 'ficap_ros.vision.photometric_kernels' in sys.modules)\n"
         f"assert main(['detect', '--photometric', {str(photo)!r}]) == 0\n"
-        "print('photometric', 'numba' in sys.modules)\n")
+        "print('photometric', 'ficap_ros.vision.photometric_kernels' in sys.modules)\n")
     out = subprocess.run([sys.executable, "-c", code], env={**os.environ, "PYTHONPATH": str(ROOT)},
                          capture_output=True, text=True, check=True, cwd=tmp_path)
     said = [line for line in out.stdout.splitlines() if line.startswith(("no-photometric ", "photometric "))]
-    assert said == ["no-photometric False", "photometric True"], out.stderr
+    assert said == ["no-photometric True False", "photometric True"], out.stderr
