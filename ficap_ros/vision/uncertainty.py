@@ -173,7 +173,7 @@ class UncertaintyConfig:
     corner_noise_px: float = 0.002
     corner_bias_px: float = 0.002
     corner_bias_common_px: float = 0.002
-    shared_bias_gain: float = 1.2
+    shared_bias_gain: float = 0.95
     common_offset_gain: float = 0.0
     model_mm: float = 0.0
     model_deg: float = 0.0
