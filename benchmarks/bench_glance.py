@@ -10,8 +10,9 @@ of the same kind (``--motion glances``, motion blur over 16.7 ms, readouts of 22
 
 Methods, every recording's frames in order as ``ficap replay`` feeds them: ours (defaults, the
 recording's ``CameraTiming``: the rolling-shutter pose with the cap's velocity, bounds with the
-blur's terms), ours without the timing model (every corner seen at the stamp, no exposure), and
-the naive peer (OpenCV sub-pixel corners, one SQPnP + LM, no tracking). Per frame: the geodesic
+blur's terms; each frame solved again with the next frame's pose, ``vision.two_sided``, as replay
+does), ours causal (the same from the frames before only, as the live node), ours without the
+timing model (every corner seen at the stamp, no exposure), and the naive peer (OpenCV sub-pixel corners, one SQPnP + LM, no tracking). Per frame: the geodesic
 rotation error and the translation error against the truth at the stamp, the 95 % bounds, and the
 cap's angular speed at the stamp (from the truths of the neighbouring frames). Slow frames: under
 30 deg/s; fast: 90 deg/s and over. Also the angular velocity ours reports against the truth's, and
@@ -37,8 +38,9 @@ from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.geometry.metrics import angle_deg
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.vision.detector import as_gray
-from ficap_ros.vision.pipeline import FrameProcessor
+from ficap_ros.vision.pipeline import FrameProcessor, FrameResult
 from ficap_ros.vision.shutter import combine_evidence
+from ficap_ros.vision.two_sided import TwoSidedFrames
 from ficap_ros.vision.uncertainty import UncertaintyConfig
 
 DEV_SETS = ("dev_540p_glance_blur", "dev_540p_glance_rs")
@@ -48,8 +50,9 @@ SYNTH = (
                                                   "--exposure-ms", "16.7", "--readout-ms", "22")),
     ("synth 540p glances, blur", ("--motion", "glances", "--motion-blur", "--exposure-ms", "16.7")),
 )
-OURS_TIMED, OURS_UNTIMED, NAIVE = "ficap", "ficap, no timing model", PEER.name
-METHODS = (OURS_TIMED, OURS_UNTIMED, NAIVE)
+OURS_TIMED, OURS_CAUSAL, OURS_UNTIMED, NAIVE = ("ficap", "ficap, causal (live)",
+                                                "ficap, no timing model", PEER.name)
+METHODS = (OURS_TIMED, OURS_CAUSAL, OURS_UNTIMED, NAIVE)
 #: The grid the motion-blur gains are fitted on (``UncertaintyConfig.motion_blur_gain`` and
 #: ``motion_blur_shift_gain``, each pair).
 GAIN_GRID = (0.0, 0.1, 0.2, 0.35)
@@ -131,7 +134,21 @@ def processor(method: str, timing: CameraTiming) -> FrameProcessor:
     if method == NAIVE:
         return PEER.processor(model)
     return FrameProcessor(model, OURS.detector, OURS.pose, tracking=True,
-                          timing=timing if method == OURS_TIMED else None, readout_evidence=True)
+                          timing=None if method == OURS_UNTIMED else timing, readout_evidence=True)
+
+
+def results_in_order(proc: FrameProcessor, rec: Recording, two_sided: bool) -> list[FrameResult]:
+    """Every frame's result, as replay makes them (``TwoSidedFrames``: with ``two_sided`` each
+    frame solved again with the next frame's pose)."""
+    frames: TwoSidedFrames[int] = TwoSidedFrames(proc, enabled=two_sided)
+    out: list[FrameResult | None] = [None] * len(rec.images)
+    for i, (image, stamp) in enumerate(zip(rec.images, rec.stamps_ns)):
+        for k, r in frames.process(i, image, rec.camera, int(stamp)):
+            out[k] = r
+    for k, r in frames.finish():
+        out[k] = r
+    assert all(r is not None for r in out)
+    return out  # type: ignore[return-value]
 
 
 def run(rec: Recording) -> dict[str, dict[str, np.ndarray]]:
@@ -144,8 +161,8 @@ def run(rec: Recording) -> dict[str, dict[str, np.ndarray]]:
         keys = ("rot", "trans", "rot95", "trans95", "w_err", "w_maha")
         o = {k: np.full(len(rec.images), np.nan) for k in keys}
         evidence, used = [], []
-        for i, (image, stamp, truth) in enumerate(zip(rec.images, rec.stamps_ns, rec.truths)):
-            r = proc.process(image, rec.camera, int(stamp))
+        results = results_in_order(proc, rec, two_sided=method == OURS_TIMED)
+        for i, (r, truth) in enumerate(zip(results, rec.truths)):
             evidence.append(r.timing_evidence)
             p = r.pose
             used.append(sorted(p.used_ids) if p is not None else [])
@@ -166,12 +183,13 @@ def run(rec: Recording) -> dict[str, dict[str, np.ndarray]]:
 
 
 def blur_bound_row(rec: Recording, res: dict[str, dict[str, np.ndarray]]) -> list[str] | None:
-    """The Cramer-Rao bound's slow and fast rotation medians of a global-shutter recording with a
-    stated exposure (``_lib.blur_bound``; every fast frame, every fourth slow one, on the tags
-    ours used) beside ours: None for a rolling shutter or no exposure."""
+    """The Cramer-Rao bound's slow and fast rotation medians of a recording with a stated exposure
+    (``_lib.blur_bound``: a rolling shutter's corners at their row times, the motion over the
+    readout known; every fast frame, every fourth slow one, on the tags ours used) beside ours:
+    None without an exposure."""
     from _lib.blur_bound import frame_rotation_draws
 
-    if rec.timing.rolling or rec.timing.exposure_ms <= 0.0:
+    if rec.timing.exposure_ms <= 0.0:
         return None
     o = res[OURS_TIMED]
     model, rng = nominal_model(), np.random.default_rng(0)
@@ -184,7 +202,8 @@ def blur_bound_row(rec: Recording, res: dict[str, dict[str, np.ndarray]]) -> lis
         gray = as_gray(rec.images[i])
         draws[bool(fast)].append(frame_rotation_draws(gray, rec.camera, model, o["used_ids"][i],
                                                       tuple(rec.truths[i - 1:i + 2]), dt,
-                                                      rec.timing.exposure_ms * 1e-3, rng))
+                                                      rec.timing.exposure_ms * 1e-3, rng,
+                                                      timing=rec.timing))
     if not draws[True] or not draws[False]:
         return None
     b_slow, b_fast = (float(np.median(np.concatenate(draws[k]))) for k in (False, True))
@@ -203,8 +222,8 @@ def bounds_with_gains(rec: Recording, gains: tuple[float, float]) -> np.ndarray:
     proc = FrameProcessor(nominal_model(), OURS.detector, replace(OURS.pose, uncertainty=uncertainty),
                           tracking=True, timing=rec.timing)
     out = np.full((len(rec.images), 4), np.nan)
-    for i, (image, stamp, truth) in enumerate(zip(rec.images, rec.stamps_ns, rec.truths)):
-        p = proc.process(image, rec.camera, int(stamp)).pose
+    for i, (r, truth) in enumerate(zip(results_in_order(proc, rec, two_sided=True), rec.truths)):
+        p = r.pose
         if p is not None:
             out[i] = (angle_deg(p.T_cam_cap.rotation, truth.rotation),
                       1e3 * np.linalg.norm(p.T_cam_cap.translation_m - truth.translation_m),
@@ -288,7 +307,8 @@ def plot(results: dict[str, dict[str, dict[str, np.ndarray]]]) -> str:
     plt = report.pyplot()
     names = list(results)
     fig, axes = plt.subplots(1, len(names), figsize=(5.2 * len(names), 4.2), squeeze=False)
-    style = {OURS_TIMED: ("o", "C0"), OURS_UNTIMED: ("^", "C1"), NAIVE: ("s", "C2")}
+    style = {OURS_TIMED: ("o", "C0"), OURS_CAUSAL: ("v", "C3"), OURS_UNTIMED: ("^", "C1"),
+             NAIVE: ("s", "C2")}
     for ax, name in zip(axes[0], names):
         for method in METHODS:
             o = results[name][method]
@@ -376,10 +396,11 @@ def main(argv: list[str] | None = None) -> int:
             "none without a stated timing); its bound holds when the error is inside the 95 % "
             "ellipsoid of its covariance.")
     if crb_rows:
-        body += ("\n\nA Cramer-Rao bound for the blurred frames (global shutter; `benchmarks/_lib/blur_bound.py`: "
+        body += ("\n\nA Cramer-Rao bound for the blurred frames (`benchmarks/_lib/blur_bound.py`: "
                  "each tag's pixels through the photometric model moving along the truth's path over the "
                  "exposure, levels, lens blur and tone marginalised, the pixel noise the fit's residual sd, "
-                 "on the tags ours used; every fast frame, every fourth slow one): the rotation median "
+                 "on the tags ours used; a rolling shutter's corners at their row times with the cap's "
+                 "motion over the readout known; every fast frame, every fourth slow one): the rotation median "
                  "an efficient estimator would have, slow and fast, and ours against it:\n\n"
                  + report.md_table(["recording", "bound median, slow (deg)", "bound median, fast",
                                     "bound fast / slow", "ours fast / slow", "ours / bound (ratios)"], crb_rows))

@@ -1,4 +1,4 @@
-"""A Cramer-Rao bound of the cap's rotation from a global-shutter frame's pixels, blurred or not.
+"""A Cramer-Rao bound of the cap's rotation from a frame's pixels, blurred or not, global or rolling shutter.
 
 Per tag, the Fisher information of its mid-exposure homography is that of the moving photometric
 model (``photometric_kernels.coverage_moving`` / ``model_rows_moving``: the pattern moving over
@@ -7,15 +7,21 @@ truth's corners, with the levels, lens blur and tone exponent the fit finds ther
 noise its robust residual sd; the levels, blur and tone are nuisance parameters (marginalised).
 The tags' corner covariances then bound the pose (the static pose's Jacobian), and the bound's
 rotation error is drawn from its covariance: the median of such draws over a set of frames is what
-an efficient estimator's median would be. A bound for a rolling shutter would also carry the
-cap's velocity over the readout; only global-shutter frames are bounded here.
+an efficient estimator's median would be.
+
+Through a rolling shutter each corner is seen at its row's time (``CameraTiming.row_time_s``): its
+tag's pixels are modelled along the truth's path around that time, and the pose at the stamp is
+bounded through the corners' positions at their times with the cap's motion over the readout known
+(the truth's, the quadratic through the poses a frame before and after): the bound of an estimator
+that knows the velocity and acceleration exactly, which a two-sided estimate from the neighbouring
+frames approaches.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from ficap_ros.geometry.camera import CameraModel
+from ficap_ros.geometry.camera import CameraModel, CameraTiming
 from ficap_ros.geometry.cap_model import CapModel
 from ficap_ros.geometry.tag36h11 import (
     homography_corners,
@@ -68,9 +74,45 @@ def _tag_corner_covariance(gray: np.ndarray, corners_px: np.ndarray, motion_px: 
     return G @ cov_h @ G.T
 
 
+def _path(truths: tuple[Transform, Transform, Transform], dt_s: float):  # noqa: ANN202
+    """The cap's motion relative to its pose at the stamp, ``delta(t)`` (the quadratic through
+    the poses a frame before, at and after the stamp; rotations as vectors at the stamp's)."""
+    T0 = truths[1]
+    r = [(T * T0.inv()).rvec for T in (truths[0], truths[2])]
+    x = [T.translation_m - T0.translation_m for T in (truths[0], truths[2])]
+
+    def delta(t: float) -> Transform:
+        rot = (r[1] - r[0]) / (2 * dt_s) * t + (r[1] + r[0]) / (2 * dt_s**2) * t * t
+        moved = (x[1] - x[0]) / (2 * dt_s) * t + (x[1] + x[0]) / (2 * dt_s**2) * t * t
+        # A rotation about the cap origin, then the origin moved: applied to T0 it gives the path.
+        turn = Transform.from_rvec_tvec(rot, np.zeros(3))
+        return Transform.from_rvec_tvec(np.zeros(3), moved + T0.translation_m - turn.apply(T0.translation_m[None])[0]) * turn
+
+    return delta
+
+
+def _rolling_jacobian(camera: CameraModel, corners_m: np.ndarray, T0: Transform, delta,  # noqa: ANN001
+                      times_s: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(corners at their times (4, 2) px, (8, 6) their derivative by a left perturbation of the
+    pose at the stamp, columns (d_theta, d_t)), the motion ``delta`` known."""
+    def corners(T: Transform) -> np.ndarray:
+        return np.array([camera.project((delta(t) * T).apply(c[None]))[0] for t, c in zip(times_s, corners_m)])
+
+    at = corners(T0)
+    J = np.empty((8, 6))
+    for j in range(6):
+        dx = np.zeros(6)
+        dx[j] = 1e-6
+        plus = corners(T0.turned(dx[:3], T0.translation_m + dx[3:]))
+        minus = corners(T0.turned(-dx[:3], T0.translation_m - dx[3:]))
+        J[:, j] = (plus - minus).reshape(8) / 2e-6
+    return at, J
+
+
 def frame_rotation_draws(gray: np.ndarray, camera: CameraModel, model: CapModel, ids: list[int],
                          truths: tuple[Transform, Transform, Transform], dt_s: float, exposure_s: float,
-                         rng: np.random.Generator, draws: int = 200) -> np.ndarray:
+                         rng: np.random.Generator, draws: int = 200,
+                         timing: CameraTiming | None = None) -> np.ndarray:
     """Rotation errors, deg, drawn from the bound of one frame's pose from its tags ``ids``.
 
     Args:
@@ -81,21 +123,32 @@ def frame_rotation_draws(gray: np.ndarray, camera: CameraModel, model: CapModel,
         dt_s: the time between consecutive frames, s.
         exposure_s: the exposure, s.
         rng, draws: the draws' generator and count.
+        timing: the camera's timing; a rolling shutter's corners are bounded at their row times
+            (module docstring). None: a global shutter.
 
     Returns:
         (draws,) geodesic rotation errors, deg (empty where fewer than 3 tags are bounded).
     """
     info = np.zeros((6, 6))
     tags = 0
+    rolling = timing is not None and timing.rolling
+    delta = _path(truths, dt_s) if rolling else None
     for tag_id in ids:
-        p = [camera.project(T.apply(1e-3 * model.corners_of(tag_id))) for T in truths]
+        corners_m = 1e-3 * model.corners_of(tag_id)
+        p = [camera.project(T.apply(corners_m)) for T in truths]
         velocity, accel = (p[2] - p[0]) / (2 * dt_s), (p[2] - 2 * p[1] + p[0]) / dt_s ** 2
-        cov = _tag_corner_covariance(gray, p[1], velocity * exposure_s, accel * exposure_s ** 2 / 8, tag_id)
+        T = truths[1]
+        if rolling:
+            assert timing is not None
+            times = timing.row_time_s(p[1][:, 1], camera.height_px).reshape(4)
+            seen, J = _rolling_jacobian(camera, corners_m, T, delta, times)
+            velocity = velocity + accel * times[:, None]
+        else:
+            seen = p[1]
+            _, J = residuals_and_jacobian_rt(T.rotation_matrix, T.translation_m, camera.K, corners_m, p[1])
+        cov = _tag_corner_covariance(gray, seen, velocity * exposure_s, accel * exposure_s ** 2 / 8, tag_id)
         if cov is None:
             continue
-        T = truths[1]
-        _, J = residuals_and_jacobian_rt(T.rotation_matrix, T.translation_m, camera.K,
-                                         1e-3 * model.corners_of(tag_id), p[1])
         info += J.T @ np.linalg.solve(cov, J)
         tags += 1
     if tags < 3:

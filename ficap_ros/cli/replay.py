@@ -68,6 +68,13 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "refit each tag that moves over the exposure with its pattern moving "
                              "along its corners' paths, for the mid-exposure corners (the default; "
                              "more CPU in fast frames); --no-motion-corners: the still fit only")
+    parser.add_argument("--two-sided-motion", action=argparse.BooleanOptionalAction, default=True,
+                        help="with a stated exposure or readout: solve each frame again once the "
+                             "next frame has its pose, so the cap's path over the exposure and "
+                             "readout is interpolated between the frames before and the next one "
+                             "(the default; about one more pose solve a frame); "
+                             "--no-two-sided-motion: the frames before only, as the live node "
+                             "(one recording only)")
     parser.add_argument("--out", required=True, metavar="DIR", help="output folder (created)")
     parser.add_argument("--calibration", metavar="FILE",
                         help="head calibration YAML (ficap calibrate / the node's service)")
@@ -197,6 +204,11 @@ def run(args: argparse.Namespace) -> int:
 
         raise ConfigError("give at least one INPUT or --manifest FILE")
     if _is_fleet(args):
+        if not args.two_sided_motion:
+            from ficap_ros.errors import ConfigError
+
+            raise ConfigError("--no-two-sided-motion is for one recording; a fleet's frames are "
+                              "solved with their next frame's pose")
         return _run_fleet(args, model, calibration, detector, frames)
     args.input = args.input[0]
     # Before any processing: never an input, a recording or a folder ficap did not write.
@@ -205,7 +217,8 @@ def run(args: argparse.Namespace) -> int:
     source = open_source(args)
     out = replay(source, args.out, model, PoseConfig(method=args.method), calibration,
                  args.calibrate_frontal, jobs, args.namespace, progress=not args.quiet,
-                 detector=detector, frames=frames, inputs=side_files(args), timing=timing_fields(args))
+                 detector=detector, frames=frames, inputs=side_files(args), timing=timing_fields(args),
+                 two_sided=args.two_sided_motion)
     s = out.summary
     line = (f"{s['frames']} frames, {s['frames_with_pose']} with a pose "
             f"({s['pct_with_pose']:.1f} %), >=1 tag {s['pct_ge1_tag']:.1f} %, >=4 tags "

@@ -10,6 +10,13 @@ and tracking starts afresh (a whole-image search) at each segment's first frame,
 is. With ``jobs > 1`` the main process reads the bag and worker processes decode and process whole
 segments; results come back in recording order, identical to ``jobs = 1`` (summary.json's timing
 fields aside).
+
+With the camera's timing stated (an exposure or a readout), each frame is solved again once the
+next frame has its pose (``vision.two_sided``: the motion model interpolates the cap's path
+between the frames before and the next one instead of extrapolating it; ``two_sided=False``, the
+command line's ``--causal-motion``, keeps the live node's causal model). A segment then carries
+the next segment's first frame as its look-ahead, tracked on from the segment's own frames and
+not output, so that the segment's last frame has its next one whatever ``jobs`` is.
 """
 
 from __future__ import annotations
@@ -42,15 +49,17 @@ from ficap_ros.io.labels import (
     write_labels_bag,
 )
 from ficap_ros.io.sources import FrameSource, Loss, RawFrame, decode_raw
+from ficap_ros.tools.worker_pool import parallel_frames
 from ficap_ros.vision.calibration import HeadCalibration, frontal_from_camera_mount
 from ficap_ros.vision.detector import DetectorConfig
-from ficap_ros.vision.pipeline import FrameProcessor
+from ficap_ros.vision.pipeline import FrameProcessor, FrameResult
 from ficap_ros.vision.pose import PoseConfig
 from ficap_ros.vision.shutter import TimingEvidence, combine_evidence
+from ficap_ros.vision.two_sided import TwoSidedFrames
 
 __all__ = ["Progress", "ReplayedFrame", "process_frames", "frontal_calibration",
            "ReplayOutput", "replay", "recording_timing", "check_window", "available_cores",
-           "capped_jobs", "SEGMENT_FRAMES", "MAX_WINDOW_S"]
+           "capped_jobs", "segments", "two_sided_applies", "SEGMENT_FRAMES", "MAX_WINDOW_S"]
 
 
 class _SilentProgress:
@@ -127,12 +136,14 @@ def keep_freed_memory() -> bool:
 
 _PROCESSOR: FrameProcessor | None = None
 _DONE: Any = None  # frames finished in this pool (a shared counter), for the progress bar
+_TWO_SIDED = True  # frames solved again with the next frame's pose (``vision.two_sided``)
 
 
 def _init_worker(model: CapModel, pose: PoseConfig, single_thread: bool, done: Any = None,
-                 detector: DetectorConfig | None = None) -> None:
-    global _PROCESSOR, _DONE
+                 detector: DetectorConfig | None = None, two_sided: bool = True) -> None:
+    global _PROCESSOR, _DONE, _TWO_SIDED
     _DONE = done
+    _TWO_SIDED = two_sided
     if single_thread:  # a worker process of ours (a pool's, Ray's): see keep_freed_memory
         keep_freed_memory()
         import signal
@@ -147,21 +158,13 @@ def _init_worker(model: CapModel, pose: PoseConfig, single_thread: bool, done: A
                                 readout_evidence=True)
 
 
-def _process_one(raw: RawFrame) -> ReplayedFrame:
-    assert _PROCESSOR is not None
-    method = _PROCESSOR.pose_config.method
-    try:
-        image = decode_raw(raw)
-        if raw.camera is None:
-            raise ImageError("no camera intrinsics for this image")
-        result = _PROCESSOR.process(image, raw.camera, raw.stamp_ns)
-    except ImageError as err:
-        return ReplayedFrame(FrameRecord.unprocessed(raw.index, raw.stamp_ns, raw.frame_id,
-                                                     str(err), method=method))
+def _replayed(raw: RawFrame, result: FrameResult) -> ReplayedFrame:
+    """A processed frame's record."""
+    assert _PROCESSOR is not None and raw.camera is not None
     tags = tag_fits(result.detections, result.pose, _PROCESSOR.model, raw.camera)
-    return ReplayedFrame(FrameRecord.of(result, raw.index, raw.stamp_ns, raw.frame_id, method=method,
-                                        tags=tags), result.detect_ms, result.pose_ms,
-                         result.timing_evidence)
+    return ReplayedFrame(FrameRecord.of(result, raw.index, raw.stamp_ns, raw.frame_id,
+                                        method=_PROCESSOR.pose_config.method, tags=tags),
+                         result.detect_ms, result.pose_ms, result.timing_evidence)
 
 
 #: Frames per tracking segment (see the module docstring): 128 frames are about 4 s at 30 fps, so
@@ -169,19 +172,75 @@ def _process_one(raw: RawFrame) -> ReplayedFrame:
 SEGMENT_FRAMES = 128
 
 
-def _process_segment(raws: list[RawFrame], timing: CameraTiming | None = None) -> list[ReplayedFrame]:
-    """One segment of a recording whose camera has ``timing`` (None: not known), tracking
-    afresh from its first frame."""
+def _segment_frames(raws: list[RawFrame], lookahead: RawFrame | None = None) -> Iterator[ReplayedFrame]:
+    """One segment's frames through the pipeline, tracking afresh from its first frame, in order
+    as each is finished (``TwoSidedFrames``: a frame waits for the next one's pose); the
+    ``lookahead`` frame (the next segment's first) only gives the last frame its next one."""
     assert _PROCESSOR is not None
     _PROCESSOR.reset_tracking()
+    frames: TwoSidedFrames[int] = TwoSidedFrames(_PROCESSOR, enabled=_TWO_SIDED)
+    done: list[ReplayedFrame | None] = [None] * len(raws)
+    given = 0
+    for i, raw in enumerate(raws + ([lookahead] if lookahead is not None else [])):
+        try:
+            image = decode_raw(raw)
+            if raw.camera is None:
+                raise ImageError("no camera intrinsics for this image")
+            finished = frames.process(i, image, raw.camera, raw.stamp_ns)
+        except ImageError as err:
+            finished = []
+            if i < len(raws):
+                done[i] = ReplayedFrame(FrameRecord.unprocessed(
+                    raw.index, raw.stamp_ns, raw.frame_id, str(err),
+                    method=_PROCESSOR.pose_config.method))
+        if i + 1 == len(raws) and lookahead is None:
+            finished += frames.finish()
+        for k, result in finished:
+            if k < len(raws):
+                done[k] = _replayed(raws[k], result)
+        while given < len(raws) and done[given] is not None:
+            yield done[given]  # type: ignore[misc]
+            given += 1
+    for k, result in frames.finish():
+        if k < len(raws):
+            done[k] = _replayed(raws[k], result)
+    for item in done[given:]:
+        assert item is not None
+        yield item
+
+
+def _process_segment(raws: list[RawFrame], timing: CameraTiming | None = None,
+                     lookahead: RawFrame | None = None) -> list[ReplayedFrame]:
+    """One segment of a recording whose camera has ``timing`` (None: not known), tracking
+    afresh from its first frame; ``lookahead``: the next segment's first frame, where frames
+    are solved with their next one (``segments``)."""
+    assert _PROCESSOR is not None
     _PROCESSOR.timing = timing or CameraTiming()
     out = []
-    for raw in raws:
-        out.append(_process_one(raw))
+    for frame in _segment_frames(raws, lookahead):
+        out.append(frame)
         if _DONE is not None:
             with _DONE.get_lock():
                 _DONE.value += 1
     return out
+
+
+def two_sided_applies(timing: CameraTiming | None, two_sided: bool = True) -> bool:
+    """Whether frames are solved with their next frame's pose: asked for, and the camera's
+    timing states an exposure or a readout (only then has a frame a motion model)."""
+    return two_sided and timing is not None and (timing.exposure_ms > 0.0 or timing.readout_ms > 0.0)
+
+
+def segments(raws: Iterable[RawFrame],
+             lookahead: bool) -> Iterator[tuple[list[RawFrame], RawFrame | None]]:
+    """A recording's frames in tracking segments of ``SEGMENT_FRAMES``, each with its look-ahead
+    (the next segment's first frame; None for the last segment, or without ``lookahead``)."""
+    it = iter(raws)
+    head = next(it, None)
+    while head is not None:
+        segment = [head, *islice(it, SEGMENT_FRAMES - 1)]
+        head = next(it, None)
+        yield segment, (head if lookahead else None)
 
 
 def available_cores() -> int:
@@ -203,127 +262,15 @@ def capped_jobs(requested: int) -> tuple[int, str]:
     return max(requested, 1), ""
 
 
-class _SegmentPool:
-    """Worker processes for whole segments (``concurrent.futures.ProcessPoolExecutor``, spawned),
-    which notice a worker that dies: its segments fail with ``BrokenProcessPool`` instead of never
-    coming back. The pool is then replaced and every segment in flight submitted again, once: a
-    segment whose worker dies a second time (a frame that kills its decoder, memory that runs
-    out) fails the recording with one line (``WorkerError``). Results are the same whatever
-    retries happened (tracking restarts at each segment's first frame).
-    """
-
-    def __init__(self, jobs: int, initargs: tuple, counter: Any,
-                 timing: CameraTiming | None = None) -> None:
-        self.jobs, self.initargs, self.counter, self.timing = jobs, initargs, counter, timing
-        self.others: set[Any] = set()  # the children that are not the pool's workers
-        self.pool = self._new()
-
-    def _new(self) -> Any:
-        import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
-
-        self.others = set(multiprocessing.active_children())
-        return ProcessPoolExecutor(self.jobs, mp_context=multiprocessing.get_context("spawn"),
-                                   initializer=_init_worker, initargs=self.initargs)
-
-    def submit(self, segment: list[RawFrame]) -> Any:
-        """Run ``segment`` in a worker. Workers are started by the submits, with SIGINT ignored
-        from their first instruction: Ctrl-C reaches the whole process group and only this
-        process must handle it (stop the pool, print one line); a worker still importing numpy
-        when it comes has not run its initializer yet (an ignored signal stays ignored across
-        exec, and Python keeps it so)."""
-        import signal
-        import threading
-
-        if threading.current_thread() is not threading.main_thread():
-            return self.pool.submit(_process_segment, segment, self.timing)
-        previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
-        try:
-            return self.pool.submit(_process_segment, segment, self.timing)
-        finally:
-            signal.signal(signal.SIGINT, previous)
-
-    def restart(self, pending: list[list[Any]], done: int) -> None:
-        """A worker died: a new pool, every segment in flight submitted again (each
-        ``[segment, future, attempts]``), the progress counter back to the frames delivered."""
-        from ficap_ros.errors import WorkerError
-
-        self.stop()
-        for item in pending:
-            if item[2] >= 1:
-                first, last = item[0][0].index, item[0][-1].index
-                raise WorkerError(f"a worker process died twice on frames {first}-{last} "
-                                  "(killed, out of memory or crashed in a native library)")
-        with self.counter.get_lock():
-            self.counter.value = done
-        self.pool = self._new()
-        for item in pending:
-            item[1], item[2] = self.submit(item[0]), item[2] + 1
-
-    def stop(self) -> None:
-        """Cancel what waits and end the workers now (a segment in progress is not waited for).
-        ``ProcessPoolExecutor`` has no public way to end running workers before Python 3.14: its
-        workers are this process's children that were not there when the pool was made
-        (``multiprocessing.active_children``)."""
-        import multiprocessing
-
-        processes = [p for p in multiprocessing.active_children() if p not in self.others]
-        self.pool.shutdown(wait=False, cancel_futures=True)
-        for process in processes:
-            process.terminate()
-        for process in processes:
-            process.join(timeout=5.0)
-
-
-def _parallel_frames(it: Iterator[RawFrame], jobs: int, initargs: tuple, counter: Any,
-                     on_progress: Callable[[int], None] | None,
-                     timing: CameraTiming | None) -> Iterator[ReplayedFrame]:
-    """``process_frames`` over ``jobs`` worker processes, in order (``_SegmentPool``), with the
-    camera's ``timing``."""
-    from concurrent.futures import BrokenExecutor
-    from concurrent.futures import TimeoutError as FutureTimeout
-
-    pool = _SegmentPool(jobs, initargs, counter, timing)
-    done = 0
-    try:
-        # Bounded look-ahead: one segment per worker in flight plus one, in order, so the bag is
-        # never read into memory ahead of the workers.
-        pending: list[list[Any]] = []
-        while True:
-            while len(pending) < jobs + 1:
-                segment = list(islice(it, SEGMENT_FRAMES))
-                if not segment:
-                    break
-                pending.append([segment, pool.submit(segment), 0])
-            if not pending:
-                break
-            try:
-                while True:
-                    try:
-                        frames = pending[0][1].result(timeout=0.1)
-                        break
-                    except FutureTimeout:
-                        if on_progress is not None:
-                            on_progress(counter.value)
-            except BrokenExecutor:
-                pool.restart(pending, done)
-                continue
-            pending.pop(0)
-            done += len(frames)
-            if on_progress is not None:
-                on_progress(counter.value)
-            yield from frames
-    finally:
-        pool.stop()
-
-
 def process_frames(
     raws: Iterable[RawFrame], model: CapModel, pose: PoseConfig, jobs: int = 1,
     on_progress: Callable[[int], None] | None = None, detector: DetectorConfig | None = None,
-    timing: CameraTiming | None = None,
+    timing: CameraTiming | None = None, two_sided: bool = True,
 ) -> Iterator[ReplayedFrame]:
     """Run the pipeline over raw frames, in order, in ``jobs`` processes (at most one per core),
-    with the camera's ``timing`` (``recording_timing``; None: not known).
+    with the camera's ``timing`` (``recording_timing``; None: not known); ``two_sided``: each
+    frame solved again with the next frame's pose where its timing gives it a motion model
+    (``vision.two_sided``; False: the causal model, as live).
 
     Undecodable frames come back with an ``UNDECODABLE`` record saying why.
     ``on_progress`` is called with the number of frames processed so far, frame by frame (with
@@ -331,19 +278,18 @@ def process_frames(
     waiting for the next segment, so a bar moves smoothly although results come in segments).
 
     Raises:
-        WorkerError: a worker process died twice on the same segment (``_SegmentPool``).
+        WorkerError: a worker process died twice on the same segment (``worker_pool.SegmentPool``).
     """
     jobs = capped_jobs(jobs)[0]
-    it = iter(raws)
+    it = segments(raws, two_sided_applies(timing, two_sided))
     if jobs <= 1:
-        _init_worker(model, pose, single_thread=False, detector=detector)
+        _init_worker(model, pose, single_thread=False, detector=detector, two_sided=two_sided)
         done = 0
-        while segment := list(islice(it, SEGMENT_FRAMES)):
+        for segment, lookahead in it:
             assert _PROCESSOR is not None
-            _PROCESSOR.reset_tracking()
             _PROCESSOR.timing = timing or CameraTiming()
-            for raw in segment:
-                yield _process_one(raw)
+            for frame in _segment_frames(segment, lookahead):
+                yield frame
                 done += 1
                 if on_progress is not None:
                     on_progress(done)
@@ -351,8 +297,8 @@ def process_frames(
     import multiprocessing
 
     counter = multiprocessing.get_context("spawn").Value("q", 0)
-    yield from _parallel_frames(it, jobs, (model, pose, True, counter, detector), counter,
-                                on_progress, timing)
+    yield from parallel_frames(it, jobs, _init_worker, (model, pose, True, counter, detector, two_sided),
+                               _process_segment, counter, on_progress, timing)
 
 
 # -- calibration ---------------------------------------------------------------------------------
@@ -488,6 +434,7 @@ def replay(
     frames: OutputFrames | None = None,
     inputs: Iterable[str | Path | None] = (),
     timing: Mapping[str, Any] | None = None,
+    two_sided: bool = True,
 ) -> ReplayOutput:
     """Process every frame of ``source`` and write labels.mcap, labels.csv, detections.csv and
     summary.json.
@@ -523,6 +470,8 @@ def replay(
             recording's own timing (``recording_timing``); summary.json's ``camera_timing``
             records the timing used and its source. An ``engine`` must process with the same
             (``recording_timing`` of the source and these fields).
+        two_sided: with a timing that states an exposure or a readout, solve each frame again
+            with the next frame's pose (``process_frames``; summary.json's ``motion_model``).
 
     Raises:
         BagError: unreadable input, or no frame of it usable. OutputError: an output that is or
@@ -541,7 +490,7 @@ def replay(
         output = _replay_into(folder.tmp, out, source, model, pose, calibration,
                               calibrate_window_s, jobs, namespace, progress, progress_stream,
                               engine, summary_extra, detector, frames or OutputFrames(),
-                              camera_timing)
+                              camera_timing, two_sided)
         _check_usable(source, output.summary)
     except BaseException:
         folder.discard()
@@ -589,6 +538,7 @@ def _replay_into(
     summary_extra: dict[str, Any] | None, detector: DetectorConfig | None = None,
     frames: OutputFrames = OutputFrames(),
     camera_timing: tuple[CameraTiming, str] = (CameraTiming(), "not known"),
+    two_sided: bool = True,
 ) -> ReplayOutput:
     jobs = capped_jobs(jobs)[0]
     timing, timing_source = camera_timing
@@ -603,7 +553,8 @@ def _replay_into(
                 bar.update()
         else:
             replayed.extend(process_frames(raws, model, pose, jobs, detector=detector, timing=timing,
-                                         on_progress=lambda n: bar.update(n - bar.n)))
+                                           on_progress=lambda n: bar.update(n - bar.n),
+                                           two_sided=two_sided))
     finally:
         bar.close()
     elapsed = time.perf_counter() - t0
@@ -622,6 +573,9 @@ def _replay_into(
         **({"photometric": True} if detector is not None and detector.edge_photometric else {}),
         "jobs": jobs,
         "camera_timing": {**timing.to_dict(), "source": timing_source},
+        # Only with a motion model (a timing stated): how each frame's motion was modelled.
+        **({"motion_model": "two-sided" if two_sided else "causal"}
+           if two_sided_applies(timing) else {}),
         **_summary(replayed, elapsed),
         # A damaged input: frames_lost is None when the container cannot say how many.
         "damaged": loss is not None,

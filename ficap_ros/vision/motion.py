@@ -20,6 +20,13 @@ difference by the head's angular and linear jerk (two past poses) or acceleratio
 sizes of ``MotionConfig``. With no past pose the prior is a weak one around rest (the speeds of
 ``MotionConfig``), so a rolling-shutter frame alone still has a pose.
 
+Offline, the frame after is known too (``MotionPrior.following``: the next frame's pose, two-sided):
+the velocity and acceleration are then the derivatives of the polynomial through the pose being
+solved, up to two past poses and the next one, which interpolates the glance instead of
+extrapolating it (a cubic through four poses is off by the head's snap, not its jerk, and by a
+share of it a quarter of the backward one's). The live node has no next frame and keeps the
+backward prior.
+
 A global-shutter frame says nothing of the velocity: its pose is the static fit's, and its velocity
 (``static_velocity``) is the prior's finite difference at that pose, with the pose's covariance
 propagated into the prior's.
@@ -81,9 +88,12 @@ class MotionConfig:
             velocity from one past pose.
         angular_speed_rad_s, linear_speed_m_s: the velocity itself, for a frame with no past pose
             (a prior around rest).
+        angular_snap_rad_s4, linear_snap_m_s4: the fourth derivative: the error of the
+            two-sided velocity through two past poses and the next one (its root mean square over
+            the same glance).
         jerk_floor: the least measured jerk, as a fraction of the sizes above (the jerk changes
             between the past poses and this frame).
-        max_age_s: past poses older than this are not used.
+        max_age_s: past (or following) poses further than this from the stamp are not used.
     """
 
     angular_jerk_rad_s3: float = 500.0
@@ -94,21 +104,24 @@ class MotionConfig:
     linear_speed_m_s: float = 0.6
     jerk_floor: float = 0.2
     max_age_s: float = 0.2
+    angular_snap_rad_s4: float = 11000.0
+    linear_snap_m_s4: float = 660.0
 
     def __post_init__(self) -> None:
         values = (self.angular_jerk_rad_s3, self.linear_jerk_m_s3, self.angular_accel_rad_s2,
                   self.linear_accel_m_s2, self.angular_speed_rad_s, self.linear_speed_m_s,
-                  self.jerk_floor, self.max_age_s)
+                  self.jerk_floor, self.max_age_s, self.angular_snap_rad_s4, self.linear_snap_m_s4)
         if not all(math.isfinite(v) and v > 0.0 for v in values):
             raise ConfigError("motion sizes must be finite and > 0")
 
 
 @dataclass(frozen=True)
 class PastPose:
-    """A pose of an earlier frame of the same camera.
+    """A pose of an earlier (or, offline, the next) frame of the same camera.
 
     Attributes:
-        age_s: how long before this frame's stamp it was, s (> 0).
+        age_s: how long before this frame's stamp it was, s (> 0 for a frame before; < 0 for the
+            frame after, ``MotionPrior.following``: its time relative to the stamp is ``-age_s``).
         T_cam_cap: its pose at its stamp.
         covariance: its 6x6 covariance, ROS order (``CapPose.covariance``).
     """
@@ -128,8 +141,8 @@ class VelocityPrior:
             (the pose solver's order).
         covariance: (6, 6) twist covariance.
         accel: (6,) the acceleration at the stamp, ROS order (m/s^2, then rad/s^2; camera
-            axes): the second derivative of the polynomial through the pose and the past ones
-            (``acceleration``); zero with fewer than two past poses.
+            axes): the second derivative of the polynomial through the pose and its neighbours
+            (``acceleration``); zero with fewer than two.
         d_accel: (6, 6) its derivative by a left perturbation of the pose, as ``d_mean``.
     """
 
@@ -148,10 +161,13 @@ class MotionPrior:
         past: up to three past poses, the most recent first (older ones and those beyond
             ``config.max_age_s`` are ignored).
         config: the head's motion sizes.
+        following: offline, the next frame's pose (``age_s`` < 0); the prior is then two-sided
+            when a past pose is usable too (``two_sided``). Empty live.
     """
 
     past: tuple[PastPose, ...] = ()
     config: MotionConfig = field(default_factory=MotionConfig)
+    following: tuple[PastPose, ...] = ()
 
     @property
     def usable(self) -> tuple[PastPose, ...]:
@@ -172,8 +188,27 @@ class MotionPrior:
         """Whether a past pose informs the prior (else it is the weak prior around rest)."""
         return bool(self.usable)
 
+    @property
+    def two_sided(self) -> bool:
+        """Whether the next frame's pose informs the prior with the past ones: a usable past
+        pose and a following one within ``config.max_age_s`` with a finite covariance."""
+        if not self.following or not self.from_past:
+            return False
+        nxt = self.following[0]
+        return bool(0.0 < -nxt.age_s <= self.config.max_age_s and np.all(np.isfinite(nxt.covariance)))
+
+    @property
+    def neighbours(self) -> tuple[PastPose, ...]:
+        """The poses the velocity and acceleration come from: two-sided, up to two past poses and
+        the next one; otherwise the usable past poses."""
+        if self.two_sided:
+            return self.usable[:2] + self.following[:1]
+        return self.usable
+
     def at(self, T: Transform) -> VelocityPrior:
         """The prior of the velocity if this frame's pose is ``T``."""
+        if self.two_sided:
+            return self._two_sided_at(T)
         c = self.config
         past = self.usable
         if not past:
@@ -208,6 +243,30 @@ class MotionPrior:
         return VelocityPrior(np.concatenate([v, w]), _by_pose(c0, jl_inv), 0.5 * (cov + cov.T),
                              accel, _by_pose(a0, jl_inv))
 
+    def _two_sided_at(self, T: Transform) -> VelocityPrior:
+        """``at`` with the next frame's pose: the velocity is the first derivative at the stamp
+        of the polynomial through ``T`` and ``neighbours`` (rotations as vectors in the tangent
+        at the most recent past pose), its model error the truncation by the head's jerk (three
+        poses) or snap (four) at the sizes of ``MotionConfig``."""
+        c = self.config
+        nodes = self.neighbours
+        T1 = nodes[0].T_cam_cap
+        times = np.array([0.0] + [-p.age_s for p in nodes])
+        values = np.stack([np.concatenate([Ti.translation_m, (Ti * T1.inv()).rvec])
+                           for Ti in [T] + [p.T_cam_cap for p in nodes]])
+        weights = np.linalg.inv(np.vander(times, increasing=True))[1]
+        if len(nodes) == 2:
+            size = np.array([c.linear_jerk_m_s3] * 3 + [c.angular_jerk_rad_s3] * 3) / 6.0
+        else:
+            size = np.array([c.linear_snap_m_s4] * 3 + [c.angular_snap_rad_s4] * 3) / 24.0
+        cov = np.diag((size * float(np.prod(np.abs(times[1:])))) ** 2)
+        for coef, p in zip(weights[1:], nodes):
+            cov = cov + coef * coef * np.asarray(p.covariance, dtype=float)
+        jl_inv = _left_jacobian_inverse(values[0, 3:])
+        accel, a0 = acceleration(T, nodes)
+        return VelocityPrior(weights @ values, _by_pose(float(weights[0]), jl_inv),
+                             0.5 * (cov + cov.T), accel, _by_pose(a0, jl_inv))
+
 
 def _by_pose(coef: np.ndarray | float, jl_inv: np.ndarray) -> np.ndarray:
     """(6, 6) the derivative by a left perturbation of the pose (columns d_theta, d_t) of a twist
@@ -221,9 +280,9 @@ def _by_pose(coef: np.ndarray | float, jl_inv: np.ndarray) -> np.ndarray:
 def acceleration(T: Transform, past: tuple[PastPose, ...]) -> tuple[np.ndarray, float]:
     """The cap's acceleration at this frame's stamp (6,: m/s^2 then rad/s^2, ROS order, camera
     axes) if its pose there is ``T``, and the weight of ``T`` in it: the second derivative at the
-    stamp of the polynomial through ``T`` and the past poses (a parabola through two, a cubic
-    through three; rotations as vectors in the tangent at the most recent past pose). Zero with
-    fewer than two past poses (a line has none)."""
+    stamp of the polynomial through ``T`` and the neighbouring poses ``past`` (``MotionPrior.
+    neighbours``: a parabola through two, a cubic through three; rotations as vectors in the
+    tangent at the first). Zero with fewer than two (a line has none)."""
     if len(past) < 2:
         return np.zeros(6), 0.0
     T1 = past[0].T_cam_cap

@@ -8,14 +8,17 @@ of a long, shallow edge. The photometric fit with the motion in its model
 (``photometric.fit_tags`` with ``motion_px``) fits the mid-exposure homography to the smeared
 pixels instead.
 
-The motion is each corner's path through the frame's own pose and the poses before it
-(``corner_paths_px``: their projections interpolated in time), over the exposure centred on the
-corner's row time (``CameraTiming.row_time_s``): the pipeline solves the pose from the tags'
-corners first, refits the moving tags along the paths through it and solves again. A motion
-predicted before the pose is known lags a glance's acceleration by a fifth of the motion and
-more; a path through the frame's own pose does not, and its bend (the glance speeding up or
-slowing down within the exposure) moves each smear's centre of light off the mid-exposure corner
-by up to a fifth of a pixel at a glance's peak acceleration. The refit runs only where the
+The motion is each corner's path through the frame's own pose and its neighbouring poses
+(``corner_paths_px``: their projections interpolated in time; ``MotionPrior.neighbours``: the
+poses before it, and offline the next frame's too), over the exposure centred on the corner's row
+time (``CameraTiming.row_time_s``): the pipeline solves the pose from the tags' corners first,
+refits the moving tags along the paths through it and solves again. A motion predicted before the
+pose is known lags a glance's acceleration by a fifth of the motion and more; a path through the
+frame's own pose does not, and its bend (the glance speeding up or slowing down within the
+exposure) moves each smear's centre of light off the mid-exposure corner by up to a fifth of a
+pixel at a glance's peak acceleration. Through the poses before alone the bend is extrapolated and
+lags the glance's changing acceleration; with the next frame's pose it is interpolated
+(``vision.two_sided``). The refit runs only where the
 camera's exposure is stated, a past pose gives the paths, and a tag's corner motion reaches
 ``DetectorConfig.motion_corners_min_px``; everything else keeps its corners, so a frame without a
 stated exposure is untouched. Its cost is the moving fit's, per refitted tag (docs/benchmarks.md).
@@ -63,9 +66,9 @@ INSTANT_SPACING_SDS = 3.0
 def corner_paths_px(corners_m: np.ndarray, rows_px: np.ndarray, T_cam_cap: Transform,
                     past: tuple[PastPose, ...], camera: CameraModel,
                     timing: CameraTiming) -> tuple[np.ndarray, np.ndarray]:
-    """Each corner's path over the exposure, from the frame's pose and the poses before it.
+    """Each corner's path over the exposure, from the frame's pose and its neighbouring poses.
 
-    The corners' image positions at the poses (this frame's at its stamp, the past ones at theirs)
+    The corners' image positions at the poses (this frame's at its stamp, the others at theirs)
     are interpolated in time, corner by corner, by the polynomial through them (a line through
     two poses, a cubic through four): at each corner's row time ``t`` (``CameraTiming.row_time_s``)
     and at ``t`` -+ half the exposure. A glance speeds up and slows down within an exposure:
@@ -75,7 +78,8 @@ def corner_paths_px(corners_m: np.ndarray, rows_px: np.ndarray, T_cam_cap: Trans
         corners_m: (N, 4, 3) the tags' corners, cap frame, m.
         rows_px: (N, 4) the image rows the corners are seen in.
         T_cam_cap: the cap's pose at the stamp.
-        past: the poses before, newest first (``MotionPrior.usable``; at least one).
+        past: the neighbouring poses (``MotionPrior.neighbours``: the poses before, newest first,
+            then offline the next frame's, ``age_s`` < 0; at least one).
         camera: the camera (its distortion applies).
         timing: the exposure and readout.
 
@@ -122,7 +126,8 @@ def motion_aware_corners(
         gray: (H, W) uint8 image.
         tags: the frame's detections (model tags).
         model, camera, timing: the cap model, the camera and its timing (its exposure stated).
-        T_cam_cap: the cap's pose at the stamp; past: the poses before (``MotionPrior.usable``).
+        T_cam_cap: the cap's pose at the stamp; past: the neighbouring poses
+            (``MotionPrior.neighbours``).
         config: the detector's settings (``motion_corners_min_px``).
 
     Returns:

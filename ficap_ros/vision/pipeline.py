@@ -17,7 +17,7 @@ from ficap_ros.geometry.cap_model import CapModel, nominal_model
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.vision import motion_corners
 from ficap_ros.vision.detector import DetectorConfig, TagDetection, TagDetector, as_gray
-from ficap_ros.vision.motion import MotionPrior
+from ficap_ros.vision.motion import MotionPrior, PastPose
 from ficap_ros.vision.occlusion import partly_hidden
 from ficap_ros.vision.pose import (
     CapPose,
@@ -30,7 +30,8 @@ from ficap_ros.vision.shutter import TimingEvidence, frame_evidence
 from ficap_ros.vision.tracking import Search, TrackConfig, TrackedFrame, Tracker
 from ficap_ros.vision.uncertainty import UncertaintyConfig
 
-__all__ = ["FrameResult", "FrameProcessor", "hidden_tag_ids", "corner_estimator", "pose_config_for"]
+__all__ = ["FrameResult", "FrameSolve", "FrameProcessor", "hidden_tag_ids", "corner_estimator",
+           "pose_config_for"]
 
 
 @dataclass(frozen=True)
@@ -67,6 +68,25 @@ class FrameResult:
     @property
     def tags_detected(self) -> int:
         return len(self.detected_ids)
+
+
+@dataclass(frozen=True)
+class FrameSolve:
+    """What a frame's pose was solved from (``FrameProcessor.last_solve``), for solving it again
+    with the next frame's pose (``FrameProcessor.resolve``, offline).
+
+    Attributes:
+        gray: (H, W) uint8 image; camera: its camera.
+        detections: the frame's detections before any motion-aware refit.
+        tags: the detections the pose was solved from (before any refit).
+        prior: the velocity prior from the frames before (None: none).
+    """
+
+    gray: np.ndarray
+    camera: CameraModel
+    detections: tuple[TagDetection, ...]
+    tags: tuple[TagDetection, ...]
+    prior: MotionPrior | None
 
 
 def corner_estimator(detector: DetectorConfig) -> str:
@@ -133,6 +153,8 @@ class FrameProcessor:
         self.pose_config = pose or PoseConfig()
         self.tracker = Tracker(self.model, self.detector, track) if tracking else None
         self._effective: tuple[PoseConfig | None, PoseConfig] = (None, self.pose_config)
+        #: What the last ``process`` solved its pose from (None: no pose was solved).
+        self.last_solve: FrameSolve | None = None
 
     @property
     def effective_pose_config(self) -> PoseConfig:
@@ -153,33 +175,20 @@ class FrameProcessor:
         pose_config = self.effective_pose_config
         t0 = time.perf_counter()
         gray = as_gray(image)
-        cfg = self.detector.config
-        # Only the joint solver has a tag-level outlier step that reads which tags are hidden.
-        find_hidden = cfg.hidden_check and cfg.corner_refine == "edge" and pose_config.method == "joint"
         solve_started: list[float] = []
         refitted: dict[int, TagDetection] = {}
-
-        def estimate(tags: tuple[TagDetection, ...], start: Transform | None,
-                     prior: MotionPrior | None) -> PoseResult:
-            hidden = hidden_tag_ids(gray, tags) if find_hidden else frozenset()
-            return estimate_cap_pose(tags, self.model, camera, pose_config, start=start,
-                                     hidden_ids=hidden, timing=self.timing, prior=prior)
+        solved: list[tuple[tuple[TagDetection, ...], MotionPrior | None]] = []
 
         def solve(tags: tuple[TagDetection, ...], start: Transform | None,
                   prior: MotionPrior | None = None) -> PoseResult:
             solve_started.append(time.perf_counter())
-            result = estimate(tags, start, prior)
-            if result.pose is None or not motion_corners.applies(cfg, self.timing, prior):
+            solved.append((tags, prior))
+            result = self._estimate(gray, camera, pose_config, tags, start, prior)
+            if result.pose is None:
                 return result
-            # Motion-aware corners: the paths through the frame's own pose, the moving tags refitted.
-            assert prior is not None
-            T = result.pose.T_cam_cap
-            moved = motion_corners.motion_aware_corners(gray, tags, self.model, camera, self.timing, T,
-                                                        prior.usable, cfg)
-            if all(a is b for a, b in zip(tags, moved)):
-                return result
-            refitted.update((id(a), b) for a, b in zip(tags, moved) if a is not b)
-            return estimate(moved, T, prior)
+            moved = self._solve_moving(gray, camera, pose_config, tags, result.pose.T_cam_cap,
+                                       prior, refitted)
+            return result if moved is None else moved
 
         if self.tracker is not None:
             frame = self.tracker.track(gray, camera, int(stamp_ns), pose_config, solve)
@@ -187,6 +196,8 @@ class FrameProcessor:
             detections = tuple(d for d in self.detector.detect(gray) if d.tag_id in self.model)
             frame = TrackedFrame(detections, solve(detections, None), Search.IMAGE)
         t1, t2 = solve_started[0], time.perf_counter()
+        self.last_solve = (FrameSolve(gray, camera, frame.detections, *solved[-1])
+                           if solved and frame.result.pose is not None else None)
         if refitted:
             frame = replace(frame, detections=tuple(refitted.get(id(d), d) for d in frame.detections))
         pose, evidence = frame.result.pose, None
@@ -196,6 +207,61 @@ class FrameProcessor:
             pose = replace(pose, velocity=None, velocity_covariance=None)
         return FrameResult(frame.detections, pose, frame.result.reason, frame.search,
                            (t1 - t0) * 1e3, (t2 - t1) * 1e3, evidence)
+
+    def _estimate(self, gray: np.ndarray, camera: CameraModel, pose_config: PoseConfig,
+                  tags: tuple[TagDetection, ...], start: Transform | None,
+                  prior: MotionPrior | None) -> PoseResult:
+        """The cap pose from ``tags`` (the hidden tags read first where the joint solver's
+        tag-level outlier step uses them)."""
+        cfg = self.detector.config
+        find_hidden = cfg.hidden_check and cfg.corner_refine == "edge" and pose_config.method == "joint"
+        hidden = hidden_tag_ids(gray, tags) if find_hidden else frozenset()
+        return estimate_cap_pose(tags, self.model, camera, pose_config, start=start,
+                                 hidden_ids=hidden, timing=self.timing, prior=prior)
+
+    def _solve_moving(self, gray: np.ndarray, camera: CameraModel, pose_config: PoseConfig,
+                      tags: tuple[TagDetection, ...], T: Transform, prior: MotionPrior | None,
+                      refitted: dict[int, TagDetection]) -> PoseResult | None:
+        """Motion-aware corners (``vision.motion_corners``) where they apply: the tags' paths
+        through the pose ``T`` and ``prior``'s neighbouring poses, the moving tags refitted
+        (recorded in ``refitted`` by the id of the detection they replace) and the pose solved
+        again from ``T``; None where they do not apply or nothing moves."""
+        if not motion_corners.applies(self.detector.config, self.timing, prior):
+            return None
+        assert prior is not None
+        moved = motion_corners.motion_aware_corners(gray, tags, self.model, camera, self.timing, T,
+                                                    prior.neighbours, self.detector.config)
+        if all(a is b for a, b in zip(tags, moved)):
+            return None
+        refitted.update((id(a), b) for a, b in zip(tags, moved) if a is not b)
+        return self._estimate(gray, camera, pose_config, moved, T, prior)
+
+    def resolve(self, first: FrameResult, solve: FrameSolve, following: PastPose) -> FrameResult:
+        """A frame's result solved again with the next frame's pose (offline, two-sided):
+        ``first`` is its ``process`` result and ``solve`` its ``last_solve``; ``following`` the
+        next frame's pose (``age_s`` < 0). The rolling-shutter velocity and acceleration and the
+        motion-aware corners' paths then interpolate between the frames before and the next one
+        (``MotionPrior.two_sided``) instead of extrapolating the frames before. ``first`` as it
+        is when the prior is not two-sided (no past pose, the next one too far), the timing
+        states neither exposure nor readout, or the second solve finds no pose."""
+        if first.pose is None or solve.prior is None or not _timing_given(self.timing):
+            return first
+        prior = replace(solve.prior, following=(following,))
+        if not prior.two_sided:
+            return first
+        pose_config = self.effective_pose_config
+        t0 = time.perf_counter()
+        T = first.pose.T_cam_cap
+        refitted: dict[int, TagDetection] = {}
+        result = self._solve_moving(solve.gray, solve.camera, pose_config, solve.tags, T, prior,
+                                    refitted)
+        if result is None:
+            result = self._estimate(solve.gray, solve.camera, pose_config, solve.tags, T, prior)
+        if result.pose is None:
+            return first
+        detections = tuple(refitted.get(id(d), d) for d in solve.detections)
+        return replace(first, detections=detections, pose=result.pose, reason=result.reason,
+                       pose_ms=first.pose_ms + (time.perf_counter() - t0) * 1e3)
 
 
 def _timing_given(timing: CameraTiming) -> bool:

@@ -221,7 +221,7 @@ def test_ctrl_c_leaves_no_partial_output(drive: Path, tmp_path: Path,
     import ficap_ros.tools.replay as replay_mod
 
     calls = {"n": 0}
-    real = replay_mod._process_one
+    real = replay_mod.decode_raw
 
     def interrupted(raw):  # noqa: ANN001, ANN202
         calls["n"] += 1
@@ -229,16 +229,16 @@ def test_ctrl_c_leaves_no_partial_output(drive: Path, tmp_path: Path,
             raise KeyboardInterrupt
         return real(raw)
 
-    monkeypatch.setattr(replay_mod, "_process_one", interrupted)
+    monkeypatch.setattr(replay_mod, "decode_raw", interrupted)
     out = tmp_path / "out"
     assert main(["replay", str(drive), "--out", str(out), "--quiet"]) == 130
     assert list(tmp_path.iterdir()) == []  # no output, no temporary folder left beside it
     # A previous output survives an interrupted re-run whole (replaced as a unit, or not at all).
-    monkeypatch.setattr(replay_mod, "_process_one", real)
+    monkeypatch.setattr(replay_mod, "decode_raw", real)
     assert main(["replay", str(drive), "--out", str(out), "--quiet"]) == 0
     before = {p.name: p.read_bytes() for p in out.iterdir()}
     calls["n"] = 0
-    monkeypatch.setattr(replay_mod, "_process_one", interrupted)
+    monkeypatch.setattr(replay_mod, "decode_raw", interrupted)
     assert main(["replay", str(drive), "--out", str(out), "--quiet"]) == 130
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
     assert [p.name for p in tmp_path.iterdir()] == ["out"]
@@ -467,3 +467,16 @@ def test_a_zeroed_page_inside_a_sqlite3_bag(tmp_path: Path,
             assert len(captured.err.strip().splitlines()) == 1
         assert db.read_bytes() == bytes(data)
     assert salvaged >= 1  # rosbags' CorruptError mid-read: the frames before it kept
+
+
+def test_no_two_sided_motion_keeps_the_causal_model(glance_rs_drive: Path, tmp_path: Path,
+                                                    capsys: pytest.CaptureFixture[str]) -> None:
+    """--no-two-sided-motion: summary.json says ``causal`` (the default run of a timed recording
+    says ``two-sided``); a fleet refuses it in one line."""
+    out = tmp_path / "causal"
+    assert main(["replay", str(glance_rs_drive), "--out", str(out), "--no-two-sided-motion",
+                 "--quiet"]) == 0
+    assert json.loads((out / "summary.json").read_text())["motion_model"] == "causal"
+    assert main(["replay", str(glance_rs_drive), str(glance_rs_drive), "--out", str(tmp_path / "f"),
+                 "--no-two-sided-motion", "--quiet"]) == 1
+    assert "--no-two-sided-motion is for one recording" in one_error_line(capsys)

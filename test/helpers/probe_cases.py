@@ -362,3 +362,13 @@ def walk_cases(probe: Probe) -> list[tuple[str, list[str], Path]]:
         ("synth", ["synth", "--model", str(model), "--out", "OUT", "--frames", "2"], model),
         ("kit", ["kit", "--model", str(model), "--out", "OUT"], model),
     ]
+
+
+def no_setup(*_args: object) -> None:
+    """A worker pool's initializer that does nothing (``worker_pool`` tests)."""
+
+
+def echo_segment(raws: list, timing: object, lookahead: object) -> list:
+    """A segment function for worker-pool tests: each frame with the segment's look-ahead and
+    the worker's process id."""
+    return [(raw, lookahead, os.getpid()) for raw in raws]

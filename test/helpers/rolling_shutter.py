@@ -3,6 +3,7 @@ row was exposed (the row's time depends on where the corner lands, so it is foun
 
 from __future__ import annotations
 
+from pathlib import Path
 from typing import Callable
 
 import numpy as np
@@ -68,3 +69,25 @@ def detections(corners: dict[int, np.ndarray], rng: np.random.Generator | None =
     """Detections of the corners, with seeded Gaussian noise when ``rng`` is given."""
     return [TagDetection(i, c + (0.0 if rng is None else rng.normal(0.0, noise_px, c.shape)))
             for i, c in corners.items()]
+
+
+def bag_truths(bag: Path) -> dict[int, tuple[Transform, float]]:
+    """A synth bag's truth per stamp, ns: (T_cam_cap at the stamp, the cap's angular speed
+    there, deg/s), from its truth topics."""
+    from ficap_ros.cli.synth import TRUTH_CAP_TOPIC, TRUTH_TWIST_TOPIC
+    from ficap_ros.io.messages import pose_to_transform, twist_to_array
+    from ficap_ros.io.sources import open_bag_reader
+    from ficap_ros.stamps import stamp_to_ns
+
+    truth: dict[int, dict] = {}
+    reader = open_bag_reader(bag)
+    try:
+        conns = [c for c in reader.connections if c.topic in (TRUTH_CAP_TOPIC, TRUTH_TWIST_TOPIC)]
+        for conn, _, raw in reader.messages(connections=conns):
+            msg = reader.deserialize(raw, conn.msgtype)
+            truth.setdefault(stamp_to_ns(msg.header.stamp), {})[conn.topic] = msg
+    finally:
+        reader.close()
+    return {stamp: (pose_to_transform(m[TRUTH_CAP_TOPIC]),
+                    float(np.degrees(np.linalg.norm(twist_to_array(m[TRUTH_TWIST_TOPIC])[3:]))))
+            for stamp, m in truth.items()}

@@ -335,3 +335,30 @@ def test_the_camera_timing_given_over_the_recordings_own(tmp_path: Path,
     assert seen == [own, own] and replay_mod._PROCESSOR.timing == own
     replay_mod._process_segment(list(src.raw_frames())[:1])
     assert seen[-1] == CameraTiming()
+
+
+def test_two_sided_segments_give_the_same_labels_whatever_the_jobs(
+        glance_rs_drive: Path, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A rolling-shutter glance (its timing in the bag) cut into segments of 8 frames: every
+    segment carries the next one's first frame as its look-ahead, so --jobs 2 gives labels
+    byte-identical to --jobs 1; the two-sided labels differ from the causal ones
+    (``two_sided=False``), among them each segment's last frame (solved with its look-ahead);
+    summary.json names the motion model."""
+    from ficap_ros.geometry.cap_model import nominal_model
+    from ficap_ros.io.sources import open_frames
+    from ficap_ros.tools import replay as replay_mod
+    from ficap_ros.vision.pose import PoseConfig
+
+    monkeypatch.setattr(replay_mod, "SEGMENT_FRAMES", 8)
+    runs = {}
+    for name, jobs, two_sided in (("j1", 1, True), ("j2", 2, True), ("causal", 1, False)):
+        out = replay_mod.replay(open_frames(glance_rs_drive), tmp_path / name, nominal_model(),
+                                PoseConfig(), jobs=jobs, progress=False, two_sided=two_sided)
+        assert out.summary["motion_model"] == ("two-sided" if two_sided else "causal")
+        runs[name] = {f: (tmp_path / name / f).read_bytes() for f in ("labels.csv", "labels.mcap")}
+    assert runs["j1"] == runs["j2"]
+    rows = {k: (tmp_path / k / "labels.csv").read_text().splitlines()[1:] for k in ("j1", "causal")}
+    assert len(rows["j1"]) == 30
+    differ = [i for i, (a, b) in enumerate(zip(rows["j1"], rows["causal"])) if a != b]
+    assert 7 in differ and 15 in differ and len(differ) >= len(rows["j1"]) // 2
+    assert rows["j1"][-1] == rows["causal"][-1]  # the recording's last frame has no next one

@@ -122,6 +122,48 @@ def test_corner_paths_follow_a_turn_that_speeds_up() -> None:
     np.testing.assert_allclose(bend, want_bend, rtol=0.0, atol=0.25 * np.abs(want_bend).max())
 
 
+def test_two_sided_corner_paths_follow_a_glance_the_past_lags() -> None:
+    """A minimum-jerk glance (70 deg in 0.4 s, peak 330 deg/s) through a rolling shutter, at
+    every 20 ms of it: the paths through the pose, two past poses and the next one (30 fps;
+    ``MotionPrior.neighbours`` two-sided) give each corner's motion and bend several times closer
+    to the true path's than the paths through the pose and three past poses (the causal model),
+    whose cubic extrapolates the glance's changing acceleration."""
+    cam = CameraModel.pinhole(960, 540, f_px=700.0)
+    model = nominal_model()
+    ids = list(model.ids)[:6]
+    corners_m = 1e-3 * np.stack([model.corners_of(i) for i in ids])
+    axis = np.array([0.1, 1.0, 0.2]) / np.linalg.norm([0.1, 1.0, 0.2])
+    base = Rotation.from_rotvec([0.1, 2.9, 0.2])
+    timing = CameraTiming(exposure_ms=16.7, readout_ms=22.0)
+    h, half = 1 / 30, 0.5e-3 * 16.7
+    errors: dict[str, list[float]] = {"causal motion": [], "two motion": [], "causal bend": [],
+                                      "two bend": []}
+    for t0 in np.arange(0.04, 0.37, 0.02):
+        def pose(t: float, t0: float = float(t0)) -> Transform:
+            u = np.clip((t0 + t) / 0.4, 0.0, 1.0)
+            angle = np.radians(70.0) * (10 * u**3 - 15 * u**4 + 6 * u**5)
+            R = Rotation.from_rotvec(angle * axis) * base
+            return Transform.from_rvec_tvec(R.as_rotvec(), np.array([0.01, -0.02, 0.6]))
+
+        rows = cam.project(pose(0.0).apply(corners_m.reshape(-1, 3)))[:, 1].reshape(-1, 4)
+        t_row = timing.row_time_s(rows, cam.height_px).reshape(-1)
+        at = {s: np.array([cam.project(pose(t + s).apply(c[None]))[0]
+                           for t, c in zip(t_row, corners_m.reshape(-1, 3))]) for s in (-half, 0.0, half)}
+        want_motion = (at[half] - at[-half]).reshape(-1, 4, 2)
+        want_bend = (0.5 * (at[half] + at[-half]) - at[0.0]).reshape(-1, 4, 2)
+        past = tuple(PastPose(k * h, pose(-k * h), np.eye(6) * 1e-8) for k in (1, 2, 3))
+        prior = MotionPrior(past, following=(PastPose(-h, pose(h), np.eye(6) * 1e-8),))
+        for name, nodes in (("causal", MotionPrior(past).neighbours), ("two", prior.neighbours)):
+            motion, bend = corner_paths_px(corners_m, rows, pose(0.0), nodes, cam, timing)
+            errors[f"{name} motion"].append(float(np.abs(motion - want_motion).max()))
+            errors[f"{name} bend"].append(float(np.abs(bend - want_bend).max()))
+    rms = {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in errors.items()}
+    print({k: f"{v:.4f} px" for k, v in rms.items()})
+    assert rms["causal motion"] > 0.1 and rms["causal bend"] > 0.01  # the causal paths lag
+    assert rms["two motion"] < 0.35 * rms["causal motion"]
+    assert rms["two bend"] < 0.25 * rms["causal bend"]
+
+
 def test_refit_runs_only_with_an_exposure_a_past_pose_and_enough_motion() -> None:
     past = MotionPrior((PastPose(1 / 30, Transform.identity(), np.eye(6) * 1e-6),))
     on = DetectorConfig()

@@ -3,7 +3,8 @@ CPUs, each recording's results back in order.
 
 With Ray (``--ray``: an embedded single-machine Ray kept on loopback; ``--ray-address``: an existing
 cluster), every recording is cut into the replay's fixed segments (``replay.SEGMENT_FRAMES``, at
-whose first frames tracking restarts whatever the engine), so the labels are byte-identical to
+whose first frames tracking restarts whatever the engine, each with its look-ahead frame where
+frames are solved with their next one: ``replay.segments``), so the labels are byte-identical to
 ``--jobs 1``. The driver reads the recordings and ships the undecoded frames through Ray's object
 store, so workers need ficap_ros installed but no access to the inputs or outputs; only the driver
 reads and writes files. A segment whose worker dies is retried (``retries``). Nothing imports ray
@@ -19,7 +20,6 @@ from __future__ import annotations
 import os
 import threading
 from collections import deque
-from itertools import islice
 from typing import Any, Callable, Iterable, Iterator
 
 from ficap_ros.errors import ConfigError, WorkerError
@@ -51,16 +51,16 @@ _WORKER_KEY: Any = None
 
 def ray_segment(config: tuple[CapModel, PoseConfig, DetectorConfig | None],
                 raws: list[RawFrame], timing: CameraTiming | None = None,
-                ) -> list[replay.ReplayedFrame]:
+                lookahead: RawFrame | None = None) -> list[replay.ReplayedFrame]:
     """A Ray task: one segment of a recording whose camera has ``timing`` through the pipeline
-    (the worker keeps its FrameProcessor)."""
+    (the worker keeps its FrameProcessor), with its ``lookahead`` frame (``replay.segments``)."""
     global _WORKER_KEY
     model, pose, detector = config
     key = settings_key(model, pose, detector)
     if key != _WORKER_KEY:
         replay._init_worker(model, pose, single_thread=True, detector=detector)
         _WORKER_KEY = key
-    return replay._process_segment(raws, timing)
+    return replay._process_segment(raws, timing, lookahead)
 
 
 class RayEngine:
@@ -72,7 +72,8 @@ class RayEngine:
         num_cpus: CPUs of the embedded Ray (default: the machine's).
         retries: times a segment is re-run when its worker or node dies.
         model, pose: what every task processes with (shipped once through the object store).
-        segment_fn: the task, ``fn((model, pose, detector), raws, timing) -> processed frames``
+        segment_fn: the task, ``fn((model, pose, detector), raws, timing[, lookahead]) ->
+            processed frames`` (the look-ahead frame passed where there is one)
             (default: the pipeline; tests pass one that fails).
         detector: detector settings of every task (default ``DetectorConfig()``).
         start_timeout_s, segment_timeout_s: the waits' bounds (``START_TIMEOUT_S``,
@@ -165,7 +166,7 @@ class RayEngine:
         """``replay``'s engine: processed frames of ``raws`` (of a camera with ``timing``; None:
         not known), in order (thread-safe)."""
         ray = self._ray
-        it = iter(raws)
+        it = replay.segments(raws, replay.two_sided_applies(timing))
         pending: deque[Any] = deque()
         done_reading = False
         try:
@@ -175,12 +176,15 @@ class RayEngine:
                     # holds finished segments must be free to collect them (no deadlock).
                     if not self._slots.acquire(blocking=not pending):
                         break
-                    segment = list(islice(it, replay.SEGMENT_FRAMES))
-                    if not segment:
+                    segment = next(it, None)
+                    if segment is None:
                         self._slots.release()
                         done_reading = True
                         break
-                    pending.append(self._task.remote(self._config, segment, timing))
+                    # The look-ahead only where there is one: a task takes (config, raws, timing).
+                    raws_, lookahead = segment
+                    extra = () if lookahead is None else (lookahead,)
+                    pending.append(self._task.remote(self._config, raws_, timing, *extra))
                 if not pending:
                     return
                 ref = pending.popleft()
