@@ -29,6 +29,7 @@ from ficap_ros.vision.motion import (
     MotionConfig,
     MotionPrior,
     PastPose,
+    VelocityPrior,
     acceleration,
     blur_modes,
     corner_times_s,
@@ -73,11 +74,9 @@ def test_prior_is_exact_for_constant_velocity(h1: float, h2: float, w: list, v: 
         np.testing.assert_allclose(prior.at(T0).mean, twist, atol=1e-9)
 
 
-@pytest.mark.parametrize("ages", [(1 / 30, 2 / 30), (1 / 30, 2 / 30, 3 / 30)])
-def test_prior_mean_moves_with_the_pose_as_its_derivative_says(ages: tuple[float, ...]) -> None:
-    """``d_mean`` and ``d_accel`` are the prior mean's and acceleration's derivatives by a left
-    perturbation (d_theta, d_t) of the pose being solved (numerically)."""
-    prior = MotionPrior(_past(accelerating(T0, GLANCE, GLANCE_ACCEL), ages))
+def _assert_derivatives_by_pose(prior: MotionPrior) -> VelocityPrior:
+    """``prior.at(T0)``, after checking its ``d_mean`` and ``d_accel`` against finite differences
+    by a left perturbation (d_theta, d_t) of the pose being solved."""
     vp = prior.at(T0)
     eps = 1e-6
     for k in range(6):
@@ -87,6 +86,15 @@ def test_prior_mean_moves_with_the_pose_as_its_derivative_says(ages: tuple[float
         np.testing.assert_allclose((moved.mean - vp.mean) / eps, vp.d_mean[:, k], rtol=1e-4, atol=1e-4)
         np.testing.assert_allclose((moved.accel - vp.accel) / eps, vp.d_accel[:, k], rtol=1e-4,
                                    atol=1e-4 * np.abs(vp.d_accel).max())
+    return vp
+
+
+@pytest.mark.parametrize("ages", [(1 / 30, 2 / 30), (1 / 30, 2 / 30, 3 / 30)])
+def test_prior_mean_moves_with_the_pose_as_its_derivative_says(ages: tuple[float, ...]) -> None:
+    """``d_mean`` and ``d_accel`` are the prior mean's and acceleration's derivatives by a left
+    perturbation (d_theta, d_t) of the pose being solved (numerically)."""
+    prior = MotionPrior(_past(accelerating(T0, GLANCE, GLANCE_ACCEL), ages))
+    _assert_derivatives_by_pose(prior)
 
 
 @pytest.mark.parametrize("ages", [(1 / 30, 2 / 30), (0.03, 0.07, 0.1)])
@@ -385,15 +393,7 @@ def test_two_sided_prior_derivatives_and_covariance() -> None:
     h = 1 / 30
     S = np.diag([1e-8, 2e-8, 3e-8, 1e-6, 2e-6, 3e-6])
     prior = MotionPrior(_past(pose_at, (h, 2 * h), S), following=(PastPose(-h, pose_at(h), S),))
-    vp = prior.at(T0)
-    eps = 1e-6
-    for k in range(6):
-        dx = np.zeros(6)
-        dx[k] = eps
-        moved = prior.at(T0.turned(dx[:3], T0.translation_m + dx[3:]))
-        np.testing.assert_allclose((moved.mean - vp.mean) / eps, vp.d_mean[:, k], rtol=1e-4, atol=1e-4)
-        np.testing.assert_allclose((moved.accel - vp.accel) / eps, vp.d_accel[:, k], rtol=1e-4,
-                                   atol=1e-4 * np.abs(vp.d_accel).max())
+    vp = _assert_derivatives_by_pose(prior)
     # Nodes -2h, -h, 0, h: the velocity's weights at -2h, -h, h are 1/6, -1, 1/3 (over h).
     cfg = MotionConfig()
     snap = np.array([cfg.linear_snap_m_s4] * 3 + [cfg.angular_snap_rad_s4] * 3) * 2 * h**3 / 24

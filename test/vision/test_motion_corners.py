@@ -88,16 +88,20 @@ def test_the_refits_settings_find_the_mid_exposure_corners(length_px: float) -> 
     assert np.mean(refit) <= np.mean(dense) + 0.01
 
 
+def _six_tags_turning() -> tuple[CameraModel, np.ndarray, np.ndarray, Rotation]:
+    """The corner-path cases' scene: a 960 x 540 pinhole camera, six model tags' corners (m),
+    the turn's unit axis and the cap's rotation at the start of the turn."""
+    model = nominal_model()
+    corners_m = 1e-3 * np.stack([model.corners_of(i) for i in list(model.ids)[:6]])
+    axis = np.array([0.1, 1.0, 0.2]) / np.linalg.norm([0.1, 1.0, 0.2])
+    return CameraModel.pinhole(960, 540, f_px=700.0), corners_m, axis, Rotation.from_rotvec([0.1, 2.9, 0.2])
+
+
 def test_corner_paths_follow_a_turn_that_speeds_up() -> None:
     """A cap turning at 150 deg/s and speeding up at 3000 deg/s^2, seen through a rolling
     shutter: the paths through the pose and three past ones (30 fps) give each corner's motion
     over the exposure at its row's time and its bend close to the true path's."""
-    cam = CameraModel.pinhole(960, 540, f_px=700.0)
-    model = nominal_model()
-    ids = list(model.ids)[:6]
-    corners_m = 1e-3 * np.stack([model.corners_of(i) for i in ids])
-    axis = np.array([0.1, 1.0, 0.2]) / np.linalg.norm([0.1, 1.0, 0.2])
-    base = Rotation.from_rotvec([0.1, 2.9, 0.2])
+    cam, corners_m, axis, base = _six_tags_turning()
 
     def pose(t: float) -> Transform:
         angle = np.radians(150.0 * t + 0.5 * 3000.0 * t * t)
@@ -128,12 +132,7 @@ def test_two_sided_corner_paths_follow_a_glance_the_past_lags() -> None:
     ``MotionPrior.neighbours`` two-sided) give each corner's motion and bend several times closer
     to the true path's than the paths through the pose and three past poses (the causal model),
     whose cubic extrapolates the glance's changing acceleration."""
-    cam = CameraModel.pinhole(960, 540, f_px=700.0)
-    model = nominal_model()
-    ids = list(model.ids)[:6]
-    corners_m = 1e-3 * np.stack([model.corners_of(i) for i in ids])
-    axis = np.array([0.1, 1.0, 0.2]) / np.linalg.norm([0.1, 1.0, 0.2])
-    base = Rotation.from_rotvec([0.1, 2.9, 0.2])
+    cam, corners_m, axis, base = _six_tags_turning()
     timing = CameraTiming(exposure_ms=16.7, readout_ms=22.0)
     h, half = 1 / 30, 0.5e-3 * 16.7
     errors: dict[str, list[float]] = {"causal motion": [], "two motion": [], "causal bend": [],
