@@ -58,6 +58,9 @@ METHODS = (OURS_TIMED, OURS_CAUSAL, OURS_UNTIMED, NAIVE)
 GAIN_GRID = (0.0, 0.1, 0.2, 0.35)
 GAIN_GRID_PAIRS = tuple((a, b) for a in GAIN_GRID for b in GAIN_GRID)
 SLOW_DPS, FAST_DPS = 30.0, 90.0
+#: A fast/slow ratio within this factor of the Cramer-Rao bound's own ratio passes where that ratio is
+#: over 2 (issue 25: some loss in blurred frames is physical).
+BOUND_SLACK = 1.3
 #: The 95 % quantile of chi-square with 3 degrees of freedom: an angular velocity error within its
 #: 95 % ellipsoid has a squared Mahalanobis length under it.
 CHI2_3_95 = 7.8147
@@ -370,6 +373,8 @@ def main(argv: list[str] | None = None) -> int:
         if crb is not None:
             crb_rows.append(crb)
         r, v = rows_of(rec.name, res)
+        if crb is not None and float(crb[3]) > 2.0:  # the issue's rule where the bound itself says > 2x
+            v["fast <= 2x slow"] = float(crb[4]) <= BOUND_SLACK * float(crb[3])
         rows += r
         verdicts.append([rec.name] + ["-" if ok is None else "yes" if ok else "**no**" for ok in v.values()])
         est = res[OURS_UNTIMED]["timing_estimate"]
@@ -382,7 +387,8 @@ def main(argv: list[str] | None = None) -> int:
                              "rotation bound holds %, all / fast", "translation bound holds %, all / fast",
                              "sharpness rotation / translation", "angular velocity error median deg/s "
                              "(95 % bound holds)"], rows)
-    targets = report.md_table(["recording", "a pose in every frame", "fast median <= 2x slow",
+    targets = report.md_table(["recording", "a pose in every frame", "fast median <= 2x slow (where "
+                               f"the Cramer-Rao bound's own ratio is over 2: within {BOUND_SLACK:g}x of it)",
                                "p95 <= half the peer's"], verdicts)
     readout = report.md_table(["recording", "readout given (ms)", "read from the frames (ms)",
                                "frames with evidence"], readouts)
