@@ -177,12 +177,11 @@ def _fit_tag(obs: np.ndarray, px: np.ndarray, py: np.ndarray, h: np.ndarray, the
         if it == 0 and not _start_levels(obs, cov[:, 0], theta, min_level_pixels):
             return False, misfit, contrast
         lo, hi = _model_rows(obs, px, py, theta, geo, cov, free_tone, jac, r)
-        if it >= 1:
-            misfit, contrast = _drop_outliers(jac, r, lo, hi)
-        before = h.copy()
-        if not _gauss_newton_update(jac, r, h, theta, damping, free_tone):
+        state, misfit, contrast = _step(jac, r, lo, hi, h, theta, damping, free_tone, it, converged_px,
+                                        misfit, contrast)
+        if state == _REFUSED:
             return False, misfit, contrast
-        if it >= 1 and _largest_corner_move(before, h) <= converged_px:
+        if state == _SETTLED:
             break
     return True, misfit, contrast
 
@@ -246,14 +245,36 @@ def _fit_tag_moving(obs: np.ndarray, px: np.ndarray, py: np.ndarray, h: np.ndarr
         if it == 0 and not _start_levels(obs, mean[:, 0], theta, min_level_pixels):
             return False, misfit, contrast
         lo, hi = model_rows_moving(obs, theta, mean, free_tone, jac, r)
-        if it >= 1:
-            misfit, contrast = _drop_outliers(jac, r, lo, hi)
-        before = h.copy()
-        if not _gauss_newton_update(jac, r, h, theta, damping, free_tone):
+        state, misfit, contrast = _step(jac, r, lo, hi, h, theta, damping, free_tone, it, converged_px,
+                                        misfit, contrast)
+        if state == _REFUSED:
             return False, misfit, contrast
-        if it >= 1 and _largest_corner_move(before, h) <= converged_px:
+        if state == _SETTLED:
             break
     return True, misfit, contrast
+
+
+#: ``_step``'s outcomes: the update was refused, the tag goes on, its corners settled.
+_REFUSED, _GOING, _SETTLED = 0, 1, 2
+
+
+@njit
+def _step(jac: np.ndarray, r: np.ndarray, lo: float, hi: float, h: np.ndarray, theta: np.ndarray,
+          damping: float, free_tone: bool, it: int, converged_px: float, misfit: float,
+          contrast: float) -> tuple[int, float, float]:
+    """One Gauss-Newton step of a tag's fit from its model rows (``jac``, ``r``; ``h`` and
+    ``theta`` in place), shared by the still and the moving fit: from the second step on the
+    outliers are dropped first (which gives the misfit and contrast); the tag settles once a step
+    from the second on moves no corner further than ``converged_px``. Returns (outcome,
+    misfit, contrast)."""
+    if it >= 1:
+        misfit, contrast = _drop_outliers(jac, r, lo, hi)
+    before = h.copy()
+    if not _gauss_newton_update(jac, r, h, theta, damping, free_tone):
+        return _REFUSED, misfit, contrast
+    if it >= 1 and _largest_corner_move(before, h) <= converged_px:
+        return _SETTLED, misfit, contrast
+    return _GOING, misfit, contrast
 
 
 @njit

@@ -26,7 +26,13 @@ from __future__ import annotations
 
 import numpy as np
 
-from ficap_ros.geometry.tag36h11 import TAG_CELLS, stacked_tag_cells, tag_homographies
+from ficap_ros.geometry.tag36h11 import (
+    CELL_CENTRES_H,
+    TAG_AREA,
+    TAG_CELLS,
+    stacked_tag_cells,
+    tag_homographies,
+)
 from ficap_ros.vision.medians import row_median
 
 __all__ = ["noise_ratios"]
@@ -40,10 +46,7 @@ _MIN_CONTRAST = 1.0
 def _cell_centres_grey(gray: np.ndarray, hom: np.ndarray) -> np.ndarray:
     """(N, 8, 8) float grey at the nearest pixel to each cell's centre, [tag, v, u] (the
     ``tag36h11`` cells' layout), the image's edge pixel for a centre outside it."""
-    centre = np.arange(TAG_CELLS) + 0.5
-    u, v = np.meshgrid(centre, centre)  # rows v, columns u
-    cells = np.stack([u.ravel(), v.ravel(), np.ones(u.size)])  # (3, 64)
-    q = hom @ cells  # (N, 3, 64)
+    q = hom @ CELL_CENTRES_H[TAG_AREA].T  # (N, 3, 64), the tag's own cells row-major
     x = np.clip(np.rint(q[:, 0] / q[:, 2]), 0, gray.shape[1] - 1).astype(np.intp)
     y = np.clip(np.rint(q[:, 1] / q[:, 2]), 0, gray.shape[0] - 1).astype(np.intp)
     return gray[y, x].astype(np.float64).reshape(-1, TAG_CELLS, TAG_CELLS)
