@@ -7,9 +7,9 @@ ours with the photometric corner step on every tag, and the naive peer (OpenCV s
 one SQPnP + LM, no tracking). Errors of the cap pose against the rendered truth: rotation (the
 geodesic angle, and Phi3 = half of it, the paper's metric) and the cap origin's translation (mm);
 ``rms_px`` is the pose's reprojection rms, and beside it the same rms over the used tags fully
-visible within 70 deg of head-on (those ``bench_corners`` scores), which shows how much of the
-residual the more oblique tags the pose uses (up to ``TrackConfig.pose_max_view_angle_deg``) carry. The nominal cap model is used for every set (the
-as-built set's cap differs from it by ~1 mm / ~1 deg a plate: what an unmeasured cap costs).
+visible within 70 deg of head-on (those ``bench_corners`` scores): the difference is what the more
+oblique tags the pose uses carry. The nominal cap model is used for every set (the as-built set's
+cap differs from it by ~1 mm / ~1 deg a plate: what an unmeasured cap costs).
 Writes docs/benchmarks/blender_pose.md and blender_pose.png.
 """
 
