@@ -67,7 +67,8 @@ def run_set(data, name: str, max_frames: int | None) -> dict[str, dict[str, np.n
             rot.append(float(angle_deg(pose.T_cam_cap.rotation, f.T_cam_cap.rotation)))
             trans.append(1e3 * float(np.linalg.norm(pose.T_cam_cap.translation_m - f.T_cam_cap.translation_m)))
             rms.append(float(pose.rms_px))
-        out[m.name] = {"rot": np.array(rot), "trans": np.array(trans), "rms": np.array(rms), "clean": np.array(clean)}
+        out[m.name] = {"rot": np.array(rot), "trans": np.array(trans), "rms": np.array(rms),
+                       "clean": np.array(clean)}
     return out
 
 
@@ -119,13 +120,14 @@ def main(argv: list[str] | None = None) -> int:
             rows.append([name.replace("dev_", ""), m.name,
                          f"{q(r['rot'], 50):.3f} / {q(r['rot'], 95):.3f}",
                          f"{q(r['rot'], 50) / 2:.3f} / {q(r['rot'], 95) / 2:.3f}",
-                         f"{q(r['trans'], 50):.2f} / {q(r['trans'], 95):.2f}", f"{q(r['rms'], 50):.3f} / {q(r['clean'], 50):.3f}",
+                         f"{q(r['trans'], 50):.2f} / {q(r['trans'], 95):.2f}",
+                         f"{q(r['rms'], 50):.3f} / {q(r['clean'], 50):.3f}",
                          f"{int(np.isfinite(r['rot']).sum())}/{len(r['rot'])}", ok])
             print(" | ".join(rows[-1]), file=sys.stderr, flush=True)
     table = report.md_table(["set", "method", "rotation median / p95 (deg, geodesic)", "Phi3 median / p95",
                              "translation median / p95 (mm)",
-                             f"rms_px median: all used tags / those within {CLEAN_VIEW_DEG:.0f} deg", "frames with a pose",
-                             "<= half the peer"], rows)
+                             f"rms_px median: all used tags / those within {CLEAN_VIEW_DEG:.0f} deg",
+                             "frames with a pose", "<= half the peer"], rows)
     body = (f"{table}\n\n{plot(results)}\n\n"
             f"'<= half the peer': rotation median and p95 and translation median each at most half the "
             f"naive peer's. Ours meets it on {sum(bar)} of {len(bar)} sets. The as-built set is rendered "
