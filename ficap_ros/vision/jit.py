@@ -2,7 +2,7 @@
 
 The per-pixel kernels (``ficap_ros.vision.kernels``: the corner stage's profiles, line pass and
 per-tag least squares; ``ficap_ros.vision.photometric_kernels``: the photometric and moving tags'
-fits) are numba functions compiled on their first call and cached on disk (``njit(cache=True)``), so a
+fits; ``ficap_ros.vision.pose_kernels``: the pose solvers' reprojection) are numba functions compiled on their first call and cached on disk (``njit(cache=True)``), so a
 later process loads them instead of compiling. numba keeps that cache next to the source
 (``__pycache__``) when the package's directory is writable (a clone, an editable install). Where
 it is not (an apt or colcon install), the cache goes to the user's cache directory,
@@ -82,6 +82,7 @@ def warm_up() -> float:
     # The modules register their kernels' warm-ups when imported.
     import ficap_ros.vision.kernels  # noqa: F401
     import ficap_ros.vision.photometric_kernels  # noqa: F401
+    import ficap_ros.vision.pose_kernels  # noqa: F401
 
     t0 = time.perf_counter()
     for fn in _WARM_UPS:
