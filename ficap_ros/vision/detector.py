@@ -111,12 +111,6 @@ class DetectorConfig:
             adaptive_thresh_win_size range: the tags of a frame large enough to decimate are small
             in the searched image, which one window covers, and the pipeline reads the tags a
             search misses at the pose of those it found. 0: the full range.
-        decimated_thresh_constant: ArUco's adaptive-threshold constant (grey levels below the
-            window's mean a pixel must be to count as black) for that one-window decimated search.
-            The box average halves the noise but not a tag's contrast, and a constant near the
-            noise turns every flat noisy region into speckles whose contours cost ArUco more than
-            everything else it does; at this constant they are few while the dim tags' borders,
-            tens of grey levels deep, still threshold whole.
         decode_rejected, decode_max_bit_errors: the search's second chance (opencv backend with
             ``edge`` refine): the quads ArUco rejected are edge-refined at full size and read
             again (``decode_tags``, at most this many of 36 bits corrected). ArUco's
@@ -192,7 +186,6 @@ class DetectorConfig:
     search_decimate: int = 0
     search_min_side_px: int = 960
     decimated_thresh_win_size_px: int = 13
-    decimated_thresh_constant: float = 7.0
     # ArUco: read the quads it rejected once more at their edge-refined corners.
     decode_rejected: bool = True
     decode_max_bit_errors: int = 2
@@ -230,9 +223,6 @@ class DetectorConfig:
         if self.decimated_thresh_win_size_px and not 3 <= self.decimated_thresh_win_size_px <= 99:
             raise ConfigError("decimated_thresh_win_size_px must be 0 or in [3, 99], "
                               f"got {self.decimated_thresh_win_size_px}")
-        if not (math.isfinite(self.decimated_thresh_constant) and 0.0 <= self.decimated_thresh_constant <= 64.0):
-            raise ConfigError("decimated_thresh_constant must be in [0, 64], "
-                              f"got {self.decimated_thresh_constant}")
         if self.search_min_side_px < 64:
             raise ConfigError(f"search_min_side_px must be >= 64, got {self.search_min_side_px}")
         if not 0 <= self.decode_max_bit_errors <= 3:
@@ -418,8 +408,6 @@ class TagDetector:
         lo, hi = ((cfg.decimated_thresh_win_size_px,) * 2 if one_window else
                   (cfg.adaptive_thresh_win_size_min, cfg.adaptive_thresh_win_size_max))
         params.adaptiveThreshWinSizeMin, params.adaptiveThreshWinSizeMax = int(lo), int(hi)
-        params.adaptiveThreshConstant = float(cfg.decimated_thresh_constant if one_window
-                                              else cfg.adaptive_thresh_constant)
         self._aruco.setDetectorParameters(params)
         self._search_scale, self._one_window = scale, one_window
 

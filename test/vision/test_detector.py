@@ -193,20 +193,6 @@ def test_auto_decimation_by_image_size() -> None:
         DetectorConfig(decode_max_bit_errors=4)
 
 
-def test_decimated_search_thresholds_with_its_own_constant() -> None:
-    """A decimated search sets ArUco's threshold constant to ``decimated_thresh_constant``; a
-    full-size search of the same detector goes back to ``adaptive_thresh_constant``."""
-    cfg = DetectorConfig(adaptive_thresh_constant=5.0, decimated_thresh_constant=9.0)
-    det = TagDetector(cfg)
-    det.detect(np.full((1080, 1920), 128, np.uint8))
-    assert det._aruco.getDetectorParameters().adaptiveThreshConstant == pytest.approx(9.0)
-    det.detect(np.full((540, 960), 128, np.uint8))
-    assert det._aruco.getDetectorParameters().adaptiveThreshConstant == pytest.approx(5.0)
-    for bad in (-1.0, float("nan"), 65.0):
-        with pytest.raises(ConfigError, match="decimated_thresh_constant"):
-            DetectorConfig(decimated_thresh_constant=bad)
-
-
 @pytest.fixture(scope="module")
 def frames_1080p():
     scene = default_scene("1080p")
