@@ -53,6 +53,7 @@ from ficap_ros.vision.kernels import (
     boundary_rows,
     grouped_normal_equations,
     grouped_residuals,
+    grouped_solve,
 )
 from ficap_ros.vision.medians import (
     group_median_of_finite,
@@ -610,7 +611,21 @@ def _solve_grouped(
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Weighted least squares per contiguous group of rows: (solutions (n, P), solved (n,),
     residuals rhs - jac @ solution (T,), None unless ``residuals``). A group needs ``min_rows``
-    weighted rows and every parameter touched by one."""
+    weighted rows and every parameter touched by one. Compiled (``kernels.grouped_solve``); where
+    a group's system is singular, solved group by group here, dropping it."""
+    try:
+        sol, solved, resid = grouped_solve(jac, rhs, w, starts, min_rows, residuals)
+    except np.linalg.LinAlgError:
+        return _solve_grouped_each(jac, rhs, w, starts, min_rows, residuals)
+    return sol, solved, (resid if residuals else None)
+
+
+def _solve_grouped_each(
+    jac: np.ndarray, rhs: np.ndarray, w: np.ndarray, starts: np.ndarray, min_rows: int,
+    residuals: bool,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
+    """``_solve_grouped`` with a degenerate group among them: each group solved on its own, a
+    singular one left unsolved (solution 0)."""
     n, p = len(starts), jac.shape[1]
     ata, atb, rows = grouped_normal_equations(jac, rhs, w, starts)
     # Column scaling: the parameters differ in size by orders of magnitude.
@@ -620,20 +635,15 @@ def _solve_grouped(
     # direction left) makes the system exactly singular: such a group is unsolved up front.
     solved = (rows >= min_rows) & np.all(np.einsum("nii->ni", ata) > 0.0, axis=1)
     sol = np.zeros((n, p))
-    if solved.any():
+    for g in np.flatnonzero(solved):
         try:
-            sol[solved] = np.linalg.solve(a_s[solved], (atb / d)[solved][..., None])[..., 0] / d[solved]
-        except np.linalg.LinAlgError:  # a degenerate tag: solve one by one, dropping it
-            for g in np.flatnonzero(solved):
-                try:
-                    sol[g] = np.linalg.solve(a_s[g], atb[g] / d[g]) / d[g]
-                except np.linalg.LinAlgError:
-                    solved[g] = False
+            sol[g] = np.linalg.solve(a_s[g], atb[g] / d[g]) / d[g]
+        except np.linalg.LinAlgError:
+            solved[g] = False
     solved &= np.isfinite(sol).all(axis=1)
     if not residuals:
         return sol, solved, None
-    resid = grouped_residuals(jac, rhs, sol, starts)
-    return sol, solved, resid
+    return sol, solved, grouped_residuals(jac, rhs, sol, starts)
 
 
 # --- Step 4 (optional): the photometric fit -------------------------------------------------

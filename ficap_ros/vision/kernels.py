@@ -19,10 +19,11 @@ the robust straight-line fit through their steps; ``line_pass`` the whole line p
 where adjacent lines meet, the passes and the plausibility checks).
 
 ``boundary_rows`` places the cell-edge fit's boundary samples in the image through their tags'
-homographies, with the rows of its linearised model; ``grouped_normal_equations`` and
-``grouped_residuals`` are its per-tag weighted
-least squares (``corners._solve_grouped``): each tag's normal equations accumulated over its rows,
-and the residuals of each tag's solution.
+homographies, with the rows of its linearised model; ``grouped_normal_equations``,
+``grouped_solve`` and ``grouped_residuals`` are its per-tag weighted least squares
+(``corners._solve_grouped``): each tag's normal equations accumulated over its rows, each tag's
+column-scaled solve (LAPACK's ``gesv``, as ``np.linalg.solve``), and the residuals of each tag's
+solution.
 """
 
 from __future__ import annotations
@@ -33,7 +34,8 @@ import numpy as np
 
 from ficap_ros.vision.jit import njit, register_warm_up
 
-__all__ = ["area_steps", "edge_lines", "boundary_rows", "frozen", "grouped_normal_equations", "line_pass", "grouped_residuals"]
+__all__ = ["area_steps", "edge_lines", "boundary_rows", "frozen", "grouped_normal_equations", "grouped_solve",
+           "line_pass", "grouped_residuals"]
 
 #: ``cv2.remap``'s sub-pixel positions per px (``INTER_TAB_SIZE``) and its weights' scale bits
 #: (``INTER_REMAP_COEF_BITS``).
@@ -465,6 +467,59 @@ def grouped_residuals(jac: np.ndarray, rhs: np.ndarray, sol: np.ndarray, starts:
     return resid
 
 
+@njit(error_model="numpy")
+def grouped_solve(jac: np.ndarray, rhs: np.ndarray, w: np.ndarray, starts: np.ndarray, min_rows: int,
+                  residuals: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Weighted least squares per contiguous group of rows (groups as ``grouped_normal_equations``'s).
+
+    Each group's normal equations are scaled by their diagonal's square roots d (the parameters
+    differ in size by orders of magnitude), solved by ``np.linalg.solve`` (LAPACK ``gesv``, the
+    routine numpy's batched solve calls, so the same numbers) and unscaled. A group is solved when
+    it has ``min_rows`` weighted rows and every parameter is touched by one (a zero diagonal makes
+    the system exactly singular); its solution stays 0 otherwise.
+
+    Args:
+        jac, rhs, w, starts: as ``grouped_normal_equations``'s.
+        min_rows: the least weighted rows of a solved group.
+        residuals: also return rhs - jac @ solution per row (else an empty array).
+
+    Returns:
+        (solutions (n, P), solved (n,) bool: also False where a solution is not finite (its
+        entries are kept), residuals (T,) or (0,)).
+
+    Raises:
+        np.linalg.LinAlgError: a solved group's scaled system is singular to machine precision
+            (the caller solves group by group).
+    """
+    ata, atb, rows = grouped_normal_equations(jac, rhs, w, starts)
+    n, p = ata.shape[0], ata.shape[1]
+    sol = np.zeros((n, p))
+    solved = np.zeros(n, np.bool_)
+    d = np.empty(p)
+    a_s = np.empty((p, p))
+    b_s = np.empty(p)
+    for g in range(n):
+        usable = rows[g] >= min_rows
+        for i in range(p):
+            usable = usable and ata[g, i, i] > 0.0
+        if not usable:
+            continue
+        for i in range(p):
+            d[i] = math.sqrt(max(ata[g, i, i], 1e-30))
+        for i in range(p):
+            b_s[i] = atb[g, i] / d[i]
+            for j in range(p):
+                a_s[i, j] = ata[g, i, j] / d[i] / d[j]
+        x = np.linalg.solve(a_s, b_s)
+        finite = True
+        for i in range(p):
+            sol[g, i] = x[i] / d[i]
+            finite = finite and math.isfinite(sol[g, i])
+        solved[g] = finite
+    resid = grouped_residuals(jac, rhs, sol, starts) if residuals else np.empty(0)
+    return sol, solved, resid
+
+
 @register_warm_up
 def _warm_up() -> None:
     """``area_steps`` once on a small step image (the pipeline's argument types)."""
@@ -485,3 +540,4 @@ def _warm_up() -> None:
     jac, starts = np.eye(4, 10), frozen(np.array([0, 2], np.int64))
     grouped_normal_equations(jac, np.ones(4), np.ones(4), starts)
     grouped_residuals(jac, np.ones(4), np.zeros((2, 10)), starts)
+    grouped_solve(jac, np.ones(4), np.ones(4), starts, 1, True)

@@ -26,6 +26,7 @@ from ficap_ros.vision.kernels import (
     edge_lines,
     grouped_normal_equations,
     grouped_residuals,
+    grouped_solve,
 )
 
 
@@ -117,6 +118,55 @@ def test_grouped_least_squares_equal_numpy(seed: int) -> None:
         np.testing.assert_allclose(atb[g], (j * wg[:, None]).T @ b, rtol=1e-12, atol=1e-9)
         assert rows[g] == (wg > 0).sum()
         np.testing.assert_allclose(resid[a:a + n], b - j @ sol[g], rtol=1e-12, atol=1e-9)
+
+
+def _grouped_solve_numpy(jac, rhs, w, starts, min_rows):  # noqa: ANN001, ANN202
+    """The column-scaled normal equations solved by numpy's batched ``np.linalg.solve``."""
+    ata, atb, rows = grouped_normal_equations(jac, rhs, w, starts)
+    d = np.sqrt(np.maximum(np.einsum("nii->ni", ata), 1e-30))
+    a_s = ata / d[:, :, None] / d[:, None, :]
+    solved = (rows >= min_rows) & np.all(np.einsum("nii->ni", ata) > 0.0, axis=1)
+    sol = np.zeros((len(starts), jac.shape[1]))
+    sol[solved] = np.linalg.solve(a_s[solved], (atb / d)[solved][..., None])[..., 0] / d[solved]
+    return sol, solved & np.isfinite(sol).all(axis=1), grouped_residuals(jac, rhs, sol, starts)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_grouped_solve_equals_numpys_solve_exactly(seed: int) -> None:
+    """Same numbers as numpy's batched solve, bit for bit; a group with too few weighted rows, or
+    a parameter no weighted row touches, stays unsolved at 0."""
+    rng = np.random.default_rng(seed)
+    counts = rng.integers(0, 80, 9)
+    counts[:4] = 30, 10, 60, 70
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    jac = rng.normal(size=(int(counts.sum()), 10)) * np.logspace(-3, 3, 10)
+    jac[:30, 9] = 0.0  # group 0: parameter 9 untouched
+    rhs = rng.normal(size=len(jac))
+    w = np.where(rng.uniform(size=len(jac)) < 0.2, 0.0, rng.uniform(0.1, 2.0, len(jac)))
+    sol, solved, resid = grouped_solve(jac, rhs, w, starts, 24, True)
+    want_sol, want_solved, want_resid = _grouped_solve_numpy(jac, rhs, w, starts, 24)
+    assert not solved[0] and (sol[0] == 0.0).all()
+    assert not solved[1] and solved[2:4].all()
+    np.testing.assert_array_equal(solved, want_solved)
+    np.testing.assert_array_equal(sol, want_sol)
+    np.testing.assert_array_equal(resid, want_resid)
+    assert grouped_solve(jac, rhs, w, starts, 24, False)[2].shape == (0,)
+
+
+def test_singular_group_is_solved_group_by_group() -> None:
+    """Two equal columns make one group's system singular: the kernel says so, and the corner
+    stage's least squares solves the other groups and leaves that one unsolved."""
+    rng = np.random.default_rng(3)
+    jac = rng.normal(size=(60, 10))
+    jac[:30, 1] = jac[:30, 0]
+    rhs, w, starts = rng.normal(size=60), np.ones(60), np.array([0, 30])
+    with pytest.raises(np.linalg.LinAlgError):
+        grouped_solve(jac, rhs, w, starts, 24, True)
+    sol, solved, resid = corners_mod._solve_grouped(jac, rhs, w, starts, 24)
+    assert solved.tolist() == [False, True]
+    np.testing.assert_allclose(jac[30:] @ sol[1], jac[30:] @ np.linalg.lstsq(jac[30:], rhs[30:], rcond=None)[0],
+                               atol=1e-9)
+    assert resid is not None and np.isfinite(resid).all()
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
