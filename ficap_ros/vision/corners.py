@@ -51,9 +51,7 @@ from ficap_ros.vision.edges import (
 )
 from ficap_ros.vision.kernels import (
     boundary_rows,
-    grouped_normal_equations,
-    grouped_residuals,
-    grouped_solve,
+    robust_grouped_solve,
 )
 from ficap_ros.vision.medians import (
     group_median_of_finite,
@@ -533,7 +531,7 @@ def fit_tag_edges(
     for it in range(iterations):
         frames, jac = _boundary_frames(h, tag_of, uv, nu)
         s, contrast, top_c, ok = _boundary_offsets(gray, frames, keep, tag_of, counts, cfg)
-        sol, solved, ok = _solve_edges(jac, s, contrast, top_c, ok, nu, tag_of, starts, counts)
+        sol, solved, ok = _solve_edges(jac, s, contrast, top_c, ok, nu, starts)
         h = h + np.where(solved[:, None], sol[:, :8], 0.0)
         delta = np.where(solved, sol[:, 8:].mean(axis=1), np.nan)  # the two directions' mean
         fitted = solved
@@ -581,69 +579,18 @@ def _boundary_offsets(
 
 def _solve_edges(
     jac: np.ndarray, s: np.ndarray, contrast: np.ndarray, top_c: np.ndarray, ok: np.ndarray, nu: np.ndarray,
-    tag_of: np.ndarray, starts: np.ndarray, counts: np.ndarray,
+    starts: np.ndarray,
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """One robust weighted least-squares step per tag: solve, drop the samples beyond 3.5 robust
     sigmas (at least 0.05 px) of the residuals, solve again. Weights are noise-optimal (a sample's
     position noise goes as 1 / its contrast). A tag is solved when both boundary directions keep 12
-    samples (else the fit is free along one of them).
+    samples (else the fit is free along one of them) of at least 24. Compiled:
+    ``kernels.robust_grouped_solve``.
 
     Returns:
         (solutions (N, 10), solved (N,), the samples kept (T,)).
     """
-    w = np.where(ok, (contrast / np.maximum(top_c, 1.0)) ** 2, 0.0)
-    # Only the first solve's residuals (the outliers) and the second's solution are used.
-    _, _, r = _solve_grouped(jac, s, w, starts, 24, residuals=True)
-    assert r is not None
-    sig = 1.4826 * group_median_of_finite(np.abs(r), ok, counts)
-    ok = ok & (np.abs(r) <= np.maximum(3.5 * sig[tag_of], 0.05))
-    w = np.where(ok, (contrast / np.maximum(top_c, 1.0)) ** 2, 0.0)
-    sol, solved, _ = _solve_grouped(jac, s, w, starts, 24, residuals=False)
-    used = w > 0
-    vertical = np.add.reduceat(used & (np.abs(nu[:, 0]) > 0.5), starts)
-    solved &= (vertical >= 12) & (np.add.reduceat(used, starts) - vertical >= 12)
-    return sol, solved, ok
-
-
-def _solve_grouped(
-    jac: np.ndarray, rhs: np.ndarray, w: np.ndarray, starts: np.ndarray, min_rows: int,
-    residuals: bool = True,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Weighted least squares per contiguous group of rows: (solutions (n, P), solved (n,),
-    residuals rhs - jac @ solution (T,), None unless ``residuals``). A group needs ``min_rows``
-    weighted rows and every parameter touched by one. Compiled (``kernels.grouped_solve``); where
-    a group's system is singular, solved group by group here, dropping it."""
-    try:
-        sol, solved, resid = grouped_solve(jac, rhs, w, starts, min_rows, residuals)
-    except np.linalg.LinAlgError:
-        return _solve_grouped_each(jac, rhs, w, starts, min_rows, residuals)
-    return sol, solved, (resid if residuals else None)
-
-
-def _solve_grouped_each(
-    jac: np.ndarray, rhs: np.ndarray, w: np.ndarray, starts: np.ndarray, min_rows: int,
-    residuals: bool,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """``_solve_grouped`` with a degenerate group among them: each group solved on its own, a
-    singular one left unsolved (solution 0)."""
-    n, p = len(starts), jac.shape[1]
-    ata, atb, rows = grouped_normal_equations(jac, rhs, w, starts)
-    # Column scaling: the parameters differ in size by orders of magnitude.
-    d = np.sqrt(np.maximum(np.einsum("nii->ni", ata), 1e-30))
-    a_s = ata / d[:, :, None] / d[:, None, :]
-    # A parameter no weighted row touches (an exactly zero diagonal: e.g. no boundary of one
-    # direction left) makes the system exactly singular: such a group is unsolved up front.
-    solved = (rows >= min_rows) & np.all(np.einsum("nii->ni", ata) > 0.0, axis=1)
-    sol = np.zeros((n, p))
-    for g in np.flatnonzero(solved):
-        try:
-            sol[g] = np.linalg.solve(a_s[g], atb[g] / d[g]) / d[g]
-        except np.linalg.LinAlgError:
-            solved[g] = False
-    solved &= np.isfinite(sol).all(axis=1)
-    if not residuals:
-        return sol, solved, None
-    return sol, solved, grouped_residuals(jac, rhs, sol, starts)
+    return robust_grouped_solve(jac, s, contrast, top_c, ok, np.abs(nu[:, 0]) > 0.5, starts, 24, 12)
 
 
 # --- Step 4 (optional): the photometric fit -------------------------------------------------

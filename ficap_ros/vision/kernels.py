@@ -20,10 +20,10 @@ where adjacent lines meet, the passes and the plausibility checks).
 
 ``boundary_rows`` places the cell-edge fit's boundary samples in the image through their tags'
 homographies, with the rows of its linearised model; ``grouped_normal_equations``,
-``grouped_solve`` and ``grouped_residuals`` are its per-tag weighted least squares
-(``corners._solve_grouped``): each tag's normal equations accumulated over its rows, each tag's
-column-scaled solve (LAPACK's ``gesv``, as ``np.linalg.solve``), and the residuals of each tag's
-solution.
+``grouped_solve`` and ``grouped_residuals`` are its per-tag weighted least squares: each tag's
+normal equations accumulated over its rows, each tag's column-scaled solve (LAPACK's ``gesv``, as
+``np.linalg.solve``), and the residuals of each tag's solution; ``robust_grouped_solve`` the
+fit's robust step around them (``corners._solve_edges``).
 """
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ import numpy as np
 from ficap_ros.vision.jit import njit, register_warm_up
 
 __all__ = ["area_steps", "edge_lines", "boundary_rows", "frozen", "grouped_normal_equations", "grouped_solve",
-           "line_pass", "grouped_residuals"]
+           "line_pass", "grouped_residuals", "robust_grouped_solve"]
 
 #: ``cv2.remap``'s sub-pixel positions per px (``INTER_TAB_SIZE``) and its weights' scale bits
 #: (``INTER_REMAP_COEF_BITS``).
@@ -474,9 +474,10 @@ def grouped_solve(jac: np.ndarray, rhs: np.ndarray, w: np.ndarray, starts: np.nd
 
     Each group's normal equations are scaled by their diagonal's square roots d (the parameters
     differ in size by orders of magnitude), solved by ``np.linalg.solve`` (LAPACK ``gesv``, the
-    routine numpy's batched solve calls, so the same numbers) and unscaled. A group is solved when
-    it has ``min_rows`` weighted rows and every parameter is touched by one (a zero diagonal makes
-    the system exactly singular); its solution stays 0 otherwise.
+    routine numpy's solve calls, so the same numbers) and unscaled. A group is solved when it has
+    ``min_rows`` weighted rows, every parameter is touched by one (a zero diagonal makes the system
+    exactly singular) and its solution is finite. A singular system leaves its group unsolved at 0,
+    a non-finite one (a non-finite row) at NaN, as numpy's solve leaves them.
 
     Args:
         jac, rhs, w, starts: as ``grouped_normal_equations``'s.
@@ -484,12 +485,7 @@ def grouped_solve(jac: np.ndarray, rhs: np.ndarray, w: np.ndarray, starts: np.nd
         residuals: also return rhs - jac @ solution per row (else an empty array).
 
     Returns:
-        (solutions (n, P), solved (n,) bool: also False where a solution is not finite (its
-        entries are kept), residuals (T,) or (0,)).
-
-    Raises:
-        np.linalg.LinAlgError: a solved group's scaled system is singular to machine precision
-            (the caller solves group by group).
+        (solutions (n, P), solved (n,) bool, residuals (T,) or (0,)).
     """
     ata, atb, rows = grouped_normal_equations(jac, rhs, w, starts)
     n, p = ata.shape[0], ata.shape[1]
@@ -504,20 +500,85 @@ def grouped_solve(jac: np.ndarray, rhs: np.ndarray, w: np.ndarray, starts: np.nd
             usable = usable and ata[g, i, i] > 0.0
         if not usable:
             continue
+        finite = True
         for i in range(p):
             d[i] = math.sqrt(max(ata[g, i, i], 1e-30))
         for i in range(p):
             b_s[i] = atb[g, i] / d[i]
+            finite = finite and math.isfinite(b_s[i])
             for j in range(p):
                 a_s[i, j] = ata[g, i, j] / d[i] / d[j]
-        x = np.linalg.solve(a_s, b_s)
-        finite = True
+                finite = finite and math.isfinite(a_s[i, j])
+        if not finite:
+            sol[g] = np.nan
+            continue
+        try:
+            x = np.linalg.solve(a_s, b_s)
+        except Exception:  # singular to machine precision: unsolved
+            continue
         for i in range(p):
             sol[g, i] = x[i] / d[i]
             finite = finite and math.isfinite(sol[g, i])
         solved[g] = finite
     resid = grouped_residuals(jac, rhs, sol, starts) if residuals else np.empty(0)
     return sol, solved, resid
+
+
+@njit(error_model="numpy")
+def robust_grouped_solve(jac: np.ndarray, s: np.ndarray, contrast: np.ndarray, top_c: np.ndarray,
+                         ok: np.ndarray, vertical: np.ndarray, starts: np.ndarray, min_rows: int,
+                         min_per_direction: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The cell-edge fit's robust step per tag (``corners._solve_edges``): weights
+    (contrast / max(tag contrast, 1))^2 on the ``ok`` rows, a solve (``grouped_solve``), the rows
+    beyond 3.5 robust sigmas (1.4826 times the median absolute residual of the group's ``ok``
+    rows; at least 0.05) dropped, a second solve. A group is solved when both boundary directions
+    keep ``min_per_direction`` weighted rows.
+
+    Args:
+        jac: (T, P) rows of the linear model; s: (T,) measured offsets; contrast, top_c: (T,) each
+            row's contrast and its tag's clean contrast; ok: (T,) bool usable rows.
+        vertical: (T,) bool rows of vertical boundaries (tag x direction).
+        starts: (n,) int64 each group's first row (groups as ``grouped_normal_equations``'s).
+        min_rows, min_per_direction: the least weighted rows in all and per direction.
+
+    Returns:
+        (solutions (n, P), solved (n,) bool, the rows kept (T,) bool).
+    """
+    t_rows, n = len(s), len(starts)
+    w = np.empty(t_rows)
+    for r in range(t_rows):
+        q = contrast[r] / max(top_c[r], 1.0)
+        w[r] = q * q if ok[r] else 0.0
+    _, _, resid = grouped_solve(jac, s, w, starts, min_rows, True)
+    keep = np.empty(t_rows, np.bool_)
+    scratch = np.empty(t_rows)
+    for g in range(n):
+        end = starts[g + 1] if g + 1 < n else t_rows
+        m = 0
+        for r in range(starts[g], end):
+            a = abs(resid[r])
+            if ok[r] and math.isfinite(a):
+                scratch[m] = a
+                m += 1
+        med = 0.0
+        if m:
+            srt = np.sort(scratch[:m])
+            med = 0.5 * (srt[(m - 1) // 2] + srt[m // 2])
+        limit = max(3.5 * (1.4826 * med), 0.05)
+        for r in range(starts[g], end):
+            keep[r] = ok[r] and abs(resid[r]) <= limit
+            if not keep[r]:
+                w[r] = 0.0
+    sol, solved, _ = grouped_solve(jac, s, w, starts, min_rows, False)
+    for g in range(n):
+        end = starts[g + 1] if g + 1 < n else t_rows
+        n_vertical = n_used = 0
+        for r in range(starts[g], end):
+            if w[r] > 0:
+                n_used += 1
+                n_vertical += vertical[r]
+        solved[g] = solved[g] and n_vertical >= min_per_direction and n_used - n_vertical >= min_per_direction
+    return sol, solved, keep
 
 
 @register_warm_up
@@ -541,3 +602,5 @@ def _warm_up() -> None:
     grouped_normal_equations(jac, np.ones(4), np.ones(4), starts)
     grouped_residuals(jac, np.ones(4), np.zeros((2, 10)), starts)
     grouped_solve(jac, np.ones(4), np.ones(4), starts, 1, True)
+    flags = np.ones(4, np.bool_)
+    robust_grouped_solve(jac, np.ones(4), np.ones(4), np.ones(4), flags, flags, starts, 1, 1)

@@ -21,7 +21,7 @@ from ficap_ros.vision.pipeline import FrameProcessor
 ROOT = Path(__file__).resolve().parents[2]
 KERNELS = (photometric_kernels.select_pixels, photometric_kernels.fit_steps, kernels.area_steps,
            kernels.line_pass, kernels.boundary_rows, kernels.grouped_normal_equations, kernels.grouped_residuals,
-           kernels.grouped_solve)
+           kernels.grouped_solve, kernels.robust_grouped_solve)
 
 
 def _cache_dir_in_child(env: dict[str, str], read_only: bool) -> str:

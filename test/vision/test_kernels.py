@@ -27,7 +27,9 @@ from ficap_ros.vision.kernels import (
     grouped_normal_equations,
     grouped_residuals,
     grouped_solve,
+    robust_grouped_solve,
 )
+from ficap_ros.vision.medians import group_median_of_finite
 
 
 def _scene(seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -153,20 +155,59 @@ def test_grouped_solve_equals_numpys_solve_exactly(seed: int) -> None:
     assert grouped_solve(jac, rhs, w, starts, 24, False)[2].shape == (0,)
 
 
-def test_singular_group_is_solved_group_by_group() -> None:
-    """Two equal columns make one group's system singular: the kernel says so, and the corner
-    stage's least squares solves the other groups and leaves that one unsolved."""
+def test_singular_group_is_left_unsolved() -> None:
+    """Two equal columns make one group's system singular: it stays unsolved at 0, the other is
+    the least-squares solution; a non-finite row leaves its group unsolved at NaN."""
     rng = np.random.default_rng(3)
-    jac = rng.normal(size=(60, 10))
+    jac = rng.normal(size=(90, 10))
     jac[:30, 1] = jac[:30, 0]
-    rhs, w, starts = rng.normal(size=60), np.ones(60), np.array([0, 30])
-    with pytest.raises(np.linalg.LinAlgError):
-        grouped_solve(jac, rhs, w, starts, 24, True)
-    sol, solved, resid = corners_mod._solve_grouped(jac, rhs, w, starts, 24)
-    assert solved.tolist() == [False, True]
-    np.testing.assert_allclose(jac[30:] @ sol[1], jac[30:] @ np.linalg.lstsq(jac[30:], rhs[30:], rcond=None)[0],
-                               atol=1e-9)
-    assert resid is not None and np.isfinite(resid).all()
+    jac[65, 4] = np.inf
+    rhs, w, starts = rng.normal(size=90), np.ones(90), np.array([0, 30, 60])
+    sol, solved, resid = grouped_solve(jac, rhs, w, starts, 24, True)
+    assert solved.tolist() == [False, True, False]
+    assert (sol[0] == 0.0).all() and np.isnan(sol[2]).all()
+    np.testing.assert_allclose(sol[1], np.linalg.lstsq(jac[30:60], rhs[30:60], rcond=None)[0], atol=1e-9)
+    assert np.isfinite(resid[:60]).all()
+
+
+def _robust_solve_numpy(jac, s, contrast, top_c, ok, vertical, starts, counts):  # noqa: ANN001, ANN202
+    """The cell-edge fit's robust step in numpy (medians by sorting, numpy's batched solve)."""
+    tag_of = np.repeat(np.arange(len(counts)), counts)
+    w = np.where(ok, (contrast / np.maximum(top_c, 1.0)) ** 2, 0.0)
+    _, _, r = _grouped_solve_numpy(jac, s, w, starts, 24)
+    sig = 1.4826 * group_median_of_finite(np.abs(r), ok, counts)
+    ok = ok & (np.abs(r) <= np.maximum(3.5 * sig[tag_of], 0.05))
+    w = np.where(ok, (contrast / np.maximum(top_c, 1.0)) ** 2, 0.0)
+    sol, solved, _ = _grouped_solve_numpy(jac, s, w, starts, 24)
+    used = w > 0
+    n_vertical = np.add.reduceat(used & vertical, starts)
+    solved &= (n_vertical >= 12) & (np.add.reduceat(used, starts) - n_vertical >= 12)
+    return sol, solved, ok
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_robust_grouped_solve_equals_numpy_exactly(seed: int) -> None:
+    """Outliers among the rows (a few far off), groups too small or with one direction short:
+    the compiled robust step gives numpy's solutions, solved flags and kept rows bit for bit."""
+    rng = np.random.default_rng(seed)
+    counts = np.array([80, 20, 60, 120, 40])
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    t = int(counts.sum())
+    jac = rng.normal(size=(t, 10)) * np.logspace(-3, 1, 10)
+    s = jac @ rng.normal(size=10) * 0.01 + rng.normal(0.0, 0.02, t)
+    s[rng.uniform(size=t) < 0.08] += rng.choice([-1.0, 1.0]) * 0.8
+    contrast = rng.uniform(5.0, 120.0, t)
+    top_c = np.repeat(rng.uniform(60.0, 120.0, len(counts)), counts)
+    ok = (contrast > 8.0) & (rng.uniform(size=t) < 0.9)
+    vertical = rng.uniform(size=t) < 0.5
+    vertical[starts[2]:starts[2] + counts[2]] = np.arange(counts[2]) < 8  # group 2: 8 vertical rows
+    sol, solved, kept = robust_grouped_solve(jac, s, contrast, top_c, ok, vertical, starts, 24, 12)
+    want = _robust_solve_numpy(jac, s, contrast, top_c, ok, vertical, starts, counts)
+    assert not solved[1] and not solved[2] and solved[[0, 3, 4]].all()
+    assert (kept < ok).any()  # outliers dropped
+    np.testing.assert_array_equal(sol, want[0])
+    np.testing.assert_array_equal(solved, want[1])
+    np.testing.assert_array_equal(kept, want[2])
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
