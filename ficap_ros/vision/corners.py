@@ -49,13 +49,10 @@ from ficap_ros.vision.edges import (
     step_offset,
     vector_norm,
 )
-from ficap_ros.vision.kernels import (
-    boundary_rows,
-    robust_grouped_solve,
-)
+from ficap_ros.vision.fit_kernels import edge_fit_round
+from ficap_ros.vision.kernels import frozen
 from ficap_ros.vision.medians import (
     group_median_of_finite,
-    group_nearest_quantile_of_finite,
     row_median,
 )
 from ficap_ros.vision.tag_noise import noise_ratios
@@ -501,7 +498,8 @@ def fit_tag_edges(
     n . J_H dh - delta_dir, and one weighted least-squares step per iteration updates H and the
     deltas together (re-sampling the image each time); samples beyond 3.5 robust sigmas are
     dropped. The fit reads every cell boundary, not only the four outer lines, and extrapolates
-    no line to a corner.
+    no line to a corner. Each round is one compiled call (``fit_kernels.edge_fit_round``, which
+    says which samples are used).
 
     Args:
         gray: (H, W) uint8 image.
@@ -527,11 +525,12 @@ def fit_tag_edges(
     except np.linalg.LinAlgError:
         return c_in.copy(), delta
     keep = np.ones(len(uv), dtype=bool)
+    vertical = np.abs(nu[:, 0]) > 0.5
     fitted = np.zeros(n, dtype=bool)
+    img, k = frozen(gray), (_FIT_PROFILE_SAMPLES - 1) // 2
     for it in range(iterations):
-        frames, jac = _boundary_frames(h, tag_of, uv, nu)
-        s, contrast, top_c, ok = _boundary_offsets(gray, frames, keep, tag_of, counts, cfg)
-        sol, solved, ok = _solve_edges(jac, s, contrast, top_c, ok, nu, starts)
+        sol, solved, ok = edge_fit_round(img, h, tag_of, uv, nu, vertical, keep, starts, cfg.edge_search_px, k,
+                                         _MIN_CELL_PX, _MIN_CONTRAST_RATIO, 24, 12)
         h = h + np.where(solved[:, None], sol[:, :8], 0.0)
         delta = np.where(solved, sol[:, 8:].mean(axis=1), np.nan)  # the two directions' mean
         fitted = solved
@@ -542,55 +541,6 @@ def fit_tag_edges(
     moved = vector_norm(corners - c_in).max(axis=1)
     good = fitted & np.isfinite(corners).all(axis=(1, 2)) & (moved <= np.minimum(0.35 * cell, 2.5))
     return np.where(good[:, None, None], corners, c_in), np.where(good, delta, np.nan)
-
-
-def _boundary_frames(
-    h: np.ndarray, tag_of: np.ndarray, uv: np.ndarray, nu: np.ndarray,
-) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """Each boundary sample in the image through its tag's homography ``h`` (N, 8): its position
-    ``px``, ``py``, the homography's denominator ``den`` there, the boundary's unit image normal
-    ``nx``, ``ny`` (toward the white cell: J^-T nu, J = d(px, py)/d(u, v)) and ``cell_px``, one
-    cell across the boundary in px (all (T,)); with the (T, 10) rows of the linearised model
-    s = n . J_h dh - delta: the 8 homography entries, then one shift per boundary direction (tag
-    x, tag y): what the estimator sees of the shift depends on its window, half a cell across the
-    boundary, and an oblique tag's cells are narrower along one axis (a window that cuts the
-    blurred step's tails sees less). Compiled: ``kernels.boundary_rows``."""
-    frames, jac = boundary_rows(np.ascontiguousarray(h), tag_of, uv, nu)
-    return dict(zip(("px", "py", "den", "nx", "ny", "cell_px"), frames)), jac
-
-
-def _boundary_offsets(
-    gray: np.ndarray, f: dict[str, np.ndarray], keep: np.ndarray, tag_of: np.ndarray, counts: np.ndarray,
-    cfg: DetectorConfig,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Each boundary's measured offset s (T,) px along its normal and contrast (T,), its tag's
-    clean contrast (90th percentile of the ``keep`` samples) per sample (T,), and which samples
-    are usable (T,): cells wide enough, the step inside the window, full contrast (a window whose
-    ends a neighbouring black cell darkens, or a white one lightens, is not a clean step)."""
-    half = np.minimum(cfg.edge_search_px, 0.5 * f["cell_px"])
-    s, contrast = step_offset(gray, np.column_stack([f["px"], f["py"]]), np.column_stack([f["nx"], f["ny"]]),
-                              half, _FIT_PROFILE_SAMPLES)
-    step = half / ((_FIT_PROFILE_SAMPLES - 1) // 2)
-    top_c = group_nearest_quantile_of_finite(contrast, keep & np.isfinite(contrast), counts, 0.9)[tag_of]
-    ok = (keep & (f["cell_px"] >= _MIN_CELL_PX) & np.isfinite(s) & (np.abs(s) < half - step)
-          & (contrast > 8.0) & (contrast >= _MIN_CONTRAST_RATIO * top_c))
-    return s, contrast, top_c, ok
-
-
-def _solve_edges(
-    jac: np.ndarray, s: np.ndarray, contrast: np.ndarray, top_c: np.ndarray, ok: np.ndarray, nu: np.ndarray,
-    starts: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One robust weighted least-squares step per tag: solve, drop the samples beyond 3.5 robust
-    sigmas (at least 0.05 px) of the residuals, solve again. Weights are noise-optimal (a sample's
-    position noise goes as 1 / its contrast). A tag is solved when both boundary directions keep 12
-    samples (else the fit is free along one of them) of at least 24. Compiled:
-    ``kernels.robust_grouped_solve``.
-
-    Returns:
-        (solutions (N, 10), solved (N,), the samples kept (T,)).
-    """
-    return robust_grouped_solve(jac, s, contrast, top_c, ok, np.abs(nu[:, 0]) > 0.5, starts, 24, 12)
 
 
 # --- Step 4 (optional): the photometric fit -------------------------------------------------

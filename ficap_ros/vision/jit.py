@@ -1,7 +1,7 @@
 """The compiled kernels' runtime: where numba keeps their machine code, and their warm-up.
 
-The per-pixel kernels (``ficap_ros.vision.kernels``: the corner stage's profiles, line pass and
-per-tag least squares; ``ficap_ros.vision.photometric_kernels``: the photometric and moving tags'
+The per-pixel kernels (``ficap_ros.vision.kernels``: the corner stage's profiles and line pass;
+``ficap_ros.vision.fit_kernels``: its cell-edge fit; ``ficap_ros.vision.photometric_kernels``: the photometric and moving tags'
 fits) are numba functions compiled on their first call and cached on disk (``njit(cache=True)``), so a
 later process loads them instead of compiling. numba keeps that cache next to the source
 (``__pycache__``) when the package's directory is writable (a clone, an editable install). Where
@@ -80,6 +80,7 @@ def warm_up() -> float:
     """Compile (or load from the cache) every kernel for the argument types the pipeline passes;
     returns the seconds it took (wall clock)."""
     # The modules register their kernels' warm-ups when imported.
+    import ficap_ros.vision.fit_kernels  # noqa: F401
     import ficap_ros.vision.kernels  # noqa: F401
     import ficap_ros.vision.photometric_kernels  # noqa: F401
 

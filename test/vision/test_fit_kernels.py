@@ -1,0 +1,206 @@
+"""The cell-edge fit's compiled kernels against numpy: the boundary rows and per-tag normal
+equations and residuals to 1e-12 relative; the solves, the robust step and a whole round (the
+boundaries' steps, each tag's clean contrast, the usable samples, the robust step) bit for bit,
+numpy's batched ``np.linalg.solve`` and the group medians of ``medians`` as the reference."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from edges_reference import boundary_rows as boundary_rows_numpy
+from tag_images import tag_image
+
+from ficap_ros.geometry.tag36h11 import tag_homographies
+from ficap_ros.vision import corners as corners_mod
+from ficap_ros.vision import edges
+from ficap_ros.vision.fit_kernels import (
+    boundary_rows,
+    edge_fit_round,
+    grouped_normal_equations,
+    grouped_residuals,
+    grouped_solve,
+    robust_grouped_solve,
+)
+from ficap_ros.vision.kernels import frozen
+from ficap_ros.vision.medians import (
+    group_median_of_finite,
+    group_nearest_quantile_of_finite,
+)
+
+
+def _scene(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A 240 x 320 frame of two tags (one cut by the image's border) on noise: (image, corners)."""
+    rng = np.random.default_rng(seed)
+    corners = []
+    img = np.zeros((240, 320), np.uint8)
+    for k, (cx, cy, side) in enumerate(((110.0, 120.0, 70.0), (300.0, 40.0, 50.0))):
+        a = rng.uniform(0.0, 2.0 * np.pi)
+        rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+        c = (np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * side / 2.0) @ rot.T + [cx, cy]
+        c += rng.normal(0.0, 1.5, c.shape)
+        part = tag_image(5 + k, c, (320, 240), rng, background=90, levels=(30.0, 220.0), blur=0.8, noise=3.0)
+        img = np.maximum(img, part) if k else part
+        corners.append(c)
+    return img, np.array(corners)
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_grouped_least_squares_equal_numpy(seed: int) -> None:
+    rng = np.random.default_rng(seed)
+    counts = rng.integers(0, 40, 7)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    jac = rng.normal(size=(int(counts.sum()), 10)) * np.logspace(-3, 3, 10)
+    rhs = rng.normal(size=len(jac))
+    w = np.where(rng.uniform(size=len(jac)) < 0.2, 0.0, rng.uniform(0.1, 2.0, len(jac)))
+    ata, atb, rows = grouped_normal_equations(jac, rhs, w, starts)
+    sol = rng.normal(size=(len(counts), 10))
+    resid = grouped_residuals(jac, rhs, sol, starts)
+    for g, (a, n) in enumerate(zip(starts, counts)):
+        j, b, wg = jac[a:a + n], rhs[a:a + n], w[a:a + n]
+        want = (j * wg[:, None]).T @ j
+        np.testing.assert_allclose(ata[g], want, rtol=1e-12, atol=1e-12 * np.abs(want).max(initial=1.0))
+        np.testing.assert_allclose(atb[g], (j * wg[:, None]).T @ b, rtol=1e-12, atol=1e-9)
+        assert rows[g] == (wg > 0).sum()
+        np.testing.assert_allclose(resid[a:a + n], b - j @ sol[g], rtol=1e-12, atol=1e-9)
+
+
+def _grouped_solve_numpy(jac, rhs, w, starts, min_rows):  # noqa: ANN001, ANN202
+    """The column-scaled normal equations solved by numpy's batched ``np.linalg.solve``."""
+    ata, atb, rows = grouped_normal_equations(jac, rhs, w, starts)
+    d = np.sqrt(np.maximum(np.einsum("nii->ni", ata), 1e-30))
+    a_s = ata / d[:, :, None] / d[:, None, :]
+    solved = (rows >= min_rows) & np.all(np.einsum("nii->ni", ata) > 0.0, axis=1)
+    sol = np.zeros((len(starts), jac.shape[1]))
+    sol[solved] = np.linalg.solve(a_s[solved], (atb / d)[solved][..., None])[..., 0] / d[solved]
+    return sol, solved & np.isfinite(sol).all(axis=1), grouped_residuals(jac, rhs, sol, starts)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_grouped_solve_equals_numpys_solve_exactly(seed: int) -> None:
+    """Same numbers as numpy's batched solve, bit for bit; a group with too few weighted rows, or
+    a parameter no weighted row touches, stays unsolved at 0."""
+    rng = np.random.default_rng(seed)
+    counts = rng.integers(0, 80, 9)
+    counts[:4] = 30, 10, 60, 70
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    jac = rng.normal(size=(int(counts.sum()), 10)) * np.logspace(-3, 3, 10)
+    jac[:30, 9] = 0.0  # group 0: parameter 9 untouched
+    rhs = rng.normal(size=len(jac))
+    w = np.where(rng.uniform(size=len(jac)) < 0.2, 0.0, rng.uniform(0.1, 2.0, len(jac)))
+    sol, solved, resid = grouped_solve(jac, rhs, w, starts, 24, True)
+    want_sol, want_solved, want_resid = _grouped_solve_numpy(jac, rhs, w, starts, 24)
+    assert not solved[0] and (sol[0] == 0.0).all()
+    assert not solved[1] and solved[2:4].all()
+    np.testing.assert_array_equal(solved, want_solved)
+    np.testing.assert_array_equal(sol, want_sol)
+    np.testing.assert_array_equal(resid, want_resid)
+    assert grouped_solve(jac, rhs, w, starts, 24, False)[2].shape == (0,)
+
+
+def test_singular_group_is_left_unsolved() -> None:
+    """Two equal columns make one group's system singular: it stays unsolved at 0, the other is
+    the least-squares solution; a non-finite row leaves its group unsolved at NaN."""
+    rng = np.random.default_rng(3)
+    jac = rng.normal(size=(90, 10))
+    jac[:30, 1] = jac[:30, 0]
+    jac[65, 4] = np.inf
+    rhs, w, starts = rng.normal(size=90), np.ones(90), np.array([0, 30, 60])
+    sol, solved, resid = grouped_solve(jac, rhs, w, starts, 24, True)
+    assert solved.tolist() == [False, True, False]
+    assert (sol[0] == 0.0).all() and np.isnan(sol[2]).all()
+    np.testing.assert_allclose(sol[1], np.linalg.lstsq(jac[30:60], rhs[30:60], rcond=None)[0], atol=1e-9)
+    assert np.isfinite(resid[:60]).all()
+
+
+def _robust_solve_numpy(jac, s, contrast, top_c, ok, vertical, starts, counts):  # noqa: ANN001, ANN202
+    """The cell-edge fit's robust step in numpy (medians by sorting, numpy's batched solve)."""
+    tag_of = np.repeat(np.arange(len(counts)), counts)
+    w = np.where(ok, (contrast / np.maximum(top_c, 1.0)) ** 2, 0.0)
+    _, _, r = _grouped_solve_numpy(jac, s, w, starts, 24)
+    sig = 1.4826 * group_median_of_finite(np.abs(r), ok, counts)
+    ok = ok & (np.abs(r) <= np.maximum(3.5 * sig[tag_of], 0.05))
+    w = np.where(ok, (contrast / np.maximum(top_c, 1.0)) ** 2, 0.0)
+    sol, solved, _ = _grouped_solve_numpy(jac, s, w, starts, 24)
+    used = w > 0
+    n_vertical = np.add.reduceat(used & vertical, starts)
+    solved &= (n_vertical >= 12) & (np.add.reduceat(used, starts) - n_vertical >= 12)
+    return sol, solved, ok
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_robust_grouped_solve_equals_numpy_exactly(seed: int) -> None:
+    """Outliers among the rows (a few far off), groups too small or with one direction short:
+    the compiled robust step gives numpy's solutions, solved flags and kept rows bit for bit."""
+    rng = np.random.default_rng(seed)
+    counts = np.array([80, 20, 60, 120, 40])
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    t = int(counts.sum())
+    jac = rng.normal(size=(t, 10)) * np.logspace(-3, 1, 10)
+    s = jac @ rng.normal(size=10) * 0.01 + rng.normal(0.0, 0.02, t)
+    s[rng.uniform(size=t) < 0.08] += rng.choice([-1.0, 1.0]) * 0.8
+    contrast = rng.uniform(5.0, 120.0, t)
+    top_c = np.repeat(rng.uniform(60.0, 120.0, len(counts)), counts)
+    ok = (contrast > 8.0) & (rng.uniform(size=t) < 0.9)
+    vertical = rng.uniform(size=t) < 0.5
+    vertical[starts[2]:starts[2] + counts[2]] = np.arange(counts[2]) < 8  # group 2: 8 vertical rows
+    sol, solved, kept = robust_grouped_solve(jac, s, contrast, top_c, ok, vertical, starts, 24, 12)
+    want = _robust_solve_numpy(jac, s, contrast, top_c, ok, vertical, starts, counts)
+    assert not solved[1] and not solved[2] and solved[[0, 3, 4]].all()
+    assert (kept < ok).any()  # outliers dropped
+    np.testing.assert_array_equal(sol, want[0])
+    np.testing.assert_array_equal(solved, want[1])
+    np.testing.assert_array_equal(kept, want[2])
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_boundary_rows_equal_numpy(seed: int) -> None:
+    """Every cell boundary of the scene's tags (one seen obliquely by its random corners)."""
+    _, corners = _scene(seed)
+    ids = (5, 6)
+    _, tag_of, _, (uv, nu) = corners_mod._stacked(corners_mod._cell_edge_samples, ids)
+    h = tag_homographies(corners).reshape(len(corners), 9)[:, :8].copy()
+    frames, rows = boundary_rows(h, tag_of, uv, nu)
+    want_frames, want_rows = boundary_rows_numpy(h, tag_of, uv, nu)
+    np.testing.assert_allclose(frames, want_frames, rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(rows, want_rows, rtol=1e-12, atol=1e-12)
+
+
+def test_degenerate_homographies_give_non_finite_rows_not_exceptions() -> None:
+    """A collapsed homography divides by zero: inf or NaN as in numpy, never ZeroDivisionError."""
+    tag_of = np.array([0, 0, 1, 1], np.int64)
+    uv = np.array([[0.5, 0.0], [0.0, 0.5], [1.0, 0.5], [0.5, 1.0]])
+    nu = np.array([[0.0, 1.0], [1.0, 0.0], [-1.0, 0.0], [0.0, -1.0]])
+    frames, rows = boundary_rows(np.ones((2, 8)), tag_of, uv, nu)
+    assert not np.isfinite(frames).all() and not np.isfinite(rows).all()
+
+
+def _round_numpy(img, h, tag_of, uv, nu, keep, starts, counts):  # noqa: ANN001, ANN202
+    """One round of the cell-edge fit in numpy: ``edges.step_offset`` (whose kernel has its own
+    tests), the nearest-rank contrast quantile of ``medians``, ``_robust_solve_numpy``."""
+    (px, py, _, nx, ny, cell), jac = boundary_rows(h, tag_of, uv, nu)
+    half = np.minimum(4.0, 0.5 * cell)
+    s, contrast = edges.step_offset(img, np.column_stack([px, py]), np.column_stack([nx, ny]), half, 11)
+    step = half / 5
+    top_c = group_nearest_quantile_of_finite(contrast, keep & np.isfinite(contrast), counts, 0.9)[tag_of]
+    ok = (keep & (cell >= 2.0) & np.isfinite(s) & (np.abs(s) < half - step) & (contrast > 8.0)
+          & (contrast >= 0.7 * top_c))
+    return _robust_solve_numpy(jac, s, contrast, top_c, ok, np.abs(nu[:, 0]) > 0.5, starts, counts)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_edge_fit_round_equals_numpy_exactly(seed: int) -> None:
+    """Both of the scene's tags (one cut by the border) from corners half a pixel off, first with
+    every sample, then with those the first round kept: numpy's solutions, flags and kept samples."""
+    img, corners = _scene(seed)
+    start = corners + np.random.default_rng(seed).normal(0.0, 0.5, corners.shape)
+    counts, tag_of, starts, (uv, nu) = corners_mod._stacked(corners_mod._cell_edge_samples, (5, 6))
+    h = tag_homographies(start).reshape(2, 9)[:, :8].copy()
+    keep = np.ones(len(uv), dtype=bool)
+    vertical = np.abs(nu[:, 0]) > 0.5
+    for _ in range(2):
+        got = edge_fit_round(frozen(img), h, tag_of, uv, nu, vertical, keep, starts, 4.0, 5, 2.0, 0.7, 24, 12)
+        want = _round_numpy(img, h, tag_of, uv, nu, keep, starts, counts)
+        assert got[1][0]  # the whole tag is solved
+        for g, w in zip(got, want):
+            np.testing.assert_array_equal(g, w)
+        keep = got[2]
