@@ -28,7 +28,6 @@ import numpy as np
 
 from ficap_ros.geometry.tag36h11 import (
     TAG_CELLS,
-    apply_homographies,
     cell_errors,
     homography_corners,
     stacked_tag_cells,
@@ -49,10 +48,9 @@ from ficap_ros.vision.edges import (
     step_offset,
     vector_norm,
 )
-from ficap_ros.vision.fit_kernels import edge_fit_round
+from ficap_ros.vision.fit_kernels import border_unbias, edge_fit_round
 from ficap_ros.vision.kernels import frozen
 from ficap_ros.vision.medians import (
-    group_median_of_finite,
     row_median,
 )
 from ficap_ros.vision.tag_noise import noise_ratios
@@ -80,7 +78,7 @@ _MAX_FIT_CELL_ERRORS = 1
 #: along the side): away from the cell's ends, where the neighbouring black cells blur in.
 _INNER_FRACTIONS = (0.35, 0.5, 0.65)
 #: Tag-unit step from a side's inner edge to its outer edge (sides 0..3: top, right, bottom, left).
-_SIDE_OUT = np.array([[0.0, -1.0], [1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]])
+_SIDE_OUT = frozen(np.array([[0.0, -1.0], [1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]]))
 #: Samples' worth of prior weight of a tag's mean delta on each side (three samples = one cell).
 _SIDE_PRIOR_SAMPLES = 3.0
 #: Where each cell boundary is sampled (fractions of its length: away from the cell corners, where
@@ -375,6 +373,7 @@ def unbias_corners_edge(
     the corners re-intersected; the cell width is re-read from the corrected corners (two rounds).
     A side with few samples leans on its tag's mean; a tag with none is left as it is. Samples
     where the two edges are too close to resolve (cells under ``_MIN_CELL_PX`` across) are not used.
+    The step is one compiled call (``fit_kernels.border_unbias``).
 
     Args:
         gray: (H, W) uint8 image.
@@ -388,96 +387,18 @@ def unbias_corners_edge(
         or the correction is implausibly large).
     """
     cfg = config or DetectorConfig()
-    c_in = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
-    n = len(c_in)
-    if n == 0:
+    c_in = np.ascontiguousarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    if len(c_in) == 0:
         return c_in.copy()
-    counts, tag_of, starts, (side, uv) = _stacked(_inner_edge_samples, tuple(int(i) for i in ids))
-    # uv on the outer edge straight across from each inner sample (one cell out).
-    uv_out = uv + _SIDE_OUT[side]
+    _, tag_of, starts, (side, uv) = _stacked(_inner_edge_samples, tuple(int(i) for i in ids))
     nrm, rho = side_lines(c_in) if lines is None else lines
-    nk = nrm[tag_of, side]  # (T, 2)
     try:
         hom = tag_homographies(c_in)
     except np.linalg.LinAlgError:
         return c_in.copy()
-    hom_t = hom[tag_of]
-    midline, valid, width0 = _border_midlines(gray, apply_homographies(hom_t, uv),
-                                              apply_homographies(hom_t, uv_out), nk, cfg)
-    group = tag_of * 4 + side
-    corners = c_in
-    delta = np.zeros((n, 4))
-    keep = None
-    for round_ in range(2):
-        if round_ == 0:  # the first round's corners are the input's: its width is width0
-            width = width0
-        else:
-            hom_t = tag_homographies(corners)[tag_of]
-            p_in_c, p_out_c = apply_homographies(hom_t, uv), apply_homographies(hom_t, uv_out)
-            width = np.einsum("td,td->t", nk, p_out_c - p_in_c)  # one cell across, corrected geometry
-        d = midline + 0.5 * width - rho[tag_of, side]  # (T,) how far the fitted line is inside, px
-        if keep is None:  # the outliers: from the first round
-            keep = _inlier_samples(d, valid, starts, counts)
-        delta = _pooled_delta(d, keep, group, n)
-        corners = intersect_sides(nrm, rho + delta)
-    # A correction beyond a third of a cell (or 2 px) is no tone curve: keep those tags' corners.
-    cell = vector_norm(c_in[:, NEXT] - c_in).min(axis=1) / TAG_CELLS
-    sane = (np.abs(delta).max(axis=1) <= np.minimum(cell / 3.0, 2.0)) & np.isfinite(corners).all(axis=(1, 2))
-    return np.where(sane[:, None, None], corners, c_in)
-
-
-def _border_midlines(
-    gray: np.ndarray, p_in: np.ndarray, p_out: np.ndarray, nk: np.ndarray, cfg: DetectorConfig
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Both edges of the border measured straight across each white data cell, with the same
-    window: the inner edge around ``p_in`` (then again around what was found, so the window sits
-    on the edge), the outer edge around ``p_out`` (on the fitted line); ``nk`` (T, 2) the sides'
-    outward normals.
-
-    Returns:
-        (midline (T,): position along ``nk`` of the midline between the two measured edges,
-        which is free of the bias (both moved toward the black by the same amount); valid (T,):
-        both edges measured cleanly; width0 (T,): one cell across at the input corners, px).
-    """
-    width0 = np.einsum("td,td->t", nk, p_out - p_in)  # px, one cell across
-    half = np.maximum(np.minimum(cfg.edge_search_px, cfg.edge_window_cells * width0), 0.75)
-    samples = cfg.edge_profile_samples
-    # The inner edge has its light side inward: offsets along -nk. Its first look and the outer
-    # edge's in one sampling call.
-    t = len(p_in)
-    first, first_c = step_offset(gray, np.concatenate([p_in, p_out]), np.concatenate([-nk, nk]),
-                                 np.concatenate([half, half]), samples)
-    s1, o1, c_outer = np.clip(first[:t], -half, half), first[t:], first_c[t:]
-    s2, c_inner = step_offset(gray, p_in - nk * s1[:, None], -nk, half, samples)
-    inner = np.einsum("td,td->t", nk, p_in) - s1 - s2
-    outer = np.einsum("td,td->t", nk, p_out) + o1
-    step = half / ((samples - 1) // 2)
-    # A white cell as white as the quiet zone across the border: where its neighbours (or the
-    # pixel footprint) darken it, its edge is not the outer edge's mirror image.
-    valid = (np.isfinite(inner) & np.isfinite(outer) & (width0 >= _MIN_CELL_PX) & (np.abs(s2) < half - step)
-             & (np.abs(o1) < half - step) & (c_outer > 8.0) & (c_inner >= _MIN_CONTRAST_RATIO * c_outer))
-    return 0.5 * (inner + outer), valid, width0
-
-
-def _inlier_samples(d: np.ndarray, valid: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
-    """The valid samples within 3 MAD (at least 0.1 px) of their tag's median."""
-    tag_of = np.repeat(np.arange(len(counts)), counts)
-    tag_med = group_median_of_finite(d, valid, counts)
-    tag_mad = 1.4826 * group_median_of_finite(np.abs(d - tag_med[tag_of]), valid, counts)
-    return valid & np.isfinite(d) & (np.abs(d - tag_med[tag_of]) <= np.maximum(3.0 * tag_mad[tag_of], 0.1))
-
-
-def _pooled_delta(d: np.ndarray, keep: np.ndarray, group: np.ndarray, n: int) -> np.ndarray:
-    """Per-side delta (N, 4): each side's mean over its kept samples, shrunk toward its tag's
-    mean (0 for a tag without samples)."""
-    dv = np.where(keep, d, 0.0)
-    side_sum = np.bincount(group, weights=dv, minlength=4 * n).reshape(n, 4)
-    side_cnt = np.bincount(group, weights=keep.astype(np.float64), minlength=4 * n).reshape(n, 4)
-    tag_cnt = side_cnt.sum(axis=1)
-    has = tag_cnt > 0
-    tag_mean = np.where(has, side_sum.sum(axis=1) / np.maximum(tag_cnt, 1e-12), 0.0)
-    prior = _SIDE_PRIOR_SAMPLES
-    return (side_sum + prior * tag_mean[:, None]) / (side_cnt + prior)
+    return border_unbias(frozen(gray), c_in, np.ascontiguousarray(nrm), np.ascontiguousarray(rho), hom, tag_of,
+                         side, uv, _SIDE_OUT, starts, cfg.edge_search_px, cfg.edge_window_cells,
+                         (cfg.edge_profile_samples - 1) // 2, _MIN_CELL_PX, _MIN_CONTRAST_RATIO, _SIDE_PRIOR_SAMPLES)
 
 
 # --- Step 2: every cell edge of the tag at once ---------------------------------------------

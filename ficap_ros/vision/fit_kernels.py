@@ -1,4 +1,6 @@
-"""The cell-edge fit's compiled kernels (``ficap_ros.vision.corners.fit_tag_edges``).
+"""The corner stage's tag-level compiled kernels: the cell-edge fit
+(``ficap_ros.vision.corners.fit_tag_edges``) and the border unbias before it
+(``ficap_ros.vision.corners.unbias_corners_edge``: ``border_unbias``, the whole step in one call).
 
 ``boundary_rows`` places the fit's boundary samples in the image through their tags' homographies,
 with the rows of its linearised model; ``grouped_normal_equations``, ``grouped_solve`` and
@@ -20,7 +22,7 @@ import numpy as np
 from ficap_ros.vision.jit import njit, register_warm_up
 from ficap_ros.vision.kernels import area_steps, frozen
 
-__all__ = ["boundary_rows", "edge_fit_round", "grouped_normal_equations", "grouped_residuals", "grouped_solve",
+__all__ = ["border_unbias", "boundary_rows", "edge_fit_round", "grouped_normal_equations", "grouped_residuals", "grouped_solve",
            "robust_grouped_solve"]
 
 
@@ -305,6 +307,217 @@ def edge_fit_round(img: np.ndarray, h: np.ndarray, tag_of: np.ndarray, uv: np.nd
     return robust_grouped_solve(jac, s, contrast, top_c, ok, vertical, starts, min_rows, min_per_direction)
 
 
+#: Side k's previous side (the line it meets at corner k).
+_PREV = (3, 0, 1, 2)
+
+
+@njit(inline="always", error_model="numpy")
+def _tag_homography(c: np.ndarray, out: np.ndarray) -> bool:
+    """``geometry.tag36h11.tag_homographies`` of one tag's corners (4, 2) into ``out`` (3, 3), the
+    same arithmetic; False (``out`` unset) for a degenerate quadrilateral."""
+    x0, y0, x1, y1 = c[0, 0], c[0, 1], c[1, 0], c[1, 1]
+    x2, y2, x3, y3 = c[2, 0], c[2, 1], c[3, 0], c[3, 1]
+    dx1, dx2, dx3 = x1 - x2, x3 - x2, x0 - x1 + x2 - x3
+    dy1, dy2, dy3 = y1 - y2, y3 - y2, y0 - y1 + y2 - y3
+    den = dx1 * dy2 - dx2 * dy1
+    if not (math.isfinite(den) and den != 0.0):
+        return False
+    g = (dx3 * dy2 - dx2 * dy3) / den
+    h = (dx1 * dy3 - dx3 * dy1) / den
+    inv = 1.0 / 8.0
+    out[0, 0], out[0, 1], out[0, 2] = (x1 - x0 + g * x1) * inv, (x3 - x0 + h * x3) * inv, x0
+    out[1, 0], out[1, 1], out[1, 2] = (y1 - y0 + g * y1) * inv, (y3 - y0 + h * y3) * inv, y0
+    out[2, 0], out[2, 1], out[2, 2] = g * inv, h * inv, 1.0
+    return True
+
+
+@njit(inline="always", error_model="numpy")
+def _through(hm: np.ndarray, u: float, v: float) -> tuple[float, float]:
+    """Tag point (u, v) through homography ``hm`` (3, 3) (``tag36h11.apply_homographies``)."""
+    x = hm[0, 0] * u + hm[0, 1] * v + hm[0, 2]
+    y = hm[1, 0] * u + hm[1, 1] * v + hm[1, 2]
+    w = hm[2, 0] * u + hm[2, 1] * v + hm[2, 2]
+    return x / w, y / w
+
+
+@njit(inline="always", error_model="numpy")
+def _median_of_sorted(srt: np.ndarray) -> float:
+    """``np.median`` of a sorted non-empty array ((a + b) / 2 of the middle two)."""
+    m = len(srt)
+    return 0.5 * (srt[(m - 1) // 2] + srt[m // 2])
+
+
+@njit(error_model="numpy")
+def _border_midlines(img: np.ndarray, p_in: np.ndarray, p_out: np.ndarray, nk: np.ndarray, search_px: float,
+                     window_cells: float, k: int, min_cell_px: float,
+                     min_contrast_ratio: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``corners._border_midlines``'s measurement: (midline (T,), valid (T,), width0 (T,))."""
+    t = len(p_in)
+    width0, half, step = np.empty(t), np.empty(t), np.empty(t)
+    cx, cy = np.empty(2 * t, np.float32), np.empty(2 * t, np.float32)
+    dx, dy = np.empty(2 * t, np.float32), np.empty(2 * t, np.float32)
+    for r in range(t):
+        width0[r] = nk[r, 0] * (p_out[r, 0] - p_in[r, 0]) + nk[r, 1] * (p_out[r, 1] - p_in[r, 1])
+        w = window_cells * width0[r]
+        w = search_px if search_px < w else w  # NaN stays NaN
+        half[r] = 0.75 if 0.75 > w else w
+        step[r] = half[r] / k
+        for j, (px, py, sign) in enumerate(((p_in[r, 0], p_in[r, 1], -1.0), (p_out[r, 0], p_out[r, 1], 1.0))):
+            q = r + j * t
+            cx[q], cy[q] = np.float32(px), np.float32(py)
+            dx[q], dy[q] = np.float32(sign * nk[r, 0] * step[r]), np.float32(sign * nk[r, 1] * step[r])
+    half2, step2 = np.concatenate((half, half)), np.concatenate((step, step))
+    first, first_c, _ = area_steps(img, cx, cy, dx, dy, k, half2, step2)
+    s1 = np.empty(t)
+    for r in range(t):
+        v = first[r]
+        s1[r] = -half[r] if v < -half[r] else (half[r] if v > half[r] else v)
+        cx[r] = np.float32(p_in[r, 0] - nk[r, 0] * s1[r])
+        cy[r] = np.float32(p_in[r, 1] - nk[r, 1] * s1[r])
+    s2, c_inner, _ = area_steps(img, cx[:t], cy[:t], dx[:t], dy[:t], k, half, step)
+    midline, valid = np.empty(t), np.empty(t, np.bool_)
+    for r in range(t):
+        o1, c_outer = first[t + r], first_c[t + r]
+        inner = (nk[r, 0] * p_in[r, 0] + nk[r, 1] * p_in[r, 1]) - s1[r] - s2[r]
+        outer = (nk[r, 0] * p_out[r, 0] + nk[r, 1] * p_out[r, 1]) + o1
+        limit = half[r] - step[r]
+        valid[r] = (math.isfinite(inner) and math.isfinite(outer) and width0[r] >= min_cell_px
+                    and abs(s2[r]) < limit and abs(o1) < limit and c_outer > 8.0
+                    and c_inner[r] >= min_contrast_ratio * c_outer)
+        midline[r] = 0.5 * (inner + outer)
+    return midline, valid, width0
+
+
+@njit(error_model="numpy")
+def _border_inliers(d: np.ndarray, valid: np.ndarray, starts: np.ndarray) -> np.ndarray:
+    """``corners._inlier_samples``: the valid finite samples within 3 MAD (at least 0.1 px) of
+    their tag's median (medians of each tag's finite valid samples, 0 without any)."""
+    t, n = len(d), len(starts)
+    keep = np.zeros(t, np.bool_)
+    scratch = np.empty(t)
+    for g in range(n):
+        end = starts[g + 1] if g + 1 < n else t
+        m = 0
+        for r in range(starts[g], end):
+            if valid[r] and math.isfinite(d[r]):
+                scratch[m] = d[r]
+                m += 1
+        med = _median_of_sorted(np.sort(scratch[:m])) if m else 0.0
+        m = 0
+        for r in range(starts[g], end):
+            a = abs(d[r] - med)
+            if valid[r] and math.isfinite(a):
+                scratch[m] = a
+                m += 1
+        mad = 1.4826 * (_median_of_sorted(np.sort(scratch[:m])) if m else 0.0)
+        limit = max(3.0 * mad, 0.1)
+        for r in range(starts[g], end):
+            keep[r] = valid[r] and math.isfinite(d[r]) and abs(d[r] - med) <= limit
+    return keep
+
+
+@njit(error_model="numpy")
+def _pooled_corners(d: np.ndarray, keep: np.ndarray, tag_of: np.ndarray, side: np.ndarray, nrm: np.ndarray,
+                    rho: np.ndarray, prior: float) -> tuple[np.ndarray, np.ndarray]:
+    """``corners._pooled_delta`` (each side's mean kept sample, shrunk toward its tag's mean)
+    and the corners where the moved sides meet (``edges.intersect_sides``): (delta (N, 4),
+    corners (N, 4, 2))."""
+    n = len(nrm)
+    side_sum, side_cnt = np.zeros((n, 4)), np.zeros((n, 4))
+    for r in range(len(d)):
+        side_sum[tag_of[r], side[r]] += d[r] if keep[r] else 0.0
+        side_cnt[tag_of[r], side[r]] += 1.0 if keep[r] else 0.0
+    delta, corners = np.empty((n, 4)), np.empty((n, 4, 2))
+    moved = np.empty(4)
+    for g in range(n):
+        # As numpy sums a row of four: the first, plus the other three added in turn.
+        tag_sum = side_sum[g, 0] + ((side_sum[g, 1] + side_sum[g, 2]) + side_sum[g, 3])
+        tag_cnt = side_cnt[g, 0] + ((side_cnt[g, 1] + side_cnt[g, 2]) + side_cnt[g, 3])
+        tag_mean = tag_sum / max(tag_cnt, 1e-12) if tag_cnt > 0 else 0.0
+        for j in range(4):
+            delta[g, j] = (side_sum[g, j] + prior * tag_mean) / (side_cnt[g, j] + prior)
+            moved[j] = rho[g, j] + delta[g, j]
+        for j in range(4):
+            p = _PREV[j]
+            det = nrm[g, p, 0] * nrm[g, j, 1] - nrm[g, p, 1] * nrm[g, j, 0]
+            det = det if abs(det) > 1e-9 else 1e-9
+            corners[g, j, 0] = (moved[p] * nrm[g, j, 1] - nrm[g, p, 1] * moved[j]) / det
+            corners[g, j, 1] = (nrm[g, p, 0] * moved[j] - moved[p] * nrm[g, j, 0]) / det
+    return delta, corners
+
+
+@njit(error_model="numpy")
+def border_unbias(img: np.ndarray, c_in: np.ndarray, nrm: np.ndarray, rho: np.ndarray, hom: np.ndarray,
+                  tag_of: np.ndarray, side: np.ndarray, uv: np.ndarray, side_out: np.ndarray, starts: np.ndarray,
+                  search_px: float, window_cells: float, k: int, min_cell_px: float, min_contrast_ratio: float,
+                  prior: float) -> np.ndarray:
+    """The border unbias of ``corners.unbias_corners_edge`` (its docstring has the model), every tag
+    in one call: each inner-edge sample and the outer-edge point one cell out through the tag's
+    homography, both edges measured with the same window, the outliers (from the first round), then
+    two rounds of each side's delta and the corners re-intersected, the cell width re-read from
+    the corrected corners in the second. A tag whose correction exceeds a third of a cell (or 2 px),
+    or whose corners are not finite or degenerate, keeps its input corners.
+
+    Args:
+        img: (H, W) uint8 image (read-only view: ``kernels.frozen``).
+        c_in: (N, 4, 2) the line pass's corners; nrm, rho: their side lines (``edges.side_lines``);
+            hom: (N, 3, 3) their homographies (``tag36h11.tag_homographies``).
+        tag_of, side, uv: (T,) each sample's tag and side, (T, 2) its place in tag cell units, tag
+            after tag (``starts`` (N,): each tag's first sample).
+        side_out: (4, 2) the tag-unit step from each side's inner edge to its outer edge.
+        search_px, window_cells, k: the window (at most ``search_px``, ``window_cells`` of a cell,
+            at least 0.75 px; 2 k + 1 samples).
+        min_cell_px, min_contrast_ratio: a sample's least cell width and inner/outer contrast.
+        prior: samples' worth of prior weight of a tag's mean delta on each side.
+
+    Returns:
+        (N, 4, 2) the corrected corners.
+    """
+    t, n = len(tag_of), len(c_in)
+    nk, p_in, p_out = np.empty((t, 2)), np.empty((t, 2)), np.empty((t, 2))
+    for r in range(t):
+        g, j = tag_of[r], side[r]
+        nk[r, 0], nk[r, 1] = nrm[g, j, 0], nrm[g, j, 1]
+        p_in[r, 0], p_in[r, 1] = _through(hom[g], uv[r, 0], uv[r, 1])
+        p_out[r, 0], p_out[r, 1] = _through(hom[g], uv[r, 0] + side_out[j, 0], uv[r, 1] + side_out[j, 1])
+    midline, valid, width0 = _border_midlines(img, p_in, p_out, nk, search_px, window_cells, k, min_cell_px,
+                                              min_contrast_ratio)
+    d = np.empty(t)
+    for r in range(t):
+        d[r] = midline[r] + 0.5 * width0[r] - rho[tag_of[r], side[r]]
+    keep = _border_inliers(d, valid, starts)
+    delta, corners = _pooled_corners(d, keep, tag_of, side, nrm, rho, prior)
+    hom2 = np.empty((n, 3, 3))
+    usable = np.empty(n, np.bool_)
+    for g in range(n):
+        usable[g] = _tag_homography(corners[g], hom2[g])
+    for r in range(t):
+        g, j = tag_of[r], side[r]
+        width = np.nan
+        if usable[g]:
+            xi, yi = _through(hom2[g], uv[r, 0], uv[r, 1])
+            xo, yo = _through(hom2[g], uv[r, 0] + side_out[j, 0], uv[r, 1] + side_out[j, 1])
+            width = nk[r, 0] * (xo - xi) + nk[r, 1] * (yo - yi)
+        d[r] = midline[r] + 0.5 * width - rho[g, j]
+    delta, corners = _pooled_corners(d, keep, tag_of, side, nrm, rho, prior)
+    out = c_in.copy()
+    for g in range(n):
+        cell = np.inf
+        for j in range(4):
+            e = (j + 1) % 4
+            ex, ey = c_in[g, e, 0] - c_in[g, j, 0], c_in[g, e, 1] - c_in[g, j, 1]
+            cell = min(cell, math.sqrt(ex * ex + ey * ey))
+        cell /= 8.0
+        limit = min(cell / 3.0, 2.0)
+        sane = usable[g]
+        for j in range(4):
+            sane = (sane and abs(delta[g, j]) <= limit and math.isfinite(corners[g, j, 0])
+                    and math.isfinite(corners[g, j, 1]))
+        if sane:
+            out[g] = corners[g]
+    return out
+
+
 @register_warm_up
 def _warm_up() -> None:
     """Every kernel once on a tiny input of the pipeline's argument types."""
@@ -322,3 +535,9 @@ def _warm_up() -> None:
     img[:, 8:] = 200
     h = np.tile([1.0, 0.0, 4.0, 0.0, 1.0, 4.0, 0.0, 0.0], (2, 1))
     edge_fit_round(frozen(img), h, tag_of, uv, nu, flags, flags.copy(), starts, 3.0, 5, 2.0, 0.7, 1, 1)
+    corners = np.array([[[4.0, 4.0], [12.0, 4.0], [12.0, 12.0], [4.0, 12.0]]] * 2)
+    nrm = np.tile(np.array([[0.0, -1.0], [1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]]), (2, 1, 1))
+    rho = np.einsum("nkd,nkd->nk", nrm, corners)
+    hom = np.tile(np.eye(3), (2, 1, 1))
+    side, side_out = frozen(np.array([0, 1, 2, 3], np.int64)), frozen(nrm[0].copy())
+    border_unbias(frozen(img), corners, nrm, rho, hom, tag_of, side, uv, side_out, starts, 4.0, 0.6, 8, 2.0, 0.7, 3.0)

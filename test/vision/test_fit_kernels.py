@@ -10,9 +10,17 @@ import pytest
 from edges_reference import boundary_rows as boundary_rows_numpy
 from tag_images import tag_image
 
-from ficap_ros.geometry.tag36h11 import tag_homographies
+from ficap_ros.geometry.tag36h11 import TAG_CELLS, apply_homographies, tag_homographies
 from ficap_ros.vision import corners as corners_mod
 from ficap_ros.vision import edges
+from ficap_ros.vision.detector import DetectorConfig
+from ficap_ros.vision.edges import (
+    NEXT,
+    intersect_sides,
+    side_lines,
+    step_offset,
+    vector_norm,
+)
 from ficap_ros.vision.fit_kernels import (
     boundary_rows,
     edge_fit_round,
@@ -204,3 +212,116 @@ def test_edge_fit_round_equals_numpy_exactly(seed: int) -> None:
         for g, w in zip(got, want):
             np.testing.assert_array_equal(g, w)
         keep = got[2]
+
+
+def _unbias_numpy(gray, corners_px, ids, cfg):  # noqa: ANN001, ANN202
+    """``corners.unbias_corners_edge`` in numpy (the package's ``edges.step_offset`` for the
+    profiles, ``medians`` for the medians), the reference of ``border_unbias``."""
+    lines = None
+    config = cfg
+    cfg = config or DetectorConfig()
+    c_in = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    n = len(c_in)
+    if n == 0:
+        return c_in.copy()
+    counts, tag_of, starts, (side, uv) = corners_mod._stacked(corners_mod._inner_edge_samples, tuple(int(i) for i in ids))
+    # uv on the outer edge straight across from each inner sample (one cell out).
+    uv_out = uv + corners_mod._SIDE_OUT[side]
+    nrm, rho = side_lines(c_in) if lines is None else lines
+    nk = nrm[tag_of, side]  # (T, 2)
+    try:
+        hom = tag_homographies(c_in)
+    except np.linalg.LinAlgError:
+        return c_in.copy()
+    hom_t = hom[tag_of]
+    midline, valid, width0 = _border_midlines_numpy(gray, apply_homographies(hom_t, uv),
+                                              apply_homographies(hom_t, uv_out), nk, cfg)
+    group = tag_of * 4 + side
+    corners = c_in
+    delta = np.zeros((n, 4))
+    keep = None
+    for round_ in range(2):
+        if round_ == 0:  # the first round's corners are the input's: its width is width0
+            width = width0
+        else:
+            hom_t = tag_homographies(corners)[tag_of]
+            p_in_c, p_out_c = apply_homographies(hom_t, uv), apply_homographies(hom_t, uv_out)
+            width = np.einsum("td,td->t", nk, p_out_c - p_in_c)  # one cell across, corrected geometry
+        d = midline + 0.5 * width - rho[tag_of, side]  # (T,) how far the fitted line is inside, px
+        if keep is None:  # the outliers: from the first round
+            keep = _inlier_samples_numpy(d, valid, starts, counts)
+        delta = _pooled_delta_numpy(d, keep, group, n)
+        corners = intersect_sides(nrm, rho + delta)
+    # A correction beyond a third of a cell (or 2 px) is no tone curve: keep those tags' corners.
+    cell = vector_norm(c_in[:, NEXT] - c_in).min(axis=1) / TAG_CELLS
+    sane = (np.abs(delta).max(axis=1) <= np.minimum(cell / 3.0, 2.0)) & np.isfinite(corners).all(axis=(1, 2))
+    return np.where(sane[:, None, None], corners, c_in)
+
+
+def _border_midlines_numpy(
+    gray: np.ndarray, p_in: np.ndarray, p_out: np.ndarray, nk: np.ndarray, cfg: DetectorConfig
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Both edges of the border measured straight across each white data cell, with the same
+    window: the inner edge around ``p_in`` (then again around what was found, so the window sits
+    on the edge), the outer edge around ``p_out`` (on the fitted line); ``nk`` (T, 2) the sides'
+    outward normals.
+
+    Returns:
+        (midline (T,): position along ``nk`` of the midline between the two measured edges,
+        which is free of the bias (both moved toward the black by the same amount); valid (T,):
+        both edges measured cleanly; width0 (T,): one cell across at the input corners, px).
+    """
+    width0 = np.einsum("td,td->t", nk, p_out - p_in)  # px, one cell across
+    half = np.maximum(np.minimum(cfg.edge_search_px, cfg.edge_window_cells * width0), 0.75)
+    samples = cfg.edge_profile_samples
+    # The inner edge has its light side inward: offsets along -nk. Its first look and the outer
+    # edge's in one sampling call.
+    t = len(p_in)
+    first, first_c = step_offset(gray, np.concatenate([p_in, p_out]), np.concatenate([-nk, nk]),
+                                 np.concatenate([half, half]), samples)
+    s1, o1, c_outer = np.clip(first[:t], -half, half), first[t:], first_c[t:]
+    s2, c_inner = step_offset(gray, p_in - nk * s1[:, None], -nk, half, samples)
+    inner = np.einsum("td,td->t", nk, p_in) - s1 - s2
+    outer = np.einsum("td,td->t", nk, p_out) + o1
+    step = half / ((samples - 1) // 2)
+    # A white cell as white as the quiet zone across the border: where its neighbours (or the
+    # pixel footprint) darken it, its edge is not the outer edge's mirror image.
+    valid = (np.isfinite(inner) & np.isfinite(outer) & (width0 >= corners_mod._MIN_CELL_PX) & (np.abs(s2) < half - step)
+             & (np.abs(o1) < half - step) & (c_outer > 8.0) & (c_inner >= corners_mod._MIN_CONTRAST_RATIO * c_outer))
+    return 0.5 * (inner + outer), valid, width0
+
+
+def _inlier_samples_numpy(d: np.ndarray, valid: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """The valid samples within 3 MAD (at least 0.1 px) of their tag's median."""
+    tag_of = np.repeat(np.arange(len(counts)), counts)
+    tag_med = group_median_of_finite(d, valid, counts)
+    tag_mad = 1.4826 * group_median_of_finite(np.abs(d - tag_med[tag_of]), valid, counts)
+    return valid & np.isfinite(d) & (np.abs(d - tag_med[tag_of]) <= np.maximum(3.0 * tag_mad[tag_of], 0.1))
+
+
+def _pooled_delta_numpy(d: np.ndarray, keep: np.ndarray, group: np.ndarray, n: int) -> np.ndarray:
+    """Per-side delta (N, 4): each side's mean over its kept samples, shrunk toward its tag's
+    mean (0 for a tag without samples)."""
+    dv = np.where(keep, d, 0.0)
+    side_sum = np.bincount(group, weights=dv, minlength=4 * n).reshape(n, 4)
+    side_cnt = np.bincount(group, weights=keep.astype(np.float64), minlength=4 * n).reshape(n, 4)
+    tag_cnt = side_cnt.sum(axis=1)
+    has = tag_cnt > 0
+    tag_mean = np.where(has, side_sum.sum(axis=1) / np.maximum(tag_cnt, 1e-12), 0.0)
+    prior = corners_mod._SIDE_PRIOR_SAMPLES
+    return (side_sum + prior * tag_mean[:, None]) / (side_cnt + prior)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_border_unbias_equals_numpy_exactly(seed: int) -> None:
+    """Both of the scene's tags (one cut by the border) from line-pass corners: the corrected
+    corners equal the numpy step's bit for bit, and move the corners (the scene's tone makes the
+    line pass's edges biased)."""
+    img, corners = _scene(seed)
+    start = corners + np.random.default_rng(seed).normal(0.0, 0.3, corners.shape)
+    lines, _ = edges.refine_corners_edge_ok(img, start)
+    cfg = DetectorConfig()
+    got = corners_mod.unbias_corners_edge(img, lines, np.array([5, 6]), cfg)
+    want = _unbias_numpy(img, lines, np.array([5, 6]), cfg)
+    np.testing.assert_array_equal(got, want)
+    assert np.abs(got - lines).max() > 0.01
