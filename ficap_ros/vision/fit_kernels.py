@@ -1,6 +1,8 @@
 """The corner stage's tag-level compiled kernels: the cell-edge fit
 (``ficap_ros.vision.corners.fit_tag_edges``) and the border unbias before it
-(``ficap_ros.vision.corners.unbias_corners_edge``: ``border_unbias``, the whole step in one call).
+(``ficap_ros.vision.corners.unbias_corners_edge``: ``border_unbias``, the whole step in one call),
+and the noise ratio that picks the tags for the photometric fit after it
+(``ficap_ros.vision.tag_noise.noise_ratios``: ``tag_noise_ratios``).
 
 ``boundary_rows`` places the fit's boundary samples in the image through their tags' homographies,
 with the rows of its linearised model; ``grouped_normal_equations``, ``grouped_solve`` and
@@ -22,7 +24,7 @@ import numpy as np
 from ficap_ros.vision.jit import njit, register_warm_up
 from ficap_ros.vision.kernels import area_steps, frozen
 
-__all__ = ["border_unbias", "boundary_rows", "edge_fit_round", "grouped_normal_equations", "grouped_residuals", "grouped_solve",
+__all__ = ["border_unbias", "boundary_rows", "edge_fit_round", "tag_noise_ratios", "grouped_normal_equations", "grouped_residuals", "grouped_solve",
            "robust_grouped_solve"]
 
 
@@ -518,6 +520,75 @@ def border_unbias(img: np.ndarray, c_in: np.ndarray, nrm: np.ndarray, rho: np.nd
     return out
 
 
+@njit(inline="always", error_model="numpy")
+def _masked_median(x: np.ndarray, mask: np.ndarray, scratch: np.ndarray) -> float:
+    """``medians.row_median`` of one row: ``np.median`` of ``x`` where ``mask``, 0.0 for none."""
+    m = 0
+    for i in range(len(x)):
+        if mask[i]:
+            scratch[m] = x[i]
+            m += 1
+    return _median_of_sorted(np.sort(scratch[:m])) if m else 0.0
+
+
+@njit(error_model="numpy")
+def tag_noise_ratios(img: np.ndarray, corners: np.ndarray, hom: np.ndarray, black: np.ndarray,
+                     centres_h: np.ndarray, mad_sd: float, min_contrast: float) -> np.ndarray:
+    """Each tag's noise ratio (``tag_noise``'s module docstring): noise sd / (contrast sqrt(px per
+    cell)), from the grey at the nearest pixel to each of its 64 cells' centres (the image's edge
+    pixel for a centre outside it).
+
+    Args:
+        img: (H, W) uint8 image.
+        corners: (N, 4, 2) the tags' corners; hom: (N, 3, 3) their homographies.
+        black: (N, 64) bool each tag's cells, row-major [v, u] (True = black).
+        centres_h: (64, 3) the cells' centres in tag cell units, homogeneous.
+        mad_sd: MAD -> sd of a normal distribution; min_contrast: the least contrast divided by.
+
+    Returns:
+        (N,) ratios; infinite for a tag without a neighbouring pair of same-coloured cells.
+    """
+    n, (h_img, w_img) = len(corners), img.shape
+    out = np.empty(n)
+    grey, black_g = np.empty(64), np.empty(64, np.bool_)
+    steps, same = np.empty(112), np.empty(112, np.bool_)
+    scratch, dev = np.empty(112), np.empty(112)
+    for g in range(n):
+        for c in range(64):
+            q0 = hom[g, 0, 0] * centres_h[c, 0] + hom[g, 0, 1] * centres_h[c, 1] + hom[g, 0, 2] * centres_h[c, 2]
+            q1 = hom[g, 1, 0] * centres_h[c, 0] + hom[g, 1, 1] * centres_h[c, 1] + hom[g, 1, 2] * centres_h[c, 2]
+            q2 = hom[g, 2, 0] * centres_h[c, 0] + hom[g, 2, 1] * centres_h[c, 1] + hom[g, 2, 2] * centres_h[c, 2]
+            x = min(max(np.rint(q0 / q2), 0.0), w_img - 1.0)
+            y = min(max(np.rint(q1 / q2), 0.0), h_img - 1.0)
+            grey[c] = float(img[int(y), int(x)])
+            black_g[c] = black[g, c]
+        contrast = _masked_median(grey, ~black_g, scratch) - _masked_median(grey, black_g, scratch)
+        i = 0
+        for v in range(8):  # along u, then along v (row-major), as the numpy differences run
+            for u in range(7):
+                steps[i] = grey[8 * v + u + 1] - grey[8 * v + u]
+                same[i] = black_g[8 * v + u + 1] == black_g[8 * v + u]
+                i += 1
+        for v in range(7):
+            for u in range(8):
+                steps[i] = grey[8 * (v + 1) + u] - grey[8 * v + u]
+                same[i] = black_g[8 * (v + 1) + u] == black_g[8 * v + u]
+                i += 1
+        med = _masked_median(steps, same, scratch)
+        for j in range(112):
+            dev[j] = abs(steps[j] - med)
+        noise_sd = mad_sd * _masked_median(dev, same, scratch) / math.sqrt(2.0)
+        cell = np.inf
+        for k in range(4):
+            e = (k + 1) % 4
+            ex, ey = corners[g, e, 0] - corners[g, k, 0], corners[g, e, 1] - corners[g, k, 1]
+            cell = min(cell, math.sqrt(ex * ex + ey * ey))
+        cell /= 8.0
+        ratio = noise_sd / (max(contrast, min_contrast) * math.sqrt(max(cell, 1e-6)))
+        out[g] = ratio if same.any() else np.inf
+    return out
+
+
 @register_warm_up
 def _warm_up() -> None:
     """Every kernel once on a tiny input of the pipeline's argument types."""
@@ -541,3 +612,5 @@ def _warm_up() -> None:
     hom = np.tile(np.eye(3), (2, 1, 1))
     side, side_out = frozen(np.array([0, 1, 2, 3], np.int64)), frozen(nrm[0].copy())
     border_unbias(frozen(img), corners, nrm, rho, hom, tag_of, side, uv, side_out, starts, 4.0, 0.6, 8, 2.0, 0.7, 3.0)
+    cells = frozen(np.zeros((2, 64), np.bool_))
+    tag_noise_ratios(frozen(img), corners, hom, cells, frozen(np.ones((64, 3))), 1.4826, 1.0)

@@ -10,9 +10,16 @@ import pytest
 from edges_reference import boundary_rows as boundary_rows_numpy
 from tag_images import tag_image
 
-from ficap_ros.geometry.tag36h11 import TAG_CELLS, apply_homographies, tag_homographies
+from ficap_ros.geometry.tag36h11 import (
+    CELL_CENTRES_H,
+    TAG_AREA,
+    TAG_CELLS,
+    apply_homographies,
+    stacked_tag_cells,
+    tag_homographies,
+)
 from ficap_ros.vision import corners as corners_mod
-from ficap_ros.vision import edges
+from ficap_ros.vision import edges, tag_noise
 from ficap_ros.vision.detector import DetectorConfig
 from ficap_ros.vision.edges import (
     NEXT,
@@ -33,6 +40,7 @@ from ficap_ros.vision.kernels import frozen
 from ficap_ros.vision.medians import (
     group_median_of_finite,
     group_nearest_quantile_of_finite,
+    row_median,
 )
 
 
@@ -325,3 +333,47 @@ def test_border_unbias_equals_numpy_exactly(seed: int) -> None:
     want = _unbias_numpy(img, lines, np.array([5, 6]), cfg)
     np.testing.assert_array_equal(got, want)
     assert np.abs(got - lines).max() > 0.01
+
+
+def _cell_centres_grey_numpy(gray: np.ndarray, hom: np.ndarray) -> np.ndarray:
+    """(N, 8, 8) float grey at the nearest pixel to each cell's centre, [tag, v, u] (the
+    ``tag36h11`` cells' layout), the image's edge pixel for a centre outside it."""
+    q = hom @ CELL_CENTRES_H[TAG_AREA].T  # (N, 3, 64), the tag's own cells row-major
+    x = np.clip(np.rint(q[:, 0] / q[:, 2]), 0, gray.shape[1] - 1).astype(np.intp)
+    y = np.clip(np.rint(q[:, 1] / q[:, 2]), 0, gray.shape[0] - 1).astype(np.intp)
+    return gray[y, x].astype(np.float64).reshape(-1, TAG_CELLS, TAG_CELLS)
+
+
+def _noise_ratios_numpy(gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray) -> np.ndarray:
+    """``tag_noise.noise_ratios`` in numpy: the reference of ``tag_noise_ratios``."""
+    c = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    if len(c) == 0:
+        return np.zeros(0)
+    grey = _cell_centres_grey_numpy(gray, tag_homographies(c)).reshape(len(c), -1)
+    black = stacked_tag_cells(tuple(int(i) for i in np.asarray(ids).reshape(-1))).reshape(len(c), TAG_CELLS, TAG_CELLS)
+    black = black.astype(bool)
+    # A tag of one colour would have no contrast (row_median gives 0 for an empty row).
+    flat = black.reshape(len(c), -1)
+    contrast = row_median(grey, ~flat) - row_median(grey, flat)
+    g = grey.reshape(black.shape)
+    steps = np.concatenate([(g[:, :, 1:] - g[:, :, :-1]).reshape(len(c), -1),
+                            (g[:, 1:, :] - g[:, :-1, :]).reshape(len(c), -1)], axis=1)
+    same = np.concatenate([(black[:, :, 1:] == black[:, :, :-1]).reshape(len(c), -1),
+                           (black[:, 1:, :] == black[:, :-1, :]).reshape(len(c), -1)], axis=1)
+    mad = row_median(np.abs(steps - row_median(steps, same)[:, None]), same)
+    noise_sd = 1.4826 * mad / np.sqrt(2.0)
+    cell_px = np.linalg.norm(c[:, [1, 2, 3, 0]] - c, axis=2).min(axis=1) / TAG_CELLS
+    ratio = noise_sd / (np.maximum(contrast, 1.0) * np.sqrt(np.maximum(cell_px, 1e-6)))
+    return np.where(same.any(axis=1), ratio, np.inf)
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2, 3])
+def test_tag_noise_ratios_equal_numpy_exactly(seed: int) -> None:
+    """The scene's two tags (one cut by the border: its outer cells read the edge pixel) at their
+    true corners and a pixel off: the ratios equal numpy's bit for bit."""
+    img, corners = _scene(seed)
+    ids = np.array([5, 6])
+    for c in (corners, corners + np.random.default_rng(seed).normal(0.0, 1.0, corners.shape)):
+        got = tag_noise.noise_ratios(img, c, ids)
+        np.testing.assert_array_equal(got, _noise_ratios_numpy(img, c, ids))
+        assert np.isfinite(got).all() and (got > 0).all()

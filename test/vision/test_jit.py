@@ -22,7 +22,7 @@ ROOT = Path(__file__).resolve().parents[2]
 KERNELS = (photometric_kernels.select_pixels, photometric_kernels.fit_steps, kernels.area_steps,
            kernels.line_pass, fit_kernels.boundary_rows, fit_kernels.grouped_normal_equations,
            fit_kernels.grouped_residuals, fit_kernels.grouped_solve, fit_kernels.robust_grouped_solve,
-           fit_kernels.edge_fit_round, fit_kernels.border_unbias)
+           fit_kernels.edge_fit_round, fit_kernels.border_unbias, fit_kernels.tag_noise_ratios)
 
 
 def _cache_dir_in_child(env: dict[str, str], read_only: bool) -> str:
