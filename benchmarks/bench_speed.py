@@ -8,7 +8,12 @@ Two continuous 30 fps 1080p drives, JPEG (q95) CompressedImage in MCAP bags:
 
 And two of 1080p frames that must all be searched (2 s apart, or 0.67 s for synth, beyond
 tracking's reach): every 20th frame of the synth drive, and blender_dev's three still 1080p sets
-(``dev_1080p_high``, ``_neutral``, ``_neutral_asbuilt``), each played ``--searched-loops`` times.
+(``dev_1080p_high``, ``_neutral``, ``_neutral_asbuilt``), each played over until it is
+``--searched-frames`` long (600 by default, as long as the continuous drives, so the command's
+fixed start-up weighs the same on every input). AprilTag 3 and the decode alone, which keep no
+state from frame to frame, are timed on one play of the searched frames. The command is also run on
+a bag of one frame: its CPU time is the fixed cost of a run (start-up, imports, loading the
+compiled kernels, opening the bag, one frame, writing the labels).
 
 Ours: the real command, ``python -m ficap_ros.cli replay BAG --out DIR --jobs 1 --quiet``, in a
 child process, with its defaults and with ``--photometric`` (the photometric corner fit on every tag); its
@@ -65,6 +70,8 @@ class Drive:
 
     label: str
     bag: Path
+    #: Frames in one play: AprilTag 3 and the decode alone are timed on these (they keep no state).
+    period: int | None = None
     raws: list = field(default_factory=list)
     command_cpu_s: list[float] = field(default_factory=list)
     command_wall_s: list[float] = field(default_factory=list)
@@ -85,11 +92,22 @@ class Drive:
     def frames(self) -> int:
         return len(self.raws)
 
+    @property
+    def one_play(self) -> list:
+        return self.raws[: self.period or len(self.raws)]
+
     def ours_ms(self) -> float:
         return 1e3 * float(np.median(self.command_cpu_s)) / self.frames
 
     def photometric_ms(self) -> float:
         return 1e3 * float(np.median(self.photometric_cpu_s)) / self.frames
+
+
+def count_frames(bag: Path) -> int:
+    """The compressed images in ``bag``."""
+    from ficap_ros.io.sources import open_frames
+
+    return sum(1 for r in open_frames(bag).raw_frames() if r.kind == "compressed" and not r.error)
 
 
 def command_round(d: Drive, out: Path) -> None:
@@ -114,10 +132,10 @@ def at3_round(d: Drive) -> None:
     proc = AT3.processor()
     tags = []
     t0 = time.process_time()
-    for buf, camera, stamp in d.raws:
+    for buf, camera, stamp in d.one_play:
         r = proc.process(cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE), camera, stamp)
         tags.append(len(r.detections))
-    d.at3_ms.append(1e3 * (time.process_time() - t0) / d.frames)
+    d.at3_ms.append(1e3 * (time.process_time() - t0) / len(tags))
     d.at3_tags = float(np.mean(tags))
     print(f"  {d.label}: AprilTag 3 {d.at3_ms[-1]:.1f} ms/frame", file=sys.stderr, flush=True)
 
@@ -125,10 +143,11 @@ def at3_round(d: Drive) -> None:
 def decode_round(d: Drive) -> None:
     import cv2
 
+    plays = d.one_play
     t0 = time.process_time()
-    for buf, _camera, _stamp in d.raws:
+    for buf, _camera, _stamp in plays:
         cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
-    d.decode_ms.append(1e3 * (time.process_time() - t0) / d.frames)
+    d.decode_ms.append(1e3 * (time.process_time() - t0) / len(plays))
 
 
 def instrumented(d: Drive) -> tuple[dict[str, float], float, float]:
@@ -208,15 +227,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--rounds", type=int, default=None, help="alternated rounds (default 3)")
     ap.add_argument("--seconds", type=float, default=None, help="synth drive length, s (default 20)")
     ap.add_argument("--loops", type=int, default=None, help="times blender_dev's drive is played (default 10)")
-    ap.add_argument("--searched-loops", type=int, default=None, help="times the searched frames are played "
-                                                                     "(default 4)")
+    ap.add_argument("--searched-frames", type=int, default=None, help="length of each searched input, frames "
+                                                                      "(default 600)")
     ap.add_argument("--core", type=int, default=None, help="the one core everything runs on (default: the "
                                                            "last this process may use)")
     args = ap.parse_args(argv)
     rounds = args.rounds or (2 if args.quick else 3)
     seconds = args.seconds or (5.0 if args.quick else 20.0)
     loops = args.loops or (3 if args.quick else 10)
-    searched_loops = args.searched_loops or (1 if args.quick else 4)
+    searched_frames = args.searched_frames or (60 if args.quick else 600)
     import cv2
 
     from ficap_ros.tools.replay import keep_freed_memory
@@ -234,16 +253,23 @@ def main(argv: list[str] | None = None) -> int:
         drives.append(Drive(f"blender_dev drive30 x{loops}", looped_bag(args.cache, src, loops)))
     else:
         print("blender_dev's dev_1080p_drive30 not found (--data): synth only", file=sys.stderr)
-    drives.append(Drive(f"synth searched x{searched_loops}",
-                        searched_bag(args.cache, f"{synth.name}_every20", [synth], searched_loops, every=20,
-                                     gap_ns=667_000_000)))
+    every = 20
+    synth_play = count_frames(searched_bag(args.cache, f"{synth.name}_every{every}", [synth], 1, every=every))
+    loops_s = -(-searched_frames // synth_play)
+    drives.append(Drive(f"synth searched x{loops_s}",
+                        searched_bag(args.cache, f"{synth.name}_every{every}", [synth], loops_s, every=every,
+                                     gap_ns=667_000_000), period=synth_play))
     still = ("dev_1080p_high", "dev_1080p_neutral", "dev_1080p_neutral_asbuilt")
     if devsets.present(args.data, still) == list(still):
-        drives.append(Drive(f"blender_dev 1080p searched x{searched_loops}",
-                            searched_bag(args.cache, "blender_dev_1080p_still",
-                                         [devsets.root_of(args.data) / s for s in still], searched_loops)))
+        dirs = [devsets.root_of(args.data) / s for s in still]
+        still_play = count_frames(searched_bag(args.cache, "blender_dev_1080p_still", dirs, 1))
+        loops_b = -(-searched_frames // still_play)
+        drives.append(Drive(f"blender_dev 1080p searched x{loops_b}",
+                            searched_bag(args.cache, "blender_dev_1080p_still", dirs, loops_b), period=still_play))
     for d in drives:
         d.load()
+    one_frame = searched_bag(args.cache, f"{synth.name}_one_frame", [synth], 1, every=1 << 30)
+    fixed_cpu_s = []
     stages = {}
     with tempfile.TemporaryDirectory(prefix="bench_speed.") as tmp:
         for rnd in range(rounds):
@@ -251,6 +277,9 @@ def main(argv: list[str] | None = None) -> int:
                 command_round(d, Path(tmp) / "out")
                 at3_round(d)
                 decode_round(d)
+            shutil.rmtree(Path(tmp) / "one", ignore_errors=True)
+            fixed_cpu_s.append(run_child(ficap_command("replay", str(one_frame), "--out", str(Path(tmp) / "one"),
+                                                       "--jobs", "1", "--quiet"), ok=(0, 3)).cpu_s)
         for d in drives:
             stages[d.label] = instrumented(d)
     rows = []
@@ -286,7 +315,10 @@ def main(argv: list[str] | None = None) -> int:
             f"Rounds: {rounds}, alternated (the command with `--photometric` and with its defaults, "
             f"AprilTag 3, decode alone) drive by drive; one core (affinity {{{core}}}). Where our time goes, from one instrumented pass in this process "
             "(each stage's own CPU time, without the listed stages it calls; the command's rest is "
-            "its median CPU time less this pass's total):\n\n" + stage_table)
+            "its median CPU time less this pass's total):\n\n" + stage_table +
+            f"\n\nThe command on a bag of one synth frame: {float(np.median(fixed_cpu_s)):.2f} s CPU (median "
+            "of the rounds): the fixed cost of a run (start-up, imports, loading the compiled kernels, "
+            "opening the bag, writing the labels), in every figure above once per run.")
     what = ("What it measures: CPU time per frame of the whole `ficap replay --jobs 1` command "
             "(start-up, bag reading, JPEG decode, pipeline, label writing; its defaults, and with "
             "`--photometric`) against AprilTag 3 "

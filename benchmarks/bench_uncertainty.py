@@ -15,13 +15,19 @@ Sets: every blender_dev set and ``ficap synth`` drives (540p and 1080p x neutral
 one frame a second of a naturalistic drive, seeds 100-122, the realistic chain). Ours and the naive
 peer, whose worse corners the bounds must follow too.
 
-The leave-one-set-out fit of ``UncertaintyConfig.shared_bias_gain`` (the edge corners' shared
-radial offset, the term that follows each frame's corner noise over its cell width): each frame's
-covariance terms are recorded once, the bounds recomputed at every gain of a grid, and for each
-blender_dev set the smallest gain whose translation bounds cover at least 90 % of every *other*
-set is taken; the set's figures at that gain are its row. The synth drives check the gain fitted
-on all blender_dev sets (they do not take part in the fit). Writes docs/benchmarks/uncertainty.md
-and uncertainty.png.
+Which covariance terms over- or under-state the translation error: per set, each frame's error
+along its stated depth direction (the covariance's largest axis) over the stated sigma there (1
+for a calibrated term; its mean shows an offset the set shares), with the covariance and with the
+residual-based terms alone, and each source's share of the stated depth variance.
+
+The leave-one-set-out fit of the gains of the shared radial corner offset, jointly:
+``UncertaintyConfig.common_offset_gain`` (the offset the residuals show, scaled back) and
+``shared_bias_gain`` (the one that follows each frame's corner noise over its cell width). Each
+frame's covariance terms are recorded once and the bounds recomputed at every point of a grid of
+both; for each blender_dev set, of the points whose translation bounds cover at least 90 % of every
+*other* set, the one with the smallest worst sharpness over those sets is taken, and the set's
+figures there are its row. The synth drives check the point fitted on all blender_dev sets (they
+do not take part in the fit). Writes docs/benchmarks/uncertainty.md and uncertainty.png.
 """
 
 from __future__ import annotations
@@ -36,11 +42,12 @@ from _lib.methods import OURS, OURS_PHOTOMETRIC, PEER
 from _lib.synthdata import drive_frames
 from ficap_ros.geometry.metrics import angle_deg
 from ficap_ros.tools.synth import REALISTIC, RenderConfig
-from ficap_ros.vision.uncertainty import UncertaintyConfig
+from ficap_ros.vision.uncertainty import UncertaintyConfig, uncertainty_sources
 
 METHODS = (OURS, PEER)
-#: The grid the leave-one-set-out fit searches ``shared_bias_gain`` over, px.
-GAINS = np.round(np.arange(0.0, 3.001, 0.05), 2)
+#: The grid the leave-one-set-out fit searches: each fitted ``UncertaintyConfig`` gain's values.
+FIT_AXES = {"common_offset_gain": np.round(np.arange(0.0, 3.001, 0.25), 2),
+            "shared_bias_gain": np.round(np.arange(0.0, 0.601, 0.05), 2)}
 
 
 def run_frames(frames, camera, methods=METHODS) -> dict[str, dict[str, list]]:  # noqa: ANN001 - (image, T, stamp) iterable
@@ -63,51 +70,96 @@ def run_frames(frames, camera, methods=METHODS) -> dict[str, dict[str, list]]:  
             o["cov"].append(np.asarray(p.covariance))
             recorded = bounds_fit.terms_of(calls, p.T_cam_cap.translation_m) if name == methods[0].name else None
             if recorded is not None:
-                o["terms"].append(bounds_fit.FrameTerms(*recorded, o["rot"][-1], o["trans"][-1]))
+                error_mm = 1e3 * (p.T_cam_cap.translation_m - truth.translation_m)
+                o["terms"].append(bounds_fit.FrameTerms(*recorded, o["rot"][-1], o["trans"][-1], error_mm))
     return out
 
 
+def _gains_text(gains: dict[str, float]) -> str:
+    return " / ".join(f"{v:.2f}" for v in gains.values())
+
+
 def loso_section(points: dict[str, dict[str, list]], corners: str = "edge") -> str:
-    """The leave-one-set-out fit of ``shared_bias_gain`` on blender_dev and its synth check, for
-    the profile of the corner estimator ``corners`` (``UncertaintyConfig.for_corners``)."""
+    """The leave-one-set-out fit of the shared offset's gains (``FIT_AXES``) on blender_dev and its
+    synth check, for the profile of the corner estimator ``corners``
+    (``UncertaintyConfig.for_corners``)."""
     base = UncertaintyConfig.for_corners(corners)
     blender = {k: v["terms"] for k, v in points.items() if k.startswith("blender") and len(v["terms"]) >= 3}
     synth = {k: v["terms"] for k, v in points.items() if k.startswith("synth") and len(v["terms"]) >= 3}
     if len(blender) < 2:
         return "Leave-one-set-out fit: fewer than two blender_dev sets present."
-    table = bounds_fit.coverage_table(blender, base, "shared_bias_gain", GAINS)
-    fits = bounds_fit.leave_one_set_out(table, GAINS, {k: len(v) for k, v in blender.items()})
-    i_all = bounds_fit.smallest_gain(table, GAINS, list(blender))
-    g_all = float(GAINS[i_all])
-    binding = [k.replace("blender ", "") for k in blender if i_all > 0 and table[k][i_all - 1, 2] < 0.9]
-    rows = [[f.name, f"{f.gain:.2f}", f.frames, f"{100 * f.rot_coverage:.0f} %", f"{f.rot_sharpness:.2f}",
+    grid = bounds_fit.gain_grid(FIT_AXES)
+    table = bounds_fit.coverage_table(blender, base, grid)
+    fits = bounds_fit.leave_one_set_out(table, grid, {k: len(v) for k, v in blender.items()})
+    g_all = grid[bounds_fit.fitted_index(table, list(blender))]
+    rows = [[f.name, _gains_text(f.gains), f.frames, f"{100 * f.rot_coverage:.0f} %", f"{f.rot_sharpness:.2f}",
              f"{100 * f.trans_coverage:.0f} %", f"{f.trans_sharpness:.2f}",
              bounds_fit.binomial_reading(f.trans_misses, f.frames)] for f in fits]
     if synth:
-        check = bounds_fit.coverage_table(synth, base, "shared_bias_gain", [g_all])
+        check = bounds_fit.coverage_table(synth, base, [g_all])
         for name, r in check.items():
-            rows.append([f"{name} (check)", f"{g_all:.2f}", len(synth[name]), f"{100 * r[0, 0]:.0f} %",
+            rows.append([f"{name} (check)", _gains_text(g_all), len(synth[name]), f"{100 * r[0, 0]:.0f} %",
                          f"{r[0, 1]:.2f}", f"{100 * r[0, 2]:.0f} %", f"{r[0, 3]:.2f}",
                          bounds_fit.binomial_reading(int(r[0, 4]), len(synth[name]))])
-    head = ["set", "gain fitted without it (px)", "frames", "rotation coverage", "sharpness",
+    names = " / ".join(f"`{k}`" for k in FIT_AXES)
+    defaults = _gains_text({k: getattr(base, k) for k in FIT_AXES})
+    head = ["set", f"{names} fitted without it", "frames", "rotation coverage", "sharpness",
             "translation coverage", "sharpness", "translation misses under a calibrated 95 % bound"]
     ok = sum(0.9 <= f.trans_coverage <= 0.99 and f.trans_sharpness <= 3 for f in fits)
-    return (f"### Leave-one-set-out fit of the shared corner bias gain\n\n"
-            f"Each blender_dev row: the smallest `shared_bias_gain` (grid {GAINS[0]:.2f}-{GAINS[-1]:.2f} px, "
-            f"step {GAINS[1] - GAINS[0]:.2f}) whose translation bounds cover at least 90 % of every other "
-            f"blender_dev set, and the held-out set's coverage and sharpness at it; the synth rows check the "
-            f"gain fitted on all blender_dev sets ({g_all:.2f} px; the default is "
-            f"{base.shared_bias_gain:.2f} px). The last column: the probability, for a calibrated 95 % bound, "
-            f"of as many misses as the set has or more (fewer), and of 90-99 % coverage at all for a set "
-            f"of its size.\n\n{report.md_table(head, rows)}\n\n"
+    grids = "; ".join(f"`{k}` {v[0]:.2f}-{v[-1]:.2f} step {v[1] - v[0]:.2f}" for k, v in FIT_AXES.items())
+    return (f"### Leave-one-set-out fit of the shared corner offset's gains\n\n"
+            f"Each blender_dev row: of the grid's gains ({grids}), those whose translation bounds cover "
+            "at least 90 % of every other blender_dev set with the smallest worst sharpness over them, "
+            "and the held-out set's coverage and sharpness there; the synth rows check the gains fitted on "
+            f"all blender_dev sets ({_gains_text(g_all)}; the profile's: {defaults}). The last column: the "
+            "probability, for a calibrated 95 % bound, of as many misses as the set has or more (fewer), "
+            f"and of 90-99 % coverage at all for a set of its size.\n\n{report.md_table(head, rows)}\n\n"
             f"Held-out translation coverage 90-99 % with sharpness <= 3 on {ok} of {len(fits)} blender_dev sets. "
             "The translation error is mostly depth, one dimension, where a bound that knows each frame's "
             "sigma exactly has sharpness 2.9 (the brackets above give it for each set's own covariances): "
             "sharpness <= 3 with 90 % coverage asks every frame's stated depth sigma between 0.84 and "
-            "1.03 times the true one, which a term fitted across conditions reaches only where the set's "
-            "error is mostly a consistent offset. The gain fitted on all sets is set by "
-            f"{', '.join(binding) or 'none'} (below it their coverage falls under 90 %); the other sets' "
-            "translation bounds are wider than they need.")
+            "1.03 times the true one.")
+
+
+def depth_section(points: dict[str, dict[str, list]], corners: str = "edge") -> str:
+    """Which terms over- or under-state the translation error: per set, the error along each
+    frame's stated depth direction over the stated sigma there (RMS and mean), with every term and
+    with the residual-based ones alone, and each source's mean share of the stated depth variance."""
+    config = UncertaintyConfig.for_corners(corners)
+    groups = {"residual": ("residual_",), "common offset": ("common_offset",),
+              "shared bias": ("shared_bias",), "light": ("light_",)}
+    rows = []
+    for name, v in points.items():
+        frames = [f for f in v["terms"] if f.trans_error_mm is not None]
+        if len(frames) < 3:
+            continue
+        z, z_res, shares = [], [], {g: [] for g in (*groups, "other")}
+        for f in frames:
+            parts = {k: 1e6 * p[:3, :3] for k, p in uncertainty_sources(f.terms, f.seen, config).items()}
+            total = sum(parts.values())
+            axis = np.linalg.eigh(total)[1][:, -1]
+            var = {k: float(axis @ p @ axis) for k, p in parts.items()}
+            s2 = sum(var.values())
+            z.append(float(f.trans_error_mm @ axis) / np.sqrt(s2))
+            res = sum(x for k, x in var.items() if k.startswith(("residual_", "floor_")))
+            z_res.append(float(f.trans_error_mm @ axis) / np.sqrt(res))
+            share = dict.fromkeys(shares, 0.0)
+            for k, x in var.items():
+                share[next((g for g, prefixes in groups.items() if k.startswith(prefixes)), "other")] += x / s2
+            for g, x in share.items():
+                shares[g].append(x)
+        z, z_res = np.array(z), np.array(z_res)
+        rows.append([name, len(frames), f"{np.sqrt(np.mean(z**2)):.2f} ({np.mean(z):+.2f})",
+                     f"{np.sqrt(np.mean(z_res**2)):.2f} ({np.mean(z_res):+.2f})",
+                     *(f"{100 * np.mean(x):.0f} %" for x in shares.values())])
+    head = ["set", "frames", "depth error / stated sigma: RMS (mean)", "the same, residual-based terms alone",
+            *(f"share: {g}" for g in (*groups, "other"))]
+    return ("### Which terms state the depth error\n\n"
+            "Each frame's translation error along its stated depth direction (the covariance's largest "
+            "axis) over the stated sigma there: an RMS of 1 states the error right, under 1 overstates it, "
+            "a mean away from 0 is an offset the set shares; with every term of the profile and with the "
+            "residual-based terms (and floors) alone; then each source's mean share of the stated depth "
+            f"variance.\n\n{report.md_table(head, rows)}")
 
 
 def ideal_sharpness(covs: list[np.ndarray], rows: slice, scale: float, rng: np.random.Generator) -> float:
@@ -214,7 +266,8 @@ def main(argv: list[str] | None = None) -> int:
     ours_rows = [r for r in rows if r[1] == ours.name]
     cov_ok = sum(90 <= float(r[4].rstrip(" %")) <= 100 and 90 <= float(r[8].rstrip(" %")) for r in ours_rows)
     figure = "" if args.photometric else plot(points)  # the docs' figure is the default corners'
-    body = (f"{table}\n\n{figure}\n\n{loso_section(points, 'photometric' if args.photometric else 'edge')}\n\n"
+    corners = "photometric" if args.photometric else "edge"
+    body = (f"{table}\n\n{figure}\n\n{depth_section(points, corners)}\n\n{loso_section(points, corners)}\n\n"
             f"Ours: rotation and translation coverage both at least 90 % on {cov_ok} of {len(ours_rows)} sets. "
             "A calibrated 95 % bound covers every frame of a set of 12-25 frames with a probability of "
             "0.28-0.54, so the 90-99 % band cannot be asked of each small set. The bounds are of the cap pose; the head "
@@ -225,8 +278,8 @@ def main(argv: list[str] | None = None) -> int:
             "frame's covariance would give) and how well `reliability` ranks frames by error "
             "(Spearman), on every blender_dev set and on `ficap synth` drives (one frame a second; "
             "what the light gradient gains of `UncertaintyConfig` were calibrated on), ours and the "
-            "naive peer; then the leave-one-set-out fit of the shared corner bias gain on blender_dev "
-            "and its check on the synth drives.")
+            "naive peer; which covariance terms state the depth error; then the leave-one-set-out fit "
+            "of the shared corner offset's gains on blender_dev and its check on the synth drives.")
     report.write_section("uncertainty", what, report.how("bench_uncertainty.py", "fewer frames per set"),
                          body, run, report.command(), args.quick, args.no_doc or args.photometric)
     return 0

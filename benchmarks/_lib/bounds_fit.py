@@ -1,6 +1,6 @@
-"""Fitting a covariance gain leave-one-set-out: each frame's covariance terms recorded once, the
-bounds recomputed at any gain through the package's own functions, the gain of each set chosen
-without it.
+"""Fitting covariance gains leave-one-set-out: each frame's covariance terms recorded once, the
+bounds recomputed at any gains through the package's own functions, the gains of each set chosen
+without it (several gains jointly, over a grid).
 
 ``record_terms`` records what ``uncertainty_terms`` returned for each pose a processor reports
 (the terms and what the residuals showed), so a gain of ``UncertaintyConfig`` can be changed after
@@ -13,6 +13,7 @@ from __future__ import annotations
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
+from itertools import product
 
 import numpy as np
 from scipy.stats import binom
@@ -31,12 +32,14 @@ MIN_COVERAGE = 0.9
 
 @dataclass(frozen=True)
 class FrameTerms:
-    """One pose's covariance terms (``uncertainty_terms``) and its true errors."""
+    """One pose's covariance terms (``uncertainty_terms``) and its true errors (the translation
+    error also as a vector, camera axes, mm, when known)."""
 
     terms: dict[str, np.ndarray]
     seen: dict[str, float]
     rot_err_deg: float
     trans_err_mm: float
+    trans_error_mm: np.ndarray | None = None
 
 
 @contextmanager
@@ -78,10 +81,10 @@ def bounds_at(frames: Sequence[FrameTerms], config: UncertaintyConfig) -> np.nda
 
 @dataclass(frozen=True)
 class SetFit:
-    """One held-out set: the gain fitted without it and its figures at that gain."""
+    """One held-out set: the gains fitted without it and its figures at those gains."""
 
     name: str
-    gain: float
+    gains: dict[str, float]
     frames: int
     rot_coverage: float
     rot_sharpness: float
@@ -90,17 +93,23 @@ class SetFit:
     trans_misses: int
 
 
-def coverage_table(sets: dict[str, Sequence[FrameTerms]], base: UncertaintyConfig, field: str,
-                   gains: Sequence[float]) -> dict[str, np.ndarray]:
-    """Per set, (gains, 5): rotation coverage, rotation sharpness, translation coverage,
-    translation sharpness, translation misses at each value of the gain ``field``."""
+def gain_grid(axes: dict[str, Sequence[float]]) -> list[dict[str, float]]:
+    """Every combination of the gains' values (``UncertaintyConfig`` field -> the values to try),
+    the last field varying fastest."""
+    return [dict(zip(axes, map(float, values))) for values in product(*axes.values())]
+
+
+def coverage_table(sets: dict[str, Sequence[FrameTerms]], base: UncertaintyConfig,
+                   grid: Sequence[dict[str, float]]) -> dict[str, np.ndarray]:
+    """Per set, (grid points, 5): rotation coverage, rotation sharpness, translation coverage,
+    translation sharpness, translation misses with ``base``'s fields set to each grid point."""
     table = {}
     for name, frames in sets.items():
         er = np.array([f.rot_err_deg for f in frames])
         et = np.array([f.trans_err_mm for f in frames])
         rows = []
-        for g in gains:
-            b = bounds_at(frames, replace(base, **{field: float(g)}))
+        for point in grid:
+            b = bounds_at(frames, replace(base, **point))
             rows.append((np.mean(er <= b[:, 0]), np.median(b[:, 0]) / np.median(er),
                          np.mean(et <= b[:, 1]), np.median(b[:, 1]) / np.median(et),
                          int(np.sum(et > b[:, 1]))))
@@ -108,22 +117,28 @@ def coverage_table(sets: dict[str, Sequence[FrameTerms]], base: UncertaintyConfi
     return table
 
 
-def smallest_gain(table: dict[str, np.ndarray], gains: Sequence[float],
-                  train: Sequence[str]) -> int:
-    """Index of the smallest gain whose translation bounds cover at least ``MIN_COVERAGE`` of
-    every training set's frames (the largest gain when none does)."""
-    ok = np.all([table[s][:, 2] >= MIN_COVERAGE - 1e-9 for s in train], axis=0)
-    return int(np.argmax(ok)) if ok.any() else len(gains) - 1
+def fitted_index(table: dict[str, np.ndarray], train: Sequence[str]) -> int:
+    """Index of the grid point fitted on the sets ``train``: of those whose translation bounds
+    cover at least ``MIN_COVERAGE`` of every training set's frames, the one with the smallest
+    worst translation sharpness over the training sets (ties: the smallest mean log sharpness,
+    then the first). None covers: the point with the highest worst coverage."""
+    rows = np.stack([table[s] for s in train])  # (sets, points, 5)
+    coverage, sharpness = rows[:, :, 2], np.log(np.maximum(rows[:, :, 3], 1e-12))
+    ok = np.all(coverage >= MIN_COVERAGE - 1e-9, axis=0)
+    if not ok.any():
+        return int(np.argmax(coverage.min(axis=0)))
+    score = np.where(ok, sharpness.max(axis=0) + 1e-6 * sharpness.mean(axis=0), np.inf)
+    return int(np.argmin(score))
 
 
-def leave_one_set_out(table: dict[str, np.ndarray], gains: Sequence[float],
+def leave_one_set_out(table: dict[str, np.ndarray], grid: Sequence[dict[str, float]],
                       frames: dict[str, int]) -> list[SetFit]:
-    """Each set's figures at the gain fitted on the other sets (``smallest_gain``)."""
+    """Each set's figures at the gains fitted on the other sets (``fitted_index``)."""
     fits = []
     for name, rows in table.items():
-        i = smallest_gain(table, gains, [s for s in table if s != name])
+        i = fitted_index(table, [s for s in table if s != name])
         r = rows[i]
-        fits.append(SetFit(name, float(gains[i]), frames[name], *map(float, r[:4]), int(r[4])))
+        fits.append(SetFit(name, grid[i], frames[name], *map(float, r[:4]), int(r[4])))
     return fits
 
 

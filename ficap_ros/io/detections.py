@@ -116,15 +116,17 @@ def apriltag_array(c: messages.MessageClasses, head: Any, fits: TagFits) -> Any:
     point, detection = c.types["apriltag_msgs/msg/Point"], c.types["apriltag_msgs/msg/AprilTagDetection"]
     p = fits.corners_px[:, list(_APRILTAG_ORDER)] + _APRILTAG_OFFSET_PX  # apriltag_corners, each
     H = _homographies(p) if len(fits) else np.zeros((0, 3, 3))
-    # Python scalars once per array (tolist), not a numpy scalar per field.
+    # Python scalars once per array (tolist), not a numpy scalar per field; the homographies'
+    # field values once for all tags (``c.floats``), each tag's nine a slice of them.
+    flat = c.floats(H)
     rows = zip(fits.ids.tolist(), fits.hamming.tolist(), fits.decision_margin.tolist(),
-               p.tolist(), H[:, 0, 2].tolist(), H[:, 1, 2].tolist(), H)
+               p.tolist(), H[:, 0, 2].tolist(), H[:, 1, 2].tolist(), range(0, 9 * len(H), 9))
     out = [detection(family=TAG_FAMILY, id=int(tag_id), hamming=int(hamming), goodness=0.0,
                      decision_margin=float(margin),
                      centre=point(x=cx, y=cy),  # H (0, 0, 1); H[2][2] = 1
                      corners=[point(x=x, y=y) for x, y in corners],
-                     homography=c.floats(h))
-           for tag_id, hamming, margin, corners, cx, cy, h in rows]
+                     homography=flat[k:k + 9])
+           for tag_id, hamming, margin, corners, cx, cy, k in rows]
     return c.types["apriltag_msgs/msg/AprilTagDetectionArray"](header=head, detections=out)
 
 

@@ -205,6 +205,16 @@ class FrameRecord:
         """The head pose (``head_pose`` of the cap pose under ``calibration``), or None."""
         return None if self.pose is None else head_pose(self.pose.T_cam_cap, self.calibration)
 
+    @cached_property
+    def head_ypr_deg(self) -> np.ndarray | None:
+        """The head angles (yaw, pitch, roll), deg, of ``T_frontal_head`` (``yaw_pitch_roll_deg``;
+        read-only, worked out once for labels.csv and the status), or None without a pose."""
+        if self.T_frontal_head is None:
+            return None
+        ypr = yaw_pitch_roll_deg(self.T_frontal_head.rotation)
+        ypr.setflags(write=False)
+        return ypr
+
     @property
     def skipped(self) -> bool:
         """The image could not be decoded: a lost frame of the recording."""
@@ -291,8 +301,7 @@ def _csv_row(rec: FrameRecord) -> list[str]:
     head = [""] * 7
     if rec.T_cam_cap is not None and rec.T_frontal_head is not None:
         cap = [_f(v, 9) for v in rec.T_cam_cap.q_wxyz] + [_f(v, 6) for v in rec.T_cam_cap.translation_m]
-        ypr = yaw_pitch_roll_deg(rec.T_frontal_head.rotation)
-        head = [_f(v, 9) for v in rec.T_frontal_head.q_wxyz] + [_f(v, 4) for v in ypr]
+        head = [_f(v, 9) for v in rec.T_frontal_head.q_wxyz] + [_f(v, 4) for v in rec.head_ypr_deg]
     return [
         str(rec.index), str(rec.stamp_ns), str(rec.tags_detected), str(rec.tags_used),
         _f(rec.rms_px, 4), _f(rec.reliability, 4), _f(rec.rot_err95_deg, 4),

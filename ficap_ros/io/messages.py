@@ -52,16 +52,25 @@ class MessageClasses:
 
 
 class _Typestore(Mapping[str, Any]):
-    """The rosbags Jazzy typestore's classes, loaded on first use."""
+    """The rosbags Jazzy typestore's classes, loaded on first use (the store's own mapping,
+    looked up once: the builders ask for a class per message field)."""
+
+    def __init__(self) -> None:
+        self._types: Mapping[str, Any] | None = None
+
+    def _classes(self) -> Mapping[str, Any]:
+        if self._types is None:
+            self._types = jazzy_typestore().types
+        return self._types
 
     def __getitem__(self, name: str) -> Any:
-        return jazzy_typestore().types[name]
+        return self._classes()[name]
 
     def __iter__(self) -> Any:
-        return iter(jazzy_typestore().types)
+        return iter(self._classes())
 
     def __len__(self) -> int:
-        return len(jazzy_typestore().types)
+        return len(self._classes())
 
 
 _TYPESTORE: Any = None

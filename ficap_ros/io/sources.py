@@ -389,7 +389,6 @@ class BagSource(FrameSource):
             self.timing = _bag_timing(self.path)
             self.timing_source = "bag metadata" if self.timing is not None else ""
         self._info_ns = [s for s, _ in self._info]
-        self.start_ns = _first_stamp(self)
 
     def raw_frames(self) -> Iterator[RawFrame]:
         yield from self._bag_frames()
@@ -489,8 +488,23 @@ class BagSource(FrameSource):
                                    "pass --camera-info-topic or --intrinsics camera.yaml")
                 self.camera_info_topic = camera_info_topic
                 self._info = self._read_camera_infos(reader, camera_info_topic)
+            self.start_ns = self._first_image_stamp(reader)
         finally:
             reader.close()
+
+    def _first_image_stamp(self, reader: Any) -> int:
+        """The first image's stamp as ``raw_frames`` gives it (its header's, else its log time),
+        ns, read by the reader the bag is already open in; 0 when no image can be read."""
+        conns = [c for c in reader.connections if c.topic == self.image_topic]
+        try:
+            for conn, log_ns, raw in reader.messages(connections=conns):
+                try:
+                    return stamp_to_ns(reader.deserialize(raw, conn.msgtype).header.stamp) or int(log_ns)
+                except _bag_errors():
+                    return int(log_ns)
+        except _bag_errors():
+            pass
+        return 0
 
     def _read_camera_infos(self, reader: Any, topic: str) -> list[tuple[int, CameraModel]]:
         out: list[tuple[int, CameraModel]] = []
@@ -669,9 +683,3 @@ def open_frames(
     if path.is_dir() or path.suffix.lower() in (".mcap", ".db3", ".bag"):
         return BagSource(path, image_topic, camera_info_topic, intrinsics, rectified)
     return VideoSource(path, intrinsics, fps)
-
-
-def _first_stamp(src: FrameSource) -> int:
-    for raw in src.raw_frames():
-        return raw.stamp_ns
-    return 0

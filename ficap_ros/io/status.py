@@ -14,8 +14,6 @@ import time
 from enum import Enum
 from typing import TYPE_CHECKING
 
-from ficap_ros.geometry.metrics import yaw_pitch_roll_deg
-
 if TYPE_CHECKING:
     from ficap_ros.io.labels import FrameRecord
 
@@ -92,9 +90,9 @@ def status_values(rec: FrameRecord) -> dict[str, float | int | bool]:
         "trans_err95_mm": float(rec.trans_err95_mm),
         "calibrated": bool(rec.calibrated),
     }
-    if rec.T_frontal_head is not None:
-        ypr = yaw_pitch_roll_deg(rec.T_frontal_head.rotation)
-        values.update({f"{k}_deg": float(v) for k, v in zip(("yaw", "pitch", "roll"), ypr)})
+    if rec.head_ypr_deg is not None:
+        values.update({f"{k}_deg": float(v)
+                       for k, v in zip(("yaw", "pitch", "roll"), rec.head_ypr_deg)})
     return values
 
 

@@ -152,11 +152,12 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               range=(0.0, 10.0)),
     ParamSpec("uncertainty.shared_bias_gain", _UNCERTAINTY.shared_bias_gain,
               "Covariance: the edge corners' radial offset shared by all tags of a frame (the depth "
-              "takes it), px per unit of the frame's corner noise over its cell width (calibrated "
-              "on path-traced renders).", range=(0.0, 10.0)),
+              "takes it), px per unit of the frame's corner noise over its cell width (0 = not "
+              "used: common_offset_gain states the offset).", range=(0.0, 10.0)),
     ParamSpec("uncertainty.common_offset_gain", _UNCERTAINTY.common_offset_gain,
               "Covariance: factor on the tags' common radial offset the residuals show, a measured "
-              "mean error (0 = not used: shared_bias_gain states the offset).", range=(0.0, 10.0)),
+              "mean error the depth takes (calibrated on path-traced renders; 0 = not used).",
+              range=(0.0, 10.0)),
     ParamSpec("uncertainty.model_mm", _UNCERTAINTY.model_mm,
               "Covariance floor: each tag plate's shift against the cap model, mm per axis "
               "(misplaced plates the residuals show come on top).", range=(0.0, 20.0)),

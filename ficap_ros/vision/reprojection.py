@@ -140,36 +140,18 @@ def residuals_and_jacobian_rt(
     ``image_px`` (..., 2) of the model points ``model_m`` (..., 3), m.
 
     Rows alternate u and v of each corner; the Jacobian's columns are a left perturbation
-    ``(exp(d_theta) R, t + d_t)``: d_theta (rad, camera axes), then d_t (m).
+    ``(exp(d_theta) R, t + d_t)``: d_theta (rad, camera axes), then d_t (m). The model points
+    are rotated here (numpy), the rest is the compiled ``pose_kernels.reprojection_rt``'s (one
+    pass over the corners, the same values to the bit).
     """
-    X = model_m.reshape(-1, 3) @ R.T  # model points rotated into the camera's axes
-    p = X + t
-    fx, fy, s, cx, cy = K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2]
-    iz = 1.0 / p[:, 2]
-    xn, yn = p[:, 0] * iz, p[:, 1] * iz
-    u = fx * xn + s * yn + cx
-    v = fy * yn + cy
-    obs = image_px.reshape(-1, 2)
-    n = len(p)
-    res = np.empty(2 * n)
-    res[0::2] = u - obs[:, 0]
-    res[1::2] = v - obs[:, 1]
-    # d(u, v)/dp; a left rotation moves a point by d_theta x X, so d(u, v)/d_theta = X x d(u, v)/dp.
-    du_dp = np.empty((n, 3))
-    du_dp[:, 0] = fx * iz
-    du_dp[:, 1] = s * iz
-    du_dp[:, 2] = -(u - cx) * iz
-    dv_dp = np.zeros((n, 3))
-    dv_dp[:, 1] = fy * iz
-    dv_dp[:, 2] = -(v - cy) * iz
-    jac = np.empty((2 * n, 6))
-    x0, x1, x2 = X[:, 0], X[:, 1], X[:, 2]
-    for rows, g in ((jac[0::2], du_dp), (jac[1::2], dv_dp)):
-        rows[:, 0] = x1 * g[:, 2] - x2 * g[:, 1]  # X x g, written out (np.cross is slow on small arrays)
-        rows[:, 1] = x2 * g[:, 0] - x0 * g[:, 2]
-        rows[:, 2] = x0 * g[:, 1] - x1 * g[:, 0]
-        rows[:, 3:] = g
-    return res, jac
+    # Imported where used: numba loads with it, and a labels-only command never reprojects.
+    from ficap_ros.vision.pose_kernels import reprojection_rt
+
+    X = np.asarray(model_m, dtype=np.float64).reshape(-1, 3) @ np.asarray(R, dtype=np.float64).T
+    return reprojection_rt(np.ascontiguousarray(X),
+                           np.ascontiguousarray(t, dtype=np.float64).reshape(3),
+                           np.ascontiguousarray(K, dtype=np.float64),
+                           np.ascontiguousarray(image_px, dtype=np.float64).reshape(-1, 2))
 
 
 def residuals_and_jacobian(T: Transform, obs: TagObservations) -> tuple[np.ndarray, np.ndarray]:

@@ -32,10 +32,15 @@ covariance holds its square, as a mean squared error must).
 Depth is what the shared corner errors move most: a radial offset of every corner by delta px
 moves the depth by about z * sqrt(2) * delta / (tag side in px), so at a given distance the same
 offset costs a low-resolution camera twice the depth error, and it leaves no residual (the depth
-absorbs it). What the residuals do show of it (the part the depth could not absorb, scaled back)
-is an estimate amplified up to tenfold, whose size does not follow the depth error from one camera
-or light to another; the shared bias term (``shared_bias_ratio``) states it from what the frame
-shows instead, with a gain calibrated on path-traced renders.
+absorbs it). What the residuals do show of it (the part the depth could not absorb, scaled back
+by the share left, ``_common_offset_px``) is a noisy estimate, amplified up to tenfold, yet on
+path-traced renders it is the frame feature that follows the depth error across cameras, lights
+and tone curves (``benchmarks/bench_uncertainty.py`` decomposes each frame's depth variance by
+term against its error): the edge profile states the offset as that estimate times
+``common_offset_gain``, a gain calibrated on those renders. The residual-based terms alone state
+the depth error of frames without such an offset about right; the corner noise over the cell
+width (``shared_bias_ratio``) does not follow the offset (it is largest where there is none) and
+serves the profiles calibrated with it.
 
 Tag weights (``joint`` pose, ``UncertaintyConfig.weight_tags``): each tag's corner noise is
 estimated from its own residuals with the frame's median as a prior (``tag_noise_px``), and the pose
@@ -100,13 +105,17 @@ class UncertaintyConfig:
     as the blur reaches across a cell and as the edges get noisier, which the frame shows as its
     corner noise (the median tag's ``tag_noise_px``: a blurred, low-contrast edge is placed less
     precisely) over its cell width (``shared_bias_ratio``). ``shared_bias_gain`` turns that ratio
-    into the offset's sigma, px.
+    into the offset's sigma, px. What the residuals show of the offset (the tags' mean radial
+    coefficient, scaled back by the share of it the depth left: ``seen["bias_common"]``) states
+    it better for the edge corners: ``common_offset_gain`` times it is a mean error of the frame
+    (``uncertainty_bounds``), and the edge profile uses it in place of the ratio.
 
     The light gradient gains and ``residual_inflation`` are calibrated on ``ficap synth`` drives
     (the smallest bounds whose rotation and translation bounds cover at least 90 % in every
-    lighting and resolution condition); ``shared_bias_gain`` on the path-traced development
-    renders (the smallest gain whose translation bounds cover at least 90 % of every set, each
-    set's figures from the gain fitted without it) and checked, not fitted, on synth drives.
+    lighting and resolution condition); ``common_offset_gain`` and ``shared_bias_gain`` jointly
+    on the path-traced development renders (of the gains whose translation bounds cover at least
+    90 % of every set, those with the smallest worst median bound over median error; each set's
+    figures from the gains fitted without it) and checked, not fitted, on synth drives.
     ``benchmarks/bench_uncertainty.py`` runs both checks and the leave-one-set-out fit
     (docs/benchmarks/uncertainty.md). The floors state what residuals cannot estimate and
     guarantee that no pose is ever "exact".
@@ -115,12 +124,14 @@ class UncertaintyConfig:
     cell-edge corners (``edge``). The tag-level photometric corner fit (``photometric``:
     ``DetectorConfig(edge_photometric=True)``, ``--photometric``, node ``detector.photometric``)
     leaves much less of the shift along the foreshortening under uneven light and less of the
-    shared bias, so its profile has a smaller ``light_gradient_tilt_gain`` and
-    ``shared_bias_gain`` from the same calibrations. Corners that keep the tone curve's bias
+    shared bias, so its profile has a smaller ``light_gradient_tilt_gain`` and states the shared
+    bias from the corner-noise ratio (``shared_bias_gain``, fitted on its own with the common
+    offset unused, ``bench_uncertainty.py --photometric``). Corners that keep the tone curve's bias
     (``uncorrected``: every ``corner_refine`` but ``edge``: OpenCV's sub-pixel corners,
     AprilTag's, the search's polygon) sit a tenth of a px to over a px inside every tag alike: an
     offset large enough that the part the depth leaves in the residuals measures it, so their
-    profile uses it (``common_offset_gain`` 1). ``pipeline.FrameProcessor`` uses the profile of
+    profile uses it (``common_offset_gain`` 1, the ratio term beside it at the gain it was
+    calibrated with). ``pipeline.FrameProcessor`` uses the profile of
     its detector's corner estimator when the pose's uncertainty is not set
     (``PoseConfig.uncertainty`` None).
 
@@ -131,11 +142,13 @@ class UncertaintyConfig:
             tone curve move dark borders), independent per tag, px.
         corner_bias_common_px: the same offset shared by every tag of a frame, px (a floor).
         shared_bias_gain: sigma of the edge corners' radial offset shared by every tag, px per
-            unit of the frame's ``shared_bias_ratio`` (its corner noise over its cell width).
+            unit of the frame's ``shared_bias_ratio`` (its corner noise over its cell width). 0
+            by default: the edge profile states the offset by ``common_offset_gain``.
         common_offset_gain: factor on the tags' common radial offset as the residuals show it
-            (``uncertainty_bounds``: a measured mean error). 0 by default: for corners whose
-            tone-curve bias is removed the estimate is the small part the depth left, scaled
-            back, and ``shared_bias_gain`` states the offset; 1 in the ``uncorrected`` profile.
+            (``uncertainty_bounds``: a measured mean error). For corners whose tone-curve bias is
+            removed the estimate is the small part the depth left, scaled back, and understates
+            the offset, hence a factor above 1 by default; 1 in the ``uncorrected`` profile,
+            whose offsets are large; 0 in the ``photometric`` one.
         model_mm, model_deg: each tag plate's placement on the built cap against the model, per
             axis (shift, mm; turn about the plate centre, deg). 0 by default: misplaced plates
             show in the residuals; raise them when the cap may have changed since its model was
@@ -166,15 +179,15 @@ class UncertaintyConfig:
             95 % coverage, each recording's coverage checked with gains fitted without it
             (``benchmarks/bench_glance.py``); they act only when the exposure is given. The shift's
             fit is 0: the motion-aware corners (``DetectorConfig.motion_corners``) fit the smear
-            instead of leaving it in the edges, and the shared corner bias (``shared_bias_gain``),
-            which follows the corner noise a smear raises, covers most of what is left.
+            instead of leaving it in the edges, and the shared corner offset the residuals show
+            (``common_offset_gain``) covers most of what is left.
     """
 
     corner_noise_px: float = 0.002
     corner_bias_px: float = 0.002
     corner_bias_common_px: float = 0.002
-    shared_bias_gain: float = 0.95
-    common_offset_gain: float = 0.0
+    shared_bias_gain: float = 0.0
+    common_offset_gain: float = 2.0
     model_mm: float = 0.0
     model_deg: float = 0.0
     principal_point_px: float = 0.0
@@ -217,12 +230,14 @@ class UncertaintyConfig:
 
 #: ``UncertaintyConfig.for_corners``: the fields each corner estimator's profile changes from the
 #: defaults (the ``edge`` profile). The photometric corners leave less of the tilt under uneven
-#: light and a smaller shared bias: their ``shared_bias_gain`` is fitted as the edge corners' is
-#: (``bench_uncertainty.py --photometric``). Uncorrected corners use the measured common offset.
+#: light and a smaller shared bias, which their profile states from the corner-noise ratio
+#: (``bench_uncertainty.py --photometric``). Uncorrected corners use the measured common offset
+#: as measured, with the ratio term beside it.
 _CORNER_PROFILES: dict[str, dict[str, float]] = {
     "edge": {},
-    "photometric": {"light_gradient_tilt_gain": 0.1, "shared_bias_gain": 0.75},
-    "uncorrected": {"common_offset_gain": 1.0},
+    "photometric": {"light_gradient_tilt_gain": 0.1, "shared_bias_gain": 0.75,
+                    "common_offset_gain": 0.0},
+    "uncorrected": {"common_offset_gain": 1.0, "shared_bias_gain": 0.95},
 }
 CORNER_ESTIMATORS = tuple(_CORNER_PROFILES)
 

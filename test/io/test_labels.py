@@ -135,6 +135,26 @@ def test_a_record_takes_a_calibration_found_later() -> None:
     assert FrameRecord.processed(0, 0, "cam", None, ()).head is None
 
 
+def test_the_head_angles_are_the_frontal_head_rotations_and_follow_the_calibration() -> None:
+    """``head_ypr_deg`` (labels.csv's and the status's head angles) is ``yaw_pitch_roll_deg`` of
+    ``T_frontal_head`` to the bit, read-only, under the record's own calibration; None without a
+    pose."""
+    pose = CapPose(Transform(CAM_FROM_FORWARD * Rotation.from_euler("ZY", [25.0, -7.0], degrees=True),
+                             [0.0, 0.0, 0.6]),
+                   4, 4, (1, 2, 3, 4), 0.1, np.eye(6), 0.9, "joint", 0.3, 0.5)
+    rec = FrameRecord.processed(3, 100, "cam", pose, (1, 2, 3, 4))
+    ypr = rec.head_ypr_deg
+    assert ypr is not None and np.array_equal(ypr, yaw_pitch_roll_deg(rec.T_frontal_head.rotation))
+    assert ypr[0] == pytest.approx(25.0, abs=1e-9) and rec.head_ypr_deg is ypr
+    with pytest.raises(ValueError):
+        ypr[0] = 0.0
+    later = replace(rec, calibration=HeadCalibration(Rotation.from_euler("z", -25.0, degrees=True),
+                                                     CAM_FROM_FORWARD, True))
+    assert np.array_equal(later.head_ypr_deg, yaw_pitch_roll_deg(later.T_frontal_head.rotation))
+    assert abs(later.head_ypr_deg[0]) < 1.0  # the calibration turned the head back by 25 deg
+    assert FrameRecord.processed(0, 0, "cam", None, ()).head_ypr_deg is None
+
+
 def _posed(index: int, velocity: np.ndarray | None) -> FrameRecord:
     pose = CapPose(Transform(CAM_FROM_FORWARD * Rotation.from_euler("z", 20.0 * index, degrees=True),
                              [0.01 * index, 0.0, 0.6]),

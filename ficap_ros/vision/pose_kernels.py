@@ -1,0 +1,64 @@
+"""The pose solvers' compiled kernel: the reprojection residuals of a pose and their Jacobian.
+
+``reprojection_rt`` is ``reprojection.residuals_and_jacobian_rt``'s work after the rotation, in
+one pass over the corners: each rotated model point shifted into the camera frame, projected
+through K (no distortion: the observations are undistorted pixels), its residual ``projection -
+observation`` and the two Jacobian rows of a left perturbation ``(exp(d_theta) R, t + d_t)``. The
+joint solve asks for it at every Gauss-Newton step, the uncertainty and the readout evidence once
+more per frame, each time for a few dozen tags: on such small arrays numpy's per-call set-up
+costs more than the arithmetic. The rotation stays numpy's matrix product (the caller's), and the
+rest is the vectorised formulas' own operations in their order, element by element (no fused
+multiply-add): the values equal numpy's to the bit. It divides as numpy does
+(``error_model="numpy"``): a point on the camera's plane gives inf or NaN, never an exception.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from ficap_ros.vision.jit import njit, register_warm_up
+
+__all__ = ["reprojection_rt"]
+
+
+@njit(error_model="numpy")
+def reprojection_rt(X: np.ndarray, t: np.ndarray, K: np.ndarray,
+                    image_px: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals (2N,) px and Jacobian (2N, 6) of the pose (R, t (3,) m) against the corners
+    ``image_px`` (N, 2), undistorted px, of model points whose rotated positions ``X`` = R m
+    (N, 3), m, in the camera's axes, the caller computes (numpy's matrix product: the same
+    rounding as every other use of the pose); K (3, 3) with its skew. Rows alternate u and v of
+    each corner; columns d_theta (rad, camera axes), then d_t (m). All float64, C-contiguous."""
+    n = X.shape[0]
+    fx, fy, skew, cx, cy = K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2]
+    res = np.empty(2 * n)
+    jac = np.empty((2 * n, 6))
+    for i in range(n):
+        x0, x1, x2 = X[i, 0], X[i, 1], X[i, 2]
+        iz = 1.0 / (x2 + t[2])
+        xn, yn = (x0 + t[0]) * iz, (x1 + t[1]) * iz
+        u = fx * xn + skew * yn + cx
+        v = fy * yn + cy
+        ru, rv = 2 * i, 2 * i + 1
+        res[ru] = u - image_px[i, 0]
+        res[rv] = v - image_px[i, 1]
+        # d(u, v)/dp; a left rotation moves the point by d_theta x X: d/d_theta = X x d/dp.
+        g0, g1, g2 = fx * iz, skew * iz, -(u - cx) * iz
+        jac[ru, 0] = x1 * g2 - x2 * g1
+        jac[ru, 1] = x2 * g0 - x0 * g2
+        jac[ru, 2] = x0 * g1 - x1 * g0
+        jac[ru, 3], jac[ru, 4], jac[ru, 5] = g0, g1, g2
+        h0, h1, h2 = 0.0, fy * iz, -(v - cy) * iz
+        jac[rv, 0] = x1 * h2 - x2 * h1
+        jac[rv, 1] = x2 * h0 - x0 * h2
+        jac[rv, 2] = x0 * h1 - x1 * h0
+        jac[rv, 3], jac[rv, 4], jac[rv, 5] = h0, h1, h2
+    return res, jac
+
+
+@register_warm_up
+def _warm_up() -> None:
+    """``reprojection_rt`` once on one tag's corners (the solvers' argument types)."""
+    model = np.array([[-0.01, 0.01, 0.0], [0.01, 0.01, 0.0], [0.01, -0.01, 0.0], [-0.01, -0.01, 0.0]])
+    K = np.array([[800.0, 0.0, 320.0], [0.0, 800.0, 240.0], [0.0, 0.0, 1.0]])
+    reprojection_rt(model, np.array([0.0, 0.0, 0.5]), K, np.full((4, 2), 300.0))
