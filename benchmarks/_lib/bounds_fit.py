@@ -3,9 +3,10 @@ bounds recomputed at any gains through the package's own functions, the gains of
 without it (several gains jointly, over a grid).
 
 ``record_terms`` records what ``uncertainty_terms`` returned for each pose a processor reports
-(the terms and what the residuals showed), so a gain of ``UncertaintyConfig`` can be changed after
-the run: ``combine_uncertainty``, ``uncertainty_bounds`` and ``error_bound95`` on the recorded terms
-give the bounds the pose would have had with it (the pose itself does not depend on the gains).
+(the terms and what the residuals showed, with the noise floor and mean of the frame's edge
+shifts), so a gain of ``UncertaintyConfig`` can be changed after the run: ``combine_uncertainty``,
+``uncertainty_bounds`` and ``error_bound95`` on the recorded terms give the bounds the pose would
+have had with it (the pose itself does not depend on the gains).
 """
 
 from __future__ import annotations
@@ -42,16 +43,43 @@ class FrameTerms:
     trans_error_mm: np.ndarray | None = None
 
 
+def light_gradient_floor_px(edge_shift_px: np.ndarray, centres_px: np.ndarray) -> float:
+    """The spread ``light_gradient_px`` shows from the edge shifts' scatter alone, px: a plane fitted
+    by least squares to n shifts scattering independently with variance s^2 about a plane has a
+    fitted spread whose square exceeds the true plane's by 2 s^2 / n on average (the two slopes
+    take two of the scatter's n degrees of freedom); s^2 is estimated from the plane's residuals
+    (n - 3 degrees of freedom). 0 where ``light_gradient_px`` is 0 (fewer than six fitted tags)."""
+    es = np.asarray(edge_shift_px, dtype=float)
+    ok = np.isfinite(es)
+    n = int(ok.sum())
+    if n < 6:
+        return 0.0
+    c = np.asarray(centres_px, dtype=float)[ok]
+    X = np.column_stack([np.ones(n), c - c.mean(axis=0)])
+    coef, *_ = np.linalg.lstsq(X, es[ok], rcond=None)
+    s2 = float(np.sum((es[ok] - X @ coef) ** 2)) / (n - 3)
+    return float(np.sqrt(2.0 * s2 / n))
+
+
 @contextmanager
 def record_terms() -> Iterator[list[tuple[np.ndarray, dict, dict]]]:
     """Within the block, every ``uncertainty_terms`` call of ``ficap_ros.vision.pose`` appends
-    (the pose's translation, terms, seen) to the yielded list (``terms_of`` picks a pose's)."""
+    (the pose's translation, terms, seen) to the yielded list (``terms_of`` picks a pose's); the
+    recorded ``seen`` also holds ``light_gradient_floor`` (``light_gradient_floor_px``, 0 when the
+    call had no edge shifts) and ``edge_shift_mean`` (the fitted tags' mean edge shift, px; NaN
+    without any)."""
     calls: list[tuple[np.ndarray, dict, dict]] = []
     original = pose_module.uncertainty_terms
 
     def recording(obs, T, *args, **kwargs):  # noqa: ANN001, ANN002, ANN003, ANN202 - as wrapped
         terms, seen = original(obs, T, *args, **kwargs)
-        calls.append((np.array(T.translation_m), terms, seen))
+        shifts = args[1] if len(args) > 1 else kwargs.get("edge_shift_px")
+        floor = 0.0 if shifts is None else light_gradient_floor_px(shifts, obs.image_px.mean(axis=1))
+        fitted = np.asarray([] if shifts is None else shifts, dtype=float)
+        fitted = fitted[np.isfinite(fitted)]
+        mean = float(fitted.mean()) if fitted.size else float("nan")
+        calls.append((np.array(T.translation_m), terms,
+                      {**seen, "light_gradient_floor": floor, "edge_shift_mean": mean}))
         return terms, seen
 
     pose_module.uncertainty_terms = recording
