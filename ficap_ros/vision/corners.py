@@ -28,7 +28,6 @@ import numpy as np
 
 from ficap_ros.geometry.tag36h11 import (
     TAG_CELLS,
-    apply_homographies,
     cell_errors,
     homography_corners,
     stacked_tag_cells,
@@ -49,14 +48,9 @@ from ficap_ros.vision.edges import (
     step_offset,
     vector_norm,
 )
-from ficap_ros.vision.kernels import (
-    boundary_rows,
-    grouped_normal_equations,
-    grouped_residuals,
-)
+from ficap_ros.vision.fit_kernels import border_unbias, edge_fit_round
+from ficap_ros.vision.kernels import frozen
 from ficap_ros.vision.medians import (
-    group_median_of_finite,
-    group_nearest_quantile_of_finite,
     row_median,
 )
 from ficap_ros.vision.tag_noise import noise_ratios
@@ -84,7 +78,7 @@ _MAX_FIT_CELL_ERRORS = 1
 #: along the side): away from the cell's ends, where the neighbouring black cells blur in.
 _INNER_FRACTIONS = (0.35, 0.5, 0.65)
 #: Tag-unit step from a side's inner edge to its outer edge (sides 0..3: top, right, bottom, left).
-_SIDE_OUT = np.array([[0.0, -1.0], [1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]])
+_SIDE_OUT = frozen(np.array([[0.0, -1.0], [1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]]))
 #: Samples' worth of prior weight of a tag's mean delta on each side (three samples = one cell).
 _SIDE_PRIOR_SAMPLES = 3.0
 #: Where each cell boundary is sampled (fractions of its length: away from the cell corners, where
@@ -379,6 +373,7 @@ def unbias_corners_edge(
     the corners re-intersected; the cell width is re-read from the corrected corners (two rounds).
     A side with few samples leans on its tag's mean; a tag with none is left as it is. Samples
     where the two edges are too close to resolve (cells under ``_MIN_CELL_PX`` across) are not used.
+    The step is one compiled call (``fit_kernels.border_unbias``).
 
     Args:
         gray: (H, W) uint8 image.
@@ -392,96 +387,18 @@ def unbias_corners_edge(
         or the correction is implausibly large).
     """
     cfg = config or DetectorConfig()
-    c_in = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
-    n = len(c_in)
-    if n == 0:
+    c_in = np.ascontiguousarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    if len(c_in) == 0:
         return c_in.copy()
-    counts, tag_of, starts, (side, uv) = _stacked(_inner_edge_samples, tuple(int(i) for i in ids))
-    # uv on the outer edge straight across from each inner sample (one cell out).
-    uv_out = uv + _SIDE_OUT[side]
+    _, tag_of, starts, (side, uv) = _stacked(_inner_edge_samples, tuple(int(i) for i in ids))
     nrm, rho = side_lines(c_in) if lines is None else lines
-    nk = nrm[tag_of, side]  # (T, 2)
     try:
         hom = tag_homographies(c_in)
     except np.linalg.LinAlgError:
         return c_in.copy()
-    hom_t = hom[tag_of]
-    midline, valid, width0 = _border_midlines(gray, apply_homographies(hom_t, uv),
-                                              apply_homographies(hom_t, uv_out), nk, cfg)
-    group = tag_of * 4 + side
-    corners = c_in
-    delta = np.zeros((n, 4))
-    keep = None
-    for round_ in range(2):
-        if round_ == 0:  # the first round's corners are the input's: its width is width0
-            width = width0
-        else:
-            hom_t = tag_homographies(corners)[tag_of]
-            p_in_c, p_out_c = apply_homographies(hom_t, uv), apply_homographies(hom_t, uv_out)
-            width = np.einsum("td,td->t", nk, p_out_c - p_in_c)  # one cell across, corrected geometry
-        d = midline + 0.5 * width - rho[tag_of, side]  # (T,) how far the fitted line is inside, px
-        if keep is None:  # the outliers: from the first round
-            keep = _inlier_samples(d, valid, starts, counts)
-        delta = _pooled_delta(d, keep, group, n)
-        corners = intersect_sides(nrm, rho + delta)
-    # A correction beyond a third of a cell (or 2 px) is no tone curve: keep those tags' corners.
-    cell = vector_norm(c_in[:, NEXT] - c_in).min(axis=1) / TAG_CELLS
-    sane = (np.abs(delta).max(axis=1) <= np.minimum(cell / 3.0, 2.0)) & np.isfinite(corners).all(axis=(1, 2))
-    return np.where(sane[:, None, None], corners, c_in)
-
-
-def _border_midlines(
-    gray: np.ndarray, p_in: np.ndarray, p_out: np.ndarray, nk: np.ndarray, cfg: DetectorConfig
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Both edges of the border measured straight across each white data cell, with the same
-    window: the inner edge around ``p_in`` (then again around what was found, so the window sits
-    on the edge), the outer edge around ``p_out`` (on the fitted line); ``nk`` (T, 2) the sides'
-    outward normals.
-
-    Returns:
-        (midline (T,): position along ``nk`` of the midline between the two measured edges,
-        which is free of the bias (both moved toward the black by the same amount); valid (T,):
-        both edges measured cleanly; width0 (T,): one cell across at the input corners, px).
-    """
-    width0 = np.einsum("td,td->t", nk, p_out - p_in)  # px, one cell across
-    half = np.maximum(np.minimum(cfg.edge_search_px, cfg.edge_window_cells * width0), 0.75)
-    samples = cfg.edge_profile_samples
-    # The inner edge has its light side inward: offsets along -nk. Its first look and the outer
-    # edge's in one sampling call.
-    t = len(p_in)
-    first, first_c = step_offset(gray, np.concatenate([p_in, p_out]), np.concatenate([-nk, nk]),
-                                 np.concatenate([half, half]), samples)
-    s1, o1, c_outer = np.clip(first[:t], -half, half), first[t:], first_c[t:]
-    s2, c_inner = step_offset(gray, p_in - nk * s1[:, None], -nk, half, samples)
-    inner = np.einsum("td,td->t", nk, p_in) - s1 - s2
-    outer = np.einsum("td,td->t", nk, p_out) + o1
-    step = half / ((samples - 1) // 2)
-    # A white cell as white as the quiet zone across the border: where its neighbours (or the
-    # pixel footprint) darken it, its edge is not the outer edge's mirror image.
-    valid = (np.isfinite(inner) & np.isfinite(outer) & (width0 >= _MIN_CELL_PX) & (np.abs(s2) < half - step)
-             & (np.abs(o1) < half - step) & (c_outer > 8.0) & (c_inner >= _MIN_CONTRAST_RATIO * c_outer))
-    return 0.5 * (inner + outer), valid, width0
-
-
-def _inlier_samples(d: np.ndarray, valid: np.ndarray, starts: np.ndarray, counts: np.ndarray) -> np.ndarray:
-    """The valid samples within 3 MAD (at least 0.1 px) of their tag's median."""
-    tag_of = np.repeat(np.arange(len(counts)), counts)
-    tag_med = group_median_of_finite(d, valid, counts)
-    tag_mad = 1.4826 * group_median_of_finite(np.abs(d - tag_med[tag_of]), valid, counts)
-    return valid & np.isfinite(d) & (np.abs(d - tag_med[tag_of]) <= np.maximum(3.0 * tag_mad[tag_of], 0.1))
-
-
-def _pooled_delta(d: np.ndarray, keep: np.ndarray, group: np.ndarray, n: int) -> np.ndarray:
-    """Per-side delta (N, 4): each side's mean over its kept samples, shrunk toward its tag's
-    mean (0 for a tag without samples)."""
-    dv = np.where(keep, d, 0.0)
-    side_sum = np.bincount(group, weights=dv, minlength=4 * n).reshape(n, 4)
-    side_cnt = np.bincount(group, weights=keep.astype(np.float64), minlength=4 * n).reshape(n, 4)
-    tag_cnt = side_cnt.sum(axis=1)
-    has = tag_cnt > 0
-    tag_mean = np.where(has, side_sum.sum(axis=1) / np.maximum(tag_cnt, 1e-12), 0.0)
-    prior = _SIDE_PRIOR_SAMPLES
-    return (side_sum + prior * tag_mean[:, None]) / (side_cnt + prior)
+    return border_unbias(frozen(gray), c_in, np.ascontiguousarray(nrm), np.ascontiguousarray(rho), hom, tag_of,
+                         side, uv, _SIDE_OUT, starts, cfg.edge_search_px, cfg.edge_window_cells,
+                         (cfg.edge_profile_samples - 1) // 2, _MIN_CELL_PX, _MIN_CONTRAST_RATIO, _SIDE_PRIOR_SAMPLES)
 
 
 # --- Step 2: every cell edge of the tag at once ---------------------------------------------
@@ -502,7 +419,8 @@ def fit_tag_edges(
     n . J_H dh - delta_dir, and one weighted least-squares step per iteration updates H and the
     deltas together (re-sampling the image each time); samples beyond 3.5 robust sigmas are
     dropped. The fit reads every cell boundary, not only the four outer lines, and extrapolates
-    no line to a corner.
+    no line to a corner. Each round is one compiled call (``fit_kernels.edge_fit_round``, which
+    says which samples are used).
 
     Args:
         gray: (H, W) uint8 image.
@@ -528,11 +446,12 @@ def fit_tag_edges(
     except np.linalg.LinAlgError:
         return c_in.copy(), delta
     keep = np.ones(len(uv), dtype=bool)
+    vertical = np.abs(nu[:, 0]) > 0.5
     fitted = np.zeros(n, dtype=bool)
+    img, k = frozen(gray), (_FIT_PROFILE_SAMPLES - 1) // 2
     for it in range(iterations):
-        frames, jac = _boundary_frames(h, tag_of, uv, nu)
-        s, contrast, top_c, ok = _boundary_offsets(gray, frames, keep, tag_of, counts, cfg)
-        sol, solved, ok = _solve_edges(jac, s, contrast, top_c, ok, nu, tag_of, starts, counts)
+        sol, solved, ok = edge_fit_round(img, h, tag_of, uv, nu, vertical, keep, starts, cfg.edge_search_px, k,
+                                         _MIN_CELL_PX, _MIN_CONTRAST_RATIO, 24, 12)
         h = h + np.where(solved[:, None], sol[:, :8], 0.0)
         delta = np.where(solved, sol[:, 8:].mean(axis=1), np.nan)  # the two directions' mean
         fitted = solved
@@ -543,97 +462,6 @@ def fit_tag_edges(
     moved = vector_norm(corners - c_in).max(axis=1)
     good = fitted & np.isfinite(corners).all(axis=(1, 2)) & (moved <= np.minimum(0.35 * cell, 2.5))
     return np.where(good[:, None, None], corners, c_in), np.where(good, delta, np.nan)
-
-
-def _boundary_frames(
-    h: np.ndarray, tag_of: np.ndarray, uv: np.ndarray, nu: np.ndarray,
-) -> tuple[dict[str, np.ndarray], np.ndarray]:
-    """Each boundary sample in the image through its tag's homography ``h`` (N, 8): its position
-    ``px``, ``py``, the homography's denominator ``den`` there, the boundary's unit image normal
-    ``nx``, ``ny`` (toward the white cell: J^-T nu, J = d(px, py)/d(u, v)) and ``cell_px``, one
-    cell across the boundary in px (all (T,)); with the (T, 10) rows of the linearised model
-    s = n . J_h dh - delta: the 8 homography entries, then one shift per boundary direction (tag
-    x, tag y): what the estimator sees of the shift depends on its window, half a cell across the
-    boundary, and an oblique tag's cells are narrower along one axis (a window that cuts the
-    blurred step's tails sees less). Compiled: ``kernels.boundary_rows``."""
-    frames, jac = boundary_rows(np.ascontiguousarray(h), tag_of, uv, nu)
-    return dict(zip(("px", "py", "den", "nx", "ny", "cell_px"), frames)), jac
-
-
-def _boundary_offsets(
-    gray: np.ndarray, f: dict[str, np.ndarray], keep: np.ndarray, tag_of: np.ndarray, counts: np.ndarray,
-    cfg: DetectorConfig,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Each boundary's measured offset s (T,) px along its normal and contrast (T,), its tag's
-    clean contrast (90th percentile of the ``keep`` samples) per sample (T,), and which samples
-    are usable (T,): cells wide enough, the step inside the window, full contrast (a window whose
-    ends a neighbouring black cell darkens, or a white one lightens, is not a clean step)."""
-    half = np.minimum(cfg.edge_search_px, 0.5 * f["cell_px"])
-    s, contrast = step_offset(gray, np.column_stack([f["px"], f["py"]]), np.column_stack([f["nx"], f["ny"]]),
-                              half, _FIT_PROFILE_SAMPLES)
-    step = half / ((_FIT_PROFILE_SAMPLES - 1) // 2)
-    top_c = group_nearest_quantile_of_finite(contrast, keep & np.isfinite(contrast), counts, 0.9)[tag_of]
-    ok = (keep & (f["cell_px"] >= _MIN_CELL_PX) & np.isfinite(s) & (np.abs(s) < half - step)
-          & (contrast > 8.0) & (contrast >= _MIN_CONTRAST_RATIO * top_c))
-    return s, contrast, top_c, ok
-
-
-def _solve_edges(
-    jac: np.ndarray, s: np.ndarray, contrast: np.ndarray, top_c: np.ndarray, ok: np.ndarray, nu: np.ndarray,
-    tag_of: np.ndarray, starts: np.ndarray, counts: np.ndarray,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """One robust weighted least-squares step per tag: solve, drop the samples beyond 3.5 robust
-    sigmas (at least 0.05 px) of the residuals, solve again. Weights are noise-optimal (a sample's
-    position noise goes as 1 / its contrast). A tag is solved when both boundary directions keep 12
-    samples (else the fit is free along one of them).
-
-    Returns:
-        (solutions (N, 10), solved (N,), the samples kept (T,)).
-    """
-    w = np.where(ok, (contrast / np.maximum(top_c, 1.0)) ** 2, 0.0)
-    # Only the first solve's residuals (the outliers) and the second's solution are used.
-    _, _, r = _solve_grouped(jac, s, w, starts, 24, residuals=True)
-    assert r is not None
-    sig = 1.4826 * group_median_of_finite(np.abs(r), ok, counts)
-    ok = ok & (np.abs(r) <= np.maximum(3.5 * sig[tag_of], 0.05))
-    w = np.where(ok, (contrast / np.maximum(top_c, 1.0)) ** 2, 0.0)
-    sol, solved, _ = _solve_grouped(jac, s, w, starts, 24, residuals=False)
-    used = w > 0
-    vertical = np.add.reduceat(used & (np.abs(nu[:, 0]) > 0.5), starts)
-    solved &= (vertical >= 12) & (np.add.reduceat(used, starts) - vertical >= 12)
-    return sol, solved, ok
-
-
-def _solve_grouped(
-    jac: np.ndarray, rhs: np.ndarray, w: np.ndarray, starts: np.ndarray, min_rows: int,
-    residuals: bool = True,
-) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
-    """Weighted least squares per contiguous group of rows: (solutions (n, P), solved (n,),
-    residuals rhs - jac @ solution (T,), None unless ``residuals``). A group needs ``min_rows``
-    weighted rows and every parameter touched by one."""
-    n, p = len(starts), jac.shape[1]
-    ata, atb, rows = grouped_normal_equations(jac, rhs, w, starts)
-    # Column scaling: the parameters differ in size by orders of magnitude.
-    d = np.sqrt(np.maximum(np.einsum("nii->ni", ata), 1e-30))
-    a_s = ata / d[:, :, None] / d[:, None, :]
-    # A parameter no weighted row touches (an exactly zero diagonal: e.g. no boundary of one
-    # direction left) makes the system exactly singular: such a group is unsolved up front.
-    solved = (rows >= min_rows) & np.all(np.einsum("nii->ni", ata) > 0.0, axis=1)
-    sol = np.zeros((n, p))
-    if solved.any():
-        try:
-            sol[solved] = np.linalg.solve(a_s[solved], (atb / d)[solved][..., None])[..., 0] / d[solved]
-        except np.linalg.LinAlgError:  # a degenerate tag: solve one by one, dropping it
-            for g in np.flatnonzero(solved):
-                try:
-                    sol[g] = np.linalg.solve(a_s[g], atb[g] / d[g]) / d[g]
-                except np.linalg.LinAlgError:
-                    solved[g] = False
-    solved &= np.isfinite(sol).all(axis=1)
-    if not residuals:
-        return sol, solved, None
-    resid = grouped_residuals(jac, rhs, sol, starts)
-    return sol, solved, resid
 
 
 # --- Step 4 (optional): the photometric fit -------------------------------------------------

@@ -1,8 +1,10 @@
 """The compiled kernels' runtime: where numba keeps their machine code, and their warm-up.
 
-The per-pixel kernels (``ficap_ros.vision.kernels``: the corner stage's profiles, line pass and
-per-tag least squares; ``ficap_ros.vision.photometric_kernels``: the photometric and moving tags'
-fits; ``ficap_ros.vision.pose_kernels``: the pose solvers' reprojection) are numba functions compiled on their first call and cached on disk (``njit(cache=True)``), so a
+The per-pixel kernels (``ficap_ros.vision.kernels``: the corner stage's profiles and line pass;
+``ficap_ros.vision.fit_kernels``: its tag-level steps, the border unbias, the cell-edge fit and the
+noise ratio; ``ficap_ros.vision.photometric_kernels``: the photometric and moving tags' fits;
+``ficap_ros.vision.pose_kernels``: the pose solvers' reprojection) are numba functions compiled on
+their first call and cached on disk (``njit(cache=True)``), so a
 later process loads them instead of compiling. numba keeps that cache next to the source
 (``__pycache__``) when the package's directory is writable (a clone, an editable install). Where
 it is not (an apt or colcon install), the cache goes to the user's cache directory,
@@ -80,6 +82,7 @@ def warm_up() -> float:
     """Compile (or load from the cache) every kernel for the argument types the pipeline passes;
     returns the seconds it took (wall clock)."""
     # The modules register their kernels' warm-ups when imported.
+    import ficap_ros.vision.fit_kernels  # noqa: F401
     import ficap_ros.vision.kernels  # noqa: F401
     import ficap_ros.vision.photometric_kernels  # noqa: F401
     import ficap_ros.vision.pose_kernels  # noqa: F401

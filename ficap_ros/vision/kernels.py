@@ -18,11 +18,7 @@ the robust straight-line fit through their steps; ``line_pass`` the whole line p
 ``edges.refine_corners_edge_ok`` around it (each side's outward normal and window, the corners
 where adjacent lines meet, the passes and the plausibility checks).
 
-``boundary_rows`` places the cell-edge fit's boundary samples in the image through their tags'
-homographies, with the rows of its linearised model; ``grouped_normal_equations`` and
-``grouped_residuals`` are its per-tag weighted
-least squares (``corners._solve_grouped``): each tag's normal equations accumulated over its rows,
-and the residuals of each tag's solution.
+The cell-edge fit's kernels, built on ``area_steps``, are ``ficap_ros.vision.fit_kernels``.
 """
 
 from __future__ import annotations
@@ -33,7 +29,7 @@ import numpy as np
 
 from ficap_ros.vision.jit import njit, register_warm_up
 
-__all__ = ["area_steps", "edge_lines", "boundary_rows", "frozen", "grouped_normal_equations", "line_pass", "grouped_residuals"]
+__all__ = ["area_steps", "edge_lines", "frozen", "line_pass"]
 
 #: ``cv2.remap``'s sub-pixel positions per px (``INTER_TAB_SIZE``) and its weights' scale bits
 #: (``INTER_REMAP_COEF_BITS``).
@@ -361,113 +357,10 @@ def _one_line_pass(img: np.ndarray, corners: np.ndarray, cell_px: np.ndarray, se
     return new
 
 
-@njit(error_model="numpy")
-def boundary_rows(h: np.ndarray, tag_of: np.ndarray, uv: np.ndarray,
-                  nu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each cell-boundary sample through its tag's homography, and its row of the cell-edge fit's
-    linearised model (``corners.fit_tag_edges``).
-
-    Args:
-        h: (N, 8) each tag's homography, tag (u, v) to image px (h33 = 1).
-        tag_of: (T,) int64 the tag of each sample.
-        uv: (T, 2) each sample's place on its tag, tag units.
-        nu: (T, 2) the boundary's unit normal on the tag, toward its white cell.
-
-    Returns:
-        (frames (6, T): image x, y px, the homography's denominator, the boundary's unit image
-        normal x, y (toward the white cell: J^-T nu, J = d(x, y)/d(u, v)) and one cell across it,
-        px; rows (T, 10): d(offset along the normal)/d(h) (8), then -1 in the column of the
-        boundary's direction (tag x: column 8, tag y: column 9)).
-    """
-    t_rows = len(tag_of)
-    frames = np.empty((6, t_rows))
-    rows = np.zeros((t_rows, 10))
-    for r in range(t_rows):
-        g = tag_of[r]
-        u, v = uv[r, 0], uv[r, 1]
-        den = h[g, 6] * u + h[g, 7] * v + 1.0
-        px = (h[g, 0] * u + h[g, 1] * v + h[g, 2]) / den
-        py = (h[g, 3] * u + h[g, 4] * v + h[g, 5]) / den
-        j11 = (h[g, 0] - h[g, 6] * px) / den
-        j12 = (h[g, 1] - h[g, 7] * px) / den
-        j21 = (h[g, 3] - h[g, 6] * py) / den
-        j22 = (h[g, 4] - h[g, 7] * py) / den
-        det = j11 * j22 - j12 * j21
-        gx = (j22 * nu[r, 0] - j21 * nu[r, 1]) / det
-        gy = (-j12 * nu[r, 0] + j11 * nu[r, 1]) / det
-        gnorm = math.hypot(gx, gy)
-        nx, ny = gx / gnorm, gy / gnorm
-        frames[0, r], frames[1, r], frames[2, r] = px, py, den
-        frames[3, r], frames[4, r], frames[5, r] = nx, ny, 1.0 / gnorm
-        rows[r, 0], rows[r, 1], rows[r, 2] = nx * u / den, nx * v / den, nx / den
-        rows[r, 3], rows[r, 4], rows[r, 5] = ny * u / den, ny * v / den, ny / den
-        along = nx * px + ny * py
-        rows[r, 6] = -along * u / den
-        rows[r, 7] = -along * v / den
-        if abs(nu[r, 0]) > 0.5:
-            rows[r, 8] = -1.0
-        else:
-            rows[r, 9] = -1.0
-    return frames, rows
-
-
-@njit(error_model="numpy")
-def grouped_normal_equations(jac: np.ndarray, rhs: np.ndarray, w: np.ndarray,
-                             starts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Weighted normal equations per contiguous group of rows.
-
-    Args:
-        jac: (T, P) float64 rows of the linear model.
-        rhs: (T,) float64 measurements.
-        w: (T,) float64 row weights (0: the row is left out).
-        starts: (n,) int64 first row of each group, ascending (group g: rows starts[g] to
-            starts[g + 1], the last to T).
-
-    Returns:
-        (A^T W A (n, P, P), A^T W b (n, P), weighted rows (n,) float64: rows with w > 0).
-    """
-    n, t_rows, p = len(starts), len(rhs), jac.shape[1]
-    ata = np.zeros((n, p, p))
-    atb = np.zeros((n, p))
-    rows = np.zeros(n)
-    for g in range(n):
-        end = starts[g + 1] if g + 1 < n else t_rows
-        for r in range(starts[g], end):
-            wr = w[r]
-            if wr > 0:
-                rows[g] += 1.0
-            elif wr == 0:
-                continue
-            for i in range(p):
-                wji = wr * jac[r, i]
-                atb[g, i] += wji * rhs[r]
-                for j in range(i, p):
-                    ata[g, i, j] += wji * jac[r, j]
-        for i in range(p):
-            for j in range(i):
-                ata[g, i, j] = ata[g, j, i]
-    return ata, atb, rows
-
-
-@njit(error_model="numpy")
-def grouped_residuals(jac: np.ndarray, rhs: np.ndarray, sol: np.ndarray, starts: np.ndarray) -> np.ndarray:
-    """(T,) rhs - jac @ sol[g] for the rows of each group g (groups as ``grouped_normal_equations``'s;
-    ``sol`` (n, P))."""
-    n, t_rows, p = len(starts), len(rhs), jac.shape[1]
-    resid = np.empty(t_rows)
-    for g in range(n):
-        end = starts[g + 1] if g + 1 < n else t_rows
-        for r in range(starts[g], end):
-            acc = 0.0
-            for i in range(p):
-                acc += jac[r, i] * sol[g, i]
-            resid[r] = rhs[r] - acc
-    return resid
-
-
 @register_warm_up
 def _warm_up() -> None:
-    """``area_steps`` once on a small step image (the pipeline's argument types)."""
+    """``area_steps``, ``edge_lines`` and ``line_pass`` once on a small step image (the pipeline's
+    argument types)."""
     img = np.zeros((16, 16), np.uint8)
     img[:, 8:] = 200
     img = frozen(img)
@@ -478,10 +371,3 @@ def _warm_up() -> None:
     nrm = np.column_stack([d[:, 1], -d[:, 0]]) / 8.0
     edge_lines(img, a, d, nrm, np.full(4, 1.0), frozen(np.linspace(0.15, 0.85, 6)), 4, True)
     line_pass(img, corners[None], 2, 3.0, 0.5, frozen(np.linspace(0.15, 0.85, 6)), 4, 3, 2.0)
-    tag_of = frozen(np.array([0, 0, 1, 1], np.int64))
-    uv = frozen(np.array([[0.0, 0.0], [1.0, 0.0], [0.0, 1.0], [1.0, 1.0]]))
-    nu = frozen(np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]]))
-    boundary_rows(np.tile([10.0, 0.0, 5.0, 0.0, 10.0, 5.0, 0.0, 0.0], (2, 1)), tag_of, uv, nu)
-    jac, starts = np.eye(4, 10), frozen(np.array([0, 2], np.int64))
-    grouped_normal_equations(jac, np.ones(4), np.ones(4), starts)
-    grouped_residuals(jac, np.ones(4), np.zeros((2, 10)), starts)

@@ -29,11 +29,11 @@ import numpy as np
 from ficap_ros.geometry.tag36h11 import (
     CELL_CENTRES_H,
     TAG_AREA,
-    TAG_CELLS,
     stacked_tag_cells,
     tag_homographies,
 )
-from ficap_ros.vision.medians import row_median
+from ficap_ros.vision.fit_kernels import tag_noise_ratios
+from ficap_ros.vision.kernels import frozen
 
 __all__ = ["noise_ratios"]
 
@@ -41,19 +41,14 @@ __all__ = ["noise_ratios"]
 _MAD_SD = 1.4826
 #: Least contrast a ratio is taken over, grey levels (a tag without contrast: a large ratio).
 _MIN_CONTRAST = 1.0
-
-
-def _cell_centres_grey(gray: np.ndarray, hom: np.ndarray) -> np.ndarray:
-    """(N, 8, 8) float grey at the nearest pixel to each cell's centre, [tag, v, u] (the
-    ``tag36h11`` cells' layout), the image's edge pixel for a centre outside it."""
-    q = hom @ CELL_CENTRES_H[TAG_AREA].T  # (N, 3, 64), the tag's own cells row-major
-    x = np.clip(np.rint(q[:, 0] / q[:, 2]), 0, gray.shape[1] - 1).astype(np.intp)
-    y = np.clip(np.rint(q[:, 1] / q[:, 2]), 0, gray.shape[0] - 1).astype(np.intp)
-    return gray[y, x].astype(np.float64).reshape(-1, TAG_CELLS, TAG_CELLS)
+#: (64, 3) the tag's own cells' centres (row-major), homogeneous tag cell units.
+_CENTRES_H = frozen(np.ascontiguousarray(CELL_CENTRES_H[TAG_AREA]))
 
 
 def noise_ratios(gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray) -> np.ndarray:
-    """Each tag's noise ratio (module docstring): noise sd / (contrast sqrt(px per cell)).
+    """Each tag's noise ratio (module docstring): noise sd / (contrast sqrt(px per cell)), from the
+    grey at the nearest pixel to each cell's centre (the image's edge pixel for a centre outside
+    it). Compiled: ``fit_kernels.tag_noise_ratios``.
 
     Args:
         gray: (H, W) uint8 image.
@@ -64,22 +59,8 @@ def noise_ratios(gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray) -> n
         (N,) ratios, >= 0; infinite for a tag without a neighbouring pair of same-coloured cells
         (no tag of tag36h11 lacks one).
     """
-    c = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
+    c = np.ascontiguousarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
     if len(c) == 0:
         return np.zeros(0)
-    grey = _cell_centres_grey(gray, tag_homographies(c)).reshape(len(c), -1)
-    black = stacked_tag_cells(tuple(int(i) for i in np.asarray(ids).reshape(-1))).reshape(len(c), TAG_CELLS, TAG_CELLS)
-    black = black.astype(bool)
-    # A tag of one colour would have no contrast (row_median gives 0 for an empty row).
-    flat = black.reshape(len(c), -1)
-    contrast = row_median(grey, ~flat) - row_median(grey, flat)
-    g = grey.reshape(black.shape)
-    steps = np.concatenate([(g[:, :, 1:] - g[:, :, :-1]).reshape(len(c), -1),
-                            (g[:, 1:, :] - g[:, :-1, :]).reshape(len(c), -1)], axis=1)
-    same = np.concatenate([(black[:, :, 1:] == black[:, :, :-1]).reshape(len(c), -1),
-                           (black[:, 1:, :] == black[:, :-1, :]).reshape(len(c), -1)], axis=1)
-    mad = row_median(np.abs(steps - row_median(steps, same)[:, None]), same)
-    noise_sd = _MAD_SD * mad / np.sqrt(2.0)
-    cell_px = np.linalg.norm(c[:, [1, 2, 3, 0]] - c, axis=2).min(axis=1) / TAG_CELLS
-    ratio = noise_sd / (np.maximum(contrast, _MIN_CONTRAST) * np.sqrt(np.maximum(cell_px, 1e-6)))
-    return np.where(same.any(axis=1), ratio, np.inf)
+    black = stacked_tag_cells(tuple(int(i) for i in np.asarray(ids).reshape(-1))).reshape(len(c), -1)
+    return tag_noise_ratios(frozen(gray), c, tag_homographies(c), black, _CENTRES_H, _MAD_SD, _MIN_CONTRAST)

@@ -1,32 +1,22 @@
 """The corner stage's compiled kernels against their numpy references (``edges_reference``): the
 profiles hold ``cv2.remap``'s own samples (contrast, a difference of samples, equal exactly), and
 the step offsets and fitted lines agree to float rounding (offsets within 2e-6 px, line offsets
-within 1e-5 px, normals within 1e-7, the same profiles kept), inside the image and reaching off it;
-the cell-edge fit's boundary rows and per-tag normal equations and residuals equal numpy's to
-1e-12 relative."""
+within 1e-5 px, normals within 1e-7, the same profiles kept), inside the image and reaching off
+it."""
 
 from __future__ import annotations
 
 import numpy as np
 import pytest
-from edges_reference import boundary_rows as boundary_rows_numpy
 from edges_reference import edge_lines as edge_lines_numpy
 from edges_reference import outward_sides, side_windows
 from edges_reference import refine_corners_edge_ok as line_pass_numpy
 from edges_reference import step_offset as step_offset_numpy
 from tag_images import tag_image
 
-from ficap_ros.geometry.tag36h11 import tag_homographies
-from ficap_ros.vision import corners as corners_mod
 from ficap_ros.vision import edges
 from ficap_ros.vision.detector import DetectorConfig
-from ficap_ros.vision.kernels import (
-    area_steps,
-    boundary_rows,
-    edge_lines,
-    grouped_normal_equations,
-    grouped_residuals,
-)
+from ficap_ros.vision.kernels import area_steps, edge_lines
 
 
 def _scene(seed: int) -> tuple[np.ndarray, np.ndarray]:
@@ -99,39 +89,6 @@ def test_the_line_pass_finds_true_corners() -> None:
     assert np.abs(refined[0] - truth).max() < 0.1
 
 
-@pytest.mark.parametrize("seed", [0, 1])
-def test_grouped_least_squares_equal_numpy(seed: int) -> None:
-    rng = np.random.default_rng(seed)
-    counts = rng.integers(0, 40, 7)
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
-    jac = rng.normal(size=(int(counts.sum()), 10)) * np.logspace(-3, 3, 10)
-    rhs = rng.normal(size=len(jac))
-    w = np.where(rng.uniform(size=len(jac)) < 0.2, 0.0, rng.uniform(0.1, 2.0, len(jac)))
-    ata, atb, rows = grouped_normal_equations(jac, rhs, w, starts)
-    sol = rng.normal(size=(len(counts), 10))
-    resid = grouped_residuals(jac, rhs, sol, starts)
-    for g, (a, n) in enumerate(zip(starts, counts)):
-        j, b, wg = jac[a:a + n], rhs[a:a + n], w[a:a + n]
-        want = (j * wg[:, None]).T @ j
-        np.testing.assert_allclose(ata[g], want, rtol=1e-12, atol=1e-12 * np.abs(want).max(initial=1.0))
-        np.testing.assert_allclose(atb[g], (j * wg[:, None]).T @ b, rtol=1e-12, atol=1e-9)
-        assert rows[g] == (wg > 0).sum()
-        np.testing.assert_allclose(resid[a:a + n], b - j @ sol[g], rtol=1e-12, atol=1e-9)
-
-
-@pytest.mark.parametrize("seed", [0, 1, 2])
-def test_boundary_rows_equal_numpy(seed: int) -> None:
-    """Every cell boundary of the scene's tags (one seen obliquely by its random corners)."""
-    _, corners = _scene(seed)
-    ids = (5, 6)
-    _, tag_of, _, (uv, nu) = corners_mod._stacked(corners_mod._cell_edge_samples, ids)
-    h = tag_homographies(corners).reshape(len(corners), 9)[:, :8].copy()
-    frames, rows = boundary_rows(h, tag_of, uv, nu)
-    want_frames, want_rows = boundary_rows_numpy(h, tag_of, uv, nu)
-    np.testing.assert_allclose(frames, want_frames, rtol=1e-12, atol=1e-12)
-    np.testing.assert_allclose(rows, want_rows, rtol=1e-12, atol=1e-12)
-
-
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])
 def test_line_pass_equals_the_numpy_reference(seed: int) -> None:
     """The whole line pass from starts up to a pixel off (one tag cut by the border), both
@@ -147,13 +104,8 @@ def test_line_pass_equals_the_numpy_reference(seed: int) -> None:
 
 
 def test_degenerate_inputs_give_non_finite_values_not_exceptions() -> None:
-    """A collapsed homography or tag divides by zero: inf or NaN as in numpy, which the callers
-    refuse (the tag keeps its corners), never ZeroDivisionError."""
-    tag_of = np.array([0, 0, 1, 1], np.int64)
-    uv = np.array([[0.5, 0.0], [0.0, 0.5], [1.0, 0.5], [0.5, 1.0]])
-    nu = np.array([[0.0, 1.0], [1.0, 0.0], [-1.0, 0.0], [0.0, -1.0]])
-    frames, rows = boundary_rows(np.ones((2, 8)), tag_of, uv, nu)
-    assert not np.isfinite(frames).all() and not np.isfinite(rows).all()
+    """A collapsed tag divides by zero: inf or NaN as in numpy, which the callers refuse (the tag
+    keeps its corners), never ZeroDivisionError."""
     img, _ = _scene(0)
     point = np.full((1, 4, 2), 100.0)
     refined, ok = edges.refine_corners_edge_ok(img, point)
