@@ -114,8 +114,8 @@ class DetectorConfig:
         decimated_pixel_per_cell: a decimated ArUco search reads each candidate's cells at this
             many px per cell (``perspective_remove_pixel_per_cell`` elsewhere): its tags are
             small in the searched image (a few px per cell), so a finer resampling adds no
-            detail, only cost; on ``ficap synth`` and blender_dev 1080p frames it finds the tags
-            the finer reading finds, or more (docs/detection.md). 0: as
+            detail, only cost; on ``ficap synth`` and blender_dev 1080p frames it finds as many
+            tags as the finer reading in all, or more (docs/detection.md). 0: as
             ``perspective_remove_pixel_per_cell``.
         decode_rejected, decode_max_bit_errors: the search's second chance (opencv backend with
             ``edge`` refine): the quads ArUco rejected are edge-refined at full size and read
