@@ -79,9 +79,15 @@ def boundary_rows(h: np.ndarray, tag_of: np.ndarray, uv: np.ndarray,
 
 
 @njit(error_model="numpy")
-def grouped_normal_equations(jac: np.ndarray, rhs: np.ndarray, w: np.ndarray,
-                             starts: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def grouped_normal_equations(jac: np.ndarray, rhs: np.ndarray, w: np.ndarray, starts: np.ndarray,
+                             n_dense: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Weighted normal equations per contiguous group of rows.
+
+    The columns from ``n_dense`` on are indicator columns: each row holds at most one nonzero
+    among them (the cell-edge fit's edge shifts: -1 in its boundary direction's column), so the
+    sums skip their structural zeros. With finite rows, weights and measurements the sums are
+    bit for bit those over every column (adding a product with a zero factor leaves a sum
+    unchanged); a non-finite row leaves the entries it touches non-finite, as the full sums do.
 
     Args:
         jac: (T, P) float64 rows of the linear model.
@@ -89,6 +95,7 @@ def grouped_normal_equations(jac: np.ndarray, rhs: np.ndarray, w: np.ndarray,
         w: (T,) float64 row weights (0: the row is left out).
         starts: (n,) int64 first row of each group, ascending (group g: rows starts[g] to
             starts[g + 1], the last to T).
+        n_dense: the leading columns summed in full (P: every column).
 
     Returns:
         (A^T W A (n, P, P), A^T W b (n, P), weighted rows (n,) float64: rows with w > 0).
@@ -105,11 +112,22 @@ def grouped_normal_equations(jac: np.ndarray, rhs: np.ndarray, w: np.ndarray,
                 rows[g] += 1.0
             elif wr == 0:
                 continue
-            for i in range(p):
+            tail = -1  # the row's nonzero indicator column
+            for i in range(n_dense, p):
+                if jac[r, i] != 0.0:
+                    tail = i
+                    break
+            for i in range(n_dense):
                 wji = wr * jac[r, i]
                 atb[g, i] += wji * rhs[r]
-                for j in range(i, p):
+                for j in range(i, n_dense):
                     ata[g, i, j] += wji * jac[r, j]
+                if tail >= 0:
+                    ata[g, i, tail] += wji * jac[r, tail]
+            if tail >= 0:
+                wji = wr * jac[r, tail]
+                atb[g, tail] += wji * rhs[r]
+                ata[g, tail, tail] += wji * jac[r, tail]
         for i in range(p):
             for j in range(i):
                 ata[g, i, j] = ata[g, j, i]
@@ -133,8 +151,8 @@ def grouped_residuals(jac: np.ndarray, rhs: np.ndarray, sol: np.ndarray, starts:
 
 
 @njit(error_model="numpy")
-def grouped_solve(jac: np.ndarray, rhs: np.ndarray, w: np.ndarray, starts: np.ndarray, min_rows: int,
-                  residuals: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def grouped_solve(jac: np.ndarray, rhs: np.ndarray, w: np.ndarray, starts: np.ndarray, n_dense: int,
+                  min_rows: int, residuals: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Weighted least squares per contiguous group of rows (groups as ``grouped_normal_equations``'s).
 
     Each group's normal equations are scaled by their diagonal's square roots d (the parameters
@@ -145,14 +163,14 @@ def grouped_solve(jac: np.ndarray, rhs: np.ndarray, w: np.ndarray, starts: np.nd
     a non-finite one (a non-finite row) at NaN, as numpy's solve leaves them.
 
     Args:
-        jac, rhs, w, starts: as ``grouped_normal_equations``'s.
+        jac, rhs, w, starts, n_dense: as ``grouped_normal_equations``'s.
         min_rows: the least weighted rows of a solved group.
         residuals: also return rhs - jac @ solution per row (else an empty array).
 
     Returns:
         (solutions (n, P), solved (n,) bool, residuals (T,) or (0,)).
     """
-    ata, atb, rows = grouped_normal_equations(jac, rhs, w, starts)
+    ata, atb, rows = grouped_normal_equations(jac, rhs, w, starts, n_dense)
     n, p = ata.shape[0], ata.shape[1]
     sol = np.zeros((n, p))
     solved = np.zeros(n, np.bool_)
@@ -191,8 +209,8 @@ def grouped_solve(jac: np.ndarray, rhs: np.ndarray, w: np.ndarray, starts: np.nd
 
 @njit(error_model="numpy")
 def robust_grouped_solve(jac: np.ndarray, s: np.ndarray, contrast: np.ndarray, top_c: np.ndarray,
-                         ok: np.ndarray, vertical: np.ndarray, starts: np.ndarray, min_rows: int,
-                         min_per_direction: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                         ok: np.ndarray, vertical: np.ndarray, starts: np.ndarray, n_dense: int,
+                         min_rows: int, min_per_direction: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The cell-edge fit's robust step per tag (``corners._solve_edges``): weights
     (contrast / max(tag contrast, 1))^2 on the ``ok`` rows, a solve (``grouped_solve``), the rows
     beyond 3.5 robust sigmas (1.4826 times the median absolute residual of the group's ``ok``
@@ -204,6 +222,7 @@ def robust_grouped_solve(jac: np.ndarray, s: np.ndarray, contrast: np.ndarray, t
             row's contrast and its tag's clean contrast; ok: (T,) bool usable rows.
         vertical: (T,) bool rows of vertical boundaries (tag x direction).
         starts: (n,) int64 each group's first row (groups as ``grouped_normal_equations``'s).
+        n_dense: the columns before the indicator columns (``grouped_normal_equations``).
         min_rows, min_per_direction: the least weighted rows in all and per direction.
 
     Returns:
@@ -214,7 +233,7 @@ def robust_grouped_solve(jac: np.ndarray, s: np.ndarray, contrast: np.ndarray, t
     for r in range(t_rows):
         q = contrast[r] / max(top_c[r], 1.0)
         w[r] = q * q if ok[r] else 0.0
-    _, _, resid = grouped_solve(jac, s, w, starts, min_rows, True)
+    _, _, resid = grouped_solve(jac, s, w, starts, n_dense, min_rows, True)
     keep = np.empty(t_rows, np.bool_)
     scratch = np.empty(t_rows)
     for g in range(n):
@@ -234,7 +253,7 @@ def robust_grouped_solve(jac: np.ndarray, s: np.ndarray, contrast: np.ndarray, t
             keep[r] = ok[r] and abs(resid[r]) <= limit
             if not keep[r]:
                 w[r] = 0.0
-    sol, solved, _ = grouped_solve(jac, s, w, starts, min_rows, False)
+    sol, solved, _ = grouped_solve(jac, s, w, starts, n_dense, min_rows, False)
     for g in range(n):
         end = starts[g + 1] if g + 1 < n else t_rows
         n_vertical = n_used = 0
@@ -260,7 +279,8 @@ def edge_fit_round(img: np.ndarray, h: np.ndarray, tag_of: np.ndarray, uv: np.nd
     cell spans ``min_cell_px``, its step lies finite and inside the window less one sample step,
     and its contrast exceeds 8 grey levels and ``min_contrast_ratio`` of its tag's (a window whose
     ends a neighbouring black cell darkens, or a white one lightens, is not a clean step); then the
-    robust step (``robust_grouped_solve``).
+    robust step (``robust_grouped_solve``; the two edge-shift columns are indicator columns, each
+    row holding -1 in its boundary direction's only).
 
     Args:
         img: (H, W) uint8 image (read-only view: ``kernels.frozen``).
@@ -306,7 +326,7 @@ def edge_fit_round(img: np.ndarray, h: np.ndarray, tag_of: np.ndarray, uv: np.nd
     for r in range(t_rows):
         ok[r] = (keep[r] and frames[5, r] >= min_cell_px and math.isfinite(s[r]) and abs(s[r]) < half[r] - step[r]
                  and contrast[r] > 8.0 and contrast[r] >= min_contrast_ratio * top_c[r])
-    return robust_grouped_solve(jac, s, contrast, top_c, ok, vertical, starts, min_rows, min_per_direction)
+    return robust_grouped_solve(jac, s, contrast, top_c, ok, vertical, starts, 8, min_rows, min_per_direction)
 
 
 #: Side k's previous side (the line it meets at corner k).
@@ -597,11 +617,11 @@ def _warm_up() -> None:
     nu = frozen(np.array([[1.0, 0.0], [0.0, 1.0], [-1.0, 0.0], [0.0, -1.0]]))
     boundary_rows(np.tile([10.0, 0.0, 5.0, 0.0, 10.0, 5.0, 0.0, 0.0], (2, 1)), tag_of, uv, nu)
     jac, starts = np.eye(4, 10), frozen(np.array([0, 2], np.int64))
-    grouped_normal_equations(jac, np.ones(4), np.ones(4), starts)
+    grouped_normal_equations(jac, np.ones(4), np.ones(4), starts, 8)
     grouped_residuals(jac, np.ones(4), np.zeros((2, 10)), starts)
-    grouped_solve(jac, np.ones(4), np.ones(4), starts, 1, True)
+    grouped_solve(jac, np.ones(4), np.ones(4), starts, 8, 1, True)
     flags = np.ones(4, np.bool_)
-    robust_grouped_solve(jac, np.ones(4), np.ones(4), np.ones(4), flags, flags, starts, 1, 1)
+    robust_grouped_solve(jac, np.ones(4), np.ones(4), np.ones(4), flags, flags, starts, 8, 1, 1)
     img = np.zeros((16, 16), np.uint8)
     img[:, 8:] = 200
     h = np.tile([1.0, 0.0, 4.0, 0.0, 1.0, 4.0, 0.0, 0.0], (2, 1))

@@ -221,6 +221,27 @@ def test_searched_1080p_frames_find_at_least_apriltag3s_tags(frames_1080p) -> No
         assert r.pose is not None and r.pose.tags_used >= 4
 
 
+def test_decimated_search_resamples_cells_coarser_and_keeps_its_tags(frames_1080p) -> None:
+    """A decimated search reads candidates at ``decimated_pixel_per_cell`` (a full-size one at
+    ``perspective_remove_pixel_per_cell``) and finds every tag the finer reading finds, at the
+    same search corners."""
+    _, frames = frames_1080p
+    coarse, fine = TagDetector(), TagDetector(DetectorConfig(decimated_pixel_per_cell=8))
+    for f in frames:
+        gray = f.image if f.image.ndim == 2 else cv2.cvtColor(f.image, cv2.COLOR_BGR2GRAY)
+        got = {int(i): c for i, c in zip(*coarse._search_full_size(gray, None, 2)[:2])}
+        want = {int(i): c for i, c in zip(*fine._search_full_size(gray, None, 2)[:2])}
+        assert coarse._aruco.getDetectorParameters().perspectiveRemovePixelPerCell == 4
+        assert set(want) <= set(got) and len(want) >= 10
+        for i in want:
+            np.testing.assert_array_equal(got[i], want[i])
+    coarse._search_full_size(frames[0].image if frames[0].image.ndim == 2 else
+                             cv2.cvtColor(frames[0].image, cv2.COLOR_BGR2GRAY), None, 1)
+    assert coarse._aruco.getDetectorParameters().perspectiveRemovePixelPerCell == 8
+    with pytest.raises(ConfigError):
+        DetectorConfig(decimated_pixel_per_cell=-1)
+
+
 def test_searched_frames_skip_the_second_reading_without_losing_tags(frames_1080p, monkeypatch) -> None:
     """A decimated search that found enough model tags skips the second reading of rejected
     quads; the completion at their pose reads every tag the second reading would have found."""

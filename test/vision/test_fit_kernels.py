@@ -52,7 +52,7 @@ def test_grouped_least_squares_equal_numpy(seed: int) -> None:
     jac = rng.normal(size=(int(counts.sum()), 10)) * np.logspace(-3, 3, 10)
     rhs = rng.normal(size=len(jac))
     w = np.where(rng.uniform(size=len(jac)) < 0.2, 0.0, rng.uniform(0.1, 2.0, len(jac)))
-    ata, atb, rows = grouped_normal_equations(jac, rhs, w, starts)
+    ata, atb, rows = grouped_normal_equations(jac, rhs, w, starts, 10)
     sol = rng.normal(size=(len(counts), 10))
     resid = grouped_residuals(jac, rhs, sol, starts)
     for g, (a, n) in enumerate(zip(starts, counts)):
@@ -64,9 +64,45 @@ def test_grouped_least_squares_equal_numpy(seed: int) -> None:
         np.testing.assert_allclose(resid[a:a + n], b - j @ sol[g], rtol=1e-12, atol=1e-9)
 
 
+def _edge_rows(rng: np.random.Generator, t: int) -> np.ndarray:
+    """(t, 10) rows shaped as the cell-edge fit's: 8 dense columns, then -1 in one of two
+    indicator columns."""
+    jac = np.zeros((t, 10))
+    jac[:, :8] = rng.normal(size=(t, 8)) * np.logspace(-3, 3, 8)
+    jac[np.arange(t), 8 + (rng.uniform(size=t) < 0.5)] = -1.0
+    return jac
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_indicator_columns_give_the_full_sums_exactly(seed: int) -> None:
+    """Skipping the indicator columns' structural zeros changes no bit of the normal equations;
+    with a non-finite row or measurement the same groups are left unsolved."""
+    rng = np.random.default_rng(seed)
+    counts = rng.integers(0, 60, 8)
+    counts[:2] = 40, 50
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    jac = _edge_rows(rng, int(counts.sum()))
+    jac[:40, 8] = 0.0  # group 0: one direction's shift untouched
+    jac[:40, 9] = -1.0
+    rhs = rng.normal(size=len(jac))
+    w = np.where(rng.uniform(size=len(jac)) < 0.2, 0.0, rng.uniform(0.1, 2.0, len(jac)))
+    for got, want in zip(grouped_normal_equations(jac, rhs, w, starts, 8),
+                         grouped_normal_equations(jac, rhs, w, starts, 10)):
+        np.testing.assert_array_equal(got, want)
+    assert (grouped_normal_equations(jac, rhs, w, starts, 8)[0][0, 8] == 0.0).all()
+    jac[45, 3], rhs[60] = np.inf, np.nan
+    w[45] = w[60] = 1.0
+    sparse = grouped_solve(jac, rhs, w, starts, 8, 24, True)
+    full = grouped_solve(jac, rhs, w, starts, 10, 24, True)
+    np.testing.assert_array_equal(sparse[1], full[1])
+    assert not sparse[1][0] and not sparse[1][1]
+    np.testing.assert_array_equal(sparse[0][2:], full[0][2:])
+
+
 def _grouped_solve_numpy(jac, rhs, w, starts, min_rows):  # noqa: ANN001, ANN202
-    """The column-scaled normal equations solved by numpy's batched ``np.linalg.solve``."""
-    ata, atb, rows = grouped_normal_equations(jac, rhs, w, starts)
+    """The column-scaled normal equations (summed over every column) solved by numpy's batched
+    ``np.linalg.solve``."""
+    ata, atb, rows = grouped_normal_equations(jac, rhs, w, starts, jac.shape[1])
     d = np.sqrt(np.maximum(np.einsum("nii->ni", ata), 1e-30))
     a_s = ata / d[:, :, None] / d[:, None, :]
     solved = (rows >= min_rows) & np.all(np.einsum("nii->ni", ata) > 0.0, axis=1)
@@ -87,14 +123,14 @@ def test_grouped_solve_equals_numpys_solve_exactly(seed: int) -> None:
     jac[:30, 9] = 0.0  # group 0: parameter 9 untouched
     rhs = rng.normal(size=len(jac))
     w = np.where(rng.uniform(size=len(jac)) < 0.2, 0.0, rng.uniform(0.1, 2.0, len(jac)))
-    sol, solved, resid = grouped_solve(jac, rhs, w, starts, 24, True)
+    sol, solved, resid = grouped_solve(jac, rhs, w, starts, 10, 24, True)
     want_sol, want_solved, want_resid = _grouped_solve_numpy(jac, rhs, w, starts, 24)
     assert not solved[0] and (sol[0] == 0.0).all()
     assert not solved[1] and solved[2:4].all()
     np.testing.assert_array_equal(solved, want_solved)
     np.testing.assert_array_equal(sol, want_sol)
     np.testing.assert_array_equal(resid, want_resid)
-    assert grouped_solve(jac, rhs, w, starts, 24, False)[2].shape == (0,)
+    assert grouped_solve(jac, rhs, w, starts, 10, 24, False)[2].shape == (0,)
 
 
 def test_singular_group_is_left_unsolved() -> None:
@@ -105,7 +141,7 @@ def test_singular_group_is_left_unsolved() -> None:
     jac[:30, 1] = jac[:30, 0]
     jac[65, 4] = np.inf
     rhs, w, starts = rng.normal(size=90), np.ones(90), np.array([0, 30, 60])
-    sol, solved, resid = grouped_solve(jac, rhs, w, starts, 24, True)
+    sol, solved, resid = grouped_solve(jac, rhs, w, starts, 10, 24, True)
     assert solved.tolist() == [False, True, False]
     assert (sol[0] == 0.0).all() and np.isnan(sol[2]).all()
     np.testing.assert_allclose(sol[1], np.linalg.lstsq(jac[30:60], rhs[30:60], rcond=None)[0], atol=1e-9)
@@ -143,7 +179,7 @@ def test_robust_grouped_solve_equals_numpy_exactly(seed: int) -> None:
     ok = (contrast > 8.0) & (rng.uniform(size=t) < 0.9)
     vertical = rng.uniform(size=t) < 0.5
     vertical[starts[2]:starts[2] + counts[2]] = np.arange(counts[2]) < 8  # group 2: 8 vertical rows
-    sol, solved, kept = robust_grouped_solve(jac, s, contrast, top_c, ok, vertical, starts, 24, 12)
+    sol, solved, kept = robust_grouped_solve(jac, s, contrast, top_c, ok, vertical, starts, 10, 24, 12)
     want = _robust_solve_numpy(jac, s, contrast, top_c, ok, vertical, starts, counts)
     assert not solved[1] and not solved[2] and solved[[0, 3, 4]].all()
     assert (kept < ok).any()  # outliers dropped
