@@ -11,15 +11,13 @@ from ficap_ros.geometry.metrics import angle_deg, rotation_from_ypr_deg
 from ficap_ros.tools.synth import default_scene
 from ficap_ros.vision.detector import TagDetection
 from ficap_ros.vision.error_bounds import error_bound95
+from ficap_ros.vision.frame_measures import shared_bias_ratio
 from ficap_ros.vision.pose import PoseConfig, estimate_cap_pose
 from ficap_ros.vision.reprojection import TagObservations
 from ficap_ros.vision.tracking import view_angles_deg
 from ficap_ros.vision.uncertainty import (
     UncertaintyConfig,
     combine_uncertainty,
-    edge_shift_mean_px,
-    light_gradient_px,
-    shared_bias_ratio,
     uncertainty_bounds,
     uncertainty_sources,
     uncertainty_terms,
@@ -215,15 +213,6 @@ def test_noisy_tags_weighted_down() -> None:
     assert np.mean(err_w <= bound_w) >= 0.9
 
 
-def test_light_gradient_px() -> None:
-    rng = np.random.default_rng(2)
-    centres = rng.uniform(0.0, 400.0, (15, 2))
-    plane = 0.2 + 0.5 * (centres[:, 0] - centres[:, 0].mean()) / np.ptp(centres, axis=0).max()
-    assert light_gradient_px(plane, centres) == pytest.approx(np.std(plane), rel=1e-9)
-    assert light_gradient_px(np.full(15, 0.4), centres) == pytest.approx(0.0, abs=1e-12)
-    few = np.full(15, np.nan)
-    few[:5] = plane[:5]
-    assert light_gradient_px(few, centres) == 0.0  # too few fitted tags to tell a gradient
 
 
 #: The light terms by the gradient alone (the profiles of the photometric and uncorrected corners).
@@ -259,11 +248,6 @@ def test_uneven_light_widens_the_bound() -> None:
     assert stronger[0] > uneven[0] and stronger[1] > uneven[1]
 
 
-def test_edge_shift_mean_px() -> None:
-    """The fitted tags' mean edge shift: NaN (not fitted) left out; none fitted or unknown: 0."""
-    assert edge_shift_mean_px(np.array([0.2, np.nan, 0.5, -0.1])) == pytest.approx(0.2, rel=1e-12)
-    assert edge_shift_mean_px(np.array([np.nan, np.nan])) == 0.0
-    assert edge_shift_mean_px(None) == 0.0
 
 
 def _tilt_stated_px2(terms: dict, seen: dict, config: UncertaintyConfig, parts: set[str] | None = None) -> float:
@@ -305,15 +289,6 @@ def test_edge_shift_tilt_is_counted_beyond_the_other_terms() -> None:
                                rtol=1e-12)
 
 
-def test_shared_bias_ratio() -> None:
-    """The frame's corner noise over its cell width: the median tag's noise over the median tag's
-    side / 8 cells."""
-    square = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
-    corners = np.stack([40.0 * square, 48.0 * square + 100.0, 32.0 * square + 300.0])
-    assert shared_bias_ratio(corners, np.array([0.3, 0.1, 0.2])) == pytest.approx(0.2 / 5.0, rel=1e-12)
-    # A tag seen obliquely (half as wide): its mean side is 3/4 of the square's.
-    oblique = 40.0 * square * np.array([0.5, 1.0])
-    assert shared_bias_ratio(oblique[None], np.array([0.15])) == pytest.approx(0.15 / 3.75, rel=1e-12)
 
 
 def _with_common_offset(corners: dict[int, np.ndarray], offset_px: float, noise_px: float,
