@@ -89,3 +89,19 @@ def moving_tag_image(
     light = cv2.GaussianBlur(acc / instants, (0, 0), blur)
     grey = 255.0 * srgb_encode_slope(light)[0] + rng.normal(0.0, noise, light.shape)
     return np.clip(np.round(grey), 0, 255).astype(np.uint8)
+
+
+def two_tag_scene(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    """A 240 x 320 frame of two tags (one cut by the image's border) on noise: (image, corners)."""
+    rng = np.random.default_rng(seed)
+    corners = []
+    img = np.zeros((240, 320), np.uint8)
+    for k, (cx, cy, side) in enumerate(((110.0, 120.0, 70.0), (300.0, 40.0, 50.0))):
+        a = rng.uniform(0.0, 2.0 * np.pi)
+        rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+        c = (np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * side / 2.0) @ rot.T + [cx, cy]
+        c += rng.normal(0.0, 1.5, c.shape)
+        part = tag_image(5 + k, c, (320, 240), rng, background=90, levels=(30.0, 220.0), blur=0.8, noise=3.0)
+        img = np.maximum(img, part) if k else part
+        corners.append(c)
+    return img, np.array(corners)

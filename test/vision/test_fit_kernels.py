@@ -8,7 +8,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 from edges_reference import boundary_rows as boundary_rows_numpy
-from tag_images import tag_image
+from tag_images import two_tag_scene
 
 from ficap_ros.geometry.tag36h11 import (
     CELL_CENTRES_H,
@@ -42,22 +42,6 @@ from ficap_ros.vision.medians import (
     group_nearest_quantile_of_finite,
     row_median,
 )
-
-
-def _scene(seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """A 240 x 320 frame of two tags (one cut by the image's border) on noise: (image, corners)."""
-    rng = np.random.default_rng(seed)
-    corners = []
-    img = np.zeros((240, 320), np.uint8)
-    for k, (cx, cy, side) in enumerate(((110.0, 120.0, 70.0), (300.0, 40.0, 50.0))):
-        a = rng.uniform(0.0, 2.0 * np.pi)
-        rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-        c = (np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * side / 2.0) @ rot.T + [cx, cy]
-        c += rng.normal(0.0, 1.5, c.shape)
-        part = tag_image(5 + k, c, (320, 240), rng, background=90, levels=(30.0, 220.0), blur=0.8, noise=3.0)
-        img = np.maximum(img, part) if k else part
-        corners.append(c)
-    return img, np.array(corners)
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -171,7 +155,7 @@ def test_robust_grouped_solve_equals_numpy_exactly(seed: int) -> None:
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_boundary_rows_equal_numpy(seed: int) -> None:
     """Every cell boundary of the scene's tags (one seen obliquely by its random corners)."""
-    _, corners = _scene(seed)
+    _, corners = two_tag_scene(seed)
     ids = (5, 6)
     _, tag_of, _, (uv, nu) = corners_mod._stacked(corners_mod._cell_edge_samples, ids)
     h = tag_homographies(corners).reshape(len(corners), 9)[:, :8].copy()
@@ -207,7 +191,7 @@ def _round_numpy(img, h, tag_of, uv, nu, keep, starts, counts):  # noqa: ANN001,
 def test_edge_fit_round_equals_numpy_exactly(seed: int) -> None:
     """Both of the scene's tags (one cut by the border) from corners half a pixel off, first with
     every sample, then with those the first round kept: numpy's solutions, flags and kept samples."""
-    img, corners = _scene(seed)
+    img, corners = two_tag_scene(seed)
     start = corners + np.random.default_rng(seed).normal(0.0, 0.5, corners.shape)
     counts, tag_of, starts, (uv, nu) = corners_mod._stacked(corners_mod._cell_edge_samples, (5, 6))
     h = tag_homographies(start).reshape(2, 9)[:, :8].copy()
@@ -325,7 +309,7 @@ def test_border_unbias_equals_numpy_exactly(seed: int) -> None:
     """Both of the scene's tags (one cut by the border) from line-pass corners: the corrected
     corners equal the numpy step's bit for bit, and move the corners (the scene's tone makes the
     line pass's edges biased)."""
-    img, corners = _scene(seed)
+    img, corners = two_tag_scene(seed)
     start = corners + np.random.default_rng(seed).normal(0.0, 0.3, corners.shape)
     lines, _ = edges.refine_corners_edge_ok(img, start)
     cfg = DetectorConfig()
@@ -371,7 +355,7 @@ def _noise_ratios_numpy(gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarra
 def test_tag_noise_ratios_equal_numpy_exactly(seed: int) -> None:
     """The scene's two tags (one cut by the border: its outer cells read the edge pixel) at their
     true corners and a pixel off: the ratios equal numpy's bit for bit."""
-    img, corners = _scene(seed)
+    img, corners = two_tag_scene(seed)
     ids = np.array([5, 6])
     for c in (corners, corners + np.random.default_rng(seed).normal(0.0, 1.0, corners.shape)):
         got = tag_noise.noise_ratios(img, c, ids)

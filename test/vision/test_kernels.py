@@ -12,32 +12,16 @@ from edges_reference import edge_lines as edge_lines_numpy
 from edges_reference import outward_sides, side_windows
 from edges_reference import refine_corners_edge_ok as line_pass_numpy
 from edges_reference import step_offset as step_offset_numpy
-from tag_images import tag_image
+from tag_images import tag_image, two_tag_scene
 
 from ficap_ros.vision import edges
 from ficap_ros.vision.detector import DetectorConfig
 from ficap_ros.vision.kernels import area_steps, edge_lines
 
 
-def _scene(seed: int) -> tuple[np.ndarray, np.ndarray]:
-    """A 240 x 320 frame of two tags (one cut by the image's border) on noise: (image, corners)."""
-    rng = np.random.default_rng(seed)
-    corners = []
-    img = np.zeros((240, 320), np.uint8)
-    for k, (cx, cy, side) in enumerate(((110.0, 120.0, 70.0), (300.0, 40.0, 50.0))):
-        a = rng.uniform(0.0, 2.0 * np.pi)
-        rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
-        c = (np.array([[-1, -1], [1, -1], [1, 1], [-1, 1]]) * side / 2.0) @ rot.T + [cx, cy]
-        c += rng.normal(0.0, 1.5, c.shape)
-        part = tag_image(5 + k, c, (320, 240), rng, background=90, levels=(30.0, 220.0), blur=0.8, noise=3.0)
-        img = np.maximum(img, part) if k else part
-        corners.append(c)
-    return img, np.array(corners)
-
-
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_area_steps_equal_the_remap_reference(seed: int) -> None:
-    img, _ = _scene(seed)
+    img, _ = two_tag_scene(seed)
     rng = np.random.default_rng(seed + 10)
     n = 3000
     centre = rng.uniform([-6.0, -6.0], [326.0, 246.0], (n, 2))  # some profiles off the image
@@ -59,7 +43,7 @@ def test_area_steps_equal_the_remap_reference(seed: int) -> None:
 
 @pytest.mark.parametrize("seed", [0, 1, 2, 3])
 def test_edge_lines_equal_the_numpy_reference(seed: int) -> None:
-    img, corners = _scene(seed)
+    img, corners = two_tag_scene(seed)
     cfg = DetectorConfig()
     a, d, _, _, nrm = outward_sides(corners)
     cell_px = np.repeat(edges.vector_norm(corners[:, edges.NEXT] - corners).mean(axis=1) / 8.0, 4)
@@ -93,7 +77,7 @@ def test_the_line_pass_finds_true_corners() -> None:
 def test_line_pass_equals_the_numpy_reference(seed: int) -> None:
     """The whole line pass from starts up to a pixel off (one tag cut by the border), both
     settings the detector uses: the same tags refined, corners within 1e-5 px."""
-    img, corners = _scene(seed)
+    img, corners = two_tag_scene(seed)
     start = corners + np.random.default_rng(seed).normal(0.0, 0.7, corners.shape)
     for cfg in (DetectorConfig(), DetectorConfig(edge_search_px=8.0, edge_max_shift_px=8.0, edge_iterations=1,
                                                  edge_samples_per_side=12, edge_profile_samples=9)):
@@ -106,7 +90,7 @@ def test_line_pass_equals_the_numpy_reference(seed: int) -> None:
 def test_degenerate_inputs_give_non_finite_values_not_exceptions() -> None:
     """A collapsed tag divides by zero: inf or NaN as in numpy, which the callers refuse (the tag
     keeps its corners), never ZeroDivisionError."""
-    img, _ = _scene(0)
+    img, _ = two_tag_scene(0)
     point = np.full((1, 4, 2), 100.0)
     refined, ok = edges.refine_corners_edge_ok(img, point)
     assert not ok[0] and (refined == point).all()

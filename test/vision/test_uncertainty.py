@@ -3,11 +3,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import numpy as np
 import pytest
 
 from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.geometry.metrics import angle_deg, rotation_from_ypr_deg
+from ficap_ros.geometry.transform import Transform
 from ficap_ros.tools.synth import default_scene
 from ficap_ros.vision.detector import TagDetection
 from ficap_ros.vision.error_bounds import error_bound95
@@ -322,6 +325,22 @@ def test_shared_bias_term_is_the_common_radial_mode() -> None:
     assert los @ unit @ los > 0.9 * np.trace(unit)  # the depth takes a common radial offset
 
 
+def _offset_coverage(T: Transform, n: int, draw: Callable[[], dict[int, np.ndarray]],
+                     config: PoseConfig | None, baseline: PoseConfig) -> tuple[float, float, float]:
+    """Over ``n`` frames of corners from ``draw``: the translation bounds' coverage of the errors
+    with ``config`` (None: the defaults) and with ``baseline``, and the former's sharpness."""
+    err, bound, bound0 = [], [], []
+    for _ in range(n):
+        corners = draw()
+        p = _pose(corners, config)
+        err.append(1e3 * np.linalg.norm(p.T_cam_cap.translation_m - T.translation_m))
+        bound.append(p.trans_err95_mm)
+        bound0.append(_pose(corners, baseline).trans_err95_mm)
+    err, bound, bound0 = map(np.array, (err, bound, bound0))
+    return (float(np.mean(err <= bound)), float(np.mean(err <= bound0)),
+            float(np.median(bound) / np.median(err)))
+
+
 def test_shared_bias_covers_a_drawn_common_offset() -> None:
     """Frames whose tags share a radial corner offset drawn at the sigma the term states (gain x
     the ratio of a frame without the offset) besides independent noise: with the term the
@@ -337,16 +356,8 @@ def test_shared_bias_covers_a_drawn_common_offset() -> None:
     obs = TagObservations.of({i: CAM.undistort_px(c) for i, c in
                               _with_common_offset(exact, 0.0, noise_px, rng).items()}, MODEL, CAM.K)
     sigma_px = gain * uncertainty_terms(obs, T)[1]["shared_bias_ratio"]
-    err, bound, bound0 = [], [], []
-    for _ in range(300):
-        corners = _with_common_offset(exact, rng.normal(0.0, sigma_px), noise_px, rng)
-        p = _pose(corners, with_term)
-        err.append(1e3 * np.linalg.norm(p.T_cam_cap.translation_m - T.translation_m))
-        bound.append(p.trans_err95_mm)
-        bound0.append(_pose(corners, without).trans_err95_mm)
-    err, bound, bound0 = map(np.array, (err, bound, bound0))
-    cover, cover0 = np.mean(err <= bound), np.mean(err <= bound0)
-    sharpness = np.median(bound) / np.median(err)
+    cover, cover0, sharpness = _offset_coverage(
+        T, 300, lambda: _with_common_offset(exact, rng.normal(0.0, sigma_px), noise_px, rng), with_term, without)
     print(f"\nshared offset sigma {sigma_px:.4f} px: translation coverage {100 * cover:.1f} % "
           f"(sharpness {sharpness:.2f}) with the term, {100 * cover0:.1f} % without")
     assert cover >= 0.95 and sharpness < 4.0
@@ -362,16 +373,8 @@ def test_edge_profile_states_a_shared_offset_the_residuals_show() -> None:
     exact = _exact_corners(T)
     rng = np.random.default_rng(41)
     bare = PoseConfig(uncertainty=UncertaintyConfig(common_offset_gain=0.0))
-    err, bound, bound0 = [], [], []
-    for _ in range(200):
-        corners = _with_common_offset(exact, rng.choice((-0.05, 0.05)), 0.06, rng)
-        p = _pose(corners)
-        err.append(1e3 * np.linalg.norm(p.T_cam_cap.translation_m - T.translation_m))
-        bound.append(p.trans_err95_mm)
-        bound0.append(_pose(corners, bare).trans_err95_mm)
-    err, bound, bound0 = map(np.array, (err, bound, bound0))
-    cover, cover0 = np.mean(err <= bound), np.mean(err <= bound0)
-    sharpness = np.median(bound) / np.median(err)
+    cover, cover0, sharpness = _offset_coverage(
+        T, 200, lambda: _with_common_offset(exact, rng.choice((-0.05, 0.05)), 0.06, rng), None, bare)
     print(f"\nshared offset 0.05 px: translation coverage {100 * cover:.1f} % (sharpness "
           f"{sharpness:.2f}) with the measured offset, {100 * cover0:.1f} % without")
     assert cover >= 0.9 and sharpness < 4.0
