@@ -22,8 +22,9 @@ residual-based terms alone, and each source's share of the stated depth variance
 
 The light gradient against its noise floor: per set, the measured gradient (``light_gradient_px``)
 beside the spread the edge shifts' own scatter gives a plane fitted with no gradient, the error
-along the tilt mode per px of gradient (what ``light_gradient_tilt_gain`` states) and the depth
-error over the sigma the other terms state.
+along the tilt mode per px of gradient (what ``light_gradient_tilt_gain`` states in the gradient
+profiles) and per px of the tags' mean edge shift (what ``edge_shift_tilt_gain`` states in the
+edge profile, beyond the other terms) and the depth error over the sigma the other terms state.
 
 The leave-one-set-out fit of the gains of the shared radial corner offset, jointly:
 ``UncertaintyConfig.common_offset_gain`` (the offset the residuals show, scaled back) and
@@ -196,16 +197,18 @@ def light_section(points: dict[str, dict[str, list]], corners: str = "edge") -> 
         per_px = np.sqrt(np.mean(np.square(k))) / max(float(np.sqrt(np.mean(g**2))), 1e-12)
         shift = np.array([f.seen.get("edge_shift_mean", np.nan) for f in frames])
         ok = np.isfinite(shift)
+        per_shift = (np.sqrt(np.mean(np.square(np.asarray(k)[ok])))
+                     / max(float(np.sqrt(np.mean(shift[ok] ** 2))), 1e-12) if ok.any() else float("nan"))
         rho_g = spearmanr(np.abs(k), g).correlation
         rho_s = spearmanr(np.abs(k)[ok], shift[ok]).correlation if ok.sum() >= 3 else float("nan")
         rows.append([name, len(frames), f"{np.median(g):.3f}", f"{np.median(floor):.3f}",
                      f"{np.median(excess):.3f}", f"{per_px:.2f}", f"{rho_g:+.2f}",
                      f"{np.nanmedian(shift) if ok.any() else float('nan'):.2f}", f"{rho_s:+.2f}",
-                     f"{np.sqrt(np.mean(z)):.2f}"])
+                     f"{per_shift:.3f}", f"{np.sqrt(np.mean(z)):.2f}"])
     head = ["set", "frames", "light gradient (px, median)", "its noise floor", "gradient less floor",
             "error along the tilt per px of gradient", "Spearman: size of that error, gradient",
             "mean edge shift (px, median)", "Spearman: size of that error, mean edge shift",
-            "depth error / sigma without the light terms"]
+            "error along the tilt per px of mean edge shift", "depth error / sigma without the light terms"]
     return ("### The light gradient against its noise floor\n\n"
             "Per set: the median measured light gradient (`light_gradient_px`), the median spread the "
             "edge shifts' own scatter gives a fitted plane with no gradient at all (sqrt(2 s^2 / n), s "
@@ -213,7 +216,9 @@ def light_section(points: dict[str, dict[str, list]], corners: str = "edge") -> 
             "(in quadrature); the translation error along the tilt mode per px of gradient (RMS over "
             f"RMS; `light_gradient_tilt_gain` states {config.light_gradient_tilt_gain:.2f}; other errors "
             "along the same direction make it an upper bound), how the size of that error ranks with "
-            "the gradient and with the fitted tags' mean edge shift (Spearman over the set's frames) "
+            "the gradient and with the fitted tags' mean edge shift (Spearman over the set's frames), "
+            "the same error per px of mean edge shift (RMS over RMS; `edge_shift_tilt_gain` states "
+            f"{config.edge_shift_tilt_gain:.3f}, beyond what the other terms state along the tilt) "
             "and the depth error over the sigma the "
             f"other terms state (RMS; above 1: the light terms are needed).\n\n{report.md_table(head, rows)}")
 
@@ -334,7 +339,7 @@ def main(argv: list[str] | None = None) -> int:
             "bound's size against the error (sharpness; in brackets what a Gaussian with each "
             "frame's covariance would give) and how well `reliability` ranks frames by error "
             "(Spearman), on every blender_dev set and on `ficap synth` drives (one frame a second; "
-            "what the light gradient gains of `UncertaintyConfig` were calibrated on), ours and the "
+            "what the light gains of `UncertaintyConfig` were calibrated on), ours and the "
             "naive peer; which covariance terms state the depth error; then the leave-one-set-out fit "
             "of the shared corner offset's gains on blender_dev and its check on the synth drives.")
     report.write_section("uncertainty", what, report.how("bench_uncertainty.py", "fewer frames per set"),

@@ -66,8 +66,7 @@ def record_terms() -> Iterator[list[tuple[np.ndarray, dict, dict]]]:
     """Within the block, every ``uncertainty_terms`` call of ``ficap_ros.vision.pose`` appends
     (the pose's translation, terms, seen) to the yielded list (``terms_of`` picks a pose's); the
     recorded ``seen`` also holds ``light_gradient_floor`` (``light_gradient_floor_px``, 0 when the
-    call had no edge shifts) and ``edge_shift_mean`` (the fitted tags' mean edge shift, px; NaN
-    without any)."""
+    call had no edge shifts)."""
     calls: list[tuple[np.ndarray, dict, dict]] = []
     original = pose_module.uncertainty_terms
 
@@ -75,11 +74,7 @@ def record_terms() -> Iterator[list[tuple[np.ndarray, dict, dict]]]:
         terms, seen = original(obs, T, *args, **kwargs)
         shifts = args[1] if len(args) > 1 else kwargs.get("edge_shift_px")
         floor = 0.0 if shifts is None else light_gradient_floor_px(shifts, obs.image_px.mean(axis=1))
-        fitted = np.asarray([] if shifts is None else shifts, dtype=float)
-        fitted = fitted[np.isfinite(fitted)]
-        mean = float(fitted.mean()) if fitted.size else float("nan")
-        calls.append((np.array(T.translation_m), terms,
-                      {**seen, "light_gradient_floor": floor, "edge_shift_mean": mean}))
+        calls.append((np.array(T.translation_m), terms, {**seen, "light_gradient_floor": floor}))
         return terms, seen
 
     pose_module.uncertainty_terms = recording

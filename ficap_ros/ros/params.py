@@ -181,6 +181,9 @@ PARAMETERS: tuple[ParamSpec, ...] = (
     ParamSpec("uncertainty.light_gradient_tilt_gain", _UNCERTAINTY.light_gradient_tilt_gain,
               "Covariance: shared shift of the tags along their foreshortening per px of the "
               "frame's light gradient (the mode that moves the depth).", range=(0.0, 10.0)),
+    ParamSpec("uncertainty.edge_shift_tilt_gain", _UNCERTAINTY.edge_shift_tilt_gain,
+              "Covariance: that shared shift, px edge-on, per px of the tags' mean edge shift (the "
+              "light's strength), beyond what the other terms state along it.", range=(0.0, 10.0)),
     ParamSpec("uncertainty.tilt_shift_px", _UNCERTAINTY.tilt_shift_px,
               "Covariance floor: that shared shift, px at a tag seen edge-on (0 = none; values for "
               "small blurred tags in docs/benchmarks.md).", range=(0.0, 10.0)),
@@ -343,6 +346,7 @@ class NodeConfig:
     uncertainty_focal_rel: float
     uncertainty_light_gradient_gain: float
     uncertainty_light_gradient_tilt_gain: float
+    uncertainty_edge_shift_tilt_gain: float
     uncertainty_tilt_shift_px: float
     uncertainty_motion_blur_gain: float
     uncertainty_motion_blur_shift_gain: float

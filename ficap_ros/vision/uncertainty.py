@@ -11,7 +11,9 @@ changes) of
     the corner errors neighbouring tags share, which the pose absorbs without residuals: uneven
         light (a spotlight) moves every tag's edges toward its darker side; its measure is how the
         tags' fitted edge shifts vary across the cap (``light_gradient_px``), scaled into noise the
-        pose absorbs and into a shift of every tag along its foreshortening (the depth's mode);
+        pose absorbs; and a strong light's edge shifts leave every tag's corners shifted along its
+        foreshortening (the depth's mode) by an amount that follows the tags' mean edge shift (the
+        light's strength), stated where it exceeds what the other terms already state there;
         and the edge corners' own bias, the same in every tag of a frame (one blur, one tone curve,
         one fit), a radial offset the pose takes into the depth: its size follows the frame's
         corner noise over its cell width (``shared_bias_ratio``);
@@ -57,8 +59,12 @@ from functools import lru_cache
 import numpy as np
 
 from ficap_ros.errors import ConfigError
-from ficap_ros.geometry.tag36h11 import TAG_CELLS
 from ficap_ros.geometry.transform import Transform
+from ficap_ros.vision.frame_measures import (
+    edge_shift_mean_px,
+    light_gradient_px,
+    shared_bias_ratio,
+)
 from ficap_ros.vision.reprojection import (
     TagObservations,
     median,
@@ -71,8 +77,6 @@ __all__ = [
     "tag_noise_px",
     "tag_noise_from_residuals",
     "reweighted",
-    "light_gradient_px",
-    "shared_bias_ratio",
     "uncertainty_terms",
     "uncertainty_sources",
     "combine_uncertainty",
@@ -95,7 +99,12 @@ class UncertaintyConfig:
     to the tags' edge shifts over their image positions); ``light_gradient_gain`` turns it into
     corner noise the pose absorbs, and ``light_gradient_tilt_gain`` into a shift of every tag along
     its foreshortening (the projected normal, times the sine of the view angle), the mode that
-    moves the depth.
+    moves the depth. A spotlight centred on the cap has no linear slope, yet its edge shifts still
+    leave such a shift: what sizes it in the edge corners is the light's strength, the fitted tags'
+    mean edge shift (``seen["edge_shift_mean"]``). ``edge_shift_tilt_gain`` times it is the shift's
+    sigma, px edge-on, counted only beyond the variance the other terms already state along the
+    same direction (``uncertainty_sources``): the residual and common-offset terms cover most of it
+    where the corners show it.
 
     The corner stage's own bias is shared too: every tag of a frame has the same blur and tone
     curve and goes through the same fit, so what the fit leaves of the tone curve's edge shift
@@ -110,7 +119,7 @@ class UncertaintyConfig:
     it better for the edge corners: ``common_offset_gain`` times it is a mean error of the frame
     (``uncertainty_bounds``), and the edge profile uses it in place of the ratio.
 
-    The light gradient gains and ``residual_inflation`` are calibrated on ``ficap synth`` drives
+    The light gains and ``residual_inflation`` are calibrated on ``ficap synth`` drives
     (the smallest bounds whose rotation and translation bounds cover at least 90 % in every
     lighting and resolution condition); ``common_offset_gain`` and ``shared_bias_gain`` jointly
     on the path-traced development renders (of the gains whose translation bounds cover at least
@@ -142,8 +151,9 @@ class UncertaintyConfig:
             tone curve move dark borders), independent per tag, px.
         corner_bias_common_px: the same offset shared by every tag of a frame, px (a floor).
         shared_bias_gain: sigma of the edge corners' radial offset shared by every tag, px per
-            unit of the frame's ``shared_bias_ratio`` (its corner noise over its cell width). 0
-            by default: the edge profile states the offset by ``common_offset_gain``.
+            unit of the frame's ``shared_bias_ratio`` (its corner noise over its cell width). The
+            edge profile states the offset mainly by ``common_offset_gain``; this term is the
+            small part the joint fit adds beside it.
         common_offset_gain: factor on the tags' common radial offset as the residuals show it
             (``uncertainty_bounds``: a measured mean error). For corners whose tone-curve bias is
             removed the estimate is the small part the depth left, scaled back, and understates
@@ -160,7 +170,10 @@ class UncertaintyConfig:
         residual_inflation: factor (>= 1) on the residual-based sigmas.
         light_gradient_gain: corner noise absorbed by the pose per px of ``light_gradient_px``.
         light_gradient_tilt_gain: shared shift of the tags along their foreshortening per px of
-            ``light_gradient_px``.
+            ``light_gradient_px``. 0 in the edge profile (``edge_shift_tilt_gain`` states it).
+        edge_shift_tilt_gain: shared shift of the tags along their foreshortening (px edge-on) per
+            px of the fitted tags' mean edge shift, beyond what the other terms state along it.
+            0 in the ``photometric`` and ``uncorrected`` profiles (their light gradient term).
         tilt_shift_px: floor for that shared shift, px at a tag seen edge-on. 0 by default: no
             residual reveals it, and it arises where tags are small and blurred (the corner fit's
             bias on small foreshortened cells) under a light beside the lens, which lights each
@@ -186,7 +199,7 @@ class UncertaintyConfig:
     corner_noise_px: float = 0.002
     corner_bias_px: float = 0.002
     corner_bias_common_px: float = 0.002
-    shared_bias_gain: float = 0.0
+    shared_bias_gain: float = 0.15
     common_offset_gain: float = 2.0
     model_mm: float = 0.0
     model_deg: float = 0.0
@@ -194,7 +207,8 @@ class UncertaintyConfig:
     focal_rel: float = 0.0
     residual_inflation: float = 1.0
     light_gradient_gain: float = 0.3
-    light_gradient_tilt_gain: float = 0.35
+    light_gradient_tilt_gain: float = 0.0
+    edge_shift_tilt_gain: float = 0.05
     tilt_shift_px: float = 0.0
     weight_tags: bool = True
     motion_blur_gain: float = 0.1
@@ -207,7 +221,7 @@ class UncertaintyConfig:
                   self.model_mm, self.model_deg, self.principal_point_px, self.focal_rel,
                   self.light_gradient_gain, self.light_gradient_tilt_gain, self.tilt_shift_px,
                   self.motion_blur_gain, self.motion_blur_shift_gain, self.shared_bias_gain,
-                  self.common_offset_gain)
+                  self.common_offset_gain, self.edge_shift_tilt_gain)
         if not all(np.isfinite(v) and v >= 0 for v in values):
             raise ConfigError("uncertainty sigmas and gains must be finite and >= 0")
         if self.corner_noise_px <= 0:
@@ -232,12 +246,13 @@ class UncertaintyConfig:
 #: defaults (the ``edge`` profile). The photometric corners leave less of the tilt under uneven
 #: light and a smaller shared bias, which their profile states from the corner-noise ratio
 #: (``bench_uncertainty.py --photometric``). Uncorrected corners use the measured common offset
-#: as measured, with the ratio term beside it.
+#: as measured, with the ratio term beside it. Both state the tilt by the light gradient.
 _CORNER_PROFILES: dict[str, dict[str, float]] = {
     "edge": {},
-    "photometric": {"light_gradient_tilt_gain": 0.1, "shared_bias_gain": 0.75,
-                    "common_offset_gain": 0.0},
-    "uncorrected": {"common_offset_gain": 1.0, "shared_bias_gain": 0.95},
+    "photometric": {"light_gradient_tilt_gain": 0.1, "edge_shift_tilt_gain": 0.0,
+                    "shared_bias_gain": 0.75, "common_offset_gain": 0.0},
+    "uncorrected": {"light_gradient_tilt_gain": 0.35, "edge_shift_tilt_gain": 0.0,
+                    "common_offset_gain": 1.0, "shared_bias_gain": 0.95},
 }
 CORNER_ESTIMATORS = tuple(_CORNER_PROFILES)
 
@@ -318,46 +333,6 @@ def reweighted(obs: TagObservations, T: Transform) -> tuple[Transform, np.ndarra
     if not np.all(np.isfinite(dx)):
         return T, sigma
     return T.turned(dx[:3], T.translation_m + dx[3:]), sigma
-
-
-def light_gradient_px(edge_shift_px: np.ndarray, centres_px: np.ndarray) -> float:
-    """How unevenly the light moves the tags' edges across the cap, px: the spread (standard
-    deviation over the tags) of a plane fitted to the tags' measured edge shifts
-    (``TagDetection.edge_shift_px``) over their image positions. The smooth part only: a tag's own
-    edge shift scatters with its noise and view angle, a spotlight's gradient is shared by its
-    neighbours. 0 with fewer than six fitted tags (too few to tell a gradient from scatter)."""
-    es = np.asarray(edge_shift_px, dtype=float)
-    ok = np.isfinite(es)
-    if ok.sum() < 6:
-        return 0.0
-    c = np.asarray(centres_px, dtype=float)[ok]
-    c = (c - c.mean(axis=0)) / max(float(np.ptp(c, axis=0).max()), 1e-9)
-    X = np.column_stack([np.ones(len(c)), c])
-    # The normal equations (3 x 3; the columns are centred and scaled to about 1, so they are
-    # as well conditioned as X), not lstsq's SVD; a degenerate layout (tags on a line) as lstsq.
-    try:
-        coef = np.linalg.solve(X.T @ X, X.T @ es[ok])
-    except np.linalg.LinAlgError:
-        coef, *_ = np.linalg.lstsq(X, es[ok], rcond=None)
-    return float(np.std(X @ coef))
-
-
-def shared_bias_ratio(corners_px: np.ndarray, tag_sigma_px: np.ndarray) -> float:
-    """The frame's corner noise over its cell width (dimensionless): the median of the tags'
-    corner noise (``tag_noise_px``, px) over the median tag's cell width (its mean side over the
-    ``TAG_CELLS`` cells across, px). What sets the edge corners' shared bias
-    (``UncertaintyConfig.shared_bias_gain``): the corner stage measures the tone curve's edge
-    shift across one cell, and its error grows with the blur and noise of the edges (the corner
-    noise) against the cell they are measured over.
-
-    Args:
-        corners_px: (tags, 4, 2) the tags' corners, px.
-        tag_sigma_px: (tags,) each tag's corner noise, px.
-    """
-    c = np.asarray(corners_px, dtype=float)
-    side_px = np.linalg.norm(c - np.roll(c, -1, axis=1), axis=2).mean(axis=1)
-    cell_px = max(median(side_px) / TAG_CELLS, 1e-6)
-    return median(tag_sigma_px) / cell_px
 
 
 def _model_geometry(obs: TagObservations) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -448,6 +423,7 @@ def uncertainty_terms(
             absorbed (the weighted hat matrix's leverage of the group), and ``bias_common``, the
             tags' mean radial offset (px per corner), scaled back by the share of it the fit left
             in the residuals; ``light_gradient`` (``light_gradient_px``), px;
+            ``edge_shift_mean`` (``edge_shift_mean_px``), px;
             ``shared_bias_ratio`` (``shared_bias_ratio`` of the tags' corner noise from these
             residuals: ``tag_noise_from_residuals``); per pattern
             group also ``<group>_dof``, the degrees of freedom its sigma was pooled from (the
@@ -471,6 +447,7 @@ def uncertainty_terms(
     seen["bias_common"] = _common_offset_px(common, w, J, A, mean_scale, seen["scale"], n_tags)
     seen["light_gradient"] = (0.0 if edge_shift_px is None
                               else light_gradient_px(edge_shift_px, obs.image_px.mean(axis=1)))
+    seen["edge_shift_mean"] = edge_shift_mean_px(edge_shift_px)
     seen["shared_bias_ratio"] = shared_bias_ratio(obs.image_px, tag_noise_from_residuals(res, n_tags))
     if motion_term is not None:
         terms["motion_prior"] = motion_term
@@ -612,7 +589,9 @@ def uncertainty_sources(terms: dict[str, np.ndarray], seen: dict[str, float],
                         config: UncertaintyConfig) -> dict[str, np.ndarray]:
     """The pose covariance's parts (6x6 each, ROS order), by source: ``residual_<group>`` (each
     pattern group of ``_PATTERNS`` at the sigma the residuals show), ``light_noise`` and
-    ``light_tilt`` (the frame's ``light_gradient`` times the gains), ``shared_bias`` (the edge
+    ``light_tilt`` (the frame's ``light_gradient`` times the gains), ``light_shift_tilt`` (the
+    frame's ``edge_shift_mean`` times ``edge_shift_tilt_gain``, beyond what the other parts state
+    along the tilt: ``_beyond_px2``), ``shared_bias`` (the edge
     corners' radial offset shared by the tags: the frame's ``shared_bias_ratio`` times
     ``shared_bias_gain``), ``common_offset`` (the measured common radial offset times
     ``common_offset_gain``, a mean error: ``uncertainty_bounds``) and the floors
@@ -643,7 +622,24 @@ def uncertainty_sources(terms: dict[str, np.ndarray], seen: dict[str, float],
     if "blur" in terms:
         parts["motion_blur"] = (c.motion_blur_gain**2 * terms["blur"]
                                 + c.motion_blur_shift_gain**2 * terms["blur_shift"])
+    if c.edge_shift_tilt_gain > 0.0:
+        shift_px = c.edge_shift_tilt_gain * abs(seen.get("edge_shift_mean", 0.0))
+        parts["light_shift_tilt"] = _beyond_px2(shift_px, terms["tilt"], parts) * terms["tilt"]
     return parts
+
+
+def _beyond_px2(sigma_px: float, tilt: np.ndarray, parts: dict[str, np.ndarray]) -> float:
+    """The variance (px^2, edge-on) of a shift along the tilt mode of sigma ``sigma_px`` that
+    ``parts`` (6x6 covariances, ROS order) do not state already: sigma^2 less their variance
+    along the mode's translation (in px^2 of the mode), at least 0. ``tilt``: the mode's unit
+    covariance a a^T (``uncertainty_terms``' ``tilt``), rank one."""
+    a2 = tilt[:3, :3]
+    norm2 = float(np.trace(a2))  # |a_t|^2, m^2 per px^2
+    if not (sigma_px > 0.0 and np.isfinite(norm2) and norm2 > 0.0):
+        return 0.0
+    other = sum(parts.values())[:3, :3]
+    stated_px2 = float(np.sum(a2 * other)) / norm2**2  # a_t^T C a_t / |a_t|^4
+    return max(sigma_px**2 - stated_px2, 0.0) if np.isfinite(stated_px2) else sigma_px**2
 
 
 def combine_uncertainty(terms: dict[str, np.ndarray], seen: dict[str, float],

@@ -14,14 +14,13 @@ from ficap_ros.geometry.transform import Transform
 from ficap_ros.tools.synth import default_scene
 from ficap_ros.vision.detector import TagDetection
 from ficap_ros.vision.error_bounds import error_bound95
+from ficap_ros.vision.frame_measures import shared_bias_ratio
 from ficap_ros.vision.pose import PoseConfig, estimate_cap_pose
 from ficap_ros.vision.reprojection import TagObservations
 from ficap_ros.vision.tracking import view_angles_deg
 from ficap_ros.vision.uncertainty import (
     UncertaintyConfig,
     combine_uncertainty,
-    light_gradient_px,
-    shared_bias_ratio,
     uncertainty_bounds,
     uncertainty_sources,
     uncertainty_terms,
@@ -217,20 +216,16 @@ def test_noisy_tags_weighted_down() -> None:
     assert np.mean(err_w <= bound_w) >= 0.9
 
 
-def test_light_gradient_px() -> None:
-    rng = np.random.default_rng(2)
-    centres = rng.uniform(0.0, 400.0, (15, 2))
-    plane = 0.2 + 0.5 * (centres[:, 0] - centres[:, 0].mean()) / np.ptp(centres, axis=0).max()
-    assert light_gradient_px(plane, centres) == pytest.approx(np.std(plane), rel=1e-9)
-    assert light_gradient_px(np.full(15, 0.4), centres) == pytest.approx(0.0, abs=1e-12)
-    few = np.full(15, np.nan)
-    few[:5] = plane[:5]
-    assert light_gradient_px(few, centres) == 0.0  # too few fitted tags to tell a gradient
+
+
+#: The light terms by the gradient alone (the profiles of the photometric and uncorrected corners).
+GRADIENT_ONLY = UncertaintyConfig(light_gradient_tilt_gain=0.35, edge_shift_tilt_gain=0.0)
 
 
 def test_uneven_light_widens_the_bound() -> None:
-    """Edge shifts that vary smoothly across the cap (a spotlight) widen the bounds; the same shift
-    on every tag (even light: the cell fit removed it) or no cell fit leaves them as they were."""
+    """With the light stated by its gradient: edge shifts that vary smoothly across the cap (a
+    spotlight) widen the bounds; the same shift on every tag (even light: the cell fit removed it)
+    or no cell fit leaves them as they were."""
     T = _truth(10.0)
     exact = _exact_corners(T)
     rng = np.random.default_rng(4)
@@ -238,7 +233,7 @@ def test_uneven_light_widens_the_bound() -> None:
     x = np.array([c[:, 0].mean() for c in corners.values()])
     ramp = 0.2 + 0.6 * (x - x.min()) / np.ptp(x)
 
-    def bounds(shifts, config=PoseConfig()):  # noqa: ANN001, ANN202
+    def bounds(shifts, config=PoseConfig(uncertainty=GRADIENT_ONLY)):  # noqa: ANN001, ANN202
         dets = [TagDetection(i, c, edge_shift_px=s) for (i, c), s in zip(corners.items(), shifts)]
         p = estimate_cap_pose(dets, MODEL, CAM, config).pose
         assert p is not None
@@ -248,7 +243,7 @@ def test_uneven_light_widens_the_bound() -> None:
     even = bounds([0.4] * len(corners))
     uneven = bounds(ramp)
     assert even == pytest.approx(none, rel=1e-9)
-    # With the default gains this 0.6 px ramp widens both bounds well beyond 1.3x; the term grows
+    # With these gains this 0.6 px ramp widens both bounds well beyond 1.3x; the term grows
     # with the gains.
     assert uneven[0] > 1.3 * none[0] and uneven[1] > 1.3 * none[1]
     stronger = bounds(ramp, PoseConfig(uncertainty=UncertaintyConfig(light_gradient_gain=0.6,
@@ -256,15 +251,47 @@ def test_uneven_light_widens_the_bound() -> None:
     assert stronger[0] > uneven[0] and stronger[1] > uneven[1]
 
 
-def test_shared_bias_ratio() -> None:
-    """The frame's corner noise over its cell width: the median tag's noise over the median tag's
-    side / 8 cells."""
-    square = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
-    corners = np.stack([40.0 * square, 48.0 * square + 100.0, 32.0 * square + 300.0])
-    assert shared_bias_ratio(corners, np.array([0.3, 0.1, 0.2])) == pytest.approx(0.2 / 5.0, rel=1e-12)
-    # A tag seen obliquely (half as wide): its mean side is 3/4 of the square's.
-    oblique = 40.0 * square * np.array([0.5, 1.0])
-    assert shared_bias_ratio(oblique[None], np.array([0.15])) == pytest.approx(0.15 / 3.75, rel=1e-12)
+
+
+def _tilt_stated_px2(terms: dict, seen: dict, config: UncertaintyConfig, parts: set[str] | None = None) -> float:
+    """The variance the covariance (or its ``parts``) states along the tilt mode's translation,
+    in px^2 of the mode."""
+    sources = uncertainty_sources(terms, seen, config)
+    cov = sum(p for k, p in sources.items() if parts is None or k in parts)[:3, :3]
+    a2 = terms["tilt"][:3, :3]
+    return float(np.sum(a2 * cov)) / float(np.trace(a2)) ** 2
+
+
+def test_edge_shift_tilt_is_counted_beyond_the_other_terms() -> None:
+    """The light's tilt at sigma gain x |mean edge shift| (px edge-on) is stated along the tilt
+    mode only where the other terms state less there: along it the covariance states the larger
+    of the two, never their sum, and a frame without edge shifts gets none."""
+    T = _truth(10.0)
+    rng = np.random.default_rng(5)
+    corners = {i: c + rng.normal(0.0, 0.05, (4, 2)) for i, c in _exact_corners(T).items()}
+    obs = TagObservations.of({i: CAM.undistort_px(c) for i, c in corners.items()}, MODEL, CAM.K)
+    terms, seen = uncertainty_terms(obs, T, edge_shift_px=np.full(len(obs), 0.6))
+    assert seen["edge_shift_mean"] == pytest.approx(0.6, rel=1e-12)
+    off = UncertaintyConfig(edge_shift_tilt_gain=0.0)
+    others = _tilt_stated_px2(terms, seen, off)
+    assert others > 0.0
+    for gain in (0.1 * np.sqrt(others) / 0.6, 10.0 * np.sqrt(others) / 0.6):
+        cfg = UncertaintyConfig(edge_shift_tilt_gain=gain)
+        sigma2 = (gain * 0.6) ** 2
+        assert _tilt_stated_px2(terms, seen, cfg) == pytest.approx(max(sigma2, others), rel=1e-9)
+        part = uncertainty_sources(terms, seen, cfg)["light_shift_tilt"]
+        np.testing.assert_allclose(part, max(sigma2 - others, 0.0) * terms["tilt"], rtol=1e-9, atol=1e-30)
+    # The sign of the shift is immaterial; no edge shifts, no term.
+    neg = {**seen, "edge_shift_mean": -0.6}
+    cfg = UncertaintyConfig(edge_shift_tilt_gain=1.0)
+    np.testing.assert_allclose(combine_uncertainty(terms, neg, cfg), combine_uncertainty(terms, seen, cfg),
+                               rtol=1e-12)
+    bare, bare_seen = uncertainty_terms(obs, T)
+    assert bare_seen["edge_shift_mean"] == 0.0
+    np.testing.assert_allclose(combine_uncertainty(bare, bare_seen, cfg), combine_uncertainty(bare, bare_seen, off),
+                               rtol=1e-12)
+
+
 
 
 def _with_common_offset(corners: dict[int, np.ndarray], offset_px: float, noise_px: float,
