@@ -265,6 +265,18 @@ def robust_grouped_solve(jac: np.ndarray, s: np.ndarray, contrast: np.ndarray, t
     return sol, solved, keep
 
 
+@njit(inline="always", error_model="numpy")
+def _gather_finite(values: np.ndarray, mask: np.ndarray, lo: int, hi: int, out: np.ndarray) -> int:
+    """Copies the finite ``values[lo:hi]`` where ``mask`` is set to the start of ``out``; their
+    count."""
+    m = 0
+    for r in range(lo, hi):
+        if mask[r] and math.isfinite(values[r]):
+            out[m] = values[r]
+            m += 1
+    return m
+
+
 @njit(error_model="numpy")
 def edge_fit_round(img: np.ndarray, h: np.ndarray, tag_of: np.ndarray, uv: np.ndarray, nu: np.ndarray,
                    vertical: np.ndarray, keep: np.ndarray, starts: np.ndarray, search_px: float, k: int,
@@ -312,11 +324,7 @@ def edge_fit_round(img: np.ndarray, h: np.ndarray, tag_of: np.ndarray, uv: np.nd
     scratch = np.empty(t_rows)
     for g in range(n):
         end = starts[g + 1] if g + 1 < n else t_rows
-        m = 0
-        for r in range(starts[g], end):
-            if keep[r] and math.isfinite(contrast[r]):
-                scratch[m] = contrast[r]
-                m += 1
+        m = _gather_finite(contrast, keep, starts[g], end, scratch)
         top = 0.0
         if m:
             top = np.sort(scratch[:m])[max(int(np.rint(0.9 * (m - 1))), 0)]
@@ -419,18 +427,10 @@ def _border_inliers(d: np.ndarray, valid: np.ndarray, starts: np.ndarray) -> np.
     scratch = np.empty(t)
     for g in range(n):
         end = starts[g + 1] if g + 1 < n else t
-        m = 0
-        for r in range(starts[g], end):
-            if valid[r] and math.isfinite(d[r]):
-                scratch[m] = d[r]
-                m += 1
+        m = _gather_finite(d, valid, starts[g], end, scratch)
         med = _median_of_sorted(np.sort(scratch[:m])) if m else 0.0
-        m = 0
-        for r in range(starts[g], end):
-            a = abs(d[r] - med)
-            if valid[r] and math.isfinite(a):
-                scratch[m] = a
-                m += 1
+        for i in range(m):  # the same samples: |d - med| is finite where d is
+            scratch[i] = abs(scratch[i] - med)
         mad = 1.4826 * (_median_of_sorted(np.sort(scratch[:m])) if m else 0.0)
         limit = max(3.0 * mad, 0.1)
         for r in range(starts[g], end):
