@@ -337,6 +337,17 @@ def edge_fit_round(img: np.ndarray, h: np.ndarray, tag_of: np.ndarray, uv: np.nd
     return robust_grouped_solve(jac, s, contrast, top_c, ok, vertical, starts, 8, min_rows, min_per_direction)
 
 
+@njit(inline="always", error_model="numpy")
+def _cell_px(c: np.ndarray) -> float:
+    """A tag's cell width, px: its shortest side (corners ``c`` (4, 2)) over the 8 cells across."""
+    cell = np.inf
+    for j in range(4):
+        e = (j + 1) % 4
+        ex, ey = c[e, 0] - c[j, 0], c[e, 1] - c[j, 1]
+        cell = min(cell, math.sqrt(ex * ex + ey * ey))
+    return cell / 8.0
+
+
 #: Side k's previous side (the line it meets at corner k).
 _PREV = (3, 0, 1, 2)
 
@@ -524,12 +535,7 @@ def border_unbias(img: np.ndarray, c_in: np.ndarray, nrm: np.ndarray, rho: np.nd
     delta, corners = _pooled_corners(d, keep, tag_of, side, nrm, rho, prior)
     out = c_in.copy()
     for g in range(n):
-        cell = np.inf
-        for j in range(4):
-            e = (j + 1) % 4
-            ex, ey = c_in[g, e, 0] - c_in[g, j, 0], c_in[g, e, 1] - c_in[g, j, 1]
-            cell = min(cell, math.sqrt(ex * ex + ey * ey))
-        cell /= 8.0
+        cell = _cell_px(c_in[g])
         limit = min(cell / 3.0, 2.0)
         sane = usable[g]
         for j in range(4):
@@ -598,12 +604,7 @@ def tag_noise_ratios(img: np.ndarray, corners: np.ndarray, hom: np.ndarray, blac
         for j in range(112):
             dev[j] = abs(steps[j] - med)
         noise_sd = mad_sd * _masked_median(dev, same, scratch) / math.sqrt(2.0)
-        cell = np.inf
-        for k in range(4):
-            e = (k + 1) % 4
-            ex, ey = corners[g, e, 0] - corners[g, k, 0], corners[g, e, 1] - corners[g, k, 1]
-            cell = min(cell, math.sqrt(ex * ex + ey * ey))
-        cell /= 8.0
+        cell = _cell_px(corners[g])
         ratio = noise_sd / (max(contrast, min_contrast) * math.sqrt(max(cell, 1e-6)))
         out[g] = ratio if same.any() else np.inf
     return out
