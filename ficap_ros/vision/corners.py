@@ -157,16 +157,16 @@ def _cell_edge_samples(tag_id: int) -> tuple[np.ndarray, np.ndarray]:
 @lru_cache(maxsize=256)
 def _stacked(
     table: Callable[[int], tuple[np.ndarray, ...]], ids: tuple[int, ...],
-) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[np.ndarray]]:
-    """The per-tag sample ``table`` of each id stacked tag after tag: (counts (N,), tag of each
-    sample (T,), first sample of each tag (N,), the tables' columns concatenated). Cached: a
-    tracked cap shows the same ids frame after frame."""
+) -> tuple[np.ndarray, np.ndarray, list[np.ndarray]]:
+    """The per-tag sample ``table`` of each id stacked tag after tag: (tag of each sample (T,),
+    first sample of each tag (N,), the tables' columns concatenated). Cached: a tracked cap shows
+    the same ids frame after frame."""
     tables = [table(i) for i in ids]
     counts = np.array([len(t[0]) for t in tables])
     starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
     columns = [np.concatenate([t[k] for t in tables]) for k in range(len(tables[0]))]
-    out = counts, np.repeat(np.arange(len(tables)), counts), starts, columns
-    for a in (*out[:3], *columns):
+    out = np.repeat(np.arange(len(tables)), counts), starts, columns
+    for a in (*out[:2], *columns):
         a.setflags(write=False)
     return out
 
@@ -390,7 +390,7 @@ def unbias_corners_edge(
     c_in = np.ascontiguousarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
     if len(c_in) == 0:
         return c_in.copy()
-    _, tag_of, starts, (side, uv) = _stacked(_inner_edge_samples, tuple(int(i) for i in ids))
+    tag_of, starts, (side, uv) = _stacked(_inner_edge_samples, tuple(int(i) for i in ids))
     nrm, rho = side_lines(c_in) if lines is None else lines
     try:
         hom = tag_homographies(c_in)
@@ -440,7 +440,7 @@ def fit_tag_edges(
     delta = np.full(n, np.nan)
     if n == 0:
         return c_in.copy(), delta
-    counts, tag_of, starts, (uv, nu) = _stacked(_cell_edge_samples, tuple(int(i) for i in ids))
+    tag_of, starts, (uv, nu) = _stacked(_cell_edge_samples, tuple(int(i) for i in ids))
     try:
         h = tag_homographies(c_in).reshape(n, 9)[:, :8].copy()
     except np.linalg.LinAlgError:

@@ -22,7 +22,7 @@ import math
 import numpy as np
 
 from ficap_ros.vision.jit import njit, register_warm_up
-from ficap_ros.vision.kernels import area_steps, frozen
+from ficap_ros.vision.kernels import _masked_median, area_steps, frozen
 
 __all__ = ["border_unbias", "boundary_rows", "edge_fit_round", "tag_noise_ratios", "grouped_normal_equations", "grouped_residuals", "grouped_solve",
            "robust_grouped_solve"]
@@ -238,16 +238,10 @@ def robust_grouped_solve(jac: np.ndarray, s: np.ndarray, contrast: np.ndarray, t
     scratch = np.empty(t_rows)
     for g in range(n):
         end = starts[g + 1] if g + 1 < n else t_rows
-        m = 0
-        for r in range(starts[g], end):
-            a = abs(resid[r])
-            if ok[r] and math.isfinite(a):
-                scratch[m] = a
-                m += 1
-        med = 0.0
-        if m:
-            srt = np.sort(scratch[:m])
-            med = 0.5 * (srt[(m - 1) // 2] + srt[m // 2])
+        m = _gather_finite(resid, ok, starts[g], end, scratch)
+        for i in range(m):  # |resid| is finite where resid is
+            scratch[i] = abs(scratch[i])
+        med = _median_of_sorted(np.sort(scratch[:m])) if m else 0.0
         limit = max(3.5 * (1.4826 * med), 0.05)
         for r in range(starts[g], end):
             keep[r] = ok[r] and abs(resid[r]) <= limit
@@ -544,17 +538,6 @@ def border_unbias(img: np.ndarray, c_in: np.ndarray, nrm: np.ndarray, rho: np.nd
         if sane:
             out[g] = corners[g]
     return out
-
-
-@njit(inline="always", error_model="numpy")
-def _masked_median(x: np.ndarray, mask: np.ndarray, scratch: np.ndarray) -> float:
-    """``medians.row_median`` of one row: ``np.median`` of ``x`` where ``mask``, 0.0 for none."""
-    m = 0
-    for i in range(len(x)):
-        if mask[i]:
-            scratch[m] = x[i]
-            m += 1
-    return _median_of_sorted(np.sort(scratch[:m])) if m else 0.0
 
 
 @njit(error_model="numpy")

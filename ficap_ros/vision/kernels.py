@@ -338,9 +338,9 @@ def _one_line_pass(img: np.ndarray, corners: np.ndarray, cell_px: np.ndarray, se
     near = not (lo >= reach and hi_x <= w_img - 1 - reach and hi_y <= h_img - 1 - reach)
     normal, rho, kept = edge_lines(img, a, d, nrm, half, t, k, near)
     new = corners.copy()
+    cs = np.empty((4, 2))  # every entry written before new[g] copies it
     for g in range(n):
         good = True
-        cs = np.empty((4, 2))
         for c in range(4):
             p, q = 4 * g + (c + 3) % 4, 4 * g + c
             a11, a12, r1 = normal[p, 0], normal[p, 1], rho[p]

@@ -193,7 +193,7 @@ def test_boundary_rows_equal_numpy(seed: int) -> None:
     """Every cell boundary of the scene's tags (one seen obliquely by its random corners)."""
     _, corners = two_tag_scene(seed)
     ids = (5, 6)
-    _, tag_of, _, (uv, nu) = corners_mod._stacked(corners_mod._cell_edge_samples, ids)
+    tag_of, _, (uv, nu) = corners_mod._stacked(corners_mod._cell_edge_samples, ids)
     h = tag_homographies(corners).reshape(len(corners), 9)[:, :8].copy()
     frames, rows = boundary_rows(h, tag_of, uv, nu)
     want_frames, want_rows = boundary_rows_numpy(h, tag_of, uv, nu)
@@ -229,7 +229,8 @@ def test_edge_fit_round_equals_numpy_exactly(seed: int) -> None:
     every sample, then with those the first round kept: numpy's solutions, flags and kept samples."""
     img, corners = two_tag_scene(seed)
     start = corners + np.random.default_rng(seed).normal(0.0, 0.5, corners.shape)
-    counts, tag_of, starts, (uv, nu) = corners_mod._stacked(corners_mod._cell_edge_samples, (5, 6))
+    tag_of, starts, (uv, nu) = corners_mod._stacked(corners_mod._cell_edge_samples, (5, 6))
+    counts = np.bincount(tag_of, minlength=len(starts))
     h = tag_homographies(start).reshape(2, 9)[:, :8].copy()
     keep = np.ones(len(uv), dtype=bool)
     vertical = np.abs(nu[:, 0]) > 0.5
@@ -252,7 +253,8 @@ def _unbias_numpy(gray, corners_px, ids, cfg):  # noqa: ANN001, ANN202
     n = len(c_in)
     if n == 0:
         return c_in.copy()
-    counts, tag_of, starts, (side, uv) = corners_mod._stacked(corners_mod._inner_edge_samples, tuple(int(i) for i in ids))
+    tag_of, starts, (side, uv) = corners_mod._stacked(corners_mod._inner_edge_samples, tuple(int(i) for i in ids))
+    counts = np.bincount(tag_of, minlength=len(starts))
     # uv on the outer edge straight across from each inner sample (one cell out).
     uv_out = uv + corners_mod._SIDE_OUT[side]
     nrm, rho = side_lines(c_in) if lines is None else lines
