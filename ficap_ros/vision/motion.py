@@ -39,6 +39,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 from scipy.optimize import leastsq
@@ -169,7 +170,10 @@ class MotionPrior:
     config: MotionConfig = field(default_factory=MotionConfig)
     following: tuple[PastPose, ...] = ()
 
-    @property
+    # usable, two_sided and neighbours are cached: the fields are frozen, and the solvers call
+    # ``at`` on every iteration.
+
+    @cached_property
     def usable(self) -> tuple[PastPose, ...]:
         """The past poses the prior uses: at most three, each older than the one before."""
         out: list[PastPose] = []
@@ -188,7 +192,7 @@ class MotionPrior:
         """Whether a past pose informs the prior (else it is the weak prior around rest)."""
         return bool(self.usable)
 
-    @property
+    @cached_property
     def two_sided(self) -> bool:
         """Whether the next frame's pose informs the prior with the past ones: a usable past
         pose and a following one within ``config.max_age_s`` with a finite covariance."""
@@ -197,7 +201,7 @@ class MotionPrior:
         nxt = self.following[0]
         return bool(0.0 < -nxt.age_s <= self.config.max_age_s and np.all(np.isfinite(nxt.covariance)))
 
-    @property
+    @cached_property
     def neighbours(self) -> tuple[PastPose, ...]:
         """The poses the velocity and acceleration come from: two-sided, up to two past poses and
         the next one; otherwise the usable past poses."""
@@ -250,11 +254,8 @@ class MotionPrior:
         poses) or snap (four) at the sizes of ``MotionConfig``."""
         c = self.config
         nodes = self.neighbours
-        T1 = nodes[0].T_cam_cap
-        times = np.array([0.0] + [-p.age_s for p in nodes])
-        values = np.stack([np.concatenate([Ti.translation_m, (Ti * T1.inv()).rvec])
-                           for Ti in [T] + [p.T_cam_cap for p in nodes]])
-        weights = np.linalg.inv(np.vander(times, increasing=True))[1]
+        times, values, vander_inv = _through_nodes(T, nodes)
+        weights = vander_inv[1]
         if len(nodes) == 2:
             size = np.array([c.linear_jerk_m_s3] * 3 + [c.angular_jerk_rad_s3] * 3) / 6.0
         else:
@@ -263,7 +264,7 @@ class MotionPrior:
         for coef, p in zip(weights[1:], nodes):
             cov = cov + coef * coef * np.asarray(p.covariance, dtype=float)
         jl_inv = _left_jacobian_inverse(values[0, 3:])
-        accel, a0 = acceleration(T, nodes)
+        accel, a0 = _second_derivative(values, vander_inv)
         return VelocityPrior(weights @ values, _by_pose(float(weights[0]), jl_inv),
                              0.5 * (cov + cov.T), accel, _by_pose(a0, jl_inv))
 
@@ -285,12 +286,26 @@ def acceleration(T: Transform, past: tuple[PastPose, ...]) -> tuple[np.ndarray, 
     tangent at the first). Zero with fewer than two (a line has none)."""
     if len(past) < 2:
         return np.zeros(6), 0.0
-    T1 = past[0].T_cam_cap
-    times = np.array([0.0] + [-p.age_s for p in past])
+    _, values, vander_inv = _through_nodes(T, past)
+    return _second_derivative(values, vander_inv)
+
+
+def _through_nodes(T: Transform, nodes: tuple[PastPose, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The polynomial through the pose ``T`` (at 0) and ``nodes`` (at minus their ages): the
+    times (n + 1,), s; the values (n + 1, 6): translation, m, then rotation as a vector in the
+    tangent at the first node, rad; and the inverse of the times' Vandermonde matrix (increasing
+    powers), whose row k weighs the values into the coefficient of t^k."""
+    T1 = nodes[0].T_cam_cap
+    times = np.array([0.0] + [-p.age_s for p in nodes])
     values = np.stack([np.concatenate([Ti.translation_m, (Ti * T1.inv()).rvec])
-                       for Ti in [T] + [p.T_cam_cap for p in past]])
-    # p''(0) = 2 a_2 of p(t) = sum a_k t^k through the nodes: row 2 of the Vandermonde inverse.
-    weights = 2.0 * np.linalg.inv(np.vander(times, increasing=True))[2]
+                       for Ti in [T] + [p.T_cam_cap for p in nodes]])
+    return times, values, np.linalg.inv(np.vander(times, increasing=True))
+
+
+def _second_derivative(values: np.ndarray, vander_inv: np.ndarray) -> tuple[np.ndarray, float]:
+    """p''(0) = 2 a_2 of the polynomial p(t) = sum a_k t^k through the nodes' ``values``
+    (``_through_nodes``), and the weight of the first value (this frame's pose) in it."""
+    weights = 2.0 * vander_inv[2]
     return weights @ values, float(weights[0])
 
 
