@@ -135,6 +135,14 @@ class CameraTiming:
                 "row_order": self.row_order, "stamp_offset_ms": float(self.stamp_offset_ms)}
 
     @property
+    def stated(self) -> bool:
+        """Whether the timing states an exposure or a readout: only then is the cap's velocity
+        reported (``CapPose.velocity``, the head twist) and a frame solved with its next one. With
+        neither the outputs are the timing-agnostic estimator's, identical whatever the frames
+        before say of the motion; the velocity then serves only the readout's evidence."""
+        return self.exposure_ms > 0.0 or self.readout_ms > 0.0
+
+    @property
     def rolling(self) -> bool:
         """Whether rows are exposed at different times (a rolling shutter)."""
         return self.readout_ms > 0.0

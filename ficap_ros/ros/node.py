@@ -77,7 +77,7 @@ class FicapNodeSteps:
             self.add_post_set_parameters_callback(self._after_set_parameters)
             self._callbacks_added = True
         self._processor = live.frame_processor(cfg)
-        self.kernels_warm_up_s = self._warm_up_kernels(cfg)
+        self.kernels_warm_up_s = self._warm_up_kernels()
         self._cameras = CameraInfoCache.with_file(cfg.camera_info_file)
         if self._cameras.static_error:
             self.get_logger().error(self._cameras.static_error)
@@ -102,12 +102,12 @@ class FicapNodeSteps:
         self._worker.start()
 
     @staticmethod
-    def _warm_up_kernels(cfg: Any) -> float:
+    def _warm_up_kernels() -> float:
         """The compiled kernels (``ficap_ros.vision.jit``: the corner stage's, the photometric and
         the moving tags' fits) loaded from their cache, or compiled, now, so no frame waits for
-        them: the seconds it took. All of them whatever ``cfg`` says: the corner stage always
-        uses its kernels, and a camera_info_file's exposure may switch on the moving tags' fit
-        later."""
+        them: the seconds it took. All of them whatever the parameters say: the corner stage
+        always uses its kernels, and a camera_info_file's exposure may switch on the moving tags'
+        fit later."""
         from ficap_ros.vision.jit import warm_up
 
         return warm_up()

@@ -193,8 +193,6 @@ def _segment_frames(raws: list[RawFrame], lookahead: RawFrame | None = None) -> 
                 done[i] = ReplayedFrame(FrameRecord.unprocessed(
                     raw.index, raw.stamp_ns, raw.frame_id, str(err),
                     method=_PROCESSOR.pose_config.method))
-        if i + 1 == len(raws) and lookahead is None:
-            finished += frames.finish()
         for k, result in finished:
             if k < len(raws):
                 done[k] = _replayed(raws[k], result)
@@ -228,7 +226,7 @@ def _process_segment(raws: list[RawFrame], timing: CameraTiming | None = None,
 def two_sided_applies(timing: CameraTiming | None, two_sided: bool = True) -> bool:
     """Whether frames are solved with their next frame's pose: asked for, and the camera's
     timing states an exposure or a readout (only then has a frame a motion model)."""
-    return two_sided and timing is not None and (timing.exposure_ms > 0.0 or timing.readout_ms > 0.0)
+    return two_sided and timing is not None and timing.stated
 
 
 def segments(raws: Iterable[RawFrame],

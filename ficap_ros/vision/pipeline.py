@@ -203,7 +203,7 @@ class FrameProcessor:
         pose, evidence = frame.result.pose, None
         if self.readout_evidence and pose is not None and not self.timing.rolling:
             evidence = _timing_evidence(pose, frame.detections, self.model, camera)
-        if pose is not None and not _timing_given(self.timing):
+        if pose is not None and not self.timing.stated:
             pose = replace(pose, velocity=None, velocity_covariance=None)
         return FrameResult(frame.detections, pose, frame.result.reason, frame.search,
                            (t1 - t0) * 1e3, (t2 - t1) * 1e3, evidence)
@@ -244,7 +244,7 @@ class FrameProcessor:
         (``MotionPrior.two_sided``) instead of extrapolating the frames before. ``first`` as it
         is when the prior is not two-sided (no past pose, the next one too far), the timing
         states neither exposure nor readout, or the second solve finds no pose."""
-        if first.pose is None or solve.prior is None or not _timing_given(self.timing):
+        if first.pose is None or solve.prior is None or not self.timing.stated:
             return first
         prior = replace(solve.prior, following=(following,))
         if not prior.two_sided:
@@ -263,13 +263,6 @@ class FrameProcessor:
         return replace(first, detections=detections, pose=result.pose, reason=result.reason,
                        pose_ms=first.pose_ms + (time.perf_counter() - t0) * 1e3)
 
-
-def _timing_given(timing: CameraTiming) -> bool:
-    """Whether the camera's timing is stated (an exposure or a readout): only then is the cap's
-    velocity reported (``CapPose.velocity``, the head twist). With none stated the outputs are the
-    timing-agnostic estimator's, identical whatever the frames before say of the motion; the
-    velocity then serves only the readout's evidence."""
-    return timing.exposure_ms > 0.0 or timing.readout_ms > 0.0
 
 
 def _timing_evidence(pose: CapPose, detections: tuple[TagDetection, ...], model: CapModel,
