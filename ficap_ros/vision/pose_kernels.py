@@ -223,11 +223,19 @@ def refine_lm(R0: np.ndarray, t0: np.ndarray, K: np.ndarray, model_m: np.ndarray
     return _turn_between(R, R0), t, res, 1
 
 
+def _read_only(a: np.ndarray) -> np.ndarray:
+    """``a`` marked read-only: a pose's rotation, translation and the intrinsics reach the
+    kernels so, and numba compiles a read-only argument as a type of its own."""
+    a.setflags(write=False)
+    return a
+
+
 @register_warm_up
 def _warm_up() -> None:
     """``reprojection_rt`` and ``refine_lm`` once on one tag's corners (the solvers' argument
     types)."""
     model = np.array([[-0.01, 0.01, 0.0], [0.01, 0.01, 0.0], [0.01, -0.01, 0.0], [-0.01, -0.01, 0.0]])
-    K = np.array([[800.0, 0.0, 320.0], [0.0, 800.0, 240.0], [0.0, 0.0, 1.0]])
-    reprojection_rt(model, np.array([0.0, 0.0, 0.5]), K, np.full((4, 2), 300.0))
-    refine_lm(np.eye(3), np.array([0.0, 0.0, 0.5]), K, model, np.full((4, 2), 300.0), 5)
+    K = _read_only(np.array([[800.0, 0.0, 320.0], [0.0, 800.0, 240.0], [0.0, 0.0, 1.0]]))
+    t = _read_only(np.array([0.0, 0.0, 0.5]))
+    reprojection_rt(model, t, K, np.full((4, 2), 300.0))
+    refine_lm(_read_only(np.eye(3)), t, K, model, np.full((4, 2), 300.0), 5)
