@@ -5,8 +5,8 @@ Three estimators, chosen by name (``PoseConfig.method``):
 ``joint`` (default)
     One PnP over every visible corner. Start: the best-supported of SQPnP over all corners and the
     per-tag IPPE poses (a consensus over tags, so one wrong tag cannot spoil the start); then
-    Levenberg-Marquardt of the reprojection error (compiled: ``pose_kernels.refine_lm``), with
-    tag-level outlier rejection: a tag whose RMS
+    MINPACK's Levenberg-Marquardt of the reprojection error (``scipy.optimize.leastsq``, the call
+    ``least_squares(method="lm")`` makes), with tag-level outlier rejection: a tag whose RMS
     reprojection error stands far above the others' is dropped and the pose re-solved; a tag the
     image shows partly hidden (``hidden_ids``: ``detection.partly_hidden``) already at twice the
     median tag's. Then each tag is weighted by its corner noise (``uncertainty.reweighted``).
@@ -35,11 +35,13 @@ little, and one tag has a mirror solution a first-order covariance does not see)
 
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass, field, replace
 from typing import Callable, Container, Sequence
 
 import cv2
 import numpy as np
+from scipy.optimize import leastsq
 from scipy.spatial.transform import Rotation
 
 from ficap_ros.errors import ConfigError
@@ -63,6 +65,7 @@ from ficap_ros.vision.reprojection import (
     median,
     reprojection_errors_px,
     residuals_and_jacobian,
+    residuals_and_jacobian_rt,
     undistorted_corners,
 )
 from ficap_ros.vision.uncertainty import (
@@ -192,35 +195,75 @@ class PoseResult:
 
 # -- the least-squares refinement -------------------------------------------------------------------
 
+#: Machine epsilon: below it a rotation vector is the identity (as ``cv2.Rodrigues`` treats it).
+_EPS = float(np.finfo(np.float64).eps)
+
+
+def _rodrigues(rotvec_rad: Sequence[float]) -> np.ndarray:
+    """The rotation matrix (3, 3) of a rotation vector (rad) by Rodrigues' formula,
+    ``R = cos(theta) I + (1 - cos(theta)) r r^T + sin(theta) [r]_x`` with ``r`` the unit axis, in
+    ``cv2.Rodrigues``' arithmetic term for term (the same matrix, bit for bit), without the
+    derivative that call always computes as well. The identity below machine epsilon."""
+    x, y, z = rotvec_rad
+    theta = math.sqrt(x * x + y * y + z * z)
+    if theta < _EPS:
+        return np.eye(3)
+    c, s = math.cos(theta), math.sin(theta)
+    c1 = 1.0 - c
+    inv = 1.0 / theta
+    x, y, z = x * inv, y * inv, z * inv
+    c0 = c * 0.0
+    xy, xz, yz = x * y, x * z, y * z
+    return np.array([[c + c1 * (x * x) + s * 0.0, c0 + c1 * xy + s * -z, c0 + c1 * xz + s * y],
+                     [c0 + c1 * xy + s * z, c + c1 * (y * y) + s * 0.0, c0 + c1 * yz + s * -x],
+                     [c0 + c1 * xz + s * -y, c0 + c1 * yz + s * x, c + c1 * (z * z) + s * 0.0]])
+
+
+def _turned_residuals_and_jacobian(x: np.ndarray, R0: np.ndarray,
+                                   obs: TagObservations) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals (8T,) and Jacobian (8T, 6) of the pose ``(exp(x[:3]) R0, x[3:])``: x is a left
+    turn d_theta (3, rad, camera axes) of the 3x3 rotation R0 and the translation t (3, m)."""
+    R = _rodrigues(x[:3].tolist()) @ R0
+    return residuals_and_jacobian_rt(R, x[3:], obs.K, obs.model_m, obs.image_px)
+
+
 def _refine(obs: TagObservations, T0: Transform) -> tuple[Transform, float]:
     """Least-squares reprojection refinement; returns (pose, rms_px).
 
-    Levenberg-Marquardt over a left turn of the start's rotation and its translation, with the
-    analytic Jacobian, compiled whole (``pose_kernels.refine_lm``: at most 50 residual passes,
-    MINPACK's relative tolerances 1e-10). The answer's residuals are the ones the solver ends
-    with (no further evaluation).
+    MINPACK's Levenberg-Marquardt (lmder through ``scipy.optimize.leastsq``: the call
+    ``least_squares(fun, x0, jac=jac, method="lm", x_scale="jac", xtol=1e-10, ftol=1e-10,
+    max_nfev=50)`` makes, the same iterates and answer without that wrapper's per-call set-up)
+    over a left perturbation of the start, ``x = (d_theta, t)``, with the analytic Jacobian.
+    The answer's residuals are the ones MINPACK ends with (no further evaluation).
 
     Raises:
         ValueError: non-finite residuals at the start, or fewer residuals than unknowns (as
             ``least_squares`` raises them).
     """
-    # Imported where used: numba loads with it.
-    from ficap_ros.vision.pose_kernels import refine_lm
+    R0 = T0.rotation_matrix
+    x0 = np.concatenate([np.zeros(3), T0.translation_m])
 
-    if obs.image_px.size < 6:
+    # MINPACK asks for the residuals and then the Jacobian at the same x: compute both once.
+    cache: dict[bytes, tuple[np.ndarray, np.ndarray]] = {}
+
+    def both(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        key = x.tobytes()
+        if key not in cache:
+            cache.clear()
+            cache[key] = _turned_residuals_and_jacobian(x, R0, obs)
+        return cache[key]
+
+    r0 = both(x0)[0]
+    if not np.all(np.isfinite(r0)):
+        raise ValueError("Residuals are not finite in the initial point.")
+    if len(r0) < len(x0):
         raise ValueError("Method 'lm' doesn't work when the number of residuals is less than "
                          "the number of variables.")
-    turn, t, res, status = refine_lm(
-        T0.rotation_matrix, np.ascontiguousarray(T0.translation_m, dtype=np.float64), obs.K,
-        np.ascontiguousarray(obs.model_m.reshape(-1, 3)), np.ascontiguousarray(obs.image_px.reshape(-1, 2)),
-        _MAX_EVALUATIONS)
-    if status == 2:
-        raise ValueError("Residuals are not finite in the initial point.")
-    return T0.turned(turn, t), float(np.sqrt(np.mean(res**2) * 2.0))
-
-
-#: The refinement's most residual passes (``pose_kernels.refine_lm``).
-_MAX_EVALUATIONS = 50
+    # full_output: the final residuals, and no warning when MINPACK stops at maxfev.
+    x, _cov, info, _message, _status = leastsq(
+        lambda x: both(x)[0], x0, Dfun=lambda x: both(x)[1], full_output=True, col_deriv=False,
+        ftol=1e-10, xtol=1e-10, gtol=1e-8, maxfev=50, factor=100.0, diag=None)
+    return T0.turned(x[:3], x[3:]), float(np.sqrt(np.mean(info["fvec"] ** 2) * 2.0))
 
 
 def _rotation_sigma_deg(cov: np.ndarray) -> float:

@@ -30,7 +30,7 @@ KERNELS = (photometric_kernels.select_pixels, photometric_kernels.fit_steps, ker
            kernels.line_pass, fit_kernels.boundary_rows, fit_kernels.grouped_normal_equations,
            fit_kernels.grouped_residuals, fit_kernels.grouped_solve, fit_kernels.robust_grouped_solve,
            fit_kernels.edge_fit_round, fit_kernels.border_unbias, fit_kernels.tag_noise_ratios,
-           pose_kernels.reprojection_rt, pose_kernels.refine_lm, uncertainty_kernels.propagated_terms)
+           pose_kernels.reprojection_rt, uncertainty_kernels.propagated_terms)
 
 
 def _cache_dir_in_child(env: dict[str, str], read_only: bool) -> str:
