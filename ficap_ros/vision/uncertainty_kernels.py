@@ -7,7 +7,8 @@ each pattern and to each plate's shift and turn, the hat matrix's leverage of ea
 such small arrays numpy's per-call set-up costs more than the arithmetic, so the whole assembly
 is one kernel. The formulas and their order are ``uncertainty``'s (its module docstring); the
 sums run in a different order than numpy's vectorised ones, so the values agree to rounding
-(relative 1e-12), not to the bit. The tag basis is LAPACK's QR, as numpy's.
+(relative 1e-12), not to the bit. The tag basis is a Householder QR in LAPACK's sign convention,
+as numpy's.
 
 Output layout: ``terms`` (13, 6, 6), each ROS order (translation, then rotation): the pattern
 groups shift, scale, turn, shear, projective, then noise, bias, model_t, model_r, bias_common,
@@ -84,10 +85,55 @@ def _map(J: np.ndarray, w: np.ndarray, info: np.ndarray) -> tuple[np.ndarray, np
     return M, A
 
 
+@njit(inline="always")
+def _householder_q(M: np.ndarray) -> np.ndarray:
+    """Q (8, 8) of the QR factorisation of M (8, 8) by Householder reflections in LAPACK's
+    convention (dgeqr2's reflectors, ``beta = -sign(alpha) |(alpha, x)|``, then dorg2r's product):
+    the columns' signs are LAPACK's, which the pattern coefficients' signs follow."""
+    A = M.copy()
+    tau = np.zeros(8)
+    for j in range(8):
+        xnorm2 = 0.0
+        for i in range(j + 1, 8):
+            xnorm2 += A[i, j] * A[i, j]
+        if xnorm2 == 0.0:
+            continue
+        alpha = A[j, j]
+        beta = -np.copysign(np.sqrt(alpha * alpha + xnorm2), alpha)
+        tau[j] = (beta - alpha) / beta
+        scale = 1.0 / (alpha - beta)
+        for i in range(j + 1, 8):
+            A[i, j] *= scale
+        A[j, j] = beta
+        for c in range(j + 1, 8):  # H_j applied to the columns right of j
+            s = A[j, c]
+            for i in range(j + 1, 8):
+                s += A[i, j] * A[i, c]
+            s *= tau[j]
+            A[j, c] -= s
+            for i in range(j + 1, 8):
+                A[i, c] -= s * A[i, j]
+    Q = np.eye(8)
+    for j in range(7, -1, -1):  # Q = H_0 ... H_7 I, built from the last reflector back
+        if tau[j] == 0.0:
+            continue
+        for c in range(j, 8):
+            s = Q[j, c]
+            for i in range(j + 1, 8):
+                s += A[i, j] * Q[i, c]
+            s *= tau[j]
+            Q[j, c] -= s
+            for i in range(j + 1, 8):
+                Q[i, c] -= s * A[i, j]
+    return Q
+
+
 @njit(error_model="numpy")
 def _tag_basis(corners_px: np.ndarray) -> np.ndarray:
     """(8, 8) an orthonormal basis of one tag's corner displacements (x0 y0 ... x3 y3): shift x,
-    shift y, scale, turn, two shears, then the two left (projective), from the corners (4, 2)."""
+    shift y, scale, turn, two shears, then the two left (projective), from the corners (4, 2):
+    the Q of those six patterns and the first two unit vectors (the rest of the identity the
+    numpy formula appends never enters an 8-column Q)."""
     cx = 0.25 * (corners_px[0, 0] + corners_px[1, 0] + corners_px[2, 0] + corners_px[3, 0])
     cy = 0.25 * (corners_px[0, 1] + corners_px[1, 1] + corners_px[2, 1] + corners_px[3, 1])
     px, py = np.empty(4), np.empty(4)
@@ -96,19 +142,18 @@ def _tag_basis(corners_px: np.ndarray) -> np.ndarray:
         px[c], py[c] = corners_px[c, 0] - cx, corners_px[c, 1] - cy
         norm += px[c] * px[c] + py[c] * py[c]
     norm = max(np.sqrt(norm), 1e-9)
-    Mt = np.zeros((8, 14))
+    M = np.zeros((8, 8))
     for c in range(4):
         x, y = px[c] / norm, py[c] / norm
-        Mt[2 * c, 0] = 1.0
-        Mt[2 * c + 1, 1] = 1.0
-        Mt[2 * c, 2], Mt[2 * c + 1, 2] = x, y
-        Mt[2 * c, 3], Mt[2 * c + 1, 3] = -y, x
-        Mt[2 * c, 4], Mt[2 * c + 1, 4] = x, -y
-        Mt[2 * c, 5], Mt[2 * c + 1, 5] = y, x
-    for j in range(8):
-        Mt[j, 6 + j] = 1.0
-    Q, _ = np.linalg.qr(Mt)
-    return np.ascontiguousarray(Q[:, :8])
+        M[2 * c, 0] = 1.0
+        M[2 * c + 1, 1] = 1.0
+        M[2 * c, 2], M[2 * c + 1, 2] = x, y
+        M[2 * c, 3], M[2 * c + 1, 3] = -y, x
+        M[2 * c, 4], M[2 * c + 1, 4] = x, -y
+        M[2 * c, 5], M[2 * c + 1, 5] = y, x
+    M[0, 6] = 1.0
+    M[1, 7] = 1.0
+    return _householder_q(M)
 
 
 @njit(error_model="numpy")
@@ -139,11 +184,15 @@ def _tilt_mode(centres: np.ndarray, normal: np.ndarray, R: np.ndarray, t: np.nda
     times the sine of its view angle (``uncertainty``'s tilt mode)."""
     n = centres.shape[0]
     mode = np.empty(8 * n)
+    c, nc, qc, qe = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
     for k in range(n):
-        c = R @ centres[k] + t
-        nc = R @ normal[k]
-        e = c + 1e-3 * nc
-        qc, qe = K @ c, K @ e
+        for r in range(3):
+            c[r] = R[r, 0] * centres[k, 0] + R[r, 1] * centres[k, 1] + R[r, 2] * centres[k, 2] + t[r]
+            nc[r] = R[r, 0] * normal[k, 0] + R[r, 1] * normal[k, 1] + R[r, 2] * normal[k, 2]
+        for r in range(3):
+            qc[r] = K[r, 0] * c[0] + K[r, 1] * c[1] + K[r, 2] * c[2]
+            qe[r] = (K[r, 0] * (c[0] + 1e-3 * nc[0]) + K[r, 1] * (c[1] + 1e-3 * nc[1])
+                     + K[r, 2] * (c[2] + 1e-3 * nc[2]))
         dx = qe[0] / qe[2] - qc[0] / qc[2]
         dy = qe[1] / qe[2] - qc[1] / qc[2]
         dn = max(np.sqrt(dx * dx + dy * dy), 1e-12)
@@ -233,6 +282,21 @@ def _shared_terms(terms: np.ndarray, A_ros: np.ndarray, common: np.ndarray, imag
     _add_outer(terms[12], a[4], 1.0)
 
 
+@njit(inline="always")
+def _small_product(out: np.ndarray, a: np.ndarray, b: np.ndarray, b_transposed: bool) -> None:
+    """out = a b (or a b^T) for small matrices, in loops (no BLAS call's set-up)."""
+    for i in range(out.shape[0]):
+        for j in range(out.shape[1]):
+            s = 0.0
+            if b_transposed:
+                for q in range(a.shape[1]):
+                    s += a[i, q] * b[j, q]
+            else:
+                for q in range(a.shape[1]):
+                    s += a[i, q] * b[q, j]
+            out[i, j] = s
+
+
 @njit(error_model="numpy")
 def _residual_sigmas(seen: np.ndarray, res: np.ndarray, J: np.ndarray, M: np.ndarray, B: np.ndarray,
                      rel: np.ndarray) -> None:
@@ -241,9 +305,14 @@ def _residual_sigmas(seen: np.ndarray, res: np.ndarray, J: np.ndarray, M: np.nda
     n = B.shape[0]
     coef = np.zeros((n, 8))
     lev = np.zeros(8)
+    k = J.shape[1]
+    JM = np.empty((8, k))
+    hat = np.empty((8, 8))
+    HB = np.empty((8, 8))
     for t in range(n):
-        Jt = J[8 * t : 8 * t + 8]
-        HB = ((Jt @ M) @ Jt.T) @ B[t]
+        _small_product(JM, J[8 * t : 8 * t + 8], M, False)
+        _small_product(hat, JM, J[8 * t : 8 * t + 8], True)
+        _small_product(HB, hat, B[t], False)
         for p in range(8):
             s = 0.0
             lv = 0.0
@@ -278,12 +347,18 @@ def _residual_sigmas(seen: np.ndarray, res: np.ndarray, J: np.ndarray, M: np.nda
 def _common_offset_px(common: np.ndarray, w: np.ndarray, J: np.ndarray, A: np.ndarray,
                       mean_scale: float, scale_sigma: float, n_tags: int) -> float:
     """``uncertainty._common_offset_px``: the tags' common radial offset, px per corner."""
-    Ac = A @ common
-    JAc = J @ Ac
+    k = A.shape[0]
+    Ac = np.zeros(k)
+    for a in range(k):
+        for i in range(common.shape[0]):
+            Ac[a] += A[a, i] * common[i]
     num = 0.0
     den = 0.0
     for i in range(common.shape[0]):
-        num += common[i] * w[i] * JAc[i]
+        JAc = 0.0
+        for a in range(k):
+            JAc += J[i, a] * Ac[a]
+        num += common[i] * w[i] * JAc
         den += common[i] * w[i] * common[i]
     common_left = 1.0 - num / den
     mean_se2 = scale_sigma**2 / n_tags
