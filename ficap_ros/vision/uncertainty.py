@@ -35,7 +35,7 @@ Depth is what the shared corner errors move most: a radial offset of every corne
 moves the depth by about z * sqrt(2) * delta / (tag side in px), so at a given distance the same
 offset costs a low-resolution camera twice the depth error, and it leaves no residual (the depth
 absorbs it). What the residuals do show of it (the part the depth could not absorb, scaled back
-by the share left, ``_common_offset_px``) is a noisy estimate, amplified up to tenfold, yet on
+by the share left, ``uncertainty_kernels``) is a noisy estimate, amplified up to tenfold, yet on
 path-traced renders it is the frame feature that follows the depth error across cameras, lights
 and tone curves (``benchmarks/bench_uncertainty.py`` decomposes each frame's depth variance by
 term against its error): the edge profile states the offset as that estimate times
@@ -257,7 +257,8 @@ _CORNER_PROFILES: dict[str, dict[str, float]] = {
 CORNER_ESTIMATORS = tuple(_CORNER_PROFILES)
 
 
-#: Per-tag corner patterns (columns of ``_tag_basis``) grouped as the residuals are pooled.
+#: Per-tag corner patterns (columns of each tag's orthonormal basis, ``uncertainty_kernels``)
+#: grouped as the residuals are pooled.
 _PATTERNS = {"shift": [0, 1], "scale": [2], "turn": [3], "shear": [4, 5], "projective": [6, 7]}
 #: The compiled kernel's outputs (``uncertainty_kernels.propagated_terms``), in its order: the
 #: unit covariances, and what the residuals show (its last value, the tags' mean scale
@@ -370,7 +371,7 @@ def uncertainty_terms(
             (1 px radial at every corner, independent per tag), ``bias_common`` (the same for
             all tags), ``model_t`` / ``model_r`` (each plate shifted 1 mm / turned 1 deg about
             each cap axis), ``principal_point`` (1 px per axis), ``focal`` (relative 1),
-            ``tilt`` (every tag shifted along its foreshortening, ``_tilt_mode``, 1 px edge-on).
+            ``tilt`` (every tag shifted along its foreshortening, 1 px edge-on).
         seen: what the residuals show: per pattern group the sigma of its coefficients (each
             tag's divided by its relative noise) pooled over the tags, less the share the fit
             absorbed (the weighted hat matrix's leverage of the group), and ``bias_common``, the
@@ -382,13 +383,32 @@ def uncertainty_terms(
             group also ``<group>_dof``, the degrees of freedom its sigma was pooled from (the
             bounds widen for a sigma estimated from few, ``uncertainty_bounds``).
     """
+    res, J = residuals_and_jacobian(T, obs) if at is None else at
+    n_tags = len(obs)
+    terms, seen, A_ros = _propagated(obs, T, res, J, tag_sigma_px, prior_information)
+    seen["light_gradient"] = (0.0 if edge_shift_px is None
+                              else light_gradient_px(edge_shift_px, obs.image_px.mean(axis=1)))
+    seen["edge_shift_mean"] = edge_shift_mean_px(edge_shift_px)
+    seen["shared_bias_ratio"] = shared_bias_ratio(obs.image_px, tag_noise_from_residuals(res, n_tags))
+    if motion_term is not None:
+        terms["motion_prior"] = motion_term
+    for name, mode in (shared_modes or {}).items():
+        a_mode = A_ros @ mode
+        terms[name] = np.outer(a_mode, a_mode)
+    return terms, seen
+
+
+def _propagated(obs: TagObservations, T: Transform, res: np.ndarray, J: np.ndarray,
+                tag_sigma_px: np.ndarray | None,
+                prior_information: np.ndarray | None) -> tuple[dict[str, np.ndarray], dict[str, float],
+                                                               np.ndarray]:
+    """``uncertainty_terms``' unit covariances by name, what the residuals show by name, and the
+    fit's map in ROS order (6, 2n): the compiled ``uncertainty_kernels.propagated_terms``."""
     # Imported where used: numba loads with it.
     from ficap_ros.vision.uncertainty_kernels import propagated_terms
 
-    res, J = residuals_and_jacobian(T, obs) if at is None else at
-    n_tags = len(obs)
     if tag_sigma_px is None:
-        rel = np.ones(n_tags)
+        rel = np.ones(len(obs))
     else:
         rel = np.asarray(tag_sigma_px, dtype=float) / max(median(tag_sigma_px), 1e-12)
     w = np.repeat(1.0 / rel**2, 8)  # weights per residual coordinate
@@ -400,18 +420,7 @@ def uncertainty_terms(
         np.array(obs.image_px, dtype=float).reshape(-1, 2), np.array(obs.model_m, dtype=float).reshape(-1, 3),
         np.array(T.rotation_matrix), np.array(T.translation_m, dtype=float), np.array(obs.K, dtype=float),
         rel, cross, centres, normal)
-    terms = dict(zip(_TERM_NAMES, unit))
-    seen = dict(zip(_SEEN_NAMES, measured.tolist()))
-    seen["light_gradient"] = (0.0 if edge_shift_px is None
-                              else light_gradient_px(edge_shift_px, obs.image_px.mean(axis=1)))
-    seen["edge_shift_mean"] = edge_shift_mean_px(edge_shift_px)
-    seen["shared_bias_ratio"] = shared_bias_ratio(obs.image_px, tag_noise_from_residuals(res, n_tags))
-    if motion_term is not None:
-        terms["motion_prior"] = motion_term
-    for name, mode in (shared_modes or {}).items():
-        a_mode = A_ros @ mode
-        terms[name] = np.outer(a_mode, a_mode)
-    return terms, seen
+    return dict(zip(_TERM_NAMES, unit)), dict(zip(_SEEN_NAMES, measured.tolist())), A_ros
 
 
 def uncertainty_sources(terms: dict[str, np.ndarray], seen: dict[str, float],
