@@ -31,9 +31,11 @@ The leave-one-set-out fit of the gains of the shared radial corner offset, joint
 ``shared_bias_gain`` (the one that follows each frame's corner noise over its cell width). Each
 frame's covariance terms are recorded once and the bounds recomputed at every point of a grid of
 both; for each blender_dev set, of the points whose translation bounds cover at least 90 % of every
-*other* set, the one with the smallest worst sharpness over those sets is taken, and the set's
-figures there are its row. The synth drives check the point fitted on all blender_dev sets (they
-do not take part in the fit). Writes docs/benchmarks/uncertainty.md and uncertainty.png.
+*other* set, the one with the smallest mean log sharpness over those sets, each weighted by its
+frames (every frame counts once: a 12-frame set's median ratio does not decide the fit), is
+taken, and the set's figures there are its row. The synth drives check the point fitted on all
+blender_dev sets (they do not take part in the fit). Writes docs/benchmarks/uncertainty.md and
+uncertainty.png.
 """
 
 from __future__ import annotations
@@ -96,8 +98,9 @@ def loso_section(points: dict[str, dict[str, list]], corners: str = "edge") -> s
         return "Leave-one-set-out fit: fewer than two blender_dev sets present."
     grid = bounds_fit.gain_grid(FIT_AXES)
     table = bounds_fit.coverage_table(blender, base, grid)
-    fits = bounds_fit.leave_one_set_out(table, grid, {k: len(v) for k, v in blender.items()})
-    g_all = grid[bounds_fit.fitted_index(table, list(blender))]
+    counts = {k: len(v) for k, v in blender.items()}
+    fits = bounds_fit.leave_one_set_out(table, grid, counts)
+    g_all = grid[bounds_fit.fitted_index(table, list(blender), counts)]
     rows = [[f.name, _gains_text(f.gains), f.frames, f"{100 * f.rot_coverage:.0f} %", f"{f.rot_sharpness:.2f}",
              f"{100 * f.trans_coverage:.0f} %", f"{f.trans_sharpness:.2f}",
              bounds_fit.binomial_reading(f.trans_misses, f.frames)] for f in fits]
@@ -115,8 +118,9 @@ def loso_section(points: dict[str, dict[str, list]], corners: str = "edge") -> s
     grids = "; ".join(f"`{k}` {v[0]:.2f}-{v[-1]:.2f} step {v[1] - v[0]:.2f}" for k, v in FIT_AXES.items())
     return (f"### Leave-one-set-out fit of the shared corner offset's gains\n\n"
             f"Each blender_dev row: of the grid's gains ({grids}), those whose translation bounds cover "
-            "at least 90 % of every other blender_dev set with the smallest worst sharpness over them, "
-            "and the held-out set's coverage and sharpness there; the synth rows check the gains fitted on "
+            "at least 90 % of every other blender_dev set, the one with the smallest mean log sharpness "
+            "over them, each set weighted by its frames (every frame counts once; the rule is the same "
+            "in every fold and for the all-set fit), and the held-out set's coverage and sharpness there; the synth rows check the gains fitted on "
             f"all blender_dev sets ({_gains_text(g_all)}; the profile's: {defaults}). The last column: the "
             "probability, for a calibrated 95 % bound, of as many misses as the set has or more (fewer), "
             f"and of 90-99 % coverage at all for a set of its size.\n\n{report.md_table(head, rows)}\n\n"
