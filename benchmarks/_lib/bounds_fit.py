@@ -116,10 +116,13 @@ class SetFit:
     trans_misses: int
 
 
-def gain_grid(axes: dict[str, Sequence[float]]) -> list[dict[str, float]]:
+def gain_grid(axes: dict[str, Sequence[float]], tied: dict[str, str] | None = None,
+              fixed: dict[str, float] | None = None) -> list[dict[str, float]]:
     """Every combination of the gains' values (``UncertaintyConfig`` field -> the values to try),
-    the last field varying fastest."""
-    return [dict(zip(axes, map(float, values))) for values in product(*axes.values())]
+    the last field varying fastest; ``tied`` fields (field -> the axis it equals) and ``fixed``
+    ones (field -> value) added to every point."""
+    points = [dict(zip(axes, map(float, values))) for values in product(*axes.values())]
+    return [{**p, **{k: p[axis] for k, axis in (tied or {}).items()}, **(fixed or {})} for p in points]
 
 
 def coverage_table(sets: dict[str, Sequence[FrameTerms]], base: UncertaintyConfig,
