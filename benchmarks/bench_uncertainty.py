@@ -41,6 +41,7 @@ uncertainty.png.
 from __future__ import annotations
 
 import sys
+from dataclasses import replace
 
 import numpy as np
 from scipy.stats import spearmanr
@@ -67,7 +68,9 @@ def run_frames(frames, camera, methods=METHODS) -> dict[str, dict[str, list]]:  
     first method) also the pose's covariance terms (``bounds_fit.FrameTerms``, key ``terms``)."""
     procs = {m.name: m.processor() for m in methods}
     out = {m.name: {k: [] for k in ("rot", "trans", "rot95", "trans95", "rel", "cov", "terms")} for m in methods}
+    before = None
     for image, truth, stamp in frames:
+        speed, before = _speed_dps(before, truth, stamp), (truth, stamp)
         for name, proc in procs.items():
             with bounds_fit.record_terms() as calls:
                 p = proc.process(image, camera, stamp).pose
@@ -83,8 +86,17 @@ def run_frames(frames, camera, methods=METHODS) -> dict[str, dict[str, list]]:  
             recorded = bounds_fit.terms_of(calls, p.T_cam_cap.translation_m) if name == methods[0].name else None
             if recorded is not None:
                 error_mm = 1e3 * (p.T_cam_cap.translation_m - truth.translation_m)
-                o["terms"].append(bounds_fit.FrameTerms(*recorded, o["rot"][-1], o["trans"][-1], error_mm))
+                o["terms"].append(bounds_fit.FrameTerms(*recorded, o["rot"][-1], o["trans"][-1], error_mm,
+                                                        speed))
     return out
+
+
+def _speed_dps(before: tuple | None, truth, stamp: int) -> float:  # noqa: ANN001 - a Transform
+    """The cap's angular speed (deg/s) from the previous frame's truth ``before`` (truth, stamp),
+    NaN without one within 0.1 s."""
+    if before is None or not 0 < stamp - before[1] <= 100_000_000:
+        return float("nan")
+    return float(angle_deg(truth.rotation, before[0].rotation)) / ((stamp - before[1]) * 1e-9)
 
 
 def _gains_text(gains: dict[str, float]) -> str:
@@ -100,9 +112,9 @@ def loso_section(points: dict[str, dict[str, list]], corners: str = "edge") -> s
     if len(blender) < 2:
         return "Leave-one-set-out fit: fewer than two blender_dev sets present."
     grids = "; ".join(f"`{k}` {v[0]:.2f}-{v[-1]:.2f} step {v[1] - v[0]:.2f}" for k, v in FIT_AXES.items())
-    joint = _loso_table(blender, synth, corners, bounds_fit.gain_grid(FIT_AXES))
-    one = _loso_table(blender, synth, corners, bounds_fit.gain_grid(ONE_GAIN["axes"], ONE_GAIN["tied"],
-                                                                     ONE_GAIN["fixed"]))
+    joint, fits = _loso_table(blender, synth, corners, bounds_fit.gain_grid(FIT_AXES))
+    one, _ = _loso_table(blender, synth, corners, bounds_fit.gain_grid(ONE_GAIN["axes"], ONE_GAIN["tied"],
+                                                                        ONE_GAIN["fixed"]))
     return (f"### Leave-one-set-out fit of the shared corner offset's gains\n\n"
             f"Each blender_dev row: of the grid's gains ({grids}), those whose translation bounds cover "
             "at least 90 % of every other blender_dev set, the one with the smallest mean log sharpness "
@@ -114,6 +126,7 @@ def loso_section(points: dict[str, dict[str, list]], corners: str = "edge") -> s
             "The two gains substitute for each other on the training sets: a set whose depth error "
             "follows the measured offset more than the others' is covered only by the common offset, "
             "and without it in the fold the fit takes the corner-noise ratio instead.\n\n"
+            f"{_misses_table(blender, fits, corners)}\n\n"
             "#### One gain: the measured offset and its standard error\n\n"
             "The same rule over one gain: `common_offset_gain` on the measured offset and on its standard "
             "error (`common_offset_se_gain`, tied to it; where the offset is below its noise the estimate "
@@ -126,9 +139,10 @@ def loso_section(points: dict[str, dict[str, list]], corners: str = "edge") -> s
 
 
 def _loso_table(blender: dict[str, list], synth: dict[str, list], corners: str,
-                grid: list[dict[str, float]]) -> str:
+                grid: list[dict[str, float]]) -> tuple[str, list[bounds_fit.SetFit]]:
     """The leave-one-set-out rows over ``grid`` (``bounds_fit.leave_one_set_out``), the synth
-    check at the all-set fit, and a line of how many sets meet 90-99 % with sharpness <= 3."""
+    check at the all-set fit, and a line of how many sets meet 90-99 % with sharpness <= 3; and
+    the fits."""
     base = UncertaintyConfig.for_corners(corners)
     table = bounds_fit.coverage_table(blender, base, grid)
     counts = {k: len(v) for k, v in blender.items()}
@@ -151,7 +165,38 @@ def _loso_table(blender: dict[str, list], synth: dict[str, list], corners: str,
     return (f"{report.md_table(head, rows)}\n\nAll sets: {_gains_text(g_all)} (the profile's: "
             f"{_gains_text({k: getattr(base, k) for k in grid[0]})}). Held-out translation coverage "
             f"90-99 % with sharpness <= 3 on {ok} of {len(fits)} blender_dev sets; the lowest held-out "
-            f"coverage {100 * low.trans_coverage:.0f} % ({low.name}).")
+            f"coverage {100 * low.trans_coverage:.0f} % ({low.name})."), fits
+
+
+def _misses_table(blender: dict[str, list], fits: list[bounds_fit.SetFit], corners: str) -> str:
+    """Per blender_dev set, its translation misses at the gains fitted without it: how many, at
+    what angular speed, the depth error over the stated sigma (axis toward +z), the source that
+    states most of their depth variance, and how often the measured common offset reads 0."""
+    rows = []
+    for fit in fits:
+        config = replace(UncertaintyConfig.for_corners(corners), **fit.gains)
+        frames = blender[fit.name]
+        bounds = bounds_fit.bounds_at(frames, config)[:, 1]
+        missed = [f for f, b in zip(frames, bounds) if f.trans_err_mm > b and f.trans_error_mm is not None]
+        speed = np.array([f.speed_dps for f in missed])
+        z, top = [], []
+        for f in missed:
+            parts = {k: 1e6 * p[:3, :3] for k, p in uncertainty_sources(f.terms, f.seen, config).items()}
+            axis = np.linalg.eigh(sum(parts.values()))[1][:, -1]
+            axis = axis if axis[2] >= 0 else -axis
+            var = {k: float(axis @ p @ axis) for k, p in parts.items()}
+            z.append(float(f.trans_error_mm @ axis) / np.sqrt(sum(var.values())))
+            top.append(max(var, key=var.get))
+        common = max(set(top), key=top.count) if top else "-"
+        rows.append([fit.name, len(frames), len(missed), int(np.sum(speed < 30.0)), int(np.sum(speed >= 90.0)),
+                     f"{np.median(z):+.2f}" if z else "-", f"{common} ({top.count(common)})" if top else "-",
+                     sum(f.seen.get("bias_common", 0.0) == 0.0 for f in missed)])
+    head = ["set", "frames", "held-out translation misses", "of them under 30 deg/s", "at 90 deg/s or more",
+            "depth error / stated sigma (median, toward +z)", "source stating most of their depth variance",
+            "measured common offset 0"]
+    return ("Which frames the joint fit's held-out bounds miss (at the gains fitted without the set; the "
+            "angular speed from the previous frame's truth, unknown where the set's frames are a second "
+            f"apart):\n\n{report.md_table(head, rows)}")
 
 
 def depth_section(points: dict[str, dict[str, list]], corners: str = "edge") -> str:

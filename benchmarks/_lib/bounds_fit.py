@@ -34,13 +34,15 @@ MIN_COVERAGE = 0.9
 @dataclass(frozen=True)
 class FrameTerms:
     """One pose's covariance terms (``uncertainty_terms``) and its true errors (the translation
-    error also as a vector, camera axes, mm, when known)."""
+    error also as a vector, camera axes, mm, when known), and the cap's true angular speed at
+    the frame (deg/s, from the previous frame's truth; NaN without one within 0.1 s)."""
 
     terms: dict[str, np.ndarray]
     seen: dict[str, float]
     rot_err_deg: float
     trans_err_mm: float
     trans_error_mm: np.ndarray | None = None
+    speed_dps: float = float("nan")
 
 
 def light_gradient_floor_px(edge_shift_px: np.ndarray, centres_px: np.ndarray) -> float:
