@@ -34,8 +34,11 @@ both; for each blender_dev set, of the points whose translation bounds cover at 
 *other* set, the one with the smallest mean log sharpness over those sets, each weighted by its
 frames (every frame counts once: a 12-frame set's median ratio does not decide the fit), is
 taken, and the set's figures there are its row. The synth drives check the point fitted on all
-blender_dev sets (they do not take part in the fit). Writes docs/benchmarks/uncertainty.md and
-uncertainty.png.
+blender_dev sets (they do not take part in the fit). Then which frames those held-out bounds miss
+(how many slow, how many fast, their depth error over the stated sigma, the source stating most
+of it), and the same fit over one gain: the measured common offset and its standard error
+(``common_offset_se_gain`` tied to ``common_offset_gain``, ``shared_bias_gain`` 0). Writes
+docs/benchmarks/uncertainty.md and uncertainty.png.
 """
 
 from __future__ import annotations
@@ -413,7 +416,8 @@ def main(argv: list[str] | None = None) -> int:
             "(Spearman), on every blender_dev set and on `ficap synth` drives (one frame a second; "
             "what the light gains of `UncertaintyConfig` were calibrated on), ours and the "
             "naive peer; which covariance terms state the depth error; then the leave-one-set-out fit "
-            "of the shared corner offset's gains on blender_dev and its check on the synth drives.")
+            "of the shared corner offset's gains on blender_dev and its check on the synth drives, the "
+            "frames its held-out bounds miss, and the same fit over one gain.")
     report.write_section("uncertainty", what, report.how("bench_uncertainty.py", "fewer frames per set"),
                          body, run, report.command(), args.quick, args.no_doc or args.photometric)
     return 0
