@@ -26,18 +26,18 @@ along the tilt mode per px of gradient (what ``light_gradient_tilt_gain`` states
 profiles) and per px of the tags' mean edge shift (what ``edge_shift_tilt_gain`` states in the
 edge profile, beyond the other terms) and the depth error over the sigma the other terms state.
 
-The leave-one-set-out fit of the gains of the shared radial corner offset, jointly:
-``UncertaintyConfig.common_offset_gain`` (the offset the residuals show, scaled back) and
-``shared_bias_gain`` (the one that follows each frame's corner noise over its cell width). Each
-frame's covariance terms are recorded once and the bounds recomputed at every point of a grid of
-both; for each blender_dev set, of the points whose translation bounds cover at least 90 % of every
-*other* set, the one with the smallest mean log sharpness over those sets, each weighted by its
-frames (every frame counts once: a 12-frame set's median ratio does not decide the fit), is
-taken, and the set's figures there are its row. The synth drives check the point fitted on all
-blender_dev sets (they do not take part in the fit). Then which frames those held-out bounds miss
-(how many slow, how many fast, their depth error over the stated sigma, the source stating most
-of it), and the same fit over one gain: the measured common offset and its standard error
-(``common_offset_se_gain`` tied to ``common_offset_gain``, ``shared_bias_gain`` 0). Writes
+The leave-one-set-out fit of the shared radial corner offset's gain: one gain on the offset the
+residuals show (``UncertaintyConfig.common_offset_gain``, scaled back) and on its standard error
+(``common_offset_se_gain`` tied to it), ``shared_bias_gain`` 0: the defaults' rule. Each frame's
+covariance terms are recorded once and the bounds recomputed at every point of a grid; for each
+blender_dev set, of the points whose translation bounds cover at least 90 % of every *other* set,
+the one with the smallest mean log sharpness over those sets, each weighted by its frames (every
+frame counts once: a 12-frame set's median ratio does not decide the fit), is taken, and the
+set's figures there are its row. The synth drives check the point fitted on all blender_dev sets
+(they do not take part in the fit). Then which frames those held-out bounds miss (how many slow,
+how many fast, their depth error over the stated sigma, the source stating most of it), and the
+same fit over two gains jointly: the measured offset's and ``shared_bias_gain`` (the one that
+follows each frame's corner noise over its cell width). Writes
 docs/benchmarks/uncertainty.md and uncertainty.png.
 """
 
@@ -57,10 +57,10 @@ from ficap_ros.tools.synth import REALISTIC, RenderConfig
 from ficap_ros.vision.uncertainty import UncertaintyConfig, uncertainty_sources
 
 METHODS = (OURS, PEER)
-#: The grid the leave-one-set-out fit searches: each fitted ``UncertaintyConfig`` gain's values.
+#: The grid of the two-gain fit beside the defaults': each fitted ``UncertaintyConfig`` gain's values.
 FIT_AXES = {"common_offset_gain": np.round(np.arange(0.0, 3.001, 0.25), 2),
             "shared_bias_gain": np.round(np.arange(0.0, 0.601, 0.05), 2)}
-#: The one-gain fit beside it: the measured common offset and its standard error at one gain
+#: The defaults' fit: the measured common offset and its standard error at one gain
 #: (``common_offset_se_gain`` tied to ``common_offset_gain``), the corner-noise ratio term unused.
 ONE_GAIN = {"axes": {"common_offset_gain": FIT_AXES["common_offset_gain"]},
             "tied": {"common_offset_se_gain": "common_offset_gain"}, "fixed": {"shared_bias_gain": 0.0}}
@@ -108,33 +108,34 @@ def _gains_text(gains: dict[str, float]) -> str:
 
 def loso_section(points: dict[str, dict[str, list]], corners: str = "edge") -> str:
     """The leave-one-set-out fits on blender_dev and their synth check, for the profile of the
-    corner estimator ``corners`` (``UncertaintyConfig.for_corners``): the shared offset's two gains
-    (``FIT_AXES``) jointly, and the one-gain fit (``ONE_GAIN``)."""
+    corner estimator ``corners`` (``UncertaintyConfig.for_corners``): the shared offset's gain
+    (``ONE_GAIN``, the defaults' rule), and the two gains of ``FIT_AXES`` jointly beside it."""
     blender = {k: v["terms"] for k, v in points.items() if k.startswith("blender") and len(v["terms"]) >= 3}
     synth = {k: v["terms"] for k, v in points.items() if k.startswith("synth") and len(v["terms"]) >= 3}
     if len(blender) < 2:
         return "Leave-one-set-out fit: fewer than two blender_dev sets present."
     grids = "; ".join(f"`{k}` {v[0]:.2f}-{v[-1]:.2f} step {v[1] - v[0]:.2f}" for k, v in FIT_AXES.items())
-    joint, fits = _loso_table(blender, synth, corners, bounds_fit.gain_grid(FIT_AXES))
-    one, _ = _loso_table(blender, synth, corners, bounds_fit.gain_grid(ONE_GAIN["axes"], ONE_GAIN["tied"],
-                                                                        ONE_GAIN["fixed"]))
-    return (f"### Leave-one-set-out fit of the shared corner offset's gains\n\n"
-            f"Each blender_dev row: of the grid's gains ({grids}), those whose translation bounds cover "
-            "at least 90 % of every other blender_dev set, the one with the smallest mean log sharpness "
-            "over them, each set weighted by its frames (every frame counts once; the rule is the same "
-            "in every fold and for the all-set fit), and the held-out set's coverage and sharpness there; "
-            "the synth rows check the gains fitted on all blender_dev sets (they take no part in the fit). "
-            "The last column: the probability, for a calibrated 95 % bound, of as many misses as the set "
-            f"has or more (fewer), and of 90-99 % coverage at all for a set of its size.\n\n{joint}\n\n"
+    one, fits = _loso_table(blender, synth, corners, bounds_fit.gain_grid(ONE_GAIN["axes"], ONE_GAIN["tied"],
+                                                                           ONE_GAIN["fixed"]))
+    joint, _ = _loso_table(blender, synth, corners,
+                           bounds_fit.gain_grid(FIT_AXES, fixed={"common_offset_se_gain": 0.0}))
+    return (f"### Leave-one-set-out fit of the shared corner offset's gain\n\n"
+            "Each blender_dev row: of the gains on the measured common offset and on its standard error "
+            "(`common_offset_gain`, `common_offset_se_gain` tied to it; where the offset is below its noise "
+            "the estimate reads 0, yet such an offset is not ruled out; `shared_bias_gain` 0), those whose "
+            "translation bounds cover at least 90 % of every other blender_dev set, the one with the "
+            "smallest mean log sharpness over them, each set weighted by its frames (every frame counts "
+            "once; the rule is the same in every fold and for the all-set fit), and the held-out set's "
+            "coverage and sharpness there; the synth rows check the gain fitted on all blender_dev sets "
+            "(they take no part in the fit). The last column: the probability, for a calibrated 95 % bound, "
+            "of as many misses as the set has or more (fewer), and of 90-99 % coverage at all for a set "
+            f"of its size.\n\n{one}\n\n"
+            f"{_misses_table(blender, fits, corners)}\n\n"
+            "#### Two gains: the measured offset and the corner-noise ratio\n\n"
+            f"The same rule over the grid {grids}, the standard error unused:\n\n{joint}\n\n"
             "The two gains substitute for each other on the training sets: a set whose depth error "
             "follows the measured offset more than the others' is covered only by the common offset, "
             "and without it in the fold the fit takes the corner-noise ratio instead.\n\n"
-            f"{_misses_table(blender, fits, corners)}\n\n"
-            "#### One gain: the measured offset and its standard error\n\n"
-            "The same rule over one gain: `common_offset_gain` on the measured offset and on its standard "
-            "error (`common_offset_se_gain`, tied to it; where the offset is below its noise the estimate "
-            "reads 0, yet such an offset is not ruled out), `shared_bias_gain` 0.\n\n"
-            f"{one}\n\n"
             "The translation error is mostly depth, one dimension, where a bound that knows each frame's "
             "sigma exactly has sharpness 2.9 (1.96 / 0.674; the brackets above give it for each set's own "
             "covariances): sharpness <= 3 with 90 % coverage asks every frame's stated depth sigma "

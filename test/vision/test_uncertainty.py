@@ -195,7 +195,8 @@ def test_offset_is_the_measured_common_radial_share() -> None:
 def test_common_offset_standard_error_is_its_scatter() -> None:
     """``bias_common_se`` is the scatter of the measured common offset over noise draws (every
     tag 0.3 px inward, well above the noise: the estimate is not clipped), and
-    ``common_offset_se_gain`` states it as a sigma along the common radial mode (0: not at all)."""
+    ``common_offset_se_gain`` states it as a sigma along the common radial mode (0: not at all;
+    the edge profile's default 1: as measured)."""
     T = _truth(15.0)
     exact = _exact_corners(T)
     rng = np.random.default_rng(5)
@@ -209,8 +210,8 @@ def test_common_offset_standard_error_is_its_scatter() -> None:
         errors.append(seen["bias_common_se"])
     assert abs(np.median(estimates) - 0.3) < 0.05  # the offset, scaled back
     assert 0.6 < np.std(estimates) / np.median(errors) < 1.6
-    base = UncertaintyConfig()
-    assert base.common_offset_se_gain == 0.0
+    assert UncertaintyConfig().common_offset_se_gain == 1.0  # the edge profile: as measured
+    base = UncertaintyConfig(common_offset_se_gain=0.0)
     np.testing.assert_array_equal(combine_uncertainty(terms, seen, base),
                                   combine_uncertainty(terms, {**seen, "bias_common_se": 9.0}, base))
     stated = UncertaintyConfig(common_offset_se_gain=1.5)
