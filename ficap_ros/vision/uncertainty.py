@@ -37,12 +37,12 @@ offset costs a low-resolution camera twice the depth error, and it leaves no res
 absorbs it). What the residuals do show of it (the part the depth could not absorb, scaled back
 by the share left, ``_common_offset_px``) is a noisy estimate, amplified up to tenfold, yet on
 path-traced renders it is the frame feature that follows the depth error across cameras, lights
-and tone curves (``benchmarks/bench_uncertainty.py`` decomposes each frame's depth variance by
-term against its error): the edge profile states the offset as that estimate times
-``common_offset_gain``, a gain calibrated on those renders. The residual-based terms alone state
-the depth error of frames without such an offset about right; the corner noise over the cell
-width (``shared_bias_ratio``) does not follow the offset (it is largest where there is none) and
-serves the profiles calibrated with it.
+and tone curves (``benchmarks/bench_uncertainty.py``): the edge profile states the offset as
+measured, with its standard error beside it (``common_offset_gain`` and ``common_offset_se_gain``
+1, the factor a leave-one-set-out fit on those renders picks for every set). The residual-based
+terms alone state the depth error of frames without such an offset about right; the corner noise
+over the cell width (``shared_bias_ratio``) does not follow the offset (it is largest where there
+is none) and serves the profiles calibrated with it.
 
 Tag weights (``joint`` pose, ``UncertaintyConfig.weight_tags``): each tag's corner noise is
 estimated from its own residuals with the frame's median as a prior (``tag_noise_px``), and the pose
@@ -117,14 +117,16 @@ class UncertaintyConfig:
     into the offset's sigma, px. What the residuals show of the offset (the tags' mean radial
     coefficient, scaled back by the share of it the depth left: ``seen["bias_common"]``) states
     it better for the edge corners: ``common_offset_gain`` times it is a mean error of the frame
-    (``uncertainty_bounds``), and the edge profile uses it in place of the ratio.
+    (``uncertainty_bounds``), and the edge profile uses it in place of the ratio. Below its standard
+    error it reads 0, yet such an offset is not ruled out: ``common_offset_se_gain`` states that.
 
     The light gains and ``residual_inflation`` are calibrated on ``ficap synth`` drives
     (the smallest bounds whose rotation and translation bounds cover at least 90 % in every
-    lighting and resolution condition); ``common_offset_gain`` and ``shared_bias_gain`` jointly
-    on the path-traced development renders (of the gains whose translation bounds cover at least
-    90 % of every set, those with the smallest worst median bound over median error; each set's
-    figures from the gains fitted without it) and checked, not fitted, on synth drives.
+    lighting and resolution condition). The edge profile's offset gain is fitted on the path-traced
+    renders leave one set out (bench_uncertainty states the rule): one gain on the measured offset
+    and its standard error comes out 1 for every set held out, and covers each at least 90 %; a
+    joint fit with ``shared_bias_gain`` trades the two terms for each other and leaves a set
+    uncovered. Both are checked, not fitted, on synth drives.
     ``benchmarks/bench_uncertainty.py`` runs both checks and the leave-one-set-out fit
     (docs/benchmarks/uncertainty.md). The floors state what residuals cannot estimate and
     guarantee that no pose is ever "exact".
@@ -151,14 +153,16 @@ class UncertaintyConfig:
             tone curve move dark borders), independent per tag, px.
         corner_bias_common_px: the same offset shared by every tag of a frame, px (a floor).
         shared_bias_gain: sigma of the edge corners' radial offset shared by every tag, px per
-            unit of the frame's ``shared_bias_ratio`` (its corner noise over its cell width). The
-            edge profile states the offset mainly by ``common_offset_gain``; this term is the
-            small part the joint fit adds beside it.
+            unit of the frame's ``shared_bias_ratio`` (its corner noise over its cell width). 0 in
+            the edge profile, which states the offset by what the residuals show of it.
         common_offset_gain: factor on the tags' common radial offset as the residuals show it
-            (``uncertainty_bounds``: a measured mean error). For corners whose tone-curve bias is
-            removed the estimate is the small part the depth left, scaled back, and understates
-            the offset, hence a factor above 1 by default; 1 in the ``uncorrected`` profile,
-            whose offsets are large; 0 in the ``photometric`` one.
+            (``uncertainty_bounds``: a measured mean error). 1 by default: the offset as
+            measured; 0 in the ``photometric`` profile.
+        common_offset_se_gain: factor on that estimate's standard error
+            (``seen["bias_common_se"]``), a sigma along the same mode: below its standard error
+            the estimate reads 0, yet such an offset is not ruled out. 1 by default (the
+            offset's own uncertainty as measured); 0 in the ``photometric`` and
+            ``uncorrected`` profiles, calibrated without it.
         model_mm, model_deg: each tag plate's placement on the built cap against the model, per
             axis (shift, mm; turn about the plate centre, deg). 0 by default: misplaced plates
             show in the residuals; raise them when the cap may have changed since its model was
@@ -189,18 +193,18 @@ class UncertaintyConfig:
             mode ``blur_shift``): edges fitted on a smeared tag settle off its mid-exposure
             place, alike in every tag, which the pose takes for a turn. Both gains are fitted
             on rendered fast glances (path-traced and synth, global and rolling shutter) for
-            95 % coverage, each recording's coverage checked with gains fitted without it
-            (``benchmarks/bench_glance.py``); they act only when the exposure is given. The shift's
-            fit is 0: the motion-aware corners (``DetectorConfig.motion_corners``) fit the smear
-            instead of leaving it in the edges, and the shared corner offset the residuals show
-            (``common_offset_gain``) covers most of what is left.
+            95 % coverage, each recording's checked with gains fitted without it
+            (``benchmarks/bench_glance.py``); they act only when the exposure is given. The
+            shift's is 0: the motion-aware corners (``DetectorConfig.motion_corners``) fit the
+            smear, and the common offset (``common_offset_gain``) covers most of what is left.
     """
 
     corner_noise_px: float = 0.002
     corner_bias_px: float = 0.002
     corner_bias_common_px: float = 0.002
-    shared_bias_gain: float = 0.15
-    common_offset_gain: float = 2.0
+    shared_bias_gain: float = 0.0
+    common_offset_gain: float = 1.0
+    common_offset_se_gain: float = 1.0
     model_mm: float = 0.0
     model_deg: float = 0.0
     principal_point_px: float = 0.0
@@ -221,7 +225,7 @@ class UncertaintyConfig:
                   self.model_mm, self.model_deg, self.principal_point_px, self.focal_rel,
                   self.light_gradient_gain, self.light_gradient_tilt_gain, self.tilt_shift_px,
                   self.motion_blur_gain, self.motion_blur_shift_gain, self.shared_bias_gain,
-                  self.common_offset_gain, self.edge_shift_tilt_gain)
+                  self.common_offset_gain, self.common_offset_se_gain, self.edge_shift_tilt_gain)
         if not all(np.isfinite(v) and v >= 0 for v in values):
             raise ConfigError("uncertainty sigmas and gains must be finite and >= 0")
         if self.corner_noise_px <= 0:
@@ -250,9 +254,9 @@ class UncertaintyConfig:
 _CORNER_PROFILES: dict[str, dict[str, float]] = {
     "edge": {},
     "photometric": {"light_gradient_tilt_gain": 0.1, "edge_shift_tilt_gain": 0.0,
-                    "shared_bias_gain": 0.75, "common_offset_gain": 0.0},
+                    "shared_bias_gain": 0.75, "common_offset_gain": 0.0, "common_offset_se_gain": 0.0},
     "uncorrected": {"light_gradient_tilt_gain": 0.35, "edge_shift_tilt_gain": 0.0,
-                    "common_offset_gain": 1.0, "shared_bias_gain": 0.95},
+                    "common_offset_gain": 1.0, "common_offset_se_gain": 0.0, "shared_bias_gain": 0.95},
 }
 CORNER_ESTIMATORS = tuple(_CORNER_PROFILES)
 
@@ -422,12 +426,11 @@ def uncertainty_terms(
             tag's divided by its relative noise) pooled over the tags, less the share the fit
             absorbed (the weighted hat matrix's leverage of the group), and ``bias_common``, the
             tags' mean radial offset (px per corner), scaled back by the share of it the fit left
-            in the residuals; ``light_gradient`` (``light_gradient_px``), px;
-            ``edge_shift_mean`` (``edge_shift_mean_px``), px;
-            ``shared_bias_ratio`` (``shared_bias_ratio`` of the tags' corner noise from these
-            residuals: ``tag_noise_from_residuals``); per pattern
-            group also ``<group>_dof``, the degrees of freedom its sigma was pooled from (the
-            bounds widen for a sigma estimated from few, ``uncertainty_bounds``).
+            in the residuals, and ``bias_common_se`` its standard error; ``light_gradient``
+            (``light_gradient_px``) and ``edge_shift_mean`` (``edge_shift_mean_px``), px;
+            ``shared_bias_ratio`` (of the tags' corner noise from these residuals:
+            ``tag_noise_from_residuals``); per pattern group also ``<group>_dof``, the degrees of
+            freedom its sigma was pooled from (the bounds widen for a sigma estimated from few).
     """
     res, J = residuals_and_jacobian(T, obs) if at is None else at
     n_tags = len(obs)
@@ -444,7 +447,8 @@ def uncertainty_terms(
     terms = _per_tag_terms(obs, T, A_ros, B, rel)
     terms.update(_shared_terms(obs, T, A_ros, common))
     seen, mean_scale = _residual_sigmas(res, J, M, B, rel)
-    seen["bias_common"] = _common_offset_px(common, w, J, A, mean_scale, seen["scale"], n_tags)
+    seen["bias_common"], seen["bias_common_se"] = _common_offset_px(common, w, J, A, mean_scale,
+                                                                    seen["scale"], n_tags)
     seen["light_gradient"] = (0.0 if edge_shift_px is None
                               else light_gradient_px(edge_shift_px, obs.image_px.mean(axis=1)))
     seen["edge_shift_mean"] = edge_shift_mean_px(edge_shift_px)
@@ -572,17 +576,17 @@ def _residual_sigmas(res: np.ndarray, J: np.ndarray, M: np.ndarray, B: np.ndarra
 
 
 def _common_offset_px(common: np.ndarray, w: np.ndarray, J: np.ndarray, A: np.ndarray,
-                      mean_scale: float, scale_sigma: float, n_tags: int) -> float:
-    """The tags' common radial offset, px per corner, from their mean scale coefficient.
-
-    What the residuals show of it is what the fit left: part of it went into the depth (that part
+                      mean_scale: float, scale_sigma: float, n_tags: int) -> tuple[float, float]:
+    """The tags' common radial offset and its standard error, px per corner, from their mean
+    scale coefficient. What the residuals show of it is what the fit left: part of it went into the depth (that part
     moved the pose). Scaled back to the whole by the share left. The mean carries the tags' scale
     noise too (its standard error): subtracted in quadrature, or the noise of a mean amplified up
     to tenfold would pass for an offset where there is none."""
     common_left = 1.0 - float(common @ (w * (J @ (A @ common)))) / float(common @ (w * common))
     mean_se2 = scale_sigma ** 2 / n_tags
-    return (float(np.sqrt(max(mean_scale**2 - mean_se2, 0.0)))
-            / 2.0 / max(common_left, 0.1))
+    left = max(common_left, 0.1)
+    return (float(np.sqrt(max(mean_scale**2 - mean_se2, 0.0))) / 2.0 / left,
+            math.sqrt(mean_se2) / 2.0 / left)
 
 
 def uncertainty_sources(terms: dict[str, np.ndarray], seen: dict[str, float],
@@ -594,7 +598,8 @@ def uncertainty_sources(terms: dict[str, np.ndarray], seen: dict[str, float],
     along the tilt: ``_beyond_px2``), ``shared_bias`` (the edge
     corners' radial offset shared by the tags: the frame's ``shared_bias_ratio`` times
     ``shared_bias_gain``), ``common_offset`` (the measured common radial offset times
-    ``common_offset_gain``, a mean error: ``uncertainty_bounds``) and the floors
+    ``common_offset_gain``, a mean error: ``uncertainty_bounds``), ``common_offset_se`` (its
+    standard error times ``common_offset_se_gain``, where that is above 0) and the floors
     (``floor_noise``, ``floor_bias``, ``floor_tilt``, ``floor_model``, ``floor_intrinsics``).
     ``combine_uncertainty`` is their sum; benchmarks/bench_uncertainty.py reports what each
     contributes to the bounds."""
@@ -617,6 +622,9 @@ def uncertainty_sources(terms: dict[str, np.ndarray], seen: dict[str, float],
         floor_intrinsics=(c.principal_point_px**2 * terms["principal_point"]
                           + c.focal_rel**2 * terms["focal"]),
     )
+    if c.common_offset_se_gain > 0.0:
+        se_px = c.common_offset_se_gain * seen.get("bias_common_se", 0.0)
+        parts["common_offset_se"] = k2 * se_px**2 * terms["bias_common"]
     if "motion_prior" in terms:
         parts["motion_prior"] = terms["motion_prior"]
     if "blur" in terms:
