@@ -88,6 +88,9 @@ _EDGE_FRACTIONS = (0.25, 0.5, 0.75)
 #: Samples across each boundary's window (half a cell each way; nine resolve the step as well as
 #: more do, for less time).
 _FIT_PROFILE_SAMPLES = 9
+#: Fewest trusted profiles (the fit's rows) a tag's cell-edge fit needs in all and per boundary
+#: direction; fewer leave the tag its border-line corners.
+_MIN_FIT_ROWS, _MIN_FIT_ROWS_PER_DIRECTION = 24, 12
 #: Points per side of a fitted tag where ``_line_bias`` measures its outer edge, and the most
 #: fitted tags it uses (spread over the call's order).
 _BIAS_POINTS = np.linspace(0.2, 0.8, 7)
@@ -453,7 +456,8 @@ def fit_tag_edges(
     img, k = frozen(gray), (_FIT_PROFILE_SAMPLES - 1) // 2
     for it in range(iterations):
         sol, solved, ok = edge_fit_round(img, h, tag_of, uv, nu, vertical, keep, starts, cfg.edge_search_px, k,
-                                         _MIN_CELL_PX, _MIN_CONTRAST_RATIO, 24, 12)
+                                         _MIN_CELL_PX, _MIN_CONTRAST_RATIO, _MIN_FIT_ROWS,
+                                         _MIN_FIT_ROWS_PER_DIRECTION)
         h = h + np.where(solved[:, None], sol[:, :8], 0.0)
         delta = np.where(solved, sol[:, 8:].mean(axis=1), np.nan)  # the two directions' mean
         fitted = solved
