@@ -310,9 +310,10 @@ def _simplejpeg() -> ModuleType | None:
 
 def _fast_decodable(head: np.ndarray) -> bool:
     """Whether a JPEG is one ``simplejpeg`` decodes to the same grey pixels as ``cv2.imdecode``:
-    a ``_FAST_SOF`` frame of 8-bit samples in one or three components, whose headers reach its
-    first scan, without an Exif segment (``cv2.imdecode`` turns an image by its Exif
-    orientation, ``simplejpeg`` does not)."""
+    a ``_FAST_SOF`` frame of 8-bit samples in one or three components (``simplejpeg`` greys a
+    four-component CMYK/YCCK image by a formula of its own), whose headers reach its first scan,
+    without an Exif segment (``cv2.imdecode`` turns an image by its Exif orientation,
+    ``simplejpeg`` does not)."""
     view = memoryview(head)
     frame = False
     try:
@@ -343,7 +344,7 @@ def _decode_jpeg_fast(buf: np.ndarray) -> np.ndarray | None:
     try:
         img = codec.decode_jpeg(buf, colorspace="GRAY", fastdct=False, fastupsample=False,
                                 strict=True)
-    except ValueError:
+    except (ValueError, RuntimeError):  # libjpeg's error or warning; no decoder instance
         return None
     return img.reshape(img.shape[0], img.shape[1])
 
