@@ -34,13 +34,15 @@ MIN_COVERAGE = 0.9
 @dataclass(frozen=True)
 class FrameTerms:
     """One pose's covariance terms (``uncertainty_terms``) and its true errors (the translation
-    error also as a vector, camera axes, mm, when known)."""
+    error also as a vector, camera axes, mm, when known), and the cap's true angular speed at
+    the frame (deg/s, from the previous frame's truth; NaN without one within 0.1 s)."""
 
     terms: dict[str, np.ndarray]
     seen: dict[str, float]
     rot_err_deg: float
     trans_err_mm: float
     trans_error_mm: np.ndarray | None = None
+    speed_dps: float = float("nan")
 
 
 def light_gradient_floor_px(edge_shift_px: np.ndarray, centres_px: np.ndarray) -> float:
@@ -116,10 +118,13 @@ class SetFit:
     trans_misses: int
 
 
-def gain_grid(axes: dict[str, Sequence[float]]) -> list[dict[str, float]]:
+def gain_grid(axes: dict[str, Sequence[float]], tied: dict[str, str] | None = None,
+              fixed: dict[str, float] | None = None) -> list[dict[str, float]]:
     """Every combination of the gains' values (``UncertaintyConfig`` field -> the values to try),
-    the last field varying fastest."""
-    return [dict(zip(axes, map(float, values))) for values in product(*axes.values())]
+    the last field varying fastest; ``tied`` fields (field -> the axis it equals) and ``fixed``
+    ones (field -> value) added to every point."""
+    points = [dict(zip(axes, map(float, values))) for values in product(*axes.values())]
+    return [{**p, **{k: p[axis] for k, axis in (tied or {}).items()}, **(fixed or {})} for p in points]
 
 
 def coverage_table(sets: dict[str, Sequence[FrameTerms]], base: UncertaintyConfig,
@@ -140,17 +145,21 @@ def coverage_table(sets: dict[str, Sequence[FrameTerms]], base: UncertaintyConfi
     return table
 
 
-def fitted_index(table: dict[str, np.ndarray], train: Sequence[str]) -> int:
-    """Index of the grid point fitted on the sets ``train``: of those whose translation bounds
-    cover at least ``MIN_COVERAGE`` of every training set's frames, the one with the smallest
-    worst translation sharpness over the training sets (ties: the smallest mean log sharpness,
-    then the first). None covers: the point with the highest worst coverage."""
+def fitted_index(table: dict[str, np.ndarray], train: Sequence[str], frames: dict[str, int]) -> int:
+    """Index of the grid point fitted on the sets ``train`` (``frames``: each set's frame count):
+    of those whose translation bounds cover at least ``MIN_COVERAGE`` of every training set's
+    frames, the one with the smallest mean log translation sharpness over the training sets,
+    each set weighted by its frames (ties: the first). Weighted so that every frame counts once:
+    the worst set's sharpness, a median ratio of 12-25 frames, is too noisy to decide between
+    gains that substitute for each other on the other sets. None covers: the point with the
+    highest worst coverage."""
     rows = np.stack([table[s] for s in train])  # (sets, points, 5)
     coverage, sharpness = rows[:, :, 2], np.log(np.maximum(rows[:, :, 3], 1e-12))
     ok = np.all(coverage >= MIN_COVERAGE - 1e-9, axis=0)
     if not ok.any():
         return int(np.argmax(coverage.min(axis=0)))
-    score = np.where(ok, sharpness.max(axis=0) + 1e-6 * sharpness.mean(axis=0), np.inf)
+    weights = np.array([frames[s] for s in train], dtype=float)
+    score = np.where(ok, weights @ sharpness / weights.sum(), np.inf)
     return int(np.argmin(score))
 
 
@@ -159,7 +168,7 @@ def leave_one_set_out(table: dict[str, np.ndarray], grid: Sequence[dict[str, flo
     """Each set's figures at the gains fitted on the other sets (``fitted_index``)."""
     fits = []
     for name, rows in table.items():
-        i = fitted_index(table, [s for s in table if s != name])
+        i = fitted_index(table, [s for s in table if s != name], frames)
         r = rows[i]
         fits.append(SetFit(name, grid[i], frames[name], *map(float, r[:4]), int(r[4])))
     return fits

@@ -158,6 +158,9 @@ PARAMETERS: tuple[ParamSpec, ...] = (
               "Covariance: factor on the tags' common radial offset the residuals show, a measured "
               "mean error the depth takes (calibrated on path-traced renders; 0 = not used).",
               range=(0.0, 10.0)),
+    ParamSpec("uncertainty.common_offset_se_gain", _UNCERTAINTY.common_offset_se_gain,
+              "Covariance: factor on the standard error of that measured offset, a spread along the "
+              "same mode (0 = not used).", range=(0.0, 10.0)),
     ParamSpec("uncertainty.model_mm", _UNCERTAINTY.model_mm,
               "Covariance floor: each tag plate's shift against the cap model, mm per axis "
               "(misplaced plates the residuals show come on top).", range=(0.0, 20.0)),
@@ -339,6 +342,7 @@ class NodeConfig:
     uncertainty_corner_bias_common_px: float
     uncertainty_shared_bias_gain: float
     uncertainty_common_offset_gain: float
+    uncertainty_common_offset_se_gain: float
     uncertainty_model_mm: float
     uncertainty_model_deg: float
     uncertainty_residual_inflation: float

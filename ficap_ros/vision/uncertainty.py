@@ -37,12 +37,11 @@ offset costs a low-resolution camera twice the depth error, and it leaves no res
 absorbs it). What the residuals do show of it (the part the depth could not absorb, scaled back
 by the share left, ``_common_offset_px``) is a noisy estimate, amplified up to tenfold, yet on
 path-traced renders it is the frame feature that follows the depth error across cameras, lights
-and tone curves (``benchmarks/bench_uncertainty.py`` decomposes each frame's depth variance by
-term against its error): the edge profile states the offset as that estimate times
-``common_offset_gain``, a gain calibrated on those renders. The residual-based terms alone state
-the depth error of frames without such an offset about right; the corner noise over the cell
-width (``shared_bias_ratio``) does not follow the offset (it is largest where there is none) and
-serves the profiles calibrated with it.
+and tone curves (``benchmarks/bench_uncertainty.py``): the edge profile states the offset as
+that estimate times ``common_offset_gain``, calibrated on those renders. The residual-based
+terms alone state the depth error of frames without such an offset about right; the corner noise
+over the cell width (``shared_bias_ratio``) does not follow the offset (it is largest where there
+is none) and serves the profiles calibrated with it.
 
 Tag weights (``joint`` pose, ``UncertaintyConfig.weight_tags``): each tag's corner noise is
 estimated from its own residuals with the frame's median as a prior (``tag_noise_px``), and the pose
@@ -117,14 +116,16 @@ class UncertaintyConfig:
     into the offset's sigma, px. What the residuals show of the offset (the tags' mean radial
     coefficient, scaled back by the share of it the depth left: ``seen["bias_common"]``) states
     it better for the edge corners: ``common_offset_gain`` times it is a mean error of the frame
-    (``uncertainty_bounds``), and the edge profile uses it in place of the ratio.
+    (``uncertainty_bounds``), and the edge profile uses it in place of the ratio. Below its standard
+    error it reads 0, yet such an offset is not ruled out: ``common_offset_se_gain`` states that.
 
     The light gains and ``residual_inflation`` are calibrated on ``ficap synth`` drives
     (the smallest bounds whose rotation and translation bounds cover at least 90 % in every
     lighting and resolution condition); ``common_offset_gain`` and ``shared_bias_gain`` jointly
     on the path-traced development renders (of the gains whose translation bounds cover at least
-    90 % of every set, those with the smallest worst median bound over median error; each set's
-    figures from the gains fitted without it) and checked, not fitted, on synth drives.
+    90 % of every set, those with the smallest mean log median bound over median error, each set
+    weighted by its frames; each set's figures from the gains fitted without it) and checked,
+    not fitted, on synth drives.
     ``benchmarks/bench_uncertainty.py`` runs both checks and the leave-one-set-out fit
     (docs/benchmarks/uncertainty.md). The floors state what residuals cannot estimate and
     guarantee that no pose is ever "exact".
@@ -159,6 +160,8 @@ class UncertaintyConfig:
             removed the estimate is the small part the depth left, scaled back, and understates
             the offset, hence a factor above 1 by default; 1 in the ``uncorrected`` profile,
             whose offsets are large; 0 in the ``photometric`` one.
+        common_offset_se_gain: factor on that estimate's standard error
+            (``seen["bias_common_se"]``), a sigma along the same mode. 0 by default.
         model_mm, model_deg: each tag plate's placement on the built cap against the model, per
             axis (shift, mm; turn about the plate centre, deg). 0 by default: misplaced plates
             show in the residuals; raise them when the cap may have changed since its model was
@@ -189,11 +192,10 @@ class UncertaintyConfig:
             mode ``blur_shift``): edges fitted on a smeared tag settle off its mid-exposure
             place, alike in every tag, which the pose takes for a turn. Both gains are fitted
             on rendered fast glances (path-traced and synth, global and rolling shutter) for
-            95 % coverage, each recording's coverage checked with gains fitted without it
-            (``benchmarks/bench_glance.py``); they act only when the exposure is given. The shift's
-            fit is 0: the motion-aware corners (``DetectorConfig.motion_corners``) fit the smear
-            instead of leaving it in the edges, and the shared corner offset the residuals show
-            (``common_offset_gain``) covers most of what is left.
+            95 % coverage, each recording's checked with gains fitted without it
+            (``benchmarks/bench_glance.py``); they act only when the exposure is given. The
+            shift's is 0: the motion-aware corners (``DetectorConfig.motion_corners``) fit the
+            smear, and the common offset (``common_offset_gain``) covers most of what is left.
     """
 
     corner_noise_px: float = 0.002
@@ -201,6 +203,7 @@ class UncertaintyConfig:
     corner_bias_common_px: float = 0.002
     shared_bias_gain: float = 0.15
     common_offset_gain: float = 2.0
+    common_offset_se_gain: float = 0.0
     model_mm: float = 0.0
     model_deg: float = 0.0
     principal_point_px: float = 0.0
@@ -221,7 +224,7 @@ class UncertaintyConfig:
                   self.model_mm, self.model_deg, self.principal_point_px, self.focal_rel,
                   self.light_gradient_gain, self.light_gradient_tilt_gain, self.tilt_shift_px,
                   self.motion_blur_gain, self.motion_blur_shift_gain, self.shared_bias_gain,
-                  self.common_offset_gain, self.edge_shift_tilt_gain)
+                  self.common_offset_gain, self.common_offset_se_gain, self.edge_shift_tilt_gain)
         if not all(np.isfinite(v) and v >= 0 for v in values):
             raise ConfigError("uncertainty sigmas and gains must be finite and >= 0")
         if self.corner_noise_px <= 0:
@@ -422,12 +425,11 @@ def uncertainty_terms(
             tag's divided by its relative noise) pooled over the tags, less the share the fit
             absorbed (the weighted hat matrix's leverage of the group), and ``bias_common``, the
             tags' mean radial offset (px per corner), scaled back by the share of it the fit left
-            in the residuals; ``light_gradient`` (``light_gradient_px``), px;
-            ``edge_shift_mean`` (``edge_shift_mean_px``), px;
-            ``shared_bias_ratio`` (``shared_bias_ratio`` of the tags' corner noise from these
-            residuals: ``tag_noise_from_residuals``); per pattern
-            group also ``<group>_dof``, the degrees of freedom its sigma was pooled from (the
-            bounds widen for a sigma estimated from few, ``uncertainty_bounds``).
+            in the residuals, and ``bias_common_se`` its standard error; ``light_gradient``
+            (``light_gradient_px``) and ``edge_shift_mean`` (``edge_shift_mean_px``), px;
+            ``shared_bias_ratio`` (of the tags' corner noise from these residuals:
+            ``tag_noise_from_residuals``); per pattern group also ``<group>_dof``, the degrees of
+            freedom its sigma was pooled from (the bounds widen for a sigma estimated from few).
     """
     res, J = residuals_and_jacobian(T, obs) if at is None else at
     n_tags = len(obs)
@@ -444,7 +446,8 @@ def uncertainty_terms(
     terms = _per_tag_terms(obs, T, A_ros, B, rel)
     terms.update(_shared_terms(obs, T, A_ros, common))
     seen, mean_scale = _residual_sigmas(res, J, M, B, rel)
-    seen["bias_common"] = _common_offset_px(common, w, J, A, mean_scale, seen["scale"], n_tags)
+    seen["bias_common"], seen["bias_common_se"] = _common_offset_px(common, w, J, A, mean_scale,
+                                                                    seen["scale"], n_tags)
     seen["light_gradient"] = (0.0 if edge_shift_px is None
                               else light_gradient_px(edge_shift_px, obs.image_px.mean(axis=1)))
     seen["edge_shift_mean"] = edge_shift_mean_px(edge_shift_px)
@@ -572,17 +575,17 @@ def _residual_sigmas(res: np.ndarray, J: np.ndarray, M: np.ndarray, B: np.ndarra
 
 
 def _common_offset_px(common: np.ndarray, w: np.ndarray, J: np.ndarray, A: np.ndarray,
-                      mean_scale: float, scale_sigma: float, n_tags: int) -> float:
-    """The tags' common radial offset, px per corner, from their mean scale coefficient.
-
-    What the residuals show of it is what the fit left: part of it went into the depth (that part
+                      mean_scale: float, scale_sigma: float, n_tags: int) -> tuple[float, float]:
+    """The tags' common radial offset and its standard error, px per corner, from their mean
+    scale coefficient. What the residuals show of it is what the fit left: part of it went into the depth (that part
     moved the pose). Scaled back to the whole by the share left. The mean carries the tags' scale
     noise too (its standard error): subtracted in quadrature, or the noise of a mean amplified up
     to tenfold would pass for an offset where there is none."""
     common_left = 1.0 - float(common @ (w * (J @ (A @ common)))) / float(common @ (w * common))
     mean_se2 = scale_sigma ** 2 / n_tags
-    return (float(np.sqrt(max(mean_scale**2 - mean_se2, 0.0)))
-            / 2.0 / max(common_left, 0.1))
+    left = max(common_left, 0.1)
+    return (float(np.sqrt(max(mean_scale**2 - mean_se2, 0.0))) / 2.0 / left,
+            math.sqrt(mean_se2) / 2.0 / left)
 
 
 def uncertainty_sources(terms: dict[str, np.ndarray], seen: dict[str, float],
@@ -594,7 +597,8 @@ def uncertainty_sources(terms: dict[str, np.ndarray], seen: dict[str, float],
     along the tilt: ``_beyond_px2``), ``shared_bias`` (the edge
     corners' radial offset shared by the tags: the frame's ``shared_bias_ratio`` times
     ``shared_bias_gain``), ``common_offset`` (the measured common radial offset times
-    ``common_offset_gain``, a mean error: ``uncertainty_bounds``) and the floors
+    ``common_offset_gain``, a mean error: ``uncertainty_bounds``), ``common_offset_se`` (its
+    standard error times ``common_offset_se_gain``, where that is above 0) and the floors
     (``floor_noise``, ``floor_bias``, ``floor_tilt``, ``floor_model``, ``floor_intrinsics``).
     ``combine_uncertainty`` is their sum; benchmarks/bench_uncertainty.py reports what each
     contributes to the bounds."""
@@ -617,6 +621,9 @@ def uncertainty_sources(terms: dict[str, np.ndarray], seen: dict[str, float],
         floor_intrinsics=(c.principal_point_px**2 * terms["principal_point"]
                           + c.focal_rel**2 * terms["focal"]),
     )
+    if c.common_offset_se_gain > 0.0:
+        se_px = c.common_offset_se_gain * seen.get("bias_common_se", 0.0)
+        parts["common_offset_se"] = k2 * se_px**2 * terms["bias_common"]
     if "motion_prior" in terms:
         parts["motion_prior"] = terms["motion_prior"]
     if "blur" in terms:

@@ -192,6 +192,33 @@ def test_offset_is_the_measured_common_radial_share() -> None:
     assert np.all(off0 == 0.0)
 
 
+def test_common_offset_standard_error_is_its_scatter() -> None:
+    """``bias_common_se`` is the scatter of the measured common offset over noise draws (every
+    tag 0.3 px inward, well above the noise: the estimate is not clipped), and
+    ``common_offset_se_gain`` states it as a sigma along the common radial mode (0: not at all)."""
+    T = _truth(15.0)
+    exact = _exact_corners(T)
+    rng = np.random.default_rng(5)
+    flat = PoseConfig(uncertainty=UncertaintyConfig(weight_tags=False))  # the terms' equal weights
+    estimates, errors = [], []
+    for _ in range(40):
+        corners = _with_common_offset(exact, -0.3, 0.1, rng)
+        obs = TagObservations.of({i: CAM.undistort_px(c) for i, c in corners.items()}, MODEL, CAM.K)
+        terms, seen = uncertainty_terms(obs, _pose(corners, flat).T_cam_cap)
+        estimates.append(seen["bias_common"])
+        errors.append(seen["bias_common_se"])
+    assert abs(np.median(estimates) - 0.3) < 0.05  # the offset, scaled back
+    assert 0.6 < np.std(estimates) / np.median(errors) < 1.6
+    base = UncertaintyConfig()
+    assert base.common_offset_se_gain == 0.0
+    np.testing.assert_array_equal(combine_uncertainty(terms, seen, base),
+                                  combine_uncertainty(terms, {**seen, "bias_common_se": 9.0}, base))
+    stated = UncertaintyConfig(common_offset_se_gain=1.5)
+    added = combine_uncertainty(terms, seen, stated) - combine_uncertainty(terms, seen, base)
+    np.testing.assert_allclose(added, (1.5 * seen["bias_common_se"]) ** 2 * terms["bias_common"],
+                               rtol=1e-6, atol=1e-18)
+
+
 def test_noisy_tags_weighted_down() -> None:
     """A few tags with ten times the corner noise of the others (oblique, dark, or read a second
     time): weighting each tag by its own residuals (``tag_noise_px``) lowers the pose error, and
