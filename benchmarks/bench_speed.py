@@ -21,7 +21,9 @@ CPU time (user + sys from ``os.wait4``: start-up, imports, bag reading, JPEG
 decode, pipeline, label writing, everything) per frame. AprilTag 3: pupil-apriltags decimate 1,
 one thread, with our joint pose, on the same JPEG payloads in this process, decode included
 (``cv2.imdecode`` grey); its start-up and bag reading are not counted (the ratio favours it).
-Beside them the JPEG decode alone. Everything runs on one core (this process's affinity, which
+Beside them the JPEG decode alone: ``cv2.imdecode`` grey (the reference the ratios are taken
+against) and the command's own (``image_codec.decode_compressed``: simplejpeg where it is
+installed, else OpenCV; the same pixels either way). Everything runs on one core (this process's affinity, which
 the child inherits); the command's runs and the other rounds alternate (``--rounds``), so a change
 of the shared machine's load falls on all; each figure is the median of its rounds. The package's
 modules are compiled to bytecode first (``__pycache__`` beside them), as a pip or colcon install has
@@ -78,6 +80,7 @@ class Drive:
     photometric_cpu_s: list[float] = field(default_factory=list)
     at3_ms: list[float] = field(default_factory=list)
     decode_ms: list[float] = field(default_factory=list)
+    own_decode_ms: list[float] = field(default_factory=list)
     at3_tags: float = float("nan")
     ours_tags: float = float("nan")
     summary: dict = field(default_factory=dict)
@@ -141,18 +144,33 @@ def at3_round(d: Drive) -> None:
 
 
 def decode_round(d: Drive) -> None:
+    """The decode alone, ms per frame: ``cv2.imdecode`` grey, then the command's own."""
     import cv2
+
+    from ficap_ros.io.image_codec import decode_compressed
 
     plays = d.one_play
     t0 = time.process_time()
     for buf, _camera, _stamp in plays:
         cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
     d.decode_ms.append(1e3 * (time.process_time() - t0) / len(plays))
+    t0 = time.process_time()
+    for buf, _camera, _stamp in plays:
+        decode_compressed(buf)
+    d.own_decode_ms.append(1e3 * (time.process_time() - t0) / len(plays))
+
+
+def own_decoder() -> str:
+    """Which decoder ``image_codec.decode_compressed`` uses for these JPEGs."""
+    import importlib.util
+
+    return "simplejpeg" if importlib.util.find_spec("simplejpeg") else "cv2.imdecode"
 
 
 def instrumented(d: Drive) -> tuple[dict[str, float], float, float]:
-    """Own ms per frame of each stage, the decode's and the pass's total, ours in this process."""
-    import cv2
+    """Own ms per frame of each stage, the decode's (the command's own) and the pass's total, ours
+    in this process."""
+    from ficap_ros.io.image_codec import decode_compressed
 
     present = []
     for mod, attr, label in STAGES:
@@ -171,7 +189,7 @@ def instrumented(d: Drive) -> tuple[dict[str, float], float, float]:
         t_start = time.process_time()
         for buf, camera, stamp in d.raws:
             t0 = time.process_time()
-            gray = cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE)
+            gray = decode_compressed(buf)
             decode += time.process_time() - t0
             proc.process(gray, camera, stamp)
         total = time.process_time() - t_start
@@ -285,27 +303,30 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for d in drives:
         ours, at3, dec = d.ours_ms(), float(np.median(d.at3_ms)), float(np.median(d.decode_ms))
+        own_dec = float(np.median(d.own_decode_ms))
         photo = d.photometric_ms()
         rows.append([d.label, d.frames, f"{ours:.1f}", f"{at3:.1f}", f"**{at3 / ours:.1f}x**", f"{dec:.2f}",
-                     f"**{ours / dec:.2f}x**", f"{photo:.1f} ({at3 / photo:.1f}x, {photo / dec:.2f}x)",
+                     f"**{ours / dec:.2f}x**", f"{own_dec:.2f} ({own_dec / dec:.2f}x)", f"{photo:.1f} ({at3 / photo:.1f}x, {photo / dec:.2f}x)",
                      f"{at3 - dec:.1f} / {ours - dec:.1f} = {(at3 - dec) / (ours - dec):.1f}x",
                      f"{d.summary.get('frames_with_pose', 0)}/{d.frames}", f"{d.ours_tags:.1f} / {d.at3_tags:.1f}",
                      f"{d.frames / np.median(d.command_wall_s):.0f}"])
     table = report.md_table(["drive", "frames", "ficap replay ms/frame (whole command)",
                              "AprilTag 3 ms/frame (decode + detect + pose)", "AprilTag 3 / ficap",
-                             "JPEG decode alone ms/frame", "ficap / decode alone",
+                             "JPEG decode alone ms/frame (cv2.imdecode grey)", "ficap / decode alone",
+                             f"the command's decode alone ms/frame ({own_decoder()}; / cv2's)",
                              "--photometric ms/frame (AprilTag 3 / it, it / decode)",
                              "without the decode: AprilTag 3 / ficap",
                              "frames with a pose (ficap)", "tags/frame: ficap / AprilTag 3",
                              "ficap replay frames/s (wall)"], rows)
     labels = list(dict.fromkeys(label for *_m, label in STAGES))
     srows = []
-    for label in ["JPEG decode (cv2.imdecode, grey)"] + labels + ["pass total (decode + pipeline)",
+    own_label = f"JPEG decode (the command's: {own_decoder()})"
+    for label in [own_label] + labels + ["pass total (decode + pipeline)",
                                                                     "the command's rest (start-up, bag, labels)"]:
         row = [label]
         for d in drives:
             own, dec, total = stages[d.label]
-            v = {"JPEG decode (cv2.imdecode, grey)": dec, "pass total (decode + pipeline)": total,
+            v = {own_label: dec, "pass total (decode + pipeline)": total,
                  "the command's rest (start-up, bag, labels)": d.ours_ms() - total}.get(label, own.get(label, 0.0))
             row += [f"{v:.2f}", f"{100 * v / d.ours_ms():.0f} %"]
         srows.append(row)

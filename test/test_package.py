@@ -86,6 +86,7 @@ MODULES: dict[str, tuple[str | None, str | None]] = {
     "diagnostic_msgs": ("diagnostic_msgs", "ros-jazzy-common-interfaces"),
     "visualization_msgs": ("visualization_msgs", "ros-jazzy-common-interfaces"),
     "cv2": ("python3-opencv", "opencv-python-headless"),
+    "simplejpeg": ("python3-simplejpeg-pip", "simplejpeg"),
     "numpy": ("python3-numpy", "numpy"),
     "scipy": ("python3-scipy", "scipy"),
     "numba": ("python3-numba", "numba"),

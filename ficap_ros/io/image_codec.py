@@ -1,7 +1,13 @@
 """Decode ``sensor_msgs/Image`` and ``sensor_msgs/CompressedImage`` payloads to grey arrays.
 
-Pure numpy/OpenCV: no ROS import, so the bag tools, the node (through ``ros_msgs``) and tests share
+Pure numpy/OpenCV: no ROS import, so the bag tools, the node (through ``io.messages``) and tests share
 one decoder. Encodings are the ``sensor_msgs/image_encodings`` names.
+
+JPEGs go through ``simplejpeg`` (libjpeg-turbo, an optional dependency) where it is installed and
+the stream is a plain 8-bit Huffman-coded frame (``_fast_decodable``): it gives the very pixels
+``cv2.imdecode`` gives, at less cost. Anything else (PNG, other JPEG codings, an Exif orientation,
+any libjpeg warning or error, ``simplejpeg`` absent) is decoded by OpenCV as below, so the pixels
+and the verdict on a damaged image do not depend on which decoder is installed.
 
 Memory is checked before it is spent: an image's size comes from its message fields or from its
 compressed header (``compressed_size``: a JPEG's frame header, a PNG's IHDR) and is held against
@@ -20,9 +26,12 @@ and without a pose, and the node publishes no pose for it.
 
 from __future__ import annotations
 
+import functools
 import os
 import re
 import struct
+from collections.abc import Iterator
+from types import ModuleType
 
 import cv2
 import numpy as np
@@ -192,6 +201,33 @@ _STANDALONE = frozenset({0x01, *range(0xD0, 0xD9)})
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
+def _jpeg_segments(head: memoryview) -> Iterator[tuple[int, int, int]]:
+    """(marker, byte position, segment length) of each marker segment of a JPEG from its start
+    of image up to its first scan: the start of scan (``0xDA``) or an end of image (``0xD9``)
+    comes last, with length 0. Stops early where the data is cut short.
+
+    Raises:
+        ImageError: a byte where a marker belongs is not one.
+    """
+    pos = 2
+    while pos + 4 <= len(head):
+        if head[pos] != 0xFF:
+            raise ImageError(f"JPEG header is damaged (no marker at byte {pos})")
+        marker = head[pos + 1]
+        if marker == 0xFF:  # fill byte
+            pos += 1
+            continue
+        if marker in _STANDALONE:
+            pos += 2
+            continue
+        if marker in (0xD9, 0xDA):  # end of image, or the scan data
+            yield marker, pos, 0
+            return
+        (length,) = struct.unpack(">H", head[pos + 2: pos + 4])
+        yield marker, pos, length
+        pos += 2 + length
+
+
 def compressed_size(data: bytes | np.ndarray) -> tuple[str, int, int]:
     """(format, width, height) of a compressed image from its header, without decoding it: a
     JPEG's frame header (SOFn), a PNG's IHDR chunk.
@@ -208,20 +244,7 @@ def compressed_size(data: bytes | np.ndarray) -> tuple[str, int, int]:
         return "png", width, height
     if bytes(head[:2]) != b"\xff\xd8":
         raise ImageError("compressed image is neither JPEG nor PNG")
-    pos = 2
-    while pos + 4 <= len(head):
-        if head[pos] != 0xFF:
-            raise ImageError(f"JPEG header is damaged (no marker at byte {pos})")
-        marker = head[pos + 1]
-        if marker == 0xFF:  # fill byte
-            pos += 1
-            continue
-        if marker in _STANDALONE:
-            pos += 2
-            continue
-        if marker in (0xD9, 0xDA):  # end of image, or scan data before any frame header
-            break
-        (length,) = struct.unpack(">H", head[pos + 2: pos + 4])
+    for marker, pos, length in _jpeg_segments(head):
         if marker in _SOF:
             if pos + 9 > len(head) or length < 7:
                 break
@@ -229,7 +252,6 @@ def compressed_size(data: bytes | np.ndarray) -> tuple[str, int, int]:
             if not (width and height):
                 raise ImageError(f"JPEG frame header gives no size ({width}x{height})")
             return "jpeg", width, height
-        pos += 2 + length
     raise ImageError("JPEG image without a frame header (cut short or damaged)")
 
 
@@ -271,11 +293,68 @@ def _damage(messages: bytes) -> str:
     return re.sub(r"\s*\b(0x[0-9a-fA-F]+|\d+)\b", "", text)
 
 
+#: Frame headers the fast decoder takes: Huffman-coded baseline, extended sequential and
+#: progressive JPEG (the encodings cameras and ``cv2.imencode`` write).
+_FAST_SOF = frozenset({0xC0, 0xC1, 0xC2})
+
+
+@functools.cache
+def _simplejpeg() -> ModuleType | None:
+    """The ``simplejpeg`` module, or None where it is not installed (the cv2 decoder then)."""
+    try:
+        import simplejpeg
+    except ImportError:
+        return None
+    return simplejpeg
+
+
+def _fast_decodable(head: np.ndarray) -> bool:
+    """Whether a JPEG is one ``simplejpeg`` decodes to the same grey pixels as ``cv2.imdecode``:
+    a ``_FAST_SOF`` frame of 8-bit samples in one or three components (``simplejpeg`` greys a
+    four-component CMYK/YCCK image by a formula of its own), whose headers reach its first scan,
+    without an Exif segment (``cv2.imdecode`` turns an image by its Exif orientation,
+    ``simplejpeg`` does not)."""
+    view = memoryview(head)
+    frame = False
+    try:
+        for marker, pos, length in _jpeg_segments(view):
+            if marker == 0xDA:
+                return frame
+            if marker in _SOF:
+                if marker not in _FAST_SOF or pos + 10 > len(view) or length < 8:
+                    return False
+                frame = view[pos + 4] == 8 and view[pos + 9] in (1, 3)
+            elif marker == 0xE1 and bytes(view[pos + 4: pos + 8]) == b"Exif":
+                return False
+    except ImageError:
+        pass  # a damaged header: the cv2 decoder says what is wrong with it
+    return False
+
+
+def _decode_jpeg_fast(buf: np.ndarray) -> np.ndarray | None:
+    """``buf`` (a JPEG) decoded to grey by ``simplejpeg``'s libjpeg-turbo, pixel for pixel what
+    ``cv2.imdecode(buf, IMREAD_GRAYSCALE)`` gives, at less cost (no stderr capture: it stops on
+    libjpeg's first warning instead of printing it). None where ``simplejpeg`` is absent, the
+    stream is not ``_fast_decodable``, or libjpeg reported anything (an error or any warning):
+    the cv2 decoder then decodes it and gives its verdict on damage.
+    """
+    codec = _simplejpeg()
+    if codec is None or not _fast_decodable(buf):
+        return None
+    try:
+        img = codec.decode_jpeg(buf, colorspace="GRAY", fastdct=False, fastupsample=False,
+                                strict=True)
+    except (ValueError, RuntimeError):  # libjpeg's error or warning; no decoder instance
+        return None
+    return img.reshape(img.shape[0], img.shape[1])
+
+
 def decode_compressed(data: bytes | np.ndarray, fmt: str = "") -> np.ndarray:
     """Decode a ``sensor_msgs/CompressedImage`` payload (JPEG or PNG) to a uint8 grey image.
 
-    The size in its header is held against the pixel budget first; the decoder's warnings are
-    read (see the module docstring) and a damaged JPEG is refused.
+    The size in its header is held against the pixel budget first; a JPEG is decoded by
+    ``simplejpeg`` where it decodes it as OpenCV does, else by OpenCV, whose warnings are read
+    (see the module docstring): a damaged JPEG is refused.
 
     Args:
         data: the compressed bytes.
@@ -292,7 +371,10 @@ def decode_compressed(data: bytes | np.ndarray, fmt: str = "") -> np.ndarray:
     if buf.size == 0:
         raise ImageError("compressed image is empty")
     buf = np.ascontiguousarray(buf.reshape(-1).view(np.uint8))
-    check_compressed(buf)
+    kind, _, _ = check_compressed(buf)
+    img = _decode_jpeg_fast(buf) if kind == "jpeg" else None
+    if img is not None:
+        return img
     try:
         img, messages = call_capturing_stderr(cv2.imdecode, buf, cv2.IMREAD_GRAYSCALE)
     except cv2.error as err:  # e.g. a header claiming more pixels than OpenCV allows

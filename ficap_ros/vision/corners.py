@@ -82,10 +82,15 @@ _SIDE_OUT = frozen(np.array([[0.0, -1.0], [1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]]))
 #: Samples' worth of prior weight of a tag's mean delta on each side (three samples = one cell).
 _SIDE_PRIOR_SAMPLES = 3.0
 #: Where each cell boundary is sampled (fractions of its length: away from the cell corners, where
-#: the blur mixes in the cells diagonally across).
-_EDGE_FRACTIONS = (0.3, 0.7)
-#: Samples across each boundary's window (half a cell each way).
-_FIT_PROFILE_SAMPLES = 11
+#: the blur mixes in the cells diagonally across). The fit's error is mostly the pixels' noise, so
+#: three profiles a boundary (more of its pixels) give lower-scatter corners than two.
+_EDGE_FRACTIONS = (0.25, 0.5, 0.75)
+#: Samples across each boundary's window (half a cell each way; nine resolve the step as well as
+#: more do, for less time).
+_FIT_PROFILE_SAMPLES = 9
+#: Fewest trusted profiles (the fit's rows) a tag's cell-edge fit needs in all and per boundary
+#: direction; fewer leave the tag its border-line corners.
+_MIN_FIT_ROWS, _MIN_FIT_ROWS_PER_DIRECTION = 24, 12
 #: Points per side of a fitted tag where ``_line_bias`` measures its outer edge, and the most
 #: fitted tags it uses (spread over the call's order).
 _BIAS_POINTS = np.linspace(0.2, 0.8, 7)
@@ -451,7 +456,8 @@ def fit_tag_edges(
     img, k = frozen(gray), (_FIT_PROFILE_SAMPLES - 1) // 2
     for it in range(iterations):
         sol, solved, ok = edge_fit_round(img, h, tag_of, uv, nu, vertical, keep, starts, cfg.edge_search_px, k,
-                                         _MIN_CELL_PX, _MIN_CONTRAST_RATIO, 24, 12)
+                                         _MIN_CELL_PX, _MIN_CONTRAST_RATIO, _MIN_FIT_ROWS,
+                                         _MIN_FIT_ROWS_PER_DIRECTION)
         h = h + np.where(solved[:, None], sol[:, :8], 0.0)
         delta = np.where(solved, sol[:, 8:].mean(axis=1), np.nan)  # the two directions' mean
         fitted = solved

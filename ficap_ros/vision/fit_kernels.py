@@ -214,8 +214,9 @@ def robust_grouped_solve(jac: np.ndarray, s: np.ndarray, contrast: np.ndarray, t
     """The cell-edge fit's robust step per tag (``corners._solve_edges``): weights
     (contrast / max(tag contrast, 1))^2 on the ``ok`` rows, a solve (``grouped_solve``), the rows
     beyond 3.5 robust sigmas (1.4826 times the median absolute residual of the group's ``ok``
-    rows; at least 0.05) dropped, a second solve. A group is solved when both boundary directions
-    keep ``min_per_direction`` weighted rows.
+    rows; at least 0.05) dropped, a second solve of the groups that lost a weighted row (the others'
+    normal equations are unchanged: their first solution stands). A group is solved when both
+    boundary directions keep ``min_per_direction`` weighted rows.
 
     Args:
         jac: (T, P) rows of the linear model; s: (T,) measured offsets; contrast, top_c: (T,) each
@@ -233,9 +234,10 @@ def robust_grouped_solve(jac: np.ndarray, s: np.ndarray, contrast: np.ndarray, t
     for r in range(t_rows):
         q = contrast[r] / max(top_c[r], 1.0)
         w[r] = q * q if ok[r] else 0.0
-    _, _, resid = grouped_solve(jac, s, w, starts, n_dense, min_rows, True)
+    first, first_solved, resid = grouped_solve(jac, s, w, starts, n_dense, min_rows, True)
     keep = np.empty(t_rows, np.bool_)
     scratch = np.empty(t_rows)
+    again = np.zeros(n, np.bool_)  # groups that lost a weighted row
     for g in range(n):
         end = starts[g + 1] if g + 1 < n else t_rows
         m = _gather_finite(resid, ok, starts[g], end, scratch)
@@ -246,8 +248,20 @@ def robust_grouped_solve(jac: np.ndarray, s: np.ndarray, contrast: np.ndarray, t
         for r in range(starts[g], end):
             keep[r] = ok[r] and abs(resid[r]) <= limit
             if not keep[r]:
+                again[g] = again[g] or w[r] > 0
                 w[r] = 0.0
-    sol, solved, _ = grouped_solve(jac, s, w, starts, n_dense, min_rows, False)
+    # A group that kept every weighted row has the same normal equations again: its first
+    # solution is the second's, so only the others are solved again.
+    w_again = np.empty(t_rows)
+    for g in range(n):
+        end = starts[g + 1] if g + 1 < n else t_rows
+        for r in range(starts[g], end):
+            w_again[r] = w[r] if again[g] else 0.0
+    sol, solved, _ = grouped_solve(jac, s, w_again, starts, n_dense, min_rows, False)
+    for g in range(n):
+        if not again[g]:
+            sol[g] = first[g]
+            solved[g] = first_solved[g]
     for g in range(n):
         end = starts[g + 1] if g + 1 < n else t_rows
         n_vertical = n_used = 0

@@ -246,3 +246,134 @@ def test_sizes_come_from_headers_and_bad_headers_are_one_line() -> None:
             compressed_size(data)
         with pytest.raises(ImageError, match="cannot decode compressed image"):
             check_compressed(data)
+
+
+# -- the simplejpeg decoder: the very pixels and verdicts of OpenCV's, or OpenCV's own -------------
+def _opencv_only(monkeypatch: pytest.MonkeyPatch) -> None:
+    """``simplejpeg`` made unimportable for the rest of the test (the cv2 decoder alone)."""
+    import sys
+
+    from ficap_ros.io import image_codec
+
+    monkeypatch.setitem(sys.modules, "simplejpeg", None)  # `import simplejpeg` raises ImportError
+    image_codec._simplejpeg.cache_clear()
+
+
+@pytest.fixture
+def opencv_only(monkeypatch: pytest.MonkeyPatch):  # noqa: ANN201
+    """The decoder without ``simplejpeg``; the module's cached import is forgotten after."""
+    from ficap_ros.io import image_codec
+
+    _opencv_only(monkeypatch)
+    yield
+    monkeypatch.undo()
+    image_codec._simplejpeg.cache_clear()
+
+
+def _with_exif_orientation(jpeg: bytes, orientation: int) -> bytes:
+    """``jpeg`` with an APP1 Exif segment after its start of image holding one tag, Orientation."""
+    tiff = (b"II*\x00" + (8).to_bytes(4, "little") + (1).to_bytes(2, "little")
+            + (0x0112).to_bytes(2, "little") + (3).to_bytes(2, "little")
+            + (1).to_bytes(4, "little") + orientation.to_bytes(2, "little") + b"\x00\x00"
+            + (0).to_bytes(4, "little"))
+    payload = b"Exif\x00\x00" + tiff
+    return jpeg[:2] + b"\xff\xe1" + (len(payload) + 2).to_bytes(2, "big") + payload + jpeg[2:]
+
+
+def _outcome(data: bytes) -> tuple[str, object]:
+    """What ``decode_compressed`` makes of ``data``: ("image", pixels) or (error type, line)."""
+    try:
+        return "image", decode_compressed(data).tobytes()
+    except ImageError as err:
+        return type(err).__name__, str(err)
+
+
+SAMPLING = {"420": cv2.IMWRITE_JPEG_SAMPLING_FACTOR_420, "422": cv2.IMWRITE_JPEG_SAMPLING_FACTOR_422,
+            "444": cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444, "411": cv2.IMWRITE_JPEG_SAMPLING_FACTOR_411}
+
+
+@pytest.mark.parametrize("quality", [5, 50, 75, 95, 100])
+@pytest.mark.parametrize("sampling", sorted(SAMPLING))
+@pytest.mark.parametrize("coding", ["baseline", "progressive", "optimized", "restarts"])
+def test_simplejpeg_decodes_every_plain_jpeg_to_opencvs_very_pixels(
+        quality: int, sampling: str, coding: str) -> None:
+    """Colour (every chroma subsampling) and grey JPEGs of every quality and coding decode through
+    simplejpeg, bit for bit what ``cv2.imdecode(..., IMREAD_GRAYSCALE)`` gives."""
+    pytest.importorskip("simplejpeg")
+    from ficap_ros.io.image_codec import _decode_jpeg_fast, _fast_decodable
+
+    extra = {"baseline": [], "progressive": [cv2.IMWRITE_JPEG_PROGRESSIVE, 1],
+             "optimized": [cv2.IMWRITE_JPEG_OPTIMIZE, 1],
+             "restarts": [cv2.IMWRITE_JPEG_RST_INTERVAL, 3]}[coding]
+    options = [cv2.IMWRITE_JPEG_QUALITY, quality,
+               cv2.IMWRITE_JPEG_SAMPLING_FACTOR, SAMPLING[sampling], *extra]
+    colour = cv2.resize(cv2.GaussianBlur(_bgr(), (3, 3), 0), (203, 117))  # odd sizes: partial MCUs
+    for image in (colour, cv2.cvtColor(colour, cv2.COLOR_BGR2GRAY)):
+        buf = cv2.imencode(".jpg", image, options)[1]
+        assert _fast_decodable(buf)
+        fast = _decode_jpeg_fast(buf)
+        assert fast is not None and fast.shape == (117, 203) and fast.flags.c_contiguous
+        np.testing.assert_array_equal(fast, cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE))
+        np.testing.assert_array_equal(decode_compressed(buf.tobytes()), fast)
+
+
+def test_jpegs_simplejpeg_would_decode_otherwise_go_to_opencv() -> None:
+    """An Exif orientation (OpenCV turns the image, simplejpeg would not), other frame codings,
+    12-bit samples, four components and headers cut before the scan are left to OpenCV."""
+    from ficap_ros.io.image_codec import _decode_jpeg_fast, _fast_decodable
+
+    jpeg = cv2.imencode(".jpg", cv2.resize(_bgr(), (80, 40)))[1].tobytes()
+    assert _fast_decodable(np.frombuffer(jpeg, np.uint8))
+    turned = _with_exif_orientation(jpeg, 6)  # 90 degrees clockwise
+    assert not _fast_decodable(np.frombuffer(turned, np.uint8))
+    assert _decode_jpeg_fast(np.frombuffer(turned, np.uint8)) is None
+    assert decode_compressed(turned).shape == (80, 40)  # OpenCV's, turned
+    np.testing.assert_array_equal(decode_compressed(turned),
+                                  cv2.imdecode(np.frombuffer(turned, np.uint8), 0))
+    sof = jpeg.index(b"\xff\xc0")
+    for offset, value in ((1, 0xC3), (1, 0xC9), (4, 12), (9, 4)):  # lossless, arithmetic, 12 bit, CMYK
+        changed = bytearray(jpeg)
+        changed[sof + offset] = value
+        assert not _fast_decodable(np.frombuffer(bytes(changed), np.uint8)), (offset, value)
+    assert not _fast_decodable(np.frombuffer(jpeg[: jpeg.index(b"\xff\xda")], np.uint8))
+    assert not _fast_decodable(np.frombuffer(jpeg[:sof] + b"\x00" + jpeg[sof:], np.uint8))
+
+
+def test_without_simplejpeg_opencv_decodes_the_same(opencv_only: None) -> None:
+    from ficap_ros.io.image_codec import _decode_jpeg_fast, _simplejpeg
+
+    assert _simplejpeg() is None
+    buf = cv2.imencode(".jpg", _bgr(), [cv2.IMWRITE_JPEG_QUALITY, 90])[1]
+    assert _decode_jpeg_fast(buf) is None
+    np.testing.assert_array_equal(decode_compressed(buf.tobytes()),
+                                  cv2.imdecode(buf, cv2.IMREAD_GRAYSCALE))
+
+
+def test_damaged_and_cut_jpegs_get_the_same_verdict_with_or_without_simplejpeg(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    """Changed entropy-coded bytes, a stream cut short and trailing bytes: the same image or the
+    same error (type and line) through either decoder; every damage libjpeg warns about is
+    refused as ``DamagedImageError`` either way."""
+    pytest.importorskip("simplejpeg")
+    from probe_cases import flip_bytes
+
+    from ficap_ros.io import image_codec
+
+    colour = cv2.resize(_bgr(), (160, 120))
+    cases = []
+    for options in ([], [cv2.IMWRITE_JPEG_PROGRESSIVE, 1], [cv2.IMWRITE_JPEG_RST_INTERVAL, 2]):
+        for image in (colour, cv2.cvtColor(colour, cv2.COLOR_BGR2GRAY)):
+            jpeg = cv2.imencode(".jpg", image, options)[1].tobytes()
+            cases += [flip_bytes(jpeg, count, seed) for count in (1, 4, 30) for seed in range(4)]
+            cases += [jpeg[:cut] for cut in np.linspace(len(jpeg) // 2, len(jpeg) - 1, 4, dtype=int)]
+            cases += [jpeg + b"\x00trailing"]
+    image_codec._simplejpeg.cache_clear()
+    with_simplejpeg = [_outcome(data) for data in cases]
+    _opencv_only(monkeypatch)
+    try:
+        assert [_outcome(data) for data in cases] == with_simplejpeg
+    finally:
+        monkeypatch.undo()
+        image_codec._simplejpeg.cache_clear()
+    kinds = {kind for kind, _ in with_simplejpeg}
+    assert {"image", "DamagedImageError"} <= kinds

