@@ -209,6 +209,12 @@ class MotionPrior:
             return self.usable[:2] + self.following[:1]
         return self.usable
 
+    @cached_property
+    def _node_table(self) -> _NodeTable | None:
+        """``neighbours``' part of the polynomial through them and a pose (``_node_table``):
+        the same for every pose the solvers try."""
+        return _node_table(self.neighbours) if self.neighbours else None
+
     def at(self, T: Transform) -> VelocityPrior:
         """The prior of the velocity if this frame's pose is ``T``."""
         if self.two_sided:
@@ -219,31 +225,31 @@ class MotionPrior:
             var = np.array([c.linear_speed_m_s] * 3 + [c.angular_speed_rad_s] * 3) ** 2
             return VelocityPrior(np.zeros(6), np.zeros((6, 6)), np.diag(var))
         h1 = past[0].age_s
-        T1 = past[0].T_cam_cap
-        phi0 = (T * T1.inv()).rvec
+        times, values, vander_inv = _through_nodes(T, past, self._node_table)
+        phi0 = values[0, 3:]  # this pose's rotation in the tangent at the most recent past pose
         if len(past) == 1:
             c0, coefs = 1.0 / h1, (-1.0 / h1,)
             w = phi0 * c0
-            v = (T.translation_m - T1.translation_m) * c0
+            v = (T.translation_m - past[0].T_cam_cap.translation_m) * c0
             model = np.array([c.linear_accel_m_s2] * 3 + [c.angular_accel_rad_s2] * 3) * (h1 / 2.0)
         else:
             h2 = past[1].age_s - h1
-            T2 = past[1].T_cam_cap
             c0 = (2.0 * h1 + h2) / (h1 * (h1 + h2))
             c1 = -(h1 + h2) / (h1 * h2)
             c2 = h1 / (h2 * (h1 + h2))
             coefs = (c1, c2)
-            w = c0 * phi0 + c2 * (T2 * T1.inv()).rvec
-            v = c0 * T.translation_m + c1 * T1.translation_m + c2 * T2.translation_m
+            w = c0 * phi0 + c2 * values[2, 3:]
+            v = (c0 * T.translation_m + c1 * past[0].T_cam_cap.translation_m
+                 + c2 * past[1].T_cam_cap.translation_m)
             jerk = np.array([c.linear_jerk_m_s3] * 3 + [c.angular_jerk_rad_s3] * 3)
             if len(past) == 3:
-                jerk = np.hypot(_measured_jerk(T, past), c.jerk_floor * jerk)
+                jerk = np.hypot(_measured_jerk(times, values), c.jerk_floor * jerk)
             model = jerk * (h1 * (h1 + h2) / 6.0)
         cov = np.diag(model**2)
         for coef, p in zip(coefs, past):
             cov = cov + coef * coef * np.asarray(p.covariance, dtype=float)
         jl_inv = _left_jacobian_inverse(phi0)
-        accel, a0 = acceleration(T, past)
+        accel, a0 = _second_derivative(values, vander_inv) if len(past) >= 2 else (np.zeros(6), 0.0)
         return VelocityPrior(np.concatenate([v, w]), _by_pose(c0, jl_inv), 0.5 * (cov + cov.T),
                              accel, _by_pose(a0, jl_inv))
 
@@ -254,7 +260,7 @@ class MotionPrior:
         poses) or snap (four) at the sizes of ``MotionConfig``."""
         c = self.config
         nodes = self.neighbours
-        times, values, vander_inv = _through_nodes(T, nodes)
+        times, values, vander_inv = _through_nodes(T, nodes, self._node_table)
         weights = vander_inv[1]
         if len(nodes) == 2:
             size = np.array([c.linear_jerk_m_s3] * 3 + [c.angular_jerk_rad_s3] * 3) / 6.0
@@ -290,16 +296,36 @@ def acceleration(T: Transform, past: tuple[PastPose, ...]) -> tuple[np.ndarray, 
     return _second_derivative(values, vander_inv)
 
 
-def _through_nodes(T: Transform, nodes: tuple[PastPose, ...]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+#: (the most recent node's inverse, the times (n + 1,), s, with 0 for the pose, the nodes' values
+#: (n, 6), the inverse of the times' Vandermonde matrix): ``_through_nodes``' part that does not
+#: depend on the pose.
+_NodeTable = tuple[Transform, np.ndarray, np.ndarray, np.ndarray]
+
+
+def _tangent_value(Ti: Transform, T1_inv: Transform) -> np.ndarray:
+    """(6,) a pose's translation, m, then its rotation as a vector in the tangent at the node
+    whose inverse is ``T1_inv``, rad."""
+    return np.concatenate([Ti.translation_m, (Ti * T1_inv).rvec])
+
+
+def _node_table(nodes: tuple[PastPose, ...]) -> _NodeTable:
+    """``_through_nodes``' part that depends on ``nodes`` alone."""
+    T1_inv = nodes[0].T_cam_cap.inv()
+    times = np.array([0.0] + [-p.age_s for p in nodes])
+    values = np.stack([_tangent_value(p.T_cam_cap, T1_inv) for p in nodes])
+    return T1_inv, times, values, np.linalg.inv(np.vander(times, increasing=True))
+
+
+def _through_nodes(T: Transform, nodes: tuple[PastPose, ...],
+                   table: _NodeTable | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The polynomial through the pose ``T`` (at 0) and ``nodes`` (at minus their ages): the
     times (n + 1,), s; the values (n + 1, 6): translation, m, then rotation as a vector in the
     tangent at the first node, rad; and the inverse of the times' Vandermonde matrix (increasing
-    powers), whose row k weighs the values into the coefficient of t^k."""
-    T1 = nodes[0].T_cam_cap
-    times = np.array([0.0] + [-p.age_s for p in nodes])
-    values = np.stack([np.concatenate([Ti.translation_m, (Ti * T1.inv()).rvec])
-                       for Ti in [T] + [p.T_cam_cap for p in nodes]])
-    return times, values, np.linalg.inv(np.vander(times, increasing=True))
+    powers), whose row k weighs the values into the coefficient of t^k. ``table``: ``nodes``'
+    ``_node_table`` when the caller keeps it."""
+    T1_inv, times, node_values, vander_inv = table if table is not None else _node_table(nodes)
+    values = np.concatenate([_tangent_value(T, T1_inv)[None], node_values])
+    return times, values, vander_inv
 
 
 def _second_derivative(values: np.ndarray, vander_inv: np.ndarray) -> tuple[np.ndarray, float]:
@@ -309,18 +335,15 @@ def _second_derivative(values: np.ndarray, vander_inv: np.ndarray) -> tuple[np.n
     return weights @ values, float(weights[0])
 
 
-def _measured_jerk(T: Transform, past: tuple[PastPose, ...]) -> np.ndarray:
+def _measured_jerk(times: np.ndarray, values: np.ndarray) -> np.ndarray:
     """(6,) the magnitude of each twist component's second derivative (the jerk of position and
-    orientation): six times the third divided difference through the pose ``T`` (at 0) and the
-    three past poses (rotations as vectors in the tangent at the most recent past pose)."""
-    T1 = past[0].T_cam_cap
-    times = [0.0] + [-p.age_s for p in past]
-    values = [np.concatenate([Ti.translation_m, (Ti * T1.inv()).rvec])
-              for Ti in [T] + [p.T_cam_cap for p in past]]
+    orientation): six times the third divided difference through the four nodes' ``times`` (4,)
+    and ``values`` (4, 6) (``_through_nodes``: the pose at 0 and three past poses)."""
+    t = times.tolist()
+    rows = list(values)
     for level in range(1, 4):  # Newton's divided differences, in place
-        values = [(values[i] - values[i + 1]) / (times[i] - times[i + level])
-                  for i in range(len(values) - 1)]
-    return np.abs(6.0 * values[0])
+        rows = [(rows[i] - rows[i + 1]) / (t[i] - t[i + level]) for i in range(len(rows) - 1)]
+    return np.abs(6.0 * rows[0])
 
 
 def _left_jacobian_inverse(phi: np.ndarray) -> np.ndarray:

@@ -325,7 +325,11 @@ def _tag_frame(corners_m: np.ndarray) -> Transform:
 
 def _side_px(image_px: np.ndarray) -> np.ndarray:
     """Mean side length of each tag (T,) in px."""
-    return np.mean(np.linalg.norm(image_px - np.roll(image_px, 1, axis=1), axis=-1), axis=-1)
+    return np.mean(np.linalg.norm(image_px - image_px[:, _PREVIOUS_CORNER], axis=-1), axis=-1)
+
+
+#: Each corner's predecessor around the tag (``np.roll(corners, 1, axis=1)``'s order, indexed).
+_PREVIOUS_CORNER = np.array([3, 0, 1, 2])
 
 
 def _inlier_threshold(obs: TagObservations, config: PoseConfig) -> np.ndarray:

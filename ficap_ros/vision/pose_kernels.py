@@ -1,4 +1,5 @@
-"""The pose solvers' compiled kernel: the reprojection residuals of a pose and their Jacobian.
+"""The pose solvers' compiled kernels: the reprojection residuals of a pose and their Jacobian,
+and the tags' RMS reprojection errors.
 
 ``reprojection_rt`` is ``reprojection.residuals_and_jacobian_rt``'s work after the rotation, in
 one pass over the corners: each rotated model point shifted into the camera frame, projected
@@ -18,7 +19,7 @@ import numpy as np
 
 from ficap_ros.vision.jit import njit, register_warm_up
 
-__all__ = ["reprojection_rt"]
+__all__ = ["reprojection_rt", "tag_errors_px"]
 
 
 @njit(error_model="numpy")
@@ -56,9 +57,42 @@ def reprojection_rt(X: np.ndarray, t: np.ndarray, K: np.ndarray,
     return res, jac
 
 
+@njit(error_model="numpy")
+def tag_errors_px(X: np.ndarray, t: np.ndarray, K: np.ndarray, image_px: np.ndarray) -> np.ndarray:
+    """Per-tag RMS reprojection error (T,), px, of the corners ``image_px`` (4T, 2), undistorted
+    px, under the pose whose rotated model points ``X`` = R m (4T, 3) the caller computes (numpy's
+    matrix product) and translation t (3,), m: ``reprojection.reprojection_errors_px``'s
+    operations in their order (the projection ``K00 x / z + K01 y / z + K02``, each corner's
+    squared distance, the mean of a tag's four), the same values to the bit."""
+    n = X.shape[0] // 4
+    out = np.empty(n)
+    for k in range(n):
+        total = 0.0
+        for c in range(4 * k, 4 * k + 4):
+            p0, p1, z = X[c, 0] + t[0], X[c, 1] + t[1], X[c, 2] + t[2]
+            u = K[0, 0] * p0 / z + K[0, 1] * p1 / z + K[0, 2]
+            v = K[1, 1] * p1 / z + K[1, 2]
+            du, dv = u - image_px[c, 0], v - image_px[c, 1]
+            total += du * du + dv * dv
+        out[k] = np.sqrt(total / 4.0)
+    return out
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    """``a`` marked read-only: a pose's rotation, translation and the intrinsics reach the
+    kernels so, and numba compiles a read-only argument as a type of its own."""
+    a.setflags(write=False)
+    return a
+
+
 @register_warm_up
 def _warm_up() -> None:
-    """``reprojection_rt`` once on one tag's corners (the solvers' argument types)."""
+    """``reprojection_rt`` once on one tag's corners for each of the solvers' argument types (a
+    pose's translation read-only, or the least-squares solver's writable unknowns), and
+    ``tag_errors_px``."""
     model = np.array([[-0.01, 0.01, 0.0], [0.01, 0.01, 0.0], [0.01, -0.01, 0.0], [-0.01, -0.01, 0.0]])
-    K = np.array([[800.0, 0.0, 320.0], [0.0, 800.0, 240.0], [0.0, 0.0, 1.0]])
-    reprojection_rt(model, np.array([0.0, 0.0, 0.5]), K, np.full((4, 2), 300.0))
+    K = _read_only(np.array([[800.0, 0.0, 320.0], [0.0, 800.0, 240.0], [0.0, 0.0, 1.0]]))
+    t = _read_only(np.array([0.0, 0.0, 0.5]))
+    for translation in (t, np.array(t)):
+        reprojection_rt(model, translation, K, np.full((4, 2), 300.0))
+    tag_errors_px(model, t, K, np.full((4, 2), 300.0))

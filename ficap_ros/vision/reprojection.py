@@ -128,9 +128,15 @@ def project_px(K: np.ndarray, T: Transform, points_m: np.ndarray) -> np.ndarray:
 
 
 def reprojection_errors_px(obs_px: np.ndarray, K: np.ndarray, T: Transform, model_m: np.ndarray) -> np.ndarray:
-    """Per-tag RMS reprojection error (T,) in px of corners (T, 4, 2) under pose ``T``."""
-    proj = project_px(K, T, model_m)
-    return np.sqrt(np.mean(np.sum((proj - obs_px) ** 2, axis=-1), axis=-1))
+    """Per-tag RMS reprojection error (T,) in px of corners (T, 4, 2) under pose ``T``: the
+    pinhole projection of ``project_px``, each corner's squared distance, the mean of a tag's
+    four. The model points are rotated here (numpy), the rest is the compiled
+    ``pose_kernels.tag_errors_px`` (the same values to the bit)."""
+    from ficap_ros.vision.pose_kernels import tag_errors_px
+
+    X = np.asarray(model_m, dtype=np.float64).reshape(-1, 3) @ T.rotation_matrix.T
+    return tag_errors_px(np.ascontiguousarray(X), T.translation_m, np.asarray(K, dtype=np.float64),
+                         np.ascontiguousarray(obs_px, dtype=np.float64).reshape(-1, 2))
 
 
 def residuals_and_jacobian_rt(

@@ -35,7 +35,7 @@ Depth is what the shared corner errors move most: a radial offset of every corne
 moves the depth by about z * sqrt(2) * delta / (tag side in px), so at a given distance the same
 offset costs a low-resolution camera twice the depth error, and it leaves no residual (the depth
 absorbs it). What the residuals do show of it (the part the depth could not absorb, scaled back
-by the share left, ``_common_offset_px``) is a noisy estimate, amplified up to tenfold, yet on
+by the share left, ``uncertainty_kernels``) is a noisy estimate, amplified up to tenfold, yet on
 path-traced renders it is the frame feature that follows the depth error across cameras, lights
 and tone curves (``benchmarks/bench_uncertainty.py``): the edge profile states the offset as
 measured, with its standard error beside it (``common_offset_gain`` and ``common_offset_se_gain``
@@ -261,42 +261,15 @@ _CORNER_PROFILES: dict[str, dict[str, float]] = {
 CORNER_ESTIMATORS = tuple(_CORNER_PROFILES)
 
 
-#: Per-tag corner patterns (columns of ``_tag_basis``) grouped as the residuals are pooled.
+#: Per-tag corner patterns (columns of each tag's orthonormal basis, ``uncertainty_kernels``)
+#: grouped as the residuals are pooled.
 _PATTERNS = {"shift": [0, 1], "scale": [2], "turn": [3], "shear": [4, 5], "projective": [6, 7]}
-_ROS_ORDER = np.array([3, 4, 5, 0, 1, 2])
-
-
-def _tag_basis(corners_px: np.ndarray) -> np.ndarray:
-    """(tags, 8, 8): per tag an orthonormal basis of its corners' displacements (x0 y0 ... x3 y3):
-    shift x, shift y, scale (radial), turn, two shears, and the two left (projective), in that
-    order (Gram-Schmidt from the tag's observed corner layout; the identity completes it)."""
-    n_tags = corners_px.shape[0]
-    p = corners_px - corners_px.mean(axis=1, keepdims=True)
-    p = p / np.maximum(np.linalg.norm(p.reshape(n_tags, -1), axis=1), 1e-9)[:, None, None]
-    px, py = p[..., 0], p[..., 1]
-    # Columns (x0 y0 ... x3 y3 down each): the six patterns, then the identity's eight; the shift
-    # columns and the identity are the same for every tag (copied from one template).
-    M = np.repeat(_BASIS_TEMPLATE, n_tags, axis=0)
-    M[:, 0::2, 2], M[:, 1::2, 2] = px, py  # scale (radial)
-    M[:, 0::2, 3], M[:, 1::2, 3] = -py, px  # turn
-    M[:, 0::2, 4], M[:, 1::2, 4] = px, -py  # shear
-    M[:, 0::2, 5], M[:, 1::2, 5] = py, px  # shear
-    Q, _ = np.linalg.qr(M)
-    return Q[:, :, :8]
-
-
-def _basis_template() -> np.ndarray:
-    """(1, 8, 14): ``_tag_basis``'s columns that do not depend on the tag: shift x, shift y
-    (0 and 1), the identity (6..13); the tag's four patterns (2..5) are filled in."""
-    t = np.zeros((1, 8, 14))
-    t[0, 0::2, 0] = 1.0
-    t[0, 1::2, 1] = 1.0
-    t[0, :, 6:] = np.eye(8)
-    t.setflags(write=False)
-    return t
-
-
-_BASIS_TEMPLATE = _basis_template()
+#: The compiled kernel's outputs (``uncertainty_kernels.propagated_terms``), in its order: the
+#: unit covariances, and what the residuals show (its last value, the tags' mean scale
+#: coefficient, is its own intermediate).
+_TERM_NAMES = (*_PATTERNS, "noise", "bias", "model_t", "model_r", "bias_common", "principal_point",
+               "focal", "tilt")
+_SEEN_NAMES = (*_PATTERNS, *(g + "_dof" for g in _PATTERNS), "bias_common", "bias_common_se")
 
 
 def tag_noise_px(obs: TagObservations, T: Transform) -> np.ndarray:
@@ -360,25 +333,6 @@ def _model_geometry_of(model_key: bytes, n_tags: int) -> tuple[np.ndarray, np.nd
     return centres, normal, cross
 
 
-def _tilt_mode(obs: TagObservations, T: Transform) -> np.ndarray:
-    """(2n,): each tag's corners shifted by 1 px along the image direction of its outward normal,
-    times the sine of its view angle (0 for a tag seen head-on, 1 edge-on)."""
-    centres, normal, _ = _model_geometry(obs)
-    c_cam = T.apply(centres)
-    n_cam = normal @ T.rotation_matrix.T
-    K = obs.K
-
-    def project(p: np.ndarray) -> np.ndarray:
-        q = p @ K.T
-        return q[:, :2] / q[:, 2:3]
-
-    d = project(c_cam + 1e-3 * n_cam) - project(c_cam)
-    u = d / np.maximum(np.linalg.norm(d, axis=1, keepdims=True), 1e-12)
-    cos_view = np.abs(np.einsum("ij,ij->i", n_cam, c_cam)) / np.maximum(np.linalg.norm(c_cam, axis=1), 1e-12)
-    sin_view = np.sqrt(np.clip(1.0 - cos_view**2, 0.0, 1.0))
-    return np.repeat((u * sin_view[:, None])[:, None, :], 4, axis=1).reshape(-1)
-
-
 def uncertainty_terms(
     obs: TagObservations, T: Transform, tag_sigma_px: np.ndarray | None = None,
     edge_shift_px: np.ndarray | None = None,
@@ -421,7 +375,7 @@ def uncertainty_terms(
             (1 px radial at every corner, independent per tag), ``bias_common`` (the same for
             all tags), ``model_t`` / ``model_r`` (each plate shifted 1 mm / turned 1 deg about
             each cap axis), ``principal_point`` (1 px per axis), ``focal`` (relative 1),
-            ``tilt`` (every tag shifted along its foreshortening, ``_tilt_mode``, 1 px edge-on).
+            ``tilt`` (every tag shifted along its foreshortening, 1 px edge-on).
         seen: what the residuals show: per pattern group the sigma of its coefficients (each
             tag's divided by its relative noise) pooled over the tags, less the share the fit
             absorbed (the weighted hat matrix's leverage of the group), and ``bias_common``, the
@@ -434,21 +388,7 @@ def uncertainty_terms(
     """
     res, J = residuals_and_jacobian(T, obs) if at is None else at
     n_tags = len(obs)
-    if tag_sigma_px is None:
-        rel = np.ones(n_tags)
-    else:
-        rel = np.asarray(tag_sigma_px, dtype=float) / max(median(tag_sigma_px), 1e-12)
-    w = np.repeat(1.0 / rel**2, 8)  # weights per residual coordinate
-    M, A = _propagation(J, w, prior_information)
-    # Rows in ROS order up front: every term below is then in ROS order as computed.
-    A_ros = A[_ROS_ORDER]
-    B = _tag_basis(obs.image_px)
-    common = (2.0 * B[:, :, 2]).reshape(-1)  # 1 px radial at each corner (the pattern has norm 1)
-    terms = _per_tag_terms(obs, T, A_ros, B, rel)
-    terms.update(_shared_terms(obs, T, A_ros, common))
-    seen, mean_scale = _residual_sigmas(res, J, M, B, rel)
-    seen["bias_common"], seen["bias_common_se"] = _common_offset_px(common, w, J, A, mean_scale,
-                                                                    seen["scale"], n_tags)
+    terms, seen, A_ros = _propagated(obs, T, res, J, tag_sigma_px, prior_information)
     seen["light_gradient"] = (0.0 if edge_shift_px is None
                               else light_gradient_px(edge_shift_px, obs.image_px.mean(axis=1)))
     seen["edge_shift_mean"] = edge_shift_mean_px(edge_shift_px)
@@ -461,132 +401,29 @@ def uncertainty_terms(
     return terms, seen
 
 
-def _propagation(J: np.ndarray, w: np.ndarray,
-                 info: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
-    """(M, A) of the weighted fit with Jacobian ``J`` (2n, k: the pose's 6 columns first) and
-    weights ``w`` (2n,): ``M = (J^T W J + info)^-1`` (``info``: a prior's information on the
-    unknowns, None: none) and ``A = M J^T W`` (k, 2n), the unknowns' change per corner coordinate
-    displacement. A singular fit gives an infinite M (``combine_uncertainty`` turns it into
-    "unknown")."""
-    H = J.T @ (w[:, None] * J)
-    if info is not None:
-        H = H + info
-    try:
-        M = np.linalg.inv(H)
-    except np.linalg.LinAlgError:
-        M = np.full(H.shape, np.inf)
-    return M, M @ (J.T * w)
+def _propagated(obs: TagObservations, T: Transform, res: np.ndarray, J: np.ndarray,
+                tag_sigma_px: np.ndarray | None,
+                prior_information: np.ndarray | None) -> tuple[dict[str, np.ndarray], dict[str, float],
+                                                               np.ndarray]:
+    """``uncertainty_terms``' unit covariances by name, what the residuals show by name, and the
+    fit's map in ROS order (6, 2n): the compiled ``uncertainty_kernels.propagated_terms``."""
+    # Imported where used: numba loads with it.
+    from ficap_ros.vision.uncertainty_kernels import propagated_terms
 
-
-def _per_tag_terms(obs: TagObservations, T: Transform, A_ros: np.ndarray, B: np.ndarray,
-                   rel: np.ndarray) -> dict[str, np.ndarray]:
-    """The terms of the error sources independent per tag: ``noise``, the pattern groups of
-    ``_PATTERNS`` (each tag's at its relative noise ``rel``), ``bias``, ``model_t``, ``model_r``.
-    ``A_ros`` (6, 2n): the fit's map in ROS order; ``B`` (tags, 8, 8): ``_tag_basis``."""
-    n_tags = len(obs)
-    A_tag = A_ros.reshape(6, n_tags, 8).transpose(1, 0, 2)  # (tags, 6, 8)
-    GR = _image_gradient(obs, T) @ T.rotation_matrix  # d(u, v)/d(point in the cap frame)
-    share = rel / np.sqrt(np.mean(rel**2))  # each tag's sigma over the frame's mean tag's
-    # Modes independent per tag (tags, 8, k), all in one product: the 8 basis patterns, then
-    # each plate shifted 1 mm along each cap axis (model_t), then turned 1 deg about each
-    # (model_r: e_k x (corner - tag centre), the corner's move when its plate turns about axis k).
-    shift = GR * 1e-3  # (n, 2, 3): 1 mm along each cap axis
-    turn = np.einsum("nij,nkj->nik", GR, _model_geometry(obs)[2] * np.radians(1.0))
-    modes = np.concatenate([B, shift.reshape(n_tags, 8, 3), turn.reshape(n_tags, 8, 3)], axis=2)
-    am = A_tag @ modes  # (tags, 6, 14): the pose's response to each tag's mode
-    # Per mode, the covariance summed over the tags (independent): (14, 6, 6). The pattern
-    # groups' with each tag's relative noise (share), bias and the model's without.
-    scaled = am[:, :, :8] * share[:, None, None]
-    per_mode_s = np.einsum("tkm,tlm->mkl", scaled, scaled)
-    per_mode = np.einsum("tkm,tlm->mkl", am, am)
-    terms: dict[str, np.ndarray] = {"noise": A_ros @ A_ros.T}
-    for group, idx in _PATTERNS.items():
-        terms[group] = per_mode_s[idx].sum(axis=0)
-    terms["bias"] = 4.0 * per_mode[2]
-    terms["model_t"] = per_mode[8:11].sum(axis=0)
-    terms["model_r"] = per_mode[11:14].sum(axis=0)
-    return terms
-
-
-def _image_gradient(obs: TagObservations, T: Transform) -> np.ndarray:
-    """(4 * tags, 2, 3): d(u, v)/d(point in the camera frame) at each model corner under ``T``."""
-    K = obs.K
-    Xc = obs.model_m.reshape(-1, 3) @ T.rotation_matrix.T + T.translation_m  # corners, camera frame
-    iz = 1.0 / Xc[:, 2]
-    fx, fy, s = K[0, 0], K[1, 1], K[0, 1]
-    G = np.zeros((len(Xc), 2, 3))
-    G[:, 0, 0] = fx * iz
-    G[:, 0, 1] = s * iz
-    G[:, 0, 2] = -(fx * Xc[:, 0] + s * Xc[:, 1]) * iz * iz
-    G[:, 1, 1] = fy * iz
-    G[:, 1, 2] = -fy * Xc[:, 1] * iz * iz
-    return G
-
-
-def _shared_terms(obs: TagObservations, T: Transform, A_ros: np.ndarray,
-                  common: np.ndarray) -> dict[str, np.ndarray]:
-    """The terms of the error sources shared by all tags: ``bias_common`` (``common`` (2n,): 1 px
-    radial at each corner), ``principal_point`` (x, y), ``focal`` and ``tilt``."""
-    uv = obs.image_px.reshape(-1, 2)
-    shared = np.zeros((len(common), 5))
-    shared[:, 0] = common
-    shared[0::2, 1] = 1.0  # principal point x: every u
-    shared[1::2, 2] = 1.0  # ... y: every v
-    shared[:, 3] = (uv - obs.K[:2, 2]).reshape(-1)
-    shared[:, 4] = _tilt_mode(obs, T).reshape(-1)
-    am_shared = A_ros @ shared  # (6, 5)
-    a0 = am_shared[:, 0]
-    return {
-        "bias_common": np.outer(a0, a0),
-        "principal_point": am_shared[:, 1:3] @ am_shared[:, 1:3].T,
-        "focal": np.outer(am_shared[:, 3], am_shared[:, 3]),
-        "tilt": np.outer(am_shared[:, 4], am_shared[:, 4]),
-    }
-
-
-def _residual_sigmas(res: np.ndarray, J: np.ndarray, M: np.ndarray, B: np.ndarray,
-                     rel: np.ndarray) -> tuple[dict[str, float], float]:
-    """(seen, mean_scale): per pattern group of ``_PATTERNS`` the sigma the residuals show and its
-    ``<group>_dof``; and the tags' mean scale (radial) coefficient, px.
-
-    The residuals in each tag's patterns; per group, the coefficients' variance pooled over the
-    tags (the frame's mean tag), with the degrees of freedom the fit took from the group (the
-    weighted hat matrix's leverage, w_t J_t M J_t^T) subtracted. Pooled with equal weights: the
-    weights come from the same residuals, and a variance pooled through them would be biased low.
-    """
-    n_tags = len(rel)
-    coef = np.einsum("tjm,tj->tm", B, -res.reshape(n_tags, 8))
-    Jt = J.reshape(n_tags, 8, -1)
-    # Batched matmuls, not three-operand einsums (those loop over every index).
-    hat = (Jt @ M) @ Jt.transpose(0, 2, 1) / rel[:, None, None] ** 2
-    leverage = (B * (hat @ B)).sum(axis=1)
-    mean_scale = float(coef[:, 2].mean())
-    seen: dict[str, float] = {}
-    # Per pattern: the tags' squared coefficients and leverages summed (the scale's about their
-    # mean), then per group (Python floats: five groups of one or two patterns).
-    coef[:, 2] -= mean_scale
-    sq = (coef * coef).sum(axis=0).tolist()
-    lev = leverage.sum(axis=0).tolist()
-    for group, idx in _PATTERNS.items():
-        dof = len(idx) * n_tags - sum(lev[i] for i in idx)
-        dof -= 1.0 if group == "scale" else 0.0  # the common offset, taken out above
-        seen[group] = math.sqrt(sum(sq[i] for i in idx) / dof) if dof > 0.5 else 0.0
-        seen[group + "_dof"] = max(dof, 0.0)  # how well the residuals know it (error_bound95)
-    return seen, mean_scale
-
-
-def _common_offset_px(common: np.ndarray, w: np.ndarray, J: np.ndarray, A: np.ndarray,
-                      mean_scale: float, scale_sigma: float, n_tags: int) -> tuple[float, float]:
-    """The tags' common radial offset and its standard error, px per corner, from their mean
-    scale coefficient. What the residuals show of it is what the fit left: part of it went into the depth (that part
-    moved the pose). Scaled back to the whole by the share left. The mean carries the tags' scale
-    noise too (its standard error): subtracted in quadrature, or the noise of a mean amplified up
-    to tenfold would pass for an offset where there is none."""
-    common_left = 1.0 - float(common @ (w * (J @ (A @ common)))) / float(common @ (w * common))
-    mean_se2 = scale_sigma ** 2 / n_tags
-    left = max(common_left, 0.1)
-    return (float(np.sqrt(max(mean_scale**2 - mean_se2, 0.0))) / 2.0 / left,
-            math.sqrt(mean_se2) / 2.0 / left)
+    if tag_sigma_px is None:
+        rel = np.ones(len(obs))
+    else:
+        rel = np.asarray(tag_sigma_px, dtype=float) / max(median(tag_sigma_px), 1e-12)
+    w = np.repeat(1.0 / rel**2, 8)  # weights per residual coordinate
+    k = J.shape[1]
+    info = np.zeros((k, k)) if prior_information is None else np.array(prior_information, dtype=float)
+    centres, normal, cross = _model_geometry(obs)
+    unit, measured, A_ros = propagated_terms(
+        np.ascontiguousarray(res, dtype=float), np.ascontiguousarray(J, dtype=float), w, info,
+        np.array(obs.image_px, dtype=float).reshape(-1, 2), np.array(obs.model_m, dtype=float).reshape(-1, 3),
+        np.array(T.rotation_matrix), np.array(T.translation_m, dtype=float), np.array(obs.K, dtype=float),
+        rel, cross, centres, normal)
+    return dict(zip(_TERM_NAMES, unit)), dict(zip(_SEEN_NAMES, measured.tolist())), A_ros
 
 
 def uncertainty_sources(terms: dict[str, np.ndarray], seen: dict[str, float],

@@ -189,7 +189,7 @@ def test_rolling_shutter_pose_follows_the_glance_speeding_up(monkeypatch: pytest
     rot, trans = _errors(pose, T0)
     assert rot < 5e-4 and trans < 3e-3
     np.testing.assert_allclose(pose.velocity[3:], GLANCE[3:], atol=0.01)
-    monkeypatch.setattr(motion, "acceleration", lambda T, past: (np.zeros(6), 0.0))
+    monkeypatch.setattr(motion, "_second_derivative", lambda values, vander_inv: (np.zeros(6), 0.0))
     constant = estimate_cap_pose(dets, MODEL, CAMERA, timing=ROLLING, prior=prior).pose
     assert _errors(constant, T0)[0] > 10.0 * max(rot, 1e-4)
 
@@ -222,7 +222,7 @@ def test_rendered_rolling_glance_follows_its_acceleration(glance_rs_drive: Path,
     import ficap_ros.vision.motion as motion
 
     rot, speed = _glance_errors(glance_rs_drive)
-    monkeypatch.setattr(motion, "acceleration", lambda T, past: (np.zeros(6), 0.0))
+    monkeypatch.setattr(motion, "_second_derivative", lambda values, vander_inv: (np.zeros(6), 0.0))
     constant, _ = _glance_errors(glance_rs_drive)
     fast, slow = speed >= 90.0, speed < 30.0
     assert np.all(np.isfinite(rot)) and fast.sum() >= 5 and slow.sum() >= 10

@@ -1,6 +1,6 @@
 """The pose solvers' compiled reprojection against the vectorised numpy formulas it replaces:
-residuals and Jacobian equal to the bit for random poses, cameras with skew and tag counts, and
-the Jacobian is the residuals' derivative under a left perturbation."""
+residuals and Jacobian, and the tags' RMS errors, equal to the bit for random poses, cameras with
+skew and tag counts, and the Jacobian is the residuals' derivative under a left perturbation."""
 
 from __future__ import annotations
 
@@ -9,8 +9,12 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from scipy.spatial.transform import Rotation
 
+from ficap_ros.geometry.transform import Transform
 from ficap_ros.vision.pose_kernels import reprojection_rt
-from ficap_ros.vision.reprojection import residuals_and_jacobian_rt
+from ficap_ros.vision.reprojection import (
+    reprojection_errors_px,
+    residuals_and_jacobian_rt,
+)
 
 
 def _numpy_reference(R: np.ndarray, t: np.ndarray, K: np.ndarray, model_m: np.ndarray,
@@ -94,3 +98,25 @@ def test_the_wrapper_takes_any_layout() -> None:
     got = residuals_and_jacobian_rt(np.asfortranarray(R), t.tolist(), np.asfortranarray(K),
                                     model[:, ::-1][:, ::-1], np.asfortranarray(image.reshape(-1, 2)))
     assert np.array_equal(expect[0], got[0]) and np.array_equal(expect[1], got[1])
+
+
+def _errors_reference(obs_px: np.ndarray, K: np.ndarray, T: Transform, model_m: np.ndarray) -> np.ndarray:
+    """The per-tag RMS reprojection errors vectorised over the tags (the kernel's reference)."""
+    p = T.apply(model_m.reshape(-1, 3))
+    z = p[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        u = K[0, 0] * p[:, 0] / z + K[0, 1] * p[:, 1] / z + K[0, 2]
+        v = K[1, 1] * p[:, 1] / z + K[1, 2]
+    proj = np.stack([u, v], axis=-1).reshape(model_m.shape[:-1] + (2,))
+    return np.sqrt(np.mean(np.sum((proj - obs_px) ** 2, axis=-1), axis=-1))
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.integers(0, 2**31 - 1), st.integers(1, 23))
+def test_tag_errors_equal_the_numpy_formulas_to_the_bit(seed: int, tags: int) -> None:
+    """``reprojection_errors_px`` (the compiled ``tag_errors_px``) equals the vectorised formulas
+    bit for bit: the solvers' inlier and outlier decisions compare these values."""
+    R, t, K, model, image = _case(seed, tags)
+    T = Transform(Rotation.from_matrix(R), t)
+    ours = reprojection_errors_px(image, K, T, model)
+    assert np.array_equal(ours, _errors_reference(image, K, T, model), equal_nan=True)
