@@ -7,8 +7,8 @@ each pattern and to each plate's shift and turn, the hat matrix's leverage of ea
 such small arrays numpy's per-call set-up costs more than the arithmetic, so the whole assembly
 is one kernel. The formulas and their order are ``uncertainty``'s (its module docstring); the
 sums run in a different order than numpy's vectorised ones, so the values agree to rounding
-(relative 1e-12), not to the bit. The tag basis is a Householder QR in LAPACK's sign convention,
-as numpy's.
+(relative 1e-12), not to the bit. The tag basis is a Householder QR, each pattern's column then
+signed along its pattern.
 
 Output layout: ``terms`` (13, 6, 6), each ROS order (translation, then rotation): the pattern
 groups shift, scale, turn, shear, projective, then noise, bias, model_t, model_r, bias_common,
@@ -133,7 +133,9 @@ def _tag_basis(corners_px: np.ndarray) -> np.ndarray:
     """(8, 8) an orthonormal basis of one tag's corner displacements (x0 y0 ... x3 y3): shift x,
     shift y, scale, turn, two shears, then the two left (projective), from the corners (4, 2):
     the Q of those six patterns and the first two unit vectors (the rest of the identity the
-    numpy formula appends never enters an 8-column Q)."""
+    numpy formula appends never enters an 8-column Q), each pattern's column signed along its
+    pattern, so that a radial offset has the same sign of scale coefficient in every tag (a QR's
+    own signs follow the data and would cancel part of the tags' mean)."""
     cx = 0.25 * (corners_px[0, 0] + corners_px[1, 0] + corners_px[2, 0] + corners_px[3, 0])
     cy = 0.25 * (corners_px[0, 1] + corners_px[1, 1] + corners_px[2, 1] + corners_px[3, 1])
     px, py = np.empty(4), np.empty(4)
@@ -153,7 +155,20 @@ def _tag_basis(corners_px: np.ndarray) -> np.ndarray:
         M[2 * c, 5], M[2 * c + 1, 5] = y, x
     M[0, 6] = 1.0
     M[1, 7] = 1.0
-    return _householder_q(M)
+    Q = _householder_q(M)
+    for j in range(6):  # each pattern's column along its pattern: one sign for every tag
+        if _column_dot(Q, M, j) < 0.0:
+            for i in range(8):
+                Q[i, j] = -Q[i, j]
+    return Q
+
+
+@njit(error_model="numpy")
+def _column_dot(Q: np.ndarray, M: np.ndarray, j: int) -> float:
+    s = 0.0
+    for i in range(8):
+        s += Q[i, j] * M[i, j]
+    return s
 
 
 @njit(error_model="numpy")

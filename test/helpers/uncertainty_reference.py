@@ -32,7 +32,10 @@ def _tag_basis(corners_px: np.ndarray) -> np.ndarray:
     M[:, 0::2, 4], M[:, 1::2, 4] = px, -py  # shear
     M[:, 0::2, 5], M[:, 1::2, 5] = py, px  # shear
     Q, _ = np.linalg.qr(M)
-    return Q[:, :, :8]
+    Q = Q[:, :, :8]
+    sign = np.where(np.einsum("tij,tij->tj", Q[:, :, :6], M[:, :, :6]) < 0.0, -1.0, 1.0)
+    Q[:, :, :6] *= sign[:, None, :]  # each pattern's column along its pattern
+    return Q
 
 
 def _basis_template() -> np.ndarray:

@@ -80,3 +80,23 @@ def test_a_singular_fit_gives_infinite_terms() -> None:
     terms, _seen, A_ros = _kernel(obs, T, res, J, rel, None)
     assert not np.all(np.isfinite(A_ros))
     assert not np.all(np.isfinite(terms[_TERM_NAMES.index("noise")]))
+
+
+@settings(max_examples=40, deadline=None)
+@given(turn_deg=st.floats(-180.0, 180.0), squash=st.floats(0.2, 1.0), shift=st.floats(-500.0, 500.0))
+def test_tag_basis_columns_point_along_their_patterns(turn_deg: float, squash: float, shift: float) -> None:
+    """Every tag's scale column is the normalised radial pattern itself, never its negative, at
+    any turn, foreshortening and place in the image: a radial offset shared by the tags gives
+    every tag a scale coefficient of one sign, so their mean measures it (a QR's own column
+    signs follow the data)."""
+    from ficap_ros.vision.uncertainty_kernels import _tag_basis
+
+    a = np.deg2rad(turn_deg)
+    rot = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    square = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]]) * [20.0, 20.0 * squash]
+    corners = square @ rot.T + [640.0 + shift, 360.0 - 0.5 * shift]
+    B = _tag_basis(corners)
+    radial = (corners - corners.mean(axis=0)).ravel()
+    np.testing.assert_allclose(B[:, 2], radial / np.linalg.norm(radial), atol=1e-12)
+    np.testing.assert_allclose(B[:, :2], np.tile(np.eye(2), (4, 1)) / 2.0, atol=1e-12)
+    np.testing.assert_allclose(B.T @ B, np.eye(8), atol=1e-12)
