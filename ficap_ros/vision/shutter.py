@@ -27,10 +27,11 @@ import numpy as np
 
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.transform import Transform
+from ficap_ros.vision.pose_kernels import corner_rate_px_s
 from ficap_ros.vision.reprojection import (
     TagObservations,
-    moving_points_m,
     residuals_and_jacobian,
+    rotations_of,
 )
 
 __all__ = ["TimingEvidence", "TimingEstimate", "readout_evidence", "frame_evidence",
@@ -89,18 +90,15 @@ class TimingEstimate:
 
 def _corner_velocity_px_s(obs: TagObservations, T: Transform, velocity: np.ndarray) -> np.ndarray:
     """(N, 2) each corner's image velocity, px/s, of a cap at ``T`` moving at ``velocity``: the
-    central difference of the corners' pinhole projections (camera frame, so no pose applied)
-    at the times -eps and +eps, both ends in one ``moving_points_m`` call."""
+    central difference of the corners' pinhole projections (camera frame) at the times -eps and
+    +eps (``moving_points_m``'s motion; the projections and difference compiled,
+    ``pose_kernels.corner_rate_px_s``)."""
     eps = 1e-3
-    n = obs.model_m.reshape(-1, 3).shape[0]
-    model_m = np.broadcast_to(obs.model_m.reshape(1, -1, 3), (2, n, 3))
-    times_s = np.repeat(np.array([-eps, eps]), n)
-    p = moving_points_m(T.rotation_matrix, T.translation_m, velocity, model_m, times_s)
-    K, z = obs.K, p[:, 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        u = K[0, 0] * p[:, 0] / z + K[0, 1] * p[:, 1] / z + K[0, 2]
-        v = K[1, 1] * p[:, 1] / z + K[1, 2]
-    return np.stack([u[n:] - u[:n], v[n:] - v[:n]], axis=-1) / (2 * eps)
+    Y = obs.model_m.reshape(-1, 3) @ T.rotation_matrix.T
+    tau = np.array([[-eps], [eps]])
+    turn, shift = tau * velocity[3:], tau * velocity[:3]
+    return corner_rate_px_s(Y, rotations_of(turn), shift, T.translation_m,
+                            np.asarray(obs.K, dtype=np.float64), 2 * eps)
 
 
 def speed_bound_px_s(obs: TagObservations, T: Transform, velocity: np.ndarray) -> float:
