@@ -135,9 +135,9 @@ class UncertaintyConfig:
     cell-edge corners (``edge``). The tag-level photometric corner fit (``photometric``:
     ``DetectorConfig(edge_photometric=True)``, ``--photometric``, node ``detector.photometric``)
     leaves much less of the shift along the foreshortening under uneven light and less of the
-    shared bias, so its profile has a smaller ``light_gradient_tilt_gain`` and states the shared
-    bias from the corner-noise ratio (``shared_bias_gain``, fitted on its own with the common
-    offset unused, ``bench_uncertainty.py --photometric``). Corners that keep the tone curve's bias
+    shared bias, so its profile has a smaller ``light_gradient_tilt_gain`` and states the measured
+    offset and its standard error at a smaller gain (0.75, fitted by the same rule,
+    ``bench_uncertainty.py --photometric``). Corners that keep the tone curve's bias
     (``uncorrected``: every ``corner_refine`` but ``edge``: OpenCV's sub-pixel corners,
     AprilTag's, the search's polygon) sit a tenth of a px to over a px inside every tag alike: an
     offset large enough that the part the depth leaves in the residuals measures it, so their
@@ -157,12 +157,12 @@ class UncertaintyConfig:
             the edge profile, which states the offset by what the residuals show of it.
         common_offset_gain: factor on the tags' common radial offset as the residuals show it
             (``uncertainty_bounds``: a measured mean error). 1 by default: the offset as
-            measured; 0 in the ``photometric`` profile.
+            measured; 0.75 in the ``photometric`` profile.
         common_offset_se_gain: factor on that estimate's standard error
             (``seen["bias_common_se"]``), a sigma along the same mode: below its standard error
             the estimate reads 0, yet such an offset is not ruled out. 1 by default (the
-            offset's own uncertainty as measured); 0 in the ``photometric`` and
-            ``uncorrected`` profiles, calibrated without it.
+            offset's own uncertainty as measured); 0.75 in the ``photometric`` profile; 0 in
+            the ``uncorrected`` one, calibrated without it.
         model_mm, model_deg: each tag plate's placement on the built cap against the model, per
             axis (shift, mm; turn about the plate centre, deg). 0 by default: misplaced plates
             show in the residuals; raise them when the cap may have changed since its model was
@@ -248,13 +248,13 @@ class UncertaintyConfig:
 
 #: ``UncertaintyConfig.for_corners``: the fields each corner estimator's profile changes from the
 #: defaults (the ``edge`` profile). The photometric corners leave less of the tilt under uneven
-#: light and a smaller shared bias, which their profile states from the corner-noise ratio
-#: (``bench_uncertainty.py --photometric``). Uncorrected corners use the measured common offset
+#: light and a smaller shared offset, which their profile states from the measured offset and its
+#: standard error (``bench_uncertainty.py --photometric``). Uncorrected corners use the measured common offset
 #: as measured, with the ratio term beside it. Both state the tilt by the light gradient.
 _CORNER_PROFILES: dict[str, dict[str, float]] = {
     "edge": {},
     "photometric": {"light_gradient_tilt_gain": 0.1, "edge_shift_tilt_gain": 0.0,
-                    "shared_bias_gain": 0.75, "common_offset_gain": 0.0, "common_offset_se_gain": 0.0},
+                    "shared_bias_gain": 0.0, "common_offset_gain": 0.75, "common_offset_se_gain": 0.75},
     "uncorrected": {"light_gradient_tilt_gain": 0.35, "edge_shift_tilt_gain": 0.0,
                     "common_offset_gain": 1.0, "common_offset_se_gain": 0.0, "shared_bias_gain": 0.95},
 }

@@ -137,8 +137,8 @@ def test_pipeline_takes_the_uncertainty_profile_of_its_corners() -> None:
     photo_u = UncertaintyConfig.for_corners("photometric")
     assert UncertaintyConfig.for_corners("edge") == UncertaintyConfig()
     assert photo_u == UncertaintyConfig(light_gradient_tilt_gain=0.1, edge_shift_tilt_gain=0.0,
-                                        shared_bias_gain=0.75, common_offset_gain=0.0,
-                                        common_offset_se_gain=0.0)
+                                        shared_bias_gain=0.0, common_offset_gain=0.75,
+                                        common_offset_se_gain=0.75)
     fr = drive_frames("540p", RenderConfig(lighting="high"), n=1)[0]
     for det, profile in ((DetectorConfig(edge_photometric=True), photo_u),
                          (DetectorConfig(), UncertaintyConfig())):

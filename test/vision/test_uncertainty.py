@@ -184,11 +184,14 @@ def test_offset_is_the_measured_common_radial_share() -> None:
     rest = combine_uncertainty(terms, {**seen, "bias_common": 0.0}, cfg)
     np.testing.assert_allclose(cov - np.outer(offset, offset), rest, rtol=1e-6, atol=1e-15)
     assert all(np.isfinite(d) and d > 10 for d in dof)  # ~20 tags x patterns
-    # The edge profile (the defaults) states it at its gain, the photometric one not at all.
-    gain = UncertaintyConfig().common_offset_gain
-    off_edge, _ = uncertainty_bounds(terms, seen, UncertaintyConfig(), cov)
-    np.testing.assert_allclose(off_edge, gain * offset, rtol=1e-9)
-    off0, _ = uncertainty_bounds(terms, seen, UncertaintyConfig.for_corners("photometric"), cov)
+    # Each profile states it at its gain: the edge one (the defaults) as measured, the
+    # photometric one at 0.75.
+    for profile, gain in (("edge", 1.0), ("photometric", 0.75)):
+        cfg = UncertaintyConfig.for_corners(profile)
+        assert cfg.common_offset_gain == gain
+        off, _ = uncertainty_bounds(terms, seen, cfg, cov)
+        np.testing.assert_allclose(off, gain * offset, rtol=1e-9)
+    off0, _ = uncertainty_bounds(terms, seen, UncertaintyConfig(common_offset_gain=0.0), cov)
     assert np.all(off0 == 0.0)
 
 
@@ -465,16 +468,18 @@ def test_shared_bias_ratio_on_rendered_frames() -> None:
 def test_uncorrected_corners_bound_their_measured_offset() -> None:
     """Corners that keep the tone curve's bias (every tag 0.3 px inward, as OpenCV's sub-pixel
     corners sit): the ``uncorrected`` and ``edge`` profiles use the offset the residuals show and
-    their bounds cover the depth error it causes; the photometric corners' profile, which does not,
-    falls short."""
+    their bounds cover the depth error it causes; without the offset's terms they fall short."""
     T = _truth(12.0)
     rng = np.random.default_rng(13)
-    misses = {"edge": 0, "uncorrected": 0, "photometric": 0}
+    configs = {"edge": UncertaintyConfig.for_corners("edge"),
+               "uncorrected": UncertaintyConfig.for_corners("uncorrected"),
+               "without": UncertaintyConfig(common_offset_gain=0.0, common_offset_se_gain=0.0)}
+    misses = dict.fromkeys(configs, 0)
     for _ in range(20):
         corners = _with_common_offset(_exact_corners(T), -0.3, 0.05, rng)
-        for profile in misses:
-            p = _pose(corners, PoseConfig(uncertainty=UncertaintyConfig.for_corners(profile)))
+        for name, cfg in configs.items():
+            p = _pose(corners, PoseConfig(uncertainty=cfg))
             err = 1e3 * np.linalg.norm(p.T_cam_cap.translation_m - T.translation_m)
-            misses[profile] += err > p.trans_err95_mm
+            misses[name] += err > p.trans_err95_mm
     assert UncertaintyConfig.for_corners("uncorrected").common_offset_gain == 1.0
-    assert misses["uncorrected"] <= 1 and misses["edge"] <= 1 and misses["photometric"] >= 15
+    assert misses["uncorrected"] <= 1 and misses["edge"] <= 1 and misses["without"] >= 15
