@@ -27,11 +27,11 @@ import numpy as np
 
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.transform import Transform
+from ficap_ros.vision.pose_kernels import corner_rate_px_s
 from ficap_ros.vision.reprojection import (
     TagObservations,
-    moving_points_m,
-    project_px,
     residuals_and_jacobian,
+    rotations_of,
 )
 
 __all__ = ["TimingEvidence", "TimingEstimate", "readout_evidence", "frame_evidence",
@@ -40,6 +40,10 @@ __all__ = ["TimingEvidence", "TimingEstimate", "readout_evidence", "frame_eviden
 #: Least image speed of the cap's corners, px/s, for a frame to give evidence: slower, a 30 ms
 #: readout or exposure moves them by a fraction of the corners' noise.
 MIN_SPEED_PX_S = 60.0
+
+#: ``speed_bound_px_s`` below this share of ``MIN_SPEED_PX_S`` skips a frame: the bound is exact
+#: arithmetic's, the share keeps floating-point rounding (relative 1e-13 at most) far inside it.
+_BOUND_MARGIN = 0.99
 
 
 @dataclass(frozen=True)
@@ -85,13 +89,38 @@ class TimingEstimate:
 
 
 def _corner_velocity_px_s(obs: TagObservations, T: Transform, velocity: np.ndarray) -> np.ndarray:
-    """(N, 2) each corner's image velocity, px/s, of a cap at ``T`` moving at ``velocity``."""
+    """(N, 2) each corner's image velocity, px/s, of a cap at ``T`` moving at ``velocity``: the
+    central difference of the corners' pinhole projections (camera frame) at the times -eps and
+    +eps (``moving_points_m``'s motion; the projections and difference compiled,
+    ``pose_kernels.corner_rate_px_s``)."""
     eps = 1e-3
-    ends = [project_px(obs.K, Transform.identity(),
-                       moving_points_m(T.rotation_matrix, T.translation_m, velocity, obs.model_m,
-                                       np.full(obs.model_m.shape[:2], s))).reshape(-1, 2)
-            for s in (-eps, eps)]
-    return (ends[1] - ends[0]) / (2 * eps)
+    Y = obs.model_m.reshape(-1, 3) @ T.rotation_matrix.T
+    tau = np.array([[-eps], [eps]])
+    turn, shift = tau * velocity[3:], tau * velocity[:3]
+    return corner_rate_px_s(Y, rotations_of(turn), shift, T.translation_m,
+                            np.asarray(obs.K, dtype=np.float64), 2 * eps)
+
+
+def speed_bound_px_s(obs: TagObservations, T: Transform, velocity: np.ndarray) -> float:
+    """An upper bound, px/s, of every corner's ``_corner_velocity_px_s`` speed (inf where a
+    corner may reach the camera's plane), from norms alone: over the difference's times a
+    point Y + t (camera frame, Y = R X) moving at ``velocity`` (v, w) moves at
+    |v + w x E Y| <= |v| + |w| |Y|, stays within |Y| + |t| + eps |v| of the camera and at a
+    depth of at least z(0) less its travel; a pinhole's image speed is at most
+    sqrt((|fx| + |s|)^2 + fy^2) |dP/dt| |P| / z^2, and a central difference is the mean of the
+    derivative over its interval. Lets a still cap skip the projections."""
+    eps = 1e-3
+    Y = obs.model_m.reshape(-1, 3) @ T.rotation_matrix.T
+    y = np.sqrt((Y * Y).sum(axis=1))
+    v, w = float(np.linalg.norm(velocity[:3])), float(np.linalg.norm(velocity[3:]))
+    rate = v + w * y
+    z = Y[:, 2] + T.translation_m[2] - eps * rate
+    if not np.all(z > 0.0):
+        return math.inf
+    K = obs.K
+    gain = math.hypot(abs(K[0, 0]) + abs(K[0, 1]), K[1, 1])
+    reach = y + float(np.linalg.norm(T.translation_m)) + eps * v
+    return float((gain * rate * reach / (z * z)).max())
 
 
 def readout_evidence(obs: TagObservations, T: Transform, velocity: np.ndarray,
@@ -99,6 +128,9 @@ def readout_evidence(obs: TagObservations, T: Transform, velocity: np.ndarray,
     """(readout_s, variance) from a static fit ``T`` of ``obs`` (corners seen at the distorted
     rows ``rows_px`` (N,)) whose cap moves at ``velocity``; None for a still cap or too few
     corners."""
+    # A cap too slow by the bound cannot pass the speed test below: skip its projections.
+    if 8 * len(obs) < 16 or speed_bound_px_s(obs, T, velocity) < _BOUND_MARGIN * MIN_SPEED_PX_S:
+        return None
     res, J = residuals_and_jacobian(T, obs)
     speed = _corner_velocity_px_s(obs, T, velocity)
     n = len(res)

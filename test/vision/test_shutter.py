@@ -17,7 +17,13 @@ from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform
 from ficap_ros.vision.motion import MotionPrior, PastPose
 from ficap_ros.vision.pose import estimate_cap_pose
 from ficap_ros.vision.reprojection import TagObservations, undistorted_corners
-from ficap_ros.vision.shutter import TimingEvidence, combine_evidence, frame_evidence
+from ficap_ros.vision.shutter import (
+    TimingEvidence,
+    _corner_velocity_px_s,
+    combine_evidence,
+    frame_evidence,
+    speed_bound_px_s,
+)
 
 MODEL = nominal_model()
 CAMERA = CameraModel.pinhole(960, 540, hfov_deg=67.4)
@@ -61,6 +67,22 @@ def test_a_global_shutter_gives_no_readout_within_its_error() -> None:
 
 def test_a_still_cap_says_nothing() -> None:
     assert _evidence(CameraTiming(readout_ms=25.0), np.zeros(6)) is None
+
+
+@pytest.mark.parametrize("seed", range(20))
+def test_the_speed_bound_holds_and_is_near_the_speed(seed: int) -> None:
+    """``speed_bound_px_s`` is at least every corner's central-difference speed (what lets a
+    slow frame skip it), and within an order of magnitude of the fastest, for random turns and
+    shifts of the cap from still to fast (up to 0.5 m/s, 400 deg/s)."""
+    rng = np.random.default_rng(seed)
+    T = Transform(CAM_FROM_FORWARD * Rotation.from_rotvec(rng.normal(0.0, 0.3, 3)),
+                  [rng.uniform(-0.1, 0.1), rng.uniform(-0.1, 0.1), rng.uniform(0.4, 1.0)])
+    ids = facing_ids(MODEL, T)
+    obs = TagObservations.of({i: np.zeros((4, 2)) for i in ids}, MODEL, CAMERA.K)
+    velocity = np.concatenate([rng.normal(0.0, 0.5, 3), rng.normal(0.0, 7.0, 3)]) * rng.uniform(0.0, 1.0)
+    speed = float(np.linalg.norm(_corner_velocity_px_s(obs, T, velocity), axis=1).max())
+    bound = speed_bound_px_s(obs, T, velocity)
+    assert speed <= bound <= 10.0 * speed + 1e-9
 
 
 def test_frames_combine_by_their_information() -> None:
