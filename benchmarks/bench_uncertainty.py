@@ -417,8 +417,8 @@ def main(argv: list[str] | None = None) -> int:
             "(Spearman), on every blender_dev set and on `ficap synth` drives (one frame a second; "
             "what the light gains of `UncertaintyConfig` were calibrated on), ours and the "
             "naive peer; which covariance terms state the depth error; then the leave-one-set-out fit "
-            "of the shared corner offset's gains on blender_dev and its check on the synth drives, the "
-            "frames its held-out bounds miss, and the same fit over one gain.")
+            "of the shared corner offset's gain (the defaults' rule) on blender_dev and its check on the "
+            "synth drives, the frames its held-out bounds miss, and the same fit over two gains beside it.")
     report.write_section("uncertainty", what, report.how("bench_uncertainty.py", "fewer frames per set"),
                          body, run, report.command(), args.quick, args.no_doc or args.photometric)
     return 0
