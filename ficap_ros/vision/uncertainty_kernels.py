@@ -106,26 +106,26 @@ def _householder_q(M: np.ndarray) -> np.ndarray:
             A[i, j] *= scale
         A[j, j] = beta
         for c in range(j + 1, 8):  # H_j applied to the columns right of j
-            s = A[j, c]
-            for i in range(j + 1, 8):
-                s += A[i, j] * A[i, c]
-            s *= tau[j]
-            A[j, c] -= s
-            for i in range(j + 1, 8):
-                A[i, c] -= s * A[i, j]
+            _reflect_column(A, j, tau[j], A, c)
     Q = np.eye(8)
     for j in range(7, -1, -1):  # Q = H_0 ... H_7 I, built from the last reflector back
         if tau[j] == 0.0:
             continue
         for c in range(j, 8):
-            s = Q[j, c]
-            for i in range(j + 1, 8):
-                s += A[i, j] * Q[i, c]
-            s *= tau[j]
-            Q[j, c] -= s
-            for i in range(j + 1, 8):
-                Q[i, c] -= s * A[i, j]
+            _reflect_column(A, j, tau[j], Q, c)
     return Q
+
+
+@njit(inline="always")
+def _reflect_column(V: np.ndarray, j: int, tau_j: float, X: np.ndarray, c: int) -> None:
+    """X[:, c] = H_j X[:, c] for the reflector H_j = I - tau_j v v^T, v = (0.., 1, V[j+1:, j])."""
+    s = X[j, c]
+    for i in range(j + 1, 8):
+        s += V[i, j] * X[i, c]
+    s *= tau_j
+    X[j, c] -= s
+    for i in range(j + 1, 8):
+        X[i, c] -= s * V[i, j]
 
 
 @njit(error_model="numpy")

@@ -5,12 +5,12 @@ numpy's summation order)."""
 from __future__ import annotations
 
 import math
-from functools import lru_cache
 
 import numpy as np
 
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.vision.reprojection import TagObservations
+from ficap_ros.vision.uncertainty import _model_geometry
 
 _PATTERNS = {"shift": [0, 1], "scale": [2], "turn": [3], "shear": [4, 5], "projective": [6, 7]}
 _ROS_ORDER = np.array([3, 4, 5, 0, 1, 2])
@@ -52,27 +52,6 @@ def _basis_template() -> np.ndarray:
 _BASIS_TEMPLATE = _basis_template()
 
 
-def _model_geometry(obs: TagObservations) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Of the used tags' model corners: centres (tags, 3), unit outward normals (tags, 3) and, per
-    corner, the cross products e_k x (corner - its tag's centre) (4 * tags, 3, 3): cached on the
-    corners' bytes (a tracked cap's frames use the same tags frame after frame)."""
-    return _model_geometry_of(obs.model_m.tobytes(), len(obs))
-
-
-@lru_cache(maxsize=64)
-def _model_geometry_of(model_key: bytes, n_tags: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    model_m = np.frombuffer(model_key, dtype=np.float64).reshape(n_tags, 4, 3)
-    centres = model_m.mean(axis=1)  # (tags, 3) cap frame, m
-    a, b = model_m[:, 1] - model_m[:, 0], model_m[:, 3] - model_m[:, 0]
-    normal = np.cross(a, b)
-    normal /= np.maximum(np.linalg.norm(normal, axis=1, keepdims=True), 1e-12)
-    lever = model_m.reshape(-1, 3) - np.repeat(model_m.mean(axis=1), 4, axis=0)
-    cross = np.cross(np.eye(3)[None], lever[:, None])
-    for x in (centres, normal, cross):
-        x.setflags(write=False)
-    return centres, normal, cross
-
-
 def _tilt_mode(obs: TagObservations, T: Transform) -> np.ndarray:
     """(2n,): each tag's corners shifted by 1 px along the image direction of its outward normal,
     times the sine of its view angle (0 for a tag seen head-on, 1 edge-on)."""
@@ -90,7 +69,6 @@ def _tilt_mode(obs: TagObservations, T: Transform) -> np.ndarray:
     cos_view = np.abs(np.einsum("ij,ij->i", n_cam, c_cam)) / np.maximum(np.linalg.norm(c_cam, axis=1), 1e-12)
     sin_view = np.sqrt(np.clip(1.0 - cos_view**2, 0.0, 1.0))
     return np.repeat((u * sin_view[:, None])[:, None, :], 4, axis=1).reshape(-1)
-
 
 
 def _propagation(J: np.ndarray, w: np.ndarray,
