@@ -124,9 +124,9 @@ class UncertaintyConfig:
     (the smallest bounds whose rotation and translation bounds cover at least 90 % in every
     lighting and resolution condition). The edge profile's offset gain is fitted on the path-traced
     renders leave one set out (bench_uncertainty states the rule): one gain on the measured offset
-    and its standard error comes out 1 for every set held out, and covers each at least 90 %; a
-    joint fit with ``shared_bias_gain`` trades the two terms for each other and leaves a set
-    uncovered. Both are checked, not fitted, on synth drives.
+    and its standard error comes out at 1, the offset as measured, in the folds; a joint fit with
+    ``shared_bias_gain`` trades the two terms for each other and leaves the set whose depth error
+    follows the offset under-covered. Both are checked, not fitted, on synth drives.
     ``benchmarks/bench_uncertainty.py`` runs both checks and the leave-one-set-out fit
     (docs/benchmarks/uncertainty.md). The floors state what residuals cannot estimate and
     guarantee that no pose is ever "exact".
