@@ -211,7 +211,7 @@ def grouped_solve(jac: np.ndarray, rhs: np.ndarray, w: np.ndarray, starts: np.nd
 def robust_grouped_solve(jac: np.ndarray, s: np.ndarray, contrast: np.ndarray, top_c: np.ndarray,
                          ok: np.ndarray, vertical: np.ndarray, starts: np.ndarray, n_dense: int,
                          min_rows: int, min_per_direction: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The cell-edge fit's robust step per tag (``corners._solve_edges``): weights
+    """The cell-edge fit's robust step per tag: weights
     (contrast / max(tag contrast, 1))^2 on the ``ok`` rows, a solve (``grouped_solve``), the rows
     beyond 3.5 robust sigmas (1.4826 times the median absolute residual of the group's ``ok``
     rows; at least 0.05) dropped, a second solve of the groups that lost a weighted row (the others'
@@ -400,7 +400,8 @@ def _median_of_sorted(srt: np.ndarray) -> float:
 def _border_midlines(img: np.ndarray, p_in: np.ndarray, p_out: np.ndarray, nk: np.ndarray, search_px: float,
                      window_cells: float, k: int, min_cell_px: float,
                      min_contrast_ratio: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``corners._border_midlines``'s measurement: (midline (T,), valid (T,), width0 (T,))."""
+    """The border unbias's measurement across each white data cell: (midline (T,), valid (T,),
+    width0 (T,)) (the tests' numpy reference: ``_border_midlines_numpy``)."""
     t = len(p_in)
     width0, half, step = np.empty(t), np.empty(t), np.empty(t)
     cx, cy = np.empty(2 * t, np.float32), np.empty(2 * t, np.float32)
@@ -439,7 +440,7 @@ def _border_midlines(img: np.ndarray, p_in: np.ndarray, p_out: np.ndarray, nk: n
 
 @njit(error_model="numpy")
 def _border_inliers(d: np.ndarray, valid: np.ndarray, starts: np.ndarray) -> np.ndarray:
-    """``corners._inlier_samples``: the valid finite samples within 3 MAD (at least 0.1 px) of
+    """The border unbias's inliers: the valid finite samples within 3 MAD (at least 0.1 px) of
     their tag's median (medians of each tag's finite valid samples, 0 without any)."""
     t, n = len(d), len(starts)
     keep = np.zeros(t, np.bool_)
@@ -460,7 +461,7 @@ def _border_inliers(d: np.ndarray, valid: np.ndarray, starts: np.ndarray) -> np.
 @njit(error_model="numpy")
 def _pooled_corners(d: np.ndarray, keep: np.ndarray, tag_of: np.ndarray, side: np.ndarray, nrm: np.ndarray,
                     rho: np.ndarray, prior: float) -> tuple[np.ndarray, np.ndarray]:
-    """``corners._pooled_delta`` (each side's mean kept sample, shrunk toward its tag's mean)
+    """Each side's offset (its mean kept sample, shrunk toward its tag's mean)
     and the corners where the moved sides meet (``edges.intersect_sides``): (delta (N, 4),
     corners (N, 4, 2))."""
     n = len(nrm)

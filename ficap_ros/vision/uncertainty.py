@@ -195,7 +195,7 @@ class UncertaintyConfig:
             on rendered fast glances (path-traced and synth, global and rolling shutter) for
             95 % coverage, each recording's checked with gains fitted without it
             (``benchmarks/bench_glance.py``); they act only when the exposure is given. The
-            shift's is 0: the motion-aware corners (``DetectorConfig.motion_corners``) fit the
+            shift's gain is 0: the motion-aware corners (``DetectorConfig.motion_corners``) fit the
             smear, and the common offset (``common_offset_gain``) covers most of what is left.
     """
 

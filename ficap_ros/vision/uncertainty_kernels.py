@@ -5,9 +5,9 @@ A frame's covariance is built from a few dozen small matrix products per tag (th
 ``A = (J^T W J + info)^-1 J^T W``, each tag's orthonormal corner patterns, the pose's response to
 each pattern and to each plate's shift and turn, the hat matrix's leverage of each pattern): on
 such small arrays numpy's per-call set-up costs more than the arithmetic, so the whole assembly
-is one kernel. The formulas and their order are ``uncertainty``'s (its module docstring); the
-sums run in a different order than numpy's vectorised ones, so the values agree to rounding
-(relative 1e-12), not to the bit. The tag basis is a Householder QR, each pattern's column then
+is one kernel. The formulas are ``uncertainty``'s (its module docstring); the tests' vectorised
+numpy reference (test/helpers/uncertainty_reference.py) sums in another order, so the two agree
+to rounding (relative 1e-12), not to the bit. The tag basis is a Householder QR, each pattern's column then
 signed along its pattern.
 
 Output layout: ``terms`` (13, 6, 6), each ROS order (translation, then rotation): the pattern
@@ -132,8 +132,8 @@ def _reflect_column(V: np.ndarray, j: int, tau_j: float, X: np.ndarray, c: int) 
 def _tag_basis(corners_px: np.ndarray) -> np.ndarray:
     """(8, 8) an orthonormal basis of one tag's corner displacements (x0 y0 ... x3 y3): shift x,
     shift y, scale, turn, two shears, then the two left (projective), from the corners (4, 2):
-    the Q of those six patterns and the first two unit vectors (the rest of the identity the
-    numpy formula appends never enters an 8-column Q), each pattern's column signed along its
+    the Q of those six patterns and the first two unit vectors (the rest of the identity never
+    enters an 8-column Q), each pattern's column signed along its
     pattern, so that a radial offset has the same sign of scale coefficient in every tag (a QR's
     own signs follow the data and would cancel part of the tags' mean)."""
     cx = 0.25 * (corners_px[0, 0] + corners_px[1, 0] + corners_px[2, 0] + corners_px[3, 0])
@@ -196,7 +196,7 @@ def _corner_gradients(model_m: np.ndarray, R: np.ndarray, t: np.ndarray, K: np.n
 def _tilt_mode(centres: np.ndarray, normal: np.ndarray, R: np.ndarray, t: np.ndarray,
                K: np.ndarray) -> np.ndarray:
     """(8n,): each tag's corners shifted by 1 px along the image direction of its outward normal,
-    times the sine of its view angle (``uncertainty``'s tilt mode)."""
+    times the sine of its view angle (the tilt mode of ``uncertainty``'s module docstring)."""
     n = centres.shape[0]
     mode = np.empty(8 * n)
     c, nc, qc, qe = np.empty(3), np.empty(3), np.empty(3), np.empty(3)
@@ -232,7 +232,7 @@ def _add_outer(out: np.ndarray, a: np.ndarray, scale: float) -> None:
 def _per_tag_terms(terms: np.ndarray, A_ros: np.ndarray, B: np.ndarray, GR: np.ndarray,
                    cross: np.ndarray, rel: np.ndarray) -> None:
     """Into ``terms``: the pattern groups (each tag at its share of the noise), ``bias``,
-    ``model_t``, ``model_r`` (``uncertainty._per_tag_terms``)."""
+    ``model_t``, ``model_r``."""
     n = B.shape[0]
     mean_sq = 0.0
     for k in range(n):
@@ -316,7 +316,7 @@ def _small_product(out: np.ndarray, a: np.ndarray, b: np.ndarray, b_transposed: 
 def _residual_sigmas(seen: np.ndarray, res: np.ndarray, J: np.ndarray, M: np.ndarray, B: np.ndarray,
                      rel: np.ndarray) -> None:
     """Into ``seen``: per group its sigma and dof, and the tags' mean scale coefficient
-    (``uncertainty._residual_sigmas``)."""
+    (the residual pattern groups of ``uncertainty._PATTERNS``)."""
     n = B.shape[0]
     coef = np.zeros((n, 8))
     lev = np.zeros(8)

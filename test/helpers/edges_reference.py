@@ -89,7 +89,7 @@ def _fit_side_lines(x: np.ndarray, s: np.ndarray, w: np.ndarray) -> tuple[np.nda
 
 
 def boundary_rows(h: np.ndarray, tag_of: np.ndarray, uv: np.ndarray, nu: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``kernels.boundary_rows`` in numpy: (frames (6, T): x, y, den, normal x, y, cell px;
+    """``fit_kernels.boundary_rows`` in numpy: (frames (6, T): x, y, den, normal x, y, cell px;
     rows (T, 10) of the cell-edge fit's linearised model)."""
     u, v = uv[:, 0], uv[:, 1]
     ht = h[tag_of]
