@@ -211,16 +211,16 @@ class MotionPrior:
 
     @cached_property
     def _node_table(self) -> _NodeTable | None:
-        """``neighbours``' part of the polynomial through them and a pose (``_node_table``):
+        """``neighbours``' part of the polynomial through them and a pose (``_make_node_table``):
         the same for every pose the solvers try."""
-        return _node_table(self.neighbours) if self.neighbours else None
+        return _make_node_table(self.neighbours) if self.neighbours else None
 
     def at(self, T: Transform) -> VelocityPrior:
         """The prior of the velocity if this frame's pose is ``T``."""
         if self.two_sided:
             return self._two_sided_at(T)
         c = self.config
-        past = self.usable
+        past = self.usable  # one-sided: the neighbours, whose table ``_node_table`` holds
         if not past:
             var = np.array([c.linear_speed_m_s] * 3 + [c.angular_speed_rad_s] * 3) ** 2
             return VelocityPrior(np.zeros(6), np.zeros((6, 6)), np.diag(var))
@@ -308,7 +308,7 @@ def _tangent_value(Ti: Transform, T1_inv: Transform) -> np.ndarray:
     return np.concatenate([Ti.translation_m, (Ti * T1_inv).rvec])
 
 
-def _node_table(nodes: tuple[PastPose, ...]) -> _NodeTable:
+def _make_node_table(nodes: tuple[PastPose, ...]) -> _NodeTable:
     """``_through_nodes``' part that depends on ``nodes`` alone."""
     T1_inv = nodes[0].T_cam_cap.inv()
     times = np.array([0.0] + [-p.age_s for p in nodes])
@@ -322,8 +322,8 @@ def _through_nodes(T: Transform, nodes: tuple[PastPose, ...],
     times (n + 1,), s; the values (n + 1, 6): translation, m, then rotation as a vector in the
     tangent at the first node, rad; and the inverse of the times' Vandermonde matrix (increasing
     powers), whose row k weighs the values into the coefficient of t^k. ``table``: ``nodes``'
-    ``_node_table`` when the caller keeps it."""
-    T1_inv, times, node_values, vander_inv = table if table is not None else _node_table(nodes)
+    ``_make_node_table`` when the caller keeps it."""
+    T1_inv, times, node_values, vander_inv = table if table is not None else _make_node_table(nodes)
     values = np.concatenate([_tangent_value(T, T1_inv)[None], node_values])
     return times, values, vander_inv
 

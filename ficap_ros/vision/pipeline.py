@@ -264,7 +264,6 @@ class FrameProcessor:
                        pose_ms=first.pose_ms + (time.perf_counter() - t0) * 1e3)
 
 
-
 def _timing_evidence(pose: CapPose, detections: tuple[TagDetection, ...], model: CapModel,
                      camera: CameraModel) -> TimingEvidence | None:
     """A global-shutter pose's evidence of a readout (``shutter.frame_evidence``): its tags'

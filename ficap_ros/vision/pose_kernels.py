@@ -18,6 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from ficap_ros.vision.jit import njit, register_warm_up
+from ficap_ros.vision.kernels import frozen
 
 __all__ = ["reprojection_rt", "tag_errors_px", "corner_rate_px_s"]
 
@@ -106,21 +107,14 @@ def corner_rate_px_s(Y: np.ndarray, turns: np.ndarray, shifts_m: np.ndarray, t: 
     return out
 
 
-def _read_only(a: np.ndarray) -> np.ndarray:
-    """``a`` marked read-only: a pose's rotation, translation and the intrinsics reach the
-    kernels so, and numba compiles a read-only argument as a type of its own."""
-    a.setflags(write=False)
-    return a
-
-
 @register_warm_up
 def _warm_up() -> None:
     """``reprojection_rt`` once on one tag's corners for each of the solvers' argument types (a
     pose's translation read-only, or the least-squares solver's writable unknowns),
     ``tag_errors_px`` and ``corner_rate_px_s``."""
     model = np.array([[-0.01, 0.01, 0.0], [0.01, 0.01, 0.0], [0.01, -0.01, 0.0], [-0.01, -0.01, 0.0]])
-    K = _read_only(np.array([[800.0, 0.0, 320.0], [0.0, 800.0, 240.0], [0.0, 0.0, 1.0]]))
-    t = _read_only(np.array([0.0, 0.0, 0.5]))
+    K = frozen(np.array([[800.0, 0.0, 320.0], [0.0, 800.0, 240.0], [0.0, 0.0, 1.0]]))
+    t = frozen(np.array([0.0, 0.0, 0.5]))
     for translation in (t, np.array(t)):
         reprojection_rt(model, translation, K, np.full((4, 2), 300.0))
     tag_errors_px(model, t, K, np.full((4, 2), 300.0))

@@ -134,7 +134,7 @@ def readout_evidence(obs: TagObservations, T: Transform, velocity: np.ndarray,
     res, J = residuals_and_jacobian(T, obs)
     speed = _corner_velocity_px_s(obs, T, velocity)
     n = len(res)
-    if n < 16 or float(np.linalg.norm(speed, axis=1).max()) < MIN_SPEED_PX_S:
+    if float(np.linalg.norm(speed, axis=1).max()) < MIN_SPEED_PX_S:
         return None
     frac = (np.asarray(rows_px, dtype=float) + 0.5 - 0.5 * height_px) / float(height_px)
     pattern = (speed * frac[:, None]).reshape(-1)
