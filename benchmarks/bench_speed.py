@@ -160,11 +160,11 @@ def decode_round(d: Drive) -> None:
     d.own_decode_ms.append(1e3 * (time.process_time() - t0) / len(plays))
 
 
-def own_decoder() -> str:
-    """Which decoder ``image_codec.decode_compressed`` uses for these JPEGs."""
-    import importlib.util
+def own_decoder(d: Drive) -> str:
+    """Which decoder ``image_codec.decode_compressed`` uses for the drive's JPEGs."""
+    from ficap_ros.io.image_codec import _fast_decodable, _simplejpeg
 
-    return "simplejpeg" if importlib.util.find_spec("simplejpeg") else "cv2.imdecode"
+    return "simplejpeg" if _simplejpeg() is not None and _fast_decodable(d.raws[0][0]) else "cv2.imdecode"
 
 
 def instrumented(d: Drive) -> tuple[dict[str, float], float, float]:
@@ -313,14 +313,14 @@ def main(argv: list[str] | None = None) -> int:
     table = report.md_table(["drive", "frames", "ficap replay ms/frame (whole command)",
                              "AprilTag 3 ms/frame (decode + detect + pose)", "AprilTag 3 / ficap",
                              "JPEG decode alone ms/frame (cv2.imdecode grey)", "ficap / decode alone",
-                             f"the command's decode alone ms/frame ({own_decoder()}; / cv2's)",
+                             f"the command's decode alone ms/frame ({own_decoder(drives[0])}; / cv2's)",
                              "--photometric ms/frame (AprilTag 3 / it, it / decode)",
                              "without the decode: AprilTag 3 / ficap",
                              "frames with a pose (ficap)", "tags/frame: ficap / AprilTag 3",
                              "ficap replay frames/s (wall)"], rows)
     labels = list(dict.fromkeys(label for *_m, label in STAGES))
     srows = []
-    own_label = f"JPEG decode (the command's: {own_decoder()})"
+    own_label = f"JPEG decode (the command's: {own_decoder(drives[0])})"
     for label in [own_label] + labels + ["pass total (decode + pipeline)",
                                                                     "the command's rest (start-up, bag, labels)"]:
         row = [label]

@@ -198,7 +198,7 @@ def _misses_table(blender: dict[str, list], fits: list[bounds_fit.SetFit], corne
     head = ["set", "frames", "held-out translation misses", "of them under 30 deg/s", "at 90 deg/s or more",
             "depth error / stated sigma (median, toward +z)", "source stating most of their depth variance",
             "measured common offset 0"]
-    return ("Which frames the joint fit's held-out bounds miss (at the gains fitted without the set; the "
+    return ("Which frames the shared offset's fit's held-out bounds miss (at the gains fitted without the set; the "
             "angular speed from the previous frame's truth, unknown where the set's frames are a second "
             f"apart):\n\n{report.md_table(head, rows)}")
 

@@ -10,9 +10,8 @@ import numpy as np
 
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.vision.reprojection import TagObservations
-from ficap_ros.vision.uncertainty import _model_geometry
+from ficap_ros.vision.uncertainty import _PATTERNS, _model_geometry
 
-_PATTERNS = {"shift": [0, 1], "scale": [2], "turn": [3], "shear": [4, 5], "projective": [6, 7]}
 _ROS_ORDER = np.array([3, 4, 5, 0, 1, 2])
 
 

@@ -246,9 +246,7 @@ def test_edge_fit_round_equals_numpy_exactly(seed: int) -> None:
 def _unbias_numpy(gray, corners_px, ids, cfg):  # noqa: ANN001, ANN202
     """``corners.unbias_corners_edge`` in numpy (the package's ``edges.step_offset`` for the
     profiles, ``medians`` for the medians), the reference of ``border_unbias``."""
-    lines = None
-    config = cfg
-    cfg = config or DetectorConfig()
+    cfg = cfg or DetectorConfig()
     c_in = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
     n = len(c_in)
     if n == 0:
@@ -257,7 +255,7 @@ def _unbias_numpy(gray, corners_px, ids, cfg):  # noqa: ANN001, ANN202
     counts = np.bincount(tag_of, minlength=len(starts))
     # uv on the outer edge straight across from each inner sample (one cell out).
     uv_out = uv + corners_mod._SIDE_OUT[side]
-    nrm, rho = side_lines(c_in) if lines is None else lines
+    nrm, rho = side_lines(c_in)
     nk = nrm[tag_of, side]  # (T, 2)
     try:
         hom = tag_homographies(c_in)
@@ -268,7 +266,6 @@ def _unbias_numpy(gray, corners_px, ids, cfg):  # noqa: ANN001, ANN202
                                               apply_homographies(hom_t, uv_out), nk, cfg)
     group = tag_of * 4 + side
     corners = c_in
-    delta = np.zeros((n, 4))
     keep = None
     for round_ in range(2):
         if round_ == 0:  # the first round's corners are the input's: its width is width0

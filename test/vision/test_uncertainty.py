@@ -247,9 +247,7 @@ def test_noisy_tags_weighted_down() -> None:
     assert np.mean(err_w <= bound_w) >= 0.9
 
 
-
-
-#: The light terms by the gradient alone (the profiles of the photometric and uncorrected corners).
+#: The light terms by the gradient alone (as the uncorrected corners' profile states them).
 GRADIENT_ONLY = UncertaintyConfig(light_gradient_tilt_gain=0.35, edge_shift_tilt_gain=0.0)
 
 
@@ -282,13 +280,9 @@ def test_uneven_light_widens_the_bound() -> None:
     assert stronger[0] > uneven[0] and stronger[1] > uneven[1]
 
 
-
-
-def _tilt_stated_px2(terms: dict, seen: dict, config: UncertaintyConfig, parts: set[str] | None = None) -> float:
-    """The variance the covariance (or its ``parts``) states along the tilt mode's translation,
-    in px^2 of the mode."""
-    sources = uncertainty_sources(terms, seen, config)
-    cov = sum(p for k, p in sources.items() if parts is None or k in parts)[:3, :3]
+def _tilt_stated_px2(terms: dict, seen: dict, config: UncertaintyConfig) -> float:
+    """The variance the covariance states along the tilt mode's translation, in px^2 of the mode."""
+    cov = sum(uncertainty_sources(terms, seen, config).values())[:3, :3]
     a2 = terms["tilt"][:3, :3]
     return float(np.sum(a2 * cov)) / float(np.trace(a2)) ** 2
 
@@ -321,8 +315,6 @@ def test_edge_shift_tilt_is_counted_beyond_the_other_terms() -> None:
     assert bare_seen["edge_shift_mean"] == 0.0
     np.testing.assert_allclose(combine_uncertainty(bare, bare_seen, cfg), combine_uncertainty(bare, bare_seen, off),
                                rtol=1e-12)
-
-
 
 
 def _with_common_offset(corners: dict[int, np.ndarray], offset_px: float, noise_px: float,
