@@ -269,7 +269,8 @@ _PATTERNS = {"shift": [0, 1], "scale": [2], "turn": [3], "shear": [4, 5], "proje
 #: coefficient, is its own intermediate).
 _TERM_NAMES = (*_PATTERNS, "noise", "bias", "model_t", "model_r", "bias_common", "principal_point",
                "focal", "tilt")
-_SEEN_NAMES = (*_PATTERNS, *(g + "_dof" for g in _PATTERNS), "bias_common", "bias_common_se")
+_SEEN_NAMES = (*_PATTERNS, *(g + "_dof" for g in _PATTERNS), "bias_common", "bias_common_se",
+               "bias_common_signed")
 
 
 def tag_noise_px(obs: TagObservations, T: Transform) -> np.ndarray:
@@ -380,8 +381,10 @@ def uncertainty_terms(
             tag's divided by its relative noise) pooled over the tags, less the share the fit
             absorbed (the weighted hat matrix's leverage of the group), and ``bias_common``, the
             tags' mean radial offset (px per corner), scaled back by the share of it the fit left
-            in the residuals, and ``bias_common_se`` its standard error; ``light_gradient``
-            (``light_gradient_px``) and ``edge_shift_mean`` (``edge_shift_mean_px``), px;
+            in the residuals, ``bias_common_se`` its standard error and ``bias_common_signed`` the
+            same offset with its sign, its standard error not subtracted (px, positive outward:
+            the corners outside the model's projection; an outward offset of every tag's corners
+            moves the pose toward the camera); ``light_gradient`` (``light_gradient_px``) and ``edge_shift_mean`` (``edge_shift_mean_px``), px;
             ``shared_bias_ratio`` (of the tags' corner noise from these residuals:
             ``tag_noise_from_residuals``); per pattern group also ``<group>_dof``, the degrees of
             freedom its sigma was pooled from (the bounds widen for a sigma estimated from few).
