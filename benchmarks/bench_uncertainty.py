@@ -131,9 +131,12 @@ def loso_section(points: dict[str, dict[str, list]], corners: str = "edge") -> s
             "smallest mean log sharpness over them, each set weighted by its frames (every frame counts "
             "once; the rule is the same in every fold and for the all-set fit), and the held-out set's "
             "coverage and sharpness there; the synth rows check the gain fitted on all blender_dev sets "
-            "(they take no part in the fit). The last column: the probability, for a calibrated 95 % bound, "
-            "of as many misses as the set has or more (fewer), and of 90-99 % coverage at all for a set "
-            f"of its size.\n\n{one}\n\n"
+            "(they take no part in the fit). The last two columns: the probability, for a calibrated 95 % "
+            "bound, of as many misses as the set has or more (fewer), and of 90-99 % coverage at all for a "
+            "set of its size; and, were each frame's bound exact for its covariance at the set's gains "
+            "(`bounds_fit.calibrated_target_odds`: Gaussian errors drawn from it, the bound their 95 % "
+            "quantile), how often a set of these frames shows sharpness <= 3, and that with 90-99 % "
+            f"coverage: the target's odds at perfect calibration.\n\n{one}\n\n"
             f"{_misses_table(blender, fits, corners)}\n\n"
             "#### Two gains: the measured offset and the corner-noise ratio\n\n"
             f"The same rule over the grid {grids}, the standard error unused:\n\n{joint}\n\n"
@@ -158,22 +161,30 @@ def _loso_table(blender: dict[str, list], synth: dict[str, list], corners: str,
     g_all = grid[bounds_fit.fitted_index(table, list(blender), counts)]
     rows = [[f.name, _gains_text(f.gains), f.frames, f"{100 * f.rot_coverage:.0f} %", f"{f.rot_sharpness:.2f}",
              f"{100 * f.trans_coverage:.0f} %", f"{f.trans_sharpness:.2f}",
-             bounds_fit.binomial_reading(f.trans_misses, f.frames)] for f in fits]
+             bounds_fit.binomial_reading(f.trans_misses, f.frames),
+             _odds_text(bounds_fit.calibrated_target_odds(blender[f.name], replace(base, **f.gains)))]
+            for f in fits]
     if synth:
         check = bounds_fit.coverage_table(synth, base, [g_all])
         for name, r in check.items():
             rows.append([f"{name} (check)", _gains_text(g_all), len(synth[name]), f"{100 * r[0, 0]:.0f} %",
                          f"{r[0, 1]:.2f}", f"{100 * r[0, 2]:.0f} %", f"{r[0, 3]:.2f}",
-                         bounds_fit.binomial_reading(int(r[0, 4]), len(synth[name]))])
+                         bounds_fit.binomial_reading(int(r[0, 4]), len(synth[name])),
+                         _odds_text(bounds_fit.calibrated_target_odds(synth[name], replace(base, **g_all)))])
     names = " / ".join(f"`{k}`" for k in grid[0])
     head = ["set", f"{names} fitted without it", "frames", "rotation coverage", "sharpness",
-            "translation coverage", "sharpness", "translation misses under a calibrated 95 % bound"]
+            "translation coverage", "sharpness", "translation misses under a calibrated 95 % bound",
+            "a calibrated bound's odds: sharpness <= 3 / and 90-99 %"]
     ok = sum(0.9 <= f.trans_coverage <= 0.99 and f.trans_sharpness <= 3 for f in fits)
     low = min(fits, key=lambda f: f.trans_coverage)
     return (f"{report.md_table(head, rows)}\n\nAll sets: {_gains_text(g_all)} (the profile's: "
             f"{_gains_text({k: getattr(base, k) for k in grid[0]})}). Held-out translation coverage "
             f"90-99 % with sharpness <= 3 on {ok} of {len(fits)} blender_dev sets; the lowest held-out "
             f"coverage {100 * low.trans_coverage:.0f} % ({low.name})."), fits
+
+
+def _odds_text(odds: tuple[float, float]) -> str:
+    return f"{odds[0]:.2f} / {odds[1]:.2f}"
 
 
 def _misses_table(blender: dict[str, list], fits: list[bounds_fit.SetFit], corners: str) -> str:

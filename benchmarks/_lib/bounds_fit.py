@@ -240,3 +240,27 @@ def shrunk_correction_ratios(frames: Sequence[FrameTerms], k: float) -> tuple[fl
         return float("nan"), float("nan")
     return (float(np.median(after) / np.median(before)),
             float(np.percentile(after, 95) / np.percentile(before, 95)))
+
+
+def calibrated_target_odds(frames: Sequence[FrameTerms], config: UncertaintyConfig, seed: int = 0,
+                           replicas: int = 4000, draws: int = 400) -> tuple[float, float]:
+    """How likely a set of these frames meets the translation target at all, were each frame's
+    bound exactly calibrated: errors drawn from each frame's covariance under ``config`` (its
+    translation block, Gaussian), each frame's bound the 95 % quantile of its error length;
+    over replicas of the whole set, the share with sharpness (median bound / median error) <= 3,
+    and with that and coverage 90-99 % both. A depth-dominated (1-D) error's sharpness is 2.91
+    for an infinite set, and a set's median scatters with its size."""
+    rng = np.random.default_rng(seed)
+    bounds, scales = [], []
+    for f in frames:
+        block = 1e6 * combine_uncertainty(f.terms, f.seen, config)[:3, :3]
+        lam, vec = np.linalg.eigh(0.5 * (block + block.T))
+        scale = vec * np.sqrt(np.clip(lam, 0.0, None))
+        bounds.append(np.percentile(np.linalg.norm(rng.standard_normal((draws, 3)) @ scale.T, axis=1), 95))
+        scales.append(scale)
+    bounds = np.array(bounds)
+    errors = np.stack([np.linalg.norm(rng.standard_normal((replicas, 3)) @ s.T, axis=1) for s in scales], axis=1)
+    sharp = np.median(bounds) / np.median(errors, axis=1)
+    cover = np.mean(errors <= bounds, axis=1)
+    ok = sharp <= 3.0
+    return float(np.mean(ok)), float(np.mean(ok & (cover >= 0.9) & (cover <= 0.99)))
