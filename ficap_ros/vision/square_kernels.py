@@ -6,10 +6,10 @@ size only scales its depth). Four corners measured one by one, or from a free 8-
 homography, have 8: the two the square leaves out carry only the corners' error (noise and each
 corner's own misplacement), which no cap pose can explain (every pose of the rigid cap puts a
 square's image on each tag). ``square_tag_corners`` fits each tag's pose to its corners (least
-squares in px, a few Gauss-Newton steps from the pose the corners' homography gives) and returns
-the pose's corners: the corners' projection onto the square's images, which keeps what a tag's
-pose can say and drops the rest. It holds in undistorted pixels (the pinhole's), where the pose
-works.
+squares in px: a few Gauss-Newton steps from each of the two tilts the corners' homography gives
+at the tag's centre, the better fit kept) and returns the pose's corners: the corners' projection
+onto the square's images, which keeps what a tag's pose can say and drops the rest. It holds in
+undistorted pixels (the pinhole's), where the pose works.
 """
 
 from __future__ import annotations
@@ -250,7 +250,7 @@ def square_tag_corners(corners_px: np.ndarray, K: np.ndarray, iterations: int,
         corners_px: (N, 4, 2) float64 the tags' corners, undistorted px (the pinhole's; tag
             corner order c0..c3 as the detector gives them).
         K: (3, 3) float64 the camera matrix (with its skew).
-        iterations: Gauss-Newton steps of each tag's pose from its homography's.
+        iterations: the most Gauss-Newton steps of each tag's pose from each of its two starts.
         max_move_px: the farthest a corner may move; a tag whose fit moves one farther (a
             quadrilateral no square's image is near: a corner off by much more than noise) keeps
             its corners.
