@@ -28,13 +28,13 @@ import numpy as np
 
 from ficap_ros.geometry.tag36h11 import (
     TAG_CELLS,
-    cell_errors,
     homography_corners,
     stacked_tag_cells,
     tag_cells,
     tag_homographies,
     usable_quads,
 )
+from ficap_ros.vision.cell_reads import cell_errors
 from ficap_ros.vision.detector import DetectorConfig, as_gray
 from ficap_ros.vision.edges import (
     NEXT,

@@ -83,6 +83,7 @@ def warm_up() -> float:
     """Compile (or load from the cache) every kernel for the argument types the pipeline passes;
     returns the seconds it took (wall clock)."""
     # The modules register their kernels' warm-ups when imported.
+    import ficap_ros.vision.cell_reads  # noqa: F401
     import ficap_ros.vision.fit_kernels  # noqa: F401
     import ficap_ros.vision.kernels  # noqa: F401
     import ficap_ros.vision.photometric_kernels  # noqa: F401
