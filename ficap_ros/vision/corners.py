@@ -424,8 +424,8 @@ def fit_tag_edges(
     n . J_H dh - delta_dir, and one weighted least-squares step per iteration updates H and the
     deltas together (re-sampling the image each time); samples beyond 3.5 robust sigmas are
     dropped. The fit reads every cell boundary, not only the four outer lines, and extrapolates
-    no line to a corner. Each round is one compiled call (``fit_kernels.edge_fit_round``, which
-    says which samples are used).
+    no line to a corner. The rounds are one compiled call (``fit_kernels.edge_fit``; each round
+    ``fit_kernels.edge_fit_round``, which says which samples are used).
 
     Args:
         gray: (H, W) uint8 image.

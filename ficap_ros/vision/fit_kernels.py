@@ -12,7 +12,8 @@ accumulated over its rows, each tag's column-scaled solve (LAPACK's ``gesv``, as
 ``robust_grouped_solve`` is the fit's robust step around them; ``edge_fit_round`` one whole
 sample-and-solve round: the boundaries placed, their steps measured (``kernels.area_steps``, so
 the profiles hold ``cv2.remap``'s values), each tag's clean contrast, the usable samples and the
-robust step. Kernels divide as numpy does (``error_model="numpy"``).
+robust step; ``edge_fit`` the fit's rounds in one call. Kernels divide as numpy does
+(``error_model="numpy"``).
 """
 
 from __future__ import annotations
@@ -24,7 +25,8 @@ import numpy as np
 from ficap_ros.vision.jit import njit, register_warm_up
 from ficap_ros.vision.kernels import _masked_median, area_steps, frozen
 
-__all__ = ["border_unbias", "boundary_rows", "edge_fit", "edge_fit_round", "tag_noise_ratios", "grouped_normal_equations", "grouped_residuals", "grouped_solve",
+__all__ = ["border_unbias", "boundary_rows", "edge_fit", "edge_fit_round", "tag_noise_ratios",
+           "grouped_normal_equations", "grouped_residuals", "grouped_solve",
            "robust_grouped_solve"]
 
 
