@@ -22,7 +22,6 @@ Writes docs/benchmarks/glance.md and glance.png.
 
 from __future__ import annotations
 
-import json
 import sys
 from dataclasses import dataclass, fields, replace
 from pathlib import Path
@@ -81,11 +80,8 @@ class Recording:
 def dev_recording(data: Path, name: str, window: slice = slice(None)) -> Recording:
     """A glance set's frames ``window`` (consecutive frames) with the timing its truth states."""
     s = devsets.load_set(data, name)
-    truth = json.loads((devsets.root_of(data) / name / "ground_truth.json").read_text())
-    timing = CameraTiming(exposure_ms=1e3 * float(truth.get("exposure_s") or 0.0),
-                          readout_ms=1e3 * float(truth.get("readout_s") or 0.0))
     frames = s.frames[window]
-    return Recording(name.replace("dev_", ""), s.camera, timing, [f.image for f in frames],
+    return Recording(name.replace("dev_", ""), s.camera, s.timing, [f.image for f in frames],
                      np.array([f.stamp_ns for f in frames]), [f.T_cam_cap for f in frames])
 
 
