@@ -48,10 +48,9 @@ from ficap_ros.errors import ConfigError
 from ficap_ros.geometry.camera import CameraModel, CameraTiming
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.vision.error_bounds import error_bound95
+from ficap_ros.vision.motion_blur import blur_modes, blur_px
 from ficap_ros.vision.reprojection import (
     TagObservations,
-    moving_points_m,
-    project_px,
     residuals_and_jacobian_moving,
 )
 from ficap_ros.vision.uncertainty import (
@@ -63,8 +62,7 @@ from ficap_ros.vision.uncertainty import (
 )
 
 __all__ = ["MotionConfig", "PastPose", "VelocityPrior", "MotionPrior", "MovingFit", "MovingPose",
-           "acceleration", "blur_modes", "blur_px", "corner_times_s", "moving_pose", "prior_blur_modes",
-           "static_velocity"]
+           "acceleration", "corner_times_s", "moving_pose", "static_velocity"]
 
 #: Reorders the pose solver's (d_theta, d_t) into ROS (t, theta) order.
 _POSE_TO_ROS = np.array([3, 4, 5, 0, 1, 2])
@@ -602,45 +600,6 @@ class MovingPose:
     covariance: np.ndarray
     rot_err95_deg: float
     trans_err95_mm: float
-
-
-def blur_px(obs: TagObservations, T: Transform, velocity: np.ndarray, exposure_s: float) -> np.ndarray:
-    """(tags, 2) each tag's image motion over the exposure, px: where its corners' centre is at
-    the end of the exposure minus where it is at its start (a cap at pose ``T`` at the stamp
-    moving at ``velocity``; each corner's exposure centred on its row's time, ``obs.time_s``)."""
-    n = len(obs)
-    times = np.zeros((n, 4)) if obs.time_s is None else obs.time_s
-    ends = []
-    for half in (-0.5 * exposure_s, 0.5 * exposure_s):
-        p = moving_points_m(T.rotation_matrix, T.translation_m, velocity, obs.model_m, times + half)
-        ends.append(project_px(obs.K, Transform.identity(), p).reshape(n, 4, 2).mean(axis=1))
-    return ends[1] - ends[0]
-
-
-def blur_modes(corners_px: np.ndarray, blur: np.ndarray) -> dict[str, np.ndarray]:
-    """The corner errors motion blur shares among the tags (``uncertainty_terms``'
-    ``shared_modes``), per px of each tag's motion ``blur`` (tags, 2: ``blur_px``), for the
-    tags' corners ``corners_px`` (tags, 4, 2): ``blur``, each tag's corners moved toward its
-    centre along its motion by its length times the cosine between the motion and the
-    centre-to-corner direction (an edge across the motion moves by the full length, one along it
-    not at all); ``blur_shift``, each tag's corners moved along its motion by its length."""
-    lever = corners_px - corners_px.mean(axis=1, keepdims=True)
-    unit = lever / np.maximum(np.linalg.norm(lever, axis=2, keepdims=True), 1e-9)
-    length = np.linalg.norm(blur, axis=1)
-    direction = blur / np.maximum(length, 1e-12)[:, None]
-    along = np.einsum("tkj,tj->tk", unit, direction)  # cosines (tags, 4)
-    shrink = -(along * length[:, None])[:, :, None] * direction[:, None, :]
-    shift = np.repeat(blur[:, None, :], 4, axis=1)
-    return {"blur": shrink.reshape(-1), "blur_shift": shift.reshape(-1)}
-
-
-def prior_blur_modes(prior: MotionPrior | None, obs: TagObservations, T: Transform,
-                     timing: CameraTiming | None) -> dict[str, np.ndarray] | None:
-    """A global-shutter frame's ``blur_modes`` at the prior's velocity at pose ``T``; None when
-    the exposure or the velocity (a past pose) is not known."""
-    if prior is None or not prior.from_past or timing is None or timing.exposure_ms <= 0.0:
-        return None
-    return blur_modes(obs.image_px, blur_px(obs, T, prior.at(T).mean, timing.exposure_ms * 1e-3))
 
 
 def moving_pose(fit: MovingFit, used: TagObservations, T: Transform, edge_shift_px: np.ndarray,

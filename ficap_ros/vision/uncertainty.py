@@ -185,7 +185,7 @@ class UncertaintyConfig:
         weight_tags: weight each tag in the ``joint`` pose by its corner noise
             (``tag_noise_px``): one weighted Gauss-Newton step from the unweighted optimum.
         motion_blur_gain: shared shrink of the tags along their image motion over the exposure,
-            per px of that motion (the mode ``blur`` of ``motion.blur_modes``, known when the
+            per px of that motion (the mode ``blur`` of ``motion_blur.blur_modes``, known when the
             camera's exposure is): a tag smeared along its motion and then bent by the tone curve
             has its edges across the motion pulled toward the black, in every tag alike, so the
             pose absorbs it.
@@ -363,7 +363,7 @@ def uncertainty_terms(
             prior's own error causes (``motion.MovingFit.motion_term``), the term
             ``motion_prior``.
         shared_modes: further corner errors shared by the tags, by name: (2n,) each corner's
-            displacement (px) per unit of the source (``motion.blur_modes``); each becomes the
+            displacement (px) per unit of the source (``motion_blur.blur_modes``); each becomes the
             term of its name.
 
     Returns:

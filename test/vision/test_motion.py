@@ -31,7 +31,6 @@ from ficap_ros.vision.motion import (
     PastPose,
     VelocityPrior,
     acceleration,
-    blur_modes,
     corner_times_s,
     static_velocity,
 )
@@ -284,18 +283,6 @@ def test_global_shutter_velocity_is_the_prior_and_leaves_the_pose_alone() -> Non
         assert np.all(np.linalg.eigvalsh(pose.velocity_covariance - prior.at(pose.T_cam_cap).covariance)
                       > -1e-12)
     assert static_velocity(MotionPrior(), T0, plain.covariance) is None
-
-
-def test_blur_modes_shrink_across_the_motion_and_shift_along_it() -> None:
-    """A square tag moving 4 px along x: ``blur`` moves the corners toward the centre along x
-    by the length times the cosine of their lever to the motion, ``blur_shift`` every corner by
-    the motion itself."""
-    square = np.array([[[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]]])
-    modes = blur_modes(square, np.array([[4.0, 0.0]]))
-    cos = np.sqrt(0.5)
-    np.testing.assert_allclose(modes["blur"].reshape(4, 2),
-                               [[4 * cos, 0.0], [-4 * cos, 0.0], [-4 * cos, 0.0], [4 * cos, 0.0]])
-    np.testing.assert_allclose(modes["blur_shift"].reshape(4, 2), [[4.0, 0.0]] * 4)
 
 
 def test_rolling_shutter_needs_the_joint_method() -> None:
