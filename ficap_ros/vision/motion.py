@@ -82,9 +82,8 @@ class MotionConfig:
     the cap origin's, a few centimetres off the axis the head turns about, plus the centripetal
     part. They are what a finite difference of poses may be off by in such a glance. With three
     past poses the jerk is measured instead (the third divided difference through them and the
-    pose being solved), and with three past poses and the next one the snap (the fourth, through
-    those five), at least ``jerk_floor`` times these sizes: slow frames and slower glances then
-    get the small prior error they have.
+    pose being solved), at least ``jerk_floor`` times these sizes: slow frames then get the small
+    prior error they have.
 
     Attributes:
         angular_jerk_rad_s3, linear_jerk_m_s3: the third derivative of the cap's orientation
@@ -96,8 +95,8 @@ class MotionConfig:
         angular_snap_rad_s4, linear_snap_m_s4: the fourth derivative: the error of the
             two-sided velocity through two past poses and the next one (its root mean square over
             the same glance).
-        jerk_floor: the least measured jerk or snap, as a fraction of the sizes above (they
-            change between the poses they are measured over and this frame).
+        jerk_floor: the least measured jerk, as a fraction of the sizes above (the jerk changes
+            between the past poses and this frame).
         max_age_s: past (or following) poses further than this from the stamp are not used.
     """
 
@@ -219,17 +218,6 @@ class MotionPrior:
         the same for every pose the solvers try."""
         return _make_node_table(self.neighbours) if self.neighbours else None
 
-    @cached_property
-    def _snap_node(self) -> tuple[float, np.ndarray] | None:
-        """Two-sided through two past poses and the next one: the third past pose's time and
-        value (``_through_nodes``' tangent) for the measured snap; None without one."""
-        if not (self.two_sided and len(self.neighbours) == 3 and len(self.usable) == 3):
-            return None
-        table = self._node_table
-        assert table is not None
-        far = self.usable[2]
-        return -far.age_s, _tangent_value(far.T_cam_cap, table[0])
-
     def at(self, T: Transform) -> VelocityPrior:
         """The prior of the velocity if this frame's pose is ``T``."""
         if self.two_sided:
@@ -258,7 +246,7 @@ class MotionPrior:
                  + c2 * past[1].T_cam_cap.translation_m)
             jerk = np.array([c.linear_jerk_m_s3] * 3 + [c.angular_jerk_rad_s3] * 3)
             if len(past) == 3:
-                jerk = np.hypot(_measured_derivative(times, values), c.jerk_floor * jerk)
+                jerk = np.hypot(_measured_jerk(times, values), c.jerk_floor * jerk)
             model = jerk * (h1 * (h1 + h2) / 6.0)
         cov = np.diag(model**2)
         for coef, p in zip(coefs, past):
@@ -272,8 +260,7 @@ class MotionPrior:
         """``at`` with the next frame's pose: the velocity is the first derivative at the stamp
         of the polynomial through ``T`` and ``neighbours`` (rotations as vectors in the tangent
         at the most recent past pose), its model error the truncation by the head's jerk (three
-        poses) or snap (four) at the sizes of ``MotionConfig``; with a third past pose the snap
-        is measured through the five poses (``_snap_node``), at least the floor."""
+        poses) or snap (four) at the sizes of ``MotionConfig``."""
         c = self.config
         nodes = self.neighbours
         times, values, vander_inv = _through_nodes(T, nodes, self._node_table)
@@ -281,12 +268,7 @@ class MotionPrior:
         if len(nodes) == 2:
             size = np.array([c.linear_jerk_m_s3] * 3 + [c.angular_jerk_rad_s3] * 3) / 6.0
         else:
-            snap = np.array([c.linear_snap_m_s4] * 3 + [c.angular_snap_rad_s4] * 3)
-            if self._snap_node is not None:
-                t_extra, v_extra = self._snap_node
-                measured = _measured_derivative(np.append(times, t_extra), np.vstack([values, v_extra]))
-                snap = np.hypot(measured, c.jerk_floor * snap)
-            size = snap / 24.0
+            size = np.array([c.linear_snap_m_s4] * 3 + [c.angular_snap_rad_s4] * 3) / 24.0
         cov = np.diag((size * float(np.prod(np.abs(times[1:])))) ** 2)
         for coef, p in zip(weights[1:], nodes):
             cov = cov + coef * coef * np.asarray(p.covariance, dtype=float)
@@ -356,16 +338,15 @@ def _second_derivative(values: np.ndarray, vander_inv: np.ndarray) -> tuple[np.n
     return weights @ values, float(weights[0])
 
 
-def _measured_derivative(times: np.ndarray, values: np.ndarray) -> np.ndarray:
-    """(6,) the magnitude of each twist component's highest derivative the n nodes' ``times``
-    (n,) and ``values`` (n, 6) determine: (n - 1)! times their (n - 1)-th divided difference
-    (``_through_nodes``: the pose at 0 and its neighbours). Four nodes: the jerk of position and
-    orientation; five: the snap."""
+def _measured_jerk(times: np.ndarray, values: np.ndarray) -> np.ndarray:
+    """(6,) the magnitude of each twist component's second derivative (the jerk of position and
+    orientation): six times the third divided difference through the four nodes' ``times`` (4,)
+    and ``values`` (4, 6) (``_through_nodes``: the pose at 0 and three past poses)."""
     t = times.tolist()
     rows = list(values)
-    for level in range(1, len(t)):  # Newton's divided differences, in place
+    for level in range(1, 4):  # Newton's divided differences, in place
         rows = [(rows[i] - rows[i + 1]) / (t[i] - t[i + level]) for i in range(len(rows) - 1)]
-    return np.abs(math.factorial(len(t) - 1) * rows[0])
+    return np.abs(6.0 * rows[0])
 
 
 def _left_jacobian_inverse(phi: np.ndarray) -> np.ndarray:
@@ -563,7 +544,8 @@ class MovingFit:
             _, J12 = residuals_and_jacobian_moving(T.rotation_matrix, T.translation_m, velocity,
                                                    obs, self._accel(T))
             G = -np.linalg.solve(H, J[:n].T @ (w[:, None] * J12[:, 6:]))
-            cov = G @ self.prior_error(res[:n], J12, w, self.prior.at(T).covariance) @ G.T
+            noise_px = max(float(np.median(np.sqrt(np.mean(res[:n].reshape(-1, 8) ** 2, axis=1)))), 1e-4)
+            cov = G @ self.prior_error(res[:n], J12, w, self.prior.at(T).covariance, noise_px) @ G.T
         else:
             Jp = J[n:]
             M = np.linalg.inv(H + Jp.T @ Jp)
@@ -571,16 +553,19 @@ class MovingFit:
         cov = cov[np.ix_(_POSE_TO_ROS, _POSE_TO_ROS)]
         return 0.5 * (cov + cov.T)
 
-    def prior_error(self, res: np.ndarray, J12: np.ndarray, w: np.ndarray,
-                    prior_covariance: np.ndarray) -> np.ndarray:
+    @staticmethod
+    def prior_error(res: np.ndarray, J12: np.ndarray, w: np.ndarray, prior_covariance: np.ndarray,
+                    noise_px: float) -> np.ndarray:
         """(6, 6) the second moment of the held velocity's error (the prior's mean less the true
         velocity, twist order) given what the readout says of it.
 
         The corners of a rolling shutter's rows, seen over the readout, carry evidence of the
         velocity beyond the prior's: the part of their residuals ``res`` (2N,, at the held
         velocity) the velocity's columns of ``J12`` (2N, 12: ``residuals_and_jacobian_moving``)
-        explain and the pose's do not, with the corners' noise ``sigma_px`` over the weights
-        ``w`` (2N,). The prior's error then has the posterior covariance ``(P^-1 + I)^-1`` (``P``
+        explain and the pose's do not, with the median tag's noise per coordinate ``noise_px``
+        and the tags' weights ``w`` (2N,, 1 for the median tag; ``motion_term`` takes the noise
+        from the residuals' root mean square). The prior's error then has the posterior
+        covariance ``(P^-1 + I)^-1`` (``P``
         the prior's covariance, ``I`` the readout's information) and the posterior mean ``d``;
         its second moment is ``d d^T`` plus that covariance. Where the prior states its error
         right this is ``P`` on average; where the readout shows the velocity better than the prior
@@ -590,8 +575,8 @@ class MovingFit:
         wv, wp = w[:, None] * Jv, w[:, None] * Jp
         try:
             Hp_inv_pv = np.linalg.solve(Jp.T @ wp, Jp.T @ wv)  # (6, 6)
-            info = (Jv.T @ wv - (Jp.T @ wv).T @ Hp_inv_pv) / self.sigma_px**2
-            score = (wv.T @ res - Hp_inv_pv.T @ (wp.T @ res)) / self.sigma_px**2
+            info = (Jv.T @ wv - (Jp.T @ wv).T @ Hp_inv_pv) / noise_px**2
+            score = (wv.T @ res - Hp_inv_pv.T @ (wp.T @ res)) / noise_px**2
             posterior = np.linalg.inv(np.linalg.inv(prior_covariance) + 0.5 * (info + info.T))
         except np.linalg.LinAlgError:
             return prior_covariance

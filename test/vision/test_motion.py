@@ -324,32 +324,6 @@ def test_three_past_poses_measure_the_jerk() -> None:
     assert sd[3] < 0.5 * MotionPrior(prior.past[:2], cfg).at(T0).covariance[3, 3] ** 0.5
 
 
-def test_two_sided_prior_with_a_third_past_pose_measures_the_snap() -> None:
-    """Two-sided with a third past pose: a cap whose position is a quartic in time (constant
-    snap) and which does not turn; the prior's model error is the measured snap's truncation
-    (exact for a quartic), at least the floor, not the glance's sizes; at rest it falls to the
-    floor."""
-    cfg = MotionConfig()
-    snap = np.array([40.0, -60.0, 20.0])  # m/s^4
-    h = 1 / 30
-
-    def quartic(s: float) -> Transform:
-        return Transform(T0.rotation, T0.translation_m + snap * s**4 / 24.0)
-
-    tiny = SMALL_COV * 1e-8
-    past = tuple(PastPose(k * h, quartic(-k * h), tiny) for k in (1, 2, 3))
-    following = (PastPose(-h, quartic(h), tiny),)
-    prior = MotionPrior(past, cfg, following)
-    sd = np.sqrt(np.diag(prior.at(T0).covariance))
-    floor = cfg.jerk_floor * np.array([cfg.linear_snap_m_s4] * 3 + [cfg.angular_snap_rad_s4] * 3)
-    expected = np.hypot(np.concatenate([np.abs(snap), np.zeros(3)]), floor) * 2 * h**3 / 24
-    np.testing.assert_allclose(sd, expected, rtol=1e-4)
-    without = MotionPrior(past[:2], cfg, following).at(T0).covariance
-    assert sd[3] < 0.5 * without[3, 3] ** 0.5
-    # The velocity itself comes from the same two past poses and the next one either way.
-    np.testing.assert_array_equal(prior.at(T0).mean, MotionPrior(past[:2], cfg, following).at(T0).mean)
-
-
 def _readout_problem(rng: np.random.Generator, n: int = 40) -> tuple[np.ndarray, np.ndarray]:
     """A fit's Jacobian (n, 12: pose then velocity columns) and weights (n,)."""
     return rng.normal(size=(n, 12)), rng.uniform(0.5, 2.0, n)
@@ -362,8 +336,7 @@ def test_prior_error_without_readout_evidence_is_the_prior() -> None:
     J12, w = _readout_problem(rng)
     J12[:, 6:] = 0.0
     P = np.diag([1e-4, 2e-4, 3e-4, 1e-2, 2e-2, 3e-2])
-    fit = MovingFit(MotionPrior())
-    np.testing.assert_allclose(fit.prior_error(rng.normal(size=40), J12, w, P), P, rtol=1e-12)
+    np.testing.assert_allclose(MovingFit.prior_error(rng.normal(size=40), J12, w, P, 0.1), P, rtol=1e-12)
 
 
 def test_prior_error_follows_what_the_readout_shows() -> None:
@@ -373,19 +346,17 @@ def test_prior_error_follows_what_the_readout_shows() -> None:
     noise is the prior's covariance (the evidence shares the error out, it does not remove it)."""
     rng = np.random.default_rng(1)
     J12, w = _readout_problem(rng)
-    fit = MovingFit(MotionPrior())
-    fit.sigma_px = 1e-4
     P = np.diag([1e-2, 2e-2, 3e-2, 1.0, 2.0, 3.0])
     e = np.array([0.05, -0.1, 0.02, 0.3, -0.2, 0.1])  # true velocity less the held one
     pose_part = J12[:, :6] @ rng.normal(size=6)  # absorbed by the pose's columns
-    moment = fit.prior_error(-J12[:, 6:] @ e + pose_part, J12, w, P)
+    moment = MovingFit.prior_error(-J12[:, 6:] @ e + pose_part, J12, w, P, 1e-4)
     np.testing.assert_allclose(moment, np.outer(e, e), atol=1e-6)
-    fit.sigma_px = 0.5
+    noise_px = 0.5
     draws = []
     for _ in range(4000):
         e = rng.multivariate_normal(np.zeros(6), P)
-        noise = fit.sigma_px * rng.normal(size=len(w)) / np.sqrt(w)
-        draws.append(fit.prior_error(-J12[:, 6:] @ e + noise, J12, w, P))
+        noise = noise_px * rng.normal(size=len(w)) / np.sqrt(w)
+        draws.append(MovingFit.prior_error(-J12[:, 6:] @ e + noise, J12, w, P, noise_px))
     scale = np.sqrt(np.outer(np.diag(P), np.diag(P)))
     assert np.max(np.abs(np.mean(draws, axis=0) - P) / scale) < 0.1
 
