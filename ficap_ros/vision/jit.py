@@ -5,6 +5,7 @@ The per-pixel kernels (``ficap_ros.vision.kernels``: the corner stage's profiles
 noise ratio; ``ficap_ros.vision.cell_reads``: reading a tag's cells at its corners;
 ``ficap_ros.vision.photometric_kernels``: the photometric and moving tags' fits;
 ``ficap_ros.vision.pose_kernels``: the pose solvers' reprojection;
+``ficap_ros.vision.square_kernels``: the tags' square-consistent corners;
 ``ficap_ros.vision.uncertainty_kernels``: the pose covariance's unit terms) are numba functions compiled on
 their first call and cached on disk (``njit(cache=True)``), so a
 later process loads them instead of compiling. numba keeps that cache next to the source
@@ -89,6 +90,7 @@ def warm_up() -> float:
     import ficap_ros.vision.kernels  # noqa: F401
     import ficap_ros.vision.photometric_kernels  # noqa: F401
     import ficap_ros.vision.pose_kernels  # noqa: F401
+    import ficap_ros.vision.square_kernels  # noqa: F401
     import ficap_ros.vision.uncertainty_kernels  # noqa: F401
 
     t0 = time.perf_counter()

@@ -110,6 +110,12 @@ class PoseConfig:
             profile of the corner estimator in use (``pipeline.pose_config_for``), the defaults
             when ``estimate_cap_pose`` is called directly.
         motion: the head's motion sizes behind the velocity prior (``motion.MotionConfig``).
+        square_tags: ``joint`` with a global shutter: the pose is fitted to each tag's corners
+            moved onto the nearest image of a square (``TagObservations.of``), without the part of
+            their error no pose explains (``rms_px`` is the rest); the tag weights and the
+            residual-based uncertainty still read each tag's noise from its measured corners. A
+            rolling shutter's tags are not squares' images (each row sees the cap at its own
+            time): they keep their corners.
     """
 
     method: str = "joint"
@@ -123,6 +129,7 @@ class PoseConfig:
     paper_min_corners: int = 4
     uncertainty: UncertaintyConfig | None = None
     motion: MotionConfig = field(default_factory=MotionConfig)
+    square_tags: bool = True
 
     def __post_init__(self) -> None:
         if self.method not in POSE_METHODS:
@@ -583,7 +590,8 @@ def _cap_pose(solution: _Solution, ours: Sequence[TagDetection], tags_detected: 
     rms = float(np.sqrt(np.mean(res**2) * 2.0))
     if with_uncertainty:
         covariance, rot95, trans95 = _uncertainty(solution.used, T, tag_sigma,
-                                                  edge_shifts_px(ours, solution.used.ids), (res, J),
+                                                  edge_shifts_px(ours, solution.used.ids),
+                                                  (solution.used.measured_residuals(res), J),
                                                   uncertainty, blur)
     else:
         covariance = np.full((6, 6), np.nan)
@@ -671,7 +679,8 @@ def estimate_cap_pose(
     moving = timing is not None and timing.rolling and config.method == "joint"
     fit = MovingFit(prior or MotionPrior(config=config.motion)) if moving else None
     times = corner_times_s(resolved, camera, timing) if fit is not None else None  # type: ignore[arg-type]
-    obs = TagObservations.of(resolved, model, camera.K, times)
+    obs = TagObservations.of(resolved, model, camera.K, times, config.square_tags and config.method == "joint"
+                             and not moving)
     solution = _solve(obs, config, start, hidden_ids, fit)
     if isinstance(solution, str):
         return PoseResult(None, tags_detected, solution)

@@ -5,7 +5,9 @@
 corners in the cap frame, in metres. The residuals are ``projection - observation`` per corner
 coordinate (u0 v0 u1 v1 ... ), px, and the Jacobian is taken for a left perturbation of the pose,
 ``(exp(d_theta) R, t + d_t)``: columns d_theta (rad, camera axes), then d_t (m), so a covariance
-of the pose is in the camera (parent) frame, as ROS's PoseWithCovariance expects.
+of the pose is in the camera (parent) frame, as ROS's PoseWithCovariance expects. The joint pose's
+observations are square-consistent (``TagObservations.of(..., square=True)``: each tag's corners
+moved onto the nearest image of a square, ``square_kernels``), the measured corners kept beside them.
 """
 
 from __future__ import annotations
@@ -19,10 +21,13 @@ from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.cap_model import CapModel
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.vision.detector import TagDetection
+from ficap_ros.vision.square_kernels import square_tag_corners
 
 __all__ = [
     "TagObservations",
     "undistorted_corners",
+    "SQUARE_ITERATIONS",
+    "SQUARE_MAX_MOVE_PX",
     "edge_shifts_px",
     "project_px",
     "reprojection_errors_px",
@@ -44,6 +49,12 @@ class TagObservations:
         K: 3x3 intrinsics of the undistorted image.
         time_s: (T, 4) when each corner was seen, s from the stamp (a rolling shutter's row
             times); None: every corner at the stamp (a global shutter).
+        measured_px: (T, 4, 2) the corners as measured where ``image_px`` are their squares'
+            images (``square_corners``), px; None: ``image_px`` are the measured corners. The
+            pose is fitted to ``image_px``; what each tag's corners say of their own noise (the
+            tag weights, the residual-based uncertainty) is read from the measured corners
+            (``measured_residuals``): the two degrees of freedom a square lacks are evidence of
+            a tag's corner noise though no pose explains them.
     """
 
     ids: tuple[int, ...]
@@ -51,19 +62,28 @@ class TagObservations:
     model_m: np.ndarray
     K: np.ndarray = field(repr=False)
     time_s: np.ndarray | None = field(default=None, repr=False)
+    measured_px: np.ndarray | None = field(default=None, repr=False)
 
     @classmethod
     def of(cls, corners_px: Mapping[int, np.ndarray], model: CapModel, K: np.ndarray,
-           time_s: Mapping[int, np.ndarray] | None = None) -> TagObservations:
+           time_s: Mapping[int, np.ndarray] | None = None, square: bool = False) -> TagObservations:
         """From undistorted corners (4, 2) per tag id of ``model``, in ascending id order, and
-        optionally each corner's time (4,) per id, s."""
+        optionally each corner's time (4,) per id, s. ``square``: fitted to the corners' squares'
+        images (``square_corners``), the measured corners kept as ``measured_px``."""
         ids = tuple(sorted(corners_px))
+        image_px = np.stack([corners_px[i] for i in ids])
+        measured_px = None
+        if square and ids:
+            measured_px, image_px = image_px, square_tag_corners(
+                np.ascontiguousarray(image_px, dtype=np.float64), np.ascontiguousarray(K, dtype=np.float64),
+                SQUARE_ITERATIONS, SQUARE_MAX_MOVE_PX)[0]
         return cls(
             ids,
-            np.stack([corners_px[i] for i in ids]),
+            image_px,
             np.stack([model.corners_of(i) for i in ids]) / 1000.0,
             K,
             None if time_s is None else np.stack([time_s[i] for i in ids]),
+            measured_px,
         )
 
     def subset(self, keep: np.ndarray) -> TagObservations:
@@ -72,7 +92,15 @@ class TagObservations:
         return TagObservations(
             tuple(i for i, k in zip(self.ids, keep) if k), self.image_px[keep], self.model_m[keep], self.K,
             None if self.time_s is None else self.time_s[keep],
+            None if self.measured_px is None else self.measured_px[keep],
         )
+
+    def measured_residuals(self, res: np.ndarray) -> np.ndarray:
+        """Residuals (8 T,) ``projection - image_px`` of a pose as against the measured corners
+        (``measured_px``; the same array where there are none)."""
+        if self.measured_px is None:
+            return res
+        return res + (self.image_px - self.measured_px).reshape(-1)
 
     def __len__(self) -> int:
         return len(self.ids)
@@ -91,6 +119,15 @@ def undistorted_corners(ours: Sequence[TagDetection],
             if ok:
                 groups.setdefault(det.tag_id, []).append(corners)
     return groups
+
+
+#: Gauss-Newton steps of each tag's own pose (``square_kernels``): from its homography's pose they
+#: bring the corners within a thousandth of a px of the least-squares optimum.
+SQUARE_ITERATIONS = 6
+#: The farthest a corner moves onto a square's image, px: a tag whose corners are farther from
+#: every square's image (a corner off by far more than noise) keeps them, for the pose's outlier
+#: tests to judge.
+SQUARE_MAX_MOVE_PX = 1.0
 
 
 def edge_shifts_px(ours: Sequence[TagDetection], ids: Sequence[int]) -> np.ndarray:

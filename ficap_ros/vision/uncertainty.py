@@ -289,7 +289,7 @@ def tag_noise_px(obs: TagObservations, T: Transform) -> np.ndarray:
     residuals; a tag's 8 residuals are a noisy estimate of it (and the fit absorbed a share), so
     the frame's median is added as a prior: a tag with residuals at the median gets sqrt(2) times
     them, one far above the median its own."""
-    return tag_noise_from_residuals(residuals_and_jacobian(T, obs)[0], len(obs))
+    return tag_noise_from_residuals(obs.measured_residuals(residuals_and_jacobian(T, obs)[0]), len(obs))
 
 
 def tag_noise_from_residuals(res: np.ndarray, n_tags: int) -> np.ndarray:
@@ -309,7 +309,7 @@ def reweighted(obs: TagObservations, T: Transform) -> tuple[Transform, np.ndarra
     if n_tags < 4:
         return T, np.ones(n_tags)
     res, J = residuals_and_jacobian(T, obs)
-    sigma = tag_noise_from_residuals(res, n_tags)
+    sigma = tag_noise_from_residuals(obs.measured_residuals(res), n_tags)
     w = np.repeat(1.0 / sigma**2, 8)
     try:
         dx = -np.linalg.solve(J.T @ (w[:, None] * J), J.T @ (w * res))

@@ -66,6 +66,29 @@ def test_exact_corners_reproject_exactly() -> None:
     assert res.shape == (64,) and J.shape == (64, 6) and np.abs(res).max() < 1e-9
 
 
+def test_squared_observations_keep_the_measured_corners() -> None:
+    """``TagObservations.of(..., square=True)``: each tag fitted to its corners' square's image
+    (exact square images stay; noisy corners come nearer the truth: isotropic noise keeps 6 of a
+    tag's 8 degrees of freedom), the measured corners kept beside them through ``subset``, and
+    ``measured_residuals`` the residuals against those."""
+    rng = np.random.default_rng(4)
+    exact = _observations()
+    squared_exact = TagObservations.of(dict(zip(exact.ids, exact.image_px)), MODEL, CAMERA.K, square=True)
+    np.testing.assert_allclose(squared_exact.image_px, exact.image_px, atol=1e-6)
+    noisy = {i: c + rng.normal(0.0, 0.2, (4, 2)) for i, c in zip(exact.ids, exact.image_px)}
+    obs = TagObservations.of(noisy, MODEL, CAMERA.K, square=True)
+    np.testing.assert_array_equal(obs.measured_px, np.stack([noisy[i] for i in obs.ids]))
+    assert np.sqrt(np.mean((obs.image_px - exact.image_px) ** 2)) < 0.95 * np.sqrt(
+        np.mean((obs.measured_px - exact.image_px) ** 2))
+    res, _ = residuals_and_jacobian(T_TRUE, obs)
+    measured = obs.measured_residuals(res)
+    np.testing.assert_allclose(measured, (exact.image_px - obs.measured_px).reshape(-1), atol=1e-9)
+    keep = np.arange(8) % 2 == 0
+    np.testing.assert_array_equal(obs.subset(keep).measured_px, obs.measured_px[keep])
+    plain = TagObservations.of(noisy, MODEL, CAMERA.K)
+    assert plain.measured_px is None and plain.measured_residuals(res) is res
+
+
 def test_rms_errors_are_per_tag() -> None:
     obs = _observations(0.3, seed=2)
     err = reprojection_errors_px(obs.image_px, obs.K, T_TRUE, obs.model_m)
