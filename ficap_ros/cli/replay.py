@@ -209,6 +209,7 @@ def run(args: argparse.Namespace) -> int:
 
             raise ConfigError("--no-two-sided-motion is for one recording; a fleet's frames are "
                               "solved with their next frame's pose")
+        freeze_start_up()  # this process reads the recordings (and processes them with --jobs 1)
         return _run_fleet(args, model, calibration, detector, frames)
     args.input = args.input[0]
     # Before any processing: never an input, a recording or a folder ficap did not write.

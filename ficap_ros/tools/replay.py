@@ -135,19 +135,21 @@ def keep_freed_memory() -> bool:
 
 
 def freeze_start_up() -> None:
-    """Move every object this process holds now into the cyclic garbage collector's permanent
-    generation (``gc.freeze``), out of its later collections. For processes of our own that run
-    the pipeline over many frames, once their start-up (the imports, the recording opened) is
-    done.
+    """Collect the garbage, then move every object this process still holds into the cyclic
+    garbage collector's permanent generation (``gc.freeze``), out of its later collections. For
+    processes of our own that run the pipeline over many frames, once their start-up (the
+    imports, the recording opened) is done.
 
     The start-up leaves a few hundred thousand objects (modules, classes, functions, the message
     types' tables) that live as long as the process; every full collection would walk them all
     again, the frames' allocations trigger such collections, and the interpreter makes one more
-    when it exits. Frozen objects are still freed when their last reference goes; only a
-    reference cycle among them stays. The labels do not depend on it.
+    when it exits. Only live objects are frozen (the collection first); they are still freed when
+    their last reference goes, only a reference cycle among them stays. The labels do not depend
+    on it.
     """
     import gc
 
+    gc.collect()
     gc.freeze()
 
 

@@ -166,20 +166,30 @@ def test_keep_freed_memory_takes_on_glibc() -> None:
     assert keep_freed_memory() is expected
 
 
-def test_freeze_start_up_takes_existing_objects_out_of_collections() -> None:
-    """replay.freeze_start_up: what exists when it is called leaves the collector's generations
-    (gc.get_objects lists none of it) and the collector still runs on what comes after."""
+def test_freeze_start_up_collects_then_takes_live_objects_out_of_collections() -> None:
+    """replay.freeze_start_up: a reference cycle nothing holds is collected, not frozen; what is
+    alive leaves the collector's generations (gc.get_objects lists none of it); the collector
+    still runs on what comes after."""
     import gc
+    import weakref
 
     from ficap_ros.tools.replay import freeze_start_up
 
-    before = [[]]  # a container the collector tracks
+    class Node:
+        pass
+
+    garbage = Node()
+    garbage.self = garbage  # a cycle: only the collector frees it
+    gone = weakref.ref(garbage)
+    del garbage
+    alive = [[]]  # a container the collector tracks
     try:
         freeze_start_up()
+        assert gone() is None
         assert gc.get_freeze_count() > 0 and gc.isenabled()
-        after = [[]]
+        later = [[]]
         tracked = {id(o) for o in gc.get_objects()}
-        assert id(before) not in tracked and id(after) in tracked
+        assert id(alive) not in tracked and id(later) in tracked
     finally:
         gc.unfreeze()  # the test process's objects back in the collections
 
