@@ -20,6 +20,10 @@ along its stated depth direction (the covariance's largest axis) over the stated
 for a calibrated term; its mean shows an offset the set shares), with the covariance and with the
 residual-based terms alone, and each source's share of the stated depth variance.
 
+Whether the measured common offset's sign predicts the depth error: per set, the error along the
+offset's mode against the error the signed offset predicts there (correlation, slope, share
+explained), and what correcting the pose by it (shrunk by its standard error) would do.
+
 The light gradient against its noise floor: per set, the measured gradient (``light_gradient_px``)
 beside the spread the edge shifts' own scatter gives a plane fitted with no gradient, the error
 along the tilt mode per px of gradient (what ``light_gradient_tilt_gain`` states in the gradient
@@ -127,9 +131,12 @@ def loso_section(points: dict[str, dict[str, list]], corners: str = "edge") -> s
             "smallest mean log sharpness over them, each set weighted by its frames (every frame counts "
             "once; the rule is the same in every fold and for the all-set fit), and the held-out set's "
             "coverage and sharpness there; the synth rows check the gain fitted on all blender_dev sets "
-            "(they take no part in the fit). The last column: the probability, for a calibrated 95 % bound, "
-            "of as many misses as the set has or more (fewer), and of 90-99 % coverage at all for a set "
-            f"of its size.\n\n{one}\n\n"
+            "(they take no part in the fit). The last two columns: the probability, for a calibrated 95 % "
+            "bound, of as many misses as the set has or more (fewer), and of 90-99 % coverage at all for a "
+            "set of its size; and, were each frame's bound exact for its covariance at the set's gains "
+            "(`bounds_fit.calibrated_target_odds`: Gaussian errors drawn from it, the bound their 95 % "
+            "quantile), how often a set of these frames shows sharpness <= 3, and that with 90-99 % "
+            f"coverage: the target's odds at perfect calibration.\n\n{one}\n\n"
             f"{_misses_table(blender, fits, corners)}\n\n"
             "#### Two gains: the measured offset and the corner-noise ratio\n\n"
             f"The same rule over the grid {grids}, the standard error unused:\n\n{joint}\n\n"
@@ -154,22 +161,30 @@ def _loso_table(blender: dict[str, list], synth: dict[str, list], corners: str,
     g_all = grid[bounds_fit.fitted_index(table, list(blender), counts)]
     rows = [[f.name, _gains_text(f.gains), f.frames, f"{100 * f.rot_coverage:.0f} %", f"{f.rot_sharpness:.2f}",
              f"{100 * f.trans_coverage:.0f} %", f"{f.trans_sharpness:.2f}",
-             bounds_fit.binomial_reading(f.trans_misses, f.frames)] for f in fits]
+             bounds_fit.binomial_reading(f.trans_misses, f.frames),
+             _odds_text(bounds_fit.calibrated_target_odds(blender[f.name], replace(base, **f.gains)))]
+            for f in fits]
     if synth:
         check = bounds_fit.coverage_table(synth, base, [g_all])
         for name, r in check.items():
             rows.append([f"{name} (check)", _gains_text(g_all), len(synth[name]), f"{100 * r[0, 0]:.0f} %",
                          f"{r[0, 1]:.2f}", f"{100 * r[0, 2]:.0f} %", f"{r[0, 3]:.2f}",
-                         bounds_fit.binomial_reading(int(r[0, 4]), len(synth[name]))])
+                         bounds_fit.binomial_reading(int(r[0, 4]), len(synth[name])),
+                         _odds_text(bounds_fit.calibrated_target_odds(synth[name], replace(base, **g_all)))])
     names = " / ".join(f"`{k}`" for k in grid[0])
     head = ["set", f"{names} fitted without it", "frames", "rotation coverage", "sharpness",
-            "translation coverage", "sharpness", "translation misses under a calibrated 95 % bound"]
+            "translation coverage", "sharpness", "translation misses under a calibrated 95 % bound",
+            "a calibrated bound's odds: sharpness <= 3 / and 90-99 %"]
     ok = sum(0.9 <= f.trans_coverage <= 0.99 and f.trans_sharpness <= 3 for f in fits)
     low = min(fits, key=lambda f: f.trans_coverage)
     return (f"{report.md_table(head, rows)}\n\nAll sets: {_gains_text(g_all)} (the profile's: "
             f"{_gains_text({k: getattr(base, k) for k in grid[0]})}). Held-out translation coverage "
             f"90-99 % with sharpness <= 3 on {ok} of {len(fits)} blender_dev sets; the lowest held-out "
             f"coverage {100 * low.trans_coverage:.0f} % ({low.name})."), fits
+
+
+def _odds_text(odds: tuple[float, float]) -> str:
+    return f"{odds[0]:.2f} / {odds[1]:.2f}"
 
 
 def _misses_table(blender: dict[str, list], fits: list[bounds_fit.SetFit], corners: str) -> str:
@@ -242,6 +257,39 @@ def depth_section(points: dict[str, dict[str, list]], corners: str = "edge") -> 
             "a mean away from 0 is an offset the set shares; with every term of the profile and with the "
             "residual-based terms (and floors) alone; then each source's mean share of the stated depth "
             f"variance.\n\n{report.md_table(head, rows)}")
+
+
+#: The shrinkage constants shown for a pose corrected by the signed common offset (0: as measured).
+SHRINK_K = (0.0, 1.0, 4.0)
+
+
+def sign_section(points: dict[str, dict[str, list]]) -> str:
+    """Whether the measured common offset's sign predicts the depth error: per set, the
+    prediction against the translation error along the offset's mode
+    (``bounds_fit.signed_offset_fit``), and what a pose corrected by it, shrunk by its standard
+    error, would do to the translation error (``bounds_fit.shrunk_correction_ratios``)."""
+    rows = []
+    for name, v in points.items():
+        fit = bounds_fit.signed_offset_fit(v["terms"])
+        if not fit:
+            continue
+        ratios = [bounds_fit.shrunk_correction_ratios(v["terms"], k) for k in SHRINK_K]
+        rows.append([name, int(fit["frames"]), f"{fit['corr']:+.2f}", f"{fit['slope']:+.2f}",
+                     f"{fit['explained']:+.2f}", f"{fit['mean_error']:+.3f} / {fit['mean_predicted']:+.3f}",
+                     f"{100 * fit['above_se']:.0f} %", *(f"{m:.2f} / {p95:.2f}" for m, p95 in ratios)])
+    head = ["set", "frames", "correlation", "slope", "share explained at slope 1",
+            "mean error / mean prediction (mm)", "offset above its standard error",
+            *(f"corrected, k = {k:g}: median / p95 over uncorrected" for k in SHRINK_K)]
+    return ("### Does the measured common offset's sign predict the depth error?\n\n"
+            "Per frame, the translation error the signed common offset (`bias_common_signed`, outward "
+            "positive) predicts along its mode (the pose's response to every tag's corners moved "
+            "outward, toward the camera) against the true error along the same direction: their "
+            "correlation, the slope of the error on the prediction (1: the offset as measured), the "
+            "share of the error's square the prediction explains at slope 1 (negative: a correction by "
+            "it adds error) and both means; then the translation error length a pose corrected by it, "
+            "to first order, would have (the offset shrunk by its standard error, "
+            "offset * max(0, 1 - k se^2 / offset^2)), median and p95 over the uncorrected pose's."
+            f"\n\n{report.md_table(head, rows)}")
 
 
 def light_section(points: dict[str, dict[str, list]], corners: str = "edge") -> str:
@@ -404,7 +452,8 @@ def main(argv: list[str] | None = None) -> int:
     cov_ok = sum(90 <= float(r[4].rstrip(" %")) <= 100 and 90 <= float(r[8].rstrip(" %")) for r in ours_rows)
     figure = "" if args.photometric else plot(points)  # the docs' figure is the default corners'
     corners = "photometric" if args.photometric else "edge"
-    body = (f"{table}\n\n{figure}\n\n{depth_section(points, corners)}\n\n{light_section(points, corners)}\n\n"
+    body = (f"{table}\n\n{figure}\n\n{depth_section(points, corners)}\n\n{sign_section(points)}\n\n"
+            f"{light_section(points, corners)}\n\n"
             f"{loso_section(points, corners)}\n\n"
             f"Ours: rotation and translation coverage both at least 90 % on {cov_ok} of {len(ours_rows)} sets. "
             "A calibrated 95 % bound covers every frame of a set of 12-25 frames with a probability of "

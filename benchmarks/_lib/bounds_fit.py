@@ -6,7 +6,8 @@ without it (several gains jointly, over a grid).
 (the terms and what the residuals showed, with the noise floor and mean of the frame's edge
 shifts), so a gain of ``UncertaintyConfig`` can be changed after the run: ``combine_uncertainty``,
 ``uncertainty_bounds`` and ``error_bound95`` on the recorded terms give the bounds the pose would
-have had with it (the pose itself does not depend on the gains).
+have had with it (the pose itself does not depend on the gains). ``signed_offset_fit`` and
+``shrunk_correction_ratios`` read the recorded signed common offset against the true errors.
 """
 
 from __future__ import annotations
@@ -184,3 +185,82 @@ def binomial_reading(misses: int, frames: int, p_miss: float = 0.05) -> str:
     lo, hi = int(np.ceil(0.01 * frames - 1e-9)), int(np.floor(0.10 * frames + 1e-9))
     band = binom.cdf(hi, frames, p_miss) - binom.cdf(lo - 1, frames, p_miss) if hi >= lo else 0.0
     return f"{tail}; P(90-99 %) = {band:.2f}"
+
+
+def offset_mode_mm(frame: FrameTerms) -> np.ndarray:
+    """(3,) the translation (camera axes, mm) one px of outward common radial offset causes: the
+    mode of ``terms["bias_common"]`` (a rank-one a a^T, its sign lost), oriented toward the camera
+    (-z): every tag's corners moved outward is a larger image, a closer cap."""
+    lam, vec = np.linalg.eigh(1e6 * frame.terms["bias_common"][:3, :3])
+    a = vec[:, -1] * np.sqrt(max(float(lam[-1]), 0.0))
+    return a if a[2] <= 0.0 else -a
+
+
+def signed_offset_fit(frames: Sequence[FrameTerms]) -> dict[str, float]:
+    """How the signed common offset (``seen["bias_common_signed"]``) predicts the translation
+    error along its mode (``offset_mode_mm``), over frames with a known error vector: Pearson
+    correlation, least-squares slope of the error on the prediction (1: the offset as measured),
+    the share of the error's square along the mode the prediction explains at slope 1
+    (1 - sum (e - p)^2 / sum e^2: negative where correcting by it would add error), both means
+    (mm), and the share of frames whose offset exceeds its standard error."""
+    e, p, above = [], [], []
+    for f in frames:
+        if f.trans_error_mm is None:
+            continue
+        a = offset_mode_mm(f)
+        norm = float(np.linalg.norm(a))
+        if not norm > 0.0:
+            continue
+        off = f.seen.get("bias_common_signed", 0.0)
+        e.append(float(f.trans_error_mm @ a) / norm)
+        p.append(norm * off)
+        above.append(abs(off) > f.seen.get("bias_common_se", 0.0))
+    e, p = np.array(e), np.array(p)
+    if e.size < 3 or not (np.std(e) > 0.0 and np.std(p) > 0.0):
+        return {}
+    return {"frames": float(e.size), "corr": float(np.corrcoef(e, p)[0, 1]), "slope": float(e @ p / (p @ p)),
+            "explained": float(1.0 - np.sum((e - p) ** 2) / np.sum(e**2)), "mean_error": float(e.mean()),
+            "mean_predicted": float(p.mean()), "above_se": float(np.mean(above))}
+
+
+def shrunk_correction_ratios(frames: Sequence[FrameTerms], k: float) -> tuple[float, float]:
+    """Median and p95 of the translation error length after subtracting, to first order, the
+    pose error the signed common offset predicts shrunk by its standard error
+    (offset * max(0, 1 - k se^2 / offset^2)), each over the uncorrected one's."""
+    before, after = [], []
+    for f in frames:
+        if f.trans_error_mm is None:
+            continue
+        off = f.seen.get("bias_common_signed", 0.0)
+        se = f.seen.get("bias_common_se", 0.0)
+        shrunk = off * max(0.0, 1.0 - k * se * se / off**2) if off != 0.0 else 0.0
+        before.append(float(np.linalg.norm(f.trans_error_mm)))
+        after.append(float(np.linalg.norm(f.trans_error_mm - offset_mode_mm(f) * shrunk)))
+    if not before:
+        return float("nan"), float("nan")
+    return (float(np.median(after) / np.median(before)),
+            float(np.percentile(after, 95) / np.percentile(before, 95)))
+
+
+def calibrated_target_odds(frames: Sequence[FrameTerms], config: UncertaintyConfig, seed: int = 0,
+                           replicas: int = 4000, draws: int = 400) -> tuple[float, float]:
+    """How likely a set of these frames meets the translation target at all, were each frame's
+    bound exactly calibrated: errors drawn from each frame's covariance under ``config`` (its
+    translation block, Gaussian), each frame's bound the 95 % quantile of its error length;
+    over replicas of the whole set, the share with sharpness (median bound / median error) <= 3,
+    and with that and coverage 90-99 % both. A depth-dominated (1-D) error's sharpness is 2.91
+    for an infinite set, and a set's median scatters with its size."""
+    rng = np.random.default_rng(seed)
+    bounds, scales = [], []
+    for f in frames:
+        block = 1e6 * combine_uncertainty(f.terms, f.seen, config)[:3, :3]
+        lam, vec = np.linalg.eigh(0.5 * (block + block.T))
+        scale = vec * np.sqrt(np.clip(lam, 0.0, None))
+        bounds.append(np.percentile(np.linalg.norm(rng.standard_normal((draws, 3)) @ scale.T, axis=1), 95))
+        scales.append(scale)
+    bounds = np.array(bounds)
+    errors = np.stack([np.linalg.norm(rng.standard_normal((replicas, 3)) @ s.T, axis=1) for s in scales], axis=1)
+    sharp = np.median(bounds) / np.median(errors, axis=1)
+    cover = np.mean(errors <= bounds, axis=1)
+    ok = sharp <= 3.0
+    return float(np.mean(ok)), float(np.mean(ok & (cover >= 0.9) & (cover <= 0.99)))

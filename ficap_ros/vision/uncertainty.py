@@ -33,13 +33,18 @@ covariance holds its square, as a mean squared error must).
 
 Depth is what the shared corner errors move most: a radial offset of every corner by delta px
 moves the depth by about z * sqrt(2) * delta / (tag side in px), so at a given distance the same
-offset costs a low-resolution camera twice the depth error, and it leaves no residual (the depth
-absorbs it). What the residuals do show of it (the part the depth could not absorb, scaled back
-by the share left, ``uncertainty_kernels``) is a noisy estimate, amplified up to tenfold, yet on
-path-traced renders it is the frame feature that follows the depth error across cameras, lights
-and tone curves (``benchmarks/bench_uncertainty.py``): the edge profile states the offset as
-measured, with its standard error beside it (``common_offset_gain`` and ``common_offset_se_gain``
-1, the factor a leave-one-set-out fit on those renders picks for every set). The residual-based
+offset costs a low-resolution camera twice the depth error. The pose's change reproduces only a
+small share of the corners' displacement; the rest stays in each tag's scale residual, so the
+tags' mean scale coefficient, scaled back by the share left (``uncertainty_kernels``), measures
+the offset, and the scale coefficients' scatter its standard error. Its size follows the depth
+error on path-traced renders across cameras, lights and tone curves
+(``benchmarks/bench_uncertainty.py``): the edge profile states the offset as measured, with its
+standard error beside it (``common_offset_gain`` and ``common_offset_se_gain`` 1, the factor the
+leave-one-set-out fit on those renders picks). Its sign does not follow the depth error from one
+recording to the next (``seen["bias_common_signed"]``: with the error on some renders, against it
+on an as-built cap and through fast glances), and where the offset differs from tag to tag its
+mean need not be what moves the depth (the tags that fix the depth may carry little of it), so it
+enters the covariance as a mean squared error and never corrects the pose. The residual-based
 terms alone state the depth error of frames without such an offset about right; the corner noise
 over the cell width (``shared_bias_ratio``) does not follow the offset (it is largest where there
 is none) and serves the profiles calibrated with it.
@@ -269,7 +274,8 @@ _PATTERNS = {"shift": [0, 1], "scale": [2], "turn": [3], "shear": [4, 5], "proje
 #: coefficient, is its own intermediate).
 _TERM_NAMES = (*_PATTERNS, "noise", "bias", "model_t", "model_r", "bias_common", "principal_point",
                "focal", "tilt")
-_SEEN_NAMES = (*_PATTERNS, *(g + "_dof" for g in _PATTERNS), "bias_common", "bias_common_se")
+_SEEN_NAMES = (*_PATTERNS, *(g + "_dof" for g in _PATTERNS), "bias_common", "bias_common_se",
+               "bias_common_signed")
 
 
 def tag_noise_px(obs: TagObservations, T: Transform) -> np.ndarray:
@@ -380,8 +386,10 @@ def uncertainty_terms(
             tag's divided by its relative noise) pooled over the tags, less the share the fit
             absorbed (the weighted hat matrix's leverage of the group), and ``bias_common``, the
             tags' mean radial offset (px per corner), scaled back by the share of it the fit left
-            in the residuals, and ``bias_common_se`` its standard error; ``light_gradient``
-            (``light_gradient_px``) and ``edge_shift_mean`` (``edge_shift_mean_px``), px;
+            in the residuals, ``bias_common_se`` its standard error and ``bias_common_signed`` the
+            same offset with its sign, its standard error not subtracted (px, positive outward:
+            the corners outside the model's projection; an outward offset of every tag's corners
+            moves the pose toward the camera); ``light_gradient`` (``light_gradient_px``) and ``edge_shift_mean`` (``edge_shift_mean_px``), px;
             ``shared_bias_ratio`` (of the tags' corner noise from these residuals:
             ``tag_noise_from_residuals``); per pattern group also ``<group>_dof``, the degrees of
             freedom its sigma was pooled from (the bounds widen for a sigma estimated from few).

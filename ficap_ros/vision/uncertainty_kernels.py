@@ -12,8 +12,9 @@ signed along its pattern.
 
 Output layout: ``terms`` (13, 6, 6), each ROS order (translation, then rotation): the pattern
 groups shift, scale, turn, shear, projective, then noise, bias, model_t, model_r, bias_common,
-principal_point, focal, tilt; ``seen`` (13,): the groups' sigmas, their dofs (same order),
-bias_common and its standard error, and the tags' mean scale coefficient; ``A_ros`` (6, 2n), the fit's map in ROS order.
+principal_point, focal, tilt; ``seen`` (14,): the groups' sigmas, their dofs (same order),
+bias_common, its standard error and its signed estimate, and the tags' mean scale coefficient;
+``A_ros`` (6, 2n), the fit's map in ROS order.
 """
 
 from __future__ import annotations
@@ -355,15 +356,17 @@ def _residual_sigmas(seen: np.ndarray, res: np.ndarray, J: np.ndarray, M: np.nda
             dof -= 1.0  # the common offset, taken out above
         seen[g] = np.sqrt(total / dof) if dof > 0.5 else 0.0
         seen[5 + g] = max(dof, 0.0)
-    seen[12] = mean_scale
+    seen[13] = mean_scale
 
 
 @njit(error_model="numpy")
 def _common_offset_px(common: np.ndarray, w: np.ndarray, J: np.ndarray, A: np.ndarray,
-                      mean_scale: float, scale_sigma: float, n_tags: int) -> tuple[float, float]:
-    """The tags' common radial offset and its standard error, px per corner, from their mean scale
-    coefficient: what the fit left of it scaled back by the share left, the mean's own noise
-    (its standard error) subtracted in quadrature (``uncertainty``'s module docstring)."""
+                      mean_scale: float, scale_sigma: float, n_tags: int) -> tuple[float, float, float]:
+    """The tags' common radial offset, its standard error and its signed estimate, px per corner,
+    from their mean scale coefficient: what the fit left of it scaled back by the share left; the
+    offset's size with the mean's own noise (its standard error) subtracted in quadrature
+    (``uncertainty``'s module docstring), the signed estimate without (positive: outward, the
+    tags seen larger than the model at the pose)."""
     k = A.shape[0]
     Ac = np.zeros(k)
     for a in range(k):
@@ -379,7 +382,8 @@ def _common_offset_px(common: np.ndarray, w: np.ndarray, J: np.ndarray, A: np.nd
         den += common[i] * w[i] * common[i]
     left = max(1.0 - num / den, 0.1)
     mean_se2 = scale_sigma**2 / n_tags
-    return np.sqrt(max(mean_scale**2 - mean_se2, 0.0)) / 2.0 / left, np.sqrt(mean_se2) / 2.0 / left
+    return (np.sqrt(max(mean_scale**2 - mean_se2, 0.0)) / 2.0 / left, np.sqrt(mean_se2) / 2.0 / left,
+            mean_scale / 2.0 / left)
 
 
 @njit(error_model="numpy")
@@ -387,7 +391,7 @@ def propagated_terms(res: np.ndarray, J: np.ndarray, w: np.ndarray, info: np.nda
                      image_px: np.ndarray, model_m: np.ndarray, R: np.ndarray, t: np.ndarray,
                      K: np.ndarray, rel: np.ndarray, cross: np.ndarray, centres: np.ndarray,
                      normal: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(terms (13, 6, 6), seen (13,), A_ros (6, 8n)) of a pose (R, t (m)) fitted to n tags.
+    """(terms (13, 6, 6), seen (14,), A_ros (6, 8n)) of a pose (R, t (m)) fitted to n tags.
 
     Args:
         res, J: the fit's residuals (8n,) px and Jacobian (8n, k), the pose's six columns first.
@@ -412,9 +416,9 @@ def propagated_terms(res: np.ndarray, J: np.ndarray, w: np.ndarray, info: np.nda
     terms = np.zeros((13, 6, 6))
     _per_tag_terms(terms, A_ros, B, _corner_gradients(model_m, R, t, K), cross, rel)
     _shared_terms(terms, A_ros, common, image_px, K, _tilt_mode(centres, normal, R, t, K))
-    seen = np.zeros(13)
+    seen = np.zeros(14)
     _residual_sigmas(seen, res, J, M, B, rel)
-    seen[10], seen[11] = _common_offset_px(common, w, J, A, seen[12], seen[1], n)
+    seen[10], seen[11], seen[12] = _common_offset_px(common, w, J, A, seen[13], seen[1], n)
     return terms, seen, A_ros
 
 

@@ -185,14 +185,14 @@ def _residual_sigmas(res: np.ndarray, J: np.ndarray, M: np.ndarray, B: np.ndarra
 
 
 def _common_offset_px(common: np.ndarray, w: np.ndarray, J: np.ndarray, A: np.ndarray,
-                      mean_scale: float, scale_sigma: float, n_tags: int) -> tuple[float, float]:
-    """The tags' common radial offset and its standard error, px per corner, from their mean
-    scale coefficient."""
+                      mean_scale: float, scale_sigma: float, n_tags: int) -> tuple[float, float, float]:
+    """The tags' common radial offset, its standard error and its signed estimate, px per
+    corner, from their mean scale coefficient."""
     common_left = 1.0 - float(common @ (w * (J @ (A @ common)))) / float(common @ (w * common))
     mean_se2 = scale_sigma ** 2 / n_tags
     left = max(common_left, 0.1)
     return (float(np.sqrt(max(mean_scale**2 - mean_se2, 0.0))) / 2.0 / left,
-            math.sqrt(mean_se2) / 2.0 / left)
+            math.sqrt(mean_se2) / 2.0 / left, mean_scale / 2.0 / left)
 
 
 def reference_terms(obs: TagObservations, T: Transform, res: np.ndarray, J: np.ndarray, rel: np.ndarray,
@@ -209,7 +209,7 @@ def reference_terms(obs: TagObservations, T: Transform, res: np.ndarray, J: np.n
     terms = _per_tag_terms(obs, T, A_ros, B, rel)
     terms.update(_shared_terms(obs, T, A_ros, common))
     seen, mean_scale = _residual_sigmas(res, J, M, B, rel)
-    seen["bias_common"], seen["bias_common_se"] = _common_offset_px(common, w, J, A, mean_scale,
-                                                                    seen["scale"], n_tags)
+    seen["bias_common"], seen["bias_common_se"], seen["bias_common_signed"] = _common_offset_px(
+        common, w, J, A, mean_scale, seen["scale"], n_tags)
     seen["mean_scale"] = mean_scale
     return terms, seen, A_ros

@@ -163,6 +163,31 @@ def test_residuals_reveal_misplaced_plates() -> None:
     assert angle_deg(asbuilt.T_cam_cap.rotation, T.rotation) < asbuilt.rot_err95_deg
 
 
+@pytest.mark.parametrize("offset_px", [0.3, -0.3])
+def test_the_signed_common_offset_predicts_the_pose_error(offset_px: float) -> None:
+    """Every tag's corners moved radially by the same amount (outward positive): the signed
+    estimate reads it with its sign, and the pose error along the offset's mode is its effect (the
+    mode's translation oriented toward the camera for an outward offset: a larger image is a
+    closer cap)."""
+    T = _truth(15.0)
+    corners = {}
+    for i, c in _exact_corners(T).items():
+        radial = c - c.mean(axis=0)
+        corners[i] = c + offset_px * radial / np.linalg.norm(radial, axis=1, keepdims=True)
+    pose = _pose(corners)
+    obs = TagObservations.of({i: CAM.undistort_px(c) for i, c in corners.items()}, MODEL, CAM.K)
+    terms, seen = uncertainty_terms(obs, pose.T_cam_cap)
+    assert seen["bias_common_signed"] == pytest.approx(offset_px, rel=0.05)
+    assert seen["bias_common"] == pytest.approx(abs(offset_px), rel=0.05)
+    unit = terms["bias_common"][:3, :3]
+    lam, vec = np.linalg.eigh(unit)
+    a_m = vec[:, -1] * np.sqrt(lam[-1])
+    a_m = a_m if a_m[2] < 0.0 else -a_m  # outward: toward the camera
+    error_m = pose.T_cam_cap.translation_m - T.translation_m
+    predicted_m = a_m * seen["bias_common_signed"]
+    assert np.linalg.norm(error_m - predicted_m) < 0.15 * np.linalg.norm(error_m)
+
+
 def test_offset_is_the_measured_common_radial_share() -> None:
     """The offset ``uncertainty_bounds`` returns is the share of the covariance that the tags'
     measured common radial offset contributes (the covariance minus it is the rest), and the
