@@ -28,13 +28,13 @@ import numpy as np
 
 from ficap_ros.geometry.tag36h11 import (
     TAG_CELLS,
-    cell_errors,
     homography_corners,
     stacked_tag_cells,
     tag_cells,
     tag_homographies,
     usable_quads,
 )
+from ficap_ros.vision.cell_reads import cell_errors
 from ficap_ros.vision.detector import DetectorConfig, as_gray
 from ficap_ros.vision.edges import (
     NEXT,
@@ -48,7 +48,7 @@ from ficap_ros.vision.edges import (
     step_offset,
     vector_norm,
 )
-from ficap_ros.vision.fit_kernels import border_unbias, edge_fit_round
+from ficap_ros.vision.fit_kernels import border_unbias, edge_fit
 from ficap_ros.vision.kernels import frozen
 from ficap_ros.vision.medians import (
     row_median,
@@ -424,8 +424,8 @@ def fit_tag_edges(
     n . J_H dh - delta_dir, and one weighted least-squares step per iteration updates H and the
     deltas together (re-sampling the image each time); samples beyond 3.5 robust sigmas are
     dropped. The fit reads every cell boundary, not only the four outer lines, and extrapolates
-    no line to a corner. Each round is one compiled call (``fit_kernels.edge_fit_round``, which
-    says which samples are used).
+    no line to a corner. The rounds are one compiled call (``fit_kernels.edge_fit``; each round
+    ``fit_kernels.edge_fit_round``, which says which samples are used).
 
     Args:
         gray: (H, W) uint8 image.
@@ -442,27 +442,16 @@ def fit_tag_edges(
     cfg = config or DetectorConfig()
     c_in = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
     n = len(c_in)
-    delta = np.full(n, np.nan)
     if n == 0:
-        return c_in.copy(), delta
+        return c_in.copy(), np.full(0, np.nan)
     tag_of, starts, (uv, nu) = _stacked(_cell_edge_samples, tuple(int(i) for i in ids))
     try:
         h = tag_homographies(c_in).reshape(n, 9)[:, :8].copy()
     except np.linalg.LinAlgError:
-        return c_in.copy(), delta
-    keep = np.ones(len(uv), dtype=bool)
-    vertical = np.abs(nu[:, 0]) > 0.5
-    fitted = np.zeros(n, dtype=bool)
-    img, k = frozen(gray), (_FIT_PROFILE_SAMPLES - 1) // 2
-    for it in range(iterations):
-        sol, solved, ok = edge_fit_round(img, h, tag_of, uv, nu, vertical, keep, starts, cfg.edge_search_px, k,
-                                         _MIN_CELL_PX, _MIN_CONTRAST_RATIO, _MIN_FIT_ROWS,
-                                         _MIN_FIT_ROWS_PER_DIRECTION)
-        h = h + np.where(solved[:, None], sol[:, :8], 0.0)
-        delta = np.where(solved, sol[:, 8:].mean(axis=1), np.nan)  # the two directions' mean
-        fitted = solved
-        if it == iterations - 2:
-            keep = ok  # the last round samples where the previous one trusted the image
+        return c_in.copy(), np.full(n, np.nan)
+    fitted, delta = edge_fit(frozen(gray), h, tag_of, uv, nu, starts, int(iterations), cfg.edge_search_px,
+                             (_FIT_PROFILE_SAMPLES - 1) // 2, _MIN_CELL_PX, _MIN_CONTRAST_RATIO, _MIN_FIT_ROWS,
+                             _MIN_FIT_ROWS_PER_DIRECTION)
     corners = homography_corners(h)
     cell = vector_norm(c_in[:, NEXT] - c_in).min(axis=1) / TAG_CELLS
     moved = vector_norm(corners - c_in).max(axis=1)

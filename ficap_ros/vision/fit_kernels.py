@@ -12,7 +12,8 @@ accumulated over its rows, each tag's column-scaled solve (LAPACK's ``gesv``, as
 ``robust_grouped_solve`` is the fit's robust step around them; ``edge_fit_round`` one whole
 sample-and-solve round: the boundaries placed, their steps measured (``kernels.area_steps``, so
 the profiles hold ``cv2.remap``'s values), each tag's clean contrast, the usable samples and the
-robust step. Kernels divide as numpy does (``error_model="numpy"``).
+robust step; ``edge_fit`` the fit's rounds in one call. Kernels divide as numpy does
+(``error_model="numpy"``).
 """
 
 from __future__ import annotations
@@ -24,7 +25,8 @@ import numpy as np
 from ficap_ros.vision.jit import njit, register_warm_up
 from ficap_ros.vision.kernels import _masked_median, area_steps, frozen
 
-__all__ = ["border_unbias", "boundary_rows", "edge_fit_round", "tag_noise_ratios", "grouped_normal_equations", "grouped_residuals", "grouped_solve",
+__all__ = ["border_unbias", "boundary_rows", "edge_fit", "edge_fit_round", "tag_noise_ratios",
+           "grouped_normal_equations", "grouped_residuals", "grouped_solve",
            "robust_grouped_solve"]
 
 
@@ -345,6 +347,38 @@ def edge_fit_round(img: np.ndarray, h: np.ndarray, tag_of: np.ndarray, uv: np.nd
     return robust_grouped_solve(jac, s, contrast, top_c, ok, vertical, starts, 8, min_rows, min_per_direction)
 
 
+@njit(error_model="numpy")
+def edge_fit(img: np.ndarray, h: np.ndarray, tag_of: np.ndarray, uv: np.ndarray, nu: np.ndarray,
+             starts: np.ndarray, iterations: int, search_px: float, k: int, min_cell_px: float,
+             min_contrast_ratio: float, min_rows: int, min_per_direction: int) -> tuple[np.ndarray, np.ndarray]:
+    """The cell-edge fit's rounds (``corners.fit_tag_edges``): ``iterations`` rounds of
+    ``edge_fit_round`` from homographies ``h`` (N, 8), updated in place where a round solved a
+    tag, the last round on the samples the one before it trusted.
+
+    Returns:
+        (solved (N,) bool: the last round solved the tag; delta (N,): its two directions' mean
+        edge shift, px, NaN where not solved).
+    """
+    n, t_rows = len(h), len(tag_of)
+    keep = np.ones(t_rows, np.bool_)
+    vertical = np.empty(t_rows, np.bool_)
+    for r in range(t_rows):
+        vertical[r] = abs(nu[r, 0]) > 0.5
+    delta = np.full(n, np.nan)
+    fitted = np.zeros(n, np.bool_)
+    for it in range(iterations):
+        sol, solved, ok = edge_fit_round(img, h, tag_of, uv, nu, vertical, keep, starts, search_px, k,
+                                         min_cell_px, min_contrast_ratio, min_rows, min_per_direction)
+        for g in range(n):
+            for j in range(8):
+                h[g, j] = h[g, j] + (sol[g, j] if solved[g] else 0.0)
+            delta[g] = (sol[g, 8] + sol[g, 9]) / 2.0 if solved[g] else np.nan
+        fitted = solved
+        if it == iterations - 2:
+            keep = ok
+    return fitted, delta
+
+
 @njit(inline="always", error_model="numpy")
 def _cell_px(c: np.ndarray) -> float:
     """A tag's cell width, px: its shortest side (corners ``c`` (4, 2)) over the 8 cells across."""
@@ -626,6 +660,7 @@ def _warm_up() -> None:
     h = np.tile([1.0, 0.0, 4.0, 0.0, 1.0, 4.0, 0.0, 0.0], (2, 1))
     edge_fit_round(frozen(img), h, tag_of, uv, nu, flags, flags.copy(), starts, 3.0, 5, 2.0, 0.7, 1, 1)
     corners = np.array([[[4.0, 4.0], [12.0, 4.0], [12.0, 12.0], [4.0, 12.0]]] * 2)
+    edge_fit(frozen(img), h.copy(), tag_of, uv, nu, starts, 2, 3.0, 5, 2.0, 0.7, 1, 1)
     nrm = np.tile(np.array([[0.0, -1.0], [1.0, 0.0], [0.0, 1.0], [-1.0, 0.0]]), (2, 1, 1))
     rho = np.einsum("nkd,nkd->nk", nrm, corners)
     hom = np.tile(np.eye(3), (2, 1, 1))

@@ -2,7 +2,8 @@
 
 The per-pixel kernels (``ficap_ros.vision.kernels``: the corner stage's profiles and line pass;
 ``ficap_ros.vision.fit_kernels``: its tag-level steps, the border unbias, the cell-edge fit and the
-noise ratio; ``ficap_ros.vision.photometric_kernels``: the photometric and moving tags' fits;
+noise ratio; ``ficap_ros.vision.cell_reads``: reading a tag's cells at its corners;
+``ficap_ros.vision.photometric_kernels``: the photometric and moving tags' fits;
 ``ficap_ros.vision.pose_kernels``: the pose solvers' reprojection;
 ``ficap_ros.vision.uncertainty_kernels``: the pose covariance's unit terms) are numba functions compiled on
 their first call and cached on disk (``njit(cache=True)``), so a
@@ -83,6 +84,7 @@ def warm_up() -> float:
     """Compile (or load from the cache) every kernel for the argument types the pipeline passes;
     returns the seconds it took (wall clock)."""
     # The modules register their kernels' warm-ups when imported.
+    import ficap_ros.vision.cell_reads  # noqa: F401
     import ficap_ros.vision.fit_kernels  # noqa: F401
     import ficap_ros.vision.kernels  # noqa: F401
     import ficap_ros.vision.photometric_kernels  # noqa: F401

@@ -27,12 +27,12 @@ from ficap_ros.errors import ConfigError
 from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.cap_model import CapModel
 from ficap_ros.geometry.tag36h11 import (
-    read_tag_cells,
     stacked_tag_cells,
     tag_cells,
     tag_homographies,
 )
 from ficap_ros.geometry.transform import Transform
+from ficap_ros.vision.cell_reads import read_cells
 from ficap_ros.vision.corners import refine_tag_corners
 from ficap_ros.vision.detector import TagDetection, TagDetector
 from ficap_ros.vision.edges import refine_corners_edge_ok
@@ -165,7 +165,7 @@ def verify_tags(
         hom = tag_homographies(np.asarray(corners_px, dtype=np.float64))
     except np.linalg.LinAlgError:
         return np.zeros(k, dtype=bool), np.full(k, 64), np.zeros(k)
-    read_black, white, black, finite = read_tag_cells(gray, hom)
+    read_black, white, black, finite = read_cells(gray, hom)
     expected = stacked_tag_cells(tuple(int(i) for i in ids)).reshape(k, -1)  # (K, 64) True = black
     errors = (read_black != expected).sum(axis=1)
     contrast = white - black

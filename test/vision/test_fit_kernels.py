@@ -30,6 +30,7 @@ from ficap_ros.vision.edges import (
 )
 from ficap_ros.vision.fit_kernels import (
     boundary_rows,
+    edge_fit,
     edge_fit_round,
     grouped_normal_equations,
     grouped_residuals,
@@ -241,6 +242,43 @@ def test_edge_fit_round_equals_numpy_exactly(seed: int) -> None:
         for g, w in zip(got, want):
             np.testing.assert_array_equal(g, w)
         keep = got[2]
+
+
+def _edge_fit_numpy(img, h, tag_of, uv, nu, starts, iterations):  # noqa: ANN001, ANN202
+    """``fit_kernels.edge_fit`` as numpy glue around the compiled round (itself tested against
+    numpy above): the rounds' homography updates and edge shifts."""
+    keep = np.ones(len(uv), dtype=bool)
+    vertical = np.abs(nu[:, 0]) > 0.5
+    fitted, delta = np.zeros(len(h), dtype=bool), np.full(len(h), np.nan)
+    for it in range(iterations):
+        sol, solved, ok = edge_fit_round(frozen(img), h, tag_of, uv, nu, vertical, keep, starts, 4.0, 4, 2.0, 0.7,
+                                         24, 12)
+        h = h + np.where(solved[:, None], sol[:, :8], 0.0)
+        delta = np.where(solved, sol[:, 8:].mean(axis=1), np.nan)
+        fitted = solved
+        if it == iterations - 2:
+            keep = ok
+    return h, fitted, delta
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+@pytest.mark.parametrize("iterations", [1, 2, 3])
+def test_edge_fit_equals_its_rounds_in_numpy_exactly(seed: int, iterations: int) -> None:
+    """The scene's two tags from starts a few tenths of a px off, and a third start a cell off:
+    the same homographies, solved flags and edge shifts, bit for bit."""
+    img, corners = two_tag_scene(seed)
+    rng = np.random.default_rng(seed)
+    start = corners + rng.normal(0.0, 0.3, corners.shape)
+    off = corners[:1] + np.array([1.0, 0.0]) * np.linalg.norm(corners[0, 1] - corners[0, 0]) / TAG_CELLS
+    start = np.concatenate([start, off])
+    tag_of, starts, (uv, nu) = corners_mod._stacked(corners_mod._cell_edge_samples, (5, 6, 5))
+    h = tag_homographies(start).reshape(3, 9)[:, :8].copy()
+    want = _edge_fit_numpy(img, h.copy(), tag_of, uv, nu, starts, iterations)
+    got = edge_fit(frozen(img), h, tag_of, uv, nu, starts, iterations, 4.0, 4, 2.0, 0.7, 24, 12)
+    np.testing.assert_array_equal(h, want[0])
+    for g, w in zip(got, want[1:]):
+        np.testing.assert_array_equal(g, w)
+    assert want[1][:2].all()
 
 
 def _unbias_numpy(gray, corners_px, ids, cfg):  # noqa: ANN001, ANN202

@@ -15,6 +15,7 @@ from corner_eval import drive_frames
 from ficap_ros.geometry.cap_model import nominal_model
 from ficap_ros.tools.synth import RenderConfig, default_scene
 from ficap_ros.vision import (
+    cell_reads,
     fit_kernels,
     jit,
     kernels,
@@ -29,8 +30,9 @@ ROOT = Path(__file__).resolve().parents[2]
 KERNELS = (photometric_kernels.select_pixels, photometric_kernels.fit_steps, kernels.area_steps,
            kernels.line_pass, fit_kernels.boundary_rows, fit_kernels.grouped_normal_equations,
            fit_kernels.grouped_residuals, fit_kernels.grouped_solve, fit_kernels.robust_grouped_solve,
-           fit_kernels.edge_fit_round, fit_kernels.border_unbias, fit_kernels.tag_noise_ratios,
-           pose_kernels.reprojection_rt, uncertainty_kernels.propagated_terms)
+           fit_kernels.edge_fit_round, fit_kernels.edge_fit, fit_kernels.border_unbias,
+           fit_kernels.tag_noise_ratios, cell_reads.tag_cell_reads, pose_kernels.reprojection_rt,
+           uncertainty_kernels.propagated_terms)
 
 
 def _cache_dir_in_child(env: dict[str, str], read_only: bool) -> str:
