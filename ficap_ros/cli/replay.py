@@ -185,7 +185,7 @@ def run(args: argparse.Namespace) -> int:
     from ficap_ros.cli.args import EXIT_FRAMES_LOST
     from ficap_ros.files import check_output_folder
     from ficap_ros.geometry.cap_model import load_model, nominal_model
-    from ficap_ros.tools.replay import keep_freed_memory, replay
+    from ficap_ros.tools.replay import freeze_start_up, keep_freed_memory, replay
     from ficap_ros.vision.detector import DetectorConfig
     from ficap_ros.vision.pose import PoseConfig
 
@@ -209,12 +209,14 @@ def run(args: argparse.Namespace) -> int:
 
             raise ConfigError("--no-two-sided-motion is for one recording; a fleet's frames are "
                               "solved with their next frame's pose")
+        freeze_start_up()  # this process reads the recordings (and processes them with --jobs 1)
         return _run_fleet(args, model, calibration, detector, frames)
     args.input = args.input[0]
     # Before any processing: never an input, a recording or a folder ficap did not write.
     check_output_folder(Path(args.out), [args.input, *side_files(args)])
     jobs = cap_jobs(args)
     source = open_source(args)
+    freeze_start_up()  # this process processes the frames (--jobs 1) or reads them (more)
     out = replay(source, args.out, model, PoseConfig(method=args.method), calibration,
                  args.calibrate_frontal, jobs, args.namespace, progress=not args.quiet,
                  detector=detector, frames=frames, inputs=side_files(args), timing=timing_fields(args),

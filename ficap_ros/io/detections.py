@@ -36,7 +36,7 @@ from ficap_ros.vision.pose import CapPose
 if TYPE_CHECKING:
     from ficap_ros.io.labels import FrameRecord
 
-__all__ = ["TagFits", "tag_fits", "apriltag_corners", "apriltag_array", "fit_values",
+__all__ = ["TagFits", "tag_fits", "apriltag_corners", "apriltag_homographies", "apriltag_array", "fit_values",
            "DETECTION_COLUMNS", "detections_csv_text", "TAG_FAMILY"]
 
 TAG_FAMILY = "tag36h11"
@@ -111,11 +111,25 @@ def _homographies(p: np.ndarray) -> np.ndarray:
     return np.concatenate([h, np.ones((n, 1))], axis=1).reshape(n, 3, 3)
 
 
-def apriltag_array(c: messages.MessageClasses, head: Any, fits: TagFits) -> Any:
-    """``apriltag_msgs/AprilTagDetectionArray`` of a frame's detections (module docstring)."""
+def apriltag_homographies(frames: Sequence[TagFits]) -> list[np.ndarray]:
+    """Each frame's ``apriltag_array`` homographies, (N_i, 3, 3) per frame, from one solve over
+    every frame's tags: each tag's system is solved on its own, so the values are a frame's own
+    to the bit, without the solve's fixed cost per frame."""
+    p = np.concatenate([np.zeros((0, 4, 2))] + [f.corners_px[:, list(_APRILTAG_ORDER)] for f in frames])
+    H = _homographies(p + _APRILTAG_OFFSET_PX) if len(p) else np.zeros((0, 3, 3))
+    return np.split(H, np.cumsum([len(f) for f in frames])[:-1]) if frames else []
+
+
+def apriltag_array(c: messages.MessageClasses, head: Any, fits: TagFits,
+                   homographies: np.ndarray | None = None) -> Any:
+    """``apriltag_msgs/AprilTagDetectionArray`` of a frame's detections (module docstring);
+    ``homographies``: theirs (``apriltag_homographies``), solved here when not given."""
     point, detection = c.types["apriltag_msgs/msg/Point"], c.types["apriltag_msgs/msg/AprilTagDetection"]
     p = fits.corners_px[:, list(_APRILTAG_ORDER)] + _APRILTAG_OFFSET_PX  # apriltag_corners, each
-    H = _homographies(p) if len(fits) else np.zeros((0, 3, 3))
+    if homographies is not None:
+        H = homographies
+    else:
+        H = _homographies(p) if len(fits) else np.zeros((0, 3, 3))
     # Python scalars once per array (tolist), not a numpy scalar per field; the homographies'
     # field values once for all tags (``c.floats``), each tag's nine a slice of them.
     flat = c.floats(H)
@@ -134,9 +148,9 @@ def fit_values(fits: TagFits) -> dict[str, float]:
     """``tag<id>/used`` (1 or 0) and ``tag<id>/residual_px`` of every detected tag, in detection
     order."""
     out: dict[str, float] = {}
-    for tag_id, used, residual in zip(fits.ids, fits.used, fits.residual_px):
-        out[f"tag{int(tag_id)}/used"] = 1.0 if used else 0.0
-        out[f"tag{int(tag_id)}/residual_px"] = float(residual)
+    for tag_id, used, residual in zip(fits.ids.tolist(), fits.used.tolist(), fits.residual_px.tolist()):
+        out[f"tag{tag_id}/used"] = 1.0 if used else 0.0
+        out[f"tag{tag_id}/residual_px"] = residual
     return out
 
 

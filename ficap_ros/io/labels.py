@@ -546,10 +546,11 @@ def _status_msg(rec: FrameRecord) -> object:
         header=header(ROSBAGS, rec.stamp_ns, rec.frame_id), status=[status])
 
 
-def _frame_messages(rec: FrameRecord, frames: OutputFrames) -> list[tuple[str, object]]:
+def _frame_messages(rec: FrameRecord, frames: OutputFrames,
+                    homographies: np.ndarray | None = None) -> list[tuple[str, object]]:
     """(label stream, message) of one record, in the order they are written: the poses, the head
     angles and the TF of a posed frame; quality and status of every frame; the detections of
-    every processed one."""
+    every processed one (``homographies``: theirs, ``detections.apriltag_homographies``)."""
     from ficap_ros.io.detections import apriltag_array, fit_values
     from ficap_ros.io.frames import frame_transforms, pose_outputs, tf_message
     from ficap_ros.io.messages import ROSBAGS, header, named_values
@@ -567,9 +568,13 @@ def _frame_messages(rec: FrameRecord, frames: OutputFrames) -> list[tuple[str, o
     out += [("quality", named_values(ROSBAGS, in_camera, quality_values(rec))),
             ("status", _status_msg(rec))]
     if rec.tags is not None:
-        out += [("detections", apriltag_array(ROSBAGS, in_camera, rec.tags)),
+        out += [("detections", apriltag_array(ROSBAGS, in_camera, rec.tags, homographies)),
                 ("detections_fit", named_values(ROSBAGS, in_camera, fit_values(rec.tags)))]
     return out
+
+
+#: Records whose detections' homographies ``write_labels_bag`` solves at once.
+_HOMOGRAPHY_BLOCK = 256
 
 
 def write_labels_bag(path: str | Path, records: Sequence[FrameRecord],
@@ -585,6 +590,7 @@ def write_labels_bag(path: str | Path, records: Sequence[FrameRecord],
         BagError: the folder is not writable.
     """
     from ficap_ros.io.bag_writer import BagWriter
+    from ficap_ros.io.detections import apriltag_homographies
     from ficap_ros.io.frames import static_transforms, tf_message
     from ficap_ros.io.messages import ROSBAGS
 
@@ -595,10 +601,14 @@ def write_labels_bag(path: str | Path, records: Sequence[FrameRecord],
             if stream != "tf_static" or frames.mount is not None:
                 bag.add_topic(topics[stream], msgtype)
         static_for = None
-        for rec in records:
-            if frames.mount is not None and rec.frame_id != static_for:
-                static_for = rec.frame_id
-                bag.write(topics["tf_static"], rec.stamp_ns, tf_message(
-                    ROSBAGS, rec.stamp_ns, static_transforms(frames, rec.frame_id)))
-            for stream, msg in _frame_messages(rec, frames):
-                bag.write(topics[stream], rec.stamp_ns, msg)
+        for start in range(0, len(records), _HOMOGRAPHY_BLOCK):
+            block = records[start:start + _HOMOGRAPHY_BLOCK]
+            homographies = iter(apriltag_homographies([r.tags for r in block if r.tags is not None]))
+            for rec in block:
+                if frames.mount is not None and rec.frame_id != static_for:
+                    static_for = rec.frame_id
+                    bag.write(topics["tf_static"], rec.stamp_ns, tf_message(
+                        ROSBAGS, rec.stamp_ns, static_transforms(frames, rec.frame_id)))
+                hom = next(homographies) if rec.tags is not None else None
+                for stream, msg in _frame_messages(rec, frames, hom):
+                    bag.write(topics[stream], rec.stamp_ns, msg)

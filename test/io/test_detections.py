@@ -22,6 +22,7 @@ from ficap_ros.io.detections import (
     TagFits,
     apriltag_array,
     apriltag_corners,
+    apriltag_homographies,
     detections_csv_text,
     fit_values,
     tag_fits,
@@ -143,6 +144,30 @@ def test_each_homography_maps_the_tag_square_onto_its_corners(tags) -> None:  # 
         got = m[:, :2] / m[:, 2:]
         np.testing.assert_allclose(got[:4], apriltag_corners(fits.corners_px[k]), atol=1e-6)
         np.testing.assert_allclose(got[4], [d.centre.x, d.centre.y], atol=1e-9)
+
+
+@given(st.lists(st.integers(0, 4), min_size=0, max_size=6), st.integers(0, 2**32 - 1))
+def test_homographies_solved_at_once_are_each_frames_own_to_the_bit(sizes: list[int], seed: int) -> None:
+    """apriltag_homographies over several frames (some without tags) gives each frame the values
+    apriltag_array solves for it alone, bit for bit: labels.mcap's bytes do not depend on it."""
+    rng = np.random.default_rng(seed)
+    square = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
+    frames = []
+    for n in sizes:
+        corners = (square[None] * rng.uniform(5.0, 80.0, (n, 1, 1)) + rng.uniform(0.0, 1900.0, (n, 1, 2))
+                   + rng.normal(0.0, 1.5, (n, 4, 2)))
+        frames.append(TagFits(np.arange(n), corners, np.ones(n, bool), np.zeros(n), np.zeros(n, int),
+                              np.zeros(n)))
+    together = apriltag_homographies(frames)
+    assert len(together) == len(frames)
+    head = messages.header(ROSBAGS, 0, "cam")
+    for fits, H in zip(frames, together):
+        assert H.shape == (len(fits), 3, 3)
+        alone = apriltag_array(ROSBAGS, head, fits)
+        given_h = apriltag_array(ROSBAGS, head, fits, H)
+        for a, b in zip(alone.detections, given_h.detections):
+            assert a.homography.tobytes() == b.homography.tobytes()
+            assert (a.centre.x, a.centre.y) == (b.centre.x, b.centre.y)
 
 
 def _fits() -> TagFits:
