@@ -13,7 +13,10 @@ error (the geodesic rotation angle and the translation length of ``T_cam_cap``).
 
 Sets: every blender_dev set and ``ficap synth`` drives (540p and 1080p x neutral, high, low light,
 one frame a second of a naturalistic drive, seeds 100-122, the realistic chain). Ours and the naive
-peer, whose worse corners the bounds must follow too.
+peer, whose worse corners the bounds must follow too. Each set's frames in order as ``ficap replay``
+makes them, ours told the camera's timing where the set states it (the glance sets' exposure and
+rolling-shutter readout, as a user who states them: the rolling-shutter pose, the blur's terms, each
+frame solved again with the next frame's pose).
 
 Which covariance terms over- or under-state the translation error: per set, each frame's error
 along its stated depth direction (the covariance's largest axis) over the stated sigma there (1
@@ -48,6 +51,7 @@ docs/benchmarks/uncertainty.md and uncertainty.png.
 from __future__ import annotations
 
 import sys
+from collections import deque
 from dataclasses import replace
 
 import numpy as np
@@ -56,8 +60,11 @@ from scipy.stats import spearmanr
 from _lib import bounds_fit, cli, devsets, report
 from _lib.methods import OURS, OURS_PHOTOMETRIC, PEER
 from _lib.synthdata import drive_frames
+from ficap_ros.geometry.camera import CameraTiming
 from ficap_ros.geometry.metrics import angle_deg
 from ficap_ros.tools.synth import REALISTIC, RenderConfig
+from ficap_ros.vision.pose import CapPose
+from ficap_ros.vision.two_sided import TwoSidedFrames
 from ficap_ros.vision.uncertainty import UncertaintyConfig, uncertainty_sources
 
 METHODS = (OURS, PEER)
@@ -70,31 +77,49 @@ ONE_GAIN = {"axes": {"common_offset_gain": FIT_AXES["common_offset_gain"]},
             "tied": {"common_offset_se_gain": "common_offset_gain"}, "fixed": {"shared_bias_gain": 0.0}}
 
 
-def run_frames(frames, camera, methods=METHODS) -> dict[str, dict[str, list]]:  # noqa: ANN001 - (image, T, stamp) iterable
+def run_frames(frames, camera, methods=METHODS, timing: CameraTiming | None = None  # noqa: ANN001
+               ) -> dict[str, dict[str, list]]:
     """Per method, per frame with a pose: errors, bounds, reliability, covariance; for ours (the
-    first method) also the pose's covariance terms (``bounds_fit.FrameTerms``, key ``terms``)."""
-    procs = {m.name: m.processor() for m in methods}
+    first method) also the pose's covariance terms (``bounds_fit.FrameTerms``, key ``terms``).
+
+    ``frames``: (image, T_cam_cap truth, stamp ns) in order; ``timing``: the camera's exposure
+    and readout as the set states them, given to ours (the peer takes none). Frames are made as
+    ``ficap replay`` makes them (``TwoSidedFrames``): where the timing's motion model applies, each
+    frame is solved again with the next frame's pose; elsewhere the first result stands."""
+    runs = {m.name: TwoSidedFrames(m.processor(timing=None if m is PEER else timing)) for m in methods}
+    # A frame finishes while the next one is processed: its terms are in the last two frames' calls.
+    calls = {m.name: deque(maxlen=2) for m in methods}
     out = {m.name: {k: [] for k in ("rot", "trans", "rot95", "trans95", "rel", "cov", "terms")} for m in methods}
+
+    def take(name: str, key: tuple, p: CapPose | None) -> None:
+        if p is None:
+            return
+        truth, speed = key
+        o = out[name]
+        o["rot"].append(float(angle_deg(p.T_cam_cap.rotation, truth.rotation)))
+        o["trans"].append(1e3 * float(np.linalg.norm(p.T_cam_cap.translation_m - truth.translation_m)))
+        o["rot95"].append(p.rot_err95_deg)
+        o["trans95"].append(p.trans_err95_mm)
+        o["rel"].append(p.reliability)
+        o["cov"].append(np.asarray(p.covariance))
+        recorded = (bounds_fit.terms_of([c for chunk in calls[name] for c in chunk], p.T_cam_cap.translation_m)
+                    if name == methods[0].name else None)
+        if recorded is not None:
+            error_mm = 1e3 * (p.T_cam_cap.translation_m - truth.translation_m)
+            o["terms"].append(bounds_fit.FrameTerms(*recorded, o["rot"][-1], o["trans"][-1], error_mm, speed))
+
     before = None
     for image, truth, stamp in frames:
         speed, before = _speed_dps(before, truth, stamp), (truth, stamp)
-        for name, proc in procs.items():
-            with bounds_fit.record_terms() as calls:
-                p = proc.process(image, camera, stamp).pose
-            if p is None:
-                continue
-            o = out[name]
-            o["rot"].append(float(angle_deg(p.T_cam_cap.rotation, truth.rotation)))
-            o["trans"].append(1e3 * float(np.linalg.norm(p.T_cam_cap.translation_m - truth.translation_m)))
-            o["rot95"].append(p.rot_err95_deg)
-            o["trans95"].append(p.trans_err95_mm)
-            o["rel"].append(p.reliability)
-            o["cov"].append(np.asarray(p.covariance))
-            recorded = bounds_fit.terms_of(calls, p.T_cam_cap.translation_m) if name == methods[0].name else None
-            if recorded is not None:
-                error_mm = 1e3 * (p.T_cam_cap.translation_m - truth.translation_m)
-                o["terms"].append(bounds_fit.FrameTerms(*recorded, o["rot"][-1], o["trans"][-1], error_mm,
-                                                        speed))
+        for name, run in runs.items():
+            with bounds_fit.record_terms() as recorded:
+                done = run.process((truth, speed), image, camera, stamp)
+            calls[name].append(recorded)
+            for key, result in done:
+                take(name, key, result.pose)
+    for name, run in runs.items():
+        for key, result in run.finish():
+            take(name, key, result.pose)
     return out
 
 
@@ -376,12 +401,13 @@ def summary(o: dict[str, list]) -> dict[str, float] | None:
 
 
 def sets(args) -> dict[str, tuple]:  # noqa: ANN001
-    """name -> (frames callable, camera): blender_dev's, then the synth drives."""
+    """name -> (frames callable, camera, timing): blender_dev's (with the exposure and readout each
+    set states: the glance sets'), then the synth drives (timing not stated)."""
     out = {}
     for name in devsets.present(args.data):
         s = devsets.load_set(args.data, name, 8 if args.quick else None)
         out[f"blender {name.replace('dev_', '')}"] = (
-            lambda s=s: [(f.image, f.T_cam_cap, f.stamp_ns) for f in s.frames], s.camera)
+            lambda s=s: [(f.image, f.T_cam_cap, f.stamp_ns) for f in s.frames], s.camera, s.timing)
     n = 10 if args.quick else 60
     for i, res in enumerate(("540p", "1080p")):
         for j, light in enumerate(("neutral", "high", "low")):
@@ -394,7 +420,7 @@ def sets(args) -> dict[str, tuple]:  # noqa: ANN001
 
                 for f in frames:
                     yield cv2.imdecode(f.jpeg, cv2.IMREAD_GRAYSCALE), f.T_cam_cap, f.stamp_ns
-            out[f"synth {res} {light}"] = (gen, camera)
+            out[f"synth {res} {light}"] = (gen, camera, None)
     return out
 
 
@@ -433,8 +459,8 @@ def main(argv: list[str] | None = None) -> int:
     cv2.setNumThreads(1)
     run = report.Run()
     rows, points = [], {}
-    for name, (frames, camera) in sets(args).items():
-        per = run_frames(frames(), camera, methods)
+    for name, (frames, camera, timing) in sets(args).items():
+        per = run_frames(frames(), camera, methods, timing)
         points[name] = per[ours.name]
         for m in methods:
             s = summary(per[m.name])

@@ -20,6 +20,7 @@ from itertools import product
 import numpy as np
 from scipy.stats import binom
 
+import ficap_ros.vision.motion as motion_module
 import ficap_ros.vision.pose as pose_module
 from ficap_ros.vision.error_bounds import error_bound95
 from ficap_ros.vision.uncertainty import (
@@ -27,6 +28,10 @@ from ficap_ros.vision.uncertainty import (
     combine_uncertainty,
     uncertainty_bounds,
 )
+
+#: The modules that call ``uncertainty_terms`` for a reported pose: the static fit's and the
+#: rolling-shutter fit's (``motion.moving_pose``).
+_CALLERS = (pose_module, motion_module)
 
 #: The share of frames a set's translation bounds must cover for a gain to be chosen.
 MIN_COVERAGE = 0.9
@@ -66,10 +71,10 @@ def light_gradient_floor_px(edge_shift_px: np.ndarray, centres_px: np.ndarray) -
 
 @contextmanager
 def record_terms() -> Iterator[list[tuple[np.ndarray, dict, dict]]]:
-    """Within the block, every ``uncertainty_terms`` call of ``ficap_ros.vision.pose`` appends
-    (the pose's translation, terms, seen) to the yielded list (``terms_of`` picks a pose's); the
-    recorded ``seen`` also holds ``light_gradient_floor`` (``light_gradient_floor_px``, 0 when the
-    call had no edge shifts)."""
+    """Within the block, every ``uncertainty_terms`` call of ``ficap_ros.vision.pose`` and
+    ``ficap_ros.vision.motion`` (a rolling shutter's pose) appends (the pose's translation, terms,
+    seen) to the yielded list (``terms_of`` picks a pose's); the recorded ``seen`` also holds
+    ``light_gradient_floor`` (``light_gradient_floor_px``, 0 when the call had no edge shifts)."""
     calls: list[tuple[np.ndarray, dict, dict]] = []
     original = pose_module.uncertainty_terms
 
@@ -80,11 +85,13 @@ def record_terms() -> Iterator[list[tuple[np.ndarray, dict, dict]]]:
         calls.append((np.array(T.translation_m), terms, {**seen, "light_gradient_floor": floor}))
         return terms, seen
 
-    pose_module.uncertainty_terms = recording
+    for module in _CALLERS:
+        module.uncertainty_terms = recording
     try:
         yield calls
     finally:
-        pose_module.uncertainty_terms = original
+        for module in _CALLERS:
+            module.uncertainty_terms = original
 
 
 def terms_of(calls: Sequence[tuple[np.ndarray, dict, dict]], translation_m: np.ndarray

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from ficap_ros.geometry.camera import CameraModel
+from ficap_ros.geometry.camera import CameraModel, CameraTiming
 from ficap_ros.geometry.cap_model import CapModel
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.io.sources import decode_raw, open_frames
@@ -73,6 +73,15 @@ class DevSet:
     tone: str
     lighting: str
     frames: tuple[DevFrame, ...]
+    timing: CameraTiming = CameraTiming()  # exposure and readout as ground_truth.json states them
+
+
+def timing_of(truth: dict) -> CameraTiming:
+    """The camera timing a set's ``ground_truth.json`` states (``exposure_s``, ``readout_s``; the
+    rows read top to bottom, the stamp the middle row's mid-exposure, as its README says): a
+    still set's, with neither, is the unknown timing (``CameraTiming()``)."""
+    return CameraTiming(exposure_ms=1e3 * float(truth.get("exposure_s") or 0.0),
+                        readout_ms=1e3 * float(truth.get("readout_s") or 0.0))
 
 
 def root_of(data: Path) -> Path:
@@ -120,4 +129,4 @@ def load_set(data: Path, name: str, max_frames: int | None = None) -> DevSet:
     return DevSet(name=name, path=path, camera=camera, true_model=true_model,
                   psf_sigma_px=float(render.get("psf_sigma_px", float("nan"))),
                   tone=str(render.get("tone", "")), lighting=str(truth.get("lighting", "")),
-                  frames=tuple(frames))
+                  frames=tuple(frames), timing=timing_of(truth))

@@ -13,6 +13,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from ficap_ros.geometry.camera import CameraTiming
 from ficap_ros.geometry.cap_model import CapModel, nominal_model
 from ficap_ros.vision.detector import DetectorConfig
 from ficap_ros.vision.pipeline import FrameProcessor
@@ -28,8 +29,11 @@ class Method:
     pose: PoseConfig
     tracking: bool = True
 
-    def processor(self, model: CapModel | None = None) -> FrameProcessor:
-        return FrameProcessor(model or nominal_model(), self.detector, self.pose, tracking=self.tracking)
+    def processor(self, model: CapModel | None = None, timing: CameraTiming | None = None) -> FrameProcessor:
+        """The pipeline for the cap ``model`` (default: the nominal cap) and a camera whose
+        exposure and readout are ``timing`` (None: not stated, as a user who gives none)."""
+        return FrameProcessor(model or nominal_model(), self.detector, self.pose, tracking=self.tracking,
+                              timing=timing)
 
 
 OURS = Method("ficap", DetectorConfig(), PoseConfig())

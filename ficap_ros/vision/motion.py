@@ -27,6 +27,11 @@ extrapolating it (a cubic through four poses is off by the head's snap, not its 
 share of it a quarter of the backward one's). The live node has no next frame and keeps the
 backward prior.
 
+The velocity is held to the prior's (the pose's six unknowns), so the prior's error moves the pose;
+how large that error is, the readout itself shows: the corners' residuals along the velocity's
+columns, beyond what the pose's absorb, are evidence of it (``MovingFit.prior_error``), and on a
+clean frame through a smooth glance they state it smaller than the prior's model does.
+
 A global-shutter frame says nothing of the velocity: its pose is the static fit's, and its velocity
 (``static_velocity``) is the prior's finite difference at that pose, with the pose's covariance
 propagated into the prior's.
@@ -48,10 +53,9 @@ from ficap_ros.errors import ConfigError
 from ficap_ros.geometry.camera import CameraModel, CameraTiming
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.vision.error_bounds import error_bound95
+from ficap_ros.vision.motion_blur import blur_modes, blur_px
 from ficap_ros.vision.reprojection import (
     TagObservations,
-    moving_points_m,
-    project_px,
     residuals_and_jacobian_moving,
 )
 from ficap_ros.vision.uncertainty import (
@@ -63,8 +67,7 @@ from ficap_ros.vision.uncertainty import (
 )
 
 __all__ = ["MotionConfig", "PastPose", "VelocityPrior", "MotionPrior", "MovingFit", "MovingPose",
-           "acceleration", "blur_modes", "blur_px", "corner_times_s", "moving_pose", "prior_blur_modes",
-           "static_velocity"]
+           "acceleration", "corner_times_s", "moving_pose", "static_velocity"]
 
 #: Reorders the pose solver's (d_theta, d_t) into ROS (t, theta) order.
 _POSE_TO_ROS = np.array([3, 4, 5, 0, 1, 2])
@@ -529,8 +532,9 @@ class MovingFit:
                     tag_sigma_px: np.ndarray | None) -> np.ndarray:
         """(6, 6) ROS order: the pose covariance the prior's own error causes, through the
         (weighted: ``tag_sigma_px``, None: equal weights) fit. Held: the corners were projected
-        at the prior's velocity, so its error moves the pose as the corners' response to it;
-        fitted: the prior's rows are noise of variance ``sigma_px ** 2`` each."""
+        at the prior's velocity, so its error moves the pose as the corners' response to it, at
+        the size the readout leaves it (``prior_error``); fitted: the prior's rows are noise of
+        variance ``sigma_px ** 2`` each."""
         velocity = self._velocity(T)
         n = 8 * len(obs)
         w = np.ones(n) if tag_sigma_px is None else self._weights(tag_sigma_px)
@@ -540,13 +544,47 @@ class MovingFit:
             _, J12 = residuals_and_jacobian_moving(T.rotation_matrix, T.translation_m, velocity,
                                                    obs, self._accel(T))
             G = -np.linalg.solve(H, J[:n].T @ (w[:, None] * J12[:, 6:]))
-            cov = G @ self.prior.at(T).covariance @ G.T
+            noise_px = max(float(np.median(np.sqrt(np.mean(res[:n].reshape(-1, 8) ** 2, axis=1)))), 1e-4)
+            cov = G @ self.prior_error(res[:n], J12, w, self.prior.at(T).covariance, noise_px) @ G.T
         else:
             Jp = J[n:]
             M = np.linalg.inv(H + Jp.T @ Jp)
             cov = (self.sigma_px**2 * M @ Jp.T @ Jp @ M)[:6, :6]
         cov = cov[np.ix_(_POSE_TO_ROS, _POSE_TO_ROS)]
         return 0.5 * (cov + cov.T)
+
+    @staticmethod
+    def prior_error(res: np.ndarray, J12: np.ndarray, w: np.ndarray, prior_covariance: np.ndarray,
+                    noise_px: float) -> np.ndarray:
+        """(6, 6) the second moment of the held velocity's error (the prior's mean less the true
+        velocity, twist order) given what the readout says of it.
+
+        The corners of a rolling shutter's rows, seen over the readout, carry evidence of the
+        velocity beyond the prior's: the part of their residuals ``res`` (2N,, at the held
+        velocity) the velocity's columns of ``J12`` (2N, 12: ``residuals_and_jacobian_moving``)
+        explain and the pose's do not, with the median tag's noise per coordinate ``noise_px``
+        and the tags' weights ``w`` (2N,, 1 for the median tag; ``motion_term`` takes the noise
+        from the residuals' root mean square). The prior's error then has the posterior
+        covariance ``(P^-1 + I)^-1`` (``P``
+        the prior's covariance, ``I`` the readout's information) and the posterior mean ``d``;
+        its second moment is ``d d^T`` plus that covariance. Where the prior states its error
+        right this is ``P`` on average; where the readout shows the velocity better than the prior
+        states it, it is what the readout leaves. The held pose does not use the evidence: its
+        velocity stays the prior's, and only the size of its error follows it."""
+        Jp, Jv = J12[:, :6], J12[:, 6:]
+        wv, wp = w[:, None] * Jv, w[:, None] * Jp
+        try:
+            Hp_inv_pv = np.linalg.solve(Jp.T @ wp, Jp.T @ wv)  # (6, 6)
+            info = (Jv.T @ wv - (Jp.T @ wv).T @ Hp_inv_pv) / noise_px**2
+            score = (wv.T @ res - Hp_inv_pv.T @ (wp.T @ res)) / noise_px**2
+            posterior = np.linalg.inv(np.linalg.inv(prior_covariance) + 0.5 * (info + info.T))
+        except np.linalg.LinAlgError:
+            return prior_covariance
+        mean = -posterior @ score
+        moment = posterior + np.outer(mean, mean)
+        if not np.all(np.isfinite(moment)):
+            return prior_covariance
+        return 0.5 * (moment + moment.T)
 
     def velocity_covariance(self, obs: TagObservations, T: Transform, tag_sigma_px: np.ndarray,
                             pose_covariance: np.ndarray, inflation: float = 1.0) -> np.ndarray:
@@ -602,45 +640,6 @@ class MovingPose:
     covariance: np.ndarray
     rot_err95_deg: float
     trans_err95_mm: float
-
-
-def blur_px(obs: TagObservations, T: Transform, velocity: np.ndarray, exposure_s: float) -> np.ndarray:
-    """(tags, 2) each tag's image motion over the exposure, px: where its corners' centre is at
-    the end of the exposure minus where it is at its start (a cap at pose ``T`` at the stamp
-    moving at ``velocity``; each corner's exposure centred on its row's time, ``obs.time_s``)."""
-    n = len(obs)
-    times = np.zeros((n, 4)) if obs.time_s is None else obs.time_s
-    ends = []
-    for half in (-0.5 * exposure_s, 0.5 * exposure_s):
-        p = moving_points_m(T.rotation_matrix, T.translation_m, velocity, obs.model_m, times + half)
-        ends.append(project_px(obs.K, Transform.identity(), p).reshape(n, 4, 2).mean(axis=1))
-    return ends[1] - ends[0]
-
-
-def blur_modes(corners_px: np.ndarray, blur: np.ndarray) -> dict[str, np.ndarray]:
-    """The corner errors motion blur shares among the tags (``uncertainty_terms``'
-    ``shared_modes``), per px of each tag's motion ``blur`` (tags, 2: ``blur_px``), for the
-    tags' corners ``corners_px`` (tags, 4, 2): ``blur``, each tag's corners moved toward its
-    centre along its motion by its length times the cosine between the motion and the
-    centre-to-corner direction (an edge across the motion moves by the full length, one along it
-    not at all); ``blur_shift``, each tag's corners moved along its motion by its length."""
-    lever = corners_px - corners_px.mean(axis=1, keepdims=True)
-    unit = lever / np.maximum(np.linalg.norm(lever, axis=2, keepdims=True), 1e-9)
-    length = np.linalg.norm(blur, axis=1)
-    direction = blur / np.maximum(length, 1e-12)[:, None]
-    along = np.einsum("tkj,tj->tk", unit, direction)  # cosines (tags, 4)
-    shrink = -(along * length[:, None])[:, :, None] * direction[:, None, :]
-    shift = np.repeat(blur[:, None, :], 4, axis=1)
-    return {"blur": shrink.reshape(-1), "blur_shift": shift.reshape(-1)}
-
-
-def prior_blur_modes(prior: MotionPrior | None, obs: TagObservations, T: Transform,
-                     timing: CameraTiming | None) -> dict[str, np.ndarray] | None:
-    """A global-shutter frame's ``blur_modes`` at the prior's velocity at pose ``T``; None when
-    the exposure or the velocity (a past pose) is not known."""
-    if prior is None or not prior.from_past or timing is None or timing.exposure_ms <= 0.0:
-        return None
-    return blur_modes(obs.image_px, blur_px(obs, T, prior.at(T).mean, timing.exposure_ms * 1e-3))
 
 
 def moving_pose(fit: MovingFit, used: TagObservations, T: Transform, edge_shift_px: np.ndarray,

@@ -56,9 +56,9 @@ from ficap_ros.vision.motion import (
     MovingFit,
     corner_times_s,
     moving_pose,
-    prior_blur_modes,
     static_velocity,
 )
+from ficap_ros.vision.motion_blur import prior_blur_modes
 from ficap_ros.vision.reprojection import (
     TagObservations,
     edge_shifts_px,
@@ -572,7 +572,7 @@ def _cap_pose(solution: _Solution, ours: Sequence[TagDetection], tags_detected: 
               config: PoseConfig, with_uncertainty: bool,
               blur: dict[str, np.ndarray] | None = None) -> CapPose:
     """The reported pose of a solution: tag weights (``joint``), its rms and uncertainty
-    (``blur``: the motion blur's shared corner errors, ``motion.blur_modes``)."""
+    (``blur``: the motion blur's shared corner errors, ``motion_blur.blur_modes``)."""
     uncertainty = config.uncertainty if config.uncertainty is not None else UncertaintyConfig()
     used_n = len(solution.used)
     T = solution.T

@@ -190,18 +190,20 @@ class UncertaintyConfig:
         weight_tags: weight each tag in the ``joint`` pose by its corner noise
             (``tag_noise_px``): one weighted Gauss-Newton step from the unweighted optimum.
         motion_blur_gain: shared shrink of the tags along their image motion over the exposure,
-            per px of that motion (the mode ``blur`` of ``motion.blur_modes``, known when the
+            per px of that motion (the mode ``blur`` of ``motion_blur.blur_modes``, known when the
             camera's exposure is): a tag smeared along its motion and then bent by the tone curve
             has its edges across the motion pulled toward the black, in every tag alike, so the
             pose absorbs it.
         motion_blur_shift_gain: shared shift of the tags along their motion, per px of it (the
             mode ``blur_shift``): edges fitted on a smeared tag settle off its mid-exposure
             place, alike in every tag, which the pose takes for a turn. Both gains are fitted
-            on rendered fast glances (path-traced and synth, global and rolling shutter) for
-            95 % coverage, each recording's checked with gains fitted without it
+            on rendered fast glances (path-traced and synth, global and rolling shutter): the
+            pair whose bounds hold in at least 90 % of every recording's fast frames with the
+            sharpest fast-frame bounds, each recording's checked with gains fitted without it
             (``benchmarks/bench_glance.py``); they act only when the exposure is given. The
-            shift's gain is 0: the motion-aware corners (``DetectorConfig.motion_corners``) fit the
-            smear, and the common offset (``common_offset_gain``) covers most of what is left.
+            motion-aware corners (``DetectorConfig.motion_corners``) fit the smear, so little of
+            the shrink is left, and the shift's gain is 0: the common offset
+            (``common_offset_gain``) covers what is left of the shift.
     """
 
     corner_noise_px: float = 0.002
@@ -220,7 +222,7 @@ class UncertaintyConfig:
     edge_shift_tilt_gain: float = 0.05
     tilt_shift_px: float = 0.0
     weight_tags: bool = True
-    motion_blur_gain: float = 0.1
+    motion_blur_gain: float = 0.025
     motion_blur_shift_gain: float = 0.0
 
     def __post_init__(self) -> None:
@@ -369,7 +371,7 @@ def uncertainty_terms(
             prior's own error causes (``motion.MovingFit.motion_term``), the term
             ``motion_prior``.
         shared_modes: further corner errors shared by the tags, by name: (2n,) each corner's
-            displacement (px) per unit of the source (``motion.blur_modes``); each becomes the
+            displacement (px) per unit of the source (``motion_blur.blur_modes``); each becomes the
             term of its name.
 
     Returns:

@@ -28,10 +28,10 @@ from ficap_ros.geometry.transform import CAM_FROM_FORWARD, Transform
 from ficap_ros.vision.motion import (
     MotionConfig,
     MotionPrior,
+    MovingFit,
     PastPose,
     VelocityPrior,
     acceleration,
-    blur_modes,
     corner_times_s,
     static_velocity,
 )
@@ -286,18 +286,6 @@ def test_global_shutter_velocity_is_the_prior_and_leaves_the_pose_alone() -> Non
     assert static_velocity(MotionPrior(), T0, plain.covariance) is None
 
 
-def test_blur_modes_shrink_across_the_motion_and_shift_along_it() -> None:
-    """A square tag moving 4 px along x: ``blur`` moves the corners toward the centre along x
-    by the length times the cosine of their lever to the motion, ``blur_shift`` every corner by
-    the motion itself."""
-    square = np.array([[[0.0, 0.0], [10.0, 0.0], [10.0, 10.0], [0.0, 10.0]]])
-    modes = blur_modes(square, np.array([[4.0, 0.0]]))
-    cos = np.sqrt(0.5)
-    np.testing.assert_allclose(modes["blur"].reshape(4, 2),
-                               [[4 * cos, 0.0], [-4 * cos, 0.0], [-4 * cos, 0.0], [4 * cos, 0.0]])
-    np.testing.assert_allclose(modes["blur_shift"].reshape(4, 2), [[4.0, 0.0]] * 4)
-
-
 def test_rolling_shutter_needs_the_joint_method() -> None:
     """The other estimators fit every corner at once, timing or not."""
     _, dets = _glance_frame()
@@ -334,6 +322,43 @@ def test_three_past_poses_measure_the_jerk() -> None:
     expected = np.hypot(np.concatenate([np.abs(jerk), np.zeros(3)]), floor) * h * 2 * h / 6
     np.testing.assert_allclose(sd, expected, rtol=1e-4)
     assert sd[3] < 0.5 * MotionPrior(prior.past[:2], cfg).at(T0).covariance[3, 3] ** 0.5
+
+
+def _readout_problem(rng: np.random.Generator, n: int = 40) -> tuple[np.ndarray, np.ndarray]:
+    """A fit's Jacobian (n, 12: pose then velocity columns) and weights (n,)."""
+    return rng.normal(size=(n, 12)), rng.uniform(0.5, 2.0, n)
+
+
+def test_prior_error_without_readout_evidence_is_the_prior() -> None:
+    """Corners that say nothing of the velocity (zero velocity columns): the held velocity's
+    error is the prior's covariance, whatever the residuals."""
+    rng = np.random.default_rng(0)
+    J12, w = _readout_problem(rng)
+    J12[:, 6:] = 0.0
+    P = np.diag([1e-4, 2e-4, 3e-4, 1e-2, 2e-2, 3e-2])
+    np.testing.assert_allclose(MovingFit.prior_error(rng.normal(size=40), J12, w, P, 0.1), P, rtol=1e-12)
+
+
+def test_prior_error_follows_what_the_readout_shows() -> None:
+    """Strong evidence of the velocity: the second moment of the prior's error is the velocity
+    misfit the residuals show (its outer product), not the prior's covariance; and, the prior
+    stating its error right, the moment averaged over draws of that error and of the corner
+    noise is the prior's covariance (the evidence shares the error out, it does not remove it)."""
+    rng = np.random.default_rng(1)
+    J12, w = _readout_problem(rng)
+    P = np.diag([1e-2, 2e-2, 3e-2, 1.0, 2.0, 3.0])
+    e = np.array([0.05, -0.1, 0.02, 0.3, -0.2, 0.1])  # true velocity less the held one
+    pose_part = J12[:, :6] @ rng.normal(size=6)  # absorbed by the pose's columns
+    moment = MovingFit.prior_error(-J12[:, 6:] @ e + pose_part, J12, w, P, 1e-4)
+    np.testing.assert_allclose(moment, np.outer(e, e), atol=1e-6)
+    noise_px = 0.5
+    draws = []
+    for _ in range(4000):
+        e = rng.multivariate_normal(np.zeros(6), P)
+        noise = noise_px * rng.normal(size=len(w)) / np.sqrt(w)
+        draws.append(MovingFit.prior_error(-J12[:, 6:] @ e + noise, J12, w, P, noise_px))
+    scale = np.sqrt(np.outer(np.diag(P), np.diag(P)))
+    assert np.max(np.abs(np.mean(draws, axis=0) - P) / scale) < 0.1
 
 
 def _glance_at(t0_s: float):  # noqa: ANN202
