@@ -187,6 +187,15 @@ _TRACK_RETRY_PX = 0.5
 #: A refinement pass that moves no corner by more than this started close enough to the edges for
 #: its result to be final (smaller thresholds give the same pose error and cost a second pass).
 _TRACK_CONVERGED_PX = 0.2
+#: A search completion's tag whose refined corners lie further than this from where the searched
+#: tags' pose put them is fitted again from that prediction (``Tracker._refit_astray``): a pose of
+#: several tags of the same frame predicts a tag's corners to a few tenths of a px, so a corner this
+#: far off is the line pass's, latched onto a neighbouring edge (at low light, on oblique tags).
+_LOCATED_AGREE_PX = 1.0
+#: ... and the fit from the prediction is taken when it moves no corner further than this from it
+#: (it confirms the prediction; a prediction that far off, e.g. of a cap built unlike its model,
+#: leaves the line pass's corners).
+_LOCATED_CONFIRM_PX = 0.5
 
 
 class Search(str, Enum):
@@ -360,15 +369,21 @@ class Tracker:
             refined[lost], ok[lost] = c, ok_lost
         return refined, ok
 
-    def _verified(self, gray: np.ndarray, ids: np.ndarray, corners: np.ndarray) -> tuple[list[TagDetection], float]:
+    def _verified(
+        self, gray: np.ndarray, ids: np.ndarray, corners: np.ndarray, located: bool = False,
+    ) -> tuple[list[TagDetection], float]:
         """Refine predicted corners and keep the tags whose cells read as their ids; also the
-        largest distance, px, a verified tag's corner moved from its prediction."""
+        largest distance, px, a verified tag's corner moved from its prediction. ``located``: the
+        corners were predicted by the pose of tags found in this frame (a search's completion),
+        so a tag refined far from them is fitted again from them (``_refit_astray``)."""
         refined, ok = self._refine_predicted(gray, corners)
         # The tone-curve bias and the cell-edge fit, as on searched tags (one corner estimator),
         # after the edge refinement: corners fitted straight from the prediction keep a pull toward
         # the model's projection, which shrinks the residuals and so the error bounds.
         shift = np.full(len(ids), np.nan)
         refined[ok], shift[ok] = refine_tag_corners(gray, refined[ok], ids[ok], self._tracked_corners)
+        if located:
+            self._refit_astray(gray, ids, corners, refined, ok, shift)
         ver, errors, contrast = verify_tags(gray, ids[ok], refined[ok], self.config)
         kept = np.flatnonzero(ok)[ver]
         moved = np.linalg.norm(refined[kept] - corners[kept], axis=2)
@@ -377,6 +392,24 @@ class Tracker:
                  for i, c, e, m, x in zip(ids[kept].tolist(), refined[kept], errors[ver].tolist(),
                                           contrast[ver].tolist(), shift[kept].tolist())],
                 float(moved.max()) if moved.size else 0.0)
+
+    def _refit_astray(
+        self, gray: np.ndarray, ids: np.ndarray, predicted: np.ndarray, refined: np.ndarray,
+        ok: np.ndarray, shift: np.ndarray,
+    ) -> None:
+        """Fit again, in place (``refined``, ``shift``), the refined tags (``ok``) with a corner
+        further than ``_LOCATED_AGREE_PX`` from its ``predicted`` place, this time from the
+        prediction itself (no line pass): a line side pulled onto a neighbouring edge leaves the
+        cell-edge fit a start it converges from to a wrong place whose cells still read right. The
+        new corners are taken where that fit succeeds, moves no corner further than
+        ``_LOCATED_CONFIRM_PX`` from the prediction (it confirms it) and its cells verify."""
+        far = np.flatnonzero(ok & (np.linalg.norm(refined - predicted, axis=2).max(axis=1) > _LOCATED_AGREE_PX))
+        if not len(far):
+            return
+        c, d = refine_tag_corners(gray, predicted[far], ids[far], self._tracked_corners)
+        take = np.isfinite(d) & (np.linalg.norm(c - predicted[far], axis=2).max(axis=1) <= _LOCATED_CONFIRM_PX)
+        take[take] = verify_tags(gray, ids[far][take], c[take], self.config)[0]
+        refined[far[take]], shift[far[take]] = c[take], d[take]
 
     def _view_angles(self, T_cam_cap: Transform) -> np.ndarray:
         """``view_angles_deg(self.model, T_cam_cap)``, remembered for the last pose object."""
@@ -425,7 +458,8 @@ class Tracker:
 
         The search (decimated on large frames) loses the smallest and most oblique tags; the cap
         is rigid, so the pose of the tags it found predicts the rest, which are edge-refined and
-        verified exactly as tracked tags are. Returns the tags, the pose they were looked for at
+        verified as tracked tags are (a tag refined far from that prediction is fitted again from
+        it: ``_refit_astray``). Returns the tags, the pose they were looked for at
         (the search's pose, or ``predicted`` when too few tags were found to pose the cap) and
         whether the search's pose was found (the completion ran).
         """
@@ -443,7 +477,7 @@ class Tracker:
         missing = np.array([int(i) not in have for i in ids], dtype=bool)
         if missing.any():
             self.search_completions += 1
-            found = found + tuple(self._verified(gray, ids[missing], corners[missing])[0])
+            found = found + tuple(self._verified(gray, ids[missing], corners[missing], located=True)[0])
         return found, first.pose.T_cam_cap, True
 
     # -- one frame ----------------------------------------------------------------------------

@@ -111,7 +111,8 @@ def test_the_pose_drops_a_hidden_tag_at_twice_the_median_residual() -> None:
 def test_replay_leaves_out_the_hidden_tag_with_a_bad_corner() -> None:
     # 1080p, spotlights: the head's edge over tag 2's corner moves its corners 0.18 px (the fully
     # visible tags: ~0.1); the pose without the check keeps it (under 4x the median), with the
-    # check it goes; tag 0 (5 px off) goes either way.
+    # check it goes. Tag 0, found by the search's completion, has a corner under the head that the
+    # line pass puts 10 px off; fitted again from the completion's prediction it is within 0.5 px.
     scene, frame, rf = _frame("1080p", "high", HEAD_OVER_RIM_M)
     out = {}
     for check in (False, True):
@@ -120,7 +121,9 @@ def test_replay_leaves_out_the_hidden_tag_with_a_bad_corner() -> None:
     assert {d.tag_id for d in out[False].detections} == {d.tag_id for d in out[True].detections}
     assert {0, 2} <= hidden_tag_ids(rf.image, out[True].detections)
     assert 2 in out[False].pose.used_ids and 2 not in out[True].pose.used_ids
-    assert 0 not in out[False].pose.used_ids and 0 not in out[True].pose.used_ids
+    for r in out.values():
+        tag0 = next(d for d in r.detections if d.tag_id == 0)
+        assert np.linalg.norm(tag0.corners_px - rf.corners_px[0], axis=1).max() < 0.5
     assert out[True].pose.rms_px < out[False].pose.rms_px
     err = {k: angle_deg(v.pose.T_cam_cap.rotation, frame.T_cam_cap.rotation) for k, v in out.items()}
     assert err[True] < err[False] + 0.002
