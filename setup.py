@@ -8,7 +8,7 @@ package_name = "ficap_ros"
 
 setup(
     name=package_name,
-    version="0.3.3",
+    version="0.3.4",
     packages=find_packages(exclude=["test", "test.*", "benchmarks"]),
     # The vendored message definitions (ficap_ros/interfaces/README.md): labels.mcap's detections.
     package_data={package_name: ["py.typed", "data/*", "interfaces/README.md",

@@ -4,4 +4,4 @@ The core modules (cap_model, camera, detection, pose, metrics, calibration, mess
 bag_io, ...) are free of ROS; only ``node.py`` and the ``ros_*.py`` modules use rclpy.
 """
 
-__version__ = "0.3.3"
+__version__ = "0.3.4"

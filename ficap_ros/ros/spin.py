@@ -3,6 +3,7 @@ errors on one line (``ficap_ros.ros.node.main``)."""
 
 from __future__ import annotations
 
+import gc
 import re
 import sys
 from typing import Callable
@@ -99,6 +100,11 @@ def run_node(make_node: Callable[[], Node], name: str, args: list[str] | None = 
     code = 0
     try:
         node = make_node()
+        # The imports and the warmed kernels live as long as the process: out of the garbage
+        # collector's full collections, which would otherwise walk them all again mid-stream
+        # (a pause of frames at 30 Hz). Only live objects are frozen (collected first).
+        gc.collect()
+        gc.freeze()
         log = node.get_logger()
         # libjpeg/FFmpeg print per damaged frame on fd 2: through the logger, throttled.
         with ThrottledStderr(lambda text: log.warning(text)):
