@@ -20,6 +20,7 @@ import numpy as np
 
 from ficap_ros.vision.jit import njit, register_warm_up
 from ficap_ros.vision.kernels import frozen
+from ficap_ros.vision.pose_kernels import corner_rows
 
 __all__ = ["square_tag_corners"]
 
@@ -187,29 +188,12 @@ def _gauss_newton_step(res: np.ndarray, jac: np.ndarray, a: np.ndarray, step: np
 def _residuals(rot: np.ndarray, t: np.ndarray, K: np.ndarray, image_px: np.ndarray, square: np.ndarray,
                res: np.ndarray, jac: np.ndarray) -> None:
     """Residuals (8,) px (projection - corner) of the square at (rot, t) and their Jacobian (8, 6)
-    (a left rotation d_theta, then d_t), as ``pose_kernels.reprojection_rt`` builds them."""
-    fx, fy, skew, cx, cy = K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2]
+    (a left rotation d_theta, then d_t): ``pose_kernels.corner_rows`` of each corner."""
     for i in range(4):
         x0 = rot[0, 0] * square[i, 0] + rot[0, 1] * square[i, 1]
         x1 = rot[1, 0] * square[i, 0] + rot[1, 1] * square[i, 1]
         x2 = rot[2, 0] * square[i, 0] + rot[2, 1] * square[i, 1]
-        iz = 1.0 / (x2 + t[2])
-        xn, yn = (x0 + t[0]) * iz, (x1 + t[1]) * iz
-        u = fx * xn + skew * yn + cx
-        v = fy * yn + cy
-        ru, rv = 2 * i, 2 * i + 1
-        res[ru] = u - image_px[i, 0]
-        res[rv] = v - image_px[i, 1]
-        g0, g1, g2 = fx * iz, skew * iz, -(u - cx) * iz
-        jac[ru, 0] = x1 * g2 - x2 * g1
-        jac[ru, 1] = x2 * g0 - x0 * g2
-        jac[ru, 2] = x0 * g1 - x1 * g0
-        jac[ru, 3], jac[ru, 4], jac[ru, 5] = g0, g1, g2
-        h1, h2 = fy * iz, -(v - cy) * iz
-        jac[rv, 0] = x1 * h2 - x2 * h1
-        jac[rv, 1] = x2 * 0.0 - x0 * h2
-        jac[rv, 2] = x0 * h1
-        jac[rv, 3], jac[rv, 4], jac[rv, 5] = 0.0, h1, h2
+        corner_rows(x0, x1, x2, t, K, image_px[i, 0], image_px[i, 1], res, jac, i)
 
 
 @njit(inline="always", error_model="numpy")
