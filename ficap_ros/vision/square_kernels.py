@@ -18,6 +18,7 @@ import math
 
 import numpy as np
 
+from ficap_ros.vision.fit_kernels import tag_homography
 from ficap_ros.vision.jit import njit, register_warm_up
 from ficap_ros.vision.kernels import frozen
 from ficap_ros.vision.pose_kernels import corner_rows
@@ -39,19 +40,14 @@ def _start_rotations(m: np.ndarray, rot1: np.ndarray, rot2: np.ndarray) -> bool:
     Collins and Bartoli 2014: a plane's pose from one point's affine map, unique up to the
     tilt's sign; the homography in closed form, Heckbert's square-to-quadrilateral map). Writes
     ``rot1``, ``rot2`` (3, 3); False for a degenerate quadrilateral."""
-    x0, y0, x1, y1 = m[0, 0], m[0, 1], m[1, 0], m[1, 1]
-    x2, y2, x3, y3 = m[2, 0], m[2, 1], m[3, 0], m[3, 1]
-    dx1, dx2, dx3 = x1 - x2, x3 - x2, x0 - x1 + x2 - x3
-    dy1, dy2, dy3 = y1 - y2, y3 - y2, y0 - y1 + y2 - y3
-    den = dx1 * dy2 - dx2 * dy1
-    if not (math.isfinite(den) and den != 0.0):
+    hm = np.empty((3, 3))
+    if not tag_homography(m, hm):
         return False
-    g = (dx3 * dy2 - dx2 * dy3) / den
-    h = (dx1 * dy3 - dx3 * dy1) / den
-    # The unit square's map (s, t) -> image; the centred square's (s = (x + 1) / 2, t = (y + 1) / 2)
-    # has half its columns and the unit square's centre as its origin.
-    ax, ay, az = 0.5 * (x1 - x0 + g * x1), 0.5 * (y1 - y0 + g * y1), 0.5 * g
-    bx, by, bz = 0.5 * (x3 - x0 + h * x3), 0.5 * (y3 - y0 + h * y3), 0.5 * h
+    # The tag's map from cell units (0-8) to the image; the centred square's (u = 4 (x + 1)) has
+    # four cells' columns and the tag's centre as its origin.
+    ax, ay, az = 4.0 * hm[0, 0], 4.0 * hm[1, 0], 4.0 * hm[2, 0]
+    bx, by, bz = 4.0 * hm[0, 1], 4.0 * hm[1, 1], 4.0 * hm[2, 1]
+    x0, y0 = hm[0, 2], hm[1, 2]
     ox, oy, oz = x0 + ax + bx, y0 + ay + by, 1.0 + az + bz
     p, q = ox / oz, oy / oz
     j00, j01 = (ax - p * az) / oz, (bx - p * bz) / oz
