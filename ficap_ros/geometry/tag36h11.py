@@ -10,6 +10,7 @@ drawing (``cv2.aruco.generateImageMarker``), which the cap model's corners follo
 from __future__ import annotations
 
 from functools import lru_cache
+from typing import Callable
 
 import numpy as np
 
@@ -140,9 +141,11 @@ def read_tag_cells(gray: np.ndarray, hom: np.ndarray) -> tuple[np.ndarray, np.nd
     return inner < 0.5 * (white + black)[:, None], white, black, finite
 
 
-def cell_errors(gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray) -> np.ndarray:
-    """(K,) how many of each tag's 64 cells, read at ``corners_px`` (K, 4, 2) (``read_tag_cells``),
-    differ from its id's code (64 where the corners give no usable homography)."""
+def cell_errors(gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray,
+                read: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, ...]] | None = None) -> np.ndarray:
+    """(K,) how many of each tag's 64 cells, read at ``corners_px`` (K, 4, 2) by ``read``
+    (``read_tag_cells``'s signature and results; itself by default), differ from its id's code
+    (64 where the corners give no usable homography)."""
     c = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
     if len(c) == 0:
         return np.zeros(0, dtype=int)
@@ -150,7 +153,7 @@ def cell_errors(gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray) -> np
         hom = tag_homographies(c)
     except np.linalg.LinAlgError:
         return np.full(len(c), 64)
-    read_black, _, _, finite = read_tag_cells(gray, hom)
+    read_black, _, _, finite = (read or read_tag_cells)(gray, hom)
     expected = stacked_tag_cells(tuple(int(i) for i in ids)).reshape(len(c), -1)
     return np.where(finite, (read_black != expected).sum(axis=1), 64)
 

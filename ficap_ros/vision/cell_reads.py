@@ -17,14 +17,8 @@ import math
 
 import numpy as np
 
-from ficap_ros.geometry.tag36h11 import (
-    BORDER,
-    CELL_CENTRES,
-    QUIET_ZONE,
-    TAG_AREA,
-    stacked_tag_cells,
-    tag_homographies,
-)
+from ficap_ros.geometry import tag36h11
+from ficap_ros.geometry.tag36h11 import BORDER, CELL_CENTRES, QUIET_ZONE, TAG_AREA
 from ficap_ros.vision.jit import njit, register_warm_up
 from ficap_ros.vision.kernels import frozen
 
@@ -131,16 +125,7 @@ def cell_errors(gray: np.ndarray, corners_px: np.ndarray, ids: np.ndarray) -> np
     """``tag36h11.cell_errors`` compiled, the same numbers: (K,) how many of each tag's 64 cells,
     read at ``corners_px`` (K, 4, 2), differ from its id's code (64 where the corners give no
     usable homography)."""
-    c = np.asarray(corners_px, dtype=np.float64).reshape(-1, 4, 2)
-    if len(c) == 0:
-        return np.zeros(0, dtype=int)
-    try:
-        hom = tag_homographies(c)
-    except np.linalg.LinAlgError:
-        return np.full(len(c), 64)
-    read_black, _, _, finite = read_cells(gray, hom)
-    expected = stacked_tag_cells(tuple(int(i) for i in ids)).reshape(len(c), -1)
-    return np.where(finite, (read_black != expected).sum(axis=1), 64)
+    return tag36h11.cell_errors(gray, corners_px, ids, read=read_cells)
 
 
 @register_warm_up

@@ -27,7 +27,7 @@ from ficap_ros.vision.kernels import _masked_median, area_steps, frozen
 
 __all__ = ["border_unbias", "boundary_rows", "edge_fit", "edge_fit_round", "tag_noise_ratios",
            "grouped_normal_equations", "grouped_residuals", "grouped_solve",
-           "robust_grouped_solve"]
+           "robust_grouped_solve", "tag_homography"]
 
 
 @njit(error_model="numpy")
@@ -395,7 +395,7 @@ _PREV = (3, 0, 1, 2)
 
 
 @njit(inline="always", error_model="numpy")
-def _tag_homography(c: np.ndarray, out: np.ndarray) -> bool:
+def tag_homography(c: np.ndarray, out: np.ndarray) -> bool:
     """``geometry.tag36h11.tag_homographies`` of one tag's corners (4, 2) into ``out`` (3, 3), the
     same arithmetic; False (``out`` unset) for a degenerate quadrilateral."""
     x0, y0, x1, y1 = c[0, 0], c[0, 1], c[1, 0], c[1, 1]
@@ -566,7 +566,7 @@ def border_unbias(img: np.ndarray, c_in: np.ndarray, nrm: np.ndarray, rho: np.nd
     hom2 = np.empty((n, 3, 3))
     usable = np.empty(n, np.bool_)
     for g in range(n):
-        usable[g] = _tag_homography(corners[g], hom2[g])
+        usable[g] = tag_homography(corners[g], hom2[g])
     for r in range(t):
         g, j = tag_of[r], side[r]
         width = np.nan

@@ -32,30 +32,38 @@ def reprojection_rt(X: np.ndarray, t: np.ndarray, K: np.ndarray,
     rounding as every other use of the pose); K (3, 3) with its skew. Rows alternate u and v of
     each corner; columns d_theta (rad, camera axes), then d_t (m). All float64, C-contiguous."""
     n = X.shape[0]
-    fx, fy, skew, cx, cy = K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2]
     res = np.empty(2 * n)
     jac = np.empty((2 * n, 6))
     for i in range(n):
-        x0, x1, x2 = X[i, 0], X[i, 1], X[i, 2]
-        iz = 1.0 / (x2 + t[2])
-        xn, yn = (x0 + t[0]) * iz, (x1 + t[1]) * iz
-        u = fx * xn + skew * yn + cx
-        v = fy * yn + cy
-        ru, rv = 2 * i, 2 * i + 1
-        res[ru] = u - image_px[i, 0]
-        res[rv] = v - image_px[i, 1]
-        # d(u, v)/dp; a left rotation moves the point by d_theta x X: d/d_theta = X x d/dp.
-        g0, g1, g2 = fx * iz, skew * iz, -(u - cx) * iz
-        jac[ru, 0] = x1 * g2 - x2 * g1
-        jac[ru, 1] = x2 * g0 - x0 * g2
-        jac[ru, 2] = x0 * g1 - x1 * g0
-        jac[ru, 3], jac[ru, 4], jac[ru, 5] = g0, g1, g2
-        h0, h1, h2 = 0.0, fy * iz, -(v - cy) * iz
-        jac[rv, 0] = x1 * h2 - x2 * h1
-        jac[rv, 1] = x2 * h0 - x0 * h2
-        jac[rv, 2] = x0 * h1 - x1 * h0
-        jac[rv, 3], jac[rv, 4], jac[rv, 5] = h0, h1, h2
+        corner_rows(X[i, 0], X[i, 1], X[i, 2], t, K, image_px[i, 0], image_px[i, 1], res, jac, i)
     return res, jac
+
+
+@njit(inline="always", error_model="numpy")
+def corner_rows(x0: float, x1: float, x2: float, t: np.ndarray, K: np.ndarray, u_px: float, v_px: float,
+                res: np.ndarray, jac: np.ndarray, i: int) -> None:
+    """Corner ``i``'s two rows of ``reprojection_rt``: the rotated model point (x0, x1, x2), m,
+    shifted by ``t`` and projected through ``K``; ``res[2i], res[2i + 1]`` its residual against
+    the observed (u_px, v_px) and ``jac[2i], jac[2i + 1]`` its Jacobian (d_theta, then d_t)."""
+    fx, fy, skew, cx, cy = K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2]
+    iz = 1.0 / (x2 + t[2])
+    xn, yn = (x0 + t[0]) * iz, (x1 + t[1]) * iz
+    u = fx * xn + skew * yn + cx
+    v = fy * yn + cy
+    ru, rv = 2 * i, 2 * i + 1
+    res[ru] = u - u_px
+    res[rv] = v - v_px
+    # d(u, v)/dp; a left rotation moves the point by d_theta x X: d/d_theta = X x d/dp.
+    g0, g1, g2 = fx * iz, skew * iz, -(u - cx) * iz
+    jac[ru, 0] = x1 * g2 - x2 * g1
+    jac[ru, 1] = x2 * g0 - x0 * g2
+    jac[ru, 2] = x0 * g1 - x1 * g0
+    jac[ru, 3], jac[ru, 4], jac[ru, 5] = g0, g1, g2
+    h0, h1, h2 = 0.0, fy * iz, -(v - cy) * iz
+    jac[rv, 0] = x1 * h2 - x2 * h1
+    jac[rv, 1] = x2 * h0 - x0 * h2
+    jac[rv, 2] = x0 * h1 - x1 * h0
+    jac[rv, 3], jac[rv, 4], jac[rv, 5] = h0, h1, h2
 
 
 @njit(error_model="numpy")

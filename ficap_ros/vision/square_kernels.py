@@ -18,8 +18,10 @@ import math
 
 import numpy as np
 
+from ficap_ros.vision.fit_kernels import tag_homography
 from ficap_ros.vision.jit import njit, register_warm_up
 from ficap_ros.vision.kernels import frozen
+from ficap_ros.vision.pose_kernels import corner_rows
 
 __all__ = ["square_tag_corners"]
 
@@ -38,19 +40,14 @@ def _start_rotations(m: np.ndarray, rot1: np.ndarray, rot2: np.ndarray) -> bool:
     Collins and Bartoli 2014: a plane's pose from one point's affine map, unique up to the
     tilt's sign; the homography in closed form, Heckbert's square-to-quadrilateral map). Writes
     ``rot1``, ``rot2`` (3, 3); False for a degenerate quadrilateral."""
-    x0, y0, x1, y1 = m[0, 0], m[0, 1], m[1, 0], m[1, 1]
-    x2, y2, x3, y3 = m[2, 0], m[2, 1], m[3, 0], m[3, 1]
-    dx1, dx2, dx3 = x1 - x2, x3 - x2, x0 - x1 + x2 - x3
-    dy1, dy2, dy3 = y1 - y2, y3 - y2, y0 - y1 + y2 - y3
-    den = dx1 * dy2 - dx2 * dy1
-    if not (math.isfinite(den) and den != 0.0):
+    hm = np.empty((3, 3))
+    if not tag_homography(m, hm):
         return False
-    g = (dx3 * dy2 - dx2 * dy3) / den
-    h = (dx1 * dy3 - dx3 * dy1) / den
-    # The unit square's map (s, t) -> image; the centred square's (s = (x + 1) / 2, t = (y + 1) / 2)
-    # has half its columns and the unit square's centre as its origin.
-    ax, ay, az = 0.5 * (x1 - x0 + g * x1), 0.5 * (y1 - y0 + g * y1), 0.5 * g
-    bx, by, bz = 0.5 * (x3 - x0 + h * x3), 0.5 * (y3 - y0 + h * y3), 0.5 * h
+    # The tag's map from cell units (0-8) to the image; the centred square's (u = 4 (x + 1)) has
+    # four cells' columns and the tag's centre as its origin.
+    ax, ay, az = 4.0 * hm[0, 0], 4.0 * hm[1, 0], 4.0 * hm[2, 0]
+    bx, by, bz = 4.0 * hm[0, 1], 4.0 * hm[1, 1], 4.0 * hm[2, 1]
+    x0, y0 = hm[0, 2], hm[1, 2]
     ox, oy, oz = x0 + ax + bx, y0 + ay + by, 1.0 + az + bz
     p, q = ox / oz, oy / oz
     j00, j01 = (ax - p * az) / oz, (bx - p * bz) / oz
@@ -187,29 +184,12 @@ def _gauss_newton_step(res: np.ndarray, jac: np.ndarray, a: np.ndarray, step: np
 def _residuals(rot: np.ndarray, t: np.ndarray, K: np.ndarray, image_px: np.ndarray, square: np.ndarray,
                res: np.ndarray, jac: np.ndarray) -> None:
     """Residuals (8,) px (projection - corner) of the square at (rot, t) and their Jacobian (8, 6)
-    (a left rotation d_theta, then d_t), as ``pose_kernels.reprojection_rt`` builds them."""
-    fx, fy, skew, cx, cy = K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2]
+    (a left rotation d_theta, then d_t): ``pose_kernels.corner_rows`` of each corner."""
     for i in range(4):
         x0 = rot[0, 0] * square[i, 0] + rot[0, 1] * square[i, 1]
         x1 = rot[1, 0] * square[i, 0] + rot[1, 1] * square[i, 1]
         x2 = rot[2, 0] * square[i, 0] + rot[2, 1] * square[i, 1]
-        iz = 1.0 / (x2 + t[2])
-        xn, yn = (x0 + t[0]) * iz, (x1 + t[1]) * iz
-        u = fx * xn + skew * yn + cx
-        v = fy * yn + cy
-        ru, rv = 2 * i, 2 * i + 1
-        res[ru] = u - image_px[i, 0]
-        res[rv] = v - image_px[i, 1]
-        g0, g1, g2 = fx * iz, skew * iz, -(u - cx) * iz
-        jac[ru, 0] = x1 * g2 - x2 * g1
-        jac[ru, 1] = x2 * g0 - x0 * g2
-        jac[ru, 2] = x0 * g1 - x1 * g0
-        jac[ru, 3], jac[ru, 4], jac[ru, 5] = g0, g1, g2
-        h1, h2 = fy * iz, -(v - cy) * iz
-        jac[rv, 0] = x1 * h2 - x2 * h1
-        jac[rv, 1] = x2 * 0.0 - x0 * h2
-        jac[rv, 2] = x0 * h1
-        jac[rv, 3], jac[rv, 4], jac[rv, 5] = 0.0, h1, h2
+        corner_rows(x0, x1, x2, t, K, image_px[i, 0], image_px[i, 1], res, jac, i)
 
 
 @njit(inline="always", error_model="numpy")
