@@ -39,8 +39,8 @@ tags' mean scale coefficient, scaled back by the share left (``uncertainty_kerne
 the offset, and the scale coefficients' scatter its standard error. Its size follows the depth
 error on path-traced renders across cameras, lights and tone curves
 (``benchmarks/bench_uncertainty.py``): the edge profile states the offset as measured, with its
-standard error beside it (``common_offset_gain`` and ``common_offset_se_gain`` 1, the factor the
-leave-one-set-out fit on those renders picks). Its sign does not follow the depth error from one
+standard error beside it (``common_offset_gain`` and ``common_offset_se_gain`` 1; the
+leave-one-set-out fit on those renders checks the factor). Its sign does not follow the depth error from one
 recording to the next (``seen["bias_common_signed"]``: with the error on some renders, against it
 on an as-built cap and through fast glances), and where the offset differs from tag to tag its
 mean need not be what moves the depth (the tags that fix the depth may carry little of it), so it
@@ -128,8 +128,8 @@ class UncertaintyConfig:
     The light gains and ``residual_inflation`` are calibrated on ``ficap synth`` drives
     (the smallest bounds whose rotation and translation bounds cover at least 90 % in every
     lighting and resolution condition). The edge profile's offset gain is fitted on the path-traced
-    renders leave one set out (bench_uncertainty states the rule): one gain on the measured offset
-    and its standard error comes out at 1, the offset as measured, in the folds; a joint fit with
+    renders leave one set out (bench_uncertainty states the rule and the gain each fold picks): one
+    gain on the measured offset and its standard error states the offset as measured; a joint fit with
     ``shared_bias_gain`` trades the two terms for each other and leaves the set whose depth error
     follows the offset under-covered. Both are checked, not fitted, on synth drives.
     ``benchmarks/bench_uncertainty.py`` runs both checks and the leave-one-set-out fit
