@@ -256,7 +256,7 @@ def main(argv: list[str] | None = None) -> int:
     searched_frames = args.searched_frames or (60 if args.quick else 600)
     import cv2
 
-    from ficap_ros.tools.replay import keep_freed_memory
+    from ficap_ros.process import keep_freed_memory
 
     core = args.core if args.core is not None else max(os.sched_getaffinity(0))
     os.sched_setaffinity(0, {core})  # the command's children inherit it

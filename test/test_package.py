@@ -15,10 +15,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "ficap_ros"
 
-#: Bottom up. The loose modules (errors, files, stamps) are the bottom layer every subpackage uses.
+#: Bottom up. The loose modules (errors, files, process, stamps) are the bottom layer every subpackage uses.
 LAYERS = ["", "geometry", "vision", "io", "tools", "ros", "cli"]
 #: The loose modules at the top of ficap_ros/ (the bottom layer), besides ``__init__``.
-LOOSE = {"errors", "files", "stamps"}
+LOOSE = {"errors", "files", "process", "stamps"}
 
 
 def _layer(path: Path) -> str:

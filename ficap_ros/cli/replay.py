@@ -185,7 +185,8 @@ def run(args: argparse.Namespace) -> int:
     from ficap_ros.cli.args import EXIT_FRAMES_LOST
     from ficap_ros.files import check_output_folder
     from ficap_ros.geometry.cap_model import load_model, nominal_model
-    from ficap_ros.tools.replay import freeze_start_up, keep_freed_memory, replay
+    from ficap_ros.process import freeze_start_up, keep_freed_memory
+    from ficap_ros.tools.replay import replay
     from ficap_ros.vision.detector import DetectorConfig
     from ficap_ros.vision.pose import PoseConfig
 

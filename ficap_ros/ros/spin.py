@@ -3,7 +3,6 @@ errors on one line (``ficap_ros.ros.node.main``)."""
 
 from __future__ import annotations
 
-import gc
 import re
 import sys
 from typing import Callable
@@ -15,6 +14,7 @@ from rclpy.node import Node
 
 from ficap_ros.errors import FicapError, missing_module
 from ficap_ros.io.native_log import ThrottledStderr
+from ficap_ros.process import freeze_start_up
 
 __all__ = ["make_executor", "run_node", "wants_help", "params_files", "check_params_files"]
 
@@ -100,11 +100,7 @@ def run_node(make_node: Callable[[], Node], name: str, args: list[str] | None = 
     code = 0
     try:
         node = make_node()
-        # The imports and the warmed kernels live as long as the process: out of the garbage
-        # collector's full collections, which would otherwise walk them all again mid-stream
-        # (a pause of frames at 30 Hz). Only live objects are frozen (collected first).
-        gc.collect()
-        gc.freeze()
+        freeze_start_up()  # the imports and warmed kernels: no full collection walks them mid-stream
         log = node.get_logger()
         # libjpeg/FFmpeg print per damaged frame on fd 2: through the logger, throttled.
         with ThrottledStderr(lambda text: log.warning(text)):

@@ -49,6 +49,7 @@ from ficap_ros.io.labels import (
     write_labels_bag,
 )
 from ficap_ros.io.sources import FrameSource, Loss, RawFrame, decode_raw
+from ficap_ros.process import freeze_start_up, keep_freed_memory
 from ficap_ros.tools.worker_pool import parallel_frames
 from ficap_ros.vision.calibration import HeadCalibration, frontal_from_camera_mount
 from ficap_ros.vision.detector import DetectorConfig
@@ -107,52 +108,6 @@ class ReplayedFrame:
 
 
 # -- worker side ---------------------------------------------------------------------------------
-def keep_freed_memory() -> bool:
-    """Let this process's allocator keep freed large blocks for reuse (glibc ``mallopt``; a
-    no-op returning False elsewhere). For processes of our own that run the pipeline over many
-    frames: the command's, its workers.
-
-    Every frame allocates and frees the same few MB of large buffers (the JPEG payload, the
-    decoded image, the refinement's sample grids). glibc's defaults hand large freed blocks back
-    to the system (blocks above its mmap threshold unmapped, the heap's top trimmed), and the next
-    frame faults the pages in again. Here blocks up to 8 MB are served from the heap, its top is
-    trimmed only past 64 MB free and grown 16 MB at a time: far fewer page faults for the same
-    peak memory (docs/benchmarks.md). The labels do not depend on it.
-    """
-    if not sys.platform.startswith("linux"):
-        return False
-    import ctypes
-
-    try:
-        mallopt = ctypes.CDLL(None).mallopt
-    except (OSError, AttributeError):
-        return False
-    mallopt.argtypes, mallopt.restype = [ctypes.c_int, ctypes.c_int], ctypes.c_int
-    m_trim_threshold, m_top_pad, m_mmap_threshold = -1, -2, -3  # <malloc.h>
-    # Each call returns 1 on success (musl's stub: 0).
-    return all([mallopt(m_mmap_threshold, 8 << 20) == 1, mallopt(m_trim_threshold, 64 << 20) == 1,
-                mallopt(m_top_pad, 16 << 20) == 1])
-
-
-def freeze_start_up() -> None:
-    """Collect the garbage, then move every object this process still holds into the cyclic
-    garbage collector's permanent generation (``gc.freeze``), out of its later collections. For
-    processes of our own that run the pipeline over many frames, once their start-up (the
-    imports, the recording opened) is done.
-
-    The start-up leaves a few hundred thousand objects (modules, classes, functions, the message
-    types' tables) that live as long as the process; every full collection would walk them all
-    again, the frames' allocations trigger such collections, and the interpreter makes one more
-    when it exits. Only live objects are frozen (the collection first); they are still freed when
-    their last reference goes, only a reference cycle among them stays. The labels do not depend
-    on it.
-    """
-    import gc
-
-    gc.collect()
-    gc.freeze()
-
-
 _PROCESSOR: FrameProcessor | None = None
 _DONE: Any = None  # frames finished in this pool (a shared counter), for the progress bar
 _TWO_SIDED = True  # frames solved again with the next frame's pose (``vision.two_sided``)

@@ -154,46 +154,6 @@ def test_jobs_2_progress_moves_frame_by_frame(drive: Path) -> None:
     assert len({n for n in seen if 0 < n < FRAMES}) >= 2  # not one jump from 0 to the segment
 
 
-def test_keep_freed_memory_takes_on_glibc() -> None:
-    """The replay's allocator setting (replay.keep_freed_memory): glibc takes it (this project's
-    platform); elsewhere it says it did nothing, and the labels never depend on it."""
-    import platform
-    import sys
-
-    from ficap_ros.tools.replay import keep_freed_memory
-
-    expected = sys.platform.startswith("linux") and platform.libc_ver()[0] == "glibc"
-    assert keep_freed_memory() is expected
-
-
-def test_freeze_start_up_collects_then_takes_live_objects_out_of_collections() -> None:
-    """replay.freeze_start_up: a reference cycle nothing holds is collected, not frozen; what is
-    alive leaves the collector's generations (gc.get_objects lists none of it); the collector
-    still runs on what comes after."""
-    import gc
-    import weakref
-
-    from ficap_ros.tools.replay import freeze_start_up
-
-    class Node:
-        pass
-
-    garbage = Node()
-    garbage.self = garbage  # a cycle: only the collector frees it
-    gone = weakref.ref(garbage)
-    del garbage
-    alive = [[]]  # a container the collector tracks
-    try:
-        freeze_start_up()
-        assert gone() is None
-        assert gc.get_freeze_count() > 0 and gc.isenabled()
-        later = [[]]
-        tracked = {id(o) for o in gc.get_objects()}
-        assert id(alive) not in tracked and id(later) in tracked
-    finally:
-        gc.unfreeze()  # the test process's objects back in the collections
-
-
 def test_records_take_the_runs_calibration_and_say_what_was_lost(drive: Path, tmp_path: Path) -> None:
     """An engine hands back each frame's record (uncalibrated) and timings; replay applies the
     run's calibration to every record, and an undecodable frame is one by its status: labels.csv
