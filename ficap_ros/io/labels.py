@@ -573,7 +573,8 @@ def _frame_messages(rec: FrameRecord, frames: OutputFrames,
     return out
 
 
-#: Records whose detections' homographies ``write_labels_bag`` solves at once.
+#: Records whose detections' homographies ``write_labels_bag`` solves at once (one solve's fixed cost
+#: shared; the block bounds its (tags, 8, 8) systems' memory on long recordings).
 _HOMOGRAPHY_BLOCK = 256
 
 

@@ -11,12 +11,10 @@ from __future__ import annotations
 import numpy as np
 
 from ficap_ros.geometry.tag36h11 import TAG_CELLS
+from ficap_ros.vision.edges import NEXT
 from ficap_ros.vision.reprojection import median
 
 __all__ = ["light_gradient_px", "edge_shift_mean_px", "shared_bias_ratio"]
-
-#: Each corner's successor around the tag (``np.roll(corners, -1, axis=1)``'s order, indexed).
-_NEXT_CORNER = np.array([1, 2, 3, 0])
 
 
 def light_gradient_px(edge_shift_px: np.ndarray, centres_px: np.ndarray) -> float:
@@ -65,6 +63,6 @@ def shared_bias_ratio(corners_px: np.ndarray, tag_sigma_px: np.ndarray) -> float
         tag_sigma_px: (tags,) each tag's corner noise, px.
     """
     c = np.asarray(corners_px, dtype=float)
-    side_px = np.linalg.norm(c - c[:, _NEXT_CORNER], axis=2).mean(axis=1)
+    side_px = np.linalg.norm(c - c[:, NEXT], axis=2).mean(axis=1)
     cell_px = max(median(side_px) / TAG_CELLS, 1e-6)
     return median(tag_sigma_px) / cell_px

@@ -49,6 +49,7 @@ from ficap_ros.geometry.camera import CameraModel, CameraTiming
 from ficap_ros.geometry.cap_model import TAG_SIDE_MM, CapModel
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.vision.detector import TagDetection
+from ficap_ros.vision.edges import PREV
 from ficap_ros.vision.error_bounds import error_bound95
 from ficap_ros.vision.motion import (
     MotionConfig,
@@ -332,11 +333,8 @@ def _tag_frame(corners_m: np.ndarray) -> Transform:
 
 def _side_px(image_px: np.ndarray) -> np.ndarray:
     """Mean side length of each tag (T,) in px."""
-    return np.mean(np.linalg.norm(image_px - image_px[:, _PREVIOUS_CORNER], axis=-1), axis=-1)
+    return np.mean(np.linalg.norm(image_px - image_px[:, PREV], axis=-1), axis=-1)
 
-
-#: Each corner's predecessor around the tag (``np.roll(corners, 1, axis=1)``'s order, indexed).
-_PREVIOUS_CORNER = np.array([3, 0, 1, 2])
 
 
 def _inlier_threshold(obs: TagObservations, config: PoseConfig) -> np.ndarray:

@@ -97,7 +97,7 @@ def corner_rate_px_s(Y: np.ndarray, turns: np.ndarray, shifts_m: np.ndarray, t: 
     (2, 3), m. ``reprojection.moving_points_m`` and ``project_px``'s operations in their order:
     the turn's row products summed as numpy's ``einsum`` sums three (first and third, then the
     second), then ``+ t + shift``, then ``K00 x / z + K01 y / z + K02``; the same values to the
-    bit as numpy's on the machines it was checked on (no fused multiply-add)."""
+    bit as numpy's where neither fuses a multiply and an add (test_pose_kernels checks it)."""
     n = Y.shape[0]
     out = np.empty((n, 2))
     uv = np.empty((2, 2))

@@ -21,6 +21,7 @@ from ficap_ros.geometry.camera import CameraModel
 from ficap_ros.geometry.cap_model import CapModel
 from ficap_ros.geometry.transform import Transform
 from ficap_ros.vision.detector import TagDetection
+from ficap_ros.vision.pose_kernels import reprojection_rt, tag_errors_px
 from ficap_ros.vision.square_kernels import square_tag_corners
 
 __all__ = [
@@ -169,8 +170,6 @@ def reprojection_errors_px(obs_px: np.ndarray, K: np.ndarray, T: Transform, mode
     pinhole projection of ``project_px``, each corner's squared distance, the mean of a tag's
     four. The model points are rotated here (numpy), the rest is the compiled
     ``pose_kernels.tag_errors_px`` (the same values to the bit)."""
-    from ficap_ros.vision.pose_kernels import tag_errors_px
-
     X = np.asarray(model_m, dtype=np.float64).reshape(-1, 3) @ T.rotation_matrix.T
     return tag_errors_px(np.ascontiguousarray(X), T.translation_m, np.asarray(K, dtype=np.float64),
                          np.ascontiguousarray(obs_px, dtype=np.float64).reshape(-1, 2))
@@ -187,9 +186,6 @@ def residuals_and_jacobian_rt(
     are rotated here (numpy), the rest is the compiled ``pose_kernels.reprojection_rt``'s (one
     pass over the corners, the same values to the bit).
     """
-    # Imported where used: numba loads with it, and a labels-only command never reprojects.
-    from ficap_ros.vision.pose_kernels import reprojection_rt
-
     X = np.asarray(model_m, dtype=np.float64).reshape(-1, 3) @ np.asarray(R, dtype=np.float64).T
     return reprojection_rt(np.ascontiguousarray(X),
                            np.ascontiguousarray(t, dtype=np.float64).reshape(3),

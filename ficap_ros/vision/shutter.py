@@ -129,7 +129,7 @@ def readout_evidence(obs: TagObservations, T: Transform, velocity: np.ndarray,
     rows ``rows_px`` (N,)) whose cap moves at ``velocity``; None for a still cap or too few
     corners."""
     # A cap too slow by the bound cannot pass the speed test below: skip its projections.
-    if 8 * len(obs) < 16 or speed_bound_px_s(obs, T, velocity) < _BOUND_MARGIN * MIN_SPEED_PX_S:
+    if len(obs) < 2 or speed_bound_px_s(obs, T, velocity) < _BOUND_MARGIN * MIN_SPEED_PX_S:
         return None
     res, J = residuals_and_jacobian(T, obs)
     speed = _corner_velocity_px_s(obs, T, velocity)

@@ -29,7 +29,7 @@ __all__ = ["square_tag_corners"]
 #: than this, px^2, ends its fit (its corners then move by well under a thousandth of a px).
 _CONVERGED_PX2 = 1e-12
 #: The square's corners in its own plane (half-side 1; corner order and axes as the tag's cells:
-#: c0 top left, x right, y down), homogeneous.
+#: c0 top left, x right, y down), its z 0.
 _SQUARE = np.array([[-1.0, -1.0], [1.0, -1.0], [1.0, 1.0], [-1.0, 1.0]])
 
 
@@ -91,7 +91,7 @@ def _start_rotations(m: np.ndarray, rot1: np.ndarray, rot2: np.ndarray) -> bool:
 
 
 @njit(inline="always", error_model="numpy")
-def _start_translation(m: np.ndarray, rot: np.ndarray, square: np.ndarray, t: np.ndarray) -> bool:
+def _start_translation(m: np.ndarray, rot: np.ndarray, t: np.ndarray) -> bool:
     """``t`` (3,) <- the square's translation at rotation ``rot`` that best fits the normalised
     corners ``m`` (4, 2) (linear least squares of the projection's cross-multiplied equations);
     False where they are singular."""
@@ -100,9 +100,9 @@ def _start_translation(m: np.ndarray, rot: np.ndarray, square: np.ndarray, t: np
     su = sv = suv = 0.0
     g0 = g1 = g2 = 0.0
     for i in range(4):
-        xx = rot[0, 0] * square[i, 0] + rot[0, 1] * square[i, 1]
-        xy = rot[1, 0] * square[i, 0] + rot[1, 1] * square[i, 1]
-        xz = rot[2, 0] * square[i, 0] + rot[2, 1] * square[i, 1]
+        xx = rot[0, 0] * _SQUARE[i, 0] + rot[0, 1] * _SQUARE[i, 1]
+        xy = rot[1, 0] * _SQUARE[i, 0] + rot[1, 1] * _SQUARE[i, 1]
+        xz = rot[2, 0] * _SQUARE[i, 0] + rot[2, 1] * _SQUARE[i, 1]
         u, v = m[i, 0], m[i, 1]
         ru, rv = u * xz - xx, v * xz - xy
         su += u
@@ -181,14 +181,14 @@ def _gauss_newton_step(res: np.ndarray, jac: np.ndarray, a: np.ndarray, step: np
 
 
 @njit(inline="always", error_model="numpy")
-def _residuals(rot: np.ndarray, t: np.ndarray, K: np.ndarray, image_px: np.ndarray, square: np.ndarray,
+def _residuals(rot: np.ndarray, t: np.ndarray, K: np.ndarray, image_px: np.ndarray,
                res: np.ndarray, jac: np.ndarray) -> None:
     """Residuals (8,) px (projection - corner) of the square at (rot, t) and their Jacobian (8, 6)
     (a left rotation d_theta, then d_t): ``pose_kernels.corner_rows`` of each corner."""
     for i in range(4):
-        x0 = rot[0, 0] * square[i, 0] + rot[0, 1] * square[i, 1]
-        x1 = rot[1, 0] * square[i, 0] + rot[1, 1] * square[i, 1]
-        x2 = rot[2, 0] * square[i, 0] + rot[2, 1] * square[i, 1]
+        x0 = rot[0, 0] * _SQUARE[i, 0] + rot[0, 1] * _SQUARE[i, 1]
+        x1 = rot[1, 0] * _SQUARE[i, 0] + rot[1, 1] * _SQUARE[i, 1]
+        x2 = rot[2, 0] * _SQUARE[i, 0] + rot[2, 1] * _SQUARE[i, 1]
         corner_rows(x0, x1, x2, t, K, image_px[i, 0], image_px[i, 1], res, jac, i)
 
 
@@ -201,7 +201,7 @@ def _refine(rot: np.ndarray, t: np.ndarray, K: np.ndarray, image_px: np.ndarray,
     squares (inf where a step fails or the square ends behind the camera)."""
     last = np.inf
     for _ in range(iterations):
-        _residuals(rot, t, K, image_px, _SQUARE, res, jac)
+        _residuals(rot, t, K, image_px, res, jac)
         cost = 0.0
         for i in range(8):
             cost += res[i] * res[i]
@@ -214,7 +214,7 @@ def _refine(rot: np.ndarray, t: np.ndarray, K: np.ndarray, image_px: np.ndarray,
         t[0], t[1], t[2] = t[0] + step[3], t[1] + step[4], t[2] + step[5]
     if not t[2] > 0.0:
         return np.inf
-    _residuals(rot, t, K, image_px, _SQUARE, res, jac)
+    _residuals(rot, t, K, image_px, res, jac)
     cost = 0.0
     for i in range(8):
         cost += res[i] * res[i]
@@ -258,7 +258,7 @@ def square_tag_corners(corners_px: np.ndarray, K: np.ndarray, iterations: int,
             continue
         best = np.inf
         for rot in (rot1, rot2):
-            if not _start_translation(m, rot, _SQUARE, t):
+            if not _start_translation(m, rot, t):
                 continue
             cost = _refine(rot, t, K, corners_px[g], res, jac, a, step, iterations)
             if cost < best:

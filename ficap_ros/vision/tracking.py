@@ -35,7 +35,7 @@ from ficap_ros.geometry.transform import Transform
 from ficap_ros.vision.cell_reads import read_cells
 from ficap_ros.vision.corners import refine_tag_corners
 from ficap_ros.vision.detector import TagDetection, TagDetector
-from ficap_ros.vision.edges import refine_corners_edge_ok
+from ficap_ros.vision.edges import PREV, refine_corners_edge_ok
 from ficap_ros.vision.motion import MotionPrior, PastPose
 from ficap_ros.vision.pose import CapPose, PoseConfig, PoseResult, estimate_cap_pose
 
@@ -132,7 +132,7 @@ def predict_tags(
         return np.zeros(0, dtype=int), np.zeros((0, 4, 2))
     ids = np.asarray(model.ids)[facing]
     px = camera.project(T_cam_cap.apply(model.corners_mm[facing].reshape(-1, 3) / 1000.0)).reshape(-1, 4, 2)
-    side = np.linalg.norm(px - np.roll(px, 1, axis=1), axis=2).min(axis=1)
+    side = np.linalg.norm(px - px[:, PREV], axis=2).min(axis=1)
     b = cfg.border_px
     inside = (
         np.all(np.isfinite(px), axis=(1, 2))

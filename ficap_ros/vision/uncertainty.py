@@ -75,6 +75,7 @@ from ficap_ros.vision.reprojection import (
     median,
     residuals_and_jacobian,
 )
+from ficap_ros.vision.uncertainty_kernels import propagated_terms
 
 __all__ = [
     "UncertaintyConfig",
@@ -417,9 +418,6 @@ def _propagated(obs: TagObservations, T: Transform, res: np.ndarray, J: np.ndarr
                                                                np.ndarray]:
     """``uncertainty_terms``' unit covariances by name, what the residuals show by name, and the
     fit's map in ROS order (6, 2n): the compiled ``uncertainty_kernels.propagated_terms``."""
-    # Imported where used: numba loads with it.
-    from ficap_ros.vision.uncertainty_kernels import propagated_terms
-
     if tag_sigma_px is None:
         rel = np.ones(len(obs))
     else:
