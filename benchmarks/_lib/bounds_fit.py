@@ -26,6 +26,7 @@ from ficap_ros.vision.error_bounds import error_bound95
 from ficap_ros.vision.uncertainty import (
     UncertaintyConfig,
     combine_uncertainty,
+    common_offset_mode,
     uncertainty_bounds,
 )
 
@@ -196,10 +197,9 @@ def binomial_reading(misses: int, frames: int, p_miss: float = 0.05) -> str:
 
 def offset_mode_mm(frame: FrameTerms) -> np.ndarray:
     """(3,) the translation (camera axes, mm) one px of outward common radial offset causes: the
-    mode of ``terms["bias_common"]`` (a rank-one a a^T, its sign lost), oriented toward the camera
+    mode (``uncertainty.common_offset_mode``), oriented toward the camera
     (-z): every tag's corners moved outward is a larger image, a closer cap."""
-    lam, vec = np.linalg.eigh(1e6 * frame.terms["bias_common"][:3, :3])
-    a = vec[:, -1] * np.sqrt(max(float(lam[-1]), 0.0))
+    a = 1e3 * common_offset_mode(frame.terms)[:3]
     return a if a[2] <= 0.0 else -a
 
 

@@ -84,6 +84,7 @@ __all__ = [
     "tag_noise_from_residuals",
     "reweighted",
     "uncertainty_terms",
+    "common_offset_mode",
     "uncertainty_sources",
     "combine_uncertainty",
     "uncertainty_bounds",
@@ -510,6 +511,16 @@ def combine_uncertainty(terms: dict[str, np.ndarray], seen: dict[str, float],
     return cov
 
 
+def common_offset_mode(terms: dict[str, np.ndarray]) -> np.ndarray:
+    """(6,) ROS order: the pose error one px of the tags' common radial offset causes, the mode
+    ``a`` of ``terms["bias_common"]`` (a a^T, one mode shared by all tags) from its largest column;
+    its sign is the matrix's to lose (an outward offset, a larger image, brings the cap closer:
+    the caller orients it where the sign matters)."""
+    unit = terms["bias_common"]
+    j = int(np.argmax(np.diagonal(unit)))
+    return unit[:, j] / np.sqrt(max(float(unit[j, j]), 1e-300))
+
+
 def uncertainty_bounds(terms: dict[str, np.ndarray], seen: dict[str, float],
                        config: UncertaintyConfig,
                        covariance: np.ndarray) -> tuple[np.ndarray, tuple[float, float]]:
@@ -526,10 +537,7 @@ def uncertainty_bounds(terms: dict[str, np.ndarray], seen: dict[str, float],
         random part's variance in each block: each residual pattern group's sigma was pooled
         from ``<group>_dof`` coefficients; the floors and light terms count as known."""
     k = config.residual_inflation
-    unit = terms["bias_common"]  # a a^T (one mode shared by all tags): a from its largest column
-    j = int(np.argmax(np.diagonal(unit)))
-    offset = (unit[:, j] / np.sqrt(max(float(unit[j, j]), 1e-300))
-              * k * config.common_offset_gain * seen.get("bias_common", 0.0))
+    offset = common_offset_mode(terms) * k * config.common_offset_gain * seen.get("bias_common", 0.0)
     if not np.all(np.isfinite(offset)):
         offset = np.zeros(6)
     diag = (np.diagonal(covariance) - offset * offset).tolist()

@@ -21,6 +21,7 @@ from ficap_ros.vision.tracking import view_angles_deg
 from ficap_ros.vision.uncertainty import (
     UncertaintyConfig,
     combine_uncertainty,
+    common_offset_mode,
     uncertainty_bounds,
     uncertainty_sources,
     uncertainty_terms,
@@ -179,9 +180,7 @@ def test_the_signed_common_offset_predicts_the_pose_error(offset_px: float) -> N
     terms, seen = uncertainty_terms(obs, pose.T_cam_cap)
     assert seen["bias_common_signed"] == pytest.approx(offset_px, rel=0.05)
     assert seen["bias_common"] == pytest.approx(abs(offset_px), rel=0.05)
-    unit = terms["bias_common"][:3, :3]
-    lam, vec = np.linalg.eigh(unit)
-    a_m = vec[:, -1] * np.sqrt(lam[-1])
+    a_m = common_offset_mode(terms)[:3]
     a_m = a_m if a_m[2] < 0.0 else -a_m  # outward: toward the camera
     error_m = pose.T_cam_cap.translation_m - T.translation_m
     predicted_m = a_m * seen["bias_common_signed"]
