@@ -162,9 +162,9 @@ def decode_round(d: Drive) -> None:
 
 def own_decoder(d: Drive) -> str:
     """Which decoder ``image_codec.decode_compressed`` uses for the drive's JPEGs."""
-    from ficap_ros.io.image_codec import _fast_decodable, _simplejpeg
+    from ficap_ros.io.image_codec import jpeg_decoder
 
-    return "simplejpeg" if _simplejpeg() is not None and _fast_decodable(d.raws[0][0]) else "cv2.imdecode"
+    return jpeg_decoder(d.raws[0][0])
 
 
 def instrumented(d: Drive) -> tuple[dict[str, float], float, float]:
@@ -310,17 +310,18 @@ def main(argv: list[str] | None = None) -> int:
                      f"{at3 - dec:.1f} / {ours - dec:.1f} = {(at3 - dec) / (ours - dec):.1f}x",
                      f"{d.summary.get('frames_with_pose', 0)}/{d.frames}", f"{d.ours_tags:.1f} / {d.at3_tags:.1f}",
                      f"{d.frames / np.median(d.command_wall_s):.0f}"])
+    decoder = own_decoder(drives[0])
     table = report.md_table(["drive", "frames", "ficap replay ms/frame (whole command)",
                              "AprilTag 3 ms/frame (decode + detect + pose)", "AprilTag 3 / ficap",
                              "JPEG decode alone ms/frame (cv2.imdecode grey)", "ficap / decode alone",
-                             f"the command's decode alone ms/frame ({own_decoder(drives[0])}; / cv2's)",
+                             f"the command's decode alone ms/frame ({decoder}; / cv2's)",
                              "--photometric ms/frame (AprilTag 3 / it, it / decode)",
                              "without the decode: AprilTag 3 / ficap",
                              "frames with a pose (ficap)", "tags/frame: ficap / AprilTag 3",
                              "ficap replay frames/s (wall)"], rows)
     labels = list(dict.fromkeys(label for *_m, label in STAGES))
     srows = []
-    own_label = f"JPEG decode (the command's: {own_decoder(drives[0])})"
+    own_label = f"JPEG decode (the command's: {decoder})"
     for label in [own_label] + labels + ["pass total (decode + pipeline)",
                                                                     "the command's rest (start-up, bag, labels)"]:
         row = [label]

@@ -39,7 +39,7 @@ import numpy as np
 from ficap_ros.errors import ConfigError, ImageError
 from ficap_ros.io.native_log import call_capturing_stderr
 
-__all__ = ["ENCODINGS", "encoding_layout", "decode_image", "decode_compressed", "compressed_size",
+__all__ = ["ENCODINGS", "encoding_layout", "decode_image", "decode_compressed", "jpeg_decoder", "compressed_size",
            "check_compressed",
            "check_pixel_budget", "max_pixels", "DEFAULT_MAX_PIXELS", "DamagedImageError"]
 
@@ -331,6 +331,12 @@ def _fast_decodable(head: np.ndarray) -> bool:
     return False
 
 
+def jpeg_decoder(buf: np.ndarray) -> str:
+    """Which decoder ``decode_compressed`` gives the JPEG ``buf`` (uint8): ``"simplejpeg"`` where
+    it is installed and the stream is ``_fast_decodable``, else ``"cv2.imdecode"``."""
+    return "simplejpeg" if _simplejpeg() is not None and _fast_decodable(buf) else "cv2.imdecode"
+
+
 def _decode_jpeg_fast(buf: np.ndarray) -> np.ndarray | None:
     """``buf`` (a JPEG) decoded to grey by ``simplejpeg``'s libjpeg-turbo, pixel for pixel what
     ``cv2.imdecode(buf, IMREAD_GRAYSCALE)`` gives, at less cost (no stderr capture: it stops on
@@ -338,9 +344,9 @@ def _decode_jpeg_fast(buf: np.ndarray) -> np.ndarray | None:
     stream is not ``_fast_decodable``, or libjpeg reported anything (an error or any warning):
     the cv2 decoder then decodes it and gives its verdict on damage.
     """
-    codec = _simplejpeg()
-    if codec is None or not _fast_decodable(buf):
+    if jpeg_decoder(buf) != "simplejpeg":
         return None
+    codec = _simplejpeg()
     try:
         img = codec.decode_jpeg(buf, colorspace="GRAY", fastdct=False, fastupsample=False,
                                 strict=True)

@@ -377,3 +377,23 @@ def test_damaged_and_cut_jpegs_get_the_same_verdict_with_or_without_simplejpeg(
         image_codec._simplejpeg.cache_clear()
     kinds = {kind for kind, _ in with_simplejpeg}
     assert {"image", "DamagedImageError"} <= kinds
+
+
+def test_jpeg_decoder_names_the_decoder_decode_compressed_takes() -> None:
+    """``jpeg_decoder``: a plain JPEG goes to simplejpeg (installed here), one with an Exif
+    orientation to OpenCV (which turns it by it)."""
+    from ficap_ros.io.image_codec import jpeg_decoder
+
+    ok, jpeg = cv2.imencode(".jpg", np.full((16, 16), 128, np.uint8))
+    assert ok
+    assert jpeg_decoder(jpeg.reshape(-1)) == "simplejpeg"
+    turned = np.frombuffer(_with_exif_orientation(jpeg.tobytes(), 6), np.uint8)
+    assert jpeg_decoder(turned) == "cv2.imdecode"
+
+
+def test_jpeg_decoder_without_simplejpeg_is_opencv(opencv_only: None) -> None:
+    """Without ``simplejpeg`` every JPEG goes to OpenCV."""
+    from ficap_ros.io.image_codec import jpeg_decoder
+
+    ok, jpeg = cv2.imencode(".jpg", np.full((16, 16), 128, np.uint8))
+    assert ok and jpeg_decoder(jpeg.reshape(-1)) == "cv2.imdecode"
